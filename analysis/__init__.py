@@ -1,0 +1,1 @@
+"""facelab.analysis: session logs -> one tidy table -> statistics, figures and reports."""

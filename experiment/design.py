@@ -1,0 +1,178 @@
+"""Trial design: (protocol, participant, seed) -> the ordered trial list. Pure and deterministic.
+
+Each block has ``sets`` sets; one set shows every (stimulus, condition) pair of the block's
+stimulus set ``presentations_per_condition`` times. The order inside a set is
+
+* ``random_within_set`` - shuffled anew for every set with the participant's generator;
+* ``fixed`` - protocol order: repetition, then stimulus, then condition;
+* ``latin_square`` - the condition order is a row of a balanced (Williams) Latin square,
+  row ``(participant number - 1 + set_index - 1) mod rows``, so participants 1..rows see
+  every order and every condition follows every other equally often; repeated as needed.
+
+The participant's generator is seeded by :func:`participant_seed`, a reproducible function of
+the study seed and the participant id, so the same inputs always give the same trial list and
+different participants get different orders.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import pandas as pd
+
+from experiment.errors import StageError
+from experiment.protocol import Block, Protocol
+
+__all__ = [
+    "TRIAL_COLUMNS",
+    "Trial",
+    "balanced_latin_square",
+    "build_trials",
+    "participant_number",
+    "participant_seed",
+    "trials_frame",
+    "validate_participant_id",
+]
+
+_PARTICIPANT_RE = re.compile(r"^[A-Za-z0-9]{1,32}$")
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One clip presentation. Indices are 1-based, as people count them."""
+
+    trial_index: int  # position in the session, 1..N
+    block: str  # block id
+    set_index: int  # 1..block.sets
+    stimulus_set: str
+    stimulus: str
+    condition: str
+    repetition: int  # 1..presentations_per_condition: nth showing of this pair in this set
+
+
+TRIAL_COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Trial))
+
+
+def validate_participant_id(participant: str) -> str:
+    """Participant ids are 1-32 letters or digits (BIDS labels: used in folder names)."""
+    if not _PARTICIPANT_RE.match(participant):
+        raise StageError(
+            f"participant id {participant!r} is not valid: expected 1-32 letters or digits "
+            "(e.g. P01), no spaces, dashes or underscores"
+        )
+    return participant
+
+
+def participant_number(participant: str) -> int | None:
+    """The trailing number of a participant id (``P07`` -> 7), or None if it has none."""
+    match = re.search(r"(\d+)$", participant)
+    return int(match.group(1)) if match else None
+
+
+def participant_seed(study_seed: int, participant: str) -> int:
+    """A 63-bit seed from the study seed and the participant id (stable across versions).
+
+    SHA-256 of ``"<study_seed>:<participant>"``, first 8 bytes, top bit cleared.
+    """
+    digest = hashlib.sha256(f"{study_seed}:{participant}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") & (2**63 - 1)
+
+
+def balanced_latin_square(k: int) -> list[list[int]]:
+    """Williams' balanced Latin square over ``k`` items, as rows of item indices.
+
+    For even ``k`` there are ``k`` rows; for odd ``k`` the square and its mirror image,
+    ``2k`` rows, so that first-order carry-over is balanced.
+    """
+    if k < 1:
+        raise ValueError("k must be >= 1")
+    base = [0]
+    lo, hi = 1, k - 1
+    for j in range(1, k):
+        if j % 2:
+            base.append(lo)
+            lo += 1
+        else:
+            base.append(hi)
+            hi -= 1
+    rows = [[(x + r) % k for x in base] for r in range(k)]
+    if k % 2:
+        rows += [list(reversed(row)) for row in rows]
+    return rows
+
+
+def _set_sequence(
+    *,
+    protocol: Protocol,
+    block: Block,
+    set_index: int,
+    participant: str,
+    rng: np.random.Generator,
+) -> list[tuple[str, str]]:
+    """(stimulus, condition) pairs of one set, in presentation order."""
+    conditions = protocol.block_conditions(block)
+    stimuli = [s.id for s in protocol.stimulus_set(block.stimulus_set).stimuli]
+    reps = block.presentations_per_condition
+    if block.order == "latin_square":
+        number = participant_number(participant)
+        if number is None:
+            raise StageError(
+                f"block {block.id!r} uses order 'latin_square', which needs participant ids "
+                f"ending in a number (e.g. P01); got {participant!r}"
+            )
+        rows = balanced_latin_square(len(conditions))
+        row = rows[(number - 1 + set_index - 1) % len(rows)]
+        conditions = [conditions[i] for i in row]
+    pairs = [(stim, cond) for _ in range(reps) for stim in stimuli for cond in conditions]
+    if block.order == "random_within_set":
+        order = rng.permutation(len(pairs))
+        pairs = [pairs[i] for i in order]
+    return pairs
+
+
+def build_trials(protocol: Protocol, *, participant: str, seed: int | None = None) -> list[Trial]:
+    """The ordered trial list for one participant.
+
+    Parameters
+    ----------
+    protocol : a validated protocol.
+    participant : participant id (letters and digits).
+    seed : the study seed to use instead of ``protocol.seed`` (e.g. ``--seed``).
+
+    The generator is ``numpy.random.default_rng(participant_seed(seed, participant))``.
+    """
+    validate_participant_id(participant)
+    study_seed = protocol.seed if seed is None else seed
+    rng = np.random.default_rng(participant_seed(study_seed, participant))
+    trials: list[Trial] = []
+    for block in protocol.blocks:
+        for set_index in range(1, block.sets + 1):
+            seen: dict[tuple[str, str], int] = {}
+            for stim, cond in _set_sequence(
+                protocol=protocol,
+                block=block,
+                set_index=set_index,
+                participant=participant,
+                rng=rng,
+            ):
+                seen[(stim, cond)] = seen.get((stim, cond), 0) + 1
+                trials.append(
+                    Trial(
+                        trial_index=len(trials) + 1,
+                        block=block.id,
+                        set_index=set_index,
+                        stimulus_set=block.stimulus_set,
+                        stimulus=stim,
+                        condition=cond,
+                        repetition=seen[(stim, cond)],
+                    )
+                )
+    return trials
+
+
+def trials_frame(trials: list[Trial]) -> pd.DataFrame:
+    """Trials as a tidy DataFrame with :data:`TRIAL_COLUMNS`."""
+    return pd.DataFrame([asdict(t) for t in trials], columns=list(TRIAL_COLUMNS))

@@ -1,0 +1,74 @@
+"""One error hierarchy for facelab.
+
+Every error a user can cause derives from :class:`FacelabError`; the command line turns
+them into one clear message and exit status 2. Anything else is a bug and keeps its
+traceback.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = [
+    "FacelabError",
+    "Issue",
+    "NotBuiltError",
+    "ProtocolError",
+    "StageError",
+]
+
+
+class FacelabError(Exception):
+    """Base class: a problem caused by user input (files, options, data)."""
+
+    exit_code = 2
+
+
+class NotBuiltError(FacelabError):
+    """A command whose stage is not implemented in this version of facelab."""
+
+    exit_code = 3
+
+
+class StageError(FacelabError):
+    """A stage (render, run, analyse …) was given input it cannot use."""
+
+
+@dataclass(frozen=True)
+class Issue:
+    """One problem found in a protocol file.
+
+    ``path`` is the key path inside the document, e.g. ``("conditions", 1, "params", "gain")``;
+    ``line`` is 1-based, or ``None`` when the problem is not tied to a line.
+    """
+
+    path: tuple[str | int, ...]
+    message: str
+    line: int | None = None
+
+    def dotted(self) -> str:
+        out = ""
+        for part in self.path:
+            out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+        return out or "(document)"
+
+
+class ProtocolError(FacelabError):
+    """A protocol file is unreadable or invalid. Holds every problem found, each with its line."""
+
+    def __init__(self, file: Path | str, issues: Sequence[Issue]):
+        self.file = Path(file)
+        self.issues = list(issues)
+        super().__init__(self._format())
+
+    def _format(self) -> str:
+        lines = [
+            f"{self.file}: invalid protocol ({len(self.issues)} problem"
+            f"{'' if len(self.issues) == 1 else 's'})"
+        ]
+        for issue in self.issues:
+            where = f"{self.file}:{issue.line}" if issue.line else f"{self.file}"
+            lines.append(f"  {where}: {issue.dotted()}: {issue.message}")
+        return "\n".join(lines)

@@ -1,0 +1,74 @@
+#!/usr/bin/env bash
+# Idempotent set-up for facelab on Debian with Python >= 3.11:
+#   1. Debian packages that facelab's stages need, installed with apt-get only when missing;
+#   2. a virtual environment in .venv with facelab and all its extras (editable install),
+#      reinstalled only when pyproject.toml changes.
+# Sourced by scripts/demo.sh and scripts/test.sh; safe to run again at any time.
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+
+# ffmpeg: clip encoding; libegl1 + libgl1-mesa-dri: offscreen rendering (EGL);
+# open-jtalk + naist-jdic: phoneme timing; xvfb + xauth: PsychoPy windows without a screen;
+# fonts-noto-cjk: Japanese text in windows and figures; libsndfile1/libportaudio2: audio I/O.
+APT_PACKAGES=(
+  ffmpeg libegl1 libgl1-mesa-dri libglu1-mesa
+  open-jtalk open-jtalk-mecab-naist-jdic
+  xvfb xauth fonts-noto-cjk
+  libsndfile1 libportaudio2 libasound2
+)
+
+log() { printf '[facelab setup] %s\n' "$*" >&2; }
+
+missing=()
+for pkg in "${APT_PACKAGES[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$pkg")
+  fi
+done
+if ((${#missing[@]})); then
+  SUDO=""
+  if [ "$(id -u)" -ne 0 ]; then
+    if command -v sudo >/dev/null 2>&1; then SUDO="sudo"; else
+      log "missing Debian packages: ${missing[*]}"
+      log "run as root (or install sudo): apt-get install ${missing[*]}"
+      exit 1
+    fi
+  fi
+  log "installing Debian packages: ${missing[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get update -qq >/dev/null
+  $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+PYTHON="${PYTHON:-}"
+if [ -z "$PYTHON" ]; then
+  for candidate in python3.11 python3.12 python3; do
+    if command -v "$candidate" >/dev/null 2>&1 &&
+       "$candidate" -c 'import sys; sys.exit(not ((3, 11) <= sys.version_info[:2] < (3, 13)))'; then
+      PYTHON="$(command -v "$candidate")"; break
+    fi
+  done
+fi
+if [ -z "$PYTHON" ]; then
+  log "facelab needs Python 3.11 or 3.12 (psychopy supports < 3.13); none found on PATH"
+  exit 1
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+  log "creating virtual environment $VENV with $PYTHON"
+  "$PYTHON" -m venv "$VENV"
+fi
+
+STAMP="$VENV/.facelab-installed"
+WANT="$(cat "$ROOT/pyproject.toml" | sha256sum | cut -d' ' -f1)"
+if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
+  log "installing facelab and its dependencies into .venv (log: .venv/pip.log)"
+  if ! "$VENV/bin/python" -m pip install -q -e "$ROOT[all]" >"$VENV/pip.log" 2>&1; then
+    grep -v "is ignored: it is neither a file nor a directory" "$VENV/pip.log" | tail -40 >&2
+    log "pip install failed; see .venv/pip.log"
+    exit 1
+  fi
+  echo "$WANT" >"$STAMP"
+fi

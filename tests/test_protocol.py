@@ -1,0 +1,261 @@
+"""Protocol loading: the paper's protocol, round trips, the schema file, and broken files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import pytest
+import yaml
+
+from experiment.cli import main
+from experiment.errors import ProtocolError
+from experiment.protocol import Protocol, load_protocol, schema_json_text
+from tests.conftest import ROOT
+
+
+def test_kato_protocol_matches_the_paper(kato_path: Path) -> None:
+    p = load_protocol(kato_path)
+    assert [c.id for c in p.conditions] == ["baseline", "standard", "emphasized"]
+    assert [c.method for c in p.conditions] == ["viseme_baseline", "vowel_blend", "vowel_blend"]
+    assert [c.params.get("z") for c in p.conditions] == [None, "standard", "emphasized"]
+    vowels = p.stimulus_set("vowels").stimuli
+    assert len(vowels) == 1 and vowels[0].expected_vowels == "aiueo"
+    assert vowels[0].vowel_isolation == ["standard", "emphasized"]
+    assert "TTS" in vowels[0].note  # the protocol says the vowels are TTS for now
+    blocks = {b.id: b for b in p.blocks}
+    assert (blocks["vowels"].sets, blocks["vowels"].presentations_per_condition) == (2, 2)
+    assert (blocks["sentences"].sets, blocks["sentences"].presentations_per_condition) == (2, 1)
+    assert [i.id for i in p.items] == ["naturalness", "mouth_shape"]
+    for item in p.items:
+        assert {"ja", "en"} <= set(item.question) and item.range == [0.0, 100.0]
+        assert item.marker_start == "hidden" and item.confirm
+    assert p.study.participants_planned == 8
+    passage = p.stimulus_set("sentences").stimuli[0].text
+    assert passage is not None and 100 <= len(passage) <= 200  # ~20 s of speech
+
+
+def test_model_round_trip(kato_path: Path, tmp_path: Path) -> None:
+    p = load_protocol(kato_path)
+    assert Protocol.model_validate(p.model_dump()) == p
+    # ... and through a YAML file written from the model
+    out = tmp_path / "copy.yaml"
+    out.write_text(yaml.safe_dump(p.model_dump(), allow_unicode=True), encoding="utf-8")
+    assert load_protocol(out) == p
+
+
+def test_committed_schema_is_current_and_validates_the_protocol(kato_text: str) -> None:
+    committed = (ROOT / "protocols" / "schema" / "protocol.schema.json").read_text(encoding="utf-8")
+    assert committed == schema_json_text(), (
+        "run: facelab schema --out protocols/schema/protocol.schema.json"
+    )
+    schema = json.loads(committed)
+    jsonschema.validate(yaml.safe_load(kato_text), schema)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**yaml.safe_load(kato_text), "colour": "red"}, schema)
+
+
+def _line(text: str, needle: str) -> int:
+    """Line number of the first line containing ``needle``; a needle ending in a newline
+    must equal a whole line, and its last occurrence counts (for duplicates)."""
+    lines = text.splitlines()
+    if needle.endswith("\n"):
+        hits = [n for n, line in enumerate(lines, start=1) if line == needle[:-1]]
+        hits = hits[-1:]
+    else:
+        hits = [n for n, line in enumerate(lines, start=1) if needle in line][:1]
+    assert hits, f"{needle!r} not in text"
+    return hits[0]
+
+
+# Each case: (name, edit of the paper's protocol, text on the line to blame, words in the message)
+BROKEN: list[tuple[str, tuple[str, str], str, list[str]]] = [
+    (
+        "unknown top-level key",
+        ("seed: 20210527", "seed: 20210527\ncolour: red"),
+        "colour: red",
+        ["colour", "unknown key", "allowed keys"],
+    ),
+    (
+        "unknown nested key (typo)",
+        (
+            "    marker_start: hidden\n    confirm: true\n  - id: mouth_shape",
+            "    marker_start: hidden\n    confirm: true\n    anchor_left: x\n  - id: mouth_shape",
+        ),
+        "anchor_left: x",
+        ["items[0].anchor_left", "unknown key", "left_anchor"],
+    ),
+    (
+        "wrong type",
+        (
+            "    sets: 2\n    presentations_per_condition: 2",
+            "    sets: two\n    presentations_per_condition: 2",
+        ),
+        "sets: two",
+        ["blocks[0].sets", "integer", "'two'"],
+    ),
+    (
+        "missing stimulus file",
+        ("        text: あ。い。う。え。お。", "        audio: vowels/missing.wav"),
+        "audio: vowels/missing.wav",
+        ["audio file not found", "missing.wav"],
+    ),
+    (
+        "duplicate condition id",
+        ("  - id: emphasized", "  - id: standard"),
+        "  - id: standard\n",
+        ["duplicate condition id 'standard'"],
+    ),
+    (
+        "empty block",
+        ("    presentations_per_condition: 1     #", "    presentations_per_condition: 0     #"),
+        "presentations_per_condition: 0",
+        ["blocks[1].presentations_per_condition", "greater than or equal to 1"],
+    ),
+    (
+        "block with no conditions",
+        (
+            "    order: random_within_set\n    break_after: false",
+            "    order: random_within_set\n    conditions: []\n    break_after: false",
+        ),
+        "conditions: []",
+        ["blocks[1].conditions", "no trials"],
+    ),
+    (
+        "unknown method",
+        ("method: viseme_baseline", "method: viseme_basline"),
+        "method: viseme_basline",
+        ["unknown method 'viseme_basline'", "vowel_blend"],
+    ),
+    (
+        "unknown method parameter",
+        ("params: {z: standard, gain: 1.0}", "params: {z: standard, gian: 1.0}"),
+        "gian: 1.0",
+        ["conditions[1].params.gian", "unknown parameter", "gain"],
+    ),
+    (
+        "method parameter out of range",
+        ("params: {z: emphasized, gain: 1.0}", "params: {z: emphasized, gain: -1.0}"),
+        "gain: -1.0",
+        ["conditions[2].params.gain", "greater than 0"],
+    ),
+    (
+        "unknown Z matrix",
+        ("params: {z: emphasized, gain: 1.0}", "params: {z: shouty, gain: 1.0}"),
+        "z: shouty",
+        ["conditions[2].params.z", "standard, emphasized"],
+    ),
+    (
+        "VAS range out of 0..100",
+        (
+            "    range: [0, 100]\n    marker_start: hidden\n    confirm: true\n  - id: mouth_shape",
+            "    range: [0, 150]\n    marker_start: hidden\n    confirm: true\n  - id: mouth_shape",
+        ),
+        "range: [0, 150]",
+        ["items[0].range", "0 <= left < right <= 100"],
+    ),
+    (
+        "bad YAML syntax",
+        (
+            "  camera: {distance_m: 0.65, fov_deg: 30, height_m: 0.0}",
+            "  camera: {distance_m: 0.65, fov_deg: 30, height_m: 0.0\n  pad_s: 0.3",
+        ),
+        "pad_s: 0.3",
+        ["not valid YAML"],
+    ),
+    (
+        "unknown stimulus set",
+        ("    stimulus_set: sentences\n    sets: 2", "    stimulus_set: sentence\n    sets: 2"),
+        "    stimulus_set: sentence\n",
+        ["unknown stimulus set 'sentence'", "vowels, sentences"],
+    ),
+    (
+        "missing required key",
+        ("  participants_planned: 8\n", "\n"),
+        "study:",
+        ["study.participants_planned", "required key is missing"],
+    ),
+    (
+        "duplicate YAML key",
+        ("  width: 1280\n", "  width: 1280\n  width: 1920\n"),
+        "width: 1920",
+        ["rendering.width", "duplicate key"],
+    ),
+    (
+        "text and audio both",
+        ("        expected_vowels: aiueo", "        audio: x.wav\n        expected_vowels: aiueo"),
+        "- id: aiueo",
+        ["exactly one of 'text'"],
+    ),
+    (
+        "language missing",
+        ("  language: ja\n  items_layout", "  language: fr\n  items_layout"),
+        "label: {ja: LipSync",
+        ["conditions[0].label", "no 'fr' text"],
+    ),
+    (
+        "bad enum value",
+        ("    order: random_within_set\n    break_after", "    order: shuffled\n    break_after"),
+        "order: shuffled",
+        ["blocks[1].order", "random_within_set", "'shuffled'"],
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("edit", "blame", "words"), [c[1:] for c in BROKEN], ids=[c[0] for c in BROKEN]
+)
+def test_broken_protocol_exits_2_naming_problem_and_line(
+    tmp_path: Path,
+    kato_text: str,
+    capsys: pytest.CaptureFixture[str],
+    edit: tuple[str, str],
+    blame: str,
+    words: list[str],
+) -> None:
+    old, new = edit
+    assert old in kato_text, "the test's edit no longer matches the protocol"
+    text = kato_text.replace(old, new, 1)
+    path = tmp_path / "broken.yaml"
+    path.write_text(text, encoding="utf-8")
+    code = main(["validate", str(path)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "Traceback" not in err
+    for word in words:
+        assert word in err, f"{word!r} not in: {err}"
+    assert f"{path}:{_line(text, blame)}:" in err, err
+
+
+def test_all_problems_are_reported_at_once(tmp_path: Path, kato_text: str) -> None:
+    text = kato_text.replace("  fps: 30", "  fps: thirty").replace(
+        "    sets: 2\n", "    sets: 0\n", 1
+    )
+    path = tmp_path / "two.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    assert [i.dotted() for i in info.value.issues] == ["blocks[0].sets", "rendering.fps"]
+    assert all(i.line for i in info.value.issues)
+
+
+def test_missing_file_and_non_mapping(tmp_path: Path) -> None:
+    with pytest.raises(ProtocolError, match="file not found"):
+        load_protocol(tmp_path / "nope.yaml")
+    bad = tmp_path / "list.yaml"
+    bad.write_text("- a\n- b\n", encoding="utf-8")
+    with pytest.raises(ProtocolError, match="expected a YAML mapping"):
+        load_protocol(bad)
+
+
+def test_recorded_audio_stimulus_is_accepted(tmp_path: Path, kato_text: str) -> None:
+    (tmp_path / "vowels").mkdir()
+    (tmp_path / "vowels" / "aiueo.wav").write_bytes(b"RIFF")  # existence is what validate checks
+    path = tmp_path / "rec.yaml"
+    path.write_text(
+        kato_text.replace("        text: あ。い。う。え。お。", "        audio: vowels/aiueo.wav"),
+        encoding="utf-8",
+    )
+    stim = load_protocol(path).stimulus_set("vowels").stimuli[0]
+    assert stim.audio == "vowels/aiueo.wav" and stim.text is None
