@@ -229,6 +229,65 @@ class Rendering(_Model):
     )
 
 
+# ------------------------------------------------------------------ simulation, reported results
+
+
+class SimulationModel(_Model):
+    """Simulated rating = clip(mean + effect + participant offset + interaction + noise, scale)."""
+
+    mean: float = Field(50.0, ge=0, le=100, description="Mean rating with no condition effect.")
+    participant_sd: float = Field(
+        10.0, ge=0, le=100, description="SD of participant offsets (per item)."
+    )
+    interaction_sd: float = Field(
+        4.0, ge=0, le=100, description="SD of participant x condition effects."
+    )
+    noise_sd: float = Field(12.0, ge=0, le=100, description="SD of rating-to-rating noise.")
+    rt_median_s: float = Field(3.0, gt=0, le=60, description="Median response time (log-normal).")
+    rt_log_sd: float = Field(0.35, ge=0, le=3, description="SD of log response time.")
+
+
+class EffectOverride(_Model):
+    """Condition effects for one item and/or stimulus set, replacing the defaults there."""
+
+    item: Id | None = None
+    stimulus_set: Id | None = None
+    effects: dict[Id, float]
+
+
+class Simulation(_Model):
+    """How ``facelab simulate`` generates ratings; never presented as data."""
+
+    model: SimulationModel = Field(default_factory=SimulationModel)
+    effects: dict[Id, float] = Field(
+        default_factory=dict, description="Condition id -> points added to the mean (default 0)."
+    )
+    overrides: list[EffectOverride] = Field(default_factory=list)
+
+
+class ReportedPair(_Model):
+    a: Id
+    b: Id
+    p: float = Field(ge=0, le=1)
+
+
+class ReportedTest(_Model):
+    item: Id
+    stimulus_set: Id
+    anova_p: float = Field(ge=0, le=1)
+    pairs: list[ReportedPair] = Field(
+        default_factory=list, description="Pairs reported as different; others were not."
+    )
+
+
+class ReportedResults(_Model):
+    """Statistics a publication reported for this design, shown beside facelab's."""
+
+    source: Text
+    procedure: Text
+    tests: list[ReportedTest] = Field(min_length=1)
+
+
 # --------------------------------------------------------------------------- the protocol
 
 
@@ -244,6 +303,8 @@ class Protocol(_Model):
     items: list[VasItem] = Field(min_length=1)
     presentation: Presentation = Field(default_factory=Presentation)
     rendering: Rendering = Field(default_factory=Rendering)
+    simulation: Simulation = Field(default_factory=Simulation)
+    reported_results: ReportedResults | None = None
 
     # -- convenience lookups (the loader guarantees the ids are unique)
     def condition(self, condition_id: str) -> Condition:
@@ -618,6 +679,37 @@ def _cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
             )
         if practice.condition not in condition_ids:
             yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
+
+    item_ids = {i.id for i in protocol.items}
+    sim = protocol.simulation
+    for cond_id in sim.effects:
+        if cond_id not in condition_ids:
+            yield Issue(
+                ("simulation", "effects", cond_id),
+                f"unknown condition {cond_id!r}; conditions: {known_conditions}",
+            )
+    for oi, override in enumerate(sim.overrides):
+        where = ("simulation", "overrides", oi)
+        if override.item is not None and override.item not in item_ids:
+            yield Issue((*where, "item"), f"unknown item {override.item!r}")
+        if override.stimulus_set is not None and override.stimulus_set not in sets:
+            yield Issue((*where, "stimulus_set"), f"unknown stimulus set {override.stimulus_set!r}")
+        for cond_id in override.effects:
+            if cond_id not in condition_ids:
+                yield Issue((*where, "effects", cond_id), f"unknown condition {cond_id!r}")
+    if protocol.reported_results is not None:
+        for ti, test in enumerate(protocol.reported_results.tests):
+            where = ("reported_results", "tests", ti)
+            if test.item not in item_ids:
+                yield Issue((*where, "item"), f"unknown item {test.item!r}")
+            if test.stimulus_set not in sets:
+                yield Issue((*where, "stimulus_set"), f"unknown stimulus set {test.stimulus_set!r}")
+            for pi, pair in enumerate(test.pairs):
+                for key in ("a", "b"):
+                    if getattr(pair, key) not in condition_ids:
+                        yield Issue(
+                            (*where, "pairs", pi, key), f"unknown condition {getattr(pair, key)!r}"
+                        )
 
     avatar = protocol.rendering.avatar
     if avatar != "default":

@@ -65,9 +65,6 @@ def test_help_everywhere(command: str, capsys: pytest.CaptureFixture[str]) -> No
 UNBUILT = {
     "render": ["render", "P"],
     "run": ["run", "P", "--participant", "P01"],
-    "simulate": ["simulate", "P"],
-    "analyze": ["analyze", "results", "--protocol", "P"],
-    "power": ["power"],
     "measure-z": ["measure-z", "x.csv"],
     "demo": ["demo"],
     "bench": ["bench", "render"],

@@ -1,0 +1,122 @@
+"""Session logs from a results folder -> one validated long DataFrame (one row per rating).
+
+``load_results`` finds every ``sub-*/ses-*/*_beh.tsv`` under the folder, parses each with
+the same reader the runner uses for resuming, and checks the whole: the DESIGN.md columns,
+one study only, no rating given twice, ratings inside the scale, no missing ratings.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from analysis.stats import AnalysisError
+from experiment.errors import StageError
+from experiment.log import LOG_COLUMNS, parse_log_text
+
+__all__ = ["find_logs", "load_log", "load_results", "session_summary"]
+
+
+def find_logs(results: Path | str) -> list[Path]:
+    """All session TSVs below ``results`` (a results root or one study's folder), sorted."""
+    root = Path(results)
+    if not root.is_dir():
+        raise AnalysisError(f"results folder not found: {root}")
+    return sorted(root.rglob("sub-*/ses-*/sub-*_beh.tsv"))
+
+
+def load_log(path: Path | str) -> pd.DataFrame:
+    """One session TSV as a DataFrame with :data:`LOG_COLUMNS`.
+
+    A last line cut off mid-write is an error here (resume the session to repair it).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise AnalysisError(f"cannot read {path}: {exc}") from None
+    try:
+        rows, cut = parse_log_text(text, source=str(path))
+    except StageError as exc:
+        raise AnalysisError(str(exc)) from None
+    if cut is not None:
+        raise AnalysisError(
+            f"{path}: the last line was cut off mid-write ({cut[:40]!r}…); run the session "
+            "with --resume to repair it, then analyse"
+        )
+    frame = pd.DataFrame(rows, columns=list(LOG_COLUMNS))
+    frame["source"] = str(path)
+    sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
+    simulated = False
+    if sidecar.exists():
+        try:
+            simulated = bool(
+                json.loads(sidecar.read_text(encoding="utf-8")).get("simulated", False)
+            )
+        except json.JSONDecodeError as exc:
+            raise AnalysisError(f"{sidecar}: not valid JSON: {exc}") from None
+    frame["simulated"] = simulated
+    return frame
+
+
+def load_results(
+    results: Path | str, *, study: str | None = None, scale: tuple[float, float] = (0.0, 100.0)
+) -> pd.DataFrame:
+    """Every session below ``results`` as one long DataFrame, validated.
+
+    Parameters
+    ----------
+    results : a results root (``results/``) or one study's folder.
+    study : keep only this study; without it, more than one study is an error.
+    scale : the VAS range every rating must lie in.
+    """
+    logs = find_logs(results)
+    if not logs:
+        raise AnalysisError(f"no session logs (sub-*/ses-*/*_beh.tsv) under {results}")
+    frame = pd.concat([load_log(p) for p in logs], ignore_index=True)
+    studies = sorted(frame["study"].dropna().unique())
+    if study is not None:
+        frame = frame[frame["study"] == study].reset_index(drop=True)
+        if frame.empty:
+            raise AnalysisError(f"no ratings for study {study!r} under {results}; found {studies}")
+    elif len(studies) > 1:
+        raise AnalysisError(
+            f"ratings from more than one study under {results}: {', '.join(studies)}; "
+            "pass the study's own folder"
+        )
+    missing = frame["rating"].isna()
+    if missing.any():
+        first = frame[missing].iloc[0]
+        raise AnalysisError(
+            f"{first['source']}: trial {first['trial_index']} item {first['item']!r} has no rating"
+        )
+    low, high = scale
+    outside = (frame["rating"] < low) | (frame["rating"] > high)
+    if outside.any():
+        first = frame[outside].iloc[0]
+        raise AnalysisError(
+            f"{first['source']}: rating {first['rating']:g} (trial {first['trial_index']}, item "
+            f"{first['item']!r}) is outside the scale {low:g}..{high:g}"
+        )
+    key = ["participant", "session", "trial_index", "item"]
+    dup = frame.duplicated(key, keep=False)
+    if dup.any():
+        first = frame[dup].iloc[0]
+        raise AnalysisError(
+            f"rating given twice: participant {first['participant']} session {first['session']} "
+            f"trial {first['trial_index']} item {first['item']!r} ({first['source']})"
+        )
+    return frame
+
+
+def session_summary(frame: pd.DataFrame) -> pd.DataFrame:
+    """Ratings per participant session, with whether it was simulated."""
+    return frame.groupby(["participant", "session"], as_index=False).agg(
+        ratings=("rating", "size"),
+        trials=("trial_index", "nunique"),
+        simulated=("simulated", "all"),
+        first=("timestamp", "min"),
+        last=("timestamp", "max"),
+    )

@@ -1,0 +1,302 @@
+"""Writes an analysis folder: CSV tables, figures (PNG + SVG), report.html and report.md.
+
+The report states the design, the sample (and whether it is simulated), the headline table
+in the paper's layout - facelab's sound analysis, facelab's run of the paper's procedure,
+and the paper's reported values side by side - the figures, and every detailed table.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import html
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from analysis import figures
+from analysis.load import session_summary
+from analysis.study import METHODS, StudyResults, bracket_pairs
+from experiment.protocol import Protocol
+
+__all__ = ["ReportFiles", "write_report"]
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    folder: Path
+    html: Path
+    markdown: Path
+    tables: dict[str, Path]
+    figures: list[Path]
+
+
+def _text(localized: dict[str, str], language: str) -> str:
+    return localized.get(language) or localized.get("en") or next(iter(localized.values()))
+
+
+def _fmt(value: object) -> str:
+    if isinstance(value, float):
+        if value != value:  # NaN
+            return ""
+        return f"{value:.4g}" if abs(value) >= 1e-4 or value == 0 else f"{value:.2e}"
+    return str(value)
+
+
+def _html_table(frame: pd.DataFrame) -> str:
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
+        for row in frame.itertuples(index=False)
+    )
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _md_table(frame: pd.DataFrame) -> str:
+    lines = ["| " + " | ".join(map(str, frame.columns)) + " |", "|" + "---|" * len(frame.columns)]
+    lines += [
+        "| " + " | ".join(_fmt(v).replace("|", "/") for v in row) + " |"
+        for row in frame.itertuples(index=False)
+    ]
+    return "\n".join(lines)
+
+
+def _headline(results: StudyResults) -> pd.DataFrame:
+    lay = results.layout
+    rows = []
+    for (item, sset), group in lay.groupby(["item", "stimulus_set"], sort=False):
+        rm = group[group.procedure == "rm"].iloc[0]
+        pa = group[group.procedure == "paper"].iloc[0]
+        rows.append(
+            {
+                "item": item,
+                "stimulus set": sset,
+                "n": int(rm.n_participants),
+                "facelab RM: F (df)": f"{rm.f:.3f} ({rm.df1:g}, {rm.df2:g})",
+                "facelab RM: p (GG)": rm.anova_p,
+                "facelab RM: pairs (Holm)": rm.pairs_p_lt_05,
+                "paper procedure: F (df)": f"{pa.f:.3f} ({pa.df1:g}, {pa.df2:g})",
+                "paper procedure: p": pa.anova_p,
+                "paper procedure: pairs (Tukey)": pa.pairs_p_lt_05,
+                "paper reported: p": rm.reported_anova_p,
+                "paper reported: pairs": rm.reported_pairs,
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def write_report(
+    *,
+    results: StudyResults,
+    data: pd.DataFrame,
+    protocol: Protocol,
+    out: Path,
+    protocol_path: Path,
+) -> ReportFiles:
+    """Write everything into ``out`` (created if needed; files in it are replaced)."""
+    out.mkdir(parents=True, exist_ok=True)
+    tables: dict[str, Path] = {}
+    for name, frame in results.tables().items():
+        tables[name] = out / f"{name}.csv"
+        frame.to_csv(tables[name], index=False)
+
+    language = protocol.presentation.language if figures.cjk_font() else "en"
+    cond_ids = [c.id for c in protocol.conditions]
+    cond_labels = [_text(c.label, language) for c in protocol.conditions]
+    simulated = bool(data["simulated"].all())
+    mixed = bool(data["simulated"].any()) and not simulated
+    figure_paths: list[Path] = []
+    fig_blocks: list[tuple[str, Path]] = []
+    proc = "paired t-tests, Holm" if results.method == "rm" else "Tukey HSD on pooled ratings"
+    for item in protocol.items:
+        for sset in protocol.stimulus_sets:
+            cells = results.cells[
+                (results.cells["item"] == item.id) & (results.cells["stimulus_set"] == sset.id)
+            ]
+            if cells.empty:
+                continue
+            fig = figures.rating_figure(
+                cells,
+                conditions=cond_ids,
+                labels=cond_labels,
+                brackets=bracket_pairs(results, item=item.id, stimulus_set=sset.id),
+                title=f"{_text(item.question, language)} [{sset.id}]",
+                ylabel=f"VAS ({_text(item.left_anchor, language)} 0 - "
+                f"{_text(item.right_anchor, language)} 100)",
+                scale=(item.range[0], item.range[1]),
+                caption=(
+                    f"Boxes: participant means (n = {cells['participant'].nunique()}); "
+                    f"brackets: p < .05, {proc}." + ("  SIMULATED DATA" if simulated else "")
+                ),
+            )
+            paths = figures.save(fig, out / f"fig_{item.id}_{sset.id}")
+            figure_paths += paths
+            fig_blocks.append((f"{item.id} / {sset.id}", paths[0]))
+
+    headline = _headline(results)
+    sessions = session_summary(data)
+    design = pd.DataFrame(
+        [
+            {
+                "block": b.id,
+                "stimulus set": b.stimulus_set,
+                "sets": b.sets,
+                "per condition per set": b.presentations_per_condition,
+                "order": b.order,
+            }
+            for b in protocol.blocks
+        ]
+    )
+    conditions = pd.DataFrame(
+        [
+            {
+                "condition": c.id,
+                "label": _text(c.label, language),
+                "method": c.method,
+                "params": ", ".join(f"{k}={v}" for k, v in c.params.items()),
+            }
+            for c in protocol.conditions
+        ]
+    )
+    items = pd.DataFrame(
+        [
+            {
+                "item": i.id,
+                "question": _text(i.question, language),
+                "left (0)": _text(i.left_anchor, language),
+                "right (100)": _text(i.right_anchor, language),
+            }
+            for i in protocol.items
+        ]
+    )
+    details = {
+        "Repeated-measures ANOVA on participant means": results.rm_anova,
+        "Paired t-tests on participant means (Holm)": results.pairwise,
+        "Friedman test on participant means": results.friedman,
+        "Linear mixed model on all ratings (F with the aggregated df)": results.lmm,
+        "Paper's procedure: one-way ANOVA on pooled ratings": results.paper_anova,
+        "Paper's procedure: Tukey HSD on pooled ratings (diff = mean(b) - mean(a))": (
+            results.paper_tukey
+        ),
+    }
+    banner = ""
+    if simulated:
+        banner = (
+            "SIMULATED DATA - these ratings were generated by facelab's simulator to "
+            "exercise the pipeline. They are not measurements and say nothing about the "
+            "methods compared."
+        )
+    elif mixed:
+        banner = "MIXED DATA - some sessions are simulated; do not report these numbers."
+    reported = protocol.reported_results
+    when = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    title = f"facelab report - {protocol.study.title}"
+    method_note = (
+        f"Primary procedure: {METHODS[results.method]}. The table shows both: the sound "
+        "within-subject analysis (participant means, n = participants) and the paper's "
+        "procedure, which pools every rating as if independent (pseudo-replication: error df "
+        "count ratings, not people) and is shown only for replication."
+    )
+
+    # ---- HTML
+    parts = [
+        "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
+        f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
+        f"<h1>{html.escape(protocol.study.title)}</h1>",
+        f"<p class='meta'>study <b>{html.escape(protocol.study.id)}</b> · protocol "
+        f"{html.escape(str(protocol_path))} · generated {when}</p>",
+    ]
+    if banner:
+        parts.append(f"<div class='banner'>{html.escape(banner)}</div>")
+    parts += [
+        "<h2>Results beside the paper</h2>",
+        f"<p>{html.escape(method_note)}</p>",
+    ]
+    if reported:
+        parts.append(
+            f"<p>Paper: {html.escape(reported.source)} - {html.escape(reported.procedure)}.</p>"
+        )
+    parts.append(_html_table(headline))
+    parts.append("<h2>Figures</h2><div class='figs'>")
+    for label, png in fig_blocks:
+        data_uri = base64.b64encode(png.read_bytes()).decode("ascii")
+        parts.append(
+            f"<figure><img src='data:image/png;base64,{data_uri}' alt='{html.escape(label)}'>"
+            f"<figcaption>{html.escape(label)} (<a href='{png.name}'>PNG</a>, "
+            f"<a href='{png.with_suffix('.svg').name}'>SVG</a>)</figcaption></figure>"
+        )
+    parts.append("</div>")
+    parts += [
+        "<h2>Design</h2>",
+        _html_table(conditions),
+        _html_table(design),
+        _html_table(items),
+        "<h2>Sample</h2>",
+        _html_table(sessions),
+    ]
+    parts.append("<h2>Detailed tables</h2>")
+    for heading, frame in details.items():
+        parts += [f"<h3>{html.escape(heading)}</h3>", _html_table(frame)]
+    parts.append(
+        "<p class='meta'>Tables as CSV: "
+        + ", ".join(f"<a href='{p.name}'>{p.name}</a>" for p in tables.values())
+        + "</p>"
+    )
+    parts.append("</body></html>")
+    html_path = out / "report.html"
+    html_path.write_text("\n".join(parts), encoding="utf-8")
+
+    # ---- Markdown
+    md = [
+        f"# {title}",
+        "",
+        f"Study `{protocol.study.id}`, protocol `{protocol_path}`, generated {when}.",
+        "",
+    ]
+    if banner:
+        md += [f"> **{banner}**", ""]
+    md += ["## Results beside the paper", "", method_note, ""]
+    if reported:
+        md += [f"Paper: {reported.source} - {reported.procedure}.", ""]
+    md += [_md_table(headline), "", "## Figures", ""]
+    md += [f"![{label}]({png.name})" for label, png in fig_blocks]
+    md += [
+        "",
+        "## Design",
+        "",
+        _md_table(conditions),
+        "",
+        _md_table(design),
+        "",
+        _md_table(items),
+        "",
+        "## Sample",
+        "",
+        _md_table(sessions),
+        "",
+        "## Detailed tables",
+        "",
+    ]
+    for heading, frame in details.items():
+        md += [f"### {heading}", "", _md_table(frame), ""]
+    md_path = out / "report.md"
+    md_path.write_text("\n".join(md) + "\n", encoding="utf-8")
+    return ReportFiles(
+        folder=out, html=html_path, markdown=md_path, tables=tables, figures=figure_paths
+    )
+
+
+_CSS = """
+body{font-family:'Noto Sans CJK JP','Noto Sans',system-ui,sans-serif;margin:2rem auto;
+max-width:1200px;color:#1d2733;padding:0 1rem}
+h1{font-size:1.6rem;margin-bottom:.2rem}h2{margin-top:2rem;border-bottom:1px solid #cfd8e3}
+.meta{color:#5b6b7c;font-size:.85rem}
+.banner{background:#fff3cd;border:1px solid #e0b300;padding:.6rem 1rem;font-weight:600;
+margin:1rem 0}
+table{border-collapse:collapse;margin:.6rem 0;font-size:.82rem}
+th,td{border:1px solid #cfd8e3;padding:.25rem .5rem;text-align:left;vertical-align:top}
+th{background:#eef3f8}
+.figs{display:flex;flex-wrap:wrap;gap:1rem}figure{margin:0;width:48%}figure img{width:100%}
+figcaption{font-size:.8rem;color:#5b6b7c}
+"""

@@ -1,0 +1,391 @@
+"""Statistics for rating studies: the paper's procedure and the sound within-subject one.
+
+Every function takes a long DataFrame (one row per observation) and column names,
+keyword-only, and returns a tidy DataFrame with snake_case columns. Nothing is rounded.
+
+Level order: a ``pandas.Categorical`` column keeps its category order; any other column
+uses the order of first appearance. Pairs are (level i, level j) with i < j in that order.
+
+Procedures
+----------
+* ``one_way_anova`` + ``tukey_hsd``: between-subjects; on pooled individual ratings this is
+  the paper's procedure (pseudo-replication: it treats repeated ratings as independent).
+* ``rm_anova`` + ``pairwise_paired``: one-way repeated measures on participant means
+  (ratings in a participant x condition cell are averaged first), with Mauchly's test and
+  Greenhouse-Geisser / Huynh-Feldt corrections; paired t-tests with R's p.adjust methods.
+* ``friedman``: the rank-based companion on participant means.
+* ``lmm_anova``: a linear mixed model on all ratings with random participant and
+  participant x condition intercepts; F test with the aggregated design's df.
+
+All values were checked against R (tests/reference/stats_reference.R).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from experiment.errors import FacelabError
+
+__all__ = [
+    "AnalysisError",
+    "cell_means",
+    "friedman",
+    "levels",
+    "lmm_anova",
+    "one_way_anova",
+    "p_adjust",
+    "pairwise_paired",
+    "rm_anova",
+    "rm_sums_of_squares",
+    "tukey_hsd",
+]
+
+
+class AnalysisError(FacelabError):
+    """The data cannot be analysed as asked (missing columns, cells, too few levels…)."""
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _require(data: pd.DataFrame, columns: Sequence[str]) -> None:
+    if not isinstance(data, pd.DataFrame):
+        raise AnalysisError(f"expected a pandas DataFrame, got {type(data).__name__}")
+    missing = [c for c in columns if c not in data.columns]
+    if missing:
+        raise AnalysisError(
+            f"missing column(s) {', '.join(map(repr, missing))}; "
+            f"have {', '.join(map(str, data.columns))}"
+        )
+
+
+def _numeric(data: pd.DataFrame, dv: str) -> pd.Series:
+    values = pd.to_numeric(data[dv], errors="coerce")
+    bad = values.isna() & data[dv].notna()
+    if bad.any():
+        raise AnalysisError(f"column {dv!r} has non-numeric values, e.g. {data[dv][bad].iloc[0]!r}")
+    if values.isna().any():
+        raise AnalysisError(f"column {dv!r} has {int(values.isna().sum())} missing value(s)")
+    return values.astype(float)
+
+
+def levels(series: pd.Series) -> list:
+    """Levels of a factor column: category order if categorical, else first appearance."""
+    if isinstance(series.dtype, pd.CategoricalDtype):
+        present = set(series.dropna().unique())
+        return [c for c in series.cat.categories if c in present]
+    return list(pd.unique(series.dropna()))
+
+
+def _pairs(names: Sequence) -> list[tuple[int, int]]:
+    return [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
+
+
+def p_adjust(p: Sequence[float], *, method: str = "holm") -> np.ndarray:
+    """Adjusted p-values as R's ``p.adjust``: ``none``, ``bonferroni`` or ``holm``."""
+    p = np.asarray(p, dtype=float)
+    m = p.size
+    if method == "none":
+        return p.copy()
+    if method == "bonferroni":
+        return np.minimum(p * m, 1.0)
+    if method == "holm":
+        order = np.argsort(p, kind="stable")
+        adj = np.minimum(1.0, np.maximum.accumulate((m - np.arange(m)) * p[order]))
+        out = np.empty(m)
+        out[order] = adj
+        return out
+    raise AnalysisError(f"unknown p-value adjustment {method!r}; expected none, bonferroni or holm")
+
+
+# --------------------------------------------------------------------------- between subjects
+
+
+def _groups(data: pd.DataFrame, dv: str, between: str) -> tuple[list, list[np.ndarray]]:
+    _require(data, [dv, between])
+    values = _numeric(data, dv)
+    names = levels(data[between])
+    if len(names) < 2:
+        raise AnalysisError(f"column {between!r} needs at least 2 levels, has {len(names)}")
+    groups = [values[data[between] == name].to_numpy() for name in names]
+    small = [str(n) for n, g in zip(names, groups, strict=True) if len(g) < 2]
+    if small:
+        raise AnalysisError(f"level(s) {', '.join(small)} of {between!r} have fewer than 2 values")
+    return names, groups
+
+
+def one_way_anova(data: pd.DataFrame, *, dv: str, between: str) -> pd.DataFrame:
+    """One-way between-subjects ANOVA.
+
+    Returns one row: ``df1, df2, f, p, eta_sq`` (eta squared = SS_between / SS_total).
+    """
+    _, groups = _groups(data, dv, between)
+    all_values = np.concatenate(groups)
+    grand = all_values.mean()
+    ss_between = sum(len(g) * (g.mean() - grand) ** 2 for g in groups)
+    ss_within = sum(((g - g.mean()) ** 2).sum() for g in groups)
+    df1, df2 = len(groups) - 1, len(all_values) - len(groups)
+    if ss_within <= 0:
+        raise AnalysisError(f"column {dv!r} has no variance within levels of {between!r}")
+    f = (ss_between / df1) / (ss_within / df2)
+    return pd.DataFrame(
+        [
+            {
+                "df1": df1,
+                "df2": df2,
+                "f": f,
+                "p": stats.f.sf(f, df1, df2),
+                "eta_sq": ss_between / (ss_between + ss_within),
+            }
+        ]
+    )
+
+
+def tukey_hsd(data: pd.DataFrame, *, dv: str, between: str, alpha: float = 0.05) -> pd.DataFrame:
+    """Tukey HSD (Tukey-Kramer for unequal group sizes), as R's ``TukeyHSD``.
+
+    Returns one row per pair: ``a, b, diff, ci_low, ci_high, p_adj`` with
+    ``diff = mean(b) - mean(a)`` and a ``1 - alpha`` simultaneous confidence interval.
+    """
+    names, groups = _groups(data, dv, between)
+    result = stats.tukey_hsd(*groups)
+    ci = result.confidence_interval(confidence_level=1 - alpha)
+    rows = []
+    for i, j in _pairs(names):
+        # scipy's statistic[i, j] is mean_i - mean_j; R reports level j - level i
+        rows.append(
+            {
+                "a": names[i],
+                "b": names[j],
+                "diff": -result.statistic[i, j],
+                "ci_low": -ci.high[i, j],
+                "ci_high": -ci.low[i, j],
+                "p_adj": result.pvalue[i, j],
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+# --------------------------------------------------------------------------- within subjects
+
+
+def cell_means(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.DataFrame:
+    """Participant x level means as a wide table (rows: subjects, columns: levels).
+
+    Raises if any participant lacks a level: a missing cell is an error, never dropped.
+    """
+    _require(data, [dv, within, subject])
+    values = _numeric(data, dv)
+    names = levels(data[within])
+    if len(names) < 2:
+        raise AnalysisError(f"column {within!r} needs at least 2 levels, has {len(names)}")
+    frame = pd.DataFrame(
+        {"s": data[subject].to_numpy(), "w": data[within].to_numpy(), "y": values.to_numpy()}
+    )
+    wide = frame.groupby(["s", "w"], sort=False, observed=True)["y"].mean().unstack("w")
+    wide = wide.reindex(columns=names)
+    missing = wide.isna()
+    if missing.any().any():
+        cells = [
+            f"{wide.index[int(s)]} x {wide.columns[int(w)]}"
+            for s, w in zip(*np.nonzero(missing.to_numpy()), strict=True)
+        ]
+        raise AnalysisError(
+            f"missing cell(s) ({subject} x {within}): {', '.join(cells[:5])}"
+            f"{' …' if len(cells) > 5 else ''}; a repeated-measures analysis needs every "
+            "participant in every condition (use lmm_anova for incomplete data)"
+        )
+    if len(wide) < 2:
+        raise AnalysisError(f"need at least 2 participants in {subject!r}, have {len(wide)}")
+    return wide
+
+
+def _sphericity(y: np.ndarray) -> tuple[float, float, float, float]:
+    """Mauchly's W and its p, Greenhouse-Geisser and Huynh-Feldt epsilons for (n, k) data."""
+    n, k = y.shape
+    p = k - 1
+    # orthonormal contrasts (Helmert-like) spanning the space orthogonal to the mean
+    q, _ = np.linalg.qr(np.column_stack([np.ones(k), np.eye(k)[:, : k - 1]]))
+    contrasts = q[:, 1:]
+    cov = np.cov(y @ contrasts, rowvar=False).reshape(p, p)
+    trace = np.trace(cov)
+    eps_gg = trace**2 / (p * np.trace(cov @ cov))
+    # Huynh-Feldt with Lecoutre's correction, as R's car/afex (one group)
+    eps_hf = min(1.0, ((n) * p * eps_gg - 2) / (p * (n - 1 - p * eps_gg)))
+    if p == 1:
+        return 1.0, 1.0, 1.0, 1.0
+    w = np.linalg.det(cov) / (trace / p) ** p
+    # chi-square approximation with the second-order term, exactly as R's mauchly.test and
+    # car (whose w2 uses the number of levels k, not p = k - 1, in its "3 * p" term)
+    dfe = n - 1
+    rho = 1 - (2 * p**2 + p + 2) / (6 * p * dfe)
+    w2 = (
+        (p + 2)
+        * (p - 1)
+        * (p - 2)
+        * (2 * p**3 + 6 * p**2 + 3 * k + 2)
+        / (288 * (dfe * p * rho) ** 2)
+    )
+    z = -dfe * rho * np.log(w)
+    dof = p * (p + 1) / 2 - 1
+    pr1, pr2 = stats.chi2.sf(z, dof), stats.chi2.sf(z, dof + 4)
+    return float(w), float(pr1 + w2 * (pr2 - pr1)), float(eps_gg), float(eps_hf)
+
+
+def rm_sums_of_squares(y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SS of conditions, subjects and error for cell means ``y`` of shape (..., n, k).
+
+    Works on a stack of data sets at once (leading axes), as the power simulation needs.
+    """
+    n, k = y.shape[-2:]
+    grand = y.mean(axis=(-2, -1), keepdims=True)
+    ss_cond = n * ((y.mean(axis=-2, keepdims=True) - grand) ** 2).sum(axis=(-2, -1))
+    ss_subj = k * ((y.mean(axis=-1, keepdims=True) - grand) ** 2).sum(axis=(-2, -1))
+    ss_err = ((y - grand) ** 2).sum(axis=(-2, -1)) - ss_cond - ss_subj
+    return ss_cond, ss_subj, ss_err
+
+
+def rm_anova(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.DataFrame:
+    """One-way repeated-measures ANOVA on participant means.
+
+    Returns one row: ``df1, df2, f, p, w_mauchly, p_mauchly, eps_gg, p_gg, eps_hf, p_hf,
+    eta_g_sq, eta_p_sq``. Repeated ratings in a cell are averaged first; a missing cell
+    raises :class:`AnalysisError`. With two levels sphericity holds trivially (W = 1, eps = 1).
+    """
+    y = cell_means(data, dv=dv, within=within, subject=subject).to_numpy()
+    n, k = y.shape
+    ss_cond, ss_subj, ss_err = rm_sums_of_squares(y)
+    df1, df2 = k - 1, (k - 1) * (n - 1)
+    if ss_err <= 0:
+        raise AnalysisError("no residual variance (participant x condition); F is undefined")
+    f = (ss_cond / df1) / (ss_err / df2)
+    w, p_w, eps_gg, eps_hf = _sphericity(y)
+    return pd.DataFrame(
+        [
+            {
+                "df1": df1,
+                "df2": df2,
+                "f": f,
+                "p": stats.f.sf(f, df1, df2),
+                "w_mauchly": w,
+                "p_mauchly": p_w,
+                "eps_gg": eps_gg,
+                "p_gg": stats.f.sf(f, df1 * eps_gg, df2 * eps_gg),
+                "eps_hf": eps_hf,
+                "p_hf": stats.f.sf(f, df1 * eps_hf, df2 * eps_hf),
+                "eta_g_sq": ss_cond / (ss_cond + ss_subj + ss_err),
+                "eta_p_sq": ss_cond / (ss_cond + ss_err),
+            }
+        ]
+    )
+
+
+def pairwise_paired(
+    data: pd.DataFrame, *, dv: str, within: str, subject: str, padjust: str = "holm"
+) -> pd.DataFrame:
+    """Paired t-tests between all levels on participant means (R ``pairwise.t.test(paired=TRUE)``).
+
+    Returns one row per pair: ``a, b, t, df, p_unc, p_adj, d_z``; ``t`` and ``d_z`` are for
+    the differences ``a - b`` (as R's ``t.test(a, b, paired=TRUE)``), ``d_z = mean/sd`` of the
+    differences; ``padjust`` is none, bonferroni or holm.
+    """
+    wide = cell_means(data, dv=dv, within=within, subject=subject)
+    names = list(wide.columns)
+    rows = []
+    for i, j in _pairs(names):
+        diff = wide.iloc[:, i].to_numpy() - wide.iloc[:, j].to_numpy()
+        sd = diff.std(ddof=1)
+        if sd == 0:
+            raise AnalysisError(f"the differences {names[i]} - {names[j]} have no variance")
+        t = diff.mean() / (sd / np.sqrt(len(diff)))
+        rows.append(
+            {
+                "a": names[i],
+                "b": names[j],
+                "t": t,
+                "df": len(diff) - 1,
+                "p_unc": 2 * stats.t.sf(abs(t), len(diff) - 1),
+                "d_z": diff.mean() / sd,
+            }
+        )
+    out = pd.DataFrame(rows)
+    out.insert(5, "p_adj", p_adjust(out["p_unc"], method=padjust))
+    return out
+
+
+def friedman(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.DataFrame:
+    """Friedman test on participant means (tie-corrected, as R ``friedman.test``).
+
+    Returns one row: ``chi2, df, p, kendall_w`` with Kendall's W = chi2 / (n (k - 1)).
+    """
+    y = cell_means(data, dv=dv, within=within, subject=subject).to_numpy()
+    n, k = y.shape
+    if k < 3:
+        raise AnalysisError("the Friedman test needs at least 3 levels (use a Wilcoxon test for 2)")
+    chi2, p = stats.friedmanchisquare(*y.T)
+    return pd.DataFrame([{"chi2": chi2, "df": k - 1, "p": p, "kendall_w": chi2 / (n * (k - 1))}])
+
+
+def lmm_anova(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.DataFrame:
+    """Linear mixed model F test for ``within`` on all ratings.
+
+    Model: ``dv ~ within + (1 | subject) + (1 | subject:within)`` fitted by REML
+    (statsmodels MixedLM). The Wald chi-square of the ``within`` effects is divided by its
+    df to give F, tested on ``df1 = k - 1`` and ``df2 = (k - 1)(n - 1)``, the df of the
+    aggregated design (statsmodels has no Satterthwaite df). For balanced data this
+    reproduces the repeated-measures ANOVA on participant means. Returns ``df1, df2, f, p``.
+    """
+    import statsmodels.formula.api as smf
+    from statsmodels.tools.sm_exceptions import ConvergenceWarning, SingularMatrixWarning
+
+    _require(data, [dv, within, subject])
+    names = levels(data[within])
+    frame = pd.DataFrame(
+        {
+            "y": _numeric(data, dv).to_numpy(),
+            "w": pd.Categorical(data[within].to_numpy(), categories=names),
+            "s": data[subject].astype(str).to_numpy(),
+        }
+    )
+    n, k = frame["s"].nunique(), len(names)
+    if k < 2 or n < 2:
+        raise AnalysisError(f"need at least 2 levels of {within!r} and 2 subjects")
+    model = smf.mixedlm(
+        "y ~ C(w)", frame, groups="s", re_formula="1", vc_formula={"sw": "0 + C(w)"}
+    )
+    fit = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        # a participant x condition variance at its boundary (0) is a valid REML fit
+        warnings.simplefilter("ignore", SingularMatrixWarning)
+        # BFGS with a tight gradient tolerance reaches the REML optimum to ~1e-12; the others
+        # are fallbacks for awkward data
+        for options in (
+            {"method": "bfgs", "gtol": 1e-12},
+            {"method": "lbfgs"},
+            {"method": "powell"},
+        ):
+            try:
+                candidate = model.fit(reml=True, maxiter=5000, **options)
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            if candidate.converged:
+                fit = candidate
+                break
+    if fit is None:
+        raise AnalysisError(
+            "the mixed model did not converge; check the data (rm_anova on means "
+            "is the alternative)"
+        )
+    effects = [name for name in fit.fe_params.index if name.startswith("C(w)")]
+    beta = fit.fe_params[effects].to_numpy()
+    cov = fit.cov_params().loc[effects, effects].to_numpy()
+    chi2 = float(beta @ np.linalg.solve(cov, beta))
+    df1, df2 = k - 1, (k - 1) * (n - 1)
+    f = chi2 / df1
+    return pd.DataFrame([{"df1": df1, "df2": df2, "f": f, "p": stats.f.sf(f, df1, df2)}])

@@ -1,0 +1,180 @@
+"""The study's analysis: every item x stimulus set, by the sound procedure and the paper's.
+
+* ``rm`` (default, sound): ratings averaged per participant x condition; one-way
+  repeated-measures ANOVA (Greenhouse-Geisser p as the headline, since Mauchly's test has
+  little power with few participants), paired t-tests with Holm correction, Friedman test,
+  and the mixed-model F on all ratings as a check.
+* ``paper`` (replication only): one-way between-subjects ANOVA on all individual ratings
+  pooled as independent, then Tukey HSD - the procedure the paper's p-values fit. It
+  ignores the repeated-measures design (pseudo-replication) and is labelled so everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pandas as pd
+
+from analysis import stats
+from analysis.stats import AnalysisError
+from experiment.protocol import Protocol
+
+__all__ = ["METHODS", "StudyResults", "analyze_study", "bracket_pairs"]
+
+METHODS = {
+    "rm": "repeated-measures ANOVA on participant means (GG-corrected), paired t-tests with Holm",
+    "paper": "the paper's procedure: one-way ANOVA on pooled ratings + Tukey HSD "
+    "(pseudo-replicated: treats repeated ratings as independent)",
+}
+ALPHA = 0.05
+
+
+@dataclass(frozen=True)
+class StudyResults:
+    """Tidy tables, each with ``item`` and ``stimulus_set`` first."""
+
+    method: str
+    cells: pd.DataFrame  # participant x condition means
+    rm_anova: pd.DataFrame
+    pairwise: pd.DataFrame
+    friedman: pd.DataFrame
+    lmm: pd.DataFrame
+    paper_anova: pd.DataFrame
+    paper_tukey: pd.DataFrame
+    layout: pd.DataFrame  # the paper's layout, both procedures, beside reported values
+
+    def tables(self) -> dict[str, pd.DataFrame]:
+        return {
+            "cell_means": self.cells,
+            "rm_anova": self.rm_anova,
+            "pairwise_paired": self.pairwise,
+            "friedman": self.friedman,
+            "lmm_anova": self.lmm,
+            "paper_anova": self.paper_anova,
+            "paper_tukey": self.paper_tukey,
+            "paper_layout": self.layout,
+        }
+
+
+def _tag(frame: pd.DataFrame, item: str, stimulus_set: str) -> pd.DataFrame:
+    frame = frame.copy()
+    frame.insert(0, "stimulus_set", stimulus_set)
+    frame.insert(0, "item", item)
+    return frame
+
+
+def _pairs_text(pairs: pd.DataFrame, p_col: str) -> str:
+    sig = pairs[pairs[p_col] < ALPHA]
+    return "; ".join(f"{r.a}-{r.b} p={getattr(r, p_col):.4f}" for r in sig.itertuples()) or "none"
+
+
+def bracket_pairs(results: StudyResults, *, item: str, stimulus_set: str) -> pd.DataFrame:
+    """Pairs with the corrected p-values of the primary method (``a, b, p``) for figures."""
+    if results.method == "paper":
+        table, col = results.paper_tukey, "p_adj"
+    else:
+        table, col = results.pairwise, "p_adj"
+    sel = table[(table["item"] == item) & (table["stimulus_set"] == stimulus_set)]
+    return sel[["a", "b", col]].rename(columns={col: "p"}).reset_index(drop=True)
+
+
+def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm") -> StudyResults:
+    """Run both procedures for every item x stimulus set present in ``data``.
+
+    ``method`` picks the primary procedure (figures' brackets, headline); both are computed
+    so the report can show them side by side.
+    """
+    if method not in METHODS:
+        raise AnalysisError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    order = [c.id for c in protocol.conditions]
+    unknown = sorted(set(data["condition"]) - set(order))
+    if unknown:
+        raise AnalysisError(f"conditions in the logs but not in the protocol: {', '.join(unknown)}")
+    data = data.assign(condition=pd.Categorical(data["condition"], categories=order))
+    out: dict[str, list[pd.DataFrame]] = {
+        k: [] for k in ("cells", "rm", "pw", "fr", "lmm", "pa", "tk", "layout")
+    }
+    reported = {
+        (t.item, t.stimulus_set): t
+        for t in (protocol.reported_results.tests if protocol.reported_results else [])
+    }
+    for item in protocol.items:
+        for sset in protocol.stimulus_sets:
+            sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
+            if sub.empty:
+                continue
+            kw = {"dv": "rating", "within": "condition", "subject": "participant"}
+            try:
+                wide = stats.cell_means(sub, **kw)
+                rm = stats.rm_anova(sub, **kw)
+                pw = stats.pairwise_paired(sub, **kw, padjust="holm")
+                fr = stats.friedman(sub, **kw) if len(order) >= 3 else pd.DataFrame()
+                lmm = stats.lmm_anova(sub, **kw)
+            except AnalysisError as exc:
+                raise AnalysisError(f"{item.id} / {sset.id}: {exc}") from None
+            pa = stats.one_way_anova(sub, dv="rating", between="condition")
+            tk = stats.tukey_hsd(sub, dv="rating", between="condition")
+            cells = wide.reset_index().melt(id_vars="s", var_name="condition", value_name="mean")
+            cells = cells.rename(columns={"s": "participant"})
+            for key, frame in (
+                ("cells", cells),
+                ("rm", rm),
+                ("pw", pw),
+                ("fr", fr),
+                ("lmm", lmm),
+                ("pa", pa),
+                ("tk", tk),
+            ):
+                out[key].append(_tag(frame, item.id, sset.id))
+            rep = reported.get((item.id, sset.id))
+            rep_pairs = "; ".join(f"{p.a}-{p.b} p={p.p:.4f}" for p in rep.pairs) if rep else ""
+            out["layout"].append(
+                pd.DataFrame(
+                    [
+                        {
+                            "item": item.id,
+                            "stimulus_set": sset.id,
+                            "procedure": "rm",
+                            "n_participants": len(wide),
+                            "df1": rm.df1[0],
+                            "df2": rm.df2[0],
+                            "f": rm.f[0],
+                            "anova_p": rm.p_gg[0],
+                            "pairs_p_lt_05": _pairs_text(pw, "p_adj"),
+                            "reported_anova_p": rep.anova_p if rep else float("nan"),
+                            "reported_pairs": rep_pairs,
+                        },
+                        {
+                            "item": item.id,
+                            "stimulus_set": sset.id,
+                            "procedure": "paper",
+                            "n_participants": len(wide),
+                            "df1": pa.df1[0],
+                            "df2": pa.df2[0],
+                            "f": pa.f[0],
+                            "anova_p": pa.p[0],
+                            "pairs_p_lt_05": _pairs_text(tk, "p_adj"),
+                            "reported_anova_p": rep.anova_p if rep else float("nan"),
+                            "reported_pairs": rep_pairs,
+                        },
+                    ]
+                )
+            )
+    if not out["rm"]:
+        raise AnalysisError("no ratings match the protocol's items and stimulus sets")
+
+    def cat(key: str) -> pd.DataFrame:
+        frames = [f for f in out[key] if not f.empty]
+        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+    return StudyResults(
+        method=method,
+        cells=cat("cells"),
+        rm_anova=cat("rm"),
+        pairwise=cat("pw"),
+        friedman=cat("fr"),
+        lmm=cat("lmm"),
+        paper_anova=cat("pa"),
+        paper_tukey=cat("tk"),
+        layout=cat("layout"),
+    )

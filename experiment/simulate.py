@@ -1,0 +1,191 @@
+"""Simulated participants: complete sessions written through the same log path as real ones.
+
+The rating model (all terms in VAS points, per item)::
+
+    rating = clip(mean + effect[item, stimulus_set, condition]
+                  + u[participant, item] + v[participant, item, stimulus_set, condition]
+                  + e[trial, item],  low, high)
+
+    u ~ N(0, participant_sd), v ~ N(0, interaction_sd), e ~ N(0, noise_sd)
+    rt_s ~ LogNormal(log(rt_median_s), rt_log_sd)
+
+``effect`` comes from the protocol's ``simulation`` section (defaults, then per item / set
+overrides), with command-line effects replacing the defaults. The trial order is the
+participant's real design (the protocol seed); the simulation seed only drives the ratings.
+Times run on a simulated clock, so the same seed writes byte-identical logs. Every session's
+JSON says ``"simulated": true`` with the model used.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from experiment.design import build_trials, participant_seed
+from experiment.errors import StageError
+from experiment.log import SessionLog, SessionPaths, session_paths
+from experiment.protocol import Protocol, protocol_hash
+
+__all__ = ["condition_effect", "simulate_participant", "simulate_study"]
+
+_CLOCK_START = dt.datetime(2026, 1, 1, 9, 0, 0, tzinfo=dt.UTC)
+_CLIP_S = 8.0  # simulated clip length on the session clock (s)
+
+
+def condition_effect(
+    protocol: Protocol,
+    *,
+    item: str,
+    stimulus_set: str,
+    condition: str,
+    effects: Mapping[str, float] | None = None,
+) -> float:
+    """The simulated effect (VAS points) for one item, stimulus set and condition."""
+    sim = protocol.simulation
+    value = (effects if effects is not None else sim.effects).get(condition, 0.0)
+    for override in sim.overrides:
+        if override.item not in (None, item) or override.stimulus_set not in (None, stimulus_set):
+            continue
+        value = override.effects.get(condition, value)
+    return float(value)
+
+
+def simulate_participant(
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    results: Path,
+    participant: str,
+    session: int,
+    rng: np.random.Generator,
+    seed: int,
+    effects: Mapping[str, float] | None = None,
+) -> SessionPaths:
+    """Write one complete simulated session; refuses to overwrite an existing one."""
+    model = protocol.simulation.model
+    trials = build_trials(protocol, participant=participant)
+    provenance: dict[str, Any] = {
+        "simulated": True,
+        "study": protocol.study.id,
+        "participant": participant,
+        "session": session,
+        "protocol_file": str(protocol_path),
+        "protocol_sha256": protocol_hash(protocol_path),
+        "design_seed": participant_seed(protocol.seed, participant),
+        "simulation_seed": seed,
+        "simulation_model": model.model_dump(),
+        "simulation_effects": {
+            c.id: (effects if effects is not None else protocol.simulation.effects).get(c.id, 0.0)
+            for c in protocol.conditions
+        },
+        "trial_order": [t.trial_index for t in trials],
+        "trials": [[t.block, t.set_index, t.stimulus, t.condition, t.repetition] for t in trials],
+    }
+    log = SessionLog.create(
+        results,
+        study=protocol.study.id,
+        participant=participant,
+        session=session,
+        provenance=provenance,
+    )
+    offsets = {item.id: rng.normal(0.0, model.participant_sd) for item in protocol.items}
+    interaction: dict[tuple[str, str, str], float] = {}
+    clock = 0.0
+    for trial in trials:
+        clip_onset = clock
+        clock += _CLIP_S
+        for item in protocol.items:
+            key = (item.id, trial.stimulus_set, trial.condition)
+            if key not in interaction:
+                interaction[key] = rng.normal(0.0, model.interaction_sd)
+            value = (
+                model.mean
+                + condition_effect(
+                    protocol,
+                    item=item.id,
+                    stimulus_set=trial.stimulus_set,
+                    condition=trial.condition,
+                    effects=effects,
+                )
+                + offsets[item.id]
+                + interaction[key]
+                + rng.normal(0.0, model.noise_sd)
+            )
+            low, high = item.range
+            rt = float(rng.lognormal(np.log(model.rt_median_s), model.rt_log_sd))
+            clock += rt
+            log.append(
+                {
+                    "study": protocol.study.id,
+                    "participant": participant,
+                    "session": session,
+                    "trial_index": trial.trial_index,
+                    "block": trial.block,
+                    "set_index": trial.set_index,
+                    "stimulus_set": trial.stimulus_set,
+                    "stimulus": trial.stimulus,
+                    "condition": trial.condition,
+                    "repetition": trial.repetition,
+                    "item": item.id,
+                    "rating": round(float(np.clip(value, low, high)), 2),
+                    "rating_start": None,
+                    "rt_s": round(rt, 3),
+                    "clip_onset": round(clip_onset, 3),
+                    "clip_frames_dropped": 0,
+                    "timestamp": (_CLOCK_START + dt.timedelta(seconds=clock)).isoformat(),
+                }
+            )
+    return log.paths
+
+
+def simulate_study(
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    results: Path,
+    participants: int,
+    seed: int,
+    effects: Mapping[str, float] | None = None,
+    session: int = 1,
+) -> list[SessionPaths]:
+    """Simulate ``participants`` sessions (P01, P02, …). Checks first that none exists."""
+    if participants < 1:
+        raise StageError(f"--participants must be at least 1, got {participants}")
+    unknown = sorted(set(effects or {}) - {c.id for c in protocol.conditions})
+    if unknown:
+        raise StageError(
+            f"unknown condition(s) in effects: {', '.join(unknown)}; conditions: "
+            f"{', '.join(c.id for c in protocol.conditions)}"
+        )
+    width = max(2, len(str(participants)))
+    ids = [f"P{i:0{width}d}" for i in range(1, participants + 1)]
+    existing = [
+        pid
+        for pid in ids
+        if session_paths(
+            results, study=protocol.study.id, participant=pid, session=session
+        ).tsv.exists()
+    ]
+    if existing:
+        raise StageError(
+            f"sessions already exist in {results / protocol.study.id} for {', '.join(existing)}; "
+            "nothing was overwritten - choose another results folder"
+        )
+    master = np.random.default_rng(seed)
+    return [
+        simulate_participant(
+            protocol,
+            protocol_path=protocol_path,
+            results=results,
+            participant=pid,
+            session=session,
+            rng=child,
+            seed=seed,
+            effects=effects,
+        )
+        for pid, child in zip(ids, master.spawn(len(ids)), strict=True)
+    ]

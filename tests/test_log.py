@@ -1,0 +1,116 @@
+"""Session logs: append + fsync per rating, never overwrite, repair a line cut mid-write."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from experiment.errors import StageError
+from experiment.log import LOG_COLUMNS, SessionLog, parse_log_text, session_paths
+
+
+def _row(trial: int, item: str, rating: float = 50.0) -> dict[str, object]:
+    return {
+        "study": "s1",
+        "participant": "P01",
+        "session": 1,
+        "trial_index": trial,
+        "block": "b",
+        "set_index": 1,
+        "stimulus_set": "v",
+        "stimulus": "x",
+        "condition": "c",
+        "repetition": 1,
+        "item": item,
+        "rating": rating,
+        "rating_start": None,
+        "rt_s": 1.25,
+        "clip_onset": 3.5,
+        "clip_frames_dropped": 0,
+        "timestamp": "2026-01-01T00:00:00+00:00",
+    }
+
+
+def _create(tmp_path: Path) -> SessionLog:
+    return SessionLog.create(
+        tmp_path, study="s1", participant="P01", session=1, provenance={"seed": 1}
+    )
+
+
+def test_layout_and_each_row_is_on_disk_immediately(tmp_path: Path) -> None:
+    log = _create(tmp_path)
+    paths = session_paths(tmp_path, study="s1", participant="P01", session=1)
+    assert log.paths == paths
+    assert paths.tsv == tmp_path / "s1/sub-P01/ses-1/sub-P01_ses-1_task-s1_beh.tsv"
+    assert paths.dictionary.exists() and paths.provenance.exists()
+    log.append(_row(1, "a", 12.5))
+    # read through a fresh file handle: the row is there before any close
+    rows, cut = parse_log_text(paths.tsv.read_text(), source="t")
+    assert cut is None and rows[0]["rating"] == 12.5 and rows[0]["rating_start"] is None
+    assert paths.tsv.read_text().splitlines()[0].split("\t") == list(LOG_COLUMNS)
+
+
+def test_existing_session_is_never_overwritten(tmp_path: Path) -> None:
+    log = _create(tmp_path)
+    log.append(_row(1, "a"))
+    before = log.paths.tsv.read_bytes()
+    with pytest.raises(StageError, match=r"session already exists.*--resume"):
+        _create(tmp_path)
+    assert log.paths.tsv.read_bytes() == before
+
+
+def test_a_rating_cannot_be_logged_twice(tmp_path: Path) -> None:
+    log = _create(tmp_path)
+    log.append(_row(1, "a"))
+    with pytest.raises(StageError, match="already logged"):
+        log.append(_row(1, "a", 99.0))
+    assert len(log.rows) == 1
+
+
+def test_resume_moves_a_cut_off_line_to_the_repairs_file(tmp_path: Path) -> None:
+    log = _create(tmp_path)
+    log.append(_row(1, "a"))
+    log.append(_row(1, "b"))
+    with open(log.paths.tsv, "a", encoding="utf-8") as fh:  # power cut mid-write
+        fh.write("s1\tP01\t1\t2\tb\t1\tv\tx\tc\t1\ta\t4")
+    resumed = SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
+    assert [(r["trial_index"], r["item"]) for r in resumed.rows] == [(1, "a"), (1, "b")]
+    assert resumed.answered() == {1: {"a", "b"}}
+    assert resumed.repaired == ["s1\tP01\t1\t2\tb\t1\tv\tx\tc\t1\ta\t4"]
+    assert resumed.paths.repairs.read_text().startswith("s1\tP01\t1\t2")
+    assert resumed.paths.tsv.read_text().endswith("\n")
+    resumed.append(_row(2, "a"))  # the cut rating is asked again and logged once
+    again = SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
+    assert [(r["trial_index"], r["item"]) for r in again.rows] == [(1, "a"), (1, "b"), (2, "a")]
+
+
+def test_resume_keeps_a_complete_row_that_lost_only_its_newline(tmp_path: Path) -> None:
+    log = _create(tmp_path)
+    log.append(_row(1, "a"))
+    text = log.paths.tsv.read_text()
+    log.paths.tsv.write_text(text[:-1])  # newline lost
+    resumed = SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
+    assert len(resumed.rows) == 1 and not resumed.repaired
+    assert resumed.paths.tsv.read_text() == text
+
+
+def test_resume_without_a_session_and_corrupt_middle_lines(tmp_path: Path) -> None:
+    with pytest.raises(StageError, match="nothing to resume"):
+        SessionLog.resume(tmp_path, study="s1", participant="P09", session=1)
+    log = _create(tmp_path)
+    log.append(_row(1, "a"))
+    with open(log.paths.tsv, "a", encoding="utf-8") as fh:
+        fh.write("garbage line\n")
+    with pytest.raises(StageError, match=r"_beh.tsv:3: expected 17 tab-separated fields"):
+        SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
+
+
+def test_update_provenance_appends_lists(tmp_path: Path) -> None:
+    import json
+
+    log = _create(tmp_path)
+    log.update_provenance(resumes=["t1"])
+    log.update_provenance(resumes=["t2"], note="x")
+    data = json.loads(log.paths.provenance.read_text())
+    assert data == {"seed": 1, "resumes": ["t1", "t2"], "note": "x"}

@@ -1,0 +1,212 @@
+"""Simulated participants -> session logs -> loading -> analysis -> figures and report."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from analysis.load import load_results
+from analysis.stats import AnalysisError
+from experiment.cli import main
+from experiment.protocol import load_protocol
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("sim")
+    kato = Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml"
+    assert (
+        main(["simulate", str(kato), "--participants", "8", "--seed", "3", "--results", str(root)])
+        == 0
+    )
+    return root
+
+
+def test_simulation_writes_complete_deterministic_sessions(
+    simulated: Path, kato_path: Path, tmp_path: Path
+) -> None:
+    data = load_results(simulated)
+    assert data["participant"].nunique() == 8
+    assert data.groupby("participant").size().eq(36).all()  # 18 trials x 2 items
+    assert data["simulated"].all() and data["rating"].between(0, 100).all()
+    assert data["rating_start"].isna().all()  # marker hidden: no start value
+    again = tmp_path / "again"
+    assert (
+        main(
+            [
+                "simulate",
+                str(kato_path),
+                "--participants",
+                "8",
+                "--seed",
+                "3",
+                "--results",
+                str(again),
+            ]
+        )
+        == 0
+    )
+    for tsv in simulated.rglob("*_beh.tsv"):
+        assert (again / tsv.relative_to(simulated)).read_bytes() == tsv.read_bytes()
+
+
+def test_simulated_effects_follow_the_model(tmp_path: Path, kato_path: Path) -> None:
+    assert (
+        main(
+            [
+                "simulate",
+                str(kato_path),
+                "--participants",
+                "40",
+                "--seed",
+                "9",
+                "--results",
+                str(tmp_path),
+                "--effect",
+                "standard=30",
+                "--effect",
+                "emphasized=-20",
+            ]
+        )
+        == 0
+    )
+    means = load_results(tmp_path).groupby("condition")["rating"].mean()
+    assert means["standard"] - means["baseline"] == pytest.approx(30, abs=4)
+    assert means["emphasized"] - means["baseline"] == pytest.approx(-20, abs=4)
+
+
+def test_simulate_refuses_to_overwrite(
+    simulated: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = {p: p.read_bytes() for p in simulated.rglob("*.tsv")}
+    assert main(["simulate", str(kato_path), "--seed", "4", "--results", str(simulated)]) == 2
+    assert "already exist" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in simulated.rglob("*.tsv")} == before
+    assert (
+        main(
+            [
+                "simulate",
+                str(kato_path),
+                "--seed",
+                "4",
+                "--results",
+                str(simulated),
+                "--effect",
+                "nope=3",
+            ]
+        )
+        == 2
+    )
+
+
+def test_analyze_writes_tables_figures_and_report(
+    simulated: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = simulated / "kato2021" / "analysis"
+    assert main(["analyze", str(simulated), "--protocol", str(kato_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "288 SIMULATED ratings from 8 participants" in printed
+    for name in (
+        "rm_anova",
+        "pairwise_paired",
+        "friedman",
+        "lmm_anova",
+        "paper_anova",
+        "paper_tukey",
+        "paper_layout",
+        "cell_means",
+    ):
+        assert (out / f"{name}.csv").stat().st_size > 0
+    rm = pd.read_csv(out / "rm_anova.csv")
+    assert len(rm) == 4 and set(rm.df2) == {14}  # 2 items x 2 sets, (3-1)(8-1)
+    paper = pd.read_csv(out / "paper_anova.csv")
+    assert sorted(paper.df2) == [45, 45, 93, 93]  # pooled ratings: the paper's df
+    layout = pd.read_csv(out / "paper_layout.csv")
+    assert set(layout.reported_anova_p) == {0.0221, 0.0068, 0.0045, 0.0053}
+    cells = pd.read_csv(out / "cell_means.csv")
+    data = load_results(simulated)
+    assert len(cells) == data.groupby(["item", "stimulus_set", "participant", "condition"]).ngroups
+    for stem in ("naturalness_vowels", "mouth_shape_sentences"):
+        png = (out / f"fig_{stem}.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+        assert (out / f"fig_{stem}.svg").read_text().lstrip().startswith("<?xml")
+    report = (out / "report.html").read_text()
+    assert "SIMULATED DATA" in report and "0.0221" in report and "pseudo-replication" in report
+    assert report.count("data:image/png;base64,") == 4
+    assert "SIMULATED DATA" in (out / "report.md").read_text()
+
+
+def test_figure_brackets_use_the_table_p_values(simulated: Path, kato_path: Path) -> None:
+    from analysis.study import analyze_study, bracket_pairs
+
+    data = load_results(simulated)
+    res = analyze_study(data, load_protocol(kato_path), method="rm")
+    br = bracket_pairs(res, item="mouth_shape", stimulus_set="sentences")
+    pw = res.pairwise[
+        (res.pairwise.item == "mouth_shape") & (res.pairwise.stimulus_set == "sentences")
+    ]
+    assert list(br.p) == list(pw.p_adj)
+    res = analyze_study(data, load_protocol(kato_path), method="paper")
+    br = bracket_pairs(res, item="mouth_shape", stimulus_set="sentences")
+    tk = res.paper_tukey[
+        (res.paper_tukey.item == "mouth_shape") & (res.paper_tukey.stimulus_set == "sentences")
+    ]
+    assert list(br.p) == list(tk.p_adj)
+
+
+def _copy(simulated: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "r"
+    shutil.copytree(simulated, dst)
+    return dst
+
+
+def _first_tsv(root: Path) -> Path:
+    return sorted(root.rglob("*_beh.tsv"))[0]
+
+
+def test_load_errors(simulated: Path, tmp_path: Path) -> None:
+    root = _copy(simulated, tmp_path)
+    tsv = _first_tsv(root)
+    lines = tsv.read_text().splitlines(keepends=True)
+    tsv.write_text("".join([*lines, lines[1]]))  # a rating twice
+    with pytest.raises(AnalysisError, match="rating given twice"):
+        load_results(root)
+    tsv.write_text("".join([*lines, lines[1][:30]]))
+    with pytest.raises(AnalysisError, match=r"cut off mid-write.*--resume"):
+        load_results(root)
+    fields = lines[1].split("\t")
+    fields[11] = "130.0"
+    tsv.write_text("".join([lines[0], "\t".join(fields), *lines[2:]]))
+    with pytest.raises(AnalysisError, match=r"rating 130 .* outside the scale 0..100"):
+        load_results(root)
+    fields = lines[1].split("\t")
+    fields[0] = "other"
+    tsv.write_text("".join([lines[0], "\t".join(fields), *lines[2:]]))
+    with pytest.raises(AnalysisError, match="more than one study"):
+        load_results(root)
+    tsv.write_text("".join([lines[0].replace("rating\t", "score\t"), *lines[1:]]))
+    with pytest.raises(AnalysisError, match="unexpected header"):
+        load_results(root)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(AnalysisError, match="no session logs"):
+        load_results(empty)
+    with pytest.raises(AnalysisError, match="results folder not found"):
+        load_results(tmp_path / "nope")
+
+
+def test_analyze_missing_cell_is_an_error_with_exclude_as_the_way_out(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = _copy(simulated, tmp_path)
+    tsv = sorted(root.rglob("sub-P05*_beh.tsv"))[0]
+    lines = tsv.read_text().splitlines(keepends=True)
+    keep = [line for line in lines if "\tsentences\tpassage\tbaseline\t" not in line]
+    tsv.write_text("".join(keep))
+    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 2
+    assert "missing cell(s)" in capsys.readouterr().err
+    assert main(["analyze", str(root), "--protocol", str(kato_path), "--exclude", "P05"]) == 0
+    assert "from 7 participants" in capsys.readouterr().out
