@@ -254,6 +254,81 @@ def _cmd_power(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_track(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from experiment.protocol import load_protocol
+    from stimuli.plots import vowel_track_figure
+    from stimuli.prepare import find_stimulus, speech_for, tracks_for
+    from stimuli.visemes import VISEMES
+
+    protocol = load_protocol(args.protocol)
+    set_id, stim = find_stimulus(protocol, args.stimulus)
+    speech = speech_for(
+        stim, base_dir=Path(args.protocol).parent, sample_rate=protocol.rendering.audio_sample_rate
+    )
+    track, isolated = tracks_for(stim, speech)
+    print(f"{set_id}/{stim.id}: {speech.duration_s:.2f} s of audio, {len(track.times)} frames")
+    if args.csv:
+        header = "time_s," + ",".join(VISEMES)
+        np.savetxt(
+            args.csv,
+            np.column_stack([track.times, track.weights]),
+            delimiter=",",
+            header=header,
+            comments="",
+            fmt="%.4f",
+        )
+        print(f"wrote {args.csv}")
+    if args.plot:
+        fig = vowel_track_figure(track, isolated, title=f"{set_id}/{stim.id}")
+        fig.savefig(args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _cmd_measure_z(args: argparse.Namespace) -> int:
+    import json
+
+    from stimuli.measure_z import detect_onsets, measure_z, read_capture, read_onsets, write_z
+
+    captures = [read_capture(p, fps=args.fps) for p in args.captures]
+    if args.onsets:
+        onsets = read_onsets(args.onsets)
+    elif args.vowels:
+        onsets = []
+        for cap in captures:
+            audio = cap.path.with_suffix(args.audio_suffix)
+            if not audio.exists():
+                raise FacelabError(f"no audio {audio} for capture {cap.path} (or give --onsets)")
+            onsets += detect_onsets(audio, vowels=args.vowels)
+    else:
+        raise FacelabError(
+            "give --onsets FILE, or --vowels SEQUENCE with an audio file per capture"
+        )
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise FacelabError(f"{out} exists; choose another file or pass --force")
+    result = measure_z(captures, onsets, window_s=args.window)
+    write_z(out, result.z)
+    print(json.dumps({"z": str(out), "window_s": args.window, "spread": result.spread}, indent=2))
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import json
+
+    if args.what == "visemes":
+        from stimuli.bench import bench_visemes
+
+        print(json.dumps(bench_visemes(runs=args.runs, quick=args.quick), indent=2))
+        return 0
+    raise NotBuiltError(
+        f"'facelab bench {args.what}' is not built yet in facelab {_version()} "
+        "(issue: avatar and rendering); nothing was done"
+    )
+
+
 # --------------------------------------------------------------------------- stages to come
 
 
@@ -391,10 +466,32 @@ def _parser() -> argparse.ArgumentParser:
 
     p = add(
         "measure-z",
-        "compute a Z matrix from face-capture CSV files",
-        _not_built("measure-z", "issue: speech to animation"),
+        "compute a Z matrix from face-capture CSV files (the paper's way)",
+        _cmd_measure_z,
     )
-    p.add_argument("captures", nargs="+", metavar="CAPTURE")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="Live Link Face or generic CSV")
+    p.add_argument("--onsets", metavar="FILE", help="CSV: capture, vowel, onset_s[, speaker]")
+    p.add_argument(
+        "--vowels",
+        metavar="SEQ",
+        help="vowels spoken in each capture, e.g. aiueoaiueo "
+        "(onsets detected from CAPTURE's audio)",
+    )
+    p.add_argument(
+        "--audio-suffix", default=".wav", help="audio beside each capture (default .wav)"
+    )
+    p.add_argument("--window", type=float, default=0.1, help="seconds after onset (default 0.1)")
+    p.add_argument("--fps", type=float, default=60.0, help="Live Link Face timecode frame rate")
+    p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
+    p.add_argument("--force", action="store_true")
+
+    p = add(
+        "track", "analyse one stimulus's speech: viseme track as CSV and a vowel plot", _cmd_track
+    )
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--stimulus", required=True, metavar="SET/ID")
+    p.add_argument("--plot", metavar="PNG")
+    p.add_argument("--csv", metavar="FILE")
 
     p = add(
         "demo",
@@ -403,12 +500,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", metavar="DIR")
 
-    p = add(
-        "bench",
-        "benchmarks that print JSON (visemes, render)",
-        _not_built("bench", "issues: speech to animation; avatar and rendering"),
-    )
+    p = add("bench", "benchmarks that print JSON (visemes, render)", _cmd_bench)
     p.add_argument("what", choices=["visemes", "render"])
+    p.add_argument("--runs", type=int, default=5, help="timing runs (median reported)")
+    p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
     return parser
 
 

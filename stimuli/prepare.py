@@ -1,0 +1,53 @@
+"""From a protocol stimulus to speech and viseme tracks: the shared first steps of rendering,
+inspection (``facelab track``) and the demo."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from experiment.protocol import Protocol, Stimulus
+from stimuli.speech import Speech, load_audio, synthesize
+from stimuli.visemes import VisemeTrack, analyze, isolate_vowels
+
+__all__ = ["find_stimulus", "speech_for", "tracks_for"]
+
+
+def find_stimulus(protocol: Protocol, ref: str) -> tuple[str, Stimulus]:
+    """``SET/ID`` (or a unique ``ID``) -> (set id, stimulus)."""
+    from experiment.errors import StageError
+
+    set_id, _, stim_id = ref.rpartition("/")
+    hits = [
+        (s.id, st)
+        for s in protocol.stimulus_sets
+        for st in s.stimuli
+        if st.id == stim_id and set_id in ("", s.id)
+    ]
+    if len(hits) != 1:
+        known = ", ".join(f"{s.id}/{st.id}" for s in protocol.stimulus_sets for st in s.stimuli)
+        raise StageError(
+            f"stimulus {ref!r} {'is ambiguous' if hits else 'not found'}; stimuli: {known}"
+        )
+    return hits[0]
+
+
+def speech_for(stimulus: Stimulus, *, base_dir: Path, sample_rate: int) -> Speech:
+    """TTS for a text stimulus (with its phoneme timeline), or the recording, at ``sample_rate``."""
+    if stimulus.text is not None:
+        return synthesize(
+            stimulus.text,
+            speed=stimulus.tts.speed,
+            pitch_halftones=stimulus.tts.pitch_halftones,
+            alpha=stimulus.tts.alpha,
+            sample_rate=sample_rate,
+        )
+    return load_audio(base_dir / str(stimulus.audio), sample_rate=sample_rate)
+
+
+def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeTrack | None]:
+    """(analysed track with its latency removed, vowel-isolated track or None)."""
+    track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
+    isolated = None
+    if stimulus.vowel_isolation and stimulus.expected_vowels:
+        isolated = isolate_vowels(track, vowels=stimulus.expected_vowels)
+    return track, isolated

@@ -1,0 +1,258 @@
+"""Speech input: Japanese text -> waveform + phoneme timeline (OpenJTalk), or recorded audio.
+
+Text-to-speech runs Debian's ``open_jtalk`` with the ``mei_normal`` HTS voice shipped inside
+the ``pyopenjtalk-plus`` wheel and the Debian naist-jdic dictionary, offline. One run writes
+both the waveform and the label trace, so the phoneme times are exactly those the audio was
+generated from (5 ms resolution for mei: 240-sample frames at 48 kHz).
+
+Recorded WAV/FLAC of any common rate and channel count is mixed to mono (mean of channels)
+and resampled explicitly (polyphase, ``scipy.signal.resample_poly``) to the rate asked for.
+Empty, silent, clipped or unreadable audio raises :class:`SpeechError` naming the file.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+
+from experiment.errors import StageError
+
+__all__ = [
+    "DICTIONARY_DIR",
+    "Phone",
+    "Speech",
+    "SpeechError",
+    "check_audio",
+    "load_audio",
+    "resample",
+    "synthesize",
+    "voice_file",
+]
+
+DICTIONARY_DIR = Path("/var/lib/mecab/dic/open-jtalk/naist-jdic")
+TTS_SAMPLE_RATE = 48_000  # mei_normal's native rate
+SILENT_RMS_DBFS = -60.0  # below this the whole file counts as silent
+CLIPPED_FRACTION = 0.001  # more than 0.1 % of samples at full scale counts as clipped
+
+
+class SpeechError(StageError):
+    """Audio or text that cannot be turned into a speech stimulus."""
+
+
+@dataclass(frozen=True)
+class Phone:
+    """One OpenJTalk phoneme: ``a i u e o`` (``A I U E O`` devoiced), consonants, ``N``,
+    ``cl`` (geminate), ``pau`` and ``sil``. Times in seconds from the start of the audio."""
+
+    phoneme: str
+    start: float
+    end: float
+
+
+@dataclass(frozen=True)
+class Speech:
+    """A mono waveform and, for TTS, its phoneme timeline.
+
+    samples : float32, shape (n,), in [-1, 1]; sample_rate in Hz.
+    phones : tuple of :class:`Phone` (empty for recorded audio).
+    """
+
+    samples: np.ndarray
+    sample_rate: int
+    phones: tuple[Phone, ...] = ()
+    source: str = ""
+
+    @property
+    def duration_s(self) -> float:
+        return len(self.samples) / self.sample_rate
+
+
+def voice_file() -> Path:
+    """The mei_normal HTS voice inside the installed pyopenjtalk-plus package."""
+    spec = importlib.util.find_spec("pyopenjtalk")  # not imported: it prints warnings
+    if spec is None or spec.origin is None:
+        raise SpeechError("pyopenjtalk-plus is not installed (pip install 'facelab[stimuli]')")
+    path = Path(spec.origin).parent / "htsvoice" / "mei_normal.htsvoice"
+    if not path.is_file():
+        raise SpeechError(f"the mei_normal voice was not found at {path}")
+    return path
+
+
+def _open_jtalk() -> str:
+    exe = shutil.which("open_jtalk")
+    if exe is None or not DICTIONARY_DIR.is_dir():
+        raise SpeechError(
+            "OpenJTalk is not installed: apt-get install open-jtalk open-jtalk-mecab-naist-jdic "
+            "(scripts/setup.sh does this)"
+        )
+    return exe
+
+
+_LABEL_RE = re.compile(r"^(\d+) (\d+) \S*?\^\S*?-(\S+?)\+")
+
+
+def parse_trace(text: str) -> tuple[Phone, ...]:
+    """Phones from the ``[Output label]`` section of an ``open_jtalk -ot`` trace.
+
+    Label times are in 100 ns units; the phoneme sits between ``-`` and ``+``.
+    """
+    phones: list[Phone] = []
+    in_labels = False
+    for line in text.splitlines():
+        if line.startswith("[Output label]"):
+            in_labels = True
+            continue
+        if in_labels:
+            if not line.strip():
+                break
+            match = _LABEL_RE.match(line)
+            if match is None:
+                raise SpeechError(f"unexpected OpenJTalk label line: {line[:60]!r}")
+            start, end, phoneme = int(match.group(1)), int(match.group(2)), match.group(3)
+            phones.append(Phone(phoneme, start * 1e-7, end * 1e-7))
+    return tuple(phones)
+
+
+def synthesize(
+    text: str,
+    *,
+    speed: float = 1.0,
+    pitch_halftones: float = 0.0,
+    alpha: float | None = None,
+    sample_rate: int = TTS_SAMPLE_RATE,
+) -> Speech:
+    """Japanese text -> :class:`Speech` with the phoneme timeline, via ``open_jtalk``.
+
+    Parameters
+    ----------
+    speed : speaking-rate factor (``-r``), 0.5..2.
+    pitch_halftones : pitch shift in half tones (``-fm``).
+    alpha : all-pass constant (``-a``), a vocal-tract-length-like timbre change; None keeps
+        the voice's own (0.55 for mei at 48 kHz).
+    sample_rate : output rate; the voice runs at 48 kHz and is resampled if different
+        (phone times are unaffected).
+    """
+    clean = text.strip()
+    if not clean:
+        raise SpeechError("empty text: nothing to synthesise")
+    if not 0.5 <= speed <= 2.0:
+        raise SpeechError(f"speed {speed} is outside 0.5..2")
+    exe = _open_jtalk()
+    with tempfile.TemporaryDirectory(prefix="facelab-tts-") as tmp:
+        tmpdir = Path(tmp)
+        (tmpdir / "in.txt").write_text(clean + "\n", encoding="utf-8")
+        cmd = [
+            exe,
+            "-x",
+            str(DICTIONARY_DIR),
+            "-m",
+            str(voice_file()),
+            "-r",
+            f"{speed:g}",
+            "-fm",
+            f"{pitch_halftones:g}",
+            "-ow",
+            str(tmpdir / "out.wav"),
+            "-ot",
+            str(tmpdir / "out.trace"),
+        ]
+        if alpha is not None:
+            cmd += ["-a", f"{alpha:g}"]
+        cmd.append(str(tmpdir / "in.txt"))
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        wav = tmpdir / "out.wav"
+        if proc.returncode != 0 or not wav.exists() or wav.stat().st_size <= 44:
+            raise SpeechError(
+                f"OpenJTalk could not read the text {clean[:30]!r}: "
+                f"{proc.stderr.strip() or 'no audio produced'}"
+            )
+        phones = parse_trace((tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace"))
+        samples, rate = _read_wav_pcm16(wav)
+    speaking = [p for p in phones if p.phoneme not in ("sil", "pau")]
+    if not speaking:
+        raise SpeechError(f"OpenJTalk found nothing to pronounce in {clean[:30]!r}")
+    if rate != sample_rate:
+        samples = resample(samples, rate_in=rate, rate_out=sample_rate)
+    return Speech(samples=samples, sample_rate=sample_rate, phones=phones, source=f"tts:{clean}")
+
+
+def _read_wav_pcm16(path: Path) -> tuple[np.ndarray, int]:
+    import wave
+
+    with wave.open(str(path), "rb") as fh:
+        rate, width, channels, n = (
+            fh.getframerate(),
+            fh.getsampwidth(),
+            fh.getnchannels(),
+            fh.getnframes(),
+        )
+        raw = fh.readframes(n)
+    if width != 2:
+        raise SpeechError(f"{path}: expected 16-bit PCM from OpenJTalk, got {8 * width}-bit")
+    data = np.frombuffer(raw, dtype="<i2").astype(np.float32) / 32768.0
+    return data.reshape(-1, channels).mean(axis=1), rate
+
+
+def resample(samples: np.ndarray, *, rate_in: int, rate_out: int) -> np.ndarray:
+    """Polyphase resampling with scipy's default Kaiser-windowed anti-alias filter."""
+    if rate_in == rate_out:
+        return samples.astype(np.float32, copy=False)
+    ratio = Fraction(rate_out, rate_in)
+    out = signal.resample_poly(samples.astype(np.float64), ratio.numerator, ratio.denominator)
+    return out.astype(np.float32)
+
+
+def check_audio(samples: np.ndarray, *, sample_rate: int, source: str) -> None:
+    """Raise :class:`SpeechError` for empty, silent, clipped or non-finite audio."""
+    if samples.size == 0:
+        raise SpeechError(f"{source}: the audio is empty")
+    if samples.size < sample_rate * 0.05:
+        raise SpeechError(f"{source}: the audio is shorter than 50 ms")
+    if not np.all(np.isfinite(samples)):
+        raise SpeechError(f"{source}: the audio contains NaN or infinite samples")
+    rms = float(np.sqrt(np.mean(np.square(samples, dtype=np.float64))))
+    if rms == 0 or 20 * np.log10(rms) < SILENT_RMS_DBFS:
+        level = "-inf" if rms == 0 else f"{20 * np.log10(rms):.1f}"
+        raise SpeechError(f"{source}: the audio is silent (RMS {level} dBFS < {SILENT_RMS_DBFS:g})")
+    clipped = float(np.mean(np.abs(samples) >= 0.999))
+    if clipped > CLIPPED_FRACTION:
+        raise SpeechError(
+            f"{source}: the audio is clipped ({100 * clipped:.2f} % of samples at "
+            "full scale); record again at a lower level"
+        )
+
+
+def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
+    """A recorded WAV/FLAC file as mono float32 at ``sample_rate`` Hz, checked."""
+    import soundfile as sf
+
+    path = Path(path)
+    if not path.is_file():
+        raise SpeechError(f"{path}: audio file not found")
+    try:
+        data, rate = sf.read(str(path), dtype="float32", always_2d=True)
+    except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
+        raise SpeechError(f"{path}: not a readable WAV/FLAC file ({exc})") from None
+    mono = data.mean(axis=1)
+    check_audio(mono, sample_rate=rate, source=str(path))
+    return Speech(
+        samples=resample(mono, rate_in=rate, rate_out=sample_rate),
+        sample_rate=sample_rate,
+        source=str(path),
+    )
+
+
+def write_wav(path: Path, speech: Speech) -> None:
+    """16-bit PCM WAV (used for clips and caches)."""
+    import soundfile as sf
+
+    sf.write(str(path), np.clip(speech.samples, -1, 1), speech.sample_rate, subtype="PCM_16")

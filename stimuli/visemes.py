@@ -1,0 +1,662 @@
+"""Viseme tracks: an audio-only 15-viseme analyser, the text-driven track, vowel isolation.
+
+Output order is Oculus LipSync's: ``sil PP FF TH DD kk CH SS nn RR aa E ih oh ou``; the five
+Japanese vowels a, i, u, e, o are ``aa, ih, ou, E, oh``.
+
+The analyser (method and why)
+-----------------------------
+Per 10 ms frame: a 32 ms Hamming window centred on the frame time, pre-emphasis (0.97,
+applied to the spectrum), mel filterbank
+(40 bands, 60-7600 Hz, computed at the input's own rate so nothing is resampled), log, DCT
+-> 12 cepstral coefficients (c1..c12, level independent) plus the log energy; stacked with the
+frames 30 ms and 60 ms earlier (causal context, no extra latency). A Gaussian classifier with
+one shared covariance (linear discriminant) gives posteriors over the viseme classes seen in
+Japanese speech; a temperature softens them into OVR-like blends, an absolute level gate
+(-50..-30 dBFS, as uLipSync) scales them, and ``sil`` takes the rest. Trained on OpenJTalk
+speech with exact phoneme times in many voice variants (``stimuli/viseme_training.py``).
+
+Why this and not uLipSync's template matching: the LDA uses the same MFCC evidence but learns
+which directions separate the classes and weights them (uLipSync's L1/L2/cosine distances
+treat every coefficient alike), it yields probabilities (blends) rather than ad-hoc scores,
+and it covers consonant visemes, which templates of five vowels cannot. Calibration keeps
+uLipSync's idea - a short recording of the speaker's five vowels - as a MAP update of the
+vowel class means (and a shift of the others by the mean vowel shift): mean-only adaptation
+is what a handful of frames can estimate reliably.
+
+Latency: in streaming, a frame needs audio up to 16 ms (half a window) after its time, and
+the posteriors are smoothed by a one-pole filter (tau 10 ms, group delay ~6 ms):
+``StreamingAnalyzer.latency_s`` is the sum. Offline the window is centred on the frame time,
+so only the smoothing lag remains; ``VisemeTrack.latency_s`` states it and rendering removes
+it (``compensated()``) so the mouth is not late.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+from scipy.fft import dct, rfft
+
+from experiment.errors import StageError
+
+__all__ = [
+    "VISEMES",
+    "VOWELS",
+    "VOWEL_VISEMES",
+    "StreamingAnalyzer",
+    "VisemeModel",
+    "VisemeTrack",
+    "analyze",
+    "calibrate",
+    "default_model",
+    "from_phonemes",
+    "isolate_vowels",
+    "phoneme_viseme",
+    "vowel_segments",
+]
+
+VISEMES: tuple[str, ...] = (
+    "sil",
+    "PP",
+    "FF",
+    "TH",
+    "DD",
+    "kk",
+    "CH",
+    "SS",
+    "nn",
+    "RR",
+    "aa",
+    "E",
+    "ih",
+    "oh",
+    "ou",
+)
+VOWELS: tuple[str, ...] = ("a", "i", "u", "e", "o")
+VOWEL_VISEMES: tuple[str, ...] = ("aa", "ih", "ou", "E", "oh")
+_VOWEL_INDEX = [VISEMES.index(v) for v in VOWEL_VISEMES]
+MODEL_PATH = Path(__file__).parent / "data" / "viseme_model.json"
+FPS = 100.0
+
+
+class VisemeError(StageError):
+    """Input the viseme stage cannot use."""
+
+
+# --------------------------------------------------------------------------- the track
+
+
+@dataclass(frozen=True)
+class VisemeTrack:
+    """Viseme weights over time.
+
+    times : (T,) seconds, frame times (uniform, ``fps`` per second).
+    weights : (T, 15) in [0, 1], columns in :data:`VISEMES` order, rows summing to 1.
+    latency_s : how late the weights are relative to the audio at the frame times (the
+        analyser's smoothing lag; 0 for text-driven tracks). ``compensated()`` removes it.
+    """
+
+    times: np.ndarray
+    weights: np.ndarray
+    names: tuple[str, ...] = VISEMES
+    latency_s: float = 0.0
+
+    @property
+    def fps(self) -> float:
+        return (
+            FPS if len(self.times) < 2 else float(round(1.0 / (self.times[1] - self.times[0]), 6))
+        )
+
+    def vowels(self) -> np.ndarray:
+        """(T, 5) intensities of a, i, u, e, o (the aa, ih, ou, E, oh columns)."""
+        return self.weights[:, _VOWEL_INDEX]
+
+    def compensated(self) -> VisemeTrack:
+        """The track moved earlier by its latency (linear interpolation on the same times)."""
+        if self.latency_s == 0:
+            return self
+        shifted = np.empty_like(self.weights)
+        for j in range(self.weights.shape[1]):
+            shifted[:, j] = np.interp(self.times + self.latency_s, self.times, self.weights[:, j])
+        return replace(self, weights=shifted, latency_s=0.0)
+
+
+# --------------------------------------------------------------------------- phonemes -> visemes
+
+_CONSONANT_VISEME = {
+    "p": "PP",
+    "b": "PP",
+    "m": "PP",
+    "py": "PP",
+    "by": "PP",
+    "my": "PP",
+    "f": "FF",
+    "v": "FF",
+    "t": "DD",
+    "d": "DD",
+    "ty": "DD",
+    "dy": "DD",
+    "k": "kk",
+    "g": "kk",
+    "ky": "kk",
+    "gy": "kk",
+    "kw": "kk",
+    "gw": "kk",
+    "s": "SS",
+    "z": "SS",
+    "sh": "CH",
+    "ch": "CH",
+    "j": "CH",
+    "ts": "CH",
+    "n": "nn",
+    "ny": "nn",
+    "N": "nn",
+    "r": "RR",
+    "ry": "RR",
+    "y": "ih",
+    "w": "ou",
+    "h": "SS",
+    "hy": "SS",
+    "sil": "sil",
+    "pau": "sil",
+}
+
+
+def phoneme_viseme(phoneme: str) -> str | None:
+    """The viseme of an OpenJTalk phoneme (devoiced vowels map like voiced ones); None for
+    ``cl`` (a geminate closure takes its shape from the context)."""
+    if phoneme.lower() in VOWELS:
+        return VOWEL_VISEMES[VOWELS.index(phoneme.lower())]
+    if phoneme == "cl":
+        return None
+    if phoneme not in _CONSONANT_VISEME:
+        raise VisemeError(f"unknown OpenJTalk phoneme {phoneme!r}")
+    return _CONSONANT_VISEME[phoneme]
+
+
+def from_phonemes(
+    phones: Sequence,
+    *,
+    fps: float = FPS,
+    smoothing_s: float = 0.04,
+    duration_s: float | None = None,
+) -> VisemeTrack:
+    """The text-driven track from an OpenJTalk phoneme timeline.
+
+    Each phone sets its viseme's target to 1 (devoiced vowels 0.4, ``h`` the following
+    vowel's shape at 0.5, ``cl`` holds the previous shape, ``N`` before p/b/m is PP), sampled
+    at frame times; coarticulation is a Gaussian blur of the targets with SD ``smoothing_s``
+    (symmetric: a text-driven track may anticipate). ``sil`` takes the remainder.
+    """
+    if not phones:
+        raise VisemeError("empty phoneme timeline")
+    end = duration_s if duration_s is not None else phones[-1].end
+    times = np.arange(int(np.floor(end * fps)) + 1) / fps
+    targets = np.zeros((len(times), len(VISEMES)))
+    for i, phone in enumerate(phones):
+        ph = phone.phoneme
+        weight = 1.0
+        nxt = phones[i + 1].phoneme if i + 1 < len(phones) else "sil"
+        if ph in ("A", "I", "U", "E", "O"):
+            viseme, weight = phoneme_viseme(ph), 0.4
+        elif ph in ("h", "hy") and nxt.lower() in VOWELS:
+            viseme, weight = phoneme_viseme(nxt), 0.5
+        elif ph == "N" and nxt in ("p", "b", "m", "py", "by", "my"):
+            viseme = "PP"
+        elif ph == "cl":
+            viseme = "PP" if nxt in ("p", "b", "py", "by") else None
+            if viseme is None:
+                prev = phones[i - 1].phoneme if i else "sil"
+                viseme, weight = phoneme_viseme(prev) or "sil", 0.5
+        else:
+            viseme = phoneme_viseme(ph)
+        if viseme == "sil":
+            continue
+        sel = (times >= phone.start) & (times < phone.end)
+        targets[sel, VISEMES.index(viseme)] = np.maximum(
+            targets[sel, VISEMES.index(viseme)], weight
+        )
+    if smoothing_s > 0:
+        sigma = smoothing_s * fps
+        radius = int(np.ceil(4 * sigma))
+        kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+        kernel /= kernel.sum()
+        padded = np.pad(targets, ((radius, radius), (0, 0)))
+        targets = np.stack(
+            [np.convolve(padded[:, j], kernel, mode="valid") for j in range(targets.shape[1])],
+            axis=1,
+        )
+    total = targets[:, 1:].sum(axis=1)
+    over = total > 1
+    targets[over, 1:] /= total[over, None]
+    targets[:, 0] = 1 - targets[:, 1:].sum(axis=1)
+    return VisemeTrack(times=times, weights=np.clip(targets, 0, 1))
+
+
+# --------------------------------------------------------------------------- features
+
+WINDOW_S = 0.032
+HOP_S = 0.010
+N_MELS = 40
+N_CEPS = 12
+CONTEXT = (0, 3, 6)  # frames back
+MEL_RANGE_HZ = (60.0, 7600.0)
+
+
+@cache
+def _mel_bank(sample_rate: int, n_fft: int) -> np.ndarray:
+    def hz_to_mel(f: np.ndarray | float) -> np.ndarray | float:
+        return 1127.0 * np.log1p(np.asarray(f) / 700.0)
+
+    lo, hi = (hz_to_mel(f) for f in MEL_RANGE_HZ)
+    edges = 700.0 * np.expm1(np.linspace(lo, hi, N_MELS + 2) / 1127.0)
+    freqs = np.fft.rfftfreq(n_fft, 1.0 / sample_rate)
+    bank = np.zeros((N_MELS, len(freqs)))
+    for m in range(N_MELS):
+        left, centre, right = edges[m], edges[m + 1], edges[m + 2]
+        up = (freqs - left) / (centre - left)
+        down = (right - freqs) / (right - centre)
+        bank[m] = np.clip(np.minimum(up, down), 0, None)
+        bank[m] /= max(bank[m].sum(), 1e-12)
+    return bank
+
+
+@dataclass(frozen=True)
+class _FrameGeometry:
+    sample_rate: int
+    win: int
+    hop: int
+    n_fft: int
+
+    @classmethod
+    def for_rate(cls, sample_rate: int) -> _FrameGeometry:
+        if sample_rate < 16_000:
+            raise VisemeError(
+                f"sample rate {sample_rate} Hz is too low: the analyser needs "
+                ">= 16 kHz (the mel bands reach 7.6 kHz)"
+            )
+        hop = sample_rate * HOP_S
+        if abs(hop - round(hop)) > 1e-9:
+            raise VisemeError(f"sample rate {sample_rate} Hz is not a multiple of 100 Hz")
+        win = round(sample_rate * WINDOW_S)
+        return cls(sample_rate, win, round(hop), 1 << (win - 1).bit_length())
+
+
+@cache
+def _emphasis(sample_rate: int, n_fft: int) -> np.ndarray:
+    """|1 - 0.97 z^-1|^2 on the rfft bins: pre-emphasis applied in the frequency domain."""
+    w = 2 * np.pi * np.fft.rfftfreq(n_fft, 1.0 / sample_rate) / sample_rate
+    return np.abs(1 - 0.97 * np.exp(-1j * w)) ** 2
+
+
+def _frame_features(padded: np.ndarray, geo: _FrameGeometry, first: int, count: int) -> np.ndarray:
+    """(count, 13) level (dBFS RMS of the raw window) + c1..c12 for frames
+    ``first..first+count-1`` of a signal left-padded by ``win/2``: frame k is
+    ``padded[k*hop : k*hop+win]``, centred on time k*hop."""
+    idx = (first + np.arange(count))[:, None] * geo.hop + np.arange(geo.win)[None, :]
+    raw = padded[idx]
+    power = np.abs(rfft(raw * np.hamming(geo.win)[None, :], n=geo.n_fft, axis=1)) ** 2
+    power *= _emphasis(geo.sample_rate, geo.n_fft)[None, :]
+    mel = np.log(power @ _mel_bank(geo.sample_rate, geo.n_fft).T + 1e-10)
+    ceps = dct(mel, type=2, norm="ortho", axis=1)[:, 1 : N_CEPS + 1]
+    energy = 10 * np.log10(np.mean(np.square(raw), axis=1) + 1e-12)
+    return np.column_stack([energy, ceps])
+
+
+def _stack(feats: np.ndarray, history: np.ndarray) -> np.ndarray:
+    """Context stacking: each frame with the frames CONTEXT[j] earlier (``history`` holds the
+    frames before ``feats``; zeros before the signal)."""
+    depth = max(CONTEXT)
+    full = np.vstack([history[-depth:] if depth else history[:0], feats])
+    n = len(feats)
+    parts = [full[depth - lag : depth - lag + n, 1:] for lag in CONTEXT]
+    return np.column_stack([feats[:, :1], *parts])
+
+
+# --------------------------------------------------------------------------- the model
+
+
+@dataclass
+class VisemeModel:
+    """A linear-discriminant viseme classifier (see the module docstring)."""
+
+    classes: tuple[str, ...]
+    means: np.ndarray  # (C, D)
+    precision: np.ndarray  # (D, D), inverse of the shared covariance
+    log_priors: np.ndarray  # (C,)
+    temperature: float = 2.0
+    gate_db: tuple[float, float] = (-50.0, -30.0)
+    smoothing_tau_s: float = 0.010
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._refresh()
+
+    def _refresh(self) -> None:
+        self._w = self.means @ self.precision  # (C, D)
+        self._b = -0.5 * np.einsum("cd,cd->c", self._w, self.means) + self.log_priors
+        self._cols = np.array([VISEMES.index(c) for c in self.classes])
+
+    @property
+    def lag_s(self) -> float:
+        """Delay of the weights relative to the frame times: the smoothing filter's group
+        delay at low frequencies, hop * (1 - alpha) / alpha (the window is centred)."""
+        if self.smoothing_tau_s <= 0:
+            return 0.0
+        alpha = 1.0 - np.exp(-HOP_S / self.smoothing_tau_s)
+        return HOP_S * (1.0 - alpha) / alpha
+
+    @property
+    def latency_s(self) -> float:
+        """Algorithmic latency of streaming: a frame needs audio up to half a window after its
+        time, and its weights lag by :attr:`lag_s`."""
+        return WINDOW_S / 2 + self.lag_s
+
+    def posteriors(self, x: np.ndarray) -> np.ndarray:
+        """(T, C) class posteriors (tempered) for stacked features x (T, D)."""
+        logits = (x[:, 1:] @ self._w.T + self._b) / self.temperature
+        logits -= logits.max(axis=1, keepdims=True)
+        p = np.exp(logits)
+        return p / p.sum(axis=1, keepdims=True)
+
+    def weights(self, x: np.ndarray) -> np.ndarray:
+        """(T, 15) viseme weights before smoothing: posteriors scaled by the level gate."""
+        post = self.posteriors(x)
+        lo, hi = self.gate_db
+        gate = np.clip((x[:, 0] - lo) / (hi - lo), 0.0, 1.0)
+        out = np.zeros((len(x), len(VISEMES)))
+        out[:, self._cols] = post * gate[:, None]
+        sil = VISEMES.index("sil")
+        out[:, sil] = 0
+        out[:, sil] = 1 - out.sum(axis=1)
+        return out
+
+    # -- persistence
+    def to_json(self) -> dict:
+        return {
+            "format": "facelab-viseme-lda-1",
+            "classes": list(self.classes),
+            "means": self.means.tolist(),
+            "precision": self.precision.tolist(),
+            "log_priors": self.log_priors.tolist(),
+            "temperature": self.temperature,
+            "gate_db": list(self.gate_db),
+            "smoothing_tau_s": self.smoothing_tau_s,
+            "features": {
+                "window_s": WINDOW_S,
+                "hop_s": HOP_S,
+                "n_mels": N_MELS,
+                "n_ceps": N_CEPS,
+                "context": list(CONTEXT),
+                "mel_range_hz": list(MEL_RANGE_HZ),
+            },
+            "info": self.info,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict) -> VisemeModel:
+        if data.get("format") != "facelab-viseme-lda-1":
+            raise VisemeError("not a facelab viseme model file (format facelab-viseme-lda-1)")
+        return cls(
+            classes=tuple(data["classes"]),
+            means=np.asarray(data["means"]),
+            precision=np.asarray(data["precision"]),
+            log_priors=np.asarray(data["log_priors"]),
+            temperature=float(data["temperature"]),
+            gate_db=tuple(data["gate_db"]),
+            smoothing_tau_s=float(data["smoothing_tau_s"]),
+            info=data.get("info", {}),
+        )
+
+    def save(self, path: Path) -> None:
+        path.write_text(json.dumps(self.to_json()) + "\n", encoding="utf-8")
+
+    @classmethod
+    def load(cls, path: Path | str) -> VisemeModel:
+        try:
+            return cls.from_json(json.loads(Path(path).read_text(encoding="utf-8")))
+        except (OSError, json.JSONDecodeError, KeyError) as exc:
+            raise VisemeError(f"{path}: cannot read the viseme model ({exc})") from None
+
+
+@cache
+def _default_model_cached() -> VisemeModel:
+    if not MODEL_PATH.is_file():
+        raise VisemeError(
+            f"the shipped viseme model is missing: {MODEL_PATH} "
+            "(python -m stimuli.viseme_training rebuilds it)"
+        )
+    return VisemeModel.load(MODEL_PATH)
+
+
+def default_model() -> VisemeModel:
+    """The shipped model (a copy; calibrate it freely)."""
+    base = _default_model_cached()
+    return replace(base, means=base.means.copy(), info=dict(base.info))
+
+
+# --------------------------------------------------------------------------- analysis
+
+
+class StreamingAnalyzer:
+    """Feed audio chunks, get viseme frames as soon as their window is complete.
+
+    ``latency_s`` is the algorithmic latency (window half + smoothing); in addition a frame
+    waits for the chunk that completes its window (at most one hop, 10 ms, for chunks of
+    10 ms or less). ``analyze`` is exactly this class fed the whole signal, then flushed.
+    """
+
+    def __init__(self, *, sample_rate: int, model: VisemeModel | None = None):
+        self.model = model or default_model()
+        self.geo = _FrameGeometry.for_rate(sample_rate)
+        self._buf = np.zeros(self.geo.win // 2, dtype=np.float64)  # left pad: frame 0 at t=0
+        self._offset = 0  # samples dropped from the front of _buf
+        self._next = 0  # next frame index
+        self._history = np.zeros((max(CONTEXT), 1 + N_CEPS))
+        alpha = (
+            1.0 - np.exp(-HOP_S / self.model.smoothing_tau_s) if self.model.smoothing_tau_s else 1.0
+        )
+        self._smooth_b, self._smooth_a = [alpha], [1.0, alpha - 1.0]
+        self._zi: np.ndarray | None = None
+        self._n_in = 0
+
+    @property
+    def latency_s(self) -> float:
+        return self.model.latency_s
+
+    def feed(self, chunk: np.ndarray) -> VisemeTrack:
+        chunk = np.asarray(chunk, dtype=np.float64).ravel()
+        if chunk.size:
+            self._buf = np.concatenate([self._buf, chunk])
+            self._n_in += chunk.size
+        return self._emit(limit=None)
+
+    def flush(self) -> VisemeTrack:
+        """Emit the remaining frames up to the end of the input (zero-padding the window)."""
+        last_frame = (self._n_in - 1) // self.geo.hop if self._n_in else -1
+        self._buf = np.concatenate([self._buf, np.zeros(self.geo.win)])
+        return self._emit(limit=last_frame + 1)
+
+    def _emit(self, limit: int | None) -> VisemeTrack:
+        geo = self.geo
+        available = (self._offset + len(self._buf) - geo.win) // geo.hop + 1
+        stop = available if limit is None else min(available, limit)
+        count = max(0, stop - self._next)
+        if count == 0:
+            return VisemeTrack(
+                times=np.zeros(0), weights=np.zeros((0, len(VISEMES))), latency_s=self.model.lag_s
+            )
+        # the buffer starts at a whole number of hops, so frame k is local frame k - offset/hop
+        feats = _frame_features(self._buf, geo, self._next - self._offset // geo.hop, count)
+        stacked = _stack(feats, self._history)
+        self._history = np.vstack([self._history, feats])[-max(CONTEXT) :]
+        smooth = self._smooth(self.model.weights(stacked))
+        times = (self._next + np.arange(count)) * HOP_S
+        self._next += count
+        drop = (self._next * geo.hop - self._offset) // geo.hop * geo.hop
+        if drop > 0:  # samples before the next frame's window are no longer needed
+            self._buf = self._buf[drop:]
+            self._offset += drop
+        return VisemeTrack(times=times, weights=smooth, latency_s=self.model.lag_s)
+
+    def _smooth(self, raw: np.ndarray) -> np.ndarray:
+        """One-pole low-pass per column, y[n] = y[n-1] + alpha (x[n] - y[n-1]), from silence."""
+        if self._zi is None:
+            start = np.zeros((1, len(VISEMES)))
+            start[0, 0] = 1.0  # the output starts at rest (sil = 1)
+            self._zi = -self._smooth_a[1] * start
+        out, self._zi = signal.lfilter(self._smooth_b, self._smooth_a, raw, axis=0, zi=self._zi)
+        return np.clip(out, 0.0, 1.0)
+
+
+def analyze(
+    samples: np.ndarray, *, sample_rate: int, model: VisemeModel | None = None
+) -> VisemeTrack:
+    """15 viseme weights per 10 ms frame from audio alone (see the module docstring).
+
+    samples : (n,) mono float in [-1, 1]; sample_rate : Hz, >= 16 kHz, a multiple of 100.
+    Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
+    on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
+    """
+    samples = np.asarray(samples)
+    if samples.ndim != 1:
+        raise VisemeError(f"expected mono samples of shape (n,), got shape {samples.shape}")
+    if samples.size == 0:
+        raise VisemeError("empty audio")
+    stream = StreamingAnalyzer(sample_rate=sample_rate, model=model)
+    head, tail = stream.feed(samples), stream.flush()
+    return VisemeTrack(
+        times=np.concatenate([head.times, tail.times]),
+        weights=np.vstack([head.weights, tail.weights]),
+        latency_s=stream.model.lag_s,
+    )
+
+
+def features(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, np.ndarray]:
+    """(times (T,), stacked features (T, D)) exactly as the analyser sees them (training)."""
+    geo = _FrameGeometry.for_rate(sample_rate)
+    x = np.asarray(samples, dtype=np.float64)
+    padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
+    count = (len(x) - 1) // geo.hop + 1
+    feats = _frame_features(padded, geo, 0, count)
+    return np.arange(count) * HOP_S, _stack(feats, np.zeros((max(CONTEXT), feats.shape[1])))
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def vowel_segments(
+    track: VisemeTrack, *, min_s: float = 0.06, merge_gap_s: float = 0.08, threshold: float = 0.5
+) -> list[tuple[int, int]]:
+    """Voiced stretches as frame index ranges [start, stop): where 1 - sil >= threshold,
+    gaps shorter than ``merge_gap_s`` merged, pieces shorter than ``min_s`` dropped."""
+    active = (1.0 - track.weights[:, 0]) >= threshold
+    fps = track.fps
+    segs: list[list[int]] = []
+    for i, on in enumerate(active):
+        if not on:
+            continue
+        if segs and i - segs[-1][1] <= merge_gap_s * fps:
+            segs[-1][1] = i + 1
+        else:
+            segs.append([i, i + 1])
+    return [(a, b) for a, b in segs if (b - a) >= min_s * fps]
+
+
+def calibrate(
+    model: VisemeModel,
+    samples: np.ndarray,
+    *,
+    sample_rate: int,
+    vowels: str = "aiueo",
+    prior_frames: float = 20.0,
+) -> VisemeModel:
+    """Adapt ``model`` to a speaker from a recording of the vowels spoken in ``vowels`` order
+    with pauses between them (e.g. あ、い、う、え、お).
+
+    Vowel segments are found with the model's own voicing decision; their middle 60 % frames
+    update each vowel's class mean by MAP (``prior_frames`` pseudo-frames of the old mean);
+    every other class moves by the average vowel shift; the level gate is set from the
+    recording's vowel level (peak 2 dB below its 90th percentile).
+    """
+    track = analyze(samples, sample_rate=sample_rate, model=model)
+    segs = vowel_segments(track)
+    if len(segs) != len(vowels):
+        raise VisemeError(
+            f"calibration recording: found {len(segs)} voiced segments, expected "
+            f"{len(vowels)} ({vowels}); leave clear pauses between the vowels"
+        )
+    _, x = features(samples, sample_rate=sample_rate)
+    new = model.means.copy()
+    shifts = []
+    for (a, b), vowel in zip(segs, vowels, strict=True):
+        n = b - a
+        core = x[a + int(0.2 * n) : b - int(0.2 * n), 1:]
+        c = model.classes.index(VOWEL_VISEMES[VOWELS.index(vowel)])
+        updated = (prior_frames * model.means[c] + core.sum(axis=0)) / (prior_frames + len(core))
+        shifts.append(updated - model.means[c])
+        new[c] = updated
+    shift = np.mean(shifts, axis=0)
+    vowel_rows = {model.classes.index(VOWEL_VISEMES[VOWELS.index(v)]) for v in vowels}
+    for c in range(len(model.classes)):
+        if c not in vowel_rows:
+            new[c] = model.means[c] + shift
+    levels = np.concatenate([x[a:b, 0] for a, b in segs])
+    top = float(np.percentile(levels, 90)) - 2.0
+    info = {
+        **model.info,
+        "calibrated": {"vowels": vowels, "segments_s": [[a * HOP_S, b * HOP_S] for a, b in segs]},
+    }
+    return replace(model, means=new, gate_db=(top - 20.0, top), info=info)
+
+
+# --------------------------------------------------------------------------- vowel isolation
+
+
+def _widen(
+    track: VisemeTrack, segs: list[tuple[int, int]], *, floor: float = 0.02
+) -> list[tuple[int, int]]:
+    """Grow each segment over its rising and falling edges (while 1 - sil > ``floor``),
+    never into a neighbour."""
+    active = (1.0 - track.weights[:, 0]) > floor
+    out: list[tuple[int, int]] = []
+    for i, (a, b) in enumerate(segs):
+        lo = out[-1][1] if out else 0
+        hi = segs[i + 1][0] if i + 1 < len(segs) else len(active)
+        while a > lo and active[a - 1]:
+            a -= 1
+        while b < hi and active[b]:
+            b += 1
+        out.append((a, b))
+    return out
+
+
+def isolate_vowels(
+    track: VisemeTrack, *, vowels: str, segments: Iterable[tuple[int, int]] | None = None
+) -> VisemeTrack:
+    """Keep only the intended vowel per vowel segment (seed figure 7).
+
+    In the i-th voiced segment the vowel ``vowels[i]`` keeps its intensity and the other four
+    vowel columns are set to 0; consonant columns are left alone; ``sil`` takes the rest.
+    Segments are found from the track (:func:`vowel_segments`) unless given.
+    """
+    segs = list(segments) if segments is not None else _widen(track, vowel_segments(track))
+    if len(segs) != len(vowels):
+        raise VisemeError(
+            f"vowel isolation: found {len(segs)} voiced segments but expected_vowels "
+            f"is {vowels!r} ({len(vowels)}); check the recording or the text"
+        )
+    weights = track.weights.copy()
+    for (a, b), vowel in zip(segs, vowels, strict=True):
+        keep = VISEMES.index(VOWEL_VISEMES[VOWELS.index(vowel)])
+        for col in _VOWEL_INDEX:
+            if col != keep:
+                weights[a:b, col] = 0.0
+    weights[:, 0] = 0.0
+    weights[:, 0] = np.clip(1.0 - weights.sum(axis=1), 0.0, 1.0)
+    return replace(track, weights=weights)

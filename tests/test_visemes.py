@@ -1,0 +1,187 @@
+"""The viseme analyser on signals with known answers, streaming, text tracks, isolation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stimuli.speech import Phone, synthesize
+from stimuli.visemes import (
+    VISEMES,
+    VOWELS,
+    StreamingAnalyzer,
+    VisemeError,
+    VisemeTrack,
+    analyze,
+    calibrate,
+    default_model,
+    from_phonemes,
+    isolate_vowels,
+    vowel_segments,
+)
+
+RATE = 48_000
+
+
+def test_silence_is_sil_everywhere_and_frames_cover_the_audio() -> None:
+    track = analyze(np.zeros(RATE), sample_rate=RATE)
+    assert track.weights.shape == (100, 15) and track.names == VISEMES
+    np.testing.assert_allclose(track.times, np.arange(100) / 100)
+    np.testing.assert_allclose(track.weights[:, 0], 1.0)
+    assert track.vowels().shape == (100, 5) and np.all(track.vowels() == 0)
+
+
+@pytest.mark.parametrize("freq", [150.0, 440.0, 2000.0])
+def test_tones_give_valid_weights(freq: float) -> None:
+    t = np.arange(RATE) / RATE
+    track = analyze(0.3 * np.sin(2 * np.pi * freq * t), sample_rate=RATE)
+    w = track.weights
+    assert np.all(w >= 0) and np.all(w <= 1)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-9)
+    assert w[20:80, 0].max() < 0.2  # a loud steady sound is not silence
+
+
+@pytest.mark.parametrize(
+    "voice", [(0.6, 2), (0.8, -3), (1.0, 5)], ids=["slow+2", "mid-3", "fast+5"]
+)
+@pytest.mark.parametrize("vowel", VOWELS)
+def test_tts_vowels_are_recognised(vowel: str, voice: tuple[float, float]) -> None:
+    """Isolated TTS vowels with known labels (as in the vowel stimulus): the middle 60 %
+    of the vowel is recognised. (Sustained long vowels "あー" are harder: the mei voice's
+    formants drift, see the note in stimuli/data/README.md.)"""
+    kana = dict(zip(VOWELS, "あいうえお", strict=True))[vowel]
+    speech = synthesize(f"{kana}。", speed=voice[0], pitch_halftones=voice[1])
+    track = analyze(speech.samples, sample_rate=RATE).compensated()
+    phone = next(p for p in speech.phones if p.phoneme == vowel)
+    margin = 0.2 * (phone.end - phone.start)
+    mid = (track.times > phone.start + margin) & (track.times < phone.end - margin)
+    assert mid.sum() >= 5
+    winners = np.argmax(track.vowels()[mid], axis=1)
+    assert np.mean(winners == VOWELS.index(vowel)) >= 0.75
+
+
+def test_streaming_equals_offline_for_any_chunking(rng: np.random.Generator) -> None:
+    speech = synthesize("こんにちは、いい天気ですね。")
+    offline = analyze(speech.samples, sample_rate=RATE)
+    stream = StreamingAnalyzer(sample_rate=RATE)
+    parts, i = [], 0
+    while i < len(speech.samples):
+        n = int(rng.integers(1, 3000))
+        parts.append(stream.feed(speech.samples[i : i + n]))
+        i += n
+    parts.append(stream.flush())
+    np.testing.assert_allclose(np.concatenate([p.times for p in parts]), offline.times)
+    np.testing.assert_allclose(np.vstack([p.weights for p in parts]), offline.weights, atol=1e-12)
+    assert stream.latency_s <= 0.040
+    assert offline.latency_s == pytest.approx(default_model().lag_s)
+
+
+def test_a_frame_is_emitted_once_its_window_is_complete() -> None:
+    stream = StreamingAnalyzer(sample_rate=RATE)
+    assert len(stream.feed(np.zeros(int(0.016 * RATE) - 1)).times) == 0
+    assert len(stream.feed(np.zeros(1)).times) == 1  # frame 0 (t = 0) needs audio to 16 ms
+    assert len(stream.feed(np.zeros(RATE // 100)).times) == 1
+
+
+def test_compensation_moves_the_track_earlier() -> None:
+    times = np.arange(50) / 100
+    w = np.zeros((50, 15))
+    w[:, 0] = 1
+    w[20:, 0], w[20:, 10] = 0, 1  # 'aa' from 0.20 s
+    track = VisemeTrack(times=times, weights=w, latency_s=0.03)
+    comp = track.compensated()
+    assert comp.latency_s == 0 and np.argmax(comp.weights[:, 10] > 0.5) == 17
+
+
+def test_text_track_follows_the_phonemes() -> None:
+    phones = [
+        Phone("sil", 0, 0.2),
+        Phone("m", 0.2, 0.26),
+        Phone("a", 0.26, 0.4),
+        Phone("U", 0.4, 0.45),
+        Phone("cl", 0.45, 0.5),
+        Phone("o", 0.5, 0.7),
+        Phone("sil", 0.7, 0.9),
+    ]
+    track = from_phonemes(phones, smoothing_s=0.0)
+    at = {t: track.weights[round(t * 100)] for t in (0.1, 0.22, 0.3, 0.42, 0.6, 0.8)}
+    assert at[0.1][0] == 1 and at[0.22][VISEMES.index("PP")] == 1
+    assert at[0.3][VISEMES.index("aa")] == 1 and at[0.6][VISEMES.index("oh")] == 1
+    assert at[0.42][VISEMES.index("ou")] == pytest.approx(0.4)  # devoiced
+    smooth = from_phonemes(phones, smoothing_s=0.04)
+    np.testing.assert_allclose(smooth.weights.sum(axis=1), 1.0, atol=1e-9)
+    assert 0 < smooth.weights[int(0.25 * 100), VISEMES.index("aa")] < 1  # coarticulation
+    with pytest.raises(VisemeError, match="unknown OpenJTalk phoneme"):
+        from_phonemes([Phone("xx", 0, 1)])
+
+
+def test_text_and_audio_tracks_agree_in_time() -> None:
+    from stimuli.viseme_training import _vowel_energy_lag
+
+    speech = synthesize("秋になると、山の木々が赤や黄色に色づき始める。", pitch_halftones=-2)
+    track = analyze(speech.samples, sample_rate=RATE).compensated()
+    assert abs(_vowel_energy_lag(track, speech.phones)) <= 10.0
+
+
+def _known_track() -> VisemeTrack:
+    times = np.arange(100) / 100
+    w = np.zeros((100, 15))
+    w[:, 0] = 1
+    for (a, b), mix in (((10, 30), {"aa": 0.6, "oh": 0.3}), ((50, 70), {"ih": 0.5, "E": 0.4})):
+        for name, value in mix.items():
+            w[a:b, VISEMES.index(name)] = value
+        w[a:b, 0] = 1 - sum(mix.values())
+    return VisemeTrack(times=times, weights=w)
+
+
+def test_vowel_isolation_keeps_only_the_intended_vowel() -> None:
+    track = _known_track()
+    assert vowel_segments(track) == [(10, 30), (50, 70)]
+    iso = isolate_vowels(track, vowels="ai")
+    v = iso.vowels()
+    assert np.all(v[10:30, 0] == 0.6) and np.all(v[10:30, 1:] == 0)
+    assert np.all(v[50:70, 1] == 0.5) and np.all(v[50:70, [0, 2, 3, 4]] == 0)
+    np.testing.assert_allclose(iso.weights.sum(axis=1), 1.0)
+    with pytest.raises(VisemeError, match="found 2 voiced segments but expected_vowels is 'aiu'"):
+        isolate_vowels(track, vowels="aiu")
+
+
+def test_calibration_adapts_to_a_speaker() -> None:
+    model = default_model()
+    rec = synthesize("あ。い。う。え。お。", speed=0.7, pitch_halftones=7, alpha=0.5)
+    tuned = calibrate(model, rec.samples, sample_rate=RATE, vowels="aiueo")
+    assert not np.allclose(tuned.means, model.means)
+    assert tuned.info["calibrated"]["vowels"] == "aiueo"
+    test = synthesize("あおいうえ、いえあおう。", pitch_halftones=7, alpha=0.5)
+    for m in (model, tuned):
+        track = analyze(test.samples, sample_rate=RATE, model=m).compensated()
+        vowels = [p for p in test.phones if p.phoneme in VOWELS]
+        correct = [
+            np.argmax(track.vowels()[round((p.start + p.end) * 50)]) == VOWELS.index(p.phoneme)
+            for p in vowels
+        ]
+        assert np.mean(correct) >= 0.8
+    with pytest.raises(VisemeError, match="expected 5"):
+        calibrate(model, synthesize("あいうえお").samples, sample_rate=RATE)
+
+
+def test_bad_inputs() -> None:
+    with pytest.raises(VisemeError, match="too low"):
+        analyze(np.zeros(8000), sample_rate=8000)
+    with pytest.raises(VisemeError, match="mono"):
+        analyze(np.zeros((100, 2)), sample_rate=RATE)
+    with pytest.raises(VisemeError, match="empty"):
+        analyze(np.zeros(0), sample_rate=RATE)
+
+
+@pytest.mark.slow
+def test_bench_visemes_runs_and_reports_every_figure() -> None:
+    from stimuli.bench import bench_visemes
+
+    out = bench_visemes(runs=1, quick=True)
+    ours = out["facelab"]
+    assert ours["vowel_accuracy_cores"] > 0.9 and ours["vowel_accuracy_all_frames"] > 0.85
+    assert np.array(ours["confusion_rows_true_cols_pred"]["counts"]).shape == (5, 5)
+    assert ours["streaming"]["max_abs_difference_to_offline"] < 1e-9
+    assert ours["streaming"]["algorithmic_latency_ms"] <= 40
+    assert "vowel_accuracy_cores" in out["pylipsync"]
