@@ -323,10 +323,82 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         print(json.dumps(bench_visemes(runs=args.runs, quick=args.quick), indent=2))
         return 0
-    raise NotBuiltError(
-        f"'facelab bench {args.what}' is not built yet in facelab {_version()} "
-        "(issue: avatar and rendering); nothing was done"
+    from stimuli.bench import bench_render
+
+    print(
+        json.dumps(
+            [bench_render(runs=args.runs, quick=args.quick, msaa=m) for m in (4, 1)], indent=2
+        )
     )
+    return 0
+
+
+def _render_overrides(args: argparse.Namespace, protocol):
+    from stimuli.build import settings_for
+
+    settings = settings_for(protocol)
+    if args.size:
+        try:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise FacelabError(
+                f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x360"
+            ) from None
+        if w % 2 or h % 2 or w < 64 or h < 64:
+            raise FacelabError(f"--size {args.size!r}: width and height must be even and >= 64")
+        from dataclasses import replace
+
+        settings = replace(settings, width=w, height=h)
+    if args.fps is not None and not 1 <= args.fps <= 240:
+        raise FacelabError(f"--fps {args.fps}: expected 1..240")
+    return settings
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    import time
+
+    from tqdm import tqdm
+
+    from experiment.protocol import load_protocol
+    from stimuli.build import build_clips, contact_sheets, plan
+
+    protocol = load_protocol(args.protocol)
+    out = Path(args.out) if args.out else Path("results") / protocol.study.id / "clips"
+    settings = _render_overrides(args, protocol)
+    bars: list[tqdm] = []
+
+    def progress(name: str, total: int):
+        bar = tqdm(total=total, desc=name[:40], unit="frame", leave=False, disable=args.quiet)
+        bars.append(bar)
+        return lambda: bar.update(1)
+
+    t0 = time.perf_counter()
+    print(
+        f"rendering {len(plan(protocol))} clips of {protocol.study.id!r} at {settings.width}x"
+        f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out}"
+    )
+    rows = build_clips(
+        protocol,
+        protocol_path=Path(args.protocol),
+        out=out,
+        settings=settings,
+        fps=args.fps,
+        progress=progress,
+        log=(lambda s: None) if args.quiet else print,
+    )
+    for bar in bars:
+        bar.close()
+    fresh = sum(r["status"] == "rendered" for r in rows)
+    print(
+        f"{len(rows)} clips ({fresh} rendered, {len(rows) - fresh} unchanged and reused) listed in "
+        f"{out / 'clips.csv'} ({time.perf_counter() - t0:.1f} s)"
+    )
+    if args.contact_sheet:
+        for path in contact_sheets(
+            protocol, protocol_path=Path(args.protocol), out=out, settings=settings
+        ):
+            print(f"contact sheet: {path}")
+    return 0
 
 
 # --------------------------------------------------------------------------- stages to come
@@ -373,13 +445,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE", help="write to FILE instead of stdout")
 
     p = add(
-        "render",
-        "render every clip a protocol needs and write clips.csv",
-        _not_built("render", "issue: avatar and rendering"),
+        "render", "render every clip a protocol needs (cached) and write clips.csv", _cmd_render
     )
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--out", metavar="DIR", help="clip folder (default results/<study>/clips)")
     p.add_argument("--contact-sheet", action="store_true", help="also write one PNG per condition")
+    p.add_argument("--size", metavar="WxH", help="override the protocol's resolution")
+    p.add_argument("--fps", type=int, help="override the protocol's frame rate")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
     p = add(
         "run",

@@ -223,6 +223,11 @@ class Rendering(_Model):
     avatar: Text = Field("default", description="'default' or a .gltf/.glb file.")
     camera: Camera = Field(default_factory=Camera)
     pad_s: float = Field(0.3, ge=0.0, le=5.0, description="Neutral face before and after speech.")
+    msaa: Literal[1, 2, 4, 8] = Field(
+        1,
+        description="Multisample anti-aliasing: 1 renders 720p faster than real time on a "
+        "2-core CPU; 4 is smoother and about 1.7x slower.",
+    )
     audio_sample_rate: int = Field(48000, ge=8000, le=192000)
     background: list[float] = Field(
         default_factory=lambda: [0.5, 0.5, 0.5], min_length=3, max_length=3

@@ -1,0 +1,325 @@
+"""``facelab render``: every (stimulus, condition) clip a protocol needs, cached by content.
+
+For each stimulus set a block (or the practice trial) uses, each stimulus is synthesised or
+loaded once and analysed once; each condition's method turns the analysed track (vowel-isolated
+where the stimulus asks for it) into a blendshape track, which is rendered to
+``<out>/<set>__<stimulus>__<condition>.mp4``. A clip is re-rendered only when the hash of its
+inputs - audio, blendshape track, avatar, method and parameters, renderer settings - changes;
+the hash is kept in a JSON file beside the clip. ``clips.csv`` lists every clip (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from experiment.errors import StageError
+from experiment.protocol import Protocol, Stimulus
+from stimuli.avatar import Avatar, check_targets, default_head, load, with_viseme_mixes
+from stimuli.clip import ClipInfo, encode, frame_weights, padded_audio, sha256_file, weights_at
+from stimuli.drive import BlendshapeTrack, DriveInput, drive
+from stimuli.prepare import speech_for, tracks_for
+from stimuli.render import Renderer, RenderSettings
+from stimuli.speech import Speech
+from stimuli.visemes import VOWELS, VisemeTrack, _widen, vowel_segments
+
+__all__ = ["CLIP_COLUMNS", "ClipJob", "build_clips", "contact_sheets", "load_avatar", "plan"]
+
+CLIP_COLUMNS = (
+    "clip_id",
+    "stimulus_set",
+    "stimulus",
+    "condition",
+    "path",
+    "duration_s",
+    "fps",
+    "width",
+    "height",
+    "sha256",
+)
+RENDER_VERSION = "facelab-render-1"
+
+
+@dataclass(frozen=True)
+class ClipJob:
+    clip_id: str
+    stimulus_set: str
+    stimulus: Stimulus
+    condition: str
+
+
+def plan(protocol: Protocol) -> list[ClipJob]:
+    """Every (stimulus, condition) the blocks and the practice trial show, in protocol order."""
+    wanted: dict[tuple[str, str, str], None] = {}
+    for block in protocol.blocks:
+        for stim in protocol.stimulus_set(block.stimulus_set).stimuli:
+            for cond in protocol.block_conditions(block):
+                wanted[(block.stimulus_set, stim.id, cond)] = None
+    practice = protocol.presentation.practice
+    if practice is not None:
+        wanted[(practice.stimulus_set, practice.stimulus, practice.condition)] = None
+    jobs = []
+    for set_id, stim_id, cond in wanted:
+        stim = next(s for s in protocol.stimulus_set(set_id).stimuli if s.id == stim_id)
+        jobs.append(ClipJob(f"{set_id}__{stim_id}__{cond}", set_id, stim, cond))
+    return jobs
+
+
+def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:
+    spec = protocol.rendering.avatar
+    avatar = default_head() if spec == "default" else load(base_dir / spec)
+    needs_visemes = any(c.method != "vowel_blend" for c in protocol.conditions)
+    for cond in protocol.conditions:
+        check_targets(avatar, cond.method, cond.params)
+    return with_viseme_mixes(avatar) if needs_visemes else avatar
+
+
+def settings_for(protocol: Protocol) -> RenderSettings:
+    r = protocol.rendering
+    return RenderSettings(
+        width=r.width,
+        height=r.height,
+        distance_m=r.camera.distance_m,
+        fov_deg=r.camera.fov_deg,
+        height_m=r.camera.height_m,
+        background=tuple(r.background),
+        msaa=r.msaa,
+    )
+
+
+def _track_hash(track: BlendshapeTrack) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(track.times, np.float64).tobytes())
+    h.update(np.ascontiguousarray(track.weights, np.float64).tobytes())
+    h.update("|".join(track.names).encode())
+    return h.hexdigest()
+
+
+def _blendshapes(
+    protocol: Protocol,
+    job: ClipJob,
+    speech: Speech,
+    tracks: tuple[VisemeTrack, VisemeTrack | None],
+    base_dir: Path,
+) -> BlendshapeTrack:
+    cond = protocol.condition(job.condition)
+    analysed, isolated = tracks
+    viseme_track = (
+        isolated
+        if (isolated is not None and job.condition in job.stimulus.vowel_isolation)
+        else analysed
+    )
+    return drive(
+        cond.method,
+        DriveInput(track=viseme_track, phones=speech.phones, base_dir=base_dir),
+        cond.params,
+    )
+
+
+def build_clips(
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    out: Path,
+    settings: RenderSettings | None = None,
+    fps: int | None = None,
+    progress: Callable[[str, int], Callable[[], None]] | None = None,
+    log: Callable[[str], None] = print,
+) -> list[dict]:
+    """Render (or reuse) every clip; write ``out/clips.csv``; return its rows."""
+    base_dir = protocol_path.parent
+    settings = settings or settings_for(protocol)
+    fps = fps or protocol.rendering.fps
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    avatar_hash = avatar.content_hash()
+    out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    cache: dict[str, tuple[Speech, tuple[VisemeTrack, VisemeTrack | None]]] = {}
+    renderer: Renderer | None = None
+    try:
+        for job in plan(protocol):
+            key_stim = f"{job.stimulus_set}/{job.stimulus.id}"
+            if key_stim not in cache:
+                speech = speech_for(
+                    job.stimulus,
+                    base_dir=base_dir,
+                    sample_rate=protocol.rendering.audio_sample_rate,
+                )
+                cache[key_stim] = (speech, tracks_for(job.stimulus, speech))
+            speech, tracks = cache[key_stim]
+            bs = _blendshapes(protocol, job, speech, tracks, base_dir)
+            cond = protocol.condition(job.condition)
+            audio = padded_audio(speech, pad_s=protocol.rendering.pad_s)
+            n_frames = round(audio.duration_s * fps)
+            key = hashlib.sha256(
+                json.dumps(
+                    {
+                        "version": RENDER_VERSION,
+                        "audio": hashlib.sha256(audio.samples.tobytes()).hexdigest(),
+                        "sample_rate": audio.sample_rate,
+                        "track": _track_hash(bs),
+                        "avatar": avatar_hash,
+                        "method": cond.method,
+                        "params": cond.params,
+                        "settings": settings.__dict__,
+                        "fps": fps,
+                        "pad_s": protocol.rendering.pad_s,
+                    },
+                    sort_keys=True,
+                    default=str,
+                ).encode()
+            ).hexdigest()
+            mp4 = out / f"{job.clip_id}.mp4"
+            meta = out / f"{job.clip_id}.json"
+            info: ClipInfo | None = None
+            status = "rendered"
+            if mp4.exists() and meta.exists():
+                saved = json.loads(meta.read_text())
+                if saved.get("input_hash") == key and saved.get("sha256") == sha256_file(mp4):
+                    info = ClipInfo(
+                        mp4,
+                        saved["duration_s"],
+                        fps,
+                        settings.width,
+                        settings.height,
+                        saved["frames"],
+                        saved["sha256"],
+                    )
+                    status = "unchanged"
+                    log(f"  unchanged {job.clip_id} (reused)")
+            if info is None:
+                if renderer is None:
+                    renderer = Renderer(avatar, settings).__enter__()
+                weights = frame_weights(
+                    bs, avatar, fps=fps, n_frames=n_frames, pad_s=protocol.rendering.pad_s
+                )
+                tick = progress(job.clip_id, n_frames) if progress else None
+                info = encode(
+                    (renderer.frame(w) for w in weights),
+                    audio=audio,
+                    out=mp4,
+                    fps=fps,
+                    width=settings.width,
+                    height=settings.height,
+                    n_frames=n_frames,
+                    on_frame=tick,
+                )
+                meta.write_text(
+                    json.dumps(
+                        {
+                            "input_hash": key,
+                            "sha256": info.sha256,
+                            "frames": n_frames,
+                            "duration_s": info.duration_s,
+                            "method": cond.method,
+                            "params": cond.params,
+                        },
+                        indent=2,
+                    )
+                    + "\n"
+                )
+                log(f"  rendered {job.clip_id} ({n_frames} frames)")
+            rows.append(
+                {
+                    "clip_id": job.clip_id,
+                    "stimulus_set": job.stimulus_set,
+                    "stimulus": job.stimulus.id,
+                    "condition": job.condition,
+                    "path": mp4.name,
+                    "duration_s": round(info.duration_s, 6),
+                    "fps": fps,
+                    "width": settings.width,
+                    "height": settings.height,
+                    "sha256": info.sha256,
+                    "status": status,
+                }
+            )
+    finally:
+        if renderer is not None:
+            renderer.__exit__(None, None, None)
+    tmp = out / "clips.csv.tmp"
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(
+            fh, fieldnames=list(CLIP_COLUMNS), lineterminator="\n", extrasaction="ignore"
+        )
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(out / "clips.csv")
+    return rows
+
+
+def contact_sheets(
+    protocol: Protocol, *, protocol_path: Path, out: Path, settings: RenderSettings | None = None
+) -> list[Path]:
+    """One PNG per condition: the face at the centre of each vowel of the vowel stimulus."""
+    from PIL import Image, ImageDraw
+
+    base_dir = protocol_path.parent
+    stim_set, stim = next(
+        ((s.id, st) for s in protocol.stimulus_sets for st in s.stimuli if st.expected_vowels),
+        (None, None),
+    )
+    if stim is None:
+        raise StageError("no stimulus has expected_vowels: a contact sheet needs a vowel stimulus")
+    settings = replace(settings or settings_for(protocol), width=640, height=640, distance_m=0.36)
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
+    analysed, isolated = tracks_for(stim, speech)
+    segments = _widen(analysed, vowel_segments(analysed))
+    if len(segments) != len(stim.expected_vowels or ""):
+        raise StageError(
+            f"{stim_set}/{stim.id}: found {len(segments)} vowel segments, expected "
+            f"{len(stim.expected_vowels or '')}"
+        )
+    font = _font(28)
+    paths = []
+    out.mkdir(parents=True, exist_ok=True)
+    with Renderer(avatar, settings) as renderer:
+        for cond in protocol.conditions:
+            job = ClipJob("", stim_set, stim, cond.id)
+            bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir)
+            tiles = []
+            for (a, b), vowel in zip(segments, stim.expected_vowels or "", strict=True):
+                x = analysed.vowels()[a:b, VOWELS.index(vowel)]
+                centre = analysed.times[a + int(np.argmax(x))]  # the vowel's peak
+                w = weights_at(bs, avatar, t=float(centre))
+                img = Image.fromarray(renderer.frame(w)).crop((80, 150, 560, 630))
+                ImageDraw.Draw(img).text(
+                    (16, 10), f"{vowel}  t={centre:.2f}s", fill=(255, 255, 255), font=font
+                )
+                tiles.append(img)
+            sheet = Image.new(
+                "RGB", (sum(t.width for t in tiles), tiles[0].height + 56), (40, 40, 40)
+            )
+            for i, t in enumerate(tiles):
+                sheet.paste(t, (i * t.width, 56))
+            label = cond.label.get("en") or next(iter(cond.label.values()))
+            ImageDraw.Draw(sheet).text(
+                (16, 12),
+                f"{cond.id}: {label} ({cond.method} {cond.params})",
+                fill=(255, 255, 255),
+                font=font,
+            )
+            path = out / f"contact_{cond.id}.png"
+            sheet.save(path)
+            paths.append(path)
+    return paths
+
+
+def _font(size: int):
+    import matplotlib
+    from PIL import ImageFont
+
+    for name in (
+        Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSans.ttf",
+        Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc"),
+    ):
+        if name.exists():
+            return ImageFont.truetype(str(name), size)
+    return ImageFont.load_default()

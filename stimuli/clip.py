@@ -1,0 +1,307 @@
+"""Clips: blendshape track + audio -> mp4 (H.264 + AAC), picture and sound aligned.
+
+Timing contract: the clip is ``pad_s`` of neutral face and silence, the speech, and ``pad_s``
+again. Frame k is shown from t = k / fps and shows the face at speech time t - pad_s (weights
+linearly interpolated); frames outside the speech - and always the first and last - are the
+neutral face. The clip has round(duration * fps) frames; the audio is the speech padded with
+exact silence, so picture and sound start together at t = 0 and end within one frame.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from experiment.errors import StageError
+from stimuli.avatar import Avatar
+from stimuli.drive import BlendshapeTrack
+from stimuli.speech import Speech, write_wav
+
+__all__ = ["ClipInfo", "encode", "frame_weights", "padded_audio", "sha256_file", "weights_at"]
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    path: Path
+    duration_s: float
+    fps: int
+    width: int
+    height: int
+    frames: int
+    sha256: str
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def padded_audio(speech: Speech, *, pad_s: float) -> Speech:
+    """The speech with ``pad_s`` of digital silence before and after."""
+    pad = np.zeros(round(pad_s * speech.sample_rate), dtype=np.float32)
+    return Speech(
+        np.concatenate([pad, speech.samples, pad]), speech.sample_rate, speech.phones, speech.source
+    )
+
+
+def frame_weights(
+    track: BlendshapeTrack, avatar: Avatar, *, fps: int, n_frames: int, pad_s: float
+) -> np.ndarray:
+    """(n_frames, K) weights in ``avatar.target_names`` order for frames k / fps."""
+    index = {n: i for i, n in enumerate(avatar.target_names)}
+    missing = [n for n in track.names if n not in index]
+    if missing:
+        raise StageError(
+            f"avatar {avatar.name!r} lacks targets the track drives: {', '.join(missing[:8])}"
+        )
+    t = np.arange(n_frames) / fps - pad_s
+    inside = (t >= track.times[0]) & (t <= track.times[-1])
+    out = np.zeros((n_frames, len(index)), np.float32)
+    for j, name in enumerate(track.names):
+        col = np.interp(t, track.times, track.weights[:, j], left=0.0, right=0.0)
+        out[:, index[name]] = np.where(inside, col, 0.0)
+    out[0] = 0.0
+    out[-1] = 0.0
+    return out
+
+
+def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarray:
+    """(K,) weights in ``avatar.target_names`` order at speech time ``t`` (interpolated)."""
+    index = {n: i for i, n in enumerate(avatar.target_names)}
+    out = np.zeros(len(index), np.float32)
+    for j, name in enumerate(track.names):
+        out[index[name]] = np.interp(t, track.times, track.weights[:, j])
+    return out
+
+
+def _ffmpeg() -> str:
+    exe = shutil.which("ffmpeg")
+    if exe is None:
+        raise StageError(
+            "ffmpeg is not installed: apt-get install ffmpeg (scripts/setup.sh does this)"
+        )
+    return exe
+
+
+def encode(
+    frames: Iterable[np.ndarray],
+    *,
+    audio: Speech,
+    out: Path,
+    fps: int,
+    width: int,
+    height: int,
+    n_frames: int,
+    crf: int = 18,
+    preset: str = "veryfast",
+    on_frame: Callable[[], None] | None = None,
+) -> ClipInfo:
+    """Pipe RGB frames and the audio into ffmpeg (libx264 yuv420p + AAC); atomic write."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="facelab-clip-", dir=out.parent) as tmp:
+        wav = Path(tmp) / "audio.wav"
+        write_wav(wav, audio)
+        part = Path(tmp) / out.name
+        duration = n_frames / fps
+        cmd = [
+            _ffmpeg(),
+            "-hide_banner",
+            "-loglevel",
+            "error",
+            "-y",
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "rgb24",
+            "-s",
+            f"{width}x{height}",
+            "-framerate",
+            str(fps),
+            "-i",
+            "-",
+            "-i",
+            str(wav),
+            "-map",
+            "0:v",
+            "-map",
+            "1:a",
+            "-c:v",
+            "libx264",
+            "-preset",
+            preset,
+            "-crf",
+            str(crf),
+            "-pix_fmt",
+            "yuv420p",
+            "-r",
+            str(fps),
+            "-fps_mode",
+            "cfr",
+            "-c:a",
+            "aac",
+            "-b:a",
+            "192k",
+            "-ar",
+            str(audio.sample_rate),
+            "-t",
+            f"{duration:.6f}",
+            "-movflags",
+            "+faststart",
+            str(part),
+        ]
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdin is not None
+        written = 0
+        try:
+            for frame in frames:
+                if frame.shape != (height, width, 3):
+                    raise StageError(
+                        f"frame of shape {frame.shape}, expected ({height}, {width}, 3)"
+                    )
+                proc.stdin.write(np.ascontiguousarray(frame, dtype=np.uint8).tobytes())
+                written += 1
+                if on_frame:
+                    on_frame()
+        except BrokenPipeError:
+            pass
+        finally:
+            proc.stdin.close()
+            err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+            code = proc.wait()
+        if code != 0 or written != n_frames:
+            raise StageError(
+                f"ffmpeg failed for {out.name} (exit {code}, {written}/{n_frames} frames): "
+                f"{err.strip()[-400:]}"
+            )
+        part.replace(out)
+    return ClipInfo(out, duration, fps, width, height, n_frames, sha256_file(out))
+
+
+def probe(path: Path) -> dict:
+    """Stream facts of a clip from ffprobe: codecs, frames, durations, sample rate."""
+    exe = shutil.which("ffprobe")
+    if exe is None:
+        raise StageError("ffprobe is not installed (Debian ffmpeg)")
+    import json
+
+    out = subprocess.run(
+        [
+            exe,
+            "-v",
+            "error",
+            "-count_frames",
+            "-show_streams",
+            "-show_format",
+            "-of",
+            "json",
+            str(path),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if out.returncode != 0:
+        raise StageError(f"{path}: ffprobe failed: {out.stderr.strip()}")
+    return json.loads(out.stdout)
+
+
+def decode_audio(path: Path, *, sample_rate: int) -> np.ndarray:
+    """The clip's audio as mono float32 at ``sample_rate``."""
+    out = subprocess.run(
+        [
+            _ffmpeg(),
+            "-v",
+            "error",
+            "-i",
+            str(path),
+            "-f",
+            "f32le",
+            "-ac",
+            "1",
+            "-ar",
+            str(sample_rate),
+            "-",
+        ],
+        capture_output=True,
+        check=False,
+    )
+    if out.returncode != 0:
+        raise StageError(
+            f"{path}: cannot decode audio: {out.stderr.decode(errors='replace')[-300:]}"
+        )
+    return np.frombuffer(out.stdout, dtype=np.float32)
+
+
+def decode_frames(path: Path, *, width: int, height: int) -> np.ndarray:
+    """All frames as (N, height, width, 3) uint8 (scaled by ffmpeg if needed)."""
+    out = subprocess.run(
+        [
+            _ffmpeg(),
+            "-v",
+            "error",
+            "-i",
+            str(path),
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "rgb24",
+            "-s",
+            f"{width}x{height}",
+            "-",
+        ],
+        capture_output=True,
+        check=False,
+    )
+    if out.returncode != 0:
+        raise StageError(
+            f"{path}: cannot decode video: {out.stderr.decode(errors='replace')[-300:]}"
+        )
+    return np.frombuffer(out.stdout, dtype=np.uint8).reshape(-1, height, width, 3)
+
+
+def av_offset_ms(path: Path, *, fps: int, max_lag_frames: int = 8) -> dict[str, float]:
+    """Audio/picture offset measured from the clip file itself.
+
+    Picture: darkness of the mouth region per frame (the mouth region is where frames vary
+    most). Sound: RMS envelope of the decoded audio per frame interval. The offset is the
+    lag maximising their cross-correlation (parabolic interpolation); positive = the picture
+    is late relative to the sound.
+    """
+    frames = decode_frames(path, width=320, height=180).astype(np.float32)
+    luma = frames @ np.array([0.299, 0.587, 0.114], np.float32)
+    var = luma.std(axis=0)
+    roi = var >= np.percentile(var, 99.5)
+    mouth = (255.0 - luma[:, roi]).mean(axis=1)
+    rate = 16_000
+    audio = decode_audio(path, sample_rate=rate)
+    hop = rate // fps
+    # envelope windows centred on the frame times k / fps (as the frames are)
+    padded = np.concatenate([np.zeros(hop // 2, np.float32), audio, np.zeros(hop, np.float32)])
+    n = min(len(mouth), len(audio) // hop)
+    env = np.sqrt(np.mean(padded[: n * hop].reshape(n, hop) ** 2, axis=1))
+    a, b = mouth[:n] - mouth[:n].mean(), env - env.mean()
+    lags = np.arange(-max_lag_frames, max_lag_frames + 1)
+    corr = np.array(
+        [np.dot(a[max(0, k) : n + min(0, k)], b[max(0, -k) : n - max(0, k)]) for k in lags]
+    )
+    i = int(np.argmax(corr))
+    frac = 0.0
+    if 0 < i < len(lags) - 1:
+        den = corr[i - 1] - 2 * corr[i] + corr[i + 1]
+        frac = 0.5 * (corr[i - 1] - corr[i + 1]) / den if den else 0.0
+    peak = float(corr[i] / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+    return {
+        "offset_ms": float((lags[i] + frac) * 1000 / fps),
+        "frame_ms": 1000 / fps,
+        "correlation": peak,
+    }

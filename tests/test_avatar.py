@@ -1,0 +1,229 @@
+"""The default head: contract, each target behaving as its ARKit name says, no crossings;
+glTF round trip; target checks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from stimuli.avatar import (
+    LANDMARKS,
+    Avatar,
+    AvatarError,
+    check_targets,
+    default_head,
+    lip_metrics,
+    load,
+    save,
+    with_viseme_mixes,
+)
+from stimuli.drive import load_z
+
+
+@pytest.fixture(scope="module")
+def head() -> Avatar:
+    return default_head()
+
+
+def test_contract(head: Avatar) -> None:
+    assert head.neutral.dtype == np.float32 and head.neutral.shape[1] == 3
+    assert head.faces.shape[1] == 3 and head.faces.max() < len(head.neutral)
+    assert set(ARKIT_NAMES) | set(VISEME_TARGETS) == set(head.targets)
+    assert set(LANDMARKS) <= set(head.landmarks)
+    assert np.all(head.targets["viseme_sil"] == 0)
+    np.testing.assert_array_equal(head.deform({}), head.neutral)
+    w = {"jawOpen": 0.3, "mouthSmileLeft": 0.5}
+    expected = head.neutral + 0.3 * head.targets["jawOpen"] + 0.5 * head.targets["mouthSmileLeft"]
+    np.testing.assert_allclose(head.deform(w), expected, atol=1e-6)
+    with pytest.raises(AvatarError, match="no target 'jawopen'"):
+        head.deform({"jawopen": 1.0})
+
+
+def _m(head: Avatar, weights: dict[str, float]) -> dict[str, float]:
+    return lip_metrics(head, head.deform(weights))
+
+
+def test_mouth_shapes_behave_as_named(head: Avatar) -> None:
+    rest = _m(head, {})
+    assert rest["aperture"] == pytest.approx(0.0, abs=1e-6)  # neutral: lips closed
+    assert _m(head, {"jawOpen": 1})["aperture"] > 0.020  # the jaw opens the lips
+    assert _m(head, {"jawOpen": 1, "mouthClose": 1})["aperture"] == pytest.approx(0, abs=5e-4)
+    for name in ("mouthFunnel", "mouthPucker"):  # rounding: narrower and forward
+        m = _m(head, {name: 1})
+        assert m["width"] < 0.7 * rest["width"] and m["protrusion"] > rest["protrusion"] + 0.008
+    assert _m(head, {"mouthFunnel": 1})["aperture"] > 0.004  # funnel opens, pucker stays closed
+    assert _m(head, {"mouthPucker": 1})["aperture"] == pytest.approx(0, abs=5e-4)
+    for name in ("mouthSmile", "mouthStretch"):  # widening
+        assert _m(head, {f"{name}Left": 1, f"{name}Right": 1})["width"] > rest["width"] + 0.006
+    left = (
+        head.deform({"mouthSmileLeft": 1})[head.landmarks["mouth_left"]]
+        - head.neutral[head.landmarks["mouth_left"]]
+    )
+    assert left[1] > 0.005 and left[0] > 0  # the corner goes up and out on the face's left (+x)
+    assert _m(head, {"mouthLowerDownLeft": 1, "mouthLowerDownRight": 1})["aperture"] > 0.003
+
+
+def test_the_five_vowels_are_distinct_on_the_face(head: Avatar) -> None:
+    z = load_z("standard")
+    m = {v: _m(head, dict(zip(ARKIT_NAMES, z[:, j], strict=True))) for j, v in enumerate("aiueo")}
+    assert max(m, key=lambda v: m[v]["aperture"]) == "a"  # a: open
+    assert max(m, key=lambda v: m[v]["width"]) == "i"  # i: spread
+    assert min(m, key=lambda v: m[v]["width"]) == "u"  # u: small and rounded
+    assert m["u"]["aperture"] < m["o"]["aperture"] < m["a"]["aperture"]  # o: rounded but open
+    assert (
+        m["e"]["width"] > m["o"]["width"] and m["e"]["aperture"] > m["i"]["aperture"]
+    )  # e: mid-open spread
+
+
+def test_lids_close_and_brows_rise(head: Avatar) -> None:
+    for side in ("left", "right"):
+        up, lo = head.landmarks[f"upper_lid_{side}"], head.landmarks[f"lower_lid_{side}"]
+        open_gap = head.neutral[up, 1] - head.neutral[lo, 1]
+        closed = head.deform({f"eyeBlink{side.title()}": 1})
+        assert open_gap > 0.008 and 0 <= closed[up, 1] - closed[lo, 1] < 0.0015
+    brow = head.targets["browInnerUp"]
+    assert brow[:, 1].max() > 0.005 and brow[:, 1].min() >= -1e-6
+
+
+# mouthClose alone is, in Apple's words, unrealistic (lips sealed with the jaw closed):
+# it is defined relative to jawOpen, so it is exempt from the crossing check alone
+SINGLE = [n for n in (*ARKIT_NAMES, *VISEME_TARGETS) if n != "mouthClose"]
+
+
+@pytest.mark.parametrize("name", SINGLE)
+def test_no_self_intersection_at_full_activation(head: Avatar, name: str) -> None:
+    v = head.deform({name: 1.0})
+    assert lip_metrics(head, v)["aperture"] >= -1e-4, "lower lip crossed above the upper lip"
+    for side in ("left", "right"):
+        up, lo = head.landmarks[f"upper_lid_{side}"], head.landmarks[f"lower_lid_{side}"]
+        assert v[up, 1] >= v[lo, 1] - 1e-4, "lids crossed"
+    # the mouth interior, teeth and tongue stay behind the skin of the lower face
+    skin = np.setdiff1d(head.parts["skin"], head.parts["lips_inner"])
+    front = skin[v[skin, 2] > 0.0]
+    tree = cKDTree(v[front][:, :2])
+    for part in ("mouth", "teeth_upper", "teeth_lower") + (
+        () if name in ("tongueOut", "viseme_TH") else ("tongue",)
+    ):
+        idx = head.parts[part]
+        _, j = tree.query(v[idx][:, :2])
+        assert np.min(v[front][j, 2] - v[idx, 2]) > -5e-4, f"{part} pokes through the skin"
+    # no skin sinks into an eyeball (lids slide over it)
+    for side in ("left", "right"):
+        eye = v[head.parts[f"eye_{side}"]]
+        centre, radius = eye.mean(axis=0), np.linalg.norm(eye - eye.mean(axis=0), axis=1).max()
+        d = np.linalg.norm(v[skin] - centre, axis=1)
+        assert d.min() > radius - 5e-4, f"skin inside the {side} eyeball"
+
+
+def test_targets_are_smooth(head: Avatar) -> None:
+    edges = np.concatenate([head.faces[:, [0, 1]], head.faces[:, [1, 2]]])
+    seam = np.concatenate([head.parts["lip_edges"], head.parts["lips_inner"]])
+    edges = edges[~np.isin(edges, seam).any(axis=1)]  # the lips may stretch at the corners
+    for name in ("jawOpen", "mouthSmileLeft", "mouthFunnel", "browInnerUp", "cheekPuff"):
+        d = head.targets[name]
+        jump = np.linalg.norm(d[edges[:, 0]] - d[edges[:, 1]], axis=1)
+        length = np.linalg.norm(head.neutral[edges[:, 0]] - head.neutral[edges[:, 1]], axis=1)
+        # no edge stretches to more than 4x its length (excluding the cut lip seam itself)
+        assert np.percentile(jump / np.maximum(length, 1e-6), 99.9) < 4.0, name
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".gltf"])
+def test_gltf_round_trip_is_identical(head: Avatar, tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"head{suffix}"
+    save(head, path)
+    back = load(path)
+    np.testing.assert_array_equal(back.neutral, head.neutral)
+    np.testing.assert_array_equal(back.faces, head.faces)
+    assert set(back.targets) == set(head.targets)
+    for name in head.targets:
+        np.testing.assert_array_equal(back.targets[name], head.targets[name])
+    assert back.landmarks == head.landmarks
+    np.testing.assert_allclose(back.colors, head.colors, atol=1e-7)
+
+
+def test_loader_accepts_exporter_spellings(head: Avatar, tmp_path: Path) -> None:
+    path = tmp_path / "rpm.gltf"
+    save(head, path)
+    doc = json.loads(path.read_text())
+    names = doc["meshes"][0]["extras"]["targetNames"]
+    renamed = [
+        {
+            "jawOpen": "JawOpen",
+            "mouthSmileLeft": "mouthSmile_L",
+            "eyeBlinkRight": "EYEBLINK_R",
+            "viseme_oh": "viseme_O",
+        }.get(n, n)
+        for n in names
+    ]
+    doc["meshes"][0]["extras"]["targetNames"] = renamed
+    path.write_text(json.dumps(doc))
+    back = load(path)
+    for canonical in ("jawOpen", "mouthSmileLeft", "eyeBlinkRight", "viseme_oh"):
+        np.testing.assert_array_equal(back.targets[canonical], head.targets[canonical])
+
+
+def test_missing_targets_are_listed(head: Avatar) -> None:
+    few = Avatar(
+        head.neutral,
+        head.faces,
+        {n: head.targets[n] for n in ("jawOpen", "mouthFunnel")},
+        head.landmarks,
+        head.colors,
+        "few",
+    )
+    with pytest.raises(
+        AvatarError, match=r"lacks \d+ target\(s\) that method 'vowel_blend' needs: .*mouthPucker"
+    ):
+        check_targets(few, "vowel_blend", {"z": "standard"})
+    with pytest.raises(AvatarError, match="viseme_PP"):
+        check_targets(few, "viseme_baseline")
+    arkit_only = Avatar(
+        head.neutral,
+        head.faces,
+        {n: head.targets[n] for n in ARKIT_NAMES},
+        head.landmarks,
+        head.colors,
+        "arkit",
+    )
+    check_targets(arkit_only, "viseme_baseline")  # visemes can be built from ARKit mixes
+    built = with_viseme_mixes(arkit_only)
+    np.testing.assert_allclose(built.targets["viseme_aa"], head.targets["viseme_aa"], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"not json", "not a valid glTF"),
+        (json.dumps({"asset": {"version": "1.0"}}).encode(), "expected 2.x"),
+        (
+            json.dumps(
+                {"asset": {"version": "2.0"}, "nodes": [], "scenes": [{"nodes": []}]}
+            ).encode(),
+            "no mesh",
+        ),
+        (
+            json.dumps(
+                {
+                    "asset": {"version": "2.0"},
+                    "nodes": [{"mesh": 0}],
+                    "scenes": [{"nodes": [0]}],
+                    "meshes": [{"primitives": [{"attributes": {"POSITION": 3}}]}],
+                }
+            ).encode(),
+            "malformed glTF",
+        ),
+    ],
+)
+def test_bad_avatar_files(tmp_path: Path, content: bytes, message: str) -> None:
+    path = tmp_path / "bad.gltf"
+    path.write_bytes(content)
+    with pytest.raises(AvatarError, match=message):
+        load(path)
+    (tmp_path / "x.obj").write_text("v 0 0 0")
+    with pytest.raises(AvatarError, match=r"expected a \.gltf or \.glb"):
+        load(tmp_path / "x.obj")

@@ -1,0 +1,166 @@
+"""Rendering (EGL offscreen), clips with synchronized audio, and the render stage with caching."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiment.cli import main
+from stimuli.avatar import default_head
+from stimuli.clip import (
+    av_offset_ms,
+    decode_audio,
+    decode_frames,
+    encode,
+    frame_weights,
+    padded_audio,
+    probe,
+)
+from stimuli.drive import DriveInput, drive
+from stimuli.render import Renderer, RenderSettings
+from stimuli.speech import synthesize
+from stimuli.visemes import analyze
+
+pytestmark = pytest.mark.slow
+SMALL = RenderSettings(width=320, height=240, distance_m=0.5)
+
+
+def _mouth_darkness(img: np.ndarray, centre: np.ndarray) -> float:
+    c, r = int(centre[0]), int(centre[1])
+    roi = img[r + 2 : r + 8, c - 6 : c + 6].astype(float)  # just below the upper lip
+    return float(255 - roi.mean())
+
+
+def test_frames_show_the_face_and_the_mouth_opens() -> None:
+    head = default_head()
+    with Renderer(head, SMALL) as r:
+        rest = r.frame(head.weight_vector({}))
+        open_ = r.frame(head.weight_vector({"jawOpen": 1.0}))
+        lips = r.project(head.neutral[[head.landmarks["upper_lip"]]])[0]
+    assert rest.shape == (240, 320, 3) and rest.dtype == np.uint8
+    background = np.array([127, 127, 127])
+    assert np.abs(rest[5, 5].astype(int) - background).max() <= 2  # corner: background
+    centre = rest[100:140, 140:180]
+    assert np.abs(centre.astype(int) - background).max() > 40  # centre: the face, not empty
+    assert 0 < lips[0] < 320 and 0 < lips[1] < 240
+    assert (
+        _mouth_darkness(open_, lips) > _mouth_darkness(rest, lips) + 25
+    )  # interior darker than lips
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    out = tmp_path_factory.mktemp("clip") / "c.mp4"
+    speech = synthesize("あいうえお、おはようございます。")
+    track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
+    bs = drive("vowel_blend", DriveInput(track=track), {"z": "emphasized"})
+    head = default_head()
+    audio = padded_audio(speech, pad_s=0.3)
+    fps = 30
+    n = round(audio.duration_s * fps)
+    weights = frame_weights(bs, head, fps=fps, n_frames=n, pad_s=0.3)
+    with Renderer(head, SMALL) as r:
+        neutral = r.frame(head.weight_vector({}))
+        info = encode(
+            (r.frame(w) for w in weights),
+            audio=audio,
+            out=out,
+            fps=fps,
+            width=320,
+            height=240,
+            n_frames=n,
+        )
+    return {"info": info, "audio": audio, "n": n, "weights": weights, "neutral": neutral}
+
+
+def test_clip_frame_count_duration_and_codecs(clip: dict) -> None:
+    meta = probe(clip["info"].path)
+    video = next(s for s in meta["streams"] if s["codec_type"] == "video")
+    audio = next(s for s in meta["streams"] if s["codec_type"] == "audio")
+    assert (video["codec_name"], audio["codec_name"]) == ("h264", "aac")
+    assert int(video["nb_read_frames"]) == clip["n"] == round(clip["audio"].duration_s * 30)
+    assert abs(float(audio["duration"]) - clip["audio"].duration_s) < 1 / 30
+
+
+def test_clip_audio_equals_the_input(clip: dict) -> None:
+    decoded = decode_audio(clip["info"].path, sample_rate=clip["audio"].sample_rate)
+    ref = clip["audio"].samples
+    n = min(len(decoded), len(ref))
+    assert abs(len(decoded) - len(ref)) < clip["audio"].sample_rate / 30
+    lags = range(-200, 201, 1)
+    a, b = decoded[:n].astype(float), ref[:n].astype(float)
+    best = max(
+        lags,
+        key=lambda k: float(np.dot(a[max(0, k) : n + min(0, k)], b[max(0, -k) : n - max(0, k)])),
+    )
+    assert best == 0  # no delay between input and decoded audio
+    snr = 10 * np.log10(np.sum(b**2) / np.sum((a - b) ** 2))
+    assert snr > 25  # AAC is lossy; the waveform is otherwise the input's
+
+
+def test_clip_starts_and_ends_neutral_and_is_in_sync(clip: dict) -> None:
+    frames = decode_frames(clip["info"].path, width=320, height=240)
+    for k in (0, len(frames) - 1):
+        assert np.abs(frames[k].astype(int) - clip["neutral"].astype(int)).mean() < 3
+    assert not np.any(clip["weights"][0]) and not np.any(clip["weights"][-1])
+    sync = av_offset_ms(clip["info"].path, fps=30)
+    assert abs(sync["offset_ms"]) < 1000 / 30 and sync["correlation"] > 0.3
+
+
+def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
+    tmp_path: Path, kato_text: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    proto = tmp_path / "p.yaml"
+    # a small study: only the vowel block, so the test renders 3 short clips
+    text = kato_text.replace(
+        "  - id: sentences\n    stimulus_set: sentences\n",
+        "  - id: sentences2\n    stimulus_set: vowels\n",
+    )
+    text = text.replace(
+        "practice: {stimulus_set: sentences, stimulus: passage, condition: standard}",
+        "practice: {stimulus_set: vowels, stimulus: aiueo, condition: standard}",
+    )
+    proto.write_text(text, encoding="utf-8")
+    out = tmp_path / "clips"
+    argv = ["render", str(proto), "--out", str(out), "--size", "160x120", "--fps", "10", "--quiet"]
+    assert main(argv) == 0
+    rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
+    assert [r["condition"] for r in rows] == ["baseline", "standard", "emphasized"]
+    assert list(rows[0]) == [
+        "clip_id",
+        "stimulus_set",
+        "stimulus",
+        "condition",
+        "path",
+        "duration_s",
+        "fps",
+        "width",
+        "height",
+        "sha256",
+    ]
+    from stimuli.clip import sha256_file
+
+    for r in rows:
+        assert sha256_file(out / r["path"]) == r["sha256"] and (r["width"], r["height"]) == (
+            "160",
+            "120",
+        )
+    mtimes = {r["path"]: (out / r["path"]).stat().st_mtime_ns for r in rows}
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "(0 rendered, 3 unchanged and reused)" in capsys.readouterr().out
+    assert {r["path"]: (out / r["path"]).stat().st_mtime_ns for r in rows} == mtimes
+    # a changed method parameter re-renders only that condition's clip
+    proto.write_text(
+        text.replace("params: {z: emphasized, gain: 1.0}", "params: {z: emphasized, gain: 1.2}"),
+        encoding="utf-8",
+    )
+    assert main(argv) == 0
+    changed = {p for p, t in mtimes.items() if (out / p).stat().st_mtime_ns != t}
+    assert changed == {"vowels__aiueo__emphasized.mp4"}
+    meta = json.loads((out / "vowels__aiueo__emphasized.json").read_text())
+    assert meta["params"]["gain"] == 1.2
