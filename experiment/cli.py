@@ -401,6 +401,42 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from experiment.design import validate_participant_id
+    from experiment.protocol import load_protocol
+    from experiment.runner import RunOptions, run_session
+
+    protocol = load_protocol(args.protocol)
+    validate_participant_id(args.participant)
+    if args.session < 1:
+        raise FacelabError(f"--session {args.session}: sessions are numbered from 1")
+    size = (1280, 800)
+    if args.size:
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))  # type: ignore[assignment]
+        except ValueError:
+            raise FacelabError(f"--size {args.size!r}: expected WIDTHxHEIGHT") from None
+    options = RunOptions(
+        participant=args.participant,
+        session=args.session,
+        resume=args.resume,
+        windowed=args.windowed,
+        simulate=args.simulate,
+        sim_seed=args.sim_seed,
+        clips=Path(args.clips) if args.clips else None,
+        results=Path(args.results),
+        screenshots=Path(args.screenshots) if args.screenshots else None,
+        size=size,
+    )
+    summary = run_session(protocol, protocol_path=Path(args.protocol), options=options)
+    state = "complete" if summary["complete"] else "incomplete"
+    print(
+        f"session {state}: {summary['ratings']} ratings in {summary['log']} "
+        f"({summary['trials_run']} trials this run)"
+    )
+    return 0
+
+
 # --------------------------------------------------------------------------- stages to come
 
 
@@ -454,18 +490,25 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=int, help="override the protocol's frame rate")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
-    p = add(
-        "run",
-        "run a participant session in a PsychoPy window",
-        _not_built("run", "issue: participant sessions"),
-    )
+    p = add("run", "run a participant session in a PsychoPy window", _cmd_run)
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--participant", required=True, metavar="ID")
     p.add_argument("--session", type=int, default=1, metavar="N")
     p.add_argument("--resume", action="store_true", help="continue an interrupted session")
-    p.add_argument("--windowed", action="store_true")
+    p.add_argument("--windowed", action="store_true", help="a window instead of full screen")
+    p.add_argument("--size", metavar="WxH", help="window size with --windowed (default 1280x800)")
     p.add_argument(
-        "--simulate", action="store_true", help="a scripted participant drives the window"
+        "--simulate",
+        action="store_true",
+        help="a scripted participant drives the real window (xdotool clicks; for tests)",
+    )
+    p.add_argument(
+        "--sim-seed", type=int, default=1, metavar="S", help="seed of the scripted ratings"
+    )
+    p.add_argument("--clips", metavar="DIR", help="rendered clips (default results/<study>/clips)")
+    p.add_argument("--results", default="results", metavar="DIR", help="results root")
+    p.add_argument(
+        "--screenshots", metavar="DIR", help="save PNGs of a clip frame and a VAS screen"
     )
 
     p = add(

@@ -30,7 +30,7 @@ from experiment.errors import StageError
 from experiment.log import SessionLog, SessionPaths, session_paths
 from experiment.protocol import Protocol, protocol_hash
 
-__all__ = ["condition_effect", "simulate_participant", "simulate_study"]
+__all__ = ["RatingModel", "condition_effect", "simulate_participant", "simulate_study"]
 
 _CLOCK_START = dt.datetime(2026, 1, 1, 9, 0, 0, tzinfo=dt.UTC)
 _CLIP_S = 8.0  # simulated clip length on the session clock (s)
@@ -52,6 +52,49 @@ def condition_effect(
             continue
         value = override.effects.get(condition, value)
     return float(value)
+
+
+class RatingModel:
+    """Ratings of one simulated participant (see the module docstring); draws from ``rng``."""
+
+    def __init__(
+        self,
+        protocol: Protocol,
+        *,
+        rng: np.random.Generator,
+        effects: Mapping[str, float] | None = None,
+    ):
+        self.protocol = protocol
+        self.model = protocol.simulation.model
+        self.rng = rng
+        self.effects = effects
+        self.offsets = {
+            item.id: rng.normal(0.0, self.model.participant_sd) for item in protocol.items
+        }
+        self.interaction: dict[tuple[str, str, str], float] = {}
+
+    def rate(self, *, item: str, stimulus_set: str, condition: str) -> tuple[float, float]:
+        """(rating on the item's scale, response time in s)."""
+        key = (item, stimulus_set, condition)
+        if key not in self.interaction:
+            self.interaction[key] = self.rng.normal(0.0, self.model.interaction_sd)
+        vas = next(i for i in self.protocol.items if i.id == item)
+        value = (
+            self.model.mean
+            + condition_effect(
+                self.protocol,
+                item=item,
+                stimulus_set=stimulus_set,
+                condition=condition,
+                effects=self.effects,
+            )
+            + self.offsets[item]
+            + self.interaction[key]
+            + self.rng.normal(0.0, self.model.noise_sd)
+        )
+        low, high = vas.range
+        rt = float(self.rng.lognormal(np.log(self.model.rt_median_s), self.model.rt_log_sd))
+        return round(float(np.clip(value, low, high)), 2), rt
 
 
 def simulate_participant(
@@ -92,31 +135,15 @@ def simulate_participant(
         session=session,
         provenance=provenance,
     )
-    offsets = {item.id: rng.normal(0.0, model.participant_sd) for item in protocol.items}
-    interaction: dict[tuple[str, str, str], float] = {}
+    rater = RatingModel(protocol, rng=rng, effects=effects)
     clock = 0.0
     for trial in trials:
         clip_onset = clock
         clock += _CLIP_S
         for item in protocol.items:
-            key = (item.id, trial.stimulus_set, trial.condition)
-            if key not in interaction:
-                interaction[key] = rng.normal(0.0, model.interaction_sd)
-            value = (
-                model.mean
-                + condition_effect(
-                    protocol,
-                    item=item.id,
-                    stimulus_set=trial.stimulus_set,
-                    condition=trial.condition,
-                    effects=effects,
-                )
-                + offsets[item.id]
-                + interaction[key]
-                + rng.normal(0.0, model.noise_sd)
+            rating, rt = rater.rate(
+                item=item.id, stimulus_set=trial.stimulus_set, condition=trial.condition
             )
-            low, high = item.range
-            rt = float(rng.lognormal(np.log(model.rt_median_s), model.rt_log_sd))
             clock += rt
             log.append(
                 {
@@ -131,7 +158,7 @@ def simulate_participant(
                     "condition": trial.condition,
                     "repetition": trial.repetition,
                     "item": item.id,
-                    "rating": round(float(np.clip(value, low, high)), 2),
+                    "rating": rating,
                     "rating_start": None,
                     "rt_s": round(rt, 3),
                     "clip_onset": round(clip_onset, 3),

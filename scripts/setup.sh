@@ -11,11 +11,12 @@ VENV="$ROOT/.venv"
 
 # ffmpeg: clip encoding; libegl1 + libgl1-mesa-dri: offscreen rendering (EGL);
 # open-jtalk + naist-jdic: phoneme timing; xvfb + xauth: PsychoPy windows without a screen;
+# xdotool: the scripted participant of `facelab run --simulate` (real X clicks);
 # fonts-noto-cjk: Japanese text in windows and figures; libsndfile1/libportaudio2: audio I/O.
 APT_PACKAGES=(
   ffmpeg libegl1 libgl1-mesa-dri libglu1-mesa
   open-jtalk open-jtalk-mecab-naist-jdic
-  xvfb xauth fonts-noto-cjk
+  xvfb xauth xdotool fonts-noto-cjk
   libsndfile1 libportaudio2 libasound2
 )
 

@@ -273,9 +273,9 @@ def av_offset_ms(path: Path, *, fps: int, max_lag_frames: int = 8) -> dict[str, 
     """Audio/picture offset measured from the clip file itself.
 
     Picture: darkness of the mouth region per frame (the mouth region is where frames vary
-    most). Sound: RMS envelope of the decoded audio per frame interval. The offset is the
-    lag maximising their cross-correlation (parabolic interpolation); positive = the picture
-    is late relative to the sound.
+    most). Sound: RMS of the decoded audio in 40 ms windows centred on the frame times.
+    The offset is the lag maximising their cross-correlation (parabolic interpolation);
+    positive = the picture is late relative to the sound.
     """
     frames = decode_frames(path, width=320, height=180).astype(np.float32)
     luma = frames @ np.array([0.299, 0.587, 0.114], np.float32)
@@ -284,11 +284,13 @@ def av_offset_ms(path: Path, *, fps: int, max_lag_frames: int = 8) -> dict[str, 
     mouth = (255.0 - luma[:, roi]).mean(axis=1)
     rate = 16_000
     audio = decode_audio(path, sample_rate=rate)
-    hop = rate // fps
-    # envelope windows centred on the frame times k / fps (as the frames are)
-    padded = np.concatenate([np.zeros(hop // 2, np.float32), audio, np.zeros(hop, np.float32)])
-    n = min(len(mouth), len(audio) // hop)
-    env = np.sqrt(np.mean(padded[: n * hop].reshape(n, hop) ** 2, axis=1))
+    # RMS in a 40 ms window centred on each frame time k / fps (as the frames are)
+    half = int(0.020 * rate)
+    power = np.concatenate([[0.0], np.cumsum(audio.astype(np.float64) ** 2)])
+    n = min(len(mouth), int(len(audio) / rate * fps))
+    centres = (np.arange(n) * rate / fps).astype(int)
+    lo, hi = np.clip(centres - half, 0, len(audio)), np.clip(centres + half, 0, len(audio))
+    env = np.sqrt((power[hi] - power[lo]) / np.maximum(hi - lo, 1))
     a, b = mouth[:n] - mouth[:n].mean(), env - env.mean()
     lags = np.arange(-max_lag_frames, max_lag_frames + 1)
     corr = np.array(

@@ -1,0 +1,188 @@
+"""The PsychoPy runner under Xvfb with a scripted participant (real X clicks), crash safety
+and the checks before a session. Needs a display: the test command runs pytest in xvfb-run."""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiment.cli import main
+from experiment.design import build_trials
+from experiment.protocol import load_protocol
+
+pytestmark = [pytest.mark.slow, pytest.mark.display]
+EXE = str(Path(sys.executable).with_name("facelab"))
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The paper's design with short texts (1-2 s clips) and small clips, rendered once."""
+    if not os.environ.get("DISPLAY"):
+        pytest.fail("no DISPLAY: run the tests with the README's test command (xvfb-run)")
+    root = tmp_path_factory.mktemp("study")
+    text = (Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml").read_text(
+        encoding="utf-8"
+    )
+    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
+    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
+    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
+    (root / "short.yaml").write_text(text, encoding="utf-8")
+    assert (
+        main(
+            [
+                "render",
+                str(root / "short.yaml"),
+                "--out",
+                str(root / "clips"),
+                "--size",
+                "320x180",
+                "--fps",
+                "15",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    return root
+
+
+def _run(study: Path, results: Path, *extra: str, **kw) -> subprocess.Popen:
+    env = {**os.environ, "SDL_AUDIODRIVER": "dummy"}
+    cmd = [
+        EXE,
+        "run",
+        str(study / "short.yaml"),
+        "--clips",
+        str(study / "clips"),
+        "--results",
+        str(results),
+        "--simulate",
+        *extra,
+    ]
+    return subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw
+    )
+
+
+def _rows(results: Path, pid: str) -> list[dict[str, str]]:
+    tsv = results / "kato2021" / f"sub-{pid}" / "ses-1" / f"sub-{pid}_ses-1_task-kato2021_beh.tsv"
+    return list(csv.DictReader(tsv.read_text(encoding="utf-8").splitlines(), delimiter="\t"))
+
+
+def _design(study: Path, pid: str) -> list[tuple[int, str]]:
+    trials = build_trials(load_protocol(study / "short.yaml"), participant=pid)
+    return [(t.trial_index, item) for t in trials for item in ("naturalness", "mouth_shape")]
+
+
+def test_simulated_session_in_the_real_window(study: Path, tmp_path: Path) -> None:
+    shots = tmp_path / "shots"
+    proc = _run(study, tmp_path / "res", "--participant", "P01", "--screenshots", str(shots))
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+    assert "session complete: 36 ratings" in out
+    rows = _rows(tmp_path / "res", "P01")
+    assert [(int(r["trial_index"]), r["item"]) for r in rows] == _design(study, "P01")
+    assert all(r["rating_start"] == "n/a" for r in rows)  # the marker was hidden: no start value
+    assert all(0 <= float(r["rating"]) <= 100 and float(r["rt_s"]) > 0 for r in rows)
+    onsets = [float(r["clip_onset"]) for r in rows[::2]]
+    assert onsets == sorted(onsets) and len(set(onsets)) == 18
+    # what the participant saw
+    from PIL import Image
+
+    clip = np.asarray(Image.open(shots / "clip_mid_playback.png").convert("RGB"), dtype=float)
+    assert clip.std() > 10  # a face, not a black or uniform square
+    before = np.asarray(Image.open(shots / "vas_before_click.png").convert("RGB"), dtype=int)
+    after = np.asarray(Image.open(shots / "vas_screen.png").convert("RGB"), dtype=int)
+
+    def marker_pixels(img: np.ndarray) -> int:  # the marker is the only reddish thing on screen
+        r, g, b = img[..., 0], img[..., 1], img[..., 2]
+        return int(np.sum((r > 200) & (r - g > 50) & (r - b > 60)))
+
+    assert marker_pixels(before) == 0 and marker_pixels(after) > 50
+
+    def greenish(img: np.ndarray) -> int:  # the confirm button turns green once enabled
+        return int(np.sum((img[..., 1] > img[..., 0] + 25) & (img[..., 1] > img[..., 2] + 10)))
+
+    assert greenish(before) == 0 and greenish(after) > 500
+
+
+def test_sigkill_at_random_points_then_resume(study: Path, tmp_path: Path) -> None:
+    rng = np.random.default_rng(7)
+    results = tmp_path / "res"
+    given: list[str] = []  # ratings the runner reported saved before each kill
+    first = True
+    for kill_after in sorted(rng.choice(np.arange(3, 34), size=3, replace=False)):
+        proc = _run(study, results, "--participant", "P02", *([] if first else ["--resume"]))
+        first = False
+        assert proc.stdout is not None
+        while len(given) < kill_after:
+            line = proc.stdout.readline()
+            assert line, f"runner ended early: {proc.stderr.read()[-1500:] if proc.stderr else ''}"
+            if line.endswith("(saved)\n"):
+                given.append(line.split(" = ")[0])
+        time.sleep(float(rng.uniform(0.0, 1.5)))  # somewhere in the next clip or item
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        saved = _rows(results, "P02")
+        keys = {f"trial {r['trial_index']}/18 {r['condition']} {r['item']}" for r in saved}
+        assert set(given) <= keys  # every rating given before the kill is on disk
+    proc = _run(study, results, "--participant", "P02", "--resume")
+    _out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+    rows = _rows(results, "P02")
+    assert len(rows) == 36
+    assert [(int(r["trial_index"]), r["item"]) for r in rows] == _design(
+        study, "P02"
+    )  # once each, in order
+    import json
+
+    meta = json.loads(
+        next((results / "kato2021" / "sub-P02" / "ses-1").glob("*_session.json")).read_text()
+    )
+    assert len(meta["resumes"]) == 3 and meta["trial_order"]
+
+
+def test_checks_before_a_session(
+    study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    base = [
+        "run",
+        str(study / "short.yaml"),
+        "--participant",
+        "P09",
+        "--simulate",
+        "--results",
+        str(tmp_path),
+    ]
+    # an existing session is never overwritten
+    (tmp_path / "kato2021" / "sub-P09" / "ses-1").mkdir(parents=True)
+    tsv = tmp_path / "kato2021" / "sub-P09" / "ses-1" / "sub-P09_ses-1_task-kato2021_beh.tsv"
+    tsv.write_text("precious\n")
+    assert main([*base, "--clips", str(study / "clips")]) == 2
+    assert "session already exists" in capsys.readouterr().err and tsv.read_text() == "precious\n"
+    # a missing clip, and a clip changed after rendering
+    clips = tmp_path / "clips"
+    shutil.copytree(study / "clips", clips)
+    base[3] = "P10"
+    (clips / "vowels__aiueo__baseline.mp4").unlink()
+    assert main([*base, "--clips", str(clips)]) == 2
+    assert "clip file missing" in capsys.readouterr().err
+    shutil.copy(study / "clips" / "vowels__aiueo__baseline.mp4", clips)
+    with open(clips / "vowels__aiueo__standard.mp4", "ab") as fh:
+        fh.write(b"x")
+    assert main([*base, "--clips", str(clips)]) == 2
+    assert "does not match its hash" in capsys.readouterr().err
+    assert main([*base, "--clips", str(tmp_path / "nowhere")]) == 2
+    assert "no clip manifest" in capsys.readouterr().err
+    assert not (tmp_path / "kato2021" / "sub-P10").exists()  # nothing written by failed checks
