@@ -34,6 +34,7 @@ class StudyResults:
     """Tidy tables, each with ``item`` and ``stimulus_set`` first."""
 
     method: str
+    ratings: pd.DataFrame  # every rating analysed (the loaded logs, tidy)
     cells: pd.DataFrame  # participant x condition means
     rm_anova: pd.DataFrame
     pairwise: pd.DataFrame
@@ -45,6 +46,7 @@ class StudyResults:
 
     def tables(self) -> dict[str, pd.DataFrame]:
         return {
+            "ratings": self.ratings,
             "cell_means": self.cells,
             "rm_anova": self.rm_anova,
             "pairwise_paired": self.pairwise,
@@ -167,8 +169,12 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
         frames = [f for f in out[key] if not f.empty]
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
+    ratings = data.drop(columns=["source"], errors="ignore").assign(
+        condition=data["condition"].astype(str)
+    )
     return StudyResults(
         method=method,
+        ratings=ratings.reset_index(drop=True),
         cells=cat("cells"),
         rm_anova=cat("rm"),
         pairwise=cat("pw"),

@@ -1,7 +1,8 @@
 """The ``facelab`` command line: one subcommand per stage.
 
 Exit status: 0 success; 2 a user mistake (bad protocol, option, file), reported as one clear
-message without a traceback; 3 a stage that is not built in this version; 130 interrupted.
+message without a traceback; 4 a session stopped by the experimenter (ratings kept);
+130 interrupted.
 This is the only module that reads the process environment and turns paths from the user
 into objects for the pure modules.
 """
@@ -13,7 +14,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from experiment.errors import FacelabError, NotBuiltError
+from experiment.errors import FacelabError
 
 __all__ = ["main"]
 
@@ -437,17 +438,45 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-# --------------------------------------------------------------------------- stages to come
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
 
+    from experiment.demo import DEFAULT_PROTOCOL, run_demo
 
-def _not_built(stage: str, issue: str) -> Handler:
-    def handler(args: argparse.Namespace) -> int:
-        raise NotBuiltError(
-            f"'facelab {stage}' is not built yet in facelab {_version()} ({issue}); "
-            "nothing was done"
+    size = None
+    if args.size:
+        try:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise FacelabError(
+                f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x360"
+            ) from None
+        if w % 2 or h % 2 or w < 64 or h < 64:
+            raise FacelabError(f"--size {args.size!r}: width and height must be even and >= 64")
+        size = (w, h)
+    bars: list[tqdm] = []
+
+    def progress(name: str, total: int):
+        bar = tqdm(
+            total=total, desc=f"render {name[:34]}", unit="frame", leave=False, disable=args.quiet
         )
+        bars.append(bar)
+        return lambda: bar.update(1)
 
-    return handler
+    try:
+        run_demo(
+            out=Path(args.out),
+            protocol_path=Path(args.protocol) if args.protocol else DEFAULT_PROTOCOL,
+            participants=args.participants,
+            seed=args.seed,
+            size=size,
+            fps=args.fps,
+            progress=progress,
+        )
+    finally:
+        for bar in bars:
+            bar.close()
+    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -612,9 +641,23 @@ def _parser() -> argparse.ArgumentParser:
     p = add(
         "demo",
         "the whole study on the embedded defaults: render, simulate, analyse, report",
-        _not_built("demo", "issue: end to end"),
+        _cmd_demo,
     )
-    p.add_argument("--out", metavar="DIR")
+    p.add_argument(
+        "--out", default="results/demo", metavar="DIR", help="output folder (default results/demo)"
+    )
+    p.add_argument(
+        "--protocol", metavar="PROTOCOL", help="another protocol instead of kato2021.yaml"
+    )
+    p.add_argument("--participants", type=int, default=8, metavar="N")
+    p.add_argument(
+        "--seed", type=int, default=2021, metavar="S", help="seed of the simulated ratings"
+    )
+    p.add_argument(
+        "--size", metavar="WxH", help="override the resolution (e.g. 320x180 for a quick run)"
+    )
+    p.add_argument("--fps", type=int, help="override the frame rate")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
     p = add("bench", "benchmarks that print JSON (visemes, render)", _cmd_bench)
     p.add_argument("what", choices=["visemes", "render"])

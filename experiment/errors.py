@@ -14,7 +14,6 @@ from pathlib import Path
 __all__ = [
     "FacelabError",
     "Issue",
-    "NotBuiltError",
     "ProtocolError",
     "StageError",
 ]
@@ -24,12 +23,6 @@ class FacelabError(Exception):
     """Base class: a problem caused by user input (files, options, data)."""
 
     exit_code = 2
-
-
-class NotBuiltError(FacelabError):
-    """A command whose stage is not implemented in this version of facelab."""
-
-    exit_code = 3
 
 
 class StageError(FacelabError):

@@ -61,22 +61,6 @@ def test_help_everywhere(command: str, capsys: pytest.CaptureFixture[str]) -> No
     assert "usage: facelab" in capsys.readouterr().out
 
 
-# Stages whose issues are still open; remove a line when its stage is built.
-UNBUILT = {
-    "demo": ["demo"],
-}
-
-
-@pytest.mark.parametrize("command", sorted(UNBUILT))
-def test_unbuilt_stage_says_so_and_exits_nonzero(
-    command: str, kato_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    argv = [str(kato_path) if a == "P" else a for a in UNBUILT[command]]
-    assert main(argv) == 3
-    err = capsys.readouterr().err
-    assert f"'facelab {command}' is not built yet" in err and "nothing was done" in err
-
-
 def test_console_script_gives_no_traceback(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("study: [\n", encoding="utf-8")
