@@ -334,22 +334,28 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_size(text: str | None) -> tuple[int, int] | None:
+    """``WIDTHxHEIGHT`` -> (width, height); even numbers >= 64 (H.264 needs even sizes)."""
+    if not text:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise FacelabError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x360") from None
+    if w % 2 or h % 2 or w < 64 or h < 64:
+        raise FacelabError(f"--size {text!r}: width and height must be even and >= 64")
+    return w, h
+
+
 def _render_overrides(args: argparse.Namespace, protocol):
     from stimuli.build import settings_for
 
     settings = settings_for(protocol)
-    if args.size:
-        try:
-            w, h = (int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            raise FacelabError(
-                f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x360"
-            ) from None
-        if w % 2 or h % 2 or w < 64 or h < 64:
-            raise FacelabError(f"--size {args.size!r}: width and height must be even and >= 64")
+    size = _parse_size(args.size)
+    if size is not None:
         from dataclasses import replace
 
-        settings = replace(settings, width=w, height=h)
+        settings = replace(settings, width=size[0], height=size[1])
     if args.fps is not None and not 1 <= args.fps <= 240:
         raise FacelabError(f"--fps {args.fps}: expected 1..240")
     return settings
@@ -411,12 +417,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     validate_participant_id(args.participant)
     if args.session < 1:
         raise FacelabError(f"--session {args.session}: sessions are numbered from 1")
-    size = (1280, 800)
-    if args.size:
-        try:
-            size = tuple(int(v) for v in args.size.lower().split("x"))  # type: ignore[assignment]
-        except ValueError:
-            raise FacelabError(f"--size {args.size!r}: expected WIDTHxHEIGHT") from None
+    size = _parse_size(args.size) or (1280, 800)
     options = RunOptions(
         participant=args.participant,
         session=args.session,
@@ -443,17 +444,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from experiment.demo import DEFAULT_PROTOCOL, run_demo
 
-    size = None
-    if args.size:
-        try:
-            w, h = (int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            raise FacelabError(
-                f"--size {args.size!r}: expected WIDTHxHEIGHT, e.g. 640x360"
-            ) from None
-        if w % 2 or h % 2 or w < 64 or h < 64:
-            raise FacelabError(f"--size {args.size!r}: width and height must be even and >= 64")
-        size = (w, h)
+    size = _parse_size(args.size)
     bars: list[tqdm] = []
 
     def progress(name: str, total: int):

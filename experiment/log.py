@@ -36,6 +36,7 @@ __all__ = [
     "SessionLog",
     "SessionPaths",
     "parse_log_text",
+    "rating_row",
     "session_paths",
 ]
 
@@ -302,6 +303,42 @@ class SessionLog:
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, self.paths.provenance)
+
+
+def rating_row(
+    *,
+    study: str,
+    participant: str,
+    session: int,
+    trial: Any,
+    item: str,
+    rating: float,
+    rt_s: float,
+    clip_onset: float,
+    clip_frames_dropped: int,
+    timestamp: str,
+    rating_start: float | None = None,
+) -> dict[str, Any]:
+    """One log row for a rating of ``trial`` (an ``experiment.design.Trial``)."""
+    return {
+        "study": study,
+        "participant": participant,
+        "session": session,
+        "trial_index": trial.trial_index,
+        "block": trial.block,
+        "set_index": trial.set_index,
+        "stimulus_set": trial.stimulus_set,
+        "stimulus": trial.stimulus,
+        "condition": trial.condition,
+        "repetition": trial.repetition,
+        "item": item,
+        "rating": rating,
+        "rating_start": rating_start,
+        "rt_s": rt_s,
+        "clip_onset": clip_onset,
+        "clip_frames_dropped": clip_frames_dropped,
+        "timestamp": timestamp,
+    }
 
 
 def _write_new(path: Path, text: str) -> None:

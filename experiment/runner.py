@@ -38,7 +38,7 @@ import numpy as np
 
 from experiment.design import Trial, build_trials, participant_seed
 from experiment.errors import FacelabError, StageError
-from experiment.log import SessionLog, session_paths
+from experiment.log import SessionLog, rating_row, session_paths
 from experiment.preflight import ClipRef, check_audio, check_clips, check_disk, check_display
 from experiment.protocol import Protocol, VasItem, protocol_hash
 from experiment.simulate import RatingModel
@@ -635,25 +635,18 @@ class _Window:
             states = self.ask(remaining, trial, shot="vas_screen" if opts.screenshots else None)
             for item, state in zip(remaining, states, strict=True):
                 self.log.append(
-                    {
-                        "study": self.protocol.study.id,
-                        "participant": opts.participant,
-                        "session": opts.session,
-                        "trial_index": trial.trial_index,
-                        "block": trial.block,
-                        "set_index": trial.set_index,
-                        "stimulus_set": trial.stimulus_set,
-                        "stimulus": trial.stimulus,
-                        "condition": trial.condition,
-                        "repetition": trial.repetition,
-                        "item": item.id,
-                        "rating": round(float(state.rating), 4),
-                        "rating_start": None,
-                        "rt_s": round(float(state.rt), 4),
-                        "clip_onset": round(float(playback["onset"]), 4),
-                        "clip_frames_dropped": int(playback["dropped"]),
-                        "timestamp": dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
-                    }
+                    rating_row(
+                        study=self.protocol.study.id,
+                        participant=opts.participant,
+                        session=opts.session,
+                        trial=trial,
+                        item=item.id,
+                        rating=round(float(state.rating), 4),
+                        rt_s=round(float(state.rt), 4),
+                        clip_onset=round(float(playback["onset"]), 4),
+                        clip_frames_dropped=int(playback["dropped"]),
+                        timestamp=dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
+                    )
                 )
                 print(
                     f"trial {trial.trial_index}/{len(trials)} {trial.condition} {item.id} = "

@@ -27,7 +27,7 @@ import numpy as np
 
 from experiment.design import build_trials, participant_seed
 from experiment.errors import StageError
-from experiment.log import SessionLog, SessionPaths, session_paths
+from experiment.log import SessionLog, SessionPaths, rating_row, session_paths
 from experiment.protocol import Protocol, protocol_hash
 
 __all__ = ["RatingModel", "condition_effect", "simulate_participant", "simulate_study"]
@@ -146,25 +146,18 @@ def simulate_participant(
             )
             clock += rt
             log.append(
-                {
-                    "study": protocol.study.id,
-                    "participant": participant,
-                    "session": session,
-                    "trial_index": trial.trial_index,
-                    "block": trial.block,
-                    "set_index": trial.set_index,
-                    "stimulus_set": trial.stimulus_set,
-                    "stimulus": trial.stimulus,
-                    "condition": trial.condition,
-                    "repetition": trial.repetition,
-                    "item": item.id,
-                    "rating": rating,
-                    "rating_start": None,
-                    "rt_s": round(rt, 3),
-                    "clip_onset": round(clip_onset, 3),
-                    "clip_frames_dropped": 0,
-                    "timestamp": (_CLOCK_START + dt.timedelta(seconds=clock)).isoformat(),
-                }
+                rating_row(
+                    study=protocol.study.id,
+                    participant=participant,
+                    session=session,
+                    trial=trial,
+                    item=item.id,
+                    rating=rating,
+                    rt_s=round(rt, 3),
+                    clip_onset=round(clip_onset, 3),
+                    clip_frames_dropped=0,
+                    timestamp=(_CLOCK_START + dt.timedelta(seconds=clock)).isoformat(),
+                )
             )
     return log.paths
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["ARKIT_NAMES", "VISEME_TARGETS", "canonical_arkit_name"]
+__all__ = ["ARKIT_NAMES", "OCULUS_VISEMES", "VISEME_TARGETS", "canonical_arkit_name"]
 
 ARKIT_NAMES: tuple[str, ...] = (
     "eyeBlinkLeft",
@@ -66,27 +66,13 @@ ARKIT_NAMES: tuple[str, ...] = (
 )
 assert len(ARKIT_NAMES) == 52
 
+#: The 15 Oculus LipSync visemes, in Oculus order (``sil`` is the neutral face).
+OCULUS_VISEMES: tuple[str, ...] = (
+    "sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "ih", "oh", "ou",
+)  # fmt: skip
+
 #: Morph-target names of the 15 Oculus visemes, in Oculus order.
-VISEME_TARGETS: tuple[str, ...] = tuple(
-    f"viseme_{v}"
-    for v in (
-        "sil",
-        "PP",
-        "FF",
-        "TH",
-        "DD",
-        "kk",
-        "CH",
-        "SS",
-        "nn",
-        "RR",
-        "aa",
-        "E",
-        "ih",
-        "oh",
-        "ou",
-    )
-)
+VISEME_TARGETS: tuple[str, ...] = tuple(f"viseme_{v}" for v in OCULUS_VISEMES)
 
 _BY_KEY = {name.lower(): name for name in (*ARKIT_NAMES, *VISEME_TARGETS)}
 # Ready Player Me and others spell three vowel visemes differently

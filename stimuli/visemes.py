@@ -43,6 +43,7 @@ from scipy import signal
 from scipy.fft import dct, rfft
 
 from experiment.errors import StageError
+from stimuli.arkit import OCULUS_VISEMES
 
 __all__ = [
     "VISEMES",
@@ -60,23 +61,7 @@ __all__ = [
     "vowel_segments",
 ]
 
-VISEMES: tuple[str, ...] = (
-    "sil",
-    "PP",
-    "FF",
-    "TH",
-    "DD",
-    "kk",
-    "CH",
-    "SS",
-    "nn",
-    "RR",
-    "aa",
-    "E",
-    "ih",
-    "oh",
-    "ou",
-)
+VISEMES: tuple[str, ...] = OCULUS_VISEMES
 VOWELS: tuple[str, ...] = ("a", "i", "u", "e", "o")
 VOWEL_VISEMES: tuple[str, ...] = ("aa", "ih", "ou", "E", "oh")
 _VOWEL_INDEX = [VISEMES.index(v) for v in VOWEL_VISEMES]

@@ -23,7 +23,9 @@ def test_demo_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "[4/4]" in printed and "done in" in printed and "SIMULATED" in printed
 
     # clips: every one listed exists with its hash; contact sheets per condition
-    rows = list(csv.DictReader((out / "clips" / "clips.csv").read_text(encoding="utf-8").splitlines()))
+    rows = list(
+        csv.DictReader((out / "clips" / "clips.csv").read_text(encoding="utf-8").splitlines())
+    )
     assert len(rows) == 6  # 2 stimuli x 3 conditions (the practice clip is one of them)
     for r in rows:
         assert sha256_file(out / "clips" / r["path"]) == r["sha256"]
