@@ -7,6 +7,7 @@ Layout (BIDS-style, one folder per participant session)::
         sub-<ID>_ses-<N>_task-<study>_beh.json     data dictionary of the TSV columns
         sub-<ID>_ses-<N>_task-<study>_session.json provenance: protocol hash, seed, trial
                                                    order, clip hashes, software, screen/audio
+        sub-<ID>_ses-<N>_task-<study>_playback.jsonl  every flip of every clip (the runner)
         sub-<ID>_ses-<N>_task-<study>_repairs.tsv  only after a crash: cut-off lines kept verbatim
 
 Rules: a session folder that exists is never overwritten (:meth:`SessionLog.create` refuses);

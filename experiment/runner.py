@@ -354,6 +354,13 @@ class _Window:
                     return
                 self.core.wait(0.01)
 
+    def _clear_events(self) -> None:
+        """Drop stale input before a new screen, but never an Escape press."""
+        escape = self.event.getKeys(keyList=["escape"])
+        self.event.clearEvents()
+        if escape:
+            self._check_escape(escape)
+
     def _screenshot(self, name: str) -> None:
         if self.options.screenshots and name not in self.shots_taken:
             self.options.screenshots.mkdir(parents=True, exist_ok=True)
@@ -367,7 +374,7 @@ class _Window:
         hint = self._textstim(
             self.ui["next"], y=-0.4 * self.size[1], height=0.022 * self.size[1], color="grey"
         )
-        self.event.clearEvents()
+        self._clear_events()
         next_press = time.perf_counter() + 0.2
         while True:
             if self.script and time.perf_counter() >= next_press:
@@ -405,7 +412,7 @@ class _Window:
         flips: list[float] = []
         shown: list[int] = []
         checked = False
-        self.event.clearEvents()
+        self._clear_events()
         movie.play()
         deadline = time.perf_counter() + ref.duration_s + 10.0
         try:
@@ -439,7 +446,31 @@ class _Window:
             "flips": len(flips),
             "dropped": dropped,
             "frames_expected": expected,
+            "flip_times": [round(f - flips[0], 5) for f in flips] if flips else [],
+            "frames_shown": shown,
         }
+
+    def _record_playback(self, trial: Trial, ref: ClipRef, playback: dict[str, Any]) -> None:
+        """Append every flip of the clip (times from its first flip, and the movie frame shown)
+        to ``..._playback.jsonl`` beside the log, one line per presentation."""
+        path = self.log.paths.tsv.with_name(
+            self.log.paths.tsv.name.replace("_beh.tsv", "_playback.jsonl")
+        )
+        line = json.dumps(
+            {
+                "trial_index": trial.trial_index,
+                "clip": ref.path.name,
+                "onset": playback["onset"],
+                "frames_expected": playback["frames_expected"],
+                "dropped": playback["dropped"],
+                "flip_times": playback["flip_times"],
+                "frames_shown": playback["frames_shown"],
+            }
+        )
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(line + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
 
     def _check_pixels(self, movie) -> None:
         img = np.asarray(self.win.getMovieFrame(buffer="back"), dtype=np.float32)
@@ -531,7 +562,7 @@ class _Window:
         confirm_label = self._textstim(
             self.ui["confirm"], y=g0.confirm_centre[1], height=0.03 * h, width=g0.confirm_size[0]
         )
-        self.event.clearEvents()
+        self._clear_events()
         self.mouse.clickReset()
         was_down = False
         targets: dict[int, float] = {}
@@ -627,6 +658,7 @@ class _Window:
             ref = self.clips[(trial.stimulus_set, trial.stimulus, trial.condition)]
             shot_clip = "clip_mid_playback" if opts.screenshots else None
             playback = self.play(ref, shot=shot_clip)
+            self._record_playback(trial, ref, playback)
             remaining = [
                 it
                 for it in self.protocol.items

@@ -95,6 +95,16 @@ def test_simulated_session_in_the_real_window(study: Path, tmp_path: Path) -> No
     assert all(0 <= float(r["rating"]) <= 100 and float(r["rt_s"]) > 0 for r in rows)
     onsets = [float(r["clip_onset"]) for r in rows[::2]]
     assert onsets == sorted(onsets) and len(set(onsets)) == 18
+    import json
+
+    plays = [
+        json.loads(line)
+        for line in next((tmp_path / "res").rglob("*_playback.jsonl")).read_text().splitlines()
+    ]
+    assert [p["trial_index"] for p in plays] == list(range(1, 19))
+    for p in plays:  # every flip recorded, from the first frame, in time order
+        assert p["flip_times"][0] == 0 and p["flip_times"] == sorted(p["flip_times"])
+        assert len(p["flip_times"]) == len(p["frames_shown"]) >= p["frames_expected"] // 2
     # what the participant saw
     from PIL import Image
 
@@ -186,3 +196,25 @@ def test_checks_before_a_session(
     assert main([*base, "--clips", str(tmp_path / "nowhere")]) == 2
     assert "no clip manifest" in capsys.readouterr().err
     assert not (tmp_path / "kato2021" / "sub-P10").exists()  # nothing written by failed checks
+
+
+def test_escape_asks_then_quits_keeping_every_rating(study: Path, tmp_path: Path) -> None:
+    import shutil
+
+    results = tmp_path / "res"
+    proc = _run(study, results, "--participant", "P03")
+    assert proc.stdout is not None
+    saved = 0
+    while saved < 2:
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()[-1500:] if proc.stderr else ""
+        saved += line.endswith("(saved)\n")
+    xdotool = shutil.which("xdotool")
+    assert xdotool
+    subprocess.run([xdotool, "key", "Escape"], check=True)
+    time.sleep(1.5)
+    assert proc.poll() is None  # Escape only asks
+    subprocess.run([xdotool, "key", "y"], check=True)
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 4 and "continue with --resume" in err
+    assert len(_rows(results, "P03")) >= 2
