@@ -122,10 +122,11 @@ def write_report(
                 labels=cond_labels,
                 brackets=bracket_pairs(results, item=item.id, stimulus_set=sset.id),
                 title=f"{_text(item.question, language)} [{sset.id}]",
-                ylabel=f"VAS ({_text(item.left_anchor, language)} 0 - "
-                f"{_text(item.right_anchor, language)} 100)",
+                ylabel="VAS (0-100)",
                 scale=(item.range[0], item.range[1]),
                 caption=(
+                    f"0 = {_text(item.left_anchor, language)}, "
+                    f"100 = {_text(item.right_anchor, language)}\n"
                     f"Boxes: participant means (n = {cells['participant'].nunique()}); "
                     f"brackets: p < .05, {proc}." + ("  SIMULATED DATA" if simulated else "")
                 ),
