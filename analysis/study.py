@@ -70,6 +70,25 @@ def _pairs_text(pairs: pd.DataFrame, p_col: str) -> str:
     return "; ".join(f"{r.a}-{r.b} p={getattr(r, p_col):.4f}" for r in sig.itertuples()) or "none"
 
 
+def _layout_row(
+    common: dict, *, procedure: str, anova: pd.DataFrame, p: float, pairs: pd.DataFrame
+) -> dict:
+    """One row of the paper-layout table: ANOVA F, df, p, and the pairs below .05."""
+    return {
+        "item": common["item"],
+        "stimulus_set": common["stimulus_set"],
+        "procedure": procedure,
+        "n_participants": common["n_participants"],
+        "df1": anova.df1[0],
+        "df2": anova.df2[0],
+        "f": anova.f[0],
+        "anova_p": p,
+        "pairs_p_lt_05": _pairs_text(pairs, "p_adj"),
+        "reported_anova_p": common["reported_anova_p"],
+        "reported_pairs": common["reported_pairs"],
+    }
+
+
 def bracket_pairs(results: StudyResults, *, item: str, stimulus_set: str) -> pd.DataFrame:
     """Pairs with the corrected p-values of the primary method (``a, b, p``) for figures."""
     if results.method == "paper":
@@ -130,35 +149,18 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                 out[key].append(_tag(frame, item.id, sset.id))
             rep = reported.get((item.id, sset.id))
             rep_pairs = "; ".join(f"{p.a}-{p.b} p={p.p:.4f}" for p in rep.pairs) if rep else ""
+            common = {
+                "item": item.id,
+                "stimulus_set": sset.id,
+                "n_participants": len(wide),
+                "reported_anova_p": rep.anova_p if rep else float("nan"),
+                "reported_pairs": rep_pairs,
+            }
             out["layout"].append(
                 pd.DataFrame(
                     [
-                        {
-                            "item": item.id,
-                            "stimulus_set": sset.id,
-                            "procedure": "rm",
-                            "n_participants": len(wide),
-                            "df1": rm.df1[0],
-                            "df2": rm.df2[0],
-                            "f": rm.f[0],
-                            "anova_p": rm.p_gg[0],
-                            "pairs_p_lt_05": _pairs_text(pw, "p_adj"),
-                            "reported_anova_p": rep.anova_p if rep else float("nan"),
-                            "reported_pairs": rep_pairs,
-                        },
-                        {
-                            "item": item.id,
-                            "stimulus_set": sset.id,
-                            "procedure": "paper",
-                            "n_participants": len(wide),
-                            "df1": pa.df1[0],
-                            "df2": pa.df2[0],
-                            "f": pa.f[0],
-                            "anova_p": pa.p[0],
-                            "pairs_p_lt_05": _pairs_text(tk, "p_adj"),
-                            "reported_anova_p": rep.anova_p if rep else float("nan"),
-                            "reported_pairs": rep_pairs,
-                        },
+                        _layout_row(common, procedure="rm", anova=rm, p=rm.p_gg[0], pairs=pw),
+                        _layout_row(common, procedure="paper", anova=pa, p=pa.p[0], pairs=tk),
                     ]
                 )
             )

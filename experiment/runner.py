@@ -78,7 +78,6 @@ _UI = {
         "next": "スペースキーで次へ",
         "break": "休憩です。準備ができたらスペースキーを押してください。",
         "end": "終了です。ありがとうございました。",
-        "instructions": "",
     },
     "en": {
         "participant": "Participant {pid} (session {ses})\n\nPress space to start.",
@@ -89,7 +88,6 @@ _UI = {
         "next": "Press space to continue",
         "break": "Take a break. Press space when you are ready.",
         "end": "This is the end. Thank you.",
-        "instructions": "",
     },
 }
 

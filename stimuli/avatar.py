@@ -20,7 +20,7 @@ an approximation of the MPEG-4 viseme shapes that keeps all conditions on one fa
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -892,7 +892,3 @@ def lip_metrics(avatar: Avatar, vertices: np.ndarray) -> dict[str, float]:
         "width": float(vertices[lm["mouth_left"], 0] - vertices[lm["mouth_right"], 0]),
         "protrusion": float(0.5 * (vertices[lm["upper_lip"], 2] + vertices[lm["lower_lip"], 2])),
     }
-
-
-def names_in(weights: Iterable[str]) -> list[str]:
-    return list(weights)

@@ -27,7 +27,7 @@ from stimuli.drive import BlendshapeTrack, DriveInput, drive
 from stimuli.prepare import speech_for, tracks_for
 from stimuli.render import Renderer, RenderSettings
 from stimuli.speech import Speech
-from stimuli.visemes import VOWELS, VisemeTrack, _widen, vowel_segments
+from stimuli.visemes import VOWELS, VisemeTrack, vowel_segments
 
 __all__ = ["CLIP_COLUMNS", "ClipJob", "build_clips", "contact_sheets", "load_avatar", "plan"]
 
@@ -271,7 +271,7 @@ def contact_sheets(
     avatar = load_avatar(protocol, base_dir=base_dir)
     speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
     analysed, isolated = tracks_for(stim, speech)
-    segments = _widen(analysed, vowel_segments(analysed))
+    segments = vowel_segments(analysed, widen=True)
     if len(segments) != len(stim.expected_vowels or ""):
         raise StageError(
             f"{stim_set}/{stim.id}: found {len(segments)} vowel segments, expected "

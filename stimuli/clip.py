@@ -215,58 +215,30 @@ def probe(path: Path) -> dict:
     return json.loads(out.stdout)
 
 
-def decode_audio(path: Path, *, sample_rate: int) -> np.ndarray:
-    """The clip's audio as mono float32 at ``sample_rate``."""
+def _decode(path: Path, output_args: list[str], what: str) -> bytes:
+    """Raw bytes ffmpeg writes to stdout for ``path`` with ``output_args``."""
     out = subprocess.run(
-        [
-            _ffmpeg(),
-            "-v",
-            "error",
-            "-i",
-            str(path),
-            "-f",
-            "f32le",
-            "-ac",
-            "1",
-            "-ar",
-            str(sample_rate),
-            "-",
-        ],
+        [_ffmpeg(), "-v", "error", "-i", str(path), *output_args, "-"],
         capture_output=True,
         check=False,
     )
     if out.returncode != 0:
         raise StageError(
-            f"{path}: cannot decode audio: {out.stderr.decode(errors='replace')[-300:]}"
+            f"{path}: cannot decode {what}: {out.stderr.decode(errors='replace')[-300:]}"
         )
-    return np.frombuffer(out.stdout, dtype=np.float32)
+    return out.stdout
+
+
+def decode_audio(path: Path, *, sample_rate: int) -> np.ndarray:
+    """The clip's audio as mono float32 at ``sample_rate``."""
+    raw = _decode(path, ["-f", "f32le", "-ac", "1", "-ar", str(sample_rate)], "audio")
+    return np.frombuffer(raw, dtype=np.float32)
 
 
 def decode_frames(path: Path, *, width: int, height: int) -> np.ndarray:
     """All frames as (N, height, width, 3) uint8 (scaled by ffmpeg if needed)."""
-    out = subprocess.run(
-        [
-            _ffmpeg(),
-            "-v",
-            "error",
-            "-i",
-            str(path),
-            "-f",
-            "rawvideo",
-            "-pix_fmt",
-            "rgb24",
-            "-s",
-            f"{width}x{height}",
-            "-",
-        ],
-        capture_output=True,
-        check=False,
-    )
-    if out.returncode != 0:
-        raise StageError(
-            f"{path}: cannot decode video: {out.stderr.decode(errors='replace')[-300:]}"
-        )
-    return np.frombuffer(out.stdout, dtype=np.uint8).reshape(-1, height, width, 3)
+    raw = _decode(path, ["-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}"], "video")
+    return np.frombuffer(raw, dtype=np.uint8).reshape(-1, height, width, 3)
 
 
 def av_offset_ms(path: Path, *, fps: int, max_lag_frames: int = 8) -> dict[str, float]:

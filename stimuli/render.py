@@ -16,12 +16,9 @@ Frames are ``(height, width, 3)`` uint8 RGB. ``PYOPENGL_PLATFORM`` defaults to `
 
 from __future__ import annotations
 
-import ctypes
 import os
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
@@ -61,7 +58,6 @@ class FrameTimes:
     upload: float = 0.0
     raster_readback: float = 0.0
     frames: int = 0
-    extra: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, float]:
         n = max(self.frames, 1)
@@ -369,12 +365,3 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
     renderer._configure_main_framebuffer = types.MethodType(configure, renderer)
     renderer._read_main_framebuffer = types.MethodType(read, renderer)
     renderer._delete_main_framebuffer = types.MethodType(delete_fb, renderer)
-
-
-@contextmanager
-def open_renderer(avatar: Avatar, settings: RenderSettings) -> Iterator[Renderer]:
-    with Renderer(avatar, settings) as r:
-        yield r
-
-
-_ = ctypes

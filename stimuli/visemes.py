@@ -536,10 +536,16 @@ def features(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, np.n
 
 
 def vowel_segments(
-    track: VisemeTrack, *, min_s: float = 0.06, merge_gap_s: float = 0.08, threshold: float = 0.5
+    track: VisemeTrack,
+    *,
+    min_s: float = 0.06,
+    merge_gap_s: float = 0.08,
+    threshold: float = 0.5,
+    widen: bool = False,
 ) -> list[tuple[int, int]]:
     """Voiced stretches as frame index ranges [start, stop): where 1 - sil >= threshold,
-    gaps shorter than ``merge_gap_s`` merged, pieces shorter than ``min_s`` dropped."""
+    gaps shorter than ``merge_gap_s`` merged, pieces shorter than ``min_s`` dropped; with
+    ``widen``, each grown over its rising and falling edges (as vowel isolation uses them)."""
     active = (1.0 - track.weights[:, 0]) >= threshold
     fps = track.fps
     segs: list[list[int]] = []
@@ -550,7 +556,8 @@ def vowel_segments(
             segs[-1][1] = i + 1
         else:
             segs.append([i, i + 1])
-    return [(a, b) for a, b in segs if (b - a) >= min_s * fps]
+    kept = [(a, b) for a, b in segs if (b - a) >= min_s * fps]
+    return _widen(track, kept) if widen else kept
 
 
 def calibrate(
@@ -628,9 +635,9 @@ def isolate_vowels(
 
     In the i-th voiced segment the vowel ``vowels[i]`` keeps its intensity and the other four
     vowel columns are set to 0; consonant columns are left alone; ``sil`` takes the rest.
-    Segments are found from the track (:func:`vowel_segments`) unless given.
+    Segments are found from the track (:func:`vowel_segments`, widened) unless given.
     """
-    segs = list(segments) if segments is not None else _widen(track, vowel_segments(track))
+    segs = list(segments) if segments is not None else vowel_segments(track, widen=True)
     if len(segs) != len(vowels):
         raise VisemeError(
             f"vowel isolation: found {len(segs)} voiced segments but expected_vowels "
