@@ -12,9 +12,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from analysis.stats import AnalysisError
-from experiment.errors import StageError
-from experiment.log import LOG_COLUMNS, parse_log_text
+from facelab.errors import AnalysisError, StageError
+from facelab.sessionlog import LOG_COLUMNS, parse_log_text
 
 __all__ = ["find_logs", "load_log", "load_results", "session_summary"]
 

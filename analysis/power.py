@@ -17,7 +17,7 @@ Where f2 comes from:
   output; the rest is rating-to-rating noise, divided by the ``reps`` ratings per cell.
 
 :func:`simulate_power` checks the formula by Monte Carlo with the same sums of squares as
-:func:`analysis.stats.rm_anova`.
+:func:`facelab.analysis.stats.rm_anova`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
-from analysis.stats import AnalysisError, cell_means, rm_sums_of_squares
+from facelab.analysis.stats import cell_means, rm_sums_of_squares
+from facelab.errors import AnalysisError
 
 __all__ = [
     "PowerResult",

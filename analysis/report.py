@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from analysis import figures
-from analysis.load import session_summary
-from analysis.study import METHODS, StudyResults, bracket_pairs
-from experiment.protocol import Protocol
+from facelab.analysis import figures
+from facelab.analysis.load import session_summary
+from facelab.analysis.study import METHODS, StudyResults, bracket_pairs
+from facelab.protocol import Protocol
 
 __all__ = ["ReportFiles", "write_report"]
 

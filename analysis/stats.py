@@ -29,10 +29,9 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from experiment.errors import FacelabError
+from facelab.errors import AnalysisError
 
 __all__ = [
-    "AnalysisError",
     "cell_means",
     "friedman",
     "levels",
@@ -46,8 +45,6 @@ __all__ = [
 ]
 
 
-class AnalysisError(FacelabError):
-    """The data cannot be analysed as asked (missing columns, cells, too few levels…)."""
 
 
 # --------------------------------------------------------------------------- helpers

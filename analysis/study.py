@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from analysis import stats
-from analysis.stats import AnalysisError
-from experiment.protocol import Protocol
+from facelab.analysis import stats
+from facelab.errors import AnalysisError
+from facelab.protocol import Protocol
 
 __all__ = ["METHODS", "StudyResults", "analyze_study", "bracket_pairs"]
 

@@ -1,6 +1,6 @@
 """``facelab demo``: the paper's study end to end on the embedded defaults.
 
-1. validate ``protocols/kato2021.yaml``;
+1. validate the shipped ``kato2021`` protocol (``facelab protocols`` lists it);
 2. render its clips into ``<out>/clips`` (re-used when unchanged);
 3. simulate 8 participants with effects in the paper's direction, written through the same
    session log as real sessions, into a new ``<out>/run-<UTC time>/results`` (never over an
@@ -19,11 +19,12 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-from experiment.protocol import load_protocol
+from facelab.protocol import load_protocol
+from facelab.resources import protocol_path
 
 __all__ = ["DEFAULT_PROTOCOL", "run_demo"]
 
-DEFAULT_PROTOCOL = Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml"
+DEFAULT_PROTOCOL = protocol_path("kato2021")  # shipped inside the package
 
 
 def run_demo(
@@ -37,11 +38,11 @@ def run_demo(
     progress: Callable[[str, int], Callable[[], None]] | None = None,
     say: Callable[[str], None] = print,
 ) -> dict[str, Path | float | int]:
-    from analysis.load import load_results
-    from analysis.report import write_report
-    from analysis.study import analyze_study
-    from experiment.simulate import simulate_study
-    from stimuli.build import build_clips, contact_sheets, settings_for
+    from facelab.analysis.load import load_results
+    from facelab.analysis.report import write_report
+    from facelab.analysis.study import analyze_study
+    from facelab.experiment.simulate import simulate_study
+    from facelab.stimuli.build import build_clips, contact_sheets, settings_for
 
     t0 = time.perf_counter()
     protocol = load_protocol(protocol_path)

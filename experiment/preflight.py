@@ -1,6 +1,6 @@
 """Checks before a session starts: clips present and unchanged, display, audio, disk.
 
-Every failure is a :class:`~experiment.errors.StageError` saying what is wrong and what to do.
+Every failure is a :class:`~facelab.errors.StageError` saying what is wrong and what to do.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from experiment.design import Trial
-from experiment.errors import StageError
-from experiment.protocol import Protocol
+from facelab.design import Trial
+from facelab.errors import StageError
+from facelab.protocol import Protocol
 
 __all__ = ["ClipRef", "check_audio", "check_clips", "check_disk", "check_display"]
 
@@ -32,7 +32,7 @@ def check_clips(
     protocol: Protocol, trials: list[Trial], clips_dir: Path, *, verify_hashes: bool = True
 ) -> dict[tuple[str, str, str], ClipRef]:
     """Every clip the session shows, from ``clips.csv``, present and matching its hash."""
-    from stimuli.clip import sha256_file
+    from facelab.stimuli.clip import sha256_file
 
     manifest = clips_dir / "clips.csv"
     if not manifest.is_file():

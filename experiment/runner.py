@@ -36,21 +36,23 @@ from typing import Any
 
 import numpy as np
 
-from experiment.design import Trial, build_trials, participant_seed
-from experiment.errors import FacelabError, StageError
-from experiment.log import SessionLog, rating_row, session_paths
-from experiment.preflight import ClipRef, check_audio, check_clips, check_disk, check_display
-from experiment.protocol import Protocol, VasItem, protocol_hash
-from experiment.simulate import RatingModel
-from experiment.vas import VasGeometry, VasState
+from facelab.design import Trial, build_trials, participant_seed
+from facelab.errors import SessionAbortedError, StageError
+from facelab.experiment.preflight import (
+    ClipRef,
+    check_audio,
+    check_clips,
+    check_disk,
+    check_display,
+)
+from facelab.experiment.simulate import RatingModel
+from facelab.experiment.vas import VasGeometry, VasState
+from facelab.protocol import Protocol, VasItem, protocol_hash
+from facelab.sessionlog import SessionLog, rating_row, session_paths
 
 __all__ = ["RunOptions", "SessionAbortedError", "run_session"]
 
 
-class SessionAbortedError(FacelabError):
-    """The experimenter quit with Escape; the ratings given so far are saved."""
-
-    exit_code = 4
 
 
 @dataclass

@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from experiment.design import build_trials, participant_seed
-from experiment.errors import StageError
-from experiment.log import SessionLog, SessionPaths, rating_row, session_paths
-from experiment.protocol import Protocol, protocol_hash
+from facelab.design import build_trials, participant_seed
+from facelab.errors import StageError
+from facelab.protocol import Protocol, protocol_hash
+from facelab.sessionlog import SessionLog, SessionPaths, rating_row, session_paths
 
 __all__ = ["RatingModel", "condition_effect", "simulate_participant", "simulate_study"]
 

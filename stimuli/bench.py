@@ -12,15 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from stimuli.speech import synthesize
-from stimuli.viseme_training import (
+from facelab.stimuli.speech import synthesize
+from facelab.stimuli.viseme_training import (
     HELDOUT_VARIANTS,
     TRAIN_VARIANTS,
     build_pylipsync_templates,
     corpus,
     evaluate,
 )
-from stimuli.visemes import StreamingAnalyzer, analyze, default_model
+from facelab.stimuli.visemes import StreamingAnalyzer, analyze, default_model
 
 __all__ = ["bench_visemes"]
 
@@ -91,10 +91,10 @@ def bench_render(
     import tempfile
     from pathlib import Path
 
-    from stimuli.avatar import default_head
-    from stimuli.clip import av_offset_ms, encode, frame_weights, padded_audio, probe
-    from stimuli.drive import DriveInput, drive
-    from stimuli.render import NaiveRenderer, Renderer, RenderSettings
+    from facelab.stimuli.avatar import default_head
+    from facelab.stimuli.clip import av_offset_ms, encode, frame_weights, padded_audio, probe
+    from facelab.stimuli.drive import DriveInput, drive
+    from facelab.stimuli.render import NaiveRenderer, Renderer, RenderSettings
 
     text = (
         "今日は朝から穏やかな天気で、駅までの道を歩いていると、川沿いの桜が咲き始めているのが"
@@ -105,7 +105,7 @@ def bench_render(
     if quick:
         seconds = 4.0
     keep = min(len(speech.samples), int(seconds * speech.sample_rate))
-    from stimuli.speech import Speech
+    from facelab.stimuli.speech import Speech
 
     speech = Speech(speech.samples[:keep], speech.sample_rate)
     track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()

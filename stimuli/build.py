@@ -19,15 +19,22 @@ from pathlib import Path
 
 import numpy as np
 
-from experiment.errors import StageError
-from experiment.protocol import Protocol, Stimulus
-from stimuli.avatar import Avatar, check_targets, default_head, load, with_viseme_mixes
-from stimuli.clip import ClipInfo, encode, frame_weights, padded_audio, sha256_file, weights_at
-from stimuli.drive import BlendshapeTrack, DriveInput, drive
-from stimuli.prepare import speech_for, tracks_for
-from stimuli.render import Renderer, RenderSettings
-from stimuli.speech import Speech
-from stimuli.visemes import VOWELS, VisemeTrack, vowel_segments
+from facelab.errors import StageError
+from facelab.protocol import Protocol, Stimulus
+from facelab.stimuli.avatar import Avatar, check_targets, default_head, load, with_viseme_mixes
+from facelab.stimuli.clip import (
+    ClipInfo,
+    encode,
+    frame_weights,
+    padded_audio,
+    sha256_file,
+    weights_at,
+)
+from facelab.stimuli.drive import BlendshapeTrack, DriveInput, drive
+from facelab.stimuli.prepare import speech_for, tracks_for
+from facelab.stimuli.render import Renderer, RenderSettings
+from facelab.stimuli.speech import Speech
+from facelab.stimuli.visemes import VOWELS, VisemeTrack, vowel_segments
 
 __all__ = ["CLIP_COLUMNS", "ClipJob", "build_clips", "contact_sheets", "load_avatar", "plan"]
 

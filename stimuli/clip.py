@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from experiment.errors import StageError
-from stimuli.avatar import Avatar
-from stimuli.drive import BlendshapeTrack
-from stimuli.speech import Speech, write_wav
+from facelab.errors import StageError
+from facelab.stimuli.drive import BlendshapeTrack
+from facelab.stimuli.mesh import Avatar
+from facelab.stimuli.speech import Speech, write_wav
 
 __all__ = ["ClipInfo", "encode", "frame_weights", "padded_audio", "sha256_file", "weights_at"]
 

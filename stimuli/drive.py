@@ -1,7 +1,7 @@
 """Animation methods: viseme track (+ phoneme timing) -> blendshape track.
 
 Each method is one function ``(DriveInput, params) -> BlendshapeTrack`` registered in
-:data:`DRIVERS` under the name a protocol condition uses (``stimuli.methods.METHODS`` holds
+:data:`DRIVERS` under the name a protocol condition uses (``facelab.methods.METHODS`` holds
 their parameter models). The vowel-driven method is
 
     Y (T, 52) = clip(G * X (T, 5) @ Z.T (5, 52), 0, 1)
@@ -19,21 +19,22 @@ from pathlib import Path
 
 import numpy as np
 
-from experiment.errors import StageError
-from stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
-from stimuli.methods import (
+from facelab.errors import StageError
+from facelab.methods import (
     BUILTIN_Z,
     METHODS,
     TextVisemesParams,
     VisemeBaselineParams,
     VowelBlendParams,
 )
-from stimuli.speech import Phone
-from stimuli.visemes import VOWELS, VisemeTrack, from_phonemes
+from facelab.resources import package_file
+from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.speech import Phone
+from facelab.stimuli.visemes import VOWELS, VisemeTrack, from_phonemes
 
 __all__ = ["DRIVERS", "BlendshapeTrack", "DriveInput", "drive", "load_z"]
 
-DATA = Path(__file__).parent / "data"
+DATA = package_file("facelab.stimuli", "data")
 
 
 @dataclass(frozen=True)

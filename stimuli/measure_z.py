@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from experiment.errors import StageError
-from stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
-from stimuli.visemes import VOWELS
+from facelab.errors import StageError
+from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
+from facelab.stimuli.visemes import VOWELS
 
 __all__ = [
     "Capture",
@@ -145,8 +145,8 @@ def read_onsets(path: Path | str) -> list[dict]:
 
 def detect_onsets(audio: Path, *, vowels: str) -> list[dict]:
     """Onsets of the voiced segments in a capture's audio, labelled with ``vowels`` in order."""
-    from stimuli.speech import load_audio
-    from stimuli.visemes import analyze, vowel_segments
+    from facelab.stimuli.speech import load_audio
+    from facelab.stimuli.visemes import analyze, vowel_segments
 
     speech = load_audio(audio, sample_rate=48_000)
     track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
@@ -210,7 +210,7 @@ def measure_z(
 
 
 def write_z(path: Path, z: np.ndarray) -> None:
-    """Write Z in the format ``stimuli.drive.load_z`` reads."""
+    """Write Z in the format ``facelab.stimuli.drive.load_z`` reads."""
     with open(path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(["blendshape", *VOWELS])

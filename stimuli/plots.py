@@ -8,7 +8,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.figure import Figure
 
-from stimuli.visemes import VOWELS, VisemeTrack
+from facelab.stimuli.visemes import VOWELS, VisemeTrack
 
 __all__ = ["vowel_track_figure"]
 

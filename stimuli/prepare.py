@@ -5,16 +5,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from experiment.protocol import Protocol, Stimulus
-from stimuli.speech import Speech, load_audio, synthesize
-from stimuli.visemes import VisemeTrack, analyze, isolate_vowels
+from facelab.protocol import Protocol, Stimulus
+from facelab.stimuli.speech import Speech, load_audio, synthesize
+from facelab.stimuli.visemes import VisemeTrack, analyze, isolate_vowels
 
 __all__ = ["find_stimulus", "speech_for", "tracks_for"]
 
 
 def find_stimulus(protocol: Protocol, ref: str) -> tuple[str, Stimulus]:
     """``SET/ID`` (or a unique ``ID``) -> (set id, stimulus)."""
-    from experiment.errors import StageError
+    from facelab.errors import StageError
 
     set_id, _, stim_id = ref.rpartition("/")
     hits = [

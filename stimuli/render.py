@@ -32,8 +32,8 @@ import pyrender
 from OpenGL import GL
 from pyrender import renderer as _pr_renderer
 
-from experiment.errors import StageError
-from stimuli.avatar import Avatar
+from facelab.errors import StageError
+from facelab.stimuli.mesh import Avatar
 
 __all__ = ["FrameTimes", "NaiveRenderer", "RenderSettings", "Renderer", "look_at", "vertex_normals"]
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
-from experiment.errors import StageError
+from facelab.errors import SpeechError
 
 __all__ = [
     "DICTIONARY_DIR",
@@ -44,8 +44,6 @@ SILENT_RMS_DBFS = -60.0  # below this the whole file counts as silent
 CLIPPED_FRACTION = 0.001  # more than 0.1 % of samples at full scale counts as clipped
 
 
-class SpeechError(StageError):
-    """Audio or text that cannot be turned into a speech stimulus."""
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stimuli.speech import Phone, Speech, synthesize
-from stimuli.visemes import (
+from facelab.resources import package_file
+from facelab.stimuli.speech import Phone, Speech, synthesize
+from facelab.stimuli.visemes import (
     HOP_S,
     MODEL_PATH,
     VOWELS,
@@ -42,7 +43,7 @@ __all__ = [
     "train",
 ]
 
-CORPUS = Path(__file__).parent / "data" / "corpus_ja.txt"
+CORPUS = package_file("facelab.stimuli", "data", "corpus_ja.txt")
 N_TRAIN = 43
 SPEECH_CLASSES = ("PP", "FF", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "ih", "oh", "ou")
 
@@ -263,7 +264,7 @@ def evaluate(
 def _vowel_energy_lag(track: VisemeTrack, phones: Sequence[Phone]) -> float:
     """Lag (ms) maximising the cross-correlation of the audio track's vowel energy with the
     text-driven (OpenJTalk timing) track's; positive = audio track late."""
-    from stimuli.visemes import from_phonemes
+    from facelab.stimuli.visemes import from_phonemes
 
     ref = from_phonemes(phones, smoothing_s=0.02, duration_s=track.times[-1])
     n = min(len(ref.times), len(track.times))

@@ -42,8 +42,9 @@ import numpy as np
 from scipy import signal
 from scipy.fft import dct, rfft
 
-from experiment.errors import StageError
-from stimuli.arkit import OCULUS_VISEMES
+from facelab.errors import VisemeError
+from facelab.resources import package_file
+from facelab.stimuli.arkit import OCULUS_VISEMES
 
 __all__ = [
     "VISEMES",
@@ -65,12 +66,10 @@ VISEMES: tuple[str, ...] = OCULUS_VISEMES
 VOWELS: tuple[str, ...] = ("a", "i", "u", "e", "o")
 VOWEL_VISEMES: tuple[str, ...] = ("aa", "ih", "ou", "E", "oh")
 _VOWEL_INDEX = [VISEMES.index(v) for v in VOWEL_VISEMES]
-MODEL_PATH = Path(__file__).parent / "data" / "viseme_model.json"
+MODEL_PATH = package_file("facelab.stimuli", "data", "viseme_model.json")
 FPS = 100.0
 
 
-class VisemeError(StageError):
-    """Input the viseme stage cannot use."""
 
 
 # --------------------------------------------------------------------------- the track

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
-from stimuli.avatar import (
+from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.avatar import (
     LANDMARKS,
     Avatar,
     AvatarError,
@@ -22,7 +22,7 @@ from stimuli.avatar import (
     save,
     with_viseme_mixes,
 )
-from stimuli.drive import load_z
+from facelab.stimuli.drive import load_z
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from experiment.cli import _parser, main
+from facelab.experiment.cli import _parser, main
 
 COMMANDS = sorted(_parser()._subparsers._group_actions[0].choices)  # type: ignore[union-attr]
 

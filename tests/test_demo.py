@@ -9,9 +9,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from analysis.load import load_results
-from experiment.cli import main
-from stimuli.clip import sha256_file
+from facelab.analysis.load import load_results
+from facelab.experiment.cli import main
+from facelab.stimuli.clip import sha256_file
 
 pytestmark = pytest.mark.slow
 

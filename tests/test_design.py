@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from experiment.design import (
+from facelab.design import (
     balanced_latin_square,
     build_trials,
     participant_seed,
     trials_frame,
 )
-from experiment.errors import StageError
-from experiment.protocol import Protocol, load_protocol
+from facelab.errors import StageError
+from facelab.protocol import Protocol, load_protocol
 
 
 @pytest.fixture(scope="module")

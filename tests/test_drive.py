@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiment.errors import StageError
-from stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS, canonical_arkit_name
-from stimuli.drive import DRIVERS, DriveInput, drive, load_z
-from stimuli.measure_z import write_z
-from stimuli.methods import METHODS
-from stimuli.speech import Phone
-from stimuli.visemes import VISEMES, VOWEL_VISEMES, VisemeTrack
+from facelab.errors import StageError
+from facelab.methods import METHODS
+from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS, canonical_arkit_name
+from facelab.stimuli.drive import DRIVERS, DriveInput, drive, load_z
+from facelab.stimuli.measure_z import write_z
+from facelab.stimuli.speech import Phone
+from facelab.stimuli.visemes import VISEMES, VOWEL_VISEMES, VisemeTrack
 
 
 def _track_one_hot() -> VisemeTrack:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from experiment.errors import StageError
-from experiment.log import LOG_COLUMNS, SessionLog, parse_log_text, session_paths
+from facelab.errors import StageError
+from facelab.sessionlog import LOG_COLUMNS, SessionLog, parse_log_text, session_paths
 
 
 def _row(trial: int, item: str, rating: float = 50.0) -> dict[str, object]:

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiment.cli import main
-from experiment.errors import StageError
-from stimuli.arkit import ARKIT_NAMES
-from stimuli.drive import load_z
-from stimuli.measure_z import measure_z, read_capture, read_onsets
-from stimuli.visemes import VOWELS
+from facelab.errors import StageError
+from facelab.experiment.cli import main
+from facelab.stimuli.arkit import ARKIT_NAMES
+from facelab.stimuli.drive import load_z
+from facelab.stimuli.measure_z import measure_z, read_capture, read_onsets
+from facelab.stimuli.visemes import VOWELS
 
 FPS = 60.0
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from analysis import power
-from experiment.cli import main
+from facelab.analysis import power
+from facelab.experiment.cli import main
 
 
 def test_implied_effect_inverts_the_f_test() -> None:

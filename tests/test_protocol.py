@@ -9,9 +9,9 @@ import jsonschema
 import pytest
 import yaml
 
-from experiment.cli import main
-from experiment.errors import ProtocolError
-from experiment.protocol import Protocol, load_protocol, schema_json_text
+from facelab.errors import ProtocolError
+from facelab.experiment.cli import main
+from facelab.protocol import Protocol, load_protocol, schema_json_text
 from tests.conftest import ROOT
 
 

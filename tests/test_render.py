@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiment.cli import main
-from stimuli.avatar import default_head
-from stimuli.clip import (
+from facelab.experiment.cli import main
+from facelab.stimuli.avatar import default_head
+from facelab.stimuli.clip import (
     av_offset_ms,
     decode_audio,
     decode_frames,
@@ -20,10 +20,10 @@ from stimuli.clip import (
     padded_audio,
     probe,
 )
-from stimuli.drive import DriveInput, drive
-from stimuli.render import Renderer, RenderSettings
-from stimuli.speech import synthesize
-from stimuli.visemes import analyze
+from facelab.stimuli.drive import DriveInput, drive
+from facelab.stimuli.render import Renderer, RenderSettings
+from facelab.stimuli.speech import synthesize
+from facelab.stimuli.visemes import analyze
 
 pytestmark = pytest.mark.slow
 SMALL = RenderSettings(width=320, height=240, distance_m=0.5)
@@ -142,7 +142,7 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
         "height",
         "sha256",
     ]
-    from stimuli.clip import sha256_file
+    from facelab.stimuli.clip import sha256_file
 
     for r in rows:
         assert sha256_file(out / r["path"]) == r["sha256"] and (r["width"], r["height"]) == (

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiment.cli import main
-from experiment.design import build_trials
-from experiment.protocol import load_protocol
+from facelab.design import build_trials
+from facelab.experiment.cli import main
+from facelab.protocol import load_protocol
 
 pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))

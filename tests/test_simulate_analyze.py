@@ -8,10 +8,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from analysis.load import load_results
-from analysis.stats import AnalysisError
-from experiment.cli import main
-from experiment.protocol import load_protocol
+from facelab.analysis.load import load_results
+from facelab.errors import AnalysisError
+from facelab.experiment.cli import main
+from facelab.protocol import load_protocol
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +140,7 @@ def test_analyze_writes_tables_figures_and_report(
 
 
 def test_figure_brackets_use_the_table_p_values(simulated: Path, kato_path: Path) -> None:
-    from analysis.study import analyze_study, bracket_pairs
+    from facelab.analysis.study import analyze_study, bracket_pairs
 
     data = load_results(simulated)
     res = analyze_study(data, load_protocol(kato_path), method="rm")

@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis import stats
-from analysis.stats import AnalysisError
+from facelab.analysis import stats
+from facelab.errors import AnalysisError
 
 REF_DIR = Path(__file__).parent / "reference"
 REF = json.loads((REF_DIR / "stats_reference.json").read_text())

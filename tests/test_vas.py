@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from experiment.vas import VasGeometry, VasState
+from facelab.experiment.vas import VasGeometry, VasState
 
 G = VasGeometry(width=1000, height=800)
 

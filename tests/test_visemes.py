@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stimuli.speech import Phone, synthesize
-from stimuli.visemes import (
+from facelab.stimuli.speech import Phone, synthesize
+from facelab.stimuli.visemes import (
     VISEMES,
     VOWELS,
     StreamingAnalyzer,
@@ -116,7 +116,7 @@ def test_text_track_follows_the_phonemes() -> None:
 
 
 def test_text_and_audio_tracks_agree_in_time() -> None:
-    from stimuli.viseme_training import _vowel_energy_lag
+    from facelab.stimuli.viseme_training import _vowel_energy_lag
 
     speech = synthesize("秋になると、山の木々が赤や黄色に色づき始める。", pitch_halftones=-2)
     track = analyze(speech.samples, sample_rate=RATE).compensated()
@@ -176,7 +176,7 @@ def test_bad_inputs() -> None:
 
 @pytest.mark.slow
 def test_bench_visemes_runs_and_reports_every_figure() -> None:
-    from stimuli.bench import bench_visemes
+    from facelab.stimuli.bench import bench_visemes
 
     out = bench_visemes(runs=1, quick=True)
     ours = out["facelab"]

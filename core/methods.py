@@ -2,7 +2,7 @@
 
 Each entry declares the method's parameters as a typed model (unknown keys are errors) and
 what the method needs from an avatar. A new method is one parameter model plus one entry in
-:data:`METHODS`; its drive function is registered beside it in ``stimuli.drive``.
+:data:`METHODS`; its drive function is registered beside it in ``facelab.stimuli.drive``.
 
 This module is pure data: it imports nothing heavy, so the protocol loader can validate
 conditions without the audio or rendering stacks.

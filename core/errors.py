@@ -1,8 +1,18 @@
-"""One error hierarchy for facelab.
+"""One error hierarchy for facelab (the bottom layer: imports nothing else of facelab).
 
 Every error a user can cause derives from :class:`FacelabError`; the command line turns
-them into one clear message and exit status 2. Anything else is a bug and keeps its
-traceback.
+them into one clear message and its ``exit_code`` (2 for a mistake in the input). Anything
+else is a bug and keeps its traceback::
+
+    FacelabError                   exit 2
+    ├── ProtocolError              a protocol file: every problem, each with file:line
+    ├── StageError                 a stage was given input it cannot use
+    │   ├── AvatarError            an avatar file or mesh
+    │   ├── SpeechError            audio or text for a speech stimulus
+    │   ├── VisemeError            input of the viseme analyser
+    │   └── SessionError           a participant session cannot start or continue
+    ├── AnalysisError              data that cannot be analysed as asked
+    └── SessionAbortedError        exit 4: the experimenter stopped a session (data kept)
 """
 
 from __future__ import annotations
@@ -12,10 +22,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = [
+    "AnalysisError",
+    "AvatarError",
     "FacelabError",
     "Issue",
     "ProtocolError",
+    "SessionAbortedError",
+    "SessionError",
+    "SpeechError",
     "StageError",
+    "VisemeError",
 ]
 
 
@@ -27,6 +43,32 @@ class FacelabError(Exception):
 
 class StageError(FacelabError):
     """A stage (render, run, analyse …) was given input it cannot use."""
+
+
+class AvatarError(StageError):
+    """An avatar file or mesh that facelab cannot use."""
+
+
+class SpeechError(StageError):
+    """Audio or text that cannot be turned into a speech stimulus."""
+
+
+class VisemeError(StageError):
+    """Input the viseme stage cannot use."""
+
+
+class SessionError(StageError):
+    """A participant session cannot start or continue as asked (clips, lock, log)."""
+
+
+class AnalysisError(FacelabError):
+    """The data cannot be analysed as asked (missing columns, cells, too few levels…)."""
+
+
+class SessionAbortedError(FacelabError):
+    """The experimenter stopped the session; every response given so far is saved."""
+
+    exit_code = 4
 
 
 @dataclass(frozen=True)

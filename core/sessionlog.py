@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiment.errors import StageError
+from facelab.errors import StageError
 
 __all__ = [
     "COLUMN_DESCRIPTIONS",
@@ -320,7 +320,7 @@ def rating_row(
     timestamp: str,
     rating_start: float | None = None,
 ) -> dict[str, Any]:
-    """One log row for a rating of ``trial`` (an ``experiment.design.Trial``)."""
+    """One log row for a rating of ``trial`` (an ``facelab.design.Trial``)."""
     return {
         "study": study,
         "participant": participant,

@@ -23,8 +23,8 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 import pandas as pd
 
-from experiment.errors import StageError
-from experiment.protocol import Block, Protocol
+from facelab.errors import StageError
+from facelab.protocol import Block, Protocol
 
 __all__ = [
     "TRIAL_COLUMNS",

@@ -1,0 +1,156 @@
+"""Protocol files: load, validate and cross-check a study's YAML into a frozen model.
+
+:func:`load_protocol` reads a file and returns a frozen :class:`Protocol`, or raises
+:class:`~facelab.errors.ProtocolError` listing every problem with the file, the line and
+the key path, and what was expected. Nothing in a protocol is evaluated as code.
+
+The pieces: the typed models (:mod:`facelab.protocol_model`), YAML with line numbers
+(:mod:`facelab.protocol_yaml`) and the checks across sections
+(:mod:`facelab.protocol_checks`). The models are re-exported here for convenience.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any, get_args, get_origin
+
+import yaml
+from pydantic import ValidationError
+
+from facelab.errors import Issue, ProtocolError
+from facelab.protocol_checks import clean_loc, cross_check, describe
+from facelab.protocol_model import (
+    SCHEMA_VERSION,
+    Block,
+    Condition,
+    Protocol,
+    Rendering,
+    Stimulus,
+    StimulusSet,
+    VasItem,
+    json_schema,
+    schema_json_text,
+)
+from facelab.protocol_yaml import Locator
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "Block",
+    "Condition",
+    "Protocol",
+    "Rendering",
+    "Stimulus",
+    "StimulusSet",
+    "VasItem",
+    "json_schema",
+    "load_protocol",
+    "protocol_hash",
+    "schema_json_text",
+]
+
+
+def protocol_hash(path: Path | str) -> str:
+    """SHA-256 of the protocol file's bytes, as logged with every session."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def load_protocol(path: Path | str) -> Protocol:
+    """Read, validate and cross-check a protocol file.
+
+    Raises
+    ------
+    ProtocolError
+        With every problem found: file, line, key path and what was expected.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ProtocolError(path, [Issue((), "file not found")]) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProtocolError(
+            path, [Issue((), f"cannot read the file as UTF-8 text: {exc}")]
+        ) from None
+
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.load(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ProtocolError(path, [Issue((), f"not valid YAML: {problem}", line)]) from None
+    if root is None or not isinstance(data, dict):
+        raise ProtocolError(path, [Issue((), "expected a YAML mapping with the study's sections")])
+
+    locator = Locator(root)
+    issues = list(locator.duplicate_keys())
+    if issues:
+        raise ProtocolError(path, issues)
+
+    try:
+        protocol = Protocol.model_validate(data)
+    except ValidationError as exc:
+        found: dict[tuple[str | int, ...], Issue] = {}
+        for err in exc.errors():
+            issue = _issue_from_pydantic(err, locator)
+            found.setdefault(issue.path, issue)  # one message per key path
+        raise ProtocolError(path, list(found.values())) from None
+
+    issues = [
+        Issue(i.path, i.message, locator.line(i.path))
+        for i in cross_check(protocol, base_dir=path.parent)
+    ]
+    if issues:
+        raise ProtocolError(path, issues)
+    return protocol
+
+
+def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
+    path = clean_loc(err["loc"])
+    kind = err["type"]
+    if "[key]" in path:
+        path = path[: path.index("[key]")]
+        return Issue(
+            path,
+            f"{path[-1]!r} is not a language code (expected e.g. ja, en); "
+            "quote texts that contain commas or colons",
+            locator.key_line(path),
+        )
+    if kind == "extra_forbidden":
+        allowed = _allowed_keys(path[:-1])
+        hint = f"; allowed keys here: {', '.join(allowed)}" if allowed else ""
+        return Issue(path, f"unknown key{hint}", locator.key_line(path))
+    if kind == "missing":
+        return Issue(path, "required key is missing", locator.key_line(path[:-1]))
+    got = f" (got {describe(err['input'])})" if "input" in err else ""
+    message = err["msg"]
+    if message.startswith("Value error, "):
+        message = message[len("Value error, ") :]
+        got = ""
+    elif message.startswith("Input should be"):
+        message = "expected a value that " + message[len("Input ") :].replace("should be", "is", 1)
+    return Issue(path, message + got, locator.line(path))
+
+
+def _allowed_keys(path: tuple[str | int, ...]) -> list[str]:
+    """Field names of the model found at ``path`` inside :class:`Protocol`, if any."""
+    model: Any = Protocol
+    for part in path:
+        if isinstance(part, int):
+            continue
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        model = _unwrap(field.annotation)
+    return list(getattr(model, "model_fields", {}))
+
+
+def _unwrap(annotation: Any) -> Any:
+    while get_origin(annotation) is not None:
+        args = [a for a in get_args(annotation) if a is not type(None)]
+        if not args:
+            return annotation
+        annotation = args[0]
+    return annotation

@@ -1,0 +1,252 @@
+"""Checks that span sections of a protocol: unique ids, references between sections,
+files that must exist, method parameters (against the method registry) and languages.
+
+:func:`cross_check` yields :class:`~facelab.errors.Issue` objects with key paths; the loader
+adds their line numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from facelab.errors import Issue
+from facelab.methods import BUILTIN_Z, METHODS
+from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol
+
+__all__ = ["clean_loc", "cross_check", "describe"]
+
+
+def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
+    # pydantic adds union/validator tags such as 'str' or 'function-after[...]'; drop them.
+    out: list[str | int] = []
+    for part in loc:
+        if isinstance(part, str) and (part.startswith("function-") or part in _TYPE_TAGS):
+            continue
+        out.append(part)
+    return tuple(out)
+
+
+_TYPE_TAGS = {
+    "str",
+    "int",
+    "float",
+    "bool",
+    "list[str]",
+    "none",
+    "dict[str,str]",
+    "list[float]",
+    "constrained-str",
+    "dict[str,any]",
+}
+
+
+def describe(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _duplicates(ids: Iterable[str], path: tuple[str | int, ...], what: str) -> Iterator[Issue]:
+    seen: dict[str, int] = {}
+    for i, item_id in enumerate(ids):
+        if item_id in seen:
+            yield Issue(
+                (*path, i, "id"), f"duplicate {what} id {item_id!r} (also at index {seen[item_id]})"
+            )
+        seen.setdefault(item_id, i)
+
+
+def _localized(protocol: Protocol) -> Iterator[tuple[tuple[str | int, ...], dict[str, str]]]:
+    for i, cond in enumerate(protocol.conditions):
+        yield ("conditions", i, "label"), cond.label
+    for i, item in enumerate(protocol.items):
+        for key in ("question", "left_anchor", "right_anchor"):
+            yield ("items", i, key), getattr(item, key)
+    pres = protocol.presentation
+    for key in ("instructions", "break_text", "end_text"):
+        if getattr(pres, key) is not None:
+            yield ("presentation", key), getattr(pres, key)
+
+
+def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
+    """Checks that span sections: ids, references, files, method parameters, languages."""
+    yield from _duplicates((c.id for c in protocol.conditions), ("conditions",), "condition")
+    yield from _duplicates(
+        (s.id for s in protocol.stimulus_sets), ("stimulus_sets",), "stimulus set"
+    )
+    yield from _duplicates((b.id for b in protocol.blocks), ("blocks",), "block")
+    yield from _duplicates((i.id for i in protocol.items), ("items",), "item")
+    condition_ids = {c.id for c in protocol.conditions}
+    known_conditions = ", ".join(c.id for c in protocol.conditions)
+    sets = {s.id: s for s in protocol.stimulus_sets}
+
+    for i, cond in enumerate(protocol.conditions):
+        where = ("conditions", i)
+        spec = METHODS.get(cond.method)
+        if spec is None:
+            yield Issue(
+                (*where, "method"),
+                f"unknown method {cond.method!r}; registered methods: {', '.join(METHODS)}",
+            )
+            continue
+        try:
+            params = spec.params.model_validate(cond.params)
+        except ValidationError as exc:
+            for err in exc.errors():
+                loc = clean_loc(err["loc"])
+                if err["type"] == "extra_forbidden":
+                    msg = (
+                        f"unknown parameter for method {cond.method!r}; "
+                        f"allowed: {', '.join(spec.params.model_fields) or '(none)'}"
+                    )
+                else:
+                    msg = f"{err['msg']} (got {describe(err.get('input'))})"
+                yield Issue((*where, "params", *loc), msg)
+            continue
+        z = getattr(params, "z", None)
+        if z is not None and z not in BUILTIN_Z:
+            z_path = base_dir / z
+            if z_path.suffix.lower() != ".csv" or not z_path.is_file():
+                yield Issue(
+                    (*where, "params", "z"),
+                    f"expected one of {', '.join(BUILTIN_Z)} or an existing .csv file "
+                    f"(52 rows x 5 vowels); {z_path} was not found",
+                )
+
+    for si, sset in enumerate(protocol.stimulus_sets):
+        yield from _duplicates(
+            (s.id for s in sset.stimuli), ("stimulus_sets", si, "stimuli"), "stimulus"
+        )
+        for ti, stim in enumerate(sset.stimuli):
+            where = ("stimulus_sets", si, "stimuli", ti)
+            if stim.audio is not None:
+                audio = base_dir / stim.audio
+                if audio.suffix.lower() not in AUDIO_SUFFIXES:
+                    yield Issue(
+                        (*where, "audio"), f"expected a .wav or .flac file, got {stim.audio!r}"
+                    )
+                elif not audio.is_file():
+                    yield Issue((*where, "audio"), f"audio file not found: {audio}")
+            for ci, cond_id in enumerate(stim.vowel_isolation):
+                if cond_id not in condition_ids:
+                    yield Issue(
+                        (*where, "vowel_isolation", ci),
+                        f"unknown condition {cond_id!r}; conditions: {known_conditions}",
+                    )
+
+    for bi, block in enumerate(protocol.blocks):
+        where = ("blocks", bi)
+        sset = sets.get(block.stimulus_set)
+        if sset is None:
+            yield Issue(
+                (*where, "stimulus_set"),
+                f"unknown stimulus set {block.stimulus_set!r}; sets: {', '.join(sets)}",
+            )
+        if block.conditions is not None:
+            if not block.conditions:
+                yield Issue(
+                    (*where, "conditions"),
+                    "empty list: the block would have no trials; "
+                    "omit the key to use every condition",
+                )
+            for ci, cond_id in enumerate(block.conditions):
+                if cond_id not in condition_ids:
+                    yield Issue(
+                        (*where, "conditions", ci),
+                        f"unknown condition {cond_id!r}; conditions: {known_conditions}",
+                    )
+            if len(set(block.conditions)) != len(block.conditions):
+                yield Issue((*where, "conditions"), "a condition is listed twice")
+        if sset is not None:
+            for cond_id in protocol.block_conditions(block):
+                cond = next((c for c in protocol.conditions if c.id == cond_id), None)
+                spec = METHODS.get(cond.method) if cond else None
+                if spec and spec.needs_text and any(s.text is None for s in sset.stimuli):
+                    yield Issue(
+                        (*where, "stimulus_set"),
+                        f"condition {cond_id!r} uses method {cond.method!r}, which needs a "
+                        f"text for every stimulus, but set {sset.id!r} has recorded audio",
+                    )
+
+    for ii, item in enumerate(protocol.items):
+        lo, hi = item.range
+        if not (0.0 <= lo < hi <= 100.0):
+            yield Issue(
+                ("items", ii, "range"),
+                f"expected [left, right] with 0 <= left < right <= 100, got [{lo:g}, {hi:g}]",
+            )
+
+    lang = protocol.presentation.language
+    for path, text in _localized(protocol):
+        if lang not in text:
+            yield Issue(
+                path,
+                f"no {lang!r} text (presentation.language is {lang!r}); has: {', '.join(text)}",
+            )
+
+    practice = protocol.presentation.practice
+    if practice is not None:
+        where = ("presentation", "practice")
+        pset = sets.get(practice.stimulus_set)
+        if pset is None:
+            yield Issue((*where, "stimulus_set"), f"unknown stimulus set {practice.stimulus_set!r}")
+        elif practice.stimulus not in {s.id for s in pset.stimuli}:
+            yield Issue(
+                (*where, "stimulus"),
+                f"stimulus {practice.stimulus!r} is not in set {practice.stimulus_set!r}",
+            )
+        if practice.condition not in condition_ids:
+            yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
+
+    item_ids = {i.id for i in protocol.items}
+    sim = protocol.simulation
+    for cond_id in sim.effects:
+        if cond_id not in condition_ids:
+            yield Issue(
+                ("simulation", "effects", cond_id),
+                f"unknown condition {cond_id!r}; conditions: {known_conditions}",
+            )
+    for oi, override in enumerate(sim.overrides):
+        where = ("simulation", "overrides", oi)
+        if override.item is not None and override.item not in item_ids:
+            yield Issue((*where, "item"), f"unknown item {override.item!r}")
+        if override.stimulus_set is not None and override.stimulus_set not in sets:
+            yield Issue((*where, "stimulus_set"), f"unknown stimulus set {override.stimulus_set!r}")
+        for cond_id in override.effects:
+            if cond_id not in condition_ids:
+                yield Issue((*where, "effects", cond_id), f"unknown condition {cond_id!r}")
+    if protocol.reported_results is not None:
+        for ti, test in enumerate(protocol.reported_results.tests):
+            where = ("reported_results", "tests", ti)
+            if test.item not in item_ids:
+                yield Issue((*where, "item"), f"unknown item {test.item!r}")
+            if test.stimulus_set not in sets:
+                yield Issue((*where, "stimulus_set"), f"unknown stimulus set {test.stimulus_set!r}")
+            for pi, pair in enumerate(test.pairs):
+                for key in ("a", "b"):
+                    if getattr(pair, key) not in condition_ids:
+                        yield Issue(
+                            (*where, "pairs", pi, key), f"unknown condition {getattr(pair, key)!r}"
+                        )
+
+    avatar = protocol.rendering.avatar
+    if avatar != "default":
+        avatar_path = base_dir / avatar
+        if avatar_path.suffix.lower() not in AVATAR_SUFFIXES:
+            yield Issue(
+                ("rendering", "avatar"), f"expected 'default' or a .gltf/.glb file, got {avatar!r}"
+            )
+        elif not avatar_path.is_file():
+            yield Issue(("rendering", "avatar"), f"avatar file not found: {avatar_path}")
+    for ci, value in enumerate(protocol.rendering.background):
+        if not 0.0 <= value <= 1.0:
+            yield Issue(
+                ("rendering", "background", ci), f"expected a colour channel in 0..1, got {value:g}"
+            )
+    if protocol.rendering.width % 2 or protocol.rendering.height % 2:
+        yield Issue(
+            ("rendering", "width"), "width and height must be even (H.264 needs even sizes)"
+        )

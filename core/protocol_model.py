@@ -1,0 +1,323 @@
+"""The protocol model: typed, frozen pydantic models of a study file, and its JSON Schema.
+
+A protocol is one YAML file describing a whole study: metadata, conditions (an animation
+method from :data:`facelab.methods.METHODS` plus its parameters), stimulus sets, blocks,
+VAS items, presentation and rendering settings, and the seed. Unknown keys are errors
+everywhere (``extra="forbid"``); values are checked strictly (no silent coercion).
+
+This module only declares the shape. Reading YAML with line numbers is
+:mod:`facelab.protocol_yaml`, checks that span sections are :mod:`facelab.protocol_checks`,
+and :func:`facelab.protocol.load_protocol` puts them together. The JSON Schema of the format
+is :func:`json_schema`; ``protocols/schema/protocol.schema.json`` is generated from it
+(``facelab schema``) and a test keeps the two identical.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+
+from facelab.methods import METHODS
+
+__all__ = [
+    "AUDIO_SUFFIXES",
+    "AVATAR_SUFFIXES",
+    "SCHEMA_VERSION",
+    "Block",
+    "Condition",
+    "Protocol",
+    "Rendering",
+    "Stimulus",
+    "StimulusSet",
+    "VasItem",
+    "json_schema",
+    "schema_json_text",
+]
+
+SCHEMA_VERSION = 1
+
+Id = Annotated[
+    str,
+    StringConstraints(pattern=r"^[A-Za-z][A-Za-z0-9_-]{0,63}$"),
+    Field(description="An identifier: a letter, then letters, digits, _ or - (at most 64)."),
+]
+LangCode = Annotated[str, StringConstraints(pattern=r"^[a-z]{2,3}(-[A-Za-z0-9]+)?$")]
+Text = Annotated[str, StringConstraints(min_length=1)]
+Localized = Annotated[
+    dict[LangCode, Text],
+    Field(
+        min_length=1,
+        description="Text by language code, e.g. {ja: 自然な表情, en: natural expression}.",
+    ),
+]
+AUDIO_SUFFIXES = (".wav", ".flac")
+AVATAR_SUFFIXES = (".gltf", ".glb")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+# --------------------------------------------------------------------------- study & conditions
+
+
+class Study(_Model):
+    """Who and what: identifies the study in every log row and report."""
+
+    id: Id = Field(description="Short study id; results go to results/<id>/.")
+    title: Text
+    description: str = ""
+    reference: str = Field("", description="The publication this protocol reproduces, if any.")
+    participants_planned: int = Field(ge=1, le=10_000)
+    notes: str = ""
+
+
+class Condition(_Model):
+    """One animation condition: a registered method and its parameters."""
+
+    id: Id
+    label: Localized
+    method: str = Field(description=f"One of: {', '.join(METHODS)}.")
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="Parameters of the method; see facelab.methods."
+    )
+
+
+# --------------------------------------------------------------------------- stimuli
+
+
+class TtsOptions(_Model):
+    """OpenJTalk synthesis options for a text stimulus."""
+
+    voice: Literal["mei_normal"] = "mei_normal"
+    speed: float = Field(1.0, ge=0.5, le=2.0, description="Speaking rate factor (open_jtalk -r).")
+    pitch_halftones: float = Field(0.0, ge=-12, le=12, description="Pitch shift (open_jtalk -fm).")
+    alpha: float | None = Field(
+        None,
+        ge=0.0,
+        le=1.0,
+        description="All-pass constant, a voice-quality change (open_jtalk -a).",
+    )
+
+
+class Stimulus(_Model):
+    """One speech stimulus: a text for TTS or a recorded audio file."""
+
+    id: Id
+    text: Text | None = Field(None, description="Japanese text to synthesise.")
+    audio: Text | None = Field(None, description="WAV or FLAC file, relative to the protocol.")
+    tts: TtsOptions = Field(default_factory=TtsOptions)
+    expected_vowels: Annotated[str, StringConstraints(pattern=r"^[aiueo]+$")] | None = Field(
+        None, description="The vowels spoken, in order (e.g. aiueo); needed for vowel isolation."
+    )
+    vowel_isolation: list[Id] = Field(
+        default_factory=list,
+        description="Condition ids for which only the intended vowel's intensity is kept in "
+        "each vowel segment (the rest set to 0).",
+    )
+    note: str = ""
+
+    @model_validator(mode="after")
+    def _one_source(self) -> Stimulus:
+        if (self.text is None) == (self.audio is None):
+            raise ValueError("give exactly one of 'text' (for TTS) or 'audio' (a recording)")
+        if self.vowel_isolation and self.expected_vowels is None:
+            raise ValueError("'vowel_isolation' needs 'expected_vowels' (e.g. aiueo)")
+        return self
+
+
+class StimulusSet(_Model):
+    id: Id
+    description: str = ""
+    stimuli: list[Stimulus] = Field(min_length=1)
+
+
+# --------------------------------------------------------------------------- blocks & items
+
+Order = Literal["random_within_set", "fixed", "latin_square"]
+
+
+class Block(_Model):
+    """A run of sets; each set shows every (stimulus, condition) pair a fixed number of times."""
+
+    id: Id
+    stimulus_set: Id
+    sets: int = Field(ge=1, le=100, description="How many sets the block has.")
+    presentations_per_condition: int = Field(
+        ge=1, le=100, description="How often each condition is shown per stimulus in one set."
+    )
+    order: Order = Field(
+        "random_within_set",
+        description="random_within_set: shuffled anew in every set; fixed: protocol order; "
+        "latin_square: condition order from a balanced Latin square row chosen by the "
+        "participant number (needs ids ending in a number).",
+    )
+    conditions: list[Id] | None = Field(None, description="Subset of conditions; default all.")
+    break_after: bool = Field(True, description="Offer a break screen after this block.")
+
+
+class VasItem(_Model):
+    """One visual analogue scale item shown after each clip."""
+
+    id: Id
+    question: Localized
+    left_anchor: Localized
+    right_anchor: Localized
+    range: list[float] = Field(
+        default_factory=lambda: [0.0, 100.0],
+        min_length=2,
+        max_length=2,
+        description="[left end, right end] of the scale; within 0..100.",
+    )
+    marker_start: Literal["hidden"] = Field(
+        "hidden",
+        description="No marker until the first click, so no start value can be logged "
+        "as an answer.",
+    )
+    confirm: bool = Field(True, description="Require a confirm button press after rating.")
+
+
+# ------------------------------------------------------------------------ presentation, rendering
+
+
+class Practice(_Model):
+    stimulus_set: Id
+    stimulus: Id
+    condition: Id
+
+
+class Presentation(_Model):
+    language: LangCode = Field("ja", description="Language of all participant-facing text.")
+    items_layout: Literal["sequential", "together"] = "sequential"
+    fullscreen: bool = True
+    instructions: Localized | None = None
+    practice: Practice | None = None
+    break_text: Localized | None = None
+    end_text: Localized | None = None
+
+
+class Camera(_Model):
+    distance_m: float = Field(0.65, gt=0.1, le=5.0, description="Eye-to-face distance.")
+    fov_deg: float = Field(30.0, gt=5, lt=120, description="Vertical field of view.")
+    height_m: float = Field(0.0, ge=-0.5, le=0.5, description="Camera height relative to the eyes.")
+
+
+class Rendering(_Model):
+    width: int = Field(1280, ge=64, le=7680)
+    height: int = Field(720, ge=64, le=4320)
+    fps: int = Field(30, ge=1, le=240)
+    avatar: Text = Field("default", description="'default' or a .gltf/.glb file.")
+    camera: Camera = Field(default_factory=Camera)
+    pad_s: float = Field(0.3, ge=0.0, le=5.0, description="Neutral face before and after speech.")
+    msaa: Literal[1, 2, 4, 8] = Field(
+        1,
+        description="Multisample anti-aliasing: 1 renders 720p faster than real time on a "
+        "2-core CPU; 4 is smoother and about 1.7x slower.",
+    )
+    audio_sample_rate: int = Field(48000, ge=8000, le=192000)
+    background: list[float] = Field(
+        default_factory=lambda: [0.5, 0.5, 0.5], min_length=3, max_length=3
+    )
+
+
+# ------------------------------------------------------------------ simulation, reported results
+
+
+class SimulationModel(_Model):
+    """Simulated rating = clip(mean + effect + participant offset + interaction + noise, scale)."""
+
+    mean: float = Field(50.0, ge=0, le=100, description="Mean rating with no condition effect.")
+    participant_sd: float = Field(
+        10.0, ge=0, le=100, description="SD of participant offsets (per item)."
+    )
+    interaction_sd: float = Field(
+        4.0, ge=0, le=100, description="SD of participant x condition effects."
+    )
+    noise_sd: float = Field(12.0, ge=0, le=100, description="SD of rating-to-rating noise.")
+    rt_median_s: float = Field(3.0, gt=0, le=60, description="Median response time (log-normal).")
+    rt_log_sd: float = Field(0.35, ge=0, le=3, description="SD of log response time.")
+
+
+class EffectOverride(_Model):
+    """Condition effects for one item and/or stimulus set, replacing the defaults there."""
+
+    item: Id | None = None
+    stimulus_set: Id | None = None
+    effects: dict[Id, float]
+
+
+class Simulation(_Model):
+    """How ``facelab simulate`` generates ratings; never presented as data."""
+
+    model: SimulationModel = Field(default_factory=SimulationModel)
+    effects: dict[Id, float] = Field(
+        default_factory=dict, description="Condition id -> points added to the mean (default 0)."
+    )
+    overrides: list[EffectOverride] = Field(default_factory=list)
+
+
+class ReportedPair(_Model):
+    a: Id
+    b: Id
+    p: float = Field(ge=0, le=1)
+
+
+class ReportedTest(_Model):
+    item: Id
+    stimulus_set: Id
+    anova_p: float = Field(ge=0, le=1)
+    pairs: list[ReportedPair] = Field(
+        default_factory=list, description="Pairs reported as different; others were not."
+    )
+
+
+class ReportedResults(_Model):
+    """Statistics a publication reported for this design, shown beside facelab's."""
+
+    source: Text
+    procedure: Text
+    tests: list[ReportedTest] = Field(min_length=1)
+
+
+# --------------------------------------------------------------------------- the protocol
+
+
+class Protocol(_Model):
+    """A whole study. Build one with :func:`load_protocol`, which also checks references."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    study: Study
+    seed: int = Field(ge=0, lt=2**63, description="Study seed; participant seeds derive from it.")
+    conditions: list[Condition] = Field(min_length=1)
+    stimulus_sets: list[StimulusSet] = Field(min_length=1)
+    blocks: list[Block] = Field(min_length=1)
+    items: list[VasItem] = Field(min_length=1)
+    presentation: Presentation = Field(default_factory=Presentation)
+    rendering: Rendering = Field(default_factory=Rendering)
+    simulation: Simulation = Field(default_factory=Simulation)
+    reported_results: ReportedResults | None = None
+
+    # -- convenience lookups (the loader guarantees the ids are unique)
+    def condition(self, condition_id: str) -> Condition:
+        return next(c for c in self.conditions if c.id == condition_id)
+
+    def stimulus_set(self, set_id: str) -> StimulusSet:
+        return next(s for s in self.stimulus_sets if s.id == set_id)
+
+    def block_conditions(self, block: Block) -> list[str]:
+        return list(block.conditions) if block.conditions else [c.id for c in self.conditions]
+
+
+def json_schema() -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of the protocol format."""
+    schema = Protocol.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "facelab protocol"
+    return schema
+
+
+def schema_json_text() -> str:
+    """The schema as committed in protocols/schema/protocol.schema.json."""
+    return json.dumps(json_schema(), indent=2, ensure_ascii=False, sort_keys=True) + "\n"

@@ -1,0 +1,70 @@
+"""The ``facelab`` command line: one subcommand per stage, one module per command family.
+
+Exit status: 0 success; 2 a user mistake (bad protocol, option, file), reported as one clear
+message without a traceback; 4 a session stopped by the experimenter (ratings kept);
+130 interrupted (143 terminated).
+The command modules are the only place that reads the process environment and turns paths
+from the user into objects for the pure modules. Each family module has ``register(add)``;
+a new family is one module and one line in :data:`FAMILIES`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from facelab import __version__
+from facelab.errors import FacelabError
+from facelab.experiment.cli import (
+    analysis_cmds,
+    demo_cmd,
+    protocol_cmds,
+    session_cmds,
+    stimulus_cmds,
+)
+from facelab.experiment.cli.common import Handler
+
+__all__ = ["main"]
+
+#: Command families, in the order ``facelab --help`` lists them.
+FAMILIES = (protocol_cmds, stimulus_cmds, session_cmds, analysis_cmds, demo_cmd)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="facelab",
+        description="Perception experiments on talking 3D avatar heads: one protocol file -> "
+        "rendered clips -> participant sessions with VAS ratings -> analysis and report.",
+    )
+    parser.add_argument("--version", action="version", version=f"facelab {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    def add(name: str, help_text: str, handler: Handler) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(handler=handler)
+        return p
+
+    for family in FAMILIES:
+        family.register(add)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except FacelabError as exc:
+        print(f"facelab {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"facelab {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # e.g. `facelab design ... | head`
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,201 @@
+"""Analysis commands: ``analyze`` and ``power``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand
+
+
+def _cmd_analyze(args: argparse.Namespace) -> int:
+    from facelab.analysis.load import load_results
+    from facelab.analysis.report import write_report
+    from facelab.analysis.study import analyze_study
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    results_dir = Path(args.results)
+    data = load_results(results_dir, study=protocol.study.id)
+    if args.exclude:
+        unknown = sorted(set(args.exclude) - set(data["participant"]))
+        if unknown:
+            raise FacelabError(
+                f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
+            )
+        data = data[~data["participant"].isin(args.exclude)].reset_index(drop=True)
+    results = analyze_study(data, protocol, method=args.method)
+    if args.out:
+        out = Path(args.out)
+    elif results_dir.name == protocol.study.id:
+        out = results_dir / "analysis"
+    else:
+        out = results_dir / protocol.study.id / "analysis"
+    files = write_report(
+        results=results, data=data, protocol=protocol, out=out, protocol_path=Path(args.protocol)
+    )
+    kind = "SIMULATED " if data["simulated"].all() else ""
+    print(
+        f"analysed {len(data)} {kind}ratings from {data['participant'].nunique()} participants "
+        f"(primary procedure: {args.method})"
+    )
+    for row in results.layout.itertuples():
+        print(
+            f"  {row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}: "
+            f"F({row.df1:g},{row.df2:g}) = {row.f:7.3f}, p = {row.anova_p:.4f}; "
+            f"pairs p<.05: {row.pairs_p_lt_05}"
+        )
+    print(f"report: {files.html}\ntables and figures: {files.folder}")
+    return 0
+
+
+def _cmd_power(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from facelab.analysis import power
+
+    rows: list[dict[str, object]] = []
+    assumptions = ""
+    if args.pilot:
+        from facelab.analysis.load import load_results
+        from facelab.protocol import load_protocol
+
+        if not args.protocol:
+            raise FacelabError("--pilot needs --protocol (for the study id and conditions)")
+        protocol = load_protocol(args.protocol)
+        data = load_results(args.pilot, study=protocol.study.id)
+        for item in protocol.items:
+            for sset in protocol.stimulus_sets:
+                sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
+                if not sub.empty:
+                    rows.append({"label": f"{item.id}/{sset.id}", **power.f2_from_pilot(sub)})
+        assumptions = "effect sizes from pilot data (participant means, bias-corrected)"
+    elif args.reported_p is not None:
+        for p in args.reported_p:
+            est = power.f2_from_reported_p(
+                p=p,
+                participants=args.participants,
+                conditions=args.conditions,
+                reps=args.reps,
+                icc=args.icc,
+                interaction_share=args.interaction_share,
+            )
+            rows.append({"label": f"reported p={p:g}", "k": args.conditions, **est})
+        assumptions = (
+            "from the paper procedure's p (pooled one-way ANOVA, "
+            f"{args.participants} participants x "
+            f"{args.conditions} conditions x {args.reps} ratings); assumed variance split: "
+            f"participant {args.icc:g}, participant x condition {args.interaction_share:g}, "
+            f"rating noise {1 - args.icc - args.interaction_share:g}"
+        )
+    else:
+        raise FacelabError("give --reported-p P [P ...] (with the design) or --pilot RESULTS")
+    rng = np.random.default_rng(args.seed)
+    for row in rows:
+        k = int(row.get("k", args.conditions))
+        n_needed = power.participants_needed(
+            k=k, f2=float(row["f2_rm"]), power=args.power, alpha=args.alpha
+        )
+        row["k"] = k
+        row["power_at_n"] = power.rm_power(
+            n=args.participants, k=k, f2=float(row["f2_rm"]), alpha=args.alpha
+        )
+        row["n_needed"] = n_needed
+        row["simulated_power_at_needed"] = (
+            power.simulate_power(
+                n=n_needed, k=k, f2=float(row["f2_rm"]), alpha=args.alpha, sims=args.sims, rng=rng
+            )
+            if n_needed
+            else None
+        )
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "assumptions": assumptions,
+                    "alpha": args.alpha,
+                    "target_power": args.power,
+                    "n": args.participants,
+                    "rows": rows,
+                },
+                indent=2,
+            )
+        )
+        return 0
+    print(
+        f"power of the repeated-measures ANOVA on participant means (alpha {args.alpha:g}); "
+        f"{assumptions}"
+    )
+    for row in rows:
+        extra = (
+            f", pilot F {row['f_pilot']:.2f}"
+            if "f_pilot" in row
+            else (f", implied F {row['f']:.2f}, eta_p^2 {row['eta_p_sq']:.3f}")
+        )
+        need = row["n_needed"] if row["n_needed"] else "> 10000"
+        sim = row["simulated_power_at_needed"]
+        sim_text = f" (simulated: {sim:.3f} over {args.sims} runs)" if sim is not None else ""
+        print(
+            f"  {row['label']}: f2_rm {float(row['f2_rm']):.3f}{extra}; power with "
+            f"n={args.participants}: {float(row['power_at_n']):.3f}; n for "
+            f"{args.power:g} power: {need}{sim_text}"
+        )
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add("analyze", "analyse session logs into tables, figures and a report", _cmd_analyze)
+    p.add_argument("results", metavar="RESULTS", help="results root or the study's folder")
+    p.add_argument("--protocol", required=True, metavar="PROTOCOL")
+    p.add_argument(
+        "--method",
+        choices=["rm", "paper"],
+        default="rm",
+        help="primary procedure: rm (sound, default) or paper (pooled ANOVA + Tukey)",
+    )
+    p.add_argument("--exclude", action="append", metavar="ID", help="leave out a participant")
+    p.add_argument(
+        "--out", metavar="DIR", help="output folder (default <results>/<study>/analysis)"
+    )
+
+    p = add(
+        "power",
+        "implied effect size and participants needed for a chosen power (RM analysis)",
+        _cmd_power,
+    )
+    p.add_argument(
+        "--reported-p",
+        type=float,
+        nargs="+",
+        metavar="P",
+        help="p-value(s) reported for the paper's pooled one-way ANOVA",
+    )
+    p.add_argument("--pilot", metavar="RESULTS", help="pilot session logs instead of a p-value")
+    p.add_argument("--protocol", metavar="PROTOCOL", help="the pilot's protocol")
+    p.add_argument(
+        "--participants",
+        type=int,
+        default=8,
+        metavar="N",
+        help="participants of the reported study (and n for 'power at n')",
+    )
+    p.add_argument("--conditions", type=int, default=3, metavar="K")
+    p.add_argument(
+        "--reps", type=int, default=2, metavar="R", help="ratings per participant x condition"
+    )
+    p.add_argument("--icc", type=float, default=0.3, help="assumed participant share of variance")
+    p.add_argument(
+        "--interaction-share",
+        type=float,
+        default=0.1,
+        help="assumed participant x condition share of variance",
+    )
+    p.add_argument("--power", type=float, default=0.8, help="target power")
+    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--sims", type=int, default=4000, help="Monte Carlo runs for the check")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true", help="print JSON")

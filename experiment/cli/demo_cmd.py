@@ -1,0 +1,63 @@
+"""``facelab demo``: the whole study on the embedded defaults."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from facelab.experiment.cli.common import AddCommand, parse_size
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from facelab.experiment.demo import DEFAULT_PROTOCOL, run_demo
+
+    size = parse_size(args.size)
+    bars: list[tqdm] = []
+
+    def progress(name: str, total: int):
+        bar = tqdm(
+            total=total, desc=f"render {name[:34]}", unit="frame", leave=False, disable=args.quiet
+        )
+        bars.append(bar)
+        return lambda: bar.update(1)
+
+    try:
+        run_demo(
+            out=Path(args.out),
+            protocol_path=Path(args.protocol) if args.protocol else DEFAULT_PROTOCOL,
+            participants=args.participants,
+            seed=args.seed,
+            size=size,
+            fps=args.fps,
+            progress=progress,
+        )
+    finally:
+        for bar in bars:
+            bar.close()
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add(
+        "demo",
+        "the whole study on the embedded defaults: render, simulate, analyse, report",
+        _cmd_demo,
+    )
+    p.add_argument(
+        "--out", default="results/demo", metavar="DIR", help="output folder (default results/demo)"
+    )
+    p.add_argument(
+        "--protocol", metavar="PROTOCOL", help="another protocol instead of kato2021.yaml"
+    )
+    p.add_argument("--participants", type=int, default=8, metavar="N")
+    p.add_argument(
+        "--seed", type=int, default=2021, metavar="S", help="seed of the simulated ratings"
+    )
+    p.add_argument(
+        "--size", metavar="WxH", help="override the resolution (e.g. 320x180 for a quick run)"
+    )
+    p.add_argument("--fps", type=int, help="override the frame rate")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")

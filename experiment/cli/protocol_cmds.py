@@ -1,0 +1,96 @@
+"""Protocol commands: ``validate``, ``design``, ``schema``, ``protocols``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from facelab.design import build_trials
+    from facelab.protocol import load_protocol
+
+    for path in args.protocols:
+        protocol = load_protocol(path)
+        n_trials = len(build_trials(protocol, participant="P1"))
+        print(
+            f"ok: {path}: study {protocol.study.id!r}, {len(protocol.conditions)} conditions, "
+            f"{sum(len(s.stimuli) for s in protocol.stimulus_sets)} stimuli in "
+            f"{len(protocol.stimulus_sets)} sets, {len(protocol.blocks)} blocks, "
+            f"{n_trials} trials x {len(protocol.items)} items per participant"
+        )
+    return 0
+
+
+def _cmd_design(args: argparse.Namespace) -> int:
+    from facelab.design import build_trials, trials_frame
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    frame = trials_frame(build_trials(protocol, participant=args.participant, seed=args.seed))
+    if args.out:
+        out = Path(args.out)
+        if out.exists() and not args.force:
+            raise FacelabError(f"{out} exists; choose another file or pass --force to replace it")
+        frame.to_csv(out, index=False)
+        print(f"wrote {len(frame)} trials to {out}", file=sys.stderr)
+    else:
+        frame.to_csv(sys.stdout, index=False, lineterminator="\n")
+    return 0
+
+
+def _cmd_schema(args: argparse.Namespace) -> int:
+    from facelab.protocol import schema_json_text
+
+    text = schema_json_text()
+    if args.out:
+        Path(args.out).write_text(text, encoding="utf-8")
+        print(f"wrote {args.out}", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def _cmd_protocols(args: argparse.Namespace) -> int:
+    from facelab.protocol import load_protocol
+    from facelab.resources import copy_protocol, shipped_protocols
+
+    if args.copy:
+        written = copy_protocol(args.copy, Path(args.to), force=args.force)
+        for path in written:
+            print(f"wrote {path}")
+        print(f"edit {written[0]}, then: facelab validate {written[0]}", file=sys.stderr)
+        return 0
+    for name, path in shipped_protocols().items():
+        protocol = load_protocol(path)
+        print(f"{name:<24} {protocol.study.title}  ({path})")
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add("validate", "check protocol files; print a summary of each", _cmd_validate)
+    p.add_argument("protocols", nargs="+", metavar="PROTOCOL", help="protocol YAML file(s)")
+
+    p = add("design", "print a participant's ordered trial list as CSV", _cmd_design)
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--participant", required=True, metavar="ID", help="participant id, e.g. P01")
+    p.add_argument("--seed", type=int, metavar="N", help="study seed instead of the protocol's")
+    p.add_argument("--out", metavar="FILE", help="write the CSV to FILE instead of stdout")
+    p.add_argument("--force", action="store_true", help="replace FILE if it exists")
+
+    p = add("schema", "print the protocol JSON Schema (as in protocols/schema/)", _cmd_schema)
+    p.add_argument("--out", metavar="FILE", help="write to FILE instead of stdout")
+
+    p = add(
+        "protocols",
+        "list the protocols shipped with facelab, or copy one out for editing",
+        _cmd_protocols,
+    )
+    p.add_argument("--copy", metavar="NAME", help="copy the shipped protocol NAME (and its files)")
+    p.add_argument("--to", default=".", metavar="DIR", help="folder to copy into (default .)")
+    p.add_argument("--force", action="store_true", help="replace files that exist")

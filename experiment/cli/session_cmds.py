@@ -1,0 +1,121 @@
+"""Session commands: ``run`` (a participant in a window) and ``simulate``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand, parse_size
+
+
+def _parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
+    if not pairs:
+        return None
+    effects: dict[str, float] = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        try:
+            if not sep or not name:
+                raise ValueError
+            effects[name] = float(value)
+        except ValueError:
+            raise FacelabError(
+                f"--effect {pair!r}: expected CONDITION=POINTS, e.g. standard=15"
+            ) from None
+    return effects
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from facelab.design import validate_participant_id
+    from facelab.experiment.runner import RunOptions, run_session
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    validate_participant_id(args.participant)
+    if args.session < 1:
+        raise FacelabError(f"--session {args.session}: sessions are numbered from 1")
+    size = parse_size(args.size) or (1280, 800)
+    options = RunOptions(
+        participant=args.participant,
+        session=args.session,
+        resume=args.resume,
+        windowed=args.windowed,
+        simulate=args.simulate,
+        sim_seed=args.sim_seed,
+        clips=Path(args.clips) if args.clips else None,
+        results=Path(args.results),
+        screenshots=Path(args.screenshots) if args.screenshots else None,
+        size=size,
+    )
+    summary = run_session(protocol, protocol_path=Path(args.protocol), options=options)
+    state = "complete" if summary["complete"] else "incomplete"
+    print(
+        f"session {state}: {summary['ratings']} ratings in {summary['log']} "
+        f"({summary['trials_run']} trials this run)"
+    )
+    return 0
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from facelab.experiment.simulate import simulate_study
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    results = Path(args.results)
+    paths = simulate_study(
+        protocol,
+        protocol_path=Path(args.protocol),
+        results=results,
+        participants=args.participants,
+        seed=args.seed,
+        effects=_parse_effects(args.effect),
+    )
+    print(
+        f"simulated {len(paths)} participants of study {protocol.study.id!r} (seed {args.seed}) "
+        f"into {results / protocol.study.id}"
+    )
+    for p in paths:
+        print(f"  {p.tsv}")
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add("run", "run a participant session in a PsychoPy window", _cmd_run)
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--participant", required=True, metavar="ID")
+    p.add_argument("--session", type=int, default=1, metavar="N")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted session")
+    p.add_argument("--windowed", action="store_true", help="a window instead of full screen")
+    p.add_argument("--size", metavar="WxH", help="window size with --windowed (default 1280x800)")
+    p.add_argument(
+        "--simulate",
+        action="store_true",
+        help="a scripted participant drives the real window (xdotool clicks; for tests)",
+    )
+    p.add_argument(
+        "--sim-seed", type=int, default=1, metavar="S", help="seed of the scripted ratings"
+    )
+    p.add_argument("--clips", metavar="DIR", help="rendered clips (default results/<study>/clips)")
+    p.add_argument("--results", default="results", metavar="DIR", help="results root")
+    p.add_argument(
+        "--screenshots", metavar="DIR", help="save PNGs of a clip frame and a VAS screen"
+    )
+
+    p = add(
+        "simulate",
+        "write complete sessions of simulated participants (through the same session log as "
+        "real ones)",
+        _cmd_simulate,
+    )
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--participants", type=int, default=8, metavar="N")
+    p.add_argument("--seed", type=int, required=True, metavar="S", help="seed of the ratings")
+    p.add_argument(
+        "--effect",
+        action="append",
+        metavar="COND=POINTS",
+        help="condition effect in VAS points, replacing the protocol's (repeatable)",
+    )
+    p.add_argument("--results", default="results", metavar="DIR", help="results root")

@@ -1,0 +1,202 @@
+"""Stimulus commands: ``render``, ``track``, ``measure-z``, ``bench``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand, parse_size
+
+
+def _render_overrides(args: argparse.Namespace, protocol):
+    from facelab.stimuli.build import settings_for
+
+    settings = settings_for(protocol)
+    size = parse_size(args.size)
+    if size is not None:
+        from dataclasses import replace
+
+        settings = replace(settings, width=size[0], height=size[1])
+    if args.fps is not None and not 1 <= args.fps <= 240:
+        raise FacelabError(f"--fps {args.fps}: expected 1..240")
+    return settings
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    import time
+
+    from tqdm import tqdm
+
+    from facelab.protocol import load_protocol
+    from facelab.stimuli.build import build_clips, contact_sheets, plan
+
+    protocol = load_protocol(args.protocol)
+    out = Path(args.out) if args.out else Path("results") / protocol.study.id / "clips"
+    settings = _render_overrides(args, protocol)
+    bars: list[tqdm] = []
+
+    def progress(name: str, total: int):
+        bar = tqdm(total=total, desc=name[:40], unit="frame", leave=False, disable=args.quiet)
+        bars.append(bar)
+        return lambda: bar.update(1)
+
+    t0 = time.perf_counter()
+    print(
+        f"rendering {len(plan(protocol))} clips of {protocol.study.id!r} at {settings.width}x"
+        f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out}"
+    )
+    rows = build_clips(
+        protocol,
+        protocol_path=Path(args.protocol),
+        out=out,
+        settings=settings,
+        fps=args.fps,
+        progress=progress,
+        log=(lambda s: None) if args.quiet else print,
+    )
+    for bar in bars:
+        bar.close()
+    fresh = sum(r["status"] == "rendered" for r in rows)
+    print(
+        f"{len(rows)} clips ({fresh} rendered, {len(rows) - fresh} unchanged and reused) listed in "
+        f"{out / 'clips.csv'} ({time.perf_counter() - t0:.1f} s)"
+    )
+    if args.contact_sheet:
+        for path in contact_sheets(
+            protocol, protocol_path=Path(args.protocol), out=out, settings=settings
+        ):
+            print(f"contact sheet: {path}")
+    return 0
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from facelab.protocol import load_protocol
+    from facelab.stimuli.plots import vowel_track_figure
+    from facelab.stimuli.prepare import find_stimulus, speech_for, tracks_for
+    from facelab.stimuli.visemes import VISEMES
+
+    protocol = load_protocol(args.protocol)
+    set_id, stim = find_stimulus(protocol, args.stimulus)
+    speech = speech_for(
+        stim, base_dir=Path(args.protocol).parent, sample_rate=protocol.rendering.audio_sample_rate
+    )
+    track, isolated = tracks_for(stim, speech)
+    print(f"{set_id}/{stim.id}: {speech.duration_s:.2f} s of audio, {len(track.times)} frames")
+    if args.csv:
+        header = "time_s," + ",".join(VISEMES)
+        np.savetxt(
+            args.csv,
+            np.column_stack([track.times, track.weights]),
+            delimiter=",",
+            header=header,
+            comments="",
+            fmt="%.4f",
+        )
+        print(f"wrote {args.csv}")
+    if args.plot:
+        fig = vowel_track_figure(track, isolated, title=f"{set_id}/{stim.id}")
+        fig.savefig(args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _cmd_measure_z(args: argparse.Namespace) -> int:
+    import json
+
+    from facelab.stimuli.measure_z import (
+        detect_onsets,
+        measure_z,
+        read_capture,
+        read_onsets,
+        write_z,
+    )
+
+    captures = [read_capture(p, fps=args.fps) for p in args.captures]
+    if args.onsets:
+        onsets = read_onsets(args.onsets)
+    elif args.vowels:
+        onsets = []
+        for cap in captures:
+            audio = cap.path.with_suffix(args.audio_suffix)
+            if not audio.exists():
+                raise FacelabError(f"no audio {audio} for capture {cap.path} (or give --onsets)")
+            onsets += detect_onsets(audio, vowels=args.vowels)
+    else:
+        raise FacelabError(
+            "give --onsets FILE, or --vowels SEQUENCE with an audio file per capture"
+        )
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise FacelabError(f"{out} exists; choose another file or pass --force")
+    result = measure_z(captures, onsets, window_s=args.window)
+    write_z(out, result.z)
+    print(json.dumps({"z": str(out), "window_s": args.window, "spread": result.spread}, indent=2))
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import json
+
+    if args.what == "visemes":
+        from facelab.stimuli.bench import bench_visemes
+
+        print(json.dumps(bench_visemes(runs=args.runs, quick=args.quick), indent=2))
+        return 0
+    from facelab.stimuli.bench import bench_render
+
+    print(
+        json.dumps(
+            [bench_render(runs=args.runs, quick=args.quick, msaa=m) for m in (4, 1)], indent=2
+        )
+    )
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add(
+        "render", "render every clip a protocol needs (cached) and write clips.csv", _cmd_render
+    )
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--out", metavar="DIR", help="clip folder (default results/<study>/clips)")
+    p.add_argument("--contact-sheet", action="store_true", help="also write one PNG per condition")
+    p.add_argument("--size", metavar="WxH", help="override the protocol's resolution")
+    p.add_argument("--fps", type=int, help="override the protocol's frame rate")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    p = add(
+        "track", "analyse one stimulus's speech: viseme track as CSV and a vowel plot", _cmd_track
+    )
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--stimulus", required=True, metavar="SET/ID")
+    p.add_argument("--plot", metavar="PNG")
+    p.add_argument("--csv", metavar="FILE")
+
+    p = add(
+        "measure-z",
+        "compute a Z matrix from face-capture CSV files (the paper's way)",
+        _cmd_measure_z,
+    )
+    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="Live Link Face or generic CSV")
+    p.add_argument("--onsets", metavar="FILE", help="CSV: capture, vowel, onset_s[, speaker]")
+    p.add_argument(
+        "--vowels",
+        metavar="SEQ",
+        help="vowels spoken in each capture, e.g. aiueoaiueo "
+        "(onsets detected from CAPTURE's audio)",
+    )
+    p.add_argument(
+        "--audio-suffix", default=".wav", help="audio beside each capture (default .wav)"
+    )
+    p.add_argument("--window", type=float, default=0.1, help="seconds after onset (default 0.1)")
+    p.add_argument("--fps", type=float, default=60.0, help="Live Link Face timecode frame rate")
+    p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
+    p.add_argument("--force", action="store_true")
+
+    p = add("bench", "benchmarks that print JSON (visemes, render)", _cmd_bench)
+    p.add_argument("what", choices=["visemes", "render"])
+    p.add_argument("--runs", type=int, default=5, help="timing runs (median reported)")
+    p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
