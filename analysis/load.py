@@ -47,16 +47,19 @@ def load_log(path: Path | str) -> pd.DataFrame:
         )
     frame = pd.DataFrame(rows, columns=list(LOG_COLUMNS))
     frame["source"] = str(path)
-    sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
-    simulated = False
-    if sidecar.exists():
-        try:
-            simulated = bool(
-                json.loads(sidecar.read_text(encoding="utf-8")).get("simulated", False)
-            )
-        except json.JSONDecodeError as exc:
-            raise AnalysisError(f"{sidecar}: not valid JSON: {exc}") from None
-    frame["simulated"] = simulated
+    # provenance: on every row since facelab 0.2; older logs take it from the session file
+    if frame["simulated"].isna().any() or frame["protocol_sha256"].isna().any():
+        sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
+        if sidecar.exists():
+            try:
+                meta = json.loads(sidecar.read_text(encoding="utf-8"))
+            except json.JSONDecodeError as exc:
+                raise AnalysisError(f"{sidecar}: not valid JSON: {exc}") from None
+            if "simulated" in meta:
+                frame["simulated"] = frame["simulated"].fillna(bool(meta["simulated"]))
+            if meta.get("protocol_sha256"):
+                frame["protocol_sha256"] = frame["protocol_sha256"].fillna(meta["protocol_sha256"])
+    frame["simulated"] = frame["simulated"].astype(object)
     return frame
 
 
@@ -85,7 +88,7 @@ def load_results(
             f"ratings from more than one study under {results}: {', '.join(studies)}; "
             "pass the study's own folder"
         )
-    missing = frame["rating"].isna()
+    missing = frame["rating"].isna() & (frame["screen"].fillna("vas") == "vas")
     if missing.any():
         first = frame[missing].iloc[0]
         raise AnalysisError(
@@ -113,9 +116,9 @@ def load_results(
 def session_summary(frame: pd.DataFrame) -> pd.DataFrame:
     """Ratings per participant session, with whether it was simulated."""
     return frame.groupby(["participant", "session"], as_index=False).agg(
-        ratings=("rating", "size"),
+        responses=("item", "size"),
         trials=("trial_index", "nunique"),
-        simulated=("simulated", "all"),
+        simulated=("simulated", lambda s: "unknown" if s.isna().any() else bool(s.all())),
         first=("timestamp", "min"),
         last=("timestamp", "max"),
     )

@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import optimize
 from scipy import stats as sps
 
 from facelab.analysis.stats import cell_means, rm_sums_of_squares
@@ -49,6 +50,18 @@ def implied_effect(*, p: float, df1: int, df2: int) -> dict[str, float]:
     if df1 < 1 or df2 < 1:
         raise AnalysisError(f"degrees of freedom must be >= 1, got ({df1}, {df2})")
     f = float(sps.f.isf(p, df1, df2))
+    if not np.isfinite(f) or p < 1e-12:
+        # isf loses precision (and returns inf) for tiny p: solve log sf(F) = log p instead
+        f = float(
+            optimize.brentq(
+                lambda x: sps.f.logsf(x, df1, df2) - np.log(p),
+                1e-12,
+                1e300,
+                xtol=1e-12,
+                rtol=1e-12,
+                maxiter=2000,
+            )
+        )
     eta = f * df1 / (f * df1 + df2)
     return {"f": f, "eta_p_sq": eta, "cohens_f": float(np.sqrt(eta / (1 - eta)))}
 
@@ -59,7 +72,10 @@ def rm_power(*, n: int, k: int, f2: float, alpha: float = 0.05) -> float:
         return 0.0
     df1, df2 = k - 1, (k - 1) * (n - 1)
     crit = sps.f.isf(alpha, df1, df2)
-    return float(sps.ncf.sf(crit, df1, df2, n * k * f2))
+    nc = n * k * f2
+    if nc <= 0:  # no effect: the F test rejects at its size (scipy's ncf is wrong at nc = 0)
+        return float(sps.f.sf(crit, df1, df2))
+    return float(sps.ncf.sf(crit, df1, df2, nc))
 
 
 def participants_needed(

@@ -45,8 +45,6 @@ __all__ = [
 ]
 
 
-
-
 # --------------------------------------------------------------------------- helpers
 
 
@@ -213,9 +211,12 @@ def _sphericity(y: np.ndarray) -> tuple[float, float, float, float]:
     trace = np.trace(cov)
     eps_gg = trace**2 / (p * np.trace(cov @ cov))
     # Huynh-Feldt with Lecoutre's correction, as R's car/afex (one group)
-    eps_hf = min(1.0, ((n) * p * eps_gg - 2) / (p * (n - 1 - p * eps_gg)))
     if p == 1:
         return 1.0, 1.0, 1.0, 1.0
+    den = p * (n - 1 - p * eps_gg)
+    eps_hf = min(1.0, (n * p * eps_gg - 2) / den) if den > 0 else float("nan")
+    if n - 1 <= p:  # the covariance is singular: Mauchly's test is undefined (as in R)
+        return float("nan"), float("nan"), float(eps_gg), eps_hf
     w = np.linalg.det(cov) / (trace / p) ** p
     # chi-square approximation with the second-order term, exactly as R's mauchly.test and
     # car (whose w2 uses the number of levels k, not p = k - 1, in its "3 * p" term)

@@ -43,6 +43,7 @@ class StudyResults:
     paper_anova: pd.DataFrame
     paper_tukey: pd.DataFrame
     layout: pd.DataFrame  # the paper's layout, both procedures, beside reported values
+    notes: tuple[str, ...] = ()  # what was left out of which analysis, and why
 
     def tables(self) -> dict[str, pd.DataFrame]:
         return {
@@ -111,7 +112,8 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
     unknown = sorted(set(data["condition"]) - set(order))
     if unknown:
         raise AnalysisError(f"conditions in the logs but not in the protocol: {', '.join(unknown)}")
-    data = data.assign(condition=pd.Categorical(data["condition"], categories=order))
+    data = data[data["screen"].fillna("vas") == "vas"]
+    notes: list[str] = []
     out: dict[str, list[pd.DataFrame]] = {
         k: [] for k in ("cells", "rm", "pw", "fr", "lmm", "pa", "tk", "layout")
     }
@@ -124,13 +126,32 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
             if sub.empty:
                 continue
+            where = f"{item.id} / {sset.id}"
+            seen = [c for c in order if c in set(sub["condition"])]
+            if len(seen) < 2:
+                notes.append(f"{where}: responses for {len(seen)} condition(s) only; not analysed.")
+                continue
+            sub = sub.assign(condition=pd.Categorical(sub["condition"], categories=seen))
+            per = sub.groupby("participant")["condition"].nunique()
+            partial = sorted(per[per < len(seen)].index)
+            if partial:
+                notes.append(
+                    f"{where}: participant(s) {', '.join(map(str, partial))} lack a condition; "
+                    "left out of the repeated-measures analysis (kept in the pooled procedure)."
+                )
+            rm_sub = sub[~sub["participant"].isin(partial)]
+            if rm_sub["participant"].nunique() < 2:
+                notes.append(
+                    f"{where}: fewer than 2 participants rated every condition; not analysed."
+                )
+                continue
             kw = {"dv": "rating", "within": "condition", "subject": "participant"}
             try:
-                wide = stats.cell_means(sub, **kw)
-                rm = stats.rm_anova(sub, **kw)
-                pw = stats.pairwise_paired(sub, **kw, padjust="holm")
-                fr = stats.friedman(sub, **kw) if len(order) >= 3 else pd.DataFrame()
-                lmm = stats.lmm_anova(sub, **kw)
+                wide = stats.cell_means(rm_sub, **kw)
+                rm = stats.rm_anova(rm_sub, **kw)
+                pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
+                fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
+                lmm = stats.lmm_anova(rm_sub, **kw)
             except AnalysisError as exc:
                 raise AnalysisError(f"{item.id} / {sset.id}: {exc}") from None
             pa = stats.one_way_anova(sub, dv="rating", between="condition")
@@ -185,4 +206,5 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
         paper_anova=cat("pa"),
         paper_tukey=cat("tk"),
         layout=cat("layout"),
+        notes=tuple(notes),
     )

@@ -31,6 +31,7 @@ __all__ = [
     "Trial",
     "balanced_latin_square",
     "build_trials",
+    "count_trials",
     "participant_number",
     "participant_seed",
     "trials_frame",
@@ -171,6 +172,17 @@ def build_trials(protocol: Protocol, *, participant: str, seed: int | None = Non
                     )
                 )
     return trials
+
+
+def count_trials(protocol: Protocol) -> int:
+    """How many trials :func:`build_trials` gives each participant (without building them)."""
+    return sum(
+        block.sets
+        * len(protocol.stimulus_set(block.stimulus_set).stimuli)
+        * len(protocol.block_conditions(block))
+        * block.presentations_per_condition
+        for block in protocol.blocks
+    )
 
 
 def trials_frame(trials: list[Trial]) -> pd.DataFrame:

@@ -12,15 +12,17 @@ The pieces: the typed models (:mod:`facelab.protocol_model`), YAML with line num
 from __future__ import annotations
 
 import hashlib
+from functools import cache
 from pathlib import Path
 from typing import Any, get_args, get_origin
 
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError, create_model
 
 from facelab.errors import Issue, ProtocolError
 from facelab.protocol_checks import clean_loc, cross_check, describe
 from facelab.protocol_model import (
+    ID_PATTERN,
     SCHEMA_VERSION,
     Block,
     Condition,
@@ -32,7 +34,7 @@ from facelab.protocol_model import (
     json_schema,
     schema_json_text,
 )
-from facelab.protocol_yaml import Locator
+from facelab.protocol_yaml import Locator, YamlRefusedError, gc_paused, read_yaml
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -74,37 +76,78 @@ def load_protocol(path: Path | str) -> Protocol:
         ) from None
 
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.load(text, Loader=yaml.SafeLoader)
+        root, data = read_yaml(text)
+    except YamlRefusedError as exc:
+        raise ProtocolError(path, [exc.issue]) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
         problem = getattr(exc, "problem", None) or str(exc)
         raise ProtocolError(path, [Issue((), f"not valid YAML: {problem}", line)]) from None
+    except RecursionError:  # pragma: no cover - the depth limit comes first
+        raise ProtocolError(path, [Issue((), "nested too deeply")]) from None
     if root is None or not isinstance(data, dict):
         raise ProtocolError(path, [Issue((), "expected a YAML mapping with the study's sections")])
 
+    with gc_paused():
+        return _validate(path, root, data)
+
+
+def _validate(path: Path, root: Any, data: dict[str, Any]) -> Protocol:
+    """Every problem of the file at once: duplicate keys, then types, then the checks across
+    sections on whatever validated."""
     locator = Locator(root)
     issues = list(locator.duplicate_keys())
-    if issues:
-        raise ProtocolError(path, issues)
-
+    protocol: Protocol | None = None
+    available: set[str] = set(Protocol.model_fields)
     try:
         protocol = Protocol.model_validate(data)
     except ValidationError as exc:
         found: dict[tuple[str | int, ...], Issue] = {}
+        failing: set[str] = set()
         for err in exc.errors():
             issue = _issue_from_pydantic(err, locator)
             found.setdefault(issue.path, issue)  # one message per key path
-        raise ProtocolError(path, list(found.values())) from None
-
-    issues = [
-        Issue(i.path, i.message, locator.line(i.path))
-        for i in cross_check(protocol, base_dir=path.parent)
-    ]
+            if err["loc"]:
+                failing.add(str(err["loc"][0]))
+        issues += found.values()
+        available -= failing
+        protocol = _partial(data, available)
+    if protocol is not None:
+        issues += [
+            Issue(i.path, i.message, locator.line(i.path))
+            for i in cross_check(protocol, base_dir=path.parent, available=available)
+        ]
     if issues:
         raise ProtocolError(path, issues)
+    assert protocol is not None
     return protocol
+
+
+def _partial(data: dict[str, Any], sections: set[str]) -> Protocol | None:
+    """A protocol holding only the sections that validated (for the checks across sections);
+    None if even those do not validate on their own."""
+    fields = {
+        name: (info.annotation, info)
+        for name, info in Protocol.model_fields.items()
+        if name in sections
+    }
+    model = _partial_model(tuple(sorted(fields)))
+    try:
+        part = model.model_validate({k: v for k, v in data.items() if k in sections})
+    except ValidationError:
+        return None
+    return Protocol.model_construct(**dict(part))
+
+
+@cache
+def _partial_model(names: tuple[str, ...]) -> type[BaseModel]:
+    fields: dict[str, Any] = {
+        name: (info.annotation, info)
+        for name, info in Protocol.model_fields.items()
+        if name in names
+    }
+    return create_model("ProtocolSections", __config__=Protocol.model_config, **fields)
 
 
 def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
@@ -124,6 +167,15 @@ def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
         return Issue(path, f"unknown key{hint}", locator.key_line(path))
     if kind == "missing":
         return Issue(path, "required key is missing", locator.key_line(path[:-1]))
+    if kind == "string_pattern_mismatch" and err.get("ctx", {}).get("pattern") == ID_PATTERN:
+        return Issue(
+            path,
+            f"{describe(err.get('input'))} is not a valid id: a letter, then letters, digits, "
+            "- or single _ (no '__': it separates set, stimulus and condition in clip file names)",
+            locator.line(path),
+        )
+    if kind == "string_too_long" and path and path[-1] == "id":
+        return Issue(path, "ids have at most 64 characters", locator.line(path))
     got = f" (got {describe(err['input'])})" if "input" in err else ""
     message = err["msg"]
     if message.startswith("Value error, "):

@@ -7,7 +7,7 @@ adds their line numbers.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -71,18 +71,37 @@ def _localized(protocol: Protocol) -> Iterator[tuple[tuple[str | int, ...], dict
             yield ("presentation", key), getattr(pres, key)
 
 
-def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
-    """Checks that span sections: ids, references, files, method parameters, languages."""
-    yield from _duplicates((c.id for c in protocol.conditions), ("conditions",), "condition")
-    yield from _duplicates(
-        (s.id for s in protocol.stimulus_sets), ("stimulus_sets",), "stimulus set"
-    )
-    yield from _duplicates((b.id for b in protocol.blocks), ("blocks",), "block")
-    yield from _duplicates((i.id for i in protocol.items), ("items",), "item")
-    condition_ids = {c.id for c in protocol.conditions}
-    known_conditions = ", ".join(c.id for c in protocol.conditions)
-    sets = {s.id: s for s in protocol.stimulus_sets}
+#: (top-level sections a check reads, the check). A check runs only when every section it
+#: reads validated, so one broken section does not hide the problems of the others.
+CHECKS: list[tuple[frozenset[str], Callable[[Protocol, Path], Iterator[Issue]]]] = []
 
+
+def _check(*sections: str) -> Callable:
+    def register(fn: Callable[[Protocol, Path], Iterator[Issue]]) -> Callable:
+        CHECKS.append((frozenset(sections), fn))
+        return fn
+
+    return register
+
+
+def cross_check(
+    protocol: Protocol, *, base_dir: Path, available: Iterable[str] | None = None
+) -> Iterator[Issue]:
+    """Checks that span sections: ids, references, files, method parameters, languages.
+
+    ``available``: the top-level sections that validated (all when None); checks reading
+    any other section are skipped.
+    """
+    have = set(Protocol.model_fields) if available is None else set(available)
+    for needs, check in CHECKS:
+        if needs <= have:
+            yield from check(protocol, base_dir)
+
+
+@_check("conditions")
+def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Unique condition ids; registered methods; their parameters; Z files."""
+    yield from _duplicates((c.id for c in protocol.conditions), ("conditions",), "condition")
     for i, cond in enumerate(protocol.conditions):
         where = ("conditions", i)
         spec = METHODS.get(cond.method)
@@ -116,6 +135,15 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
                     f"(52 rows x 5 vowels); {z_path} was not found",
                 )
 
+
+@_check("stimulus_sets", "conditions")
+def _stimulus_sets(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Unique ids; audio files; vowel isolation names conditions."""
+    yield from _duplicates(
+        (s.id for s in protocol.stimulus_sets), ("stimulus_sets",), "stimulus set"
+    )
+    condition_ids = {c.id for c in protocol.conditions}
+    known_conditions = ", ".join(c.id for c in protocol.conditions)
     for si, sset in enumerate(protocol.stimulus_sets):
         yield from _duplicates(
             (s.id for s in sset.stimuli), ("stimulus_sets", si, "stimuli"), "stimulus"
@@ -137,6 +165,14 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
                         f"unknown condition {cond_id!r}; conditions: {known_conditions}",
                     )
 
+
+@_check("blocks", "stimulus_sets", "conditions")
+def _blocks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Unique ids; sets and conditions exist; methods that need texts get texts."""
+    yield from _duplicates((b.id for b in protocol.blocks), ("blocks",), "block")
+    condition_ids = {c.id for c in protocol.conditions}
+    known_conditions = ", ".join(c.id for c in protocol.conditions)
+    sets = {s.id: s for s in protocol.stimulus_sets}
     for bi, block in enumerate(protocol.blocks):
         where = ("blocks", bi)
         sset = sets.get(block.stimulus_set)
@@ -171,6 +207,11 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
                         f"text for every stimulus, but set {sset.id!r} has recorded audio",
                     )
 
+
+@_check("items")
+def _items(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Unique item ids; VAS ranges inside 0..100."""
+    yield from _duplicates((i.id for i in protocol.items), ("items",), "item")
     for ii, item in enumerate(protocol.items):
         lo, hi = item.range
         if not (0.0 <= lo < hi <= 100.0):
@@ -179,6 +220,10 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
                 f"expected [left, right] with 0 <= left < right <= 100, got [{lo:g}, {hi:g}]",
             )
 
+
+@_check("conditions", "items", "presentation")
+def _languages(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Every participant-facing text exists in the presentation language."""
     lang = protocol.presentation.language
     for path, text in _localized(protocol):
         if lang not in text:
@@ -187,6 +232,12 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
                 f"no {lang!r} text (presentation.language is {lang!r}); has: {', '.join(text)}",
             )
 
+
+@_check("presentation", "stimulus_sets", "conditions")
+def _practice(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """The practice trial names a real stimulus and condition."""
+    condition_ids = {c.id for c in protocol.conditions}
+    sets = {s.id: s for s in protocol.stimulus_sets}
     practice = protocol.presentation.practice
     if practice is not None:
         where = ("presentation", "practice")
@@ -201,6 +252,13 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
         if practice.condition not in condition_ids:
             yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
 
+
+@_check("simulation", "conditions", "items", "stimulus_sets")
+def _simulation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Simulated effects name real conditions, items and sets."""
+    condition_ids = {c.id for c in protocol.conditions}
+    known_conditions = ", ".join(c.id for c in protocol.conditions)
+    sets = {s.id: s for s in protocol.stimulus_sets}
     item_ids = {i.id for i in protocol.items}
     sim = protocol.simulation
     for cond_id in sim.effects:
@@ -218,6 +276,14 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
         for cond_id in override.effects:
             if cond_id not in condition_ids:
                 yield Issue((*where, "effects", cond_id), f"unknown condition {cond_id!r}")
+
+
+@_check("reported_results", "items", "stimulus_sets", "conditions")
+def _reported(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Reported results name real items, sets and conditions."""
+    condition_ids = {c.id for c in protocol.conditions}
+    sets = {s.id: s for s in protocol.stimulus_sets}
+    item_ids = {i.id for i in protocol.items}
     if protocol.reported_results is not None:
         for ti, test in enumerate(protocol.reported_results.tests):
             where = ("reported_results", "tests", ti)
@@ -232,6 +298,10 @@ def cross_check(protocol: Protocol, *, base_dir: Path) -> Iterator[Issue]:
                             (*where, "pairs", pi, key), f"unknown condition {getattr(pair, key)!r}"
                         )
 
+
+@_check("rendering")
+def _rendering(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """The avatar file exists; colours in 0..1; even frame sizes."""
     avatar = protocol.rendering.avatar
     if avatar != "default":
         avatar_path = base_dir / avatar

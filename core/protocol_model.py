@@ -24,6 +24,7 @@ from facelab.methods import METHODS
 __all__ = [
     "AUDIO_SUFFIXES",
     "AVATAR_SUFFIXES",
+    "ID_PATTERN",
     "SCHEMA_VERSION",
     "Block",
     "Condition",
@@ -38,10 +39,17 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 
+#: Ids: a letter, then letters, digits, ``-`` or single ``_`` - never ``__``, which separates
+#: the parts of clip file names (``<set>__<stimulus>__<condition>.mp4``), so two different
+#: clips can never share a file name.
+ID_PATTERN = r"^[A-Za-z](?:_?[A-Za-z0-9-])*_?$"
 Id = Annotated[
     str,
-    StringConstraints(pattern=r"^[A-Za-z][A-Za-z0-9_-]{0,63}$"),
-    Field(description="An identifier: a letter, then letters, digits, _ or - (at most 64)."),
+    StringConstraints(pattern=ID_PATTERN, max_length=64),
+    Field(
+        description="An identifier: a letter, then letters, digits, - or single _ (no __), "
+        "at most 64 characters."
+    ),
 ]
 LangCode = Annotated[str, StringConstraints(pattern=r"^[a-z]{2,3}(-[A-Za-z0-9]+)?$")]
 Text = Annotated[str, StringConstraints(min_length=1)]

@@ -1,47 +1,78 @@
-"""Session logs: one row per rating, appended and fsync'd the moment it is given.
+"""Session logs: one row per response, appended and fsync'd the moment it is given.
 
 Layout (BIDS-style, one folder per participant session)::
 
     results/<study>/sub-<ID>/ses-<N>/
-        sub-<ID>_ses-<N>_task-<study>_beh.tsv      the ratings (this module appends to it)
-        sub-<ID>_ses-<N>_task-<study>_beh.json     data dictionary of the TSV columns
-        sub-<ID>_ses-<N>_task-<study>_session.json provenance: protocol hash, seed, trial
-                                                   order, clip hashes, software, screen/audio
+        sub-<ID>_ses-<N>_task-<study>_beh.tsv       the responses (this module appends to it)
+        sub-<ID>_ses-<N>_task-<study>_beh.json      data dictionary of the TSV columns
+        sub-<ID>_ses-<N>_task-<study>_session.json  provenance: protocol hash, seed, trial
+                                                    order, clip hashes, software, screen/audio
         sub-<ID>_ses-<N>_task-<study>_playback.jsonl  every flip of every clip (the runner)
-        sub-<ID>_ses-<N>_task-<study>_repairs.tsv  only after a crash: cut-off lines kept verbatim
+        sub-<ID>_ses-<N>_task-<study>_actions.jsonl   what a scripted participant did (--simulate)
+        sub-<ID>_ses-<N>_task-<study>_repairs.tsv   only after a crash: cut-off lines kept verbatim
+        .lock                                       held (flock) while a process writes the session
 
-Rules: a session folder that exists is never overwritten (:meth:`SessionLog.create` refuses);
-:meth:`SessionLog.resume` reopens it. A last line cut off mid-write (no newline, e.g. power
-loss) is detected on resume: if it still parses as a complete row it is kept, otherwise it is
-moved verbatim to the repairs file and that rating is asked again - never silently dropped
-or duplicated. Missing values are written ``n/a``, as BIDS does.
+Rules:
+
+* a session folder that holds a log is never overwritten (:meth:`SessionLog.create` refuses);
+  :meth:`SessionLog.resume` reopens it;
+* every row is written with one ``write`` and ``fsync``'d before :meth:`SessionLog.append`
+  returns, with SIGINT/SIGTERM/SIGHUP held back for that moment, so a signal never tears a
+  line; the folder is fsync'd after a file is created or replaced, so a new file survives a
+  power cut too;
+* a last line cut off mid-write (no newline, e.g. power loss) is detected on resume: if it
+  still parses as a complete row it is kept, otherwise it is moved verbatim to the repairs
+  file and that response is asked again - never silently dropped or duplicated;
+* one writer: :class:`SessionLock` takes an exclusive ``flock`` on the session's ``.lock``;
+  the kernel releases it when the process ends, however it ends, so a crash leaves no stale
+  lock;
+* every row carries its provenance: ``simulated`` and ``protocol_sha256``.
+
+Missing values are written ``n/a``, as BIDS does. Logs written by facelab 0.1 (17 columns,
+no provenance columns) are read (:data:`LOG_COLUMNS_V1`) but not continued.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import datetime as dt
 import io
 import json
 import math
 import os
-from collections.abc import Iterable, Mapping
+import signal
+import socket
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from facelab.errors import StageError
+from facelab.errors import SessionError, StageError
 
 __all__ = [
     "COLUMN_DESCRIPTIONS",
     "LOG_COLUMNS",
+    "LOG_COLUMNS_V1",
+    "MAX_SESSION",
+    "SessionContext",
+    "SessionLock",
     "SessionLog",
     "SessionPaths",
+    "append_jsonl",
+    "fsync_dir",
     "parse_log_text",
-    "rating_row",
+    "response_row",
+    "rows_to_tsv",
     "session_paths",
+    "utc_now",
 ]
 
-LOG_COLUMNS: tuple[str, ...] = (
+#: Sessions are numbered 1..MAX_SESSION.
+MAX_SESSION = 9999
+
+#: The columns of facelab 0.1 logs (read only).
+LOG_COLUMNS_V1: tuple[str, ...] = (
     "study",
     "participant",
     "session",
@@ -61,6 +92,19 @@ LOG_COLUMNS: tuple[str, ...] = (
     "timestamp",
 )
 
+#: The columns written today: DESIGN.md's contract first, then the task and provenance columns.
+LOG_COLUMNS: tuple[str, ...] = (
+    *LOG_COLUMNS_V1,
+    "screen",
+    "response",
+    "correct",
+    "level",
+    "comparison",
+    "position",
+    "simulated",
+    "protocol_sha256",
+)
+
 COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     "study": {"Description": "Study id from the protocol."},
     "participant": {"Description": "Participant id (letters and digits)."},
@@ -70,29 +114,56 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     "set_index": {"Description": "Set number within the block, from 1."},
     "stimulus_set": {"Description": "Stimulus set id."},
     "stimulus": {"Description": "Stimulus id within the set."},
-    "condition": {"Description": "Animation condition id."},
+    "condition": {"Description": "Condition id (for a forced choice: the test condition)."},
     "repetition": {"Description": "Nth showing of this stimulus and condition within the set."},
-    "item": {"Description": "VAS item id."},
+    "item": {"Description": "Response item id (VAS item, choice question or label question)."},
     "rating": {
-        "Description": "The confirmed VAS position.",
+        "Description": "The confirmed VAS position; n/a for choice screens.",
         "Units": "scale points (0 = left anchor)",
     },
     "rating_start": {
         "Description": "Marker position shown before the first click; n/a when the "
         "marker is hidden until the first click."
     },
-    "rt_s": {"Description": "Time from the item appearing to the confirmation.", "Units": "s"},
-    "clip_onset": {
-        "Description": "Flip time of the clip's first frame on the session clock.",
+    "rt_s": {
+        "Description": "Time from the response screen appearing to the response.",
         "Units": "s",
     },
-    "clip_frames_dropped": {"Description": "Frames of the clip shown late (dropped)."},
-    "timestamp": {"Description": "Wall-clock time the rating was confirmed (ISO 8601, UTC)."},
+    "clip_onset": {
+        "Description": "Flip time of the (first) clip's first frame on the session clock.",
+        "Units": "s",
+    },
+    "clip_frames_dropped": {"Description": "Frames of the clip(s) shown late (dropped)."},
+    "timestamp": {"Description": "Wall-clock time the response was confirmed (ISO 8601, UTC)."},
+    "screen": {"Description": "Screen type that took the response: vas, choice_2afc, identify."},
+    "response": {
+        "Description": "Choice screens: the chosen condition id (2AFC) or label id (identify); "
+        "n/a on VAS screens."
+    },
+    "correct": {
+        "Description": "1 when the response is the correct one (2AFC: the test condition was "
+        "chosen; identify: the true label), 0 when not, n/a when the task has no correct answer."
+    },
+    "level": {"Description": "The stimulus level of the condition (a graded dimension), or n/a."},
+    "comparison": {"Description": "2AFC: the condition the test was compared with."},
+    "position": {"Description": "2AFC: where the test condition was shown, 1 (first/left) or 2."},
+    "simulated": {"Description": "true when a simulated participant gave the response."},
+    "protocol_sha256": {"Description": "SHA-256 of the protocol file the session ran."},
 }
 
-_INT_COLUMNS = {"session", "trial_index", "set_index", "repetition", "clip_frames_dropped"}
-_FLOAT_COLUMNS = {"rating", "rating_start", "rt_s", "clip_onset"}
+_INT_COLUMNS = {
+    "session",
+    "trial_index",
+    "set_index",
+    "repetition",
+    "clip_frames_dropped",
+    "correct",
+    "position",
+}
+_FLOAT_COLUMNS = {"rating", "rating_start", "rt_s", "clip_onset", "level"}
+_BOOL_COLUMNS = {"simulated"}
 NA = "n/a"
+_HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
 
 
 @dataclass(frozen=True)
@@ -102,12 +173,17 @@ class SessionPaths:
     dictionary: Path
     provenance: Path
     repairs: Path
+    playback: Path
+    actions: Path
+    lock: Path
 
 
 def session_paths(
     results: Path | str, *, study: str, participant: str, session: int
 ) -> SessionPaths:
     """Where one session's files live (see the module docstring)."""
+    if not 1 <= session <= MAX_SESSION:
+        raise StageError(f"session number {session}: expected 1..{MAX_SESSION}")
     folder = Path(results) / study / f"sub-{participant}" / f"ses-{session}"
     stem = f"sub-{participant}_ses-{session}_task-{study}"
     return SessionPaths(
@@ -116,12 +192,90 @@ def session_paths(
         dictionary=folder / f"{stem}_beh.json",
         provenance=folder / f"{stem}_session.json",
         repairs=folder / f"{stem}_repairs.tsv",
+        playback=folder / f"{stem}_playback.jsonl",
+        actions=folder / f"{stem}_actions.jsonl",
+        lock=folder / ".lock",
     )
+
+
+@dataclass(frozen=True)
+class SessionContext:
+    """What every row of one session repeats: who, which session, and its provenance."""
+
+    study: str
+    participant: str
+    session: int
+    simulated: bool
+    protocol_sha256: str
+
+
+# --------------------------------------------------------------------------- durability
+
+
+def fsync_dir(folder: Path) -> None:
+    """fsync a directory, so that files created or renamed in it survive a power cut."""
+    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold back SIGINT/SIGTERM/SIGHUP (delivered right after) while a line is written."""
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD_SIGNALS)
+    except (AttributeError, ValueError):  # not the main thread or no pthreads: write anyway
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _append_line(path: Path, line: str) -> None:
+    created = not path.exists()
+    with _signals_held():
+        with open(path, "a", encoding="utf-8", newline="") as fh:
+            fh.write(line)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if created:
+            fsync_dir(path.parent)
+
+
+def append_jsonl(path: Path, record: Mapping[str, Any]) -> None:
+    """Append one JSON object as a line to ``path`` and fsync it (playback, actions…)."""
+    _append_line(path, json.dumps(dict(record), ensure_ascii=False) + "\n")
+
+
+def _write_new(path: Path, text: str) -> None:
+    with open(path, "x", encoding="utf-8") as fh:  # 'x': never overwrite
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _replace(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+# --------------------------------------------------------------------------- rows
 
 
 def _format(value: Any) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return NA
+    if isinstance(value, bool):
+        return "true" if value else "false"
     if isinstance(value, float):
         return repr(value)  # round-trips exactly
     text = str(value)
@@ -130,13 +284,13 @@ def _format(value: Any) -> str:
     return text
 
 
-def _parse_row(values: list[str], *, where: str) -> dict[str, Any]:
-    if len(values) != len(LOG_COLUMNS):
+def _parse_row(values: list[str], columns: tuple[str, ...], *, where: str) -> dict[str, Any]:
+    if len(values) != len(columns):
         raise StageError(
-            f"{where}: expected {len(LOG_COLUMNS)} tab-separated fields, got {len(values)}"
+            f"{where}: expected {len(columns)} tab-separated fields, got {len(values)}"
         )
     row: dict[str, Any] = {}
-    for name, text in zip(LOG_COLUMNS, values, strict=True):
+    for name, text in zip(columns, values, strict=True):
         if text == NA:
             row[name] = None
         elif name in _INT_COLUMNS:
@@ -153,36 +307,145 @@ def _parse_row(values: list[str], *, where: str) -> dict[str, Any]:
                 raise StageError(
                     f"{where}: column {name!r} should be a number, got {text!r}"
                 ) from None
+        elif name in _BOOL_COLUMNS:
+            if text not in ("true", "false"):
+                raise StageError(f"{where}: column {name!r} should be true or false, got {text!r}")
+            row[name] = text == "true"
         else:
             row[name] = text
+    for name in LOG_COLUMNS:  # an old log: the newer columns are unknown
+        row.setdefault(name, None)
     return row
 
 
 def parse_log_text(text: str, *, source: str) -> tuple[list[dict[str, Any]], str | None]:
     """Parse a session TSV. Returns (rows, cut_tail) where cut_tail is a final line that
-    has no newline and does not parse as a complete row (None if there is none)."""
+    has no newline and does not parse as a complete row (None if there is none).
+
+    Every row has all of :data:`LOG_COLUMNS`; in a facelab 0.1 log the newer ones are None.
+    """
+    _columns, rows, cut = _parse(text, source=source)
+    return rows, cut
+
+
+def _parse(text: str, *, source: str) -> tuple[tuple[str, ...], list[dict[str, Any]], str | None]:
     lines = text.split("\n")
     tail = lines.pop()  # text after the last newline ('' for a complete file)
     if not lines:
         if tail:
-            return [], tail  # even the header was cut off
+            return LOG_COLUMNS, [], tail  # even the header was cut off
         raise StageError(f"{source}: empty log file (no header)")
-    header = lines[0].split("\t")
-    if tuple(header) != LOG_COLUMNS:
+    header = tuple(lines[0].split("\t"))
+    if header not in (LOG_COLUMNS, LOG_COLUMNS_V1):
         raise StageError(
             f"{source}:1: unexpected header; expected columns {', '.join(LOG_COLUMNS)}"
         )
     rows = [
-        _parse_row(line.split("\t"), where=f"{source}:{number}")
+        _parse_row(line.split("\t"), header, where=f"{source}:{number}")
         for number, line in enumerate(lines[1:], start=2)
     ]
     cut = None
     if tail:
         try:
-            rows.append(_parse_row(tail.split("\t"), where=f"{source}:{len(lines) + 1}"))
+            rows.append(_parse_row(tail.split("\t"), header, where=f"{source}:{len(lines) + 1}"))
         except StageError:
             cut = tail
-    return rows, cut
+    return header, rows, cut
+
+
+def response_row(
+    *,
+    context: SessionContext,
+    trial: Any,
+    item: str,
+    screen: str,
+    rt_s: float,
+    timestamp: str,
+    clip_onset: float | None,
+    clip_frames_dropped: int | None,
+    rating: float | None = None,
+    rating_start: float | None = None,
+    response: str | None = None,
+    correct: int | None = None,
+) -> dict[str, Any]:
+    """One log row for a response to ``trial`` (a :class:`facelab.design.Trial`)."""
+    return {
+        "study": context.study,
+        "participant": context.participant,
+        "session": context.session,
+        "trial_index": trial.trial_index,
+        "block": trial.block,
+        "set_index": trial.set_index,
+        "stimulus_set": trial.stimulus_set,
+        "stimulus": trial.stimulus,
+        "condition": trial.condition,
+        "repetition": trial.repetition,
+        "item": item,
+        "rating": rating,
+        "rating_start": rating_start,
+        "rt_s": rt_s,
+        "clip_onset": clip_onset,
+        "clip_frames_dropped": clip_frames_dropped,
+        "timestamp": timestamp,
+        "screen": screen,
+        "response": response,
+        "correct": correct,
+        "level": getattr(trial, "level", None),
+        "comparison": getattr(trial, "comparison", None),
+        "position": getattr(trial, "position", None),
+        "simulated": context.simulated,
+        "protocol_sha256": context.protocol_sha256,
+    }
+
+
+def utc_now() -> str:
+    """The wall-clock time, ISO 8601 UTC with milliseconds (the ``timestamp`` column)."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+
+
+# --------------------------------------------------------------------------- the lock
+
+
+class SessionLock:
+    """An exclusive lock on one session folder for as long as a process writes it.
+
+    ``flock`` on ``<folder>/.lock``: a second process is refused at once with who holds it;
+    the kernel drops the lock when the holder exits (also by SIGKILL or a crash), so a lock
+    left behind never blocks ``--resume``.
+    """
+
+    def __init__(self, paths: SessionPaths):
+        self.paths = paths
+        self._fd: int | None = None
+
+    def __enter__(self) -> SessionLock:
+        import fcntl
+
+        self.paths.folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.paths.lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 400, 0).decode("utf-8", errors="replace").strip()
+            os.close(fd)
+            raise SessionError(
+                f"session {self.paths.folder} is in use by another process "
+                f"({holder or 'unknown holder'}); a session has one writer - wait for it "
+                "to end or stop it first (nothing was written)"
+            ) from None
+        info = f"pid {os.getpid()} on {socket.gethostname()} since {utc_now()}"
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info.encode(), 0)
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # releases the flock
+            self._fd = None
+
+
+# --------------------------------------------------------------------------- the log
 
 
 @dataclass
@@ -208,17 +471,19 @@ class SessionLog:
         """Start a new session; refuses if the session folder already holds a log."""
         paths = session_paths(results, study=study, participant=participant, session=session)
         if paths.tsv.exists() or paths.provenance.exists():
-            raise StageError(
+            raise SessionError(
                 f"session already exists: {paths.folder} (participant {participant}, session "
                 f"{session}); nothing was overwritten. Use --resume to continue it, or choose "
                 "another --session"
             )
         paths.folder.mkdir(parents=True, exist_ok=True)
+        fsync_dir(paths.folder.parent)
         _write_new(paths.dictionary, json.dumps(COLUMN_DESCRIPTIONS, indent=2) + "\n")
         _write_new(
             paths.provenance, json.dumps(dict(provenance), indent=2, ensure_ascii=False) + "\n"
         )
         _write_new(paths.tsv, "\t".join(LOG_COLUMNS) + "\n")
+        fsync_dir(paths.folder)
         return cls(paths=paths)
 
     @classmethod
@@ -228,9 +493,14 @@ class SessionLog:
         """Reopen an interrupted session, repairing a line cut off mid-write."""
         paths = session_paths(results, study=study, participant=participant, session=session)
         if not paths.tsv.exists():
-            raise StageError(f"nothing to resume: no log at {paths.tsv}")
+            raise SessionError(f"nothing to resume: no log at {paths.tsv}")
         text = paths.tsv.read_bytes().decode("utf-8", errors="replace")
-        rows, cut = parse_log_text(text, source=str(paths.tsv))
+        header, rows, cut = _parse(text, source=str(paths.tsv))
+        if header != LOG_COLUMNS:
+            raise SessionError(
+                f"{paths.tsv} was written by facelab 0.1 (no provenance columns); finish that "
+                "session with the facelab version that started it (it can still be analysed)"
+            )
         log = cls(paths=paths, rows=rows)
         if cut is not None or (text and not text.endswith("\n")):
             log._repair(text, cut)
@@ -240,26 +510,18 @@ class SessionLog:
     def _repair(self, text: str, cut: str | None) -> None:
         keep = text[: text.rfind("\n") + 1] if cut is not None else text + "\n"
         if cut is not None:
-            with open(self.paths.repairs, "a", encoding="utf-8") as fh:
-                fh.write(cut + "\n")
-                fh.flush()
-                os.fsync(fh.fileno())
+            _append_line(self.paths.repairs, cut + "\n")
             self.repaired.append(cut)
         if not keep.strip():
             keep = "\t".join(LOG_COLUMNS) + "\n"
-        with open(self.paths.tsv, "r+b") as fh:
-            fh.seek(0)
-            fh.write(keep.encode("utf-8"))
-            fh.truncate()
-            fh.flush()
-            os.fsync(fh.fileno())
+        _replace(self.paths.tsv, keep)
 
     def _check_unique(self) -> None:
         seen = set()
         for row in self.rows:
             key = (row["trial_index"], row["item"])
             if key in seen:
-                raise StageError(
+                raise SessionError(
                     f"{self.paths.tsv}: trial {key[0]} item {key[1]!r} is logged twice"
                 )
             seen.add(key)
@@ -267,86 +529,37 @@ class SessionLog:
     # -- writing
 
     def append(self, row: Mapping[str, Any]) -> None:
-        """Write one rating and force it to disk (flush + fsync) before returning."""
+        """Write one response and force it to disk (write + fsync) before returning."""
         missing = [c for c in LOG_COLUMNS if c not in row]
         extra = [c for c in row if c not in LOG_COLUMNS]
         if missing or extra:
             raise StageError(f"log row has missing {missing} / unknown {extra} columns")
         key = (row["trial_index"], row["item"])
         if any((r["trial_index"], r["item"]) == key for r in self.rows):
-            raise StageError(
+            raise SessionError(
                 f"trial {key[0]} item {key[1]!r} is already logged; not writing it twice"
             )
         line = "\t".join(_format(row[c]) for c in LOG_COLUMNS) + "\n"
-        with open(self.paths.tsv, "a", encoding="utf-8", newline="") as fh:
-            fh.write(line)
-            fh.flush()
-            os.fsync(fh.fileno())
-        self.rows.append(_parse_row(line[:-1].split("\t"), where=str(self.paths.tsv)))
+        _append_line(self.paths.tsv, line)
+        self.rows.append(_parse_row(line[:-1].split("\t"), LOG_COLUMNS, where=str(self.paths.tsv)))
 
-    def answered(self) -> dict[int, set[str]]:
-        """Items already rated, by trial index."""
-        out: dict[int, set[str]] = {}
-        for row in self.rows:
-            out.setdefault(row["trial_index"], set()).add(row["item"])
-        return out
+    def answered(self) -> set[tuple[int, str]]:
+        """(trial_index, item) of every response already logged."""
+        return {(row["trial_index"], row["item"]) for row in self.rows}
+
+    def provenance(self) -> dict[str, Any]:
+        """The session JSON as it is on disk."""
+        return json.loads(self.paths.provenance.read_text(encoding="utf-8"))
 
     def update_provenance(self, **fields: Any) -> None:
         """Add keys to the session JSON (e.g. resume events), replacing it atomically."""
-        data = json.loads(self.paths.provenance.read_text(encoding="utf-8"))
+        data = self.provenance()
         for key, value in fields.items():
             if isinstance(data.get(key), list) and isinstance(value, list):
                 data[key] = data[key] + value
             else:
                 data[key] = value
-        tmp = self.paths.provenance.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.paths.provenance)
-
-
-def rating_row(
-    *,
-    study: str,
-    participant: str,
-    session: int,
-    trial: Any,
-    item: str,
-    rating: float,
-    rt_s: float,
-    clip_onset: float,
-    clip_frames_dropped: int,
-    timestamp: str,
-    rating_start: float | None = None,
-) -> dict[str, Any]:
-    """One log row for a rating of ``trial`` (an ``facelab.design.Trial``)."""
-    return {
-        "study": study,
-        "participant": participant,
-        "session": session,
-        "trial_index": trial.trial_index,
-        "block": trial.block,
-        "set_index": trial.set_index,
-        "stimulus_set": trial.stimulus_set,
-        "stimulus": trial.stimulus,
-        "condition": trial.condition,
-        "repetition": trial.repetition,
-        "item": item,
-        "rating": rating,
-        "rating_start": rating_start,
-        "rt_s": rt_s,
-        "clip_onset": clip_onset,
-        "clip_frames_dropped": clip_frames_dropped,
-        "timestamp": timestamp,
-    }
-
-
-def _write_new(path: Path, text: str) -> None:
-    with open(path, "x", encoding="utf-8") as fh:  # 'x': never overwrite
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
+        _replace(self.paths.provenance, json.dumps(data, indent=2, ensure_ascii=False) + "\n")
 
 
 def rows_to_tsv(rows: Iterable[Mapping[str, Any]]) -> str:
@@ -355,5 +568,5 @@ def rows_to_tsv(rows: Iterable[Mapping[str, Any]]) -> str:
     writer = csv.writer(buf, delimiter="\t", lineterminator="\n")
     writer.writerow(LOG_COLUMNS)
     for row in rows:
-        writer.writerow([_format(row[c]) for c in LOG_COLUMNS])
+        writer.writerow([_format(row.get(c)) for c in LOG_COLUMNS])
     return buf.getvalue()

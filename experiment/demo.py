@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-from facelab.protocol import load_protocol
+from facelab.protocol import load_protocol, protocol_hash
 from facelab.resources import protocol_path
 
 __all__ = ["DEFAULT_PROTOCOL", "run_demo"]
@@ -38,6 +38,7 @@ def run_demo(
     progress: Callable[[str, int], Callable[[], None]] | None = None,
     say: Callable[[str], None] = print,
 ) -> dict[str, Path | float | int]:
+    from facelab.analysis.integrity import check_data
     from facelab.analysis.load import load_results
     from facelab.analysis.report import write_report
     from facelab.analysis.study import analyze_study
@@ -90,8 +91,10 @@ def run_demo(
 
     t = time.perf_counter()
     data = load_results(results, study=protocol.study.id)
+    check = check_data(data, protocol, protocol_sha256=protocol_hash(protocol_path))
     analysis = analyze_study(data, protocol, method="rm")
     files = write_report(
+        check=check,
         results=analysis,
         data=data,
         protocol=protocol,

@@ -8,14 +8,24 @@ from __future__ import annotations
 import csv
 import os
 import shutil
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from facelab.design import Trial
-from facelab.errors import StageError
+from facelab.errors import SessionError, StageError
+from facelab.experiment.timeline import ClipKey
+from facelab.hashing import sha256_file
 from facelab.protocol import Protocol
+from facelab.stimuli.clipspec import clip_spec_hash, plan
 
-__all__ = ["ClipRef", "check_audio", "check_clips", "check_disk", "check_display"]
+__all__ = [
+    "ClipRef",
+    "check_audio",
+    "check_clips",
+    "check_disk",
+    "check_display",
+    "compare_with_session",
+]
 
 MIN_FREE_MB = 200
 
@@ -26,50 +36,89 @@ class ClipRef:
     sha256: str
     duration_s: float
     fps: float
+    size: tuple[int, int] = (0, 0)
 
 
 def check_clips(
-    protocol: Protocol, trials: list[Trial], clips_dir: Path, *, verify_hashes: bool = True
-) -> dict[tuple[str, str, str], ClipRef]:
-    """Every clip the session shows, from ``clips.csv``, present and matching its hash."""
-    from facelab.stimuli.clip import sha256_file
-
+    protocol: Protocol,
+    needed: Iterable[ClipKey],
+    clips_dir: Path,
+    *,
+    base_dir: Path,
+    verify_hashes: bool = True,
+) -> dict[ClipKey, ClipRef]:
+    """Every clip the session shows, from ``clips.csv``: present, unchanged since rendering
+    (its SHA-256) and rendered from the protocol as it is now (its spec hash)."""
     manifest = clips_dir / "clips.csv"
     if not manifest.is_file():
-        raise StageError(
+        raise SessionError(
             f"no clip manifest at {manifest}; render the clips first: facelab render "
             f"PROTOCOL --out {clips_dir}"
         )
     with open(manifest, newline="", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
+    if rows and "spec_sha256" not in rows[0]:
+        raise SessionError(
+            f"{manifest} was written by an older facelab (no spec_sha256 column), so the clips "
+            "cannot be checked against the protocol; render again with this protocol"
+        )
     by_key = {(r["stimulus_set"], r["stimulus"], r["condition"]): r for r in rows}
-    needed = {(t.stimulus_set, t.stimulus, t.condition) for t in trials}
-    practice = protocol.presentation.practice
-    if practice is not None:
-        needed.add((practice.stimulus_set, practice.stimulus, practice.condition))
+    needed = set(needed)
     missing = sorted(needed - set(by_key))
     if missing:
         listed = ", ".join("/".join(k) for k in missing[:5])
-        raise StageError(
+        raise SessionError(
             f"{manifest} has no clip for {listed}{' …' if len(missing) > 5 else ''}; "
             "render again with this protocol"
+        )
+    jobs = {(j.stimulus_set, j.stimulus.id, j.condition): j for j in plan(protocol)}
+    stale = [
+        key
+        for key in sorted(needed)
+        if by_key[key]["spec_sha256"] != clip_spec_hash(protocol, jobs[key], base_dir=base_dir)
+    ]
+    if stale:
+        listed = ", ".join("/".join(k) for k in stale[:5])
+        raise SessionError(
+            f"{len(stale)} clip(s) in {clips_dir} were rendered from a different protocol or "
+            f"different input files than {protocol.study.id!r} now declares ({listed}"
+            f"{' …' if len(stale) > 5 else ''}): the protocol, an audio or avatar file changed "
+            f"after rendering. Render again: facelab render PROTOCOL --out {clips_dir}"
         )
     refs = {}
     for key in sorted(needed):
         row = by_key[key]
         path = clips_dir / row["path"]
         if not path.is_file():
-            raise StageError(f"clip file missing: {path} (listed in {manifest})")
+            raise SessionError(f"clip file missing: {path} (listed in {manifest})")
         if verify_hashes:
             actual = sha256_file(path)
             if actual != row["sha256"]:
-                raise StageError(
+                raise SessionError(
                     f"clip {path} does not match its hash in {manifest} "
                     f"(expected {row['sha256'][:12]}…, found {actual[:12]}…); it was "
                     "changed after rendering - render again"
                 )
-        refs[key] = ClipRef(path, row["sha256"], float(row["duration_s"]), float(row["fps"]))
+        refs[key] = ClipRef(
+            path,
+            row["sha256"],
+            float(row["duration_s"]),
+            float(row["fps"]),
+            (int(row["width"]), int(row["height"])),
+        )
     return refs
+
+
+def compare_with_session(
+    clips: dict[ClipKey, ClipRef], recorded: dict[str, str]
+) -> dict[str, dict[str, str]]:
+    """Clips whose bytes differ from those the session started with: {clip: {was, now}}."""
+    changed = {}
+    for key, ref in clips.items():
+        name = "/".join(key)
+        if name in recorded and recorded[name] != ref.sha256:
+            changed[name] = {"was": recorded[name], "now": ref.sha256}
+    return changed
 
 
 def check_disk(results: Path, *, min_mb: int = MIN_FREE_MB) -> None:

@@ -12,8 +12,11 @@ The rating model (all terms in VAS points, per item)::
 ``effect`` comes from the protocol's ``simulation`` section (defaults, then per item / set
 overrides), with command-line effects replacing the defaults. The trial order is the
 participant's real design (the protocol seed); the simulation seed only drives the ratings.
-Times run on a simulated clock, so the same seed writes byte-identical logs. Every session's
-JSON says ``"simulated": true`` with the model used.
+Times run on a simulated clock, so the same seed writes byte-identical logs. Every row says
+``simulated = true`` and every session's JSON says ``"simulated": true`` with the model used.
+
+A simulated session walks the same timeline of screens as a real one
+(:func:`facelab.experiment.timeline.compile_timeline`) through the same walker and log.
 """
 
 from __future__ import annotations
@@ -27,10 +30,31 @@ import numpy as np
 
 from facelab.design import build_trials, participant_seed
 from facelab.errors import StageError
+from facelab.experiment.timeline import (
+    ClipScreen,
+    Playback,
+    TextScreen,
+    VasAnswer,
+    VasScreen,
+    compile_timeline,
+)
+from facelab.experiment.walk import walk
 from facelab.protocol import Protocol, protocol_hash
-from facelab.sessionlog import SessionLog, SessionPaths, rating_row, session_paths
+from facelab.sessionlog import (
+    SessionContext,
+    SessionLock,
+    SessionLog,
+    SessionPaths,
+    session_paths,
+)
 
-__all__ = ["RatingModel", "condition_effect", "simulate_participant", "simulate_study"]
+__all__ = [
+    "RatingModel",
+    "SimulatedParticipant",
+    "condition_effect",
+    "simulate_participant",
+    "simulate_study",
+]
 
 _CLOCK_START = dt.datetime(2026, 1, 1, 9, 0, 0, tzinfo=dt.UTC)
 _CLIP_S = 8.0  # simulated clip length on the session clock (s)
@@ -97,6 +121,45 @@ class RatingModel:
         return round(float(np.clip(value, low, high)), 2), rt
 
 
+class SimulatedParticipant:
+    """A presenter (:mod:`facelab.experiment.walk`) that answers every screen from a
+    :class:`RatingModel` on a simulated clock: clips take ``_CLIP_S`` seconds, each response
+    its simulated response time. The practice trial is answered mid-scale without drawing
+    from the generator, as the scripted participant of ``facelab run --simulate`` does."""
+
+    def __init__(self, rater: RatingModel):
+        self.rater = rater
+        self.clock = 0.0
+
+    def text(self, screen: TextScreen) -> None:
+        return None
+
+    def clip(self, screen: ClipScreen) -> Playback:
+        onset = self.clock
+        self.clock += _CLIP_S
+        return Playback(onset=round(onset, 3), dropped=0)
+
+    def vas(self, screen: VasScreen) -> list[VasAnswer]:
+        answers = []
+        for item in screen.items:
+            if screen.trial is None or screen.practice:
+                answers.append(
+                    VasAnswer(item.id, (item.range[0] + item.range[1]) / 2, 1.0, self._stamp())
+                )
+                continue
+            rating, rt = self.rater.rate(
+                item=item.id,
+                stimulus_set=screen.trial.stimulus_set,
+                condition=screen.trial.condition,
+            )
+            self.clock += rt
+            answers.append(VasAnswer(item.id, rating, round(rt, 3), self._stamp()))
+        return answers
+
+    def _stamp(self) -> str:
+        return (_CLOCK_START + dt.timedelta(seconds=self.clock)).isoformat()
+
+
 def simulate_participant(
     protocol: Protocol,
     *,
@@ -111,13 +174,15 @@ def simulate_participant(
     """Write one complete simulated session; refuses to overwrite an existing one."""
     model = protocol.simulation.model
     trials = build_trials(protocol, participant=participant)
+    digest = protocol_hash(protocol_path)
     provenance: dict[str, Any] = {
         "simulated": True,
+        "mode": "simulated",
         "study": protocol.study.id,
         "participant": participant,
         "session": session,
         "protocol_file": str(protocol_path),
-        "protocol_sha256": protocol_hash(protocol_path),
+        "protocol_sha256": digest,
         "design_seed": participant_seed(protocol.seed, participant),
         "simulation_seed": seed,
         "simulation_model": model.model_dump(),
@@ -128,37 +193,28 @@ def simulate_participant(
         "trial_order": [t.trial_index for t in trials],
         "trials": [[t.block, t.set_index, t.stimulus, t.condition, t.repetition] for t in trials],
     }
-    log = SessionLog.create(
-        results,
-        study=protocol.study.id,
-        participant=participant,
-        session=session,
-        provenance=provenance,
+    paths = session_paths(
+        results, study=protocol.study.id, participant=participant, session=session
     )
-    rater = RatingModel(protocol, rng=rng, effects=effects)
-    clock = 0.0
-    for trial in trials:
-        clip_onset = clock
-        clock += _CLIP_S
-        for item in protocol.items:
-            rating, rt = rater.rate(
-                item=item.id, stimulus_set=trial.stimulus_set, condition=trial.condition
-            )
-            clock += rt
-            log.append(
-                rating_row(
-                    study=protocol.study.id,
-                    participant=participant,
-                    session=session,
-                    trial=trial,
-                    item=item.id,
-                    rating=rating,
-                    rt_s=round(rt, 3),
-                    clip_onset=round(clip_onset, 3),
-                    clip_frames_dropped=0,
-                    timestamp=(_CLOCK_START + dt.timedelta(seconds=clock)).isoformat(),
-                )
-            )
+    with SessionLock(paths):
+        log = SessionLog.create(
+            results,
+            study=protocol.study.id,
+            participant=participant,
+            session=session,
+            provenance=provenance,
+        )
+        context = SessionContext(
+            study=protocol.study.id,
+            participant=participant,
+            session=session,
+            simulated=True,
+            protocol_sha256=digest,
+        )
+        screens = compile_timeline(protocol, trials, participant=participant, session=session)
+        presenter = SimulatedParticipant(RatingModel(protocol, rng=rng, effects=effects))
+        walk(screens, presenter=presenter, log=log, context=context, record_playback=False)
+        log.update_provenance(finished=presenter._stamp())
     return log.paths
 
 

@@ -6,6 +6,9 @@ where the stimulus asks for it) into a blendshape track, which is rendered to
 ``<out>/<set>__<stimulus>__<condition>.mp4``. A clip is re-rendered only when the hash of its
 inputs - audio, blendshape track, avatar, method and parameters, renderer settings - changes;
 the hash is kept in a JSON file beside the clip. ``clips.csv`` lists every clip (DESIGN.md).
+
+The clip list and each clip's spec hash (checked by ``facelab run``) are in
+:mod:`facelab.stimuli.clipspec`.
 """
 
 from __future__ import annotations
@@ -14,13 +17,13 @@ import csv
 import hashlib
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from facelab.errors import StageError
-from facelab.protocol import Protocol, Stimulus
+from facelab.protocol import Protocol
 from facelab.stimuli.avatar import Avatar, check_targets, default_head, load, with_viseme_mixes
 from facelab.stimuli.clip import (
     ClipInfo,
@@ -30,52 +33,14 @@ from facelab.stimuli.clip import (
     sha256_file,
     weights_at,
 )
+from facelab.stimuli.clipspec import CLIP_COLUMNS, RENDER_VERSION, ClipJob, clip_spec_hash, plan
 from facelab.stimuli.drive import BlendshapeTrack, DriveInput, drive
 from facelab.stimuli.prepare import speech_for, tracks_for
 from facelab.stimuli.render import Renderer, RenderSettings
 from facelab.stimuli.speech import Speech
 from facelab.stimuli.visemes import VOWELS, VisemeTrack, vowel_segments
 
-__all__ = ["CLIP_COLUMNS", "ClipJob", "build_clips", "contact_sheets", "load_avatar", "plan"]
-
-CLIP_COLUMNS = (
-    "clip_id",
-    "stimulus_set",
-    "stimulus",
-    "condition",
-    "path",
-    "duration_s",
-    "fps",
-    "width",
-    "height",
-    "sha256",
-)
-RENDER_VERSION = "facelab-render-1"
-
-
-@dataclass(frozen=True)
-class ClipJob:
-    clip_id: str
-    stimulus_set: str
-    stimulus: Stimulus
-    condition: str
-
-
-def plan(protocol: Protocol) -> list[ClipJob]:
-    """Every (stimulus, condition) the blocks and the practice trial show, in protocol order."""
-    wanted: dict[tuple[str, str, str], None] = {}
-    for block in protocol.blocks:
-        for stim in protocol.stimulus_set(block.stimulus_set).stimuli:
-            for cond in protocol.block_conditions(block):
-                wanted[(block.stimulus_set, stim.id, cond)] = None
-    practice = protocol.presentation.practice
-    if practice is not None:
-        wanted[(practice.stimulus_set, practice.stimulus, practice.condition)] = None
-    jobs = []
-    for set_id, stim_id, cond in wanted:
-        stim = next(s for s in protocol.stimulus_set(set_id).stimuli if s.id == stim_id)
-        jobs.append(ClipJob(f"{set_id}__{stim_id}__{cond}", set_id, stim, cond))
-    return jobs
+__all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
 
 
 def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:
@@ -182,13 +147,18 @@ def build_clips(
                     default=str,
                 ).encode()
             ).hexdigest()
+            spec = clip_spec_hash(protocol, job, base_dir=base_dir)
             mp4 = out / f"{job.clip_id}.mp4"
             meta = out / f"{job.clip_id}.json"
             info: ClipInfo | None = None
             status = "rendered"
             if mp4.exists() and meta.exists():
                 saved = json.loads(meta.read_text())
-                if saved.get("input_hash") == key and saved.get("sha256") == sha256_file(mp4):
+                if (
+                    saved.get("input_hash") == key
+                    and saved.get("spec_sha256") == spec
+                    and saved.get("sha256") == sha256_file(mp4)
+                ):
                     info = ClipInfo(
                         mp4,
                         saved["duration_s"],
@@ -221,6 +191,7 @@ def build_clips(
                     json.dumps(
                         {
                             "input_hash": key,
+                            "spec_sha256": spec,
                             "sha256": info.sha256,
                             "frames": n_frames,
                             "duration_s": info.duration_s,
@@ -244,6 +215,7 @@ def build_clips(
                     "width": settings.width,
                     "height": settings.height,
                     "sha256": info.sha256,
+                    "spec_sha256": spec,
                     "status": status,
                 }
             )

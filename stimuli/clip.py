@@ -9,7 +9,6 @@ exact silence, so picture and sound start together at t = 0 and end within one f
 
 from __future__ import annotations
 
-import hashlib
 import shutil
 import subprocess
 import tempfile
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from facelab.errors import StageError
+from facelab.hashing import sha256_file
 from facelab.stimuli.drive import BlendshapeTrack
 from facelab.stimuli.mesh import Avatar
 from facelab.stimuli.speech import Speech, write_wav
@@ -36,14 +36,6 @@ class ClipInfo:
     height: int
     frames: int
     sha256: str
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def padded_audio(speech: Speech, *, pad_s: float) -> Speech:

@@ -23,7 +23,6 @@ from facelab.stimuli.targets import VISEME_MIXES
 __all__ = ["default_head"]
 
 
-
 def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
     t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
     return t * t * (3 - 2 * t)

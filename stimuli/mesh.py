@@ -22,8 +22,6 @@ __all__ = ["LANDMARKS", "Avatar", "lip_metrics"]
 LANDMARKS = ("upper_lip", "lower_lip", "mouth_left", "mouth_right")
 
 
-
-
 @dataclass
 class Avatar:
     neutral: np.ndarray
@@ -89,7 +87,6 @@ class Avatar:
         h.update(repr(sorted(self.landmarks.items())).encode())
         h.update("|".join(self._names).encode())
         return h.hexdigest()
-
 
 
 def lip_metrics(avatar: Avatar, vertices: np.ndarray) -> dict[str, float]:

@@ -44,8 +44,6 @@ SILENT_RMS_DBFS = -60.0  # below this the whole file counts as silent
 CLIPPED_FRACTION = 0.001  # more than 0.1 % of samples at full scale counts as clipped
 
 
-
-
 @dataclass(frozen=True)
 class Phone:
     """One OpenJTalk phoneme: ``a i u e o`` (``A I U E O`` devoiced), consonants, ``N``,

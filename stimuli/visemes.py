@@ -70,8 +70,6 @@ MODEL_PATH = package_file("facelab.stimuli", "data", "viseme_model.json")
 FPS = 100.0
 
 
-
-
 # --------------------------------------------------------------------------- the track
 
 

@@ -73,3 +73,88 @@ def test_console_script_gives_no_traceback(tmp_path: Path) -> None:
     assert f"{bad}:2: (document): not valid YAML" in proc.stderr
     proc = subprocess.run([str(exe), "nonsense"], capture_output=True, text=True, check=False)
     assert proc.returncode == 2 and "invalid choice" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["design", "{kato}", "--participant", "P01", "--out", "{tmp}/no/such/t.csv"],
+            "does not exist",
+        ),
+        (["design", "{kato}", "--participant", "P01", "--out", "{tmp}"], "is a folder"),
+        (["schema", "--out", "{tmp}/no/such/s.json"], "does not exist"),
+        (["simulate", "{kato}", "--seed", "1", "--results", "{tmp}/file.txt"], "is a file"),
+        (["analyze", "{tmp}", "--protocol", "{kato}", "--out", "{tmp}/file.txt"], "is a file"),
+    ],
+)
+def test_output_path_mistakes_are_clear_errors(
+    kato_path: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    args: list[str],
+    message: str,
+) -> None:
+    (tmp_path / "file.txt").write_text("x")
+    filled = [a.format(kato=kato_path, tmp=tmp_path) for a in args]
+    if filled[0] == "analyze":  # needs logs to get as far as the output folder
+        assert (
+            main(
+                [
+                    "simulate",
+                    str(kato_path),
+                    "--seed",
+                    "1",
+                    "--participants",
+                    "2",
+                    "--results",
+                    str(tmp_path),
+                ]
+            )
+            == 0
+        )
+        capsys.readouterr()
+    assert main(filled) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_track_output_paths_are_checked_before_any_work(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for option in ("--plot", "--csv"):
+        code = main(
+            [
+                "track",
+                str(kato_path),
+                "--stimulus",
+                "vowels/aiueo",
+                option,
+                str(tmp_path / "x" / "y"),
+            ]
+        )
+        assert code == 2 and "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("session", ["0", "99999999999999999999", "ten"])
+def test_session_numbers_are_bounded(
+    kato_path: Path, capsys: pytest.CaptureFixture[str], session: str
+) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["run", str(kato_path), "--participant", "P01", "--session", session])
+    assert info.value.code == 2
+    assert "--session" in capsys.readouterr().err
+
+
+def test_shipped_protocols_are_listed_and_copied(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["protocols"]) == 0
+    assert "kato2021" in capsys.readouterr().out
+    assert main(["protocols", "--copy", "kato2021", "--to", str(tmp_path)]) == 0
+    copied = tmp_path / "kato2021.yaml"
+    assert main(["validate", str(copied)]) == 0
+    assert main(["protocols", "--copy", "kato2021", "--to", str(tmp_path)]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["protocols", "--copy", "nope", "--to", str(tmp_path)]) == 2
+    assert "no shipped protocol 'nope'" in capsys.readouterr().err

@@ -11,7 +11,7 @@ import pytest
 
 from facelab.analysis.load import load_results
 from facelab.experiment.cli import main
-from facelab.stimuli.clip import sha256_file
+from facelab.hashing import sha256_file
 
 pytestmark = pytest.mark.slow
 

@@ -1,4 +1,5 @@
-"""Session logs: append + fsync per rating, never overwrite, repair a line cut mid-write."""
+"""Session logs: append + fsync per response, never overwrite, repair a line cut mid-write,
+one writer, provenance on every row, old logs still readable."""
 
 from __future__ import annotations
 
@@ -6,8 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from facelab.errors import StageError
-from facelab.sessionlog import LOG_COLUMNS, SessionLog, parse_log_text, session_paths
+from facelab.errors import SessionError, StageError
+from facelab.sessionlog import (
+    LOG_COLUMNS,
+    LOG_COLUMNS_V1,
+    SessionLock,
+    SessionLog,
+    parse_log_text,
+    rows_to_tsv,
+    session_paths,
+)
 
 
 def _row(trial: int, item: str, rating: float = 50.0) -> dict[str, object]:
@@ -29,6 +38,14 @@ def _row(trial: int, item: str, rating: float = 50.0) -> dict[str, object]:
         "clip_onset": 3.5,
         "clip_frames_dropped": 0,
         "timestamp": "2026-01-01T00:00:00+00:00",
+        "screen": "vas",
+        "response": None,
+        "correct": None,
+        "level": None,
+        "comparison": None,
+        "position": None,
+        "simulated": False,
+        "protocol_sha256": "ab" * 32,
     }
 
 
@@ -76,7 +93,7 @@ def test_resume_moves_a_cut_off_line_to_the_repairs_file(tmp_path: Path) -> None
         fh.write("s1\tP01\t1\t2\tb\t1\tv\tx\tc\t1\ta\t4")
     resumed = SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
     assert [(r["trial_index"], r["item"]) for r in resumed.rows] == [(1, "a"), (1, "b")]
-    assert resumed.answered() == {1: {"a", "b"}}
+    assert resumed.answered() == {(1, "a"), (1, "b")}
     assert resumed.repaired == ["s1\tP01\t1\t2\tb\t1\tv\tx\tc\t1\ta\t4"]
     assert resumed.paths.repairs.read_text().startswith("s1\tP01\t1\t2")
     assert resumed.paths.tsv.read_text().endswith("\n")
@@ -102,7 +119,7 @@ def test_resume_without_a_session_and_corrupt_middle_lines(tmp_path: Path) -> No
     log.append(_row(1, "a"))
     with open(log.paths.tsv, "a", encoding="utf-8") as fh:
         fh.write("garbage line\n")
-    with pytest.raises(StageError, match=r"_beh.tsv:3: expected 17 tab-separated fields"):
+    with pytest.raises(StageError, match=r"_beh.tsv:3: expected 25 tab-separated fields"):
         SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
 
 
@@ -114,3 +131,61 @@ def test_update_provenance_appends_lists(tmp_path: Path) -> None:
     log.update_provenance(resumes=["t2"], note="x")
     data = json.loads(log.paths.provenance.read_text())
     assert data == {"seed": 1, "resumes": ["t1", "t2"], "note": "x"}
+
+
+def test_provenance_columns_round_trip(tmp_path: Path) -> None:
+    log = _create(tmp_path)
+    log.append({**_row(1, "a"), "simulated": True})
+    rows, _ = parse_log_text(log.paths.tsv.read_text(), source="t")
+    assert rows[0]["simulated"] is True and rows[0]["protocol_sha256"] == "ab" * 32
+    assert "\ttrue\t" in log.paths.tsv.read_text()
+
+
+def test_a_facelab_01_log_is_read_but_not_continued(tmp_path: Path) -> None:
+    paths = session_paths(tmp_path, study="s1", participant="P01", session=1)
+    paths.folder.mkdir(parents=True)
+    old = {k: v for k, v in _row(1, "a").items() if k in LOG_COLUMNS_V1}
+    text = (
+        "\t".join(LOG_COLUMNS_V1)
+        + "\n"
+        + "\t".join("n/a" if old[c] is None else str(old[c]) for c in LOG_COLUMNS_V1)
+        + "\n"
+    )
+    paths.tsv.write_text(text)
+    rows, cut = parse_log_text(text, source="old")
+    assert cut is None and rows[0]["rating"] == 50.0 and rows[0]["simulated"] is None
+    with pytest.raises(SessionError, match=r"written by facelab 0\.1"):
+        SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
+
+
+def test_one_writer_per_session_and_no_stale_lock(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    paths = session_paths(tmp_path, study="s1", participant="P01", session=1)
+    with (
+        SessionLock(paths),
+        pytest.raises(SessionError, match=r"in use by another process \(pid \d+"),
+    ):
+        SessionLock(paths).__enter__()
+    # a holder that dies without releasing (SIGKILL) leaves no lock behind
+    code = (
+        "import os, sys; from pathlib import Path; from facelab.sessionlog import *; "
+        f"SessionLock(session_paths(Path({str(tmp_path)!r}), study='s1', participant='P01', "
+        "session=1)).__enter__(); os.kill(os.getpid(), 9)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], check=False)
+    assert proc.returncode == -9
+    with SessionLock(paths):
+        pass
+
+
+def test_session_numbers_are_bounded(tmp_path: Path) -> None:
+    with pytest.raises(StageError, match=r"1\.\.9999"):
+        session_paths(tmp_path, study="s1", participant="P01", session=10**20)
+
+
+def test_rows_to_tsv_parses_back(tmp_path: Path) -> None:
+    rows = [_row(1, "a", 1.5), _row(1, "b", 99.25)]
+    parsed, cut = parse_log_text(rows_to_tsv(rows), source="x")
+    assert cut is None and [r["rating"] for r in parsed] == [1.5, 99.25]

@@ -91,3 +91,25 @@ def test_power_from_pilot_logs(
     )
     out = capsys.readouterr().out
     assert out.count("pilot F") == 4 and "mouth_shape/sentences" in out
+
+
+@pytest.mark.parametrize("p", [0.0, 1.0, 1.5, -0.1])
+def test_reported_p_outside_0_1_is_refused(p: float, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["power", "--reported-p", str(p)]) == 2
+    assert "strictly between 0 and 1" in capsys.readouterr().err
+
+
+def test_large_p_implies_no_effect_and_power_is_alpha(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["power", "--reported-p", "0.7", "--sims", "100"]) == 0
+    out = capsys.readouterr().out
+    assert "power with n=8: 0.050" in out and "cannot be computed" in out
+    assert power.rm_power(n=8, k=3, f2=0.0) == pytest.approx(0.05)
+
+
+def test_tiny_p_stays_finite_and_exact() -> None:
+    from scipy import stats as sps
+
+    for p in (1e-17, 1e-40, 1e-120):
+        est = power.implied_effect(p=p, df1=2, df2=45)
+        assert np.isfinite(est["f"]) and 0 < est["eta_p_sq"] < 1
+        assert sps.f.logsf(est["f"], 2, 45) == pytest.approx(np.log(p), rel=1e-9)

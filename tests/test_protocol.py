@@ -259,3 +259,92 @@ def test_recorded_audio_stimulus_is_accepted(tmp_path: Path, kato_text: str) -> 
     )
     stim = load_protocol(path).stimulus_set("vowels").stimuli[0]
     assert stim.audio == "vowels/aiueo.wav" and stim.text is None
+
+
+# --------------------------------------------------------------- files that could hang or crash
+
+BOMB = "\n".join(
+    [
+        'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]',
+        *(
+            f"{chr(98 + i)}: &{chr(98 + i)} [" + ",".join([f"*{chr(97 + i)}"] * 9) + "]"
+            for i in range(8)
+        ),
+    ]
+)
+
+
+def test_alias_bomb_is_refused_before_expanding(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "bomb.yaml"
+    path.write_text(BOMB + "\n", encoding="utf-8")  # 9**9 = 387 million strings expanded
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "alias bomb" in err and "Traceback" not in err
+    many = "x: &x 1\n" + "".join(f"k{i}: *x\n" for i in range(1_200))
+    path.write_text(many, encoding="utf-8")
+    assert main(["validate", str(path)]) == 2
+    assert "more than 1000 YAML aliases" in capsys.readouterr().err
+
+
+def test_deep_nesting_is_refused_not_a_recursion_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "deep.yaml"
+    path.write_text("a: " + "[" * 5000 + "]" * 5000 + "\n", encoding="utf-8")
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:1: (document): nested more than 64 levels" in err
+    assert "RecursionError" not in err and "Traceback" not in err
+
+
+def test_aliases_within_limits_still_work(tmp_path: Path, kato_text: str) -> None:
+    text = kato_text.replace("    range: [0, 100]\n", "    range: &scale [0, 100]\n", 1)
+    text = text.replace("    range: [0, 100]\n", "    range: *scale\n", 1)
+    path = tmp_path / "alias.yaml"
+    path.write_text(text, encoding="utf-8")
+    assert [i.range for i in load_protocol(path).items] == [[0.0, 100.0], [0.0, 100.0]]
+
+
+def test_duplicate_keys_types_and_cross_checks_in_one_run(tmp_path: Path, kato_text: str) -> None:
+    """A duplicate key, a type error and a broken reference are all reported together."""
+    text = kato_text.replace("  width: 1280\n", "  width: 1280\n  width: 1920\n")
+    text = text.replace("  fps: 30", "  fps: thirty")
+    text = text.replace(
+        "    stimulus_set: sentences\n    sets: 2", "    stimulus_set: sentence\n    sets: 2"
+    )
+    path = tmp_path / "three.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    found = {i.dotted(): i.message for i in info.value.issues}
+    assert "duplicate key" in found["rendering.width"]
+    assert "integer" in found["rendering.fps"]
+    assert "unknown stimulus set 'sentence'" in found["blocks[1].stimulus_set"]
+
+
+@pytest.mark.parametrize("bad_id", ["x__y", "a" * 65, "_x", "9a"])
+def test_ids_that_would_make_clip_names_collide_are_refused(
+    tmp_path: Path, kato_text: str, bad_id: str
+) -> None:
+    """Clip files are <set>__<stimulus>__<condition>: with '__' inside ids, set 'short' +
+    stimulus 'x__y' and set 'short__x' + stimulus 'y' would share one file."""
+    path = tmp_path / "ids.yaml"
+    path.write_text(kato_text.replace("  - id: passage", f"  - id: {bad_id}", 1), encoding="utf-8")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    (issue,) = [i for i in info.value.issues if i.dotted().endswith(".id")]
+    assert issue.line and ("no '__'" in issue.message or "64 characters" in issue.message)
+
+
+def test_a_large_protocol_validates(tmp_path: Path, kato_text: str) -> None:
+    """150,000 stimuli (7.8 MB of YAML): answered, not hung (timing: see the closing note)."""
+    stims = "".join(f"      - id: s{i}\n        text: こんにちは。\n" for i in range(150_000))
+    marker = "  - id: sentences\n"
+    head, tail = kato_text.split(marker, 1)
+    head2, stimuli = tail.split("    stimuli:\n", 1)
+    path = tmp_path / "big.yaml"
+    path.write_text(head + marker + head2 + "    stimuli:\n" + stims + stimuli, encoding="utf-8")
+    protocol = load_protocol(path)
+    assert len(protocol.stimulus_set("sentences").stimuli) == 150_001

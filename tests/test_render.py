@@ -130,6 +130,7 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
     assert main(argv) == 0
     rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
     assert [r["condition"] for r in rows] == ["baseline", "standard", "emphasized"]
+    # DESIGN.md's columns first, then the hash of the clip's declared inputs (stale-clip check)
     assert list(rows[0]) == [
         "clip_id",
         "stimulus_set",
@@ -141,8 +142,9 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
         "width",
         "height",
         "sha256",
+        "spec_sha256",
     ]
-    from facelab.stimuli.clip import sha256_file
+    from facelab.hashing import sha256_file
 
     for r in rows:
         assert sha256_file(out / r["path"]) == r["sha256"] and (r["width"], r["height"]) == (

@@ -1,5 +1,6 @@
-"""The PsychoPy runner under Xvfb with a scripted participant (real X clicks), crash safety
-and the checks before a session. Needs a display: the test command runs pytest in xvfb-run."""
+"""The PsychoPy runner under Xvfb with a scripted participant (real X clicks), crash safety,
+one writer per session, signals, and the checks before a session (stale or changed clips).
+Needs a display: the test command runs pytest in xvfb-run."""
 
 from __future__ import annotations
 
@@ -78,6 +79,30 @@ def _rows(results: Path, pid: str) -> list[dict[str, str]]:
     return list(csv.DictReader(tsv.read_text(encoding="utf-8").splitlines(), delimiter="\t"))
 
 
+def _session_file(results: Path, pid: str, suffix: str) -> Path:
+    return results / "kato2021" / f"sub-{pid}" / "ses-1" / f"sub-{pid}_ses-1_task-kato2021{suffix}"
+
+
+def _actions(results: Path, pid: str) -> list[dict]:
+    import json
+
+    text = _session_file(results, pid, "_actions.jsonl").read_text(encoding="utf-8")
+    return [json.loads(line) for line in text.splitlines()]
+
+
+def _wait_saved(proc: subprocess.Popen, count: int, given: list[str] | None = None) -> None:
+    """Read the runner's output until ``count`` responses were reported saved."""
+    assert proc.stdout is not None
+    seen = 0
+    while seen < count:
+        line = proc.stdout.readline()
+        assert line, f"runner ended early: {proc.stderr.read()[-1500:] if proc.stderr else ''}"
+        if line.endswith("(saved)\n"):
+            seen += 1
+            if given is not None:
+                given.append(line.split(" = ")[0])
+
+
 def _design(study: Path, pid: str) -> list[tuple[int, str]]:
     trials = build_trials(load_protocol(study / "short.yaml"), participant=pid)
     return [(t.trial_index, item) for t in trials for item in ("naturalness", "mouth_shape")]
@@ -133,12 +158,7 @@ def test_sigkill_at_random_points_then_resume(study: Path, tmp_path: Path) -> No
     for kill_after in sorted(rng.choice(np.arange(3, 34), size=3, replace=False)):
         proc = _run(study, results, "--participant", "P02", *([] if first else ["--resume"]))
         first = False
-        assert proc.stdout is not None
-        while len(given) < kill_after:
-            line = proc.stdout.readline()
-            assert line, f"runner ended early: {proc.stderr.read()[-1500:] if proc.stderr else ''}"
-            if line.endswith("(saved)\n"):
-                given.append(line.split(" = ")[0])
+        _wait_saved(proc, int(kill_after) - len(given), given)
         time.sleep(float(rng.uniform(0.0, 1.5)))  # somewhere in the next clip or item
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
@@ -153,12 +173,169 @@ def test_sigkill_at_random_points_then_resume(study: Path, tmp_path: Path) -> No
     assert [(int(r["trial_index"]), r["item"]) for r in rows] == _design(
         study, "P02"
     )  # once each, in order
+    assert {r["simulated"] for r in rows} == {"true"}
     import json
 
-    meta = json.loads(
-        next((results / "kato2021" / "sub-P02" / "ses-1").glob("*_session.json")).read_text()
-    )
+    meta = json.loads(_session_file(results, "P02", "_session.json").read_text())
     assert len(meta["resumes"]) == 3 and meta["trial_order"]
+    # what the scripted participant did, against what was logged: every logged rating is the
+    # last value it chose for that trial and item before the rating's timestamp
+    import datetime as dt
+
+    actions = [a for a in _actions(results, "P02") if a["trial_index"] is not None]
+    for row in rows:
+        stamp = dt.datetime.fromisoformat(row["timestamp"]).timestamp()
+        mine = [
+            a
+            for a in actions
+            if (a["trial_index"], a["item"]) == (int(row["trial_index"]), row["item"])
+            and a["t"] <= stamp
+        ]
+        assert mine, f"no action before {row['trial_index']}/{row['item']}"
+        assert abs(mine[-1]["value"] - float(row["rating"])) < 0.25  # one pixel of the line
+    # a response asked again after a resume gets a new value, not a replay of the old run's
+    starts = [dt.datetime.fromisoformat(r["at"]).timestamp() for r in meta["resumes"]]
+    by_key: dict[tuple[int, str], dict[int, float]] = {}
+    for a in actions:
+        run = sum(a["t"] >= s for s in starts)
+        by_key.setdefault((a["trial_index"], a["item"]), {})[run] = a["value"]
+    asked_again = [v for v in by_key.values() if len(v) > 1]
+    assert all(len(set(v.values())) == len(v) for v in asked_again)
+
+
+def test_sigkill_between_two_item_confirms_loses_nothing(study: Path, tmp_path: Path) -> None:
+    """Sequential items: the first item of a trial is on disk the moment it is confirmed."""
+    import json
+
+    results = tmp_path / "res"
+    proc = _run(study, results, "--participant", "P04")
+    assert proc.stdout is not None
+    while True:
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()[-1500:] if proc.stderr else ""
+        if line.startswith("trial 2/18 ") and " naturalness = " in line and "(saved)" in line:
+            break
+    proc.send_signal(signal.SIGKILL)  # the second item of trial 2 is on screen, unconfirmed
+    proc.wait(timeout=30)
+    keys = [(int(r["trial_index"]), r["item"]) for r in _rows(results, "P04")]
+    assert keys == [(1, "naturalness"), (1, "mouth_shape"), (2, "naturalness")]
+    proc = _run(study, results, "--participant", "P04", "--resume")
+    _out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+    rows = _rows(results, "P04")
+    assert [(int(r["trial_index"]), r["item"]) for r in rows] == _design(study, "P04")
+    plays = [
+        json.loads(x)
+        for x in _session_file(results, "P04", "_playback.jsonl").read_text().splitlines()
+    ]
+    second = [p for p in plays if p["trial_index"] == 2]
+    assert [p["replay"] for p in second] == [False, True]  # the clip is shown again on resume
+
+
+def test_sigterm_ends_the_session_like_sigint(study: Path, tmp_path: Path) -> None:
+    results = tmp_path / "res"
+    proc = _run(study, results, "--participant", "P05")
+    _wait_saved(proc, 3)
+    proc.send_signal(signal.SIGTERM)
+    _out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143 and "SIGTERM" in err
+    saved = _rows(results, "P05")
+    assert len(saved) >= 3
+    proc = _run(study, results, "--participant", "P05", "--resume")
+    _out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+    assert len(_rows(results, "P05")) == 36
+
+
+def test_a_session_has_one_writer(
+    study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    results = tmp_path / "res"
+    proc = _run(study, results, "--participant", "P06")
+    try:
+        _wait_saved(proc, 1)
+        second = [
+            "run",
+            str(study / "short.yaml"),
+            "--participant",
+            "P06",
+            "--resume",
+            "--simulate",
+            "--clips",
+            str(study / "clips"),
+            "--results",
+            str(results),
+        ]
+        os.environ["SDL_AUDIODRIVER"] = "dummy"
+        assert main(second) == 2
+        err = capsys.readouterr().err
+        assert "is in use by another process (pid" in err and "nothing was written" in err
+        assert proc.poll() is None  # the first run goes on
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    keys = [(r["trial_index"], r["item"]) for r in _rows(results, "P06")]
+    assert len(keys) == len(set(keys))  # nothing logged twice
+    # the dead holder's lock does not block a resume
+    proc = _run(study, results, "--participant", "P06", "--resume")
+    _out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+
+
+def test_stale_and_changed_clips_are_refused(
+    study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+    import shutil
+
+    clips = tmp_path / "clips"
+    shutil.copytree(study / "clips", clips)
+    base = ["--participant", "P07", "--simulate", "--clips", str(clips)]
+    # the protocol edited after rendering (a sentence, a gain): refused before any window
+    for old, new in (
+        ("text: こんにちは。", "text: さようなら。"),
+        ("params: {z: standard, gain: 1.0}", "params: {z: standard, gain: 1.2}"),
+    ):
+        edited = tmp_path / "edited.yaml"
+        text = (study / "short.yaml").read_text(encoding="utf-8")
+        assert old in text
+        edited.write_text(text.replace(old, new), encoding="utf-8")
+        assert main(["run", str(edited), *base, "--results", str(tmp_path / "r0")]) == 2
+        err = capsys.readouterr().err
+        assert "rendered from a different protocol" in err and "Render again" in err
+    assert not (tmp_path / "r0" / "kato2021").exists()
+    # a resume after the clips were re-rendered (another size) is refused, then accepted
+    results = tmp_path / "res"
+    proc = subprocess.Popen(
+        [EXE, "run", str(study / "short.yaml"), *base, "--results", str(results)],
+        env={**os.environ, "SDL_AUDIODRIVER": "dummy"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    _wait_saved(proc, 6)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    render = ["render", str(study / "short.yaml"), "--out", str(clips), "--quiet"]
+    assert main([*render, "--size", "256x144", "--fps", "15"]) == 0
+    capsys.readouterr()
+    resume = ["run", str(study / "short.yaml"), *base, "--results", str(results), "--resume"]
+    assert main(resume) == 2
+    err = capsys.readouterr().err
+    assert "differ from those this session started with" in err
+    assert "--accept-changed-clips" in err
+    proc = subprocess.Popen(
+        [EXE, *resume, "--accept-changed-clips"],
+        env={**os.environ, "SDL_AUDIODRIVER": "dummy"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    _out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
+    meta = json.loads(_session_file(results, "P07", "_session.json").read_text())
+    assert meta["resumes"][-1]["changed_clips"]  # which clips changed, was and now
+    assert len(_rows(results, "P07")) == 36
 
 
 def test_checks_before_a_session(

@@ -108,7 +108,7 @@ def test_analyze_writes_tables_figures_and_report(
     out = simulated / "kato2021" / "analysis"
     assert main(["analyze", str(simulated), "--protocol", str(kato_path)]) == 0
     printed = capsys.readouterr().out
-    assert "288 SIMULATED ratings from 8 participants" in printed
+    assert "288 SIMULATED responses from 8 participants" in printed
     for name in (
         "rm_anova",
         "pairwise_paired",
@@ -198,7 +198,7 @@ def test_load_errors(simulated: Path, tmp_path: Path) -> None:
         load_results(tmp_path / "nope")
 
 
-def test_analyze_missing_cell_is_an_error_with_exclude_as_the_way_out(
+def test_incomplete_participant_is_reported_and_left_out_of_the_rm_analysis(
     simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     root = _copy(simulated, tmp_path)
@@ -206,7 +206,71 @@ def test_analyze_missing_cell_is_an_error_with_exclude_as_the_way_out(
     lines = tsv.read_text().splitlines(keepends=True)
     keep = [line for line in lines if "\tsentences\tpassage\tbaseline\t" not in line]
     tsv.write_text("".join(keep))
-    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 2
-    assert "missing cell(s)" in capsys.readouterr().err
+    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    out = capsys.readouterr().out
+    assert "incomplete session(s): P05/1 (32 of 36)" in out
+    assert "sentences: participant(s) P05 lack a condition; left out" in out
+    layout = pd.read_csv(root / "kato2021" / "analysis" / "paper_layout.csv")
+    rm = layout[(layout.procedure == "rm") & (layout.stimulus_set == "sentences")]
+    assert set(rm.n_participants) == {7} and set(rm.df2) == {12}
+    report = (root / "kato2021" / "analysis" / "report.md").read_text()
+    assert "## Data checks" in report and "P05/1 (32 of 36)" in report
     assert main(["analyze", str(root), "--protocol", str(kato_path), "--exclude", "P05"]) == 0
     assert "from 7 participants" in capsys.readouterr().out
+
+
+def test_simulated_is_on_every_row_even_without_the_session_file(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = _copy(simulated, tmp_path)
+    for sidecar in root.rglob("*_session.json"):
+        sidecar.unlink()
+    data = load_results(root, study="kato2021")
+    assert data["simulated"].eq(True).all()
+    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    assert "SIMULATED responses" in capsys.readouterr().out
+    report = (root / "kato2021" / "analysis" / "report.md").read_text()
+    assert "SIMULATED DATA" in report
+
+
+def test_mixed_data_are_labelled_mixed(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = _copy(simulated, tmp_path)
+    tsv = sorted(root.rglob("sub-P03*_beh.tsv"))[0]
+    tsv.write_text(tsv.read_text().replace("\ttrue\t", "\tfalse\t"))  # as if a person rated
+    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    out = capsys.readouterr().out
+    assert "MIXED (simulated and real) responses" in out and "7 of 8 sessions" in out
+    assert "MIXED DATA" in (root / "kato2021" / "analysis" / "report.md").read_text()
+
+
+def test_analyze_checks_the_protocol_the_sessions_ran(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = _copy(simulated, tmp_path)
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(
+        kato_path.read_text(encoding="utf-8").replace("アバターの口の形", "アバターの目の形"),
+        encoding="utf-8",
+    )
+    assert main(["analyze", str(root), "--protocol", str(changed)]) == 2
+    err = capsys.readouterr().err
+    assert "8 session(s) ran a different version of the protocol file" in err
+    assert "--accept-protocol-change" in err
+    code = main(["analyze", str(root), "--protocol", str(changed), "--accept-protocol-change"])
+    assert code == 0
+    assert "analysed anyway" in capsys.readouterr().out
+
+
+def test_a_condition_nobody_saw_is_reported_not_a_crash(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = _copy(simulated, tmp_path)
+    for tsv in root.rglob("*_beh.tsv"):
+        lines = tsv.read_text().splitlines(keepends=True)
+        tsv.write_text("".join(x for x in lines if "\temphasized\t" not in x))
+    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    out = capsys.readouterr().out
+    assert "no responses for condition(s) emphasized: left out of every analysis" in out
+    assert "F(1,7)" in out  # two conditions: df 1 and 7

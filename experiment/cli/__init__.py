@@ -2,7 +2,7 @@
 
 Exit status: 0 success; 2 a user mistake (bad protocol, option, file), reported as one clear
 message without a traceback; 4 a session stopped by the experimenter (ratings kept);
-130 interrupted (143 terminated).
+130 interrupted (SIGINT), 143 terminated (SIGTERM), 129 hung up (SIGHUP).
 The command modules are the only place that reads the process environment and turns paths
 from the user into objects for the pure modules. Each family module has ``register(add)``;
 a new family is one module and one line in :data:`FAMILIES`.
@@ -11,7 +11,9 @@ a new family is one module and one line in :data:`FAMILIES`.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 
 from facelab import __version__
@@ -50,20 +52,43 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: unwind like Ctrl-C (files closed, responses kept)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_terminated(signum: int, _frame: object) -> None:
+    raise Terminated(signum)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGTERM, signal.SIGHUP):
+            previous[signum] = signal.signal(signum, _raise_terminated)
     try:
         return int(args.handler(args))
     except FacelabError as exc:
         print(f"facelab {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print(f"facelab {args.command}: interrupted", file=sys.stderr)
+        print(f"facelab {args.command}: interrupted; what was saved is kept", file=sys.stderr)
         return 130
+    except Terminated as exc:
+        name = signal.Signals(exc.signum).name
+        print(f"facelab {args.command}: stopped by {name}; what was saved is kept", file=sys.stderr)
+        return 128 + exc.signum
     except BrokenPipeError:  # e.g. `facelab design ... | head`
         sys.stderr.close()
         return 0
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,14 +6,15 @@ import argparse
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand
+from facelab.experiment.cli.common import AddCommand, output_dir
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
+    from facelab.analysis.integrity import check_data
     from facelab.analysis.load import load_results
     from facelab.analysis.report import write_report
     from facelab.analysis.study import analyze_study
-    from facelab.protocol import load_protocol
+    from facelab.protocol import load_protocol, protocol_hash
 
     protocol = load_protocol(args.protocol)
     results_dir = Path(args.results)
@@ -25,21 +26,36 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
                 f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
             )
         data = data[~data["participant"].isin(args.exclude)].reset_index(drop=True)
+    check = check_data(
+        data,
+        protocol,
+        protocol_sha256=protocol_hash(args.protocol),
+        accept_protocol_change=args.accept_protocol_change,
+    )
     results = analyze_study(data, protocol, method=args.method)
     if args.out:
-        out = Path(args.out)
+        out = output_dir(args.out, option="--out")
     elif results_dir.name == protocol.study.id:
         out = results_dir / "analysis"
     else:
         out = results_dir / protocol.study.id / "analysis"
     files = write_report(
-        results=results, data=data, protocol=protocol, out=out, protocol_path=Path(args.protocol)
+        results=results,
+        data=data,
+        protocol=protocol,
+        out=output_dir(out, option="--out"),
+        protocol_path=Path(args.protocol),
+        check=check,
     )
-    kind = "SIMULATED " if data["simulated"].all() else ""
+    kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
     print(
-        f"analysed {len(data)} {kind}ratings from {data['participant'].nunique()} participants "
-        f"(primary procedure: {args.method})"
+        f"analysed {len(data)} {kind.get(check.provenance, '')}responses from "
+        f"{data['participant'].nunique()} participants (primary procedure: {args.method})"
     )
+    if check.provenance == "unknown":
+        print("  provenance unknown: some sessions do not say whether they were simulated")
+    for note in (*check.notes, *results.notes):
+        print(f"  note: {note}")
     for row in results.layout.itertuples():
         print(
             f"  {row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}: "
@@ -74,6 +90,9 @@ def _cmd_power(args: argparse.Namespace) -> int:
                     rows.append({"label": f"{item.id}/{sset.id}", **power.f2_from_pilot(sub)})
         assumptions = "effect sizes from pilot data (participant means, bias-corrected)"
     elif args.reported_p is not None:
+        bad = [p for p in args.reported_p if not 0 < p < 1]
+        if bad:
+            raise FacelabError(f"--reported-p {bad[0]:g}: a p-value lies strictly between 0 and 1")
         for p in args.reported_p:
             est = power.f2_from_reported_p(
                 p=p,
@@ -135,7 +154,13 @@ def _cmd_power(args: argparse.Namespace) -> int:
             if "f_pilot" in row
             else (f", implied F {row['f']:.2f}, eta_p^2 {row['eta_p_sq']:.3f}")
         )
-        need = row["n_needed"] if row["n_needed"] else "> 10000"
+        if float(row["f2_rm"]) <= 0:
+            need = (
+                "cannot be computed - the implied effect is zero (F <= 1): this p gives no "
+                "evidence of any difference to power a study for"
+            )
+        else:
+            need = row["n_needed"] if row["n_needed"] else "> 10000"
         sim = row["simulated_power_at_needed"]
         sim_text = f" (simulated: {sim:.3f} over {args.sims} runs)" if sim is not None else ""
         print(
@@ -158,6 +183,11 @@ def register(add: AddCommand) -> None:
         help="primary procedure: rm (sound, default) or paper (pooled ANOVA + Tukey)",
     )
     p.add_argument("--exclude", action="append", metavar="ID", help="leave out a participant")
+    p.add_argument(
+        "--accept-protocol-change",
+        action="store_true",
+        help="analyse sessions that ran another version of the protocol file (reported)",
+    )
     p.add_argument(
         "--out", metavar="DIR", help="output folder (default <results>/<study>/analysis)"
     )

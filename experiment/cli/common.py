@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 from facelab.errors import FacelabError
 
-__all__ = ["AddCommand", "Handler", "parse_size"]
+__all__ = [
+    "AddCommand",
+    "Handler",
+    "output_dir",
+    "output_file",
+    "parse_session",
+    "parse_size",
+]
 
 Handler = Callable[[argparse.Namespace], int]
 #: ``add(name, help, handler) -> parser``: what each family's ``register`` receives.
@@ -25,3 +34,52 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     if w % 2 or h % 2 or w < 64 or h < 64:
         raise FacelabError(f"--size {text!r}: width and height must be even and >= 64")
     return w, h
+
+
+def parse_session(value: str) -> int:
+    """``--session N``: an integer 1..9999 (argparse type)."""
+    from facelab.sessionlog import MAX_SESSION
+
+    try:
+        number = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a session number, got {value!r}") from None
+    if not 1 <= number <= MAX_SESSION:
+        raise argparse.ArgumentTypeError(f"sessions are numbered 1..{MAX_SESSION}, got {value}")
+    return number
+
+
+def _writable_folder(folder: Path, option: str, what: str) -> None:
+    probe = folder
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise FacelabError(f"{option} {what}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise FacelabError(f"{option} {what}: cannot write in {probe} (permission denied)")
+
+
+def output_file(path: str | Path, *, option: str, force: bool = True) -> Path:
+    """A file the command will write: its folder must exist and be writable.
+
+    ``force=False`` also refuses an existing file. Raises a clear error (exit 2) instead of a
+    traceback half-way through the command.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise FacelabError(f"{option} {path}: is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise FacelabError(f"{option} {path}: the folder {path.parent} does not exist")
+    _writable_folder(path.parent, option, str(path))
+    if path.exists() and not force:
+        raise FacelabError(f"{option} {path}: exists; choose another file or pass --force")
+    return path
+
+
+def output_dir(path: str | Path, *, option: str) -> Path:
+    """A folder the command will create or write into (parents are created)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise FacelabError(f"{option} {path}: is a file, not a folder")
+    _writable_folder(path, option, str(path))
+    return path

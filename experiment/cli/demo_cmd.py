@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from facelab.experiment.cli.common import AddCommand, parse_size
+from facelab.experiment.cli.common import AddCommand, output_dir, parse_size
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -25,7 +25,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     try:
         run_demo(
-            out=Path(args.out),
+            out=output_dir(args.out, option="--out"),
             protocol_path=Path(args.protocol) if args.protocol else DEFAULT_PROTOCOL,
             participants=args.participants,
             seed=args.seed,

@@ -4,19 +4,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from facelab.design import build_trials
+    from facelab.design import count_trials
     from facelab.protocol import load_protocol
 
     for path in args.protocols:
         protocol = load_protocol(path)
-        n_trials = len(build_trials(protocol, participant="P1"))
+        n_trials = count_trials(protocol)
         print(
             f"ok: {path}: study {protocol.study.id!r}, {len(protocol.conditions)} conditions, "
             f"{sum(len(s.stimuli) for s in protocol.stimulus_sets)} stimuli in "
@@ -33,9 +31,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
     protocol = load_protocol(args.protocol)
     frame = trials_frame(build_trials(protocol, participant=args.participant, seed=args.seed))
     if args.out:
-        out = Path(args.out)
-        if out.exists() and not args.force:
-            raise FacelabError(f"{out} exists; choose another file or pass --force to replace it")
+        out = output_file(args.out, option="--out", force=args.force)
         frame.to_csv(out, index=False)
         print(f"wrote {len(frame)} trials to {out}", file=sys.stderr)
     else:
@@ -48,7 +44,7 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 
     text = schema_json_text()
     if args.out:
-        Path(args.out).write_text(text, encoding="utf-8")
+        output_file(args.out, option="--out").write_text(text, encoding="utf-8")
         print(f"wrote {args.out}", file=sys.stderr)
     else:
         sys.stdout.write(text)
@@ -60,7 +56,7 @@ def _cmd_protocols(args: argparse.Namespace) -> int:
     from facelab.resources import copy_protocol, shipped_protocols
 
     if args.copy:
-        written = copy_protocol(args.copy, Path(args.to), force=args.force)
+        written = copy_protocol(args.copy, output_dir(args.to, option="--to"), force=args.force)
         for path in written:
             print(f"wrote {path}")
         print(f"edit {written[0]}, then: facelab validate {written[0]}", file=sys.stderr)

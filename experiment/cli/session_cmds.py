@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, parse_size
+from facelab.experiment.cli.common import AddCommand, output_dir, parse_session, parse_size
 
 
 def _parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
@@ -33,8 +33,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     protocol = load_protocol(args.protocol)
     validate_participant_id(args.participant)
-    if args.session < 1:
-        raise FacelabError(f"--session {args.session}: sessions are numbered from 1")
+    output_dir(args.results, option="--results")
     size = parse_size(args.size) or (1280, 800)
     options = RunOptions(
         participant=args.participant,
@@ -47,6 +46,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         results=Path(args.results),
         screenshots=Path(args.screenshots) if args.screenshots else None,
         size=size,
+        accept_changed_clips=args.accept_changed_clips,
     )
     summary = run_session(protocol, protocol_path=Path(args.protocol), options=options)
     state = "complete" if summary["complete"] else "incomplete"
@@ -62,7 +62,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from facelab.protocol import load_protocol
 
     protocol = load_protocol(args.protocol)
-    results = Path(args.results)
+    results = output_dir(args.results, option="--results")
     paths = simulate_study(
         protocol,
         protocol_path=Path(args.protocol),
@@ -85,8 +85,14 @@ def register(add: AddCommand) -> None:
     p = add("run", "run a participant session in a PsychoPy window", _cmd_run)
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--participant", required=True, metavar="ID")
-    p.add_argument("--session", type=int, default=1, metavar="N")
+    p.add_argument("--session", type=parse_session, default=1, metavar="N", help="1..9999")
     p.add_argument("--resume", action="store_true", help="continue an interrupted session")
+    p.add_argument(
+        "--accept-changed-clips",
+        action="store_true",
+        help="with --resume: continue although clips differ from those the session started "
+        "with (recorded in the session file)",
+    )
     p.add_argument("--windowed", action="store_true", help="a window instead of full screen")
     p.add_argument("--size", metavar="WxH", help="window size with --windowed (default 1280x800)")
     p.add_argument(

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, parse_size
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size
 
 
 def _render_overrides(args: argparse.Namespace, protocol):
@@ -32,7 +32,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from facelab.stimuli.build import build_clips, contact_sheets, plan
 
     protocol = load_protocol(args.protocol)
-    out = Path(args.out) if args.out else Path("results") / protocol.study.id / "clips"
+    out = output_dir(
+        args.out or Path("results") / protocol.study.id / "clips",
+        option="--out",
+    )
     settings = _render_overrides(args, protocol)
     bars: list[tqdm] = []
 
@@ -79,6 +82,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from facelab.stimuli.visemes import VISEMES
 
     protocol = load_protocol(args.protocol)
+    for option, value in (("--csv", args.csv), ("--plot", args.plot)):
+        if value:
+            output_file(value, option=option)
     set_id, stim = find_stimulus(protocol, args.stimulus)
     speech = speech_for(
         stim, base_dir=Path(args.protocol).parent, sample_rate=protocol.rendering.audio_sample_rate
@@ -128,9 +134,7 @@ def _cmd_measure_z(args: argparse.Namespace) -> int:
         raise FacelabError(
             "give --onsets FILE, or --vowels SEQUENCE with an audio file per capture"
         )
-    out = Path(args.out)
-    if out.exists() and not args.force:
-        raise FacelabError(f"{out} exists; choose another file or pass --force")
+    out = output_file(args.out, option="--out", force=args.force)
     result = measure_z(captures, onsets, window_s=args.window)
     write_z(out, result.z)
     print(json.dumps({"z": str(out), "window_s": args.window, "spread": result.spread}, indent=2))

@@ -1,0 +1,100 @@
+"""The scripted participant of ``facelab run --simulate``: real X input through xdotool.
+
+It moves the pointer and clicks the VAS line at the rating its :class:`RatingModel` gives,
+then the confirm button, and presses the space bar on text screens - the same events a
+person's mouse and keyboard make, so the whole window path is exercised.
+
+Before every answer it plans, it writes the answer to ``…_actions.jsonl``
+(``{"t": unix seconds, "trial_index", "item", "value"}``, fsync'd), so a test can compare
+what was done with what was logged. Its generator is seeded with the simulation seed, the
+participant and the run number (1 for the first run, 2 after the first resume …), so a
+resumed session does not replay the values of the run before.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from facelab.errors import SessionError
+from facelab.experiment.simulate import RatingModel
+from facelab.experiment.vas import VasGeometry
+from facelab.sessionlog import append_jsonl
+
+__all__ = ["ScriptedParticipant"]
+
+
+@dataclass
+class ScriptedParticipant:
+    """Real X events through xdotool; values from ``model``; every answer logged first."""
+
+    model: RatingModel
+    window_origin: tuple[int, int]
+    window_size: tuple[int, int]
+    actions: Path
+    pending: list[tuple[float, list[str]]] = field(default_factory=list)
+    planned: dict[int, float] = field(default_factory=dict)  # state id -> time planned
+
+    def __post_init__(self) -> None:
+        self.exe = shutil.which("xdotool")
+        if self.exe is None:
+            raise SessionError("--simulate drives the window with xdotool: apt-get install xdotool")
+        # the pointer inside the window gives it the keyboard focus (no window manager)
+        self._run(["mousemove", *map(str, self.screen_xy(0, 0))])
+
+    def screen_xy(self, x: float, y: float) -> tuple[int, int]:
+        ox, oy = self.window_origin
+        w, h = self.window_size
+        return round(ox + w / 2 + x), round(oy + h / 2 - y)
+
+    def _run(self, args: list[str]) -> None:
+        subprocess.run([self.exe, *args], check=False, capture_output=True)
+
+    def schedule(self, delay: float, args: list[str]) -> None:
+        self.pending.append((time.perf_counter() + delay, args))
+
+    def tick(self) -> None:
+        """Send the events that are due."""
+        now = time.perf_counter()
+        due = [p for p in self.pending if p[0] <= now]
+        self.pending = [p for p in self.pending if p[0] > now]
+        for _, args in sorted(due, key=lambda p: p[0]):
+            self._run(args)
+
+    def press_key(self, key: str, delay: float = 0.15) -> None:
+        self.schedule(delay, ["key", key])
+
+    def record(self, *, trial_index: int | None, item: str, value: float) -> None:
+        """Write the action about to be taken to the actions file (fsync'd)."""
+        append_jsonl(
+            self.actions,
+            {"t": time.time(), "trial_index": trial_index, "item": item, "value": value},
+        )
+
+    def answer(
+        self,
+        state_id: int,
+        geometry: VasGeometry,
+        value: float,
+        delay: float,
+        *,
+        trial_index: int | None,
+        item: str,
+    ) -> None:
+        """Click the line at ``value``, release, then click confirm."""
+        now = time.perf_counter()
+        if state_id in self.planned and now - self.planned[state_id] < 4.0:
+            return  # planned recently; re-planned if events were lost (e.g. before focus)
+        self.planned[state_id] = now
+        self.record(trial_index=trial_index, item=item, value=value)
+        x, y = self.screen_xy(geometry.x_of(value), geometry.y_line)
+        cx, cy = self.screen_xy(*geometry.confirm_centre)
+        self.schedule(delay, ["mousemove", str(x), str(y)])
+        self.schedule(delay + 0.05, ["mousedown", "1"])
+        self.schedule(delay + 0.12, ["mouseup", "1"])
+        self.schedule(delay + 0.30, ["mousemove", str(cx), str(cy)])
+        self.schedule(delay + 0.36, ["mousedown", "1"])
+        self.schedule(delay + 0.44, ["mouseup", "1"])

@@ -1,0 +1,286 @@
+"""A session is a timeline of screens: jsPsych's timeline and plugins, in Python. Pure.
+
+:func:`compile_timeline` turns a protocol and a participant's trial list into the screens a
+participant sees, in order: a welcome screen (for the experimenter to check the id),
+instructions, a practice trial (never logged), then per trial its clip screen and its
+response screens, breaks after blocks that ask for one, and an end screen.
+
+Each screen is a small frozen class with its parameters, the responses it collects
+(:meth:`Screen.response_keys`: ``(trial_index, item)`` pairs) and the log rows it produces from them
+(:meth:`ResponseScreen.rows`). Three walkers use the same timeline:
+
+* the lab runner (:mod:`facelab.experiment.runner`) presents each screen in a PsychoPy window;
+* :mod:`facelab.experiment.simulate` answers each screen with a simulated responder;
+* an online session presents it in a browser (later).
+
+A new screen type is one class here, one presenter in the window, and one answer in the
+simulated responder; it then inherits logging, resume and simulation.
+
+Resume (:func:`remaining`): a response screen whose responses are all logged is skipped; a
+trial with any response missing shows its clip again (the participant must see what they
+rate), then only the missing response screens, in the original order. Instructions and the
+practice trial are not repeated; a "continuing" screen is shown instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from facelab.design import Trial
+from facelab.protocol import Protocol, VasItem
+from facelab.sessionlog import SessionContext, response_row
+
+__all__ = [
+    "UI_TEXT",
+    "ClipKey",
+    "ClipScreen",
+    "Playback",
+    "ResponseScreen",
+    "Screen",
+    "TextScreen",
+    "VasAnswer",
+    "VasScreen",
+    "compile_timeline",
+    "localized",
+    "remaining",
+]
+
+#: (stimulus set, stimulus, condition): one rendered clip.
+ClipKey = tuple[str, str, str]
+
+#: Texts of the session screens by language (the protocol's own texts replace some).
+UI_TEXT: dict[str, dict[str, str]] = {
+    "ja": {
+        "welcome": "参加者 {pid}（セッション {ses}）\n\nスペースキーで開始します。",
+        "confirm": "決定",
+        "practice": "練習試行です。",
+        "quit": "実験を中断しますか？  y: 中断 / n: 続ける",
+        "resume": "中断したところから再開します。\n\nスペースキーで続けます。",
+        "next": "スペースキーで次へ",
+        "break": "休憩です。準備ができたらスペースキーを押してください。",
+        "end": "終了です。ありがとうございました。",
+    },
+    "en": {
+        "welcome": "Participant {pid} (session {ses})\n\nPress space to start.",
+        "confirm": "Confirm",
+        "practice": "Practice trial.",
+        "quit": "Quit the session?  y: quit / n: continue",
+        "resume": "Continuing where the session stopped.\n\nPress space.",
+        "next": "Press space to continue",
+        "break": "Take a break. Press space when you are ready.",
+        "end": "This is the end. Thank you.",
+    },
+}
+
+
+def localized(text: dict[str, str] | None, lang: str, default: str = "") -> str:
+    """The text in ``lang`` (the protocol guarantees it for participant-facing texts)."""
+    if not text:
+        return default
+    return text.get(lang) or next(iter(text.values()))
+
+
+def ui(lang: str) -> dict[str, str]:
+    return UI_TEXT.get(lang, UI_TEXT["en"])
+
+
+# --------------------------------------------------------------------------- screens
+
+
+@dataclass(frozen=True)
+class Screen:
+    """A screen of the timeline. ``trial`` is None for screens outside the trials."""
+
+    kind: ClassVar[str] = "screen"
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        """The responses this screen collects (none for passive screens)."""
+        return ()
+
+    @property
+    def trial_index(self) -> int | None:
+        trial = getattr(self, "trial", None)
+        return None if trial is None else trial.trial_index
+
+
+@dataclass(frozen=True)
+class TextScreen(Screen):
+    """A text the participant reads and dismisses with the space bar."""
+
+    kind: ClassVar[str] = "text"
+    role: str  # welcome | instructions | practice | resume | break | end
+    text: str
+
+
+@dataclass(frozen=True)
+class ClipScreen(Screen):
+    """One rendered clip, with sound. Produces a :class:`Playback` record."""
+
+    kind: ClassVar[str] = "clip"
+    trial: Trial | None
+    clip: ClipKey
+    practice: bool = False
+
+
+@dataclass(frozen=True)
+class Playback:
+    """How a clip was shown: onset (s, session clock), frames dropped, every flip."""
+
+    onset: float
+    dropped: int
+    frames_expected: int = 0
+    flip_times: tuple[float, ...] = ()
+    frames_shown: tuple[int, ...] = ()
+
+    def record(self, *, trial_index: int | None, clip: str, replay: bool) -> dict[str, Any]:
+        """The line written to ``..._playback.jsonl``."""
+        return {
+            "trial_index": trial_index,
+            "clip": clip,
+            "replay": replay,
+            "onset": self.onset,
+            "frames_expected": self.frames_expected,
+            "dropped": self.dropped,
+            "flip_times": list(self.flip_times),
+            "frames_shown": list(self.frames_shown),
+        }
+
+
+@dataclass(frozen=True)
+class ResponseScreen(Screen):
+    """A screen that collects responses; each becomes one log row when the screen ends."""
+
+    trial: Trial | None
+    practice: bool = False
+
+    def rows(
+        self, answers: Sequence[Any], *, context: SessionContext, playback: Playback | None
+    ) -> list[dict[str, Any]]:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class VasAnswer:
+    """A confirmed VAS response."""
+
+    item: str
+    rating: float
+    rt_s: float
+    timestamp: str
+    rating_start: float | None = None
+
+
+@dataclass(frozen=True)
+class VasScreen(ResponseScreen):
+    """One VAS item (``items_layout: sequential``) or several on one screen (``together``)."""
+
+    kind: ClassVar[str] = "vas"
+    items: tuple[VasItem, ...] = ()
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        if self.practice or self.trial is None:
+            return ()
+        return tuple((self.trial.trial_index, item.id) for item in self.items)
+
+    def rows(
+        self, answers: Sequence[VasAnswer], *, context: SessionContext, playback: Playback | None
+    ) -> list[dict[str, Any]]:
+        if self.practice or self.trial is None:
+            return []
+        by_item = {a.item: a for a in answers}
+        return [
+            response_row(
+                context=context,
+                trial=self.trial,
+                item=item.id,
+                screen=self.kind,
+                rating=by_item[item.id].rating,
+                rating_start=by_item[item.id].rating_start,
+                rt_s=by_item[item.id].rt_s,
+                timestamp=by_item[item.id].timestamp,
+                clip_onset=None if playback is None else playback.onset,
+                clip_frames_dropped=None if playback is None else playback.dropped,
+            )
+            for item in self.items
+        ]
+
+
+# --------------------------------------------------------------------------- compiling
+
+
+def _vas_screens(protocol: Protocol, trial: Trial | None, *, practice: bool) -> list[VasScreen]:
+    items = tuple(protocol.items)
+    if protocol.presentation.items_layout == "together":
+        return [VasScreen(trial=trial, practice=practice, items=items)]
+    return [VasScreen(trial=trial, practice=practice, items=(item,)) for item in items]
+
+
+def compile_timeline(
+    protocol: Protocol, trials: Sequence[Trial], *, participant: str, session: int
+) -> list[Screen]:
+    """Every screen of a session, in order (see the module docstring)."""
+    pres = protocol.presentation
+    lang = pres.language
+    texts = ui(lang)
+    screens: list[Screen] = [
+        TextScreen(role="welcome", text=texts["welcome"].format(pid=participant, ses=session))
+    ]
+    if pres.instructions:
+        screens.append(TextScreen(role="instructions", text=localized(pres.instructions, lang)))
+    if pres.practice is not None:
+        key = (pres.practice.stimulus_set, pres.practice.stimulus, pres.practice.condition)
+        screens.append(TextScreen(role="practice", text=texts["practice"]))
+        screens.append(ClipScreen(trial=None, clip=key, practice=True))
+        screens += _vas_screens(protocol, None, practice=True)
+    blocks = {b.id: b for b in protocol.blocks}
+    for i, trial in enumerate(trials):
+        screens.append(
+            ClipScreen(trial=trial, clip=(trial.stimulus_set, trial.stimulus, trial.condition))
+        )
+        screens += _vas_screens(protocol, trial, practice=False)
+        nxt = trials[i + 1] if i + 1 < len(trials) else None
+        if nxt is not None and nxt.block != trial.block and blocks[trial.block].break_after:
+            text = localized(pres.break_text, lang, texts["break"])
+            screens.append(TextScreen(role="break", text=text))
+    screens.append(TextScreen(role="end", text=localized(pres.end_text, lang, texts["end"])))
+    return screens
+
+
+def remaining(
+    screens: Sequence[Screen], answered: set[tuple[int, str]], *, language: str
+) -> list[Screen]:
+    """The screens still to show when ``answered`` responses are already logged."""
+    if not answered:
+        return list(screens)
+    missing_trials = {
+        s.trial_index
+        for s in screens
+        if isinstance(s, ResponseScreen) and any(k not in answered for k in s.response_keys())
+    }
+    out: list[Screen] = []
+    for s in screens:
+        if isinstance(s, TextScreen):
+            if s.role == "welcome":
+                out += [s, TextScreen(role="resume", text=ui(language)["resume"])]
+            elif s.role in ("break", "end"):
+                out.append(s)
+            continue  # instructions and the practice announcement are not repeated
+        if getattr(s, "practice", False):
+            continue
+        if s.trial_index not in missing_trials:
+            continue
+        if isinstance(s, ResponseScreen) and all(k in answered for k in s.response_keys()):
+            continue
+        out.append(s)
+    # a break is useful only between screens that are still to come
+    pruned: list[Screen] = []
+    for i, s in enumerate(out):
+        if isinstance(s, TextScreen) and s.role == "break":
+            before = any(x.trial_index is not None for x in pruned)
+            after = any(x.trial_index is not None for x in out[i + 1 :])
+            if not (before and after):
+                continue
+        pruned.append(s)
+    return pruned

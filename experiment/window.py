@@ -1,0 +1,405 @@
+"""The PsychoPy window: one presenter method per screen type. With the runner, the only
+psychopy user.
+
+Playback path (chosen by measurement): ``visual.MovieStim`` (ffpyplayer) - it decodes in
+its own thread and slaves the picture to the audio clock, so sound starts with the first
+frame; under Xvfb it drew the clip's real frames (checked by pixel statistics) and kept real
+time (5.75 s for a 5.7 s clip). Our own frame-by-frame presentation with PsychoPy sound was
+the alternative, but PsychoPy's PTB sound could not open an output on a machine without a
+sound card (channel-count mismatch on ALSA's null device), so it could not be tested
+headless. Every flip time is recorded; a frame counts as dropped when the movie clock skips
+it between two flips. The first frame's pixels are checked: a uniform (black) picture stops
+the session with an error instead of collecting ratings of nothing.
+
+Escape, on any screen, asks before quitting; quitting raises
+:class:`~facelab.errors.SessionAbortedError` (every response given is already on disk).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facelab.errors import SessionAbortedError, SessionError
+from facelab.experiment.preflight import ClipRef
+from facelab.experiment.scripted import ScriptedParticipant
+from facelab.experiment.timeline import (
+    ClipKey,
+    ClipScreen,
+    Playback,
+    TextScreen,
+    VasAnswer,
+    VasScreen,
+    localized,
+    ui,
+)
+from facelab.experiment.vas import VasGeometry, VasState
+from facelab.protocol import Protocol
+from facelab.sessionlog import utc_now
+
+__all__ = ["Window"]
+
+
+class Window:
+    """A PsychoPy window that presents timeline screens. Use as a context manager."""
+
+    def __init__(
+        self,
+        protocol: Protocol,
+        *,
+        clips: dict[ClipKey, ClipRef],
+        size: tuple[int, int],
+        fullscreen: bool,
+        screenshots: Path | None = None,
+    ):
+        os.environ.setdefault("PYGLET_SHADOW_WINDOW", "0")
+        from psychopy import core, event, logging, visual
+
+        logging.console.setLevel(logging.ERROR)
+        self.core, self.event, self.visual = core, event, visual
+        self.protocol, self.clips = protocol, clips
+        self.lang = protocol.presentation.language
+        self.ui = ui(self.lang)
+        self.fullscreen = fullscreen
+        self.win = visual.Window(
+            size=size,
+            fullscr=fullscreen,
+            units="pix",
+            color=(-0.2, -0.2, -0.2),
+            allowGUI=not fullscreen,
+            checkTiming=False,
+            screen=0,
+            winType="pyglet",
+            title="facelab",
+        )
+        self.size = tuple(int(v) for v in self.win.size)
+        self.clock = core.Clock()
+        self.mouse = event.Mouse(win=self.win, visible=True)
+        self.font = "Noto Sans CJK JP"
+        self.script: ScriptedParticipant | None = None
+        self.screenshots = screenshots
+        self.shots_taken: set[str] = set()
+
+    def __enter__(self) -> Window:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.win.close()
+
+    def origin(self) -> tuple[int, int]:
+        """The window's top-left corner on the X screen (0, 0 when full screen)."""
+        if self.fullscreen:
+            return (0, 0)
+        try:
+            x, y = self.win.winHandle.get_location()
+            return int(x), int(y)
+        except Exception:  # not every backend reports it
+            return (0, 0)
+
+    def refresh_hz(self) -> float | None:
+        rate = self.win.getActualFrameRate(
+            nIdentical=5, nMaxFrames=30, nWarmUpFrames=5, threshold=5
+        )
+        return None if rate is None else round(float(rate), 2)
+
+    # -------------------------------------------------------------------- helpers
+
+    def _textstim(
+        self,
+        text: str,
+        *,
+        y: float = 0.0,
+        height: float | None = None,
+        width: float | None = None,
+        color: str = "white",
+    ):
+        return self.visual.TextBox2(
+            self.win,
+            text=text,
+            font=self.font,
+            letterHeight=height or 0.032 * self.size[1],
+            pos=(0, y),
+            size=(width or 0.85 * self.size[0], None),
+            color=color,
+            alignment="center",
+            lineBreaking="uax14",
+        )
+
+    def _check_escape(self, keys: list) -> None:
+        if any((k[0] if isinstance(k, tuple) else k) == "escape" for k in keys):
+            prompt = self._textstim(self.ui["quit"])
+            while True:
+                prompt.draw()
+                self.win.flip()
+                answer = self.event.getKeys(keyList=["y", "n"])
+                if "y" in answer:
+                    raise SessionAbortedError(
+                        "session stopped by the experimenter; every response given is saved; "
+                        "continue with --resume"
+                    )
+                if "n" in answer:
+                    return
+                self.core.wait(0.01)
+
+    def _clear_events(self) -> None:
+        """Drop stale input before a new screen, but never an Escape press."""
+        escape = self.event.getKeys(keyList=["escape"])
+        self.event.clearEvents()
+        if escape:
+            self._check_escape(escape)
+
+    def _screenshot(self, name: str) -> None:
+        if self.screenshots and name not in self.shots_taken:
+            self.screenshots.mkdir(parents=True, exist_ok=True)
+            img = self.win.getMovieFrame(buffer="back")
+            img.save(self.screenshots / f"{name}.png")
+            self.win.movieFrames = []
+            self.shots_taken.add(name)
+
+    # -------------------------------------------------------------------- text
+
+    def text(self, screen: TextScreen) -> None:
+        stim = self._textstim(screen.text)
+        hint = self._textstim(
+            self.ui["next"], y=-0.4 * self.size[1], height=0.022 * self.size[1], color="grey"
+        )
+        self._clear_events()
+        next_press = time.perf_counter() + 0.2
+        while True:
+            if self.script and time.perf_counter() >= next_press:
+                self.script.press_key("space", delay=0.0)
+                next_press = time.perf_counter() + 1.5  # again, should a key press get lost
+            stim.draw()
+            hint.draw()
+            self.win.flip()
+            if self.script:
+                self.script.tick()
+            keys = self.event.getKeys()
+            self._check_escape(keys)
+            if "space" in keys:
+                return
+
+    # -------------------------------------------------------------------- playback
+
+    def clip(self, screen: ClipScreen) -> Playback:
+        """Play one clip with sound; returns onset, flips and dropped frames."""
+        ref = self.clips[screen.clip]
+        shot = None if screen.practice else "clip_mid_playback"
+        w, h = self.size
+        scale = min(0.95 * w / 16, 0.80 * h / 9)
+        movie = self.visual.MovieStim(
+            self.win,
+            str(ref.path),
+            size=(16 * scale, 9 * scale),
+            pos=(0, 0.05 * h),
+            noAudio=False,
+            autoStart=False,
+            loop=False,
+        )
+        fps = ref.fps
+        flips: list[float] = []
+        shown: list[int] = []
+        checked = False
+        self._clear_events()
+        movie.play()
+        deadline = time.perf_counter() + ref.duration_s + 10.0
+        try:
+            while not movie.isFinished:
+                movie.draw()
+                if not checked and movie.movieTime > 0:
+                    self._check_pixels(movie)
+                    checked = True
+                if shot and movie.movieTime >= ref.duration_s / 2:
+                    self._screenshot(shot)
+                    shot = None
+                flips.append(self.win.flip())
+                shown.append(round(movie.movieTime * fps))
+                keys = self.event.getKeys(keyList=["escape"])
+                if keys:
+                    movie.pause()
+                    self._check_escape(keys)
+                    movie.play()
+                if time.perf_counter() > deadline:
+                    raise SessionError(
+                        f"playback of {ref.path.name} did not finish (stalled decoder?)"
+                    )
+        finally:
+            movie.stop()
+            movie.unload()
+        distinct = sorted(set(shown))
+        expected = max(1, round(ref.duration_s * fps))
+        return Playback(
+            onset=round(float(flips[0]), 4) if flips else float("nan"),
+            dropped=max(0, expected - len(distinct)),
+            frames_expected=expected,
+            flip_times=tuple(round(f - flips[0], 5) for f in flips) if flips else (),
+            frames_shown=tuple(shown),
+        )
+
+    def _check_pixels(self, movie: Any) -> None:
+        img = np.asarray(self.win.getMovieFrame(buffer="back"), dtype=np.float32)
+        self.win.movieFrames = []
+        h, w = img.shape[:2]
+        mw, mh = movie.size
+        cx, cy = w / 2 + movie.pos[0], h / 2 - movie.pos[1]
+        roi = img[int(cy - mh / 4) : int(cy + mh / 4), int(cx - mw / 4) : int(cx + mw / 4)]
+        if roi.size == 0 or roi.std() < 2.0 or roi.mean() < 5.0:
+            raise SessionError(
+                f"the clip {movie.filename} is drawn as a uniform picture (mean "
+                f"{roi.mean():.0f}, sd {roi.std():.1f}): the movie backend is not showing "
+                "frames; check the psychopy/ffpyplayer installation before running people"
+            )
+
+    # -------------------------------------------------------------------- VAS
+
+    def vas(self, screen: VasScreen) -> list[VasAnswer]:
+        """Show the screen's items and return their confirmed answers."""
+        w, h = self.size
+        items = screen.items
+        n = len(items)
+        shot = None if screen.practice else "vas_screen"
+        rows = []
+        for k, item in enumerate(items):
+            offset = (0.25 * h * (n - 1) / 2 - 0.32 * h * k) if n > 1 else 0.0
+            g = VasGeometry(
+                width=w, height=h, low=item.range[0], high=item.range[1], y_line=-0.02 * h + offset
+            )
+            state = VasState(geometry=g, onset=self.clock.getTime())
+            stims = {
+                "question": self._textstim(
+                    localized(item.question, self.lang), y=g.y_line + 0.16 * h
+                ),
+                "line": self.visual.Line(
+                    self.win,
+                    start=(g.x_left, g.y_line),
+                    end=(g.x_right, g.y_line),
+                    lineColor="white",
+                    lineWidth=4,
+                ),
+                "ticks": [
+                    self.visual.Line(
+                        self.win,
+                        start=(x, g.y_line - 12),
+                        end=(x, g.y_line + 12),
+                        lineColor="white",
+                        lineWidth=4,
+                    )
+                    for x in (g.x_left, g.x_right)
+                ],
+                "left": self._textstim(
+                    localized(item.left_anchor, self.lang), height=0.026 * h, width=0.3 * w
+                ),
+                "right": self._textstim(
+                    localized(item.right_anchor, self.lang), height=0.026 * h, width=0.3 * w
+                ),
+                "marker": self.visual.Rect(
+                    self.win, width=10, height=44, fillColor=(0.9, 0.3, 0.2), lineColor=None
+                ),
+            }
+            stims["left"].pos = (g.x_left, g.y_line - 0.06 * h)
+            stims["right"].pos = (g.x_right, g.y_line - 0.06 * h)
+            rows.append((item, g, state, stims))
+        g0 = rows[-1][1]
+        confirm_box = self.visual.Rect(
+            self.win,
+            width=g0.confirm_size[0],
+            height=g0.confirm_size[1],
+            pos=g0.confirm_centre,
+            lineColor="white",
+            lineWidth=2,
+        )
+        confirm_label = self._textstim(
+            self.ui["confirm"], y=g0.confirm_centre[1], height=0.03 * h, width=g0.confirm_size[0]
+        )
+        self._clear_events()
+        self.mouse.clickReset()
+        was_down = False
+        targets: dict[int, float] = {}
+        trial = screen.trial
+        if self.script is not None:
+            for item, g, state, _ in rows:
+                if trial is None or screen.practice:  # practice: a mid-scale answer
+                    targets[id(state)] = (g.low + g.high) / 2
+                else:
+                    targets[id(state)] = self.script.model.rate(
+                        item=item.id, stimulus_set=trial.stimulus_set, condition=trial.condition
+                    )[0]
+        while True:
+            if self.script is not None:
+                delay = 0.3
+                for item, g, state, _ in rows:
+                    if state.confirmed_at is None:
+                        self.script.answer(
+                            id(state),
+                            g,
+                            targets[id(state)],
+                            delay,
+                            trial_index=None if screen.practice else screen.trial_index,
+                            item=item.id,
+                        )
+                        delay += 0.6
+            now = self.clock.getTime()
+            x, y = self.mouse.getPos()
+            down = bool(self.mouse.getPressed()[0])
+            all_rated = all(state.rating is not None for _, _, state, _ in rows)
+            if down and not was_down:
+                if rows[-1][1].on_confirm(x, y) and all_rated:
+                    for _, _, state, _ in rows:
+                        state.confirmed_at = now
+                else:
+                    for _, _, state, _ in rows:
+                        state.press(x, y, now)
+            elif down:
+                for _, _, state, _ in rows:
+                    state.move(x, y, now)
+            elif was_down:
+                for _, _, state, _ in rows:
+                    state.release()
+            was_down = down
+            keys = self.event.getKeys(modifiers=True)
+            self._check_escape(keys)
+            active = next((s for _, _, s, _ in rows if s.confirmed_at is None), None)
+            for key, mods in keys:
+                if key in ("return", "space", "num_enter"):
+                    if all_rated:
+                        for _, _, state, _ in rows:
+                            state.confirmed_at = now
+                elif active is not None:
+                    active.key(key, now, shift=bool(mods.get("shift")))
+            if all(state.confirmed_at is not None for _, _, state, _ in rows):
+                stamp = utc_now()
+                return [
+                    VasAnswer(
+                        item=item.id,
+                        rating=round(float(state.rating), 4),
+                        rt_s=round(float(state.rt), 4),
+                        timestamp=stamp,
+                    )
+                    for item, _, state, _ in rows
+                ]
+            for _, g, state, stims in rows:
+                stims["question"].draw()
+                stims["line"].draw()
+                for t in stims["ticks"]:
+                    t.draw()
+                stims["left"].draw()
+                stims["right"].draw()
+                if state.marker_visible:  # hidden until the first click or arrow key
+                    stims["marker"].pos = (g.x_of(state.rating), g.y_line)
+                    stims["marker"].draw()
+            confirm_box.fillColor = (0.1, 0.45, 0.25) if all_rated else (-0.5, -0.5, -0.5)
+            confirm_label.color = "white" if all_rated else "grey"
+            confirm_box.draw()
+            confirm_label.draw()
+            if shot and not any(st.marker_visible for _, _, st, _ in rows):
+                self._screenshot("vas_before_click")
+            if shot and all_rated:
+                self._screenshot(shot)
+                shot = None
+            self.win.flip()
+            if self.script:
+                self.script.tick()
