@@ -22,7 +22,7 @@ import pandas as pd
 from matplotlib import font_manager
 from matplotlib.figure import Figure
 
-__all__ = ["cjk_font", "rating_figure", "stars"]
+__all__ = ["cjk_font", "confusion_figure", "psychometric_figure", "rating_figure", "stars"]
 
 
 def cjk_font() -> str | None:
@@ -107,6 +107,109 @@ def rating_figure(
         ax.spines[["top", "right"]].set_visible(False)
         if caption:  # as the x label, so the layout engine makes room for it
             ax.set_xlabel(caption, fontsize=7, color="0.35", labelpad=8)
+        return fig
+
+
+def _rc() -> dict:
+    family = cjk_font()
+    return {
+        "font.family": [family, "DejaVu Sans"] if family else ["DejaVu Sans"],
+        "axes.unicode_minus": False,
+    }
+
+
+def psychometric_figure(
+    counts: pd.DataFrame,
+    curves: pd.DataFrame,
+    *,
+    title: str,
+    xlabel: str,
+    ylabel: str,
+    gamma: float,
+    caption: str = "",
+    max_lines: int = 40,
+) -> Figure:
+    """Pooled proportions at each level (area proportional to n) with the pooled fit, and up
+    to ``max_lines`` participants' fitted curves in grey (beyond that, their 10-90 % band).
+
+    Parameters
+    ----------
+    counts : pooled ``level, n, k``.
+    curves : ``participant, level, p`` fitted curves on a fine grid; ``participant ==
+        "pooled"`` is drawn bold.
+    """
+    with plt.rc_context(_rc()):
+        fig, ax = plt.subplots(figsize=(6.0, 4.6), dpi=150, layout="constrained")
+        people = curves[curves["participant"] != "pooled"]
+        ids = list(dict.fromkeys(people["participant"]))
+        if len(ids) <= max_lines:
+            for pid in ids:
+                one = people[people["participant"] == pid]
+                ax.plot(one["level"], one["p"], color="0.7", lw=0.8, zorder=1)
+        elif ids:
+            band = people.groupby("level")["p"].quantile([0.1, 0.9]).unstack()
+            ax.fill_between(
+                band.index,
+                band[0.1],
+                band[0.9],
+                color="0.85",
+                zorder=1,
+                label=f"10-90 % of {len(ids)} participants",
+            )
+        pooled = curves[curves["participant"] == "pooled"]
+        ax.plot(pooled["level"], pooled["p"], color="#1f3b57", lw=2.2, zorder=3, label="pooled fit")
+        prop = counts["k"] / counts["n"]
+        size = 400.0 * counts["n"] / counts["n"].max()
+        ax.scatter(
+            counts["level"],
+            prop,
+            s=size,
+            color="#c0504d",
+            alpha=0.75,
+            zorder=4,
+            edgecolor="white",
+            label="pooled proportion (area ~ n)",
+        )
+        ax.axhline(gamma, color="0.5", lw=0.8, ls=":", zorder=0)
+        ax.set_ylim(-0.03 if gamma == 0 else gamma - 0.08, 1.03)
+        ax.set_xlabel(xlabel + (f"\n{caption}" if caption else ""), fontsize=9)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=10)
+        ax.legend(fontsize=7, loc="lower right", frameon=False)
+        ax.spines[["top", "right"]].set_visible(False)
+        return fig
+
+
+def confusion_figure(
+    matrix: pd.DataFrame, *, labels: Sequence[str], title: str, caption: str = ""
+) -> Figure:
+    """A heat map of row proportions (each portrayed label's answers sum to 1), with counts."""
+    counts = matrix.to_numpy(dtype=float)
+    rows = counts.sum(axis=1, keepdims=True)
+    share = np.divide(counts, rows, out=np.zeros_like(counts), where=rows > 0)
+    with plt.rc_context(_rc()):
+        k = len(labels)
+        fig, ax = plt.subplots(
+            figsize=(1.2 + 0.9 * k, 1.0 + 0.8 * k), dpi=150, layout="constrained"
+        )
+        im = ax.imshow(share, cmap="Blues", vmin=0, vmax=1)
+        for i in range(k):
+            for j in range(k):
+                ax.text(
+                    j,
+                    i,
+                    f"{share[i, j]:.2f}\n({int(counts[i, j])})",
+                    ha="center",
+                    va="center",
+                    fontsize=7,
+                    color="white" if share[i, j] > 0.6 else "black",
+                )
+        ax.set_xticks(range(k), labels=list(labels), rotation=30, ha="right", fontsize=8)
+        ax.set_yticks(range(k), labels=list(labels), fontsize=8)
+        ax.set_xlabel("answer" + (f"\n{caption}" if caption else ""), fontsize=8)
+        ax.set_ylabel("portrayed")
+        ax.set_title(title, fontsize=10)
+        fig.colorbar(im, ax=ax, shrink=0.8, label="share of the row")
         return fig
 
 

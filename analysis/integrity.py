@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 
 import pandas as pd
 
-from facelab.design import count_trials
+from facelab.design import block_trials
 from facelab.errors import AnalysisError
 from facelab.protocol import Protocol
 
-__all__ = ["DataCheck", "check_data"]
+__all__ = ["DataCheck", "check_data", "expected_responses"]
 
 
 @dataclass(frozen=True)
@@ -75,6 +75,14 @@ def _label(values: pd.Series) -> str:
     return "mixed"
 
 
+def expected_responses(protocol: Protocol) -> int:
+    """Responses a complete session logs: per trial every VAS item, or the task's one answer."""
+    return sum(
+        block_trials(protocol, block) * (1 if block.task else len(protocol.items))
+        for block in protocol.blocks
+    )
+
+
 def check_data(
     data: pd.DataFrame,
     protocol: Protocol,
@@ -85,7 +93,7 @@ def check_data(
     """Check the loaded logs against ``protocol`` (see the module docstring)."""
     notes: list[str] = []
     conditions = [c.id for c in protocol.conditions]
-    items = [i.id for i in protocol.items]
+    items = [i.id for i in protocol.items] + [t.id for t in protocol.tasks]
     stray_c = sorted(set(data["condition"].dropna()) - set(conditions))
     stray_i = sorted(set(data["item"].dropna()) - set(items))
     if stray_c or stray_i:
@@ -102,7 +110,7 @@ def check_data(
             "these sessions ran another protocol; pass the protocol they ran"
         )
 
-    expected = count_trials(protocol) * len(items)
+    expected = expected_responses(protocol)
     rows = []
     for (pid, ses), group in data.groupby(["participant", "session"], sort=True):
         hashes = sorted(set(group["protocol_sha256"].dropna()))
@@ -155,7 +163,15 @@ def check_data(
             "procedure; the repeated-measures analysis keeps, per item and stimulus set, only "
             "participants who rated every condition."
         )
-    unseen_c = [c for c in conditions if c not in set(data["condition"])]
+    # conditions every participant must have seen: not a forced choice's standard (it is the
+    # 'comparison' column) and not a staircase's grid (the rule decides what is shown)
+    due = {
+        c
+        for b in protocol.blocks
+        if b.design != "staircase"
+        for c in protocol.block_conditions(b)
+    }
+    unseen_c = [c for c in conditions if c in due and c not in set(data["condition"])]
     unseen_i = [i for i in items if i not in set(data["item"])]
     if unseen_c:
         notes.append(

@@ -19,6 +19,7 @@ from facelab.analysis import figures
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import session_summary
 from facelab.analysis.study import METHODS, StudyResults, bracket_pairs
+from facelab.analysis.tasks import TaskResults
 from facelab.protocol import Protocol
 
 __all__ = ["ReportFiles", "write_report"]
@@ -89,12 +90,13 @@ def _headline(results: StudyResults) -> pd.DataFrame:
 
 def write_report(
     *,
-    results: StudyResults,
+    results: StudyResults | None,
     data: pd.DataFrame,
     protocol: Protocol,
     out: Path,
     protocol_path: Path,
     check: DataCheck | None = None,
+    tasks: TaskResults | None = None,
 ) -> ReportFiles:
     """Write everything into ``out`` (created if needed; files in it are replaced).
 
@@ -105,7 +107,8 @@ def write_report(
         check = check_data(data, protocol, protocol_sha256=None, accept_protocol_change=True)
     out.mkdir(parents=True, exist_ok=True)
     tables: dict[str, Path] = {}
-    for name, frame in results.tables().items():
+    all_tables = {**(results.tables() if results else {}), **(tasks.tables if tasks else {})}
+    for name, frame in all_tables.items():
         tables[name] = out / f"{name}.csv"
         frame.to_csv(tables[name], index=False)
 
@@ -115,8 +118,12 @@ def write_report(
     simulated = check.provenance == "simulated"
     figure_paths: list[Path] = []
     fig_blocks: list[tuple[str, Path]] = []
-    proc = "paired t-tests, Holm" if results.method == "rm" else "Tukey HSD on pooled ratings"
-    for item in protocol.items:
+    proc = (
+        "paired t-tests, Holm"
+        if results is None or results.method == "rm"
+        else "Tukey HSD on pooled ratings"
+    )
+    for item in protocol.items if results is not None else []:
         for sset in protocol.stimulus_sets:
             cells = results.cells[
                 (results.cells["item"] == item.id) & (results.cells["stimulus_set"] == sset.id)
@@ -142,13 +149,17 @@ def write_report(
             figure_paths += paths
             fig_blocks.append((f"{item.id} / {sset.id}", paths[0]))
 
-    headline = _headline(results)
+    if tasks is not None:
+        task_blocks = _task_figures(tasks, protocol, out, language, simulated)
+        fig_blocks += task_blocks
+        figure_paths += [f for _, png in task_blocks for f in (png, png.with_suffix(".svg"))]
+    headline = _headline(results) if results is not None else pd.DataFrame()
     sessions = session_summary(data).merge(
         check.sessions[["participant", "session", "expected", "complete", "protocol_matches"]],
         on=["participant", "session"],
         how="left",
     )
-    notes = [*check.notes, *results.notes]
+    notes = [*check.notes, *(results.notes if results else ()), *(tasks.notes if tasks else ())]
     design = pd.DataFrame(
         [
             {
@@ -157,6 +168,8 @@ def write_report(
                 "sets": b.sets,
                 "per condition per set": b.presentations_per_condition,
                 "order": b.order,
+                "task": b.task or "VAS items",
+                "design": b.design,
             }
             for b in protocol.blocks
         ]
@@ -183,25 +196,35 @@ def write_report(
             for i in protocol.items
         ]
     )
-    details = {
-        "Repeated-measures ANOVA on participant means": results.rm_anova,
-        "Paired t-tests on participant means (Holm)": results.pairwise,
-        "Friedman test on participant means": results.friedman,
-        "Linear mixed model on all ratings (F with the aggregated df)": results.lmm,
-        "Paper's procedure: one-way ANOVA on pooled ratings": results.paper_anova,
-        "Paper's procedure: Tukey HSD on pooled ratings (diff = mean(b) - mean(a))": (
-            results.paper_tukey
-        ),
-    }
+    details = (
+        {}
+        if results is None
+        else {
+            "Repeated-measures ANOVA on participant means": results.rm_anova,
+            "Paired t-tests on participant means (Holm)": results.pairwise,
+            "Friedman test on participant means": results.friedman,
+            "Linear mixed model on all ratings (F with the aggregated df)": results.lmm,
+            "Paper's procedure: one-way ANOVA on pooled ratings": results.paper_anova,
+            "Paper's procedure: Tukey HSD on pooled ratings (diff = mean(b) - mean(a))": (
+                results.paper_tukey
+            ),
+        }
+    )
+    for name, frame in (tasks.tables if tasks else {}).items():
+        details[_TASK_HEADINGS.get(name, name)] = frame
     banner = check.banner
     reported = protocol.reported_results
     when = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     title = f"facelab report - {protocol.study.title}"
     method_note = (
-        f"Primary procedure: {METHODS[results.method]}. The table shows both: the sound "
-        "within-subject analysis (participant means, n = participants) and the paper's "
-        "procedure, which pools every rating as if independent (pseudo-replication: error df "
-        "count ratings, not people) and is shown only for replication."
+        ""
+        if results is None
+        else (
+            f"Primary procedure: {METHODS[results.method]}. The table shows both: the sound "
+            "within-subject analysis (participant means, n = participants) and the paper's "
+            "procedure, which pools every rating as if independent (pseudo-replication: error df "
+            "count ratings, not people) and is shown only for replication."
+        )
     )
 
     # ---- HTML
@@ -218,15 +241,18 @@ def write_report(
         parts.append("<h2>Data checks</h2><ul>")
         parts += [f"<li>{html.escape(n)}</li>" for n in notes]
         parts.append("</ul>")
-    parts += [
-        "<h2>Results beside the paper</h2>",
-        f"<p>{html.escape(method_note)}</p>",
-    ]
-    if reported:
-        parts.append(
-            f"<p>Paper: {html.escape(reported.source)} - {html.escape(reported.procedure)}.</p>"
-        )
-    parts.append(_html_table(headline))
+    if results is not None:
+        parts += [
+            "<h2>Results beside the paper</h2>",
+            f"<p>{html.escape(method_note)}</p>",
+        ]
+        if reported:
+            parts.append(
+                f"<p>Paper: {html.escape(reported.source)} - {html.escape(reported.procedure)}.</p>"
+            )
+        parts.append(_html_table(headline))
+    for heading, frame in _task_headline(tasks):
+        parts += [f"<h2>{html.escape(heading)}</h2>", _html_table(frame)]
     parts.append("<h2>Figures</h2><div class='figs'>")
     for label, png in fig_blocks:
         data_uri = base64.b64encode(png.read_bytes()).decode("ascii")
@@ -267,10 +293,14 @@ def write_report(
         md += [f"> **{banner}**", ""]
     if notes:
         md += ["## Data checks", "", *[f"- {n}" for n in notes], ""]
-    md += ["## Results beside the paper", "", method_note, ""]
-    if reported:
-        md += [f"Paper: {reported.source} - {reported.procedure}.", ""]
-    md += [_md_table(headline), "", "## Figures", ""]
+    if results is not None:
+        md += ["## Results beside the paper", "", method_note, ""]
+        if reported:
+            md += [f"Paper: {reported.source} - {reported.procedure}.", ""]
+        md += [_md_table(headline), ""]
+    for heading, frame in _task_headline(tasks):
+        md += [f"## {heading}", "", _md_table(frame), ""]
+    md += ["## Figures", ""]
     md += [f"![{label}]({png.name})" for label, png in fig_blocks]
     md += [
         "",
@@ -296,6 +326,76 @@ def write_report(
     return ReportFiles(
         folder=out, html=html_path, markdown=md_path, tables=tables, figures=figure_paths
     )
+
+
+_TASK_HEADINGS = {
+    "psychometric_fits": "Psychometric fits, P = gamma + (1 - gamma - lambda) F(level), "
+    "per participant and pooled (ML; 95 % parametric-bootstrap CIs)",
+    "staircase_thresholds": "Staircases: mean level of the last reversals",
+    "identification_summary": "Identification: accuracy and Cohen's kappa",
+    "identification_recall": "Identification: recall and precision per label",
+    "confusion_matrix": "Identification: confusion counts (portrayed x answered)",
+    "trend_contrast": "Graded design: linear trend contrast of the RM ANOVA (slope per level "
+    "unit, own error term)",
+    "graded_lmm": "Graded design: mixed model rating ~ level + (1 + level | participant), REML",
+}
+
+
+def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
+    """The short task tables shown near the top of the report."""
+    if tasks is None:
+        return []
+    out = []
+    fits = tasks.tables.get("psychometric_fits")
+    if fits is not None:
+        pooled = fits[fits["participant"] == "pooled"]
+        cols = [
+            "task",
+            "gamma",
+            "n_trials",
+            "midpoint",
+            "midpoint_ci_low",
+            "midpoint_ci_high",
+            "beta",
+            "lapse",
+            "deviance",
+            "deviance_df",
+        ]
+        out.append(("Psychometric fits (pooled)", pooled[cols]))
+    for name in ("staircase_thresholds", "identification_summary", "trend_contrast", "graded_lmm"):
+        if name in tasks.tables:
+            frame = tasks.tables[name]
+            if name == "identification_summary":
+                frame = frame[frame["participant"] == "pooled"]
+            out.append((_TASK_HEADINGS[name].split(":")[0] + ": " + name.replace("_", " "), frame))
+    return out
+
+
+def _task_figures(
+    tasks: TaskResults, protocol: Protocol, out: Path, language: str, simulated: bool
+) -> list[tuple[str, Path]]:
+    blocks: list[tuple[str, Path]] = []
+    tag = "  SIMULATED DATA" if simulated else ""
+    for task, counts, curves, gamma in tasks.psychometric:
+        fig = figures.psychometric_figure(
+            counts,
+            curves,
+            title=_text(task.question, language),
+            xlabel="level of the comparison",
+            ylabel="P(correct)" if task.correct == "comparison" else "P(comparison chosen)",
+            gamma=gamma,
+            caption=f"standard: {task.standard}; grey: participants' fits{tag}",
+        )
+        paths = figures.save(fig, out / f"fig_psychometric_{task.id}")
+        blocks.append((f"psychometric: {task.id}", paths[0]))
+    for task, matrix in tasks.confusion:
+        labels = [_text(lb.text, language) for lb in task.labels]
+        fig = figures.confusion_figure(
+            matrix, labels=labels, title=_text(task.question, language), caption=tag.strip()
+        )
+        paths = figures.save(fig, out / f"fig_confusion_{task.id}")
+        blocks.append((f"confusion: {task.id}", paths[0]))
+    return blocks
 
 
 _CSS = """

@@ -39,6 +39,7 @@ __all__ = [
     "one_way_anova",
     "p_adjust",
     "pairwise_paired",
+    "psychometric",
     "rm_anova",
     "rm_sums_of_squares",
     "tukey_hsd",
@@ -387,3 +388,78 @@ def lmm_anova(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.D
     df1, df2 = k - 1, (k - 1) * (n - 1)
     f = chi2 / df1
     return pd.DataFrame([{"df1": df1, "df2": df2, "f": f, "p": stats.f.sf(f, df1, df2)}])
+
+
+# --------------------------------------------------------------------------- psychometric
+
+
+def psychometric(
+    data: pd.DataFrame,
+    *,
+    level: str,
+    correct: str,
+    subject: str | None = None,
+    gamma: float = 0.5,
+    sigmoid: str = "logistic",
+    lapse_bounds: tuple[float, float] = (0.0, 0.1),
+    n_boot: int = 200,
+    rng: np.random.Generator | None = None,
+) -> pd.DataFrame:
+    """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x), by maximum likelihood.
+
+    Parameters
+    ----------
+    data : one row per trial (``correct`` 0/1), or one row per level with ``correct`` the
+        proportion correct and an ``n`` column (trials at that level).
+    level, correct : column names.
+    subject : a column to fit each subject separately; None fits all rows pooled.
+    gamma : the guess rate (0.5 for 2AFC).
+    sigmoid : ``logistic`` (F = 1 / (1 + exp(-slope * (x - midpoint)))) or ``weibull``.
+    n_boot, rng : parametric-bootstrap resamples for the CIs and their generator (default
+        ``numpy.random.default_rng(0)``, so repeated calls agree).
+
+    Returns one row per subject (or one pooled row, subject ``"pooled"``): ``subject, n,
+    midpoint, slope, lapse, deviance, midpoint_ci_low, midpoint_ci_high`` (see
+    :mod:`facelab.analysis.psychometric` for the fuller table).
+    """
+    from facelab.analysis.psychometric import fit_psychometric
+
+    _require(data, [level, correct, *([subject] if subject else [])])
+    rng = np.random.default_rng(0) if rng is None else rng
+    frame = data.copy()
+    if "n" in frame.columns:  # per level: proportion and count
+        frame["_n"] = frame["n"].astype(float)
+        frame["_k"] = np.round(frame[correct].astype(float) * frame["_n"])
+    else:
+        values = frame[correct].astype(float)
+        if not values.isin([0.0, 1.0]).all():
+            raise AnalysisError(
+                f"column {correct!r} must be 0/1 per trial (or proportions with an 'n' column)"
+            )
+        frame["_n"], frame["_k"] = 1.0, values
+    groups = frame.groupby(subject, sort=True) if subject else [("pooled", frame)]
+    rows = []
+    for key, part in groups:
+        counts = (
+            part.groupby(level, sort=True)[["_n", "_k"]]
+            .sum()
+            .rename(columns={"_n": "n", "_k": "k"})
+            .reset_index()
+            .rename(columns={level: "level"})
+        )
+        fit = fit_psychometric(
+            counts, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds, n_boot=n_boot, rng=rng
+        )
+        rows.append(
+            {
+                "subject": key,
+                "n": fit.n_trials,
+                "midpoint": fit.midpoint,
+                "slope": fit.beta,
+                "lapse": fit.lapse,
+                "deviance": fit.deviance,
+                "midpoint_ci_low": fit.midpoint_ci_low,
+                "midpoint_ci_high": fit.midpoint_ci_high,
+            }
+        )
+    return pd.DataFrame(rows)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import re
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 import pandas as pd
@@ -27,9 +27,12 @@ from facelab.errors import StageError
 from facelab.protocol import Block, Protocol
 
 __all__ = [
+    "CHOICE_COLUMNS",
+    "PENDING",
     "TRIAL_COLUMNS",
     "Trial",
     "balanced_latin_square",
+    "block_trials",
     "build_trials",
     "count_trials",
     "participant_number",
@@ -52,9 +55,17 @@ class Trial:
     stimulus: str
     condition: str
     repetition: int  # 1..presentations_per_condition: nth showing of this pair in this set
+    standard: str | None = None  # choice_2afc: the standard condition shown with this one
+    position: int | None = None  # choice_2afc: 1 = the comparison is shown first, 2 = second
 
 
-TRIAL_COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Trial))
+#: The design CSV's columns (DESIGN.md); ``standard`` and ``position`` follow when a block has a
+#: forced-choice task.
+TRIAL_COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Trial))[:7]
+CHOICE_COLUMNS: tuple[str, ...] = ("standard", "position")
+
+#: The condition of a staircase trial before the staircase has chosen it (at run time).
+PENDING = "*"
 
 
 def validate_participant_id(participant: str) -> str:
@@ -150,6 +161,13 @@ def build_trials(protocol: Protocol, *, participant: str, seed: int | None = Non
     rng = np.random.default_rng(participant_seed(study_seed, participant))
     trials: list[Trial] = []
     for block in protocol.blocks:
+        task = protocol.block_task(block)
+        standard = task.standard if task is not None and task.type == "choice_2afc" else None
+        if block.design == "staircase":
+            trials += _staircase_trials(
+                protocol, block=block, start=len(trials), standard=standard, rng=rng
+            )
+            continue
         for set_index in range(1, block.sets + 1):
             seen: dict[tuple[str, str], int] = {}
             for stim, cond in _set_sequence(
@@ -169,22 +187,95 @@ def build_trials(protocol: Protocol, *, participant: str, seed: int | None = Non
                         stimulus=stim,
                         condition=cond,
                         repetition=seen[(stim, cond)],
+                        standard=standard,
                     )
                 )
+        if standard is not None:
+            trials = _balance_positions(trials, block=block.id, rng=rng)
     return trials
 
 
-def count_trials(protocol: Protocol) -> int:
-    """How many trials :func:`build_trials` gives each participant (without building them)."""
-    return sum(
+def _balance_positions(trials: list[Trial], *, block: str, rng: np.random.Generator) -> list[Trial]:
+    """Counterbalance which interval holds the comparison: the showings of each (stimulus,
+    condition) in the block alternate 1, 2, 1, 2… from a random first position, so every pair
+    is shown first and second equally often (to one when the count is odd)."""
+    first: dict[tuple[str, str], int] = {}
+    count: dict[tuple[str, str], int] = {}
+    out = []
+    for t in trials:
+        if t.block != block:
+            out.append(t)
+            continue
+        key = (t.stimulus, t.condition)
+        if key not in first:
+            first[key] = int(rng.integers(1, 3))
+        k = count.get(key, 0)
+        count[key] = k + 1
+        out.append(replace(t, position=1 + (first[key] - 1 + k) % 2))
+    return out
+
+
+def _staircase_trials(
+    protocol: Protocol,
+    *,
+    block: Block,
+    start: int,
+    standard: str | None,
+    rng: np.random.Generator,
+) -> list[Trial]:
+    """``staircase.trials`` slots whose condition the staircase picks at run time
+    (:data:`PENDING`); stimuli cycle through the set in shuffled rounds, positions of a
+    forced choice are balanced within every two trials and drawn in advance."""
+    assert block.staircase is not None  # guaranteed by the protocol checks
+    stimuli = [s.id for s in protocol.stimulus_set(block.stimulus_set).stimuli]
+    n = block.staircase.trials
+    order: list[str] = []
+    while len(order) < n:
+        order += [stimuli[i] for i in rng.permutation(len(stimuli))]
+    positions: list[int | None] = [None] * n
+    if standard is not None:
+        pairs = [int(rng.integers(1, 3)) for _ in range((n + 1) // 2)]
+        positions = [p if j % 2 == 0 else 3 - p for p in pairs for j in range(2)][:n]
+    return [
+        Trial(
+            trial_index=start + i + 1,
+            block=block.id,
+            set_index=1,
+            stimulus_set=block.stimulus_set,
+            stimulus=order[i],
+            condition=PENDING,
+            repetition=i + 1,
+            standard=standard,
+            position=positions[i],
+        )
+        for i in range(n)
+    ]
+
+
+def block_trials(protocol: Protocol, block: Block) -> int:
+    """How many trials one block gives each participant."""
+    if block.design == "staircase" and block.staircase is not None:
+        return block.staircase.trials
+    return (
         block.sets
         * len(protocol.stimulus_set(block.stimulus_set).stimuli)
         * len(protocol.block_conditions(block))
         * block.presentations_per_condition
-        for block in protocol.blocks
     )
 
 
+def count_trials(protocol: Protocol) -> int:
+    """How many trials :func:`build_trials` gives each participant (without building them)."""
+    return sum(block_trials(protocol, block) for block in protocol.blocks)
+
+
 def trials_frame(trials: list[Trial]) -> pd.DataFrame:
-    """Trials as a tidy DataFrame with :data:`TRIAL_COLUMNS`."""
-    return pd.DataFrame([asdict(t) for t in trials], columns=list(TRIAL_COLUMNS))
+    """Trials as a tidy DataFrame with :data:`TRIAL_COLUMNS` (and :data:`CHOICE_COLUMNS` when
+    a trial has a forced choice)."""
+    columns = list(TRIAL_COLUMNS)
+    if any(t.standard is not None for t in trials):
+        columns += list(CHOICE_COLUMNS)
+    frame = pd.DataFrame([asdict(t) for t in trials], columns=columns)
+    if "position" in frame:
+        frame["position"] = frame["position"].astype("Int64")
+    return frame

@@ -23,11 +23,16 @@ __all__ = ["clean_loc", "cross_check", "describe"]
 def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
     # pydantic adds union/validator tags such as 'str' or 'function-after[...]'; drop them.
     out: list[str | int] = []
-    for part in loc:
+    for i, part in enumerate(loc):
         if isinstance(part, str) and (part.startswith("function-") or part in _TYPE_TAGS):
             continue
+        if i == 2 and loc[0] == "tasks" and part in _TASK_TAGS:
+            continue  # the task union's tag
         out.append(part)
     return tuple(out)
+
+
+_TASK_TAGS = {"choice_2afc", "identify"}
 
 
 _TYPE_TAGS = {
@@ -65,6 +70,10 @@ def _localized(protocol: Protocol) -> Iterator[tuple[tuple[str | int, ...], dict
     for i, item in enumerate(protocol.items):
         for key in ("question", "left_anchor", "right_anchor"):
             yield ("items", i, key), getattr(item, key)
+    for i, task in enumerate(protocol.tasks):
+        yield ("tasks", i, "question"), task.question
+        for j, label in enumerate(getattr(task, "labels", [])):
+            yield ("tasks", i, "labels", j, "text"), label.text
     pres = protocol.presentation
     for key in ("instructions", "break_text", "end_text"):
         if getattr(pres, key) is not None:
@@ -208,6 +217,87 @@ def _blocks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     )
 
 
+@_check("tasks", "blocks", "conditions", "items")
+def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Tasks are used consistently: references exist, graded designs have levels, a
+    staircase has a correct answer to adapt on and a start in its grid."""
+    yield from _duplicates((t.id for t in protocol.tasks), ("tasks",), "task")
+    tasks = {t.id: t for t in protocol.tasks}
+    conditions = {c.id: c for c in protocol.conditions}
+    for ti, task in enumerate(protocol.tasks):
+        where = ("tasks", ti)
+        if task.type == "choice_2afc" and task.standard not in conditions:
+            yield Issue((*where, "standard"), f"unknown condition {task.standard!r}")
+        if task.type == "identify":
+            yield from _duplicates((lb.id for lb in task.labels), (*where, "labels"), "label")
+            labels = {lb.id for lb in task.labels}
+            for cond_id, label in task.answers.items():
+                if cond_id not in conditions:
+                    yield Issue((*where, "answers", cond_id), f"unknown condition {cond_id!r}")
+                if label not in labels:
+                    yield Issue(
+                        (*where, "answers", cond_id),
+                        f"unknown label {label!r}; labels: {', '.join(sorted(labels))}",
+                    )
+    for bi, block in enumerate(protocol.blocks):
+        where = ("blocks", bi)
+        task = tasks.get(block.task) if block.task else None
+        if block.task and task is None:
+            yield Issue(
+                (*where, "task"),
+                f"unknown task {block.task!r}; tasks: {', '.join(tasks) or '(none declared)'}",
+            )
+            continue
+        if task is None and not protocol.items:
+            yield Issue(
+                (*where,), "a block without a task shows the VAS items, but 'items' is empty"
+            )
+        block_conds = [c for c in protocol.block_conditions(block) if c in conditions]
+        if block.design in ("constant_stimuli", "staircase"):
+            unlevelled = [c for c in block_conds if conditions[c].level is None]
+            if unlevelled:
+                yield Issue(
+                    (*where, "design"),
+                    f"design {block.design!r} needs a 'level' on every condition of the block; "
+                    f"missing on {', '.join(unlevelled)}",
+                )
+            levels = [conditions[c].level for c in block_conds]
+            if len(set(levels)) != len(levels):
+                yield Issue((*where, "design"), "two conditions of the block share one level")
+        if block.design == "staircase":
+            rule = block.staircase
+            if rule is None:
+                yield Issue((*where, "staircase"), "design 'staircase' needs a 'staircase' rule")
+            elif rule.start not in block_conds:
+                yield Issue(
+                    (*where, "staircase", "start"),
+                    f"start {rule.start!r} is not among the block's conditions "
+                    f"({', '.join(block_conds)})",
+                )
+            if len(block_conds) < 2:
+                yield Issue((*where, "conditions"), "a staircase needs two or more levels")
+            scorable = (
+                task is not None and task.type == "choice_2afc" and task.correct == "comparison"
+            ) or (
+                task is not None
+                and task.type == "identify"
+                and all(c in task.answers for c in block_conds)
+            )
+            if not scorable:
+                yield Issue(
+                    (*where, "task"),
+                    "a staircase adapts on correct answers: use a choice_2afc task with "
+                    "correct: comparison, or an identify task with an answer for every condition",
+                )
+        elif block.staircase is not None:
+            yield Issue((*where, "staircase"), f"a staircase rule on a {block.design!r} block")
+        if task is not None and task.type == "choice_2afc" and task.standard in block_conds:
+            yield Issue(
+                (*where, "conditions"),
+                f"the task's standard {task.standard!r} is also a comparison of the block",
+            )
+
+
 @_check("items")
 def _items(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Unique item ids; VAS ranges inside 0..100."""
@@ -221,7 +311,7 @@ def _items(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             )
 
 
-@_check("conditions", "items", "presentation")
+@_check("conditions", "items", "presentation", "tasks")
 def _languages(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Every participant-facing text exists in the presentation language."""
     lang = protocol.presentation.language

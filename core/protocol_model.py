@@ -27,9 +27,13 @@ __all__ = [
     "ID_PATTERN",
     "SCHEMA_VERSION",
     "Block",
+    "ChoiceTask",
     "Condition",
+    "IdentifyTask",
+    "Label",
     "Protocol",
     "Rendering",
+    "StaircaseRule",
     "Stimulus",
     "StimulusSet",
     "VasItem",
@@ -91,6 +95,12 @@ class Condition(_Model):
     params: dict[str, Any] = Field(
         default_factory=dict, description="Parameters of the method; see facelab.methods."
     )
+    level: float | None = Field(
+        None,
+        description="The condition's position on a graded stimulus dimension (e.g. the "
+        "impression level q); needed by constant_stimuli and staircase blocks, and used as x "
+        "by the psychometric and trend analyses.",
+    )
 
 
 # --------------------------------------------------------------------------- stimuli
@@ -147,6 +157,64 @@ class StimulusSet(_Model):
 Order = Literal["random_within_set", "fixed", "latin_square"]
 
 
+class Label(_Model):
+    """One answer of an identification task."""
+
+    id: Id
+    text: Localized
+
+
+class ChoiceTask(_Model):
+    """Two clips of the same stimulus, the block's standard and a comparison, one after the
+    other; the participant picks one (key 1/2 or a click). Which one comes first is
+    counterbalanced in the design and logged (``position``)."""
+
+    id: Id
+    type: Literal["choice_2afc"]
+    question: Localized = Field(description="e.g. {en: Which face looked more natural?}.")
+    standard: Id = Field(description="The condition every comparison is paired with.")
+    correct: Literal["comparison", "none"] = Field(
+        "comparison",
+        description="comparison: choosing the comparison is the correct answer (detection or "
+        "discrimination; guess rate 1/2); none: a preference, no answer is correct (guess "
+        "rate 0).",
+    )
+    layout: Literal["sequential"] = Field(
+        "sequential", description="sequential: the two clips one after the other."
+    )
+    gap_s: float = Field(0.5, ge=0.0, le=10.0, description="Blank between the two clips.")
+
+
+class IdentifyTask(_Model):
+    """One clip, then a choice among labels (e.g. the seven emotions)."""
+
+    id: Id
+    type: Literal["identify"]
+    question: Localized = Field(description="e.g. {en: Which emotion did the face show?}.")
+    labels: list[Label] = Field(min_length=2, max_length=9, description="Keys 1..9 choose.")
+    answers: dict[Id, Id] = Field(
+        default_factory=dict,
+        description="Condition id -> the label it portrays; scores answers as correct.",
+    )
+
+
+Task = Annotated[ChoiceTask | IdentifyTask, Field(discriminator="type")]
+
+
+class StaircaseRule(_Model):
+    """A transformed up-down staircase over the block's conditions ordered by level."""
+
+    rule: Literal["up_down"] = "up_down"
+    start: Id = Field(description="The condition the staircase starts at (an easy one).")
+    up: int = Field(1, ge=1, le=5, description="Wrong answers in a row before it gets easier.")
+    down: int = Field(2, ge=1, le=5, description="Correct answers in a row before it gets harder.")
+    step: int = Field(1, ge=1, le=10, description="Grid steps per move.")
+    trials: int = Field(ge=2, le=1000, description="Trials of the staircase.")
+    easier: Literal["higher", "lower"] = Field(
+        "higher", description="Which end of the level scale is easier to answer correctly."
+    )
+
+
 class Block(_Model):
     """A run of sets; each set shows every (stimulus, condition) pair a fixed number of times."""
 
@@ -162,8 +230,22 @@ class Block(_Model):
         "latin_square: condition order from a balanced Latin square row chosen by the "
         "participant number (needs ids ending in a number).",
     )
-    conditions: list[Id] | None = Field(None, description="Subset of conditions; default all.")
+    conditions: list[Id] | None = Field(
+        None,
+        description="Subset of conditions; default all (for a choice_2afc task all but its "
+        "standard).",
+    )
     break_after: bool = Field(True, description="Offer a break screen after this block.")
+    task: Id | None = Field(
+        None, description="A task id from 'tasks'; default: the VAS items after each clip."
+    )
+    design: Literal["factorial", "constant_stimuli", "staircase"] = Field(
+        "factorial",
+        description="factorial: every stimulus x condition per set; constant_stimuli: the "
+        "same over conditions that are levels of one dimension (each needs a level), in "
+        "random order; staircase: an adaptive rule picks each trial's level.",
+    )
+    staircase: StaircaseRule | None = Field(None, description="The rule of a staircase block.")
 
 
 class VasItem(_Model):
@@ -256,14 +338,40 @@ class EffectOverride(_Model):
     effects: dict[Id, float]
 
 
+class Observer(_Model):
+    """A simulated psychometric observer for choice tasks: it picks the comparison with
+    P = gamma + (1 - gamma - lapse) * F(level), F logistic with this midpoint and slope
+    (gamma 1/2 when the task has a correct answer, else 0)."""
+
+    midpoint: float = Field(0.5, description="Level where F = 1/2.")
+    slope: float = Field(10.0, gt=0, le=1e4, description="Logistic slope (per level unit).")
+    lapse: float = Field(0.02, ge=0, le=0.5, description="Lapse rate.")
+    midpoint_sd: float = Field(
+        0.0, ge=0, description="SD of participants' midpoints around 'midpoint'."
+    )
+
+
+class Identifier(_Model):
+    """A simulated identifier: the portrayed label is chosen with probability 'accuracy'
+    (or a row of 'confusion'), otherwise another label uniformly."""
+
+    accuracy: float = Field(0.7, ge=0, le=1)
+    confusion: dict[Id, dict[Id, float]] = Field(
+        default_factory=dict,
+        description="Portrayed label -> {chosen label: probability}; rows replace 'accuracy'.",
+    )
+
+
 class Simulation(_Model):
-    """How ``facelab simulate`` generates ratings; never presented as data."""
+    """How ``facelab simulate`` generates answers; never presented as data."""
 
     model: SimulationModel = Field(default_factory=SimulationModel)
     effects: dict[Id, float] = Field(
         default_factory=dict, description="Condition id -> points added to the mean (default 0)."
     )
     overrides: list[EffectOverride] = Field(default_factory=list)
+    observer: Observer = Field(default_factory=Observer)
+    identifier: Identifier = Field(default_factory=Identifier)
 
 
 class ReportedPair(_Model):
@@ -301,7 +409,12 @@ class Protocol(_Model):
     conditions: list[Condition] = Field(min_length=1)
     stimulus_sets: list[StimulusSet] = Field(min_length=1)
     blocks: list[Block] = Field(min_length=1)
-    items: list[VasItem] = Field(min_length=1)
+    items: list[VasItem] = Field(
+        default_factory=list, description="The VAS items; needed when a block has no task."
+    )
+    tasks: list[Task] = Field(
+        default_factory=list, description="Forced-choice and identification tasks of blocks."
+    )
     presentation: Presentation = Field(default_factory=Presentation)
     rendering: Rendering = Field(default_factory=Rendering)
     simulation: Simulation = Field(default_factory=Simulation)
@@ -314,8 +427,18 @@ class Protocol(_Model):
     def stimulus_set(self, set_id: str) -> StimulusSet:
         return next(s for s in self.stimulus_sets if s.id == set_id)
 
+    def task(self, task_id: str) -> ChoiceTask | IdentifyTask:
+        return next(t for t in self.tasks if t.id == task_id)
+
+    def block_task(self, block: Block) -> ChoiceTask | IdentifyTask | None:
+        return None if block.task is None else self.task(block.task)
+
     def block_conditions(self, block: Block) -> list[str]:
-        return list(block.conditions) if block.conditions else [c.id for c in self.conditions]
+        if block.conditions:
+            return list(block.conditions)
+        task = next((t for t in self.tasks if t.id == block.task), None)
+        skip = task.standard if isinstance(task, ChoiceTask) else None
+        return [c.id for c in self.conditions if c.id != skip]
 
 
 def json_schema() -> dict[str, Any]:

@@ -9,6 +9,7 @@ Layout (BIDS-style, one folder per participant session)::
                                                     order, clip hashes, software, screen/audio
         sub-<ID>_ses-<N>_task-<study>_playback.jsonl  every flip of every clip (the runner)
         sub-<ID>_ses-<N>_task-<study>_actions.jsonl   what a scripted participant did (--simulate)
+        sub-<ID>_ses-<N>_task-<study>_staircase.jsonl every step of every staircase
         sub-<ID>_ses-<N>_task-<study>_repairs.tsv   only after a crash: cut-off lines kept verbatim
         .lock                                       held (flock) while a process writes the session
 
@@ -145,7 +146,7 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
         "chosen; identify: the true label), 0 when not, n/a when the task has no correct answer."
     },
     "level": {"Description": "The stimulus level of the condition (a graded dimension), or n/a."},
-    "comparison": {"Description": "2AFC: the condition the test was compared with."},
+    "comparison": {"Description": "2AFC: the standard condition the test was compared with."},
     "position": {"Description": "2AFC: where the test condition was shown, 1 (first/left) or 2."},
     "simulated": {"Description": "true when a simulated participant gave the response."},
     "protocol_sha256": {"Description": "SHA-256 of the protocol file the session ran."},
@@ -175,6 +176,7 @@ class SessionPaths:
     repairs: Path
     playback: Path
     actions: Path
+    staircase: Path
     lock: Path
 
 
@@ -194,6 +196,7 @@ def session_paths(
         repairs=folder / f"{stem}_repairs.tsv",
         playback=folder / f"{stem}_playback.jsonl",
         actions=folder / f"{stem}_actions.jsonl",
+        staircase=folder / f"{stem}_staircase.jsonl",
         lock=folder / ".lock",
     )
 
@@ -367,6 +370,7 @@ def response_row(
     rating_start: float | None = None,
     response: str | None = None,
     correct: int | None = None,
+    level: float | None = None,
 ) -> dict[str, Any]:
     """One log row for a response to ``trial`` (a :class:`facelab.design.Trial`)."""
     return {
@@ -390,8 +394,8 @@ def response_row(
         "screen": screen,
         "response": response,
         "correct": correct,
-        "level": getattr(trial, "level", None),
-        "comparison": getattr(trial, "comparison", None),
+        "level": level,
+        "comparison": getattr(trial, "standard", None),
         "position": getattr(trial, "position", None),
         "simulated": context.simulated,
         "protocol_sha256": context.protocol_sha256,

@@ -24,6 +24,7 @@ import numpy as np
 
 from facelab.design import build_trials, participant_seed
 from facelab.errors import SessionError
+from facelab.experiment.adaptive import Staircases
 from facelab.experiment.preflight import (
     check_audio,
     check_clips,
@@ -32,8 +33,13 @@ from facelab.experiment.preflight import (
     compare_with_session,
 )
 from facelab.experiment.scripted import ScriptedParticipant
-from facelab.experiment.simulate import RatingModel
-from facelab.experiment.timeline import ClipScreen, ResponseScreen, compile_timeline, remaining
+from facelab.experiment.simulate import ChoiceModel, RatingModel
+from facelab.experiment.timeline import (
+    ResponseScreen,
+    compile_timeline,
+    needed_clips,
+    remaining,
+)
 from facelab.experiment.walk import walk
 from facelab.experiment.window import Window
 from facelab.protocol import Protocol, protocol_hash
@@ -83,7 +89,7 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
     pid = options.participant
     trials = build_trials(protocol, participant=pid)
     screens = compile_timeline(protocol, trials, participant=pid, session=options.session)
-    needed = {s.clip for s in screens if isinstance(s, ClipScreen)}
+    needed = needed_clips(screens)
     clips_dir = options.clips or options.results / protocol.study.id / "clips"
     clips = check_clips(
         protocol,
@@ -206,11 +212,13 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
         ) as window:
             if options.simulate:
                 seed = [options.sim_seed, participant_seed(0, pid) % 2**32, run_number]
+                rng = np.random.default_rng(seed)
                 window.script = ScriptedParticipant(
-                    RatingModel(protocol, rng=np.random.default_rng(seed)),
+                    RatingModel(protocol, rng=rng),
                     window.origin(),
                     window.size,
                     paths.actions,
+                    chooser=ChoiceModel(protocol, rng=rng) if protocol.tasks else None,
                 )
             log.update_provenance(
                 screen={
@@ -226,6 +234,7 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                 context=context,
                 replayed={t for t, _ in answered},
                 on_row=saved_line,
+                staircases=Staircases(protocol, logged=log.rows, record=paths.staircase),
             )
         log.update_provenance(finished=dt.datetime.now(dt.UTC).isoformat())
         return {

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from facelab.errors import SessionError
-from facelab.experiment.simulate import RatingModel
+from facelab.experiment.simulate import ChoiceModel, RatingModel
 from facelab.experiment.vas import VasGeometry
 from facelab.sessionlog import append_jsonl
 
@@ -37,6 +37,7 @@ class ScriptedParticipant:
     actions: Path
     pending: list[tuple[float, list[str]]] = field(default_factory=list)
     planned: dict[int, float] = field(default_factory=dict)  # state id -> time planned
+    chooser: ChoiceModel | None = None  # answers forced choices and identifications
 
     def __post_init__(self) -> None:
         self.exe = shutil.which("xdotool")
@@ -67,7 +68,18 @@ class ScriptedParticipant:
     def press_key(self, key: str, delay: float = 0.15) -> None:
         self.schedule(delay, ["key", key])
 
-    def record(self, *, trial_index: int | None, item: str, value: float) -> None:
+    def answer_key(
+        self, key_id: int, key: str, value: float | str, *, trial_index: int | None, item: str
+    ) -> None:
+        """Press ``key`` for a choice screen (recorded first); re-planned if lost."""
+        now = time.perf_counter()
+        if key_id in self.planned and now - self.planned[key_id] < 4.0:
+            return
+        self.planned[key_id] = now
+        self.record(trial_index=trial_index, item=item, value=value)
+        self.press_key(key, delay=0.4)
+
+    def record(self, *, trial_index: int | None, item: str, value: float | str) -> None:
         """Write the action about to be taken to the actions file (fsync'd)."""
         append_jsonl(
             self.actions,

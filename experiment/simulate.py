@@ -30,8 +30,13 @@ import numpy as np
 
 from facelab.design import build_trials, participant_seed
 from facelab.errors import StageError
+from facelab.experiment.adaptive import Staircases
 from facelab.experiment.timeline import (
+    ChoiceAnswer,
+    ChoiceScreen,
     ClipScreen,
+    IdentifyAnswer,
+    IdentifyScreen,
     Playback,
     TextScreen,
     VasAnswer,
@@ -49,6 +54,7 @@ from facelab.sessionlog import (
 )
 
 __all__ = [
+    "ChoiceModel",
     "RatingModel",
     "SimulatedParticipant",
     "condition_effect",
@@ -121,14 +127,71 @@ class RatingModel:
         return round(float(np.clip(value, low, high)), 2), rt
 
 
+class ChoiceModel:
+    """Forced choices and identifications of one simulated participant (the protocol's
+    ``simulation.observer`` and ``simulation.identifier``); draws from ``rng``.
+
+    * forced choice: the comparison is chosen with ``P = gamma + (1 - gamma - lapse) *
+      logistic(slope * (level - midpoint_p))``, gamma 1/2 when the task has a correct answer
+      (else 0), ``midpoint_p ~ N(midpoint, midpoint_sd)`` per participant;
+    * identification: the portrayed label with probability ``accuracy`` (or a row of
+      ``confusion``), otherwise one of the other labels uniformly.
+    """
+
+    def __init__(self, protocol: Protocol, *, rng: np.random.Generator):
+        sim = protocol.simulation
+        self.protocol, self.rng = protocol, rng
+        self.observer, self.identifier = sim.observer, sim.identifier
+        self.midpoint = float(
+            rng.normal(sim.observer.midpoint, sim.observer.midpoint_sd)
+            if sim.observer.midpoint_sd > 0
+            else sim.observer.midpoint
+        )
+        self.rt = sim.model
+
+    def p_comparison(self, *, level: float, scored: bool) -> float:
+        gamma = 0.5 if scored else 0.0
+        f = 1.0 / (1.0 + np.exp(-self.observer.slope * (level - self.midpoint)))
+        return gamma + (1.0 - gamma - self.observer.lapse) * f
+
+    def response_time(self) -> float:
+        return float(self.rng.lognormal(np.log(self.rt.rt_median_s), self.rt.rt_log_sd))
+
+    def choose(self, screen: ChoiceScreen) -> int:
+        """The interval chosen, 1 or 2."""
+        assert screen.trial is not None and screen.task is not None
+        p = self.p_comparison(
+            level=float(screen.level or 0.0), scored=screen.task.correct == "comparison"
+        )
+        comparison = bool(self.rng.random() < p)
+        position = screen.trial.position or 1
+        return position if comparison else 3 - position
+
+    def identify(self, screen: IdentifyScreen) -> str:
+        assert screen.trial is not None and screen.task is not None
+        labels = [lb.id for lb in screen.task.labels]
+        target = screen.task.answers.get(screen.trial.condition)
+        if target is None:
+            return labels[int(self.rng.integers(len(labels)))]
+        row = self.identifier.confusion.get(target)
+        if row:
+            probs = np.array([row.get(lb, 0.0) for lb in labels], dtype=float)
+            return labels[int(self.rng.choice(len(labels), p=probs / probs.sum()))]
+        if self.rng.random() < self.identifier.accuracy:
+            return target
+        others = [lb for lb in labels if lb != target]
+        return others[int(self.rng.integers(len(others)))]
+
+
 class SimulatedParticipant:
     """A presenter (:mod:`facelab.experiment.walk`) that answers every screen from a
     :class:`RatingModel` on a simulated clock: clips take ``_CLIP_S`` seconds, each response
     its simulated response time. The practice trial is answered mid-scale without drawing
     from the generator, as the scripted participant of ``facelab run --simulate`` does."""
 
-    def __init__(self, rater: RatingModel):
+    def __init__(self, rater: RatingModel, chooser: ChoiceModel | None = None):
         self.rater = rater
+        self.chooser = chooser
         self.clock = 0.0
 
     def text(self, screen: TextScreen) -> None:
@@ -155,6 +218,23 @@ class SimulatedParticipant:
             self.clock += rt
             answers.append(VasAnswer(item.id, rating, round(rt, 3), self._stamp()))
         return answers
+
+    def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
+        if screen.trial is None or screen.practice or self.chooser is None:
+            return [ChoiceAnswer(1, 1.0, self._stamp())]
+        choice = self.chooser.choose(screen)
+        rt = self.chooser.response_time()
+        self.clock += rt
+        return [ChoiceAnswer(choice, round(rt, 3), self._stamp())]
+
+    def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]:
+        assert screen.task is not None
+        if screen.trial is None or screen.practice or self.chooser is None:
+            return [IdentifyAnswer(screen.task.labels[0].id, 1.0, self._stamp())]
+        label = self.chooser.identify(screen)
+        rt = self.chooser.response_time()
+        self.clock += rt
+        return [IdentifyAnswer(label, round(rt, 3), self._stamp())]
 
     def _stamp(self) -> str:
         return (_CLOCK_START + dt.timedelta(seconds=self.clock)).isoformat()
@@ -212,8 +292,17 @@ def simulate_participant(
             protocol_sha256=digest,
         )
         screens = compile_timeline(protocol, trials, participant=participant, session=session)
-        presenter = SimulatedParticipant(RatingModel(protocol, rng=rng, effects=effects))
-        walk(screens, presenter=presenter, log=log, context=context, record_playback=False)
+        rater = RatingModel(protocol, rng=rng, effects=effects)
+        chooser = ChoiceModel(protocol, rng=rng) if protocol.tasks else None
+        presenter = SimulatedParticipant(rater, chooser)
+        walk(
+            screens,
+            presenter=presenter,
+            log=log,
+            context=context,
+            record_playback=False,
+            staircases=Staircases(protocol, record=log.paths.staircase),
+        )
         log.update_provenance(finished=presenter._stamp())
     return log.paths
 

@@ -25,17 +25,22 @@ practice trial are not repeated; a "continuing" screen is shown instead.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
-from facelab.design import Trial
-from facelab.protocol import Protocol, VasItem
+from facelab.design import PENDING, Trial
+from facelab.protocol import ChoiceTask, IdentifyTask, Protocol, VasItem
 from facelab.sessionlog import SessionContext, response_row
 
 __all__ = [
     "UI_TEXT",
+    "AdaptiveTrial",
+    "ChoiceAnswer",
+    "ChoiceScreen",
     "ClipKey",
     "ClipScreen",
+    "IdentifyAnswer",
+    "IdentifyScreen",
     "Playback",
     "ResponseScreen",
     "Screen",
@@ -44,7 +49,9 @@ __all__ = [
     "VasScreen",
     "compile_timeline",
     "localized",
+    "needed_clips",
     "remaining",
+    "trial_screens",
 ]
 
 #: (stimulus set, stimulus, condition): one rendered clip.
@@ -61,6 +68,9 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "next": "スペースキーで次へ",
         "break": "休憩です。準備ができたらスペースキーを押してください。",
         "end": "終了です。ありがとうございました。",
+        "interval": "{n} つ目",
+        "choice_keys": "1 か 2 のキー、またはクリックで答えてください",
+        "label_keys": "数字キー、またはクリックで答えてください",
     },
     "en": {
         "welcome": "Participant {pid} (session {ses})\n\nPress space to start.",
@@ -71,6 +81,9 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "next": "Press space to continue",
         "break": "Take a break. Press space when you are ready.",
         "end": "This is the end. Thank you.",
+        "interval": "Clip {n}",
+        "choice_keys": "Press 1 or 2, or click",
+        "label_keys": "Press a number key, or click",
     },
 }
 
@@ -122,6 +135,8 @@ class ClipScreen(Screen):
     trial: Trial | None
     clip: ClipKey
     practice: bool = False
+    interval: int | None = None  # 1 or 2 in a forced choice (announced before the clip)
+    gap_s: float = 0.0  # blank before the clip (between the two clips of a forced choice)
 
 
 @dataclass(frozen=True)
@@ -154,6 +169,7 @@ class ResponseScreen(Screen):
 
     trial: Trial | None
     practice: bool = False
+    level: float | None = None  # the trial's condition on a graded dimension
 
     def rows(
         self, answers: Sequence[Any], *, context: SessionContext, playback: Playback | None
@@ -202,19 +218,174 @@ class VasScreen(ResponseScreen):
                 timestamp=by_item[item.id].timestamp,
                 clip_onset=None if playback is None else playback.onset,
                 clip_frames_dropped=None if playback is None else playback.dropped,
+                level=self.level,
             )
             for item in self.items
         ]
 
 
+@dataclass(frozen=True)
+class ChoiceAnswer:
+    """A forced choice: ``choice`` is the interval picked, 1 (first) or 2 (second)."""
+
+    choice: int
+    rt_s: float
+    timestamp: str
+
+
+@dataclass(frozen=True)
+class ChoiceScreen(ResponseScreen):
+    """Which of the two clips? The comparison was in interval ``trial.position``."""
+
+    kind: ClassVar[str] = "choice_2afc"
+    task: ChoiceTask | None = None
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        if self.practice or self.trial is None or self.task is None:
+            return ()
+        return ((self.trial.trial_index, self.task.id),)
+
+    def rows(
+        self, answers: Sequence[ChoiceAnswer], *, context: SessionContext, playback: Playback | None
+    ) -> list[dict[str, Any]]:
+        if not self.response_keys():
+            return []
+        (answer,) = answers
+        assert self.trial is not None and self.task is not None
+        chose_comparison = answer.choice == self.trial.position
+        return [
+            response_row(
+                context=context,
+                trial=self.trial,
+                item=self.task.id,
+                screen=self.kind,
+                rt_s=answer.rt_s,
+                timestamp=answer.timestamp,
+                clip_onset=None if playback is None else playback.onset,
+                clip_frames_dropped=None if playback is None else playback.dropped,
+                response=self.trial.condition if chose_comparison else self.trial.standard,
+                correct=int(chose_comparison) if self.task.correct == "comparison" else None,
+                level=self.level,
+            )
+        ]
+
+
+@dataclass(frozen=True)
+class IdentifyAnswer:
+    """An identification: the id of the label chosen."""
+
+    label: str
+    rt_s: float
+    timestamp: str
+
+
+@dataclass(frozen=True)
+class IdentifyScreen(ResponseScreen):
+    """Which label fits the clip? Correct when the task names the condition's label."""
+
+    kind: ClassVar[str] = "identify"
+    task: IdentifyTask | None = None
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        if self.practice or self.trial is None or self.task is None:
+            return ()
+        return ((self.trial.trial_index, self.task.id),)
+
+    def rows(
+        self,
+        answers: Sequence[IdentifyAnswer],
+        *,
+        context: SessionContext,
+        playback: Playback | None,
+    ) -> list[dict[str, Any]]:
+        if not self.response_keys():
+            return []
+        (answer,) = answers
+        assert self.trial is not None and self.task is not None
+        target = self.task.answers.get(self.trial.condition)
+        return [
+            response_row(
+                context=context,
+                trial=self.trial,
+                item=self.task.id,
+                screen=self.kind,
+                rt_s=answer.rt_s,
+                timestamp=answer.timestamp,
+                clip_onset=None if playback is None else playback.onset,
+                clip_frames_dropped=None if playback is None else playback.dropped,
+                response=answer.label,
+                correct=None if target is None else int(answer.label == target),
+                level=self.level,
+            )
+        ]
+
+
+@dataclass(frozen=True)
+class AdaptiveTrial(ResponseScreen):
+    """A staircase trial before its level is known: the walker asks the block's staircase for
+    the condition, then shows :meth:`expand`'s screens. Collects the task's one response."""
+
+    kind: ClassVar[str] = "adaptive"
+    protocol: Protocol | None = field(default=None, compare=False, repr=False)
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        assert self.trial is not None and self.protocol is not None
+        block = next(b for b in self.protocol.blocks if b.id == self.trial.block)
+        return ((self.trial.trial_index, str(block.task)),)
+
+    def expand(self, condition: str) -> list[Screen]:
+        """The screens of this trial at ``condition``."""
+        assert self.trial is not None and self.protocol is not None
+        return trial_screens(self.protocol, replace(self.trial, condition=condition))
+
+
 # --------------------------------------------------------------------------- compiling
 
 
-def _vas_screens(protocol: Protocol, trial: Trial | None, *, practice: bool) -> list[VasScreen]:
+def _vas_screens(
+    protocol: Protocol, trial: Trial | None, *, practice: bool, level: float | None = None
+) -> list[VasScreen]:
     items = tuple(protocol.items)
     if protocol.presentation.items_layout == "together":
-        return [VasScreen(trial=trial, practice=practice, items=items)]
-    return [VasScreen(trial=trial, practice=practice, items=(item,)) for item in items]
+        return [VasScreen(trial=trial, practice=practice, items=items, level=level)]
+    return [VasScreen(trial=trial, practice=practice, items=(item,), level=level) for item in items]
+
+
+def trial_screens(
+    protocol: Protocol,
+    trial: Trial,
+    *,
+    practice: bool = False,
+    task: ChoiceTask | IdentifyTask | None = None,
+) -> list[Screen]:
+    """The screens of one trial: its clip(s), then its response screen(s).
+
+    ``task`` overrides the block's task (the practice trial uses the first block's)."""
+    if trial.condition == PENDING:
+        return [AdaptiveTrial(trial=trial, protocol=protocol)]
+    block = next((b for b in protocol.blocks if b.id == trial.block), None)
+    if task is None and block is not None:
+        task = protocol.block_task(block)
+    level = protocol.condition(trial.condition).level
+    shown = None if practice else trial
+    clip = (trial.stimulus_set, trial.stimulus, trial.condition)
+    if task is None:
+        return [
+            ClipScreen(trial=shown, clip=clip, practice=practice),
+            *_vas_screens(protocol, shown, practice=practice, level=level),
+        ]
+    if isinstance(task, IdentifyTask):
+        return [
+            ClipScreen(trial=shown, clip=clip, practice=practice),
+            IdentifyScreen(trial=shown, practice=practice, level=level, task=task),
+        ]
+    standard = (trial.stimulus_set, trial.stimulus, trial.standard or task.standard)
+    first, second = (clip, standard) if (trial.position or 1) == 1 else (standard, clip)
+    return [
+        ClipScreen(trial=shown, clip=first, practice=practice, interval=1),
+        ClipScreen(trial=shown, clip=second, practice=practice, interval=2, gap_s=task.gap_s),
+        ChoiceScreen(trial=shown, practice=practice, level=level, task=task),
+    ]
 
 
 def compile_timeline(
@@ -230,22 +401,43 @@ def compile_timeline(
     if pres.instructions:
         screens.append(TextScreen(role="instructions", text=localized(pres.instructions, lang)))
     if pres.practice is not None:
-        key = (pres.practice.stimulus_set, pres.practice.stimulus, pres.practice.condition)
+        task = protocol.block_task(protocol.blocks[0])
+        practice = Trial(
+            trial_index=0,
+            block="practice",
+            set_index=1,
+            stimulus_set=pres.practice.stimulus_set,
+            stimulus=pres.practice.stimulus,
+            condition=pres.practice.condition,
+            repetition=1,
+            standard=task.standard if isinstance(task, ChoiceTask) else None,
+            position=1 if isinstance(task, ChoiceTask) else None,
+        )
         screens.append(TextScreen(role="practice", text=texts["practice"]))
-        screens.append(ClipScreen(trial=None, clip=key, practice=True))
-        screens += _vas_screens(protocol, None, practice=True)
+        screens += trial_screens(protocol, practice, practice=True, task=task)
     blocks = {b.id: b for b in protocol.blocks}
     for i, trial in enumerate(trials):
-        screens.append(
-            ClipScreen(trial=trial, clip=(trial.stimulus_set, trial.stimulus, trial.condition))
-        )
-        screens += _vas_screens(protocol, trial, practice=False)
+        screens += trial_screens(protocol, trial)
         nxt = trials[i + 1] if i + 1 < len(trials) else None
         if nxt is not None and nxt.block != trial.block and blocks[trial.block].break_after:
             text = localized(pres.break_text, lang, texts["break"])
             screens.append(TextScreen(role="break", text=text))
     screens.append(TextScreen(role="end", text=localized(pres.end_text, lang, texts["end"])))
     return screens
+
+
+def needed_clips(screens: Sequence[Screen]) -> set[ClipKey]:
+    """Every clip the screens may show: a staircase trial may show any level of its grid."""
+    needed: set[ClipKey] = set()
+    for s in screens:
+        if isinstance(s, ClipScreen):
+            needed.add(s.clip)
+        elif isinstance(s, AdaptiveTrial):
+            assert s.trial is not None and s.protocol is not None
+            block = next(b for b in s.protocol.blocks if b.id == s.trial.block)
+            for cond in s.protocol.block_conditions(block):
+                needed |= {x.clip for x in s.expand(cond) if isinstance(x, ClipScreen)}
+    return needed
 
 
 def remaining(

@@ -12,8 +12,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
+from facelab.experiment.adaptive import Staircases
 from facelab.experiment.timeline import (
+    AdaptiveTrial,
+    ChoiceAnswer,
+    ChoiceScreen,
     ClipScreen,
+    IdentifyAnswer,
+    IdentifyScreen,
     Playback,
     ResponseScreen,
     Screen,
@@ -30,6 +36,8 @@ class Presenter(Protocol):
     def text(self, screen: TextScreen) -> None: ...
     def clip(self, screen: ClipScreen) -> Playback: ...
     def vas(self, screen: VasScreen) -> list[VasAnswer]: ...
+    def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]: ...
+    def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]: ...
 
 
 #: screen class -> the presenter method that shows it (a new screen type adds one line)
@@ -37,7 +45,20 @@ PRESENTERS: dict[type[Screen], str] = {
     TextScreen: "text",
     ClipScreen: "clip",
     VasScreen: "vas",
+    ChoiceScreen: "choice",
+    IdentifyScreen: "identify",
 }
+
+
+def _combine(first: Playback | None, second: Playback) -> Playback:
+    """The playback of a trial with two clips: the first onset, the frames dropped in both."""
+    if first is None:
+        return second
+    return Playback(
+        onset=first.onset,
+        dropped=first.dropped + second.dropped,
+        frames_expected=first.frames_expected + second.frames_expected,
+    )
 
 
 def walk(
@@ -49,24 +70,35 @@ def walk(
     replayed: set[int] = frozenset(),  # type: ignore[assignment]
     record_playback: bool = True,
     on_row: Callable[[dict[str, Any]], None] | None = None,
+    staircases: Staircases | None = None,
 ) -> int:
     """Present ``screens`` in order; returns the number of trials whose responses finished.
 
     ``replayed`` are trials whose clip was already shown in an earlier run (a resume): their
-    playback records say ``"replay": true``.
+    playback records say ``"replay": true``. A staircase trial (:class:`AdaptiveTrial`) asks
+    ``staircases`` for its condition, shows that trial's screens, and reports the answer back.
     """
     playbacks: dict[int | None, Playback] = {}
-    last_response = {
-        s.trial_index: i for i, s in enumerate(screens) if isinstance(s, ResponseScreen)
-    }
+    queue = list(screens)
     trials_done = 0
-    for index, screen in enumerate(screens):
+    adaptive: dict[int | None, AdaptiveTrial] = {}
+    index = 0
+    while index < len(queue):
+        screen = queue[index]
+        if isinstance(screen, AdaptiveTrial):
+            if staircases is None:
+                raise TypeError("a staircase trial needs the session's staircases")
+            assert screen.trial is not None
+            expanded = screen.expand(staircases.resolve(screen.trial))
+            queue[index : index + 1] = expanded
+            adaptive[screen.trial_index] = screen
+            continue
+        index += 1
         method = PRESENTERS.get(type(screen))
         if method is None:
             raise TypeError(f"no presenter for screen type {type(screen).__name__}")
         result = getattr(presenter, method)(screen)
         if isinstance(screen, ClipScreen):
-            playbacks[screen.trial_index] = result
             if record_playback and not screen.practice:
                 append_jsonl(
                     log.paths.playback,
@@ -76,12 +108,20 @@ def walk(
                         replay=screen.trial_index in replayed,
                     ),
                 )
+            if screen.interval == 2:
+                result = _combine(playbacks.get(screen.trial_index), result)
+            playbacks[screen.trial_index] = result
         elif isinstance(screen, ResponseScreen):
             rows = screen.rows(result, context=context, playback=playbacks.get(screen.trial_index))
             for row in rows:
                 log.append(row)
                 if on_row is not None:
                     on_row(row)
-            if rows and last_response[screen.trial_index] == index:
+            if screen.trial_index in adaptive and rows and staircases is not None:
+                assert screen.trial is not None
+                staircases.update(screen.trial, rows)
+            nxt = queue[index] if index < len(queue) else None  # a trial's responses are adjacent
+            last = not (isinstance(nxt, ResponseScreen) and nxt.trial_index == screen.trial_index)
+            if rows and last:
                 trials_done += 1
     return trials_done

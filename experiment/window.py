@@ -28,8 +28,12 @@ from facelab.errors import SessionAbortedError, SessionError
 from facelab.experiment.preflight import ClipRef
 from facelab.experiment.scripted import ScriptedParticipant
 from facelab.experiment.timeline import (
+    ChoiceAnswer,
+    ChoiceScreen,
     ClipKey,
     ClipScreen,
+    IdentifyAnswer,
+    IdentifyScreen,
     Playback,
     TextScreen,
     VasAnswer,
@@ -185,8 +189,25 @@ class Window:
 
     # -------------------------------------------------------------------- playback
 
+    def _announce(self, screen: ClipScreen) -> None:
+        """Before a forced choice's clip: a blank gap, then "Clip 1" / "Clip 2" for 0.8 s."""
+        if screen.gap_s > 0:
+            end = time.perf_counter() + screen.gap_s
+            while time.perf_counter() < end:
+                self.win.flip()
+        label = self._textstim(
+            self.ui["interval"].format(n=screen.interval), height=0.06 * self.size[1]
+        )
+        end = time.perf_counter() + 0.8
+        while time.perf_counter() < end:
+            label.draw()
+            self.win.flip()
+            self._check_escape(self.event.getKeys(keyList=["escape"]))
+
     def clip(self, screen: ClipScreen) -> Playback:
         """Play one clip with sound; returns onset, flips and dropped frames."""
+        if screen.interval is not None:
+            self._announce(screen)
         ref = self.clips[screen.clip]
         shot = None if screen.practice else "clip_mid_playback"
         w, h = self.size
@@ -253,6 +274,124 @@ class Window:
                 f"{roi.mean():.0f}, sd {roi.std():.1f}): the movie backend is not showing "
                 "frames; check the psychopy/ffpyplayer installation before running people"
             )
+
+    # -------------------------------------------------------------------- choices
+
+    def _choose(
+        self,
+        *,
+        question: str,
+        options: list[str],
+        hint: str,
+        shot: str | None,
+        scripted: tuple[int, float | str, int | None, str] | None,
+    ) -> tuple[int, float]:
+        """Show ``options`` as numbered buttons under ``question``; returns (index, rt in s).
+
+        Keys 1..n (top row or keypad) or a click choose. ``scripted``: (index, logged value,
+        trial index, item) for the scripted participant."""
+        w, h = self.size
+        n = len(options)
+        width = min(0.8 * w / n, 0.3 * w)
+        xs = [(i - (n - 1) / 2) * (width + 0.02 * w) for i in range(n)]
+        box_h = 0.14 * h if n <= 3 else 0.18 * h
+        boxes = [
+            self.visual.Rect(
+                self.win,
+                width=width,
+                height=box_h,
+                pos=(x, -0.05 * h),
+                lineColor="white",
+                lineWidth=2,
+                fillColor=(-0.45, -0.45, -0.45),
+            )
+            for x in xs
+        ]
+        labels = [
+            self._textstim(
+                f"{i + 1}\n{text}" if text != str(i + 1) else text,
+                y=-0.05 * h,
+                height=0.028 * h if n > 2 else 0.05 * h,
+                width=0.95 * width,
+            )
+            for i, text in enumerate(options)
+        ]
+        for stim, x in zip(labels, xs, strict=True):
+            stim.pos = (x, -0.05 * h)
+        prompt = self._textstim(question, y=0.2 * h)
+        hint_stim = self._textstim(hint, y=-0.35 * h, height=0.022 * h, color="lightgrey")
+        keys = {str(i + 1): i for i in range(n)} | {f"num_{i + 1}": i for i in range(n)}
+        self._clear_events()
+        self.mouse.clickReset()
+        onset = time.perf_counter()
+        was_down = False
+        while True:
+            if self.script is not None and scripted is not None:
+                index, value, trial_index, item = scripted
+                self.script.answer_key(
+                    id(boxes), str(index + 1), value, trial_index=trial_index, item=item
+                )
+            prompt.draw()
+            for box, label in zip(boxes, labels, strict=True):
+                box.draw()
+                label.draw()
+            hint_stim.draw()
+            if shot:
+                self._screenshot(shot)
+                shot = None
+            self.win.flip()
+            if self.script:
+                self.script.tick()
+            pressed = self.event.getKeys()
+            self._check_escape(pressed)
+            for key in pressed:
+                if key in keys:
+                    return keys[key], time.perf_counter() - onset
+            down = bool(self.mouse.getPressed()[0])
+            if down and not was_down:
+                for i, box in enumerate(boxes):
+                    if box.contains(self.mouse):
+                        return i, time.perf_counter() - onset
+            was_down = down
+
+    def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
+        """Which of the two clips? Keys 1/2 or a click on a button."""
+        assert screen.task is not None
+        scripted = None
+        if self.script is not None and self.script.chooser is not None:
+            if screen.trial is None or screen.practice:
+                scripted = (0, 1, None, screen.task.id)
+            else:
+                pick = self.script.chooser.choose(screen)
+                scripted = (pick - 1, pick, screen.trial_index, screen.task.id)
+        index, rt = self._choose(
+            question=localized(screen.task.question, self.lang),
+            options=["1", "2"],
+            hint=self.ui["choice_keys"],
+            shot=None if screen.practice else "choice_2afc_screen",
+            scripted=scripted,
+        )
+        return [ChoiceAnswer(choice=index + 1, rt_s=round(rt, 4), timestamp=utc_now())]
+
+    def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]:
+        """Which label? Number keys or a click on a label."""
+        assert screen.task is not None
+        ids = [lb.id for lb in screen.task.labels]
+        scripted = None
+        if self.script is not None and self.script.chooser is not None:
+            if screen.trial is None or screen.practice:
+                scripted = (0, ids[0], None, screen.task.id)
+            else:
+                label = self.script.chooser.identify(screen)
+                scripted = (ids.index(label), label, screen.trial_index, screen.task.id)
+        index, rt = self._choose(
+            question=localized(screen.task.question, self.lang),
+            options=[localized(lb.text, self.lang) for lb in screen.task.labels],
+            hint=self.ui["label_keys"],
+            shot=None if screen.practice else "identify_screen",
+            scripted=scripted,
+        )
+        return [IdentifyAnswer(label=ids[index], rt_s=round(rt, 4), timestamp=utc_now())]
 
     # -------------------------------------------------------------------- VAS
 

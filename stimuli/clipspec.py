@@ -53,7 +53,9 @@ def plan(protocol: Protocol) -> list[ClipJob]:
     wanted: dict[tuple[str, str, str], None] = {}
     for block in protocol.blocks:
         for stim in protocol.stimulus_set(block.stimulus_set).stimuli:
-            for cond in protocol.block_conditions(block):
+            task = protocol.block_task(block)
+            standard = [task.standard] if task is not None and task.type == "choice_2afc" else []
+            for cond in [*protocol.block_conditions(block), *standard]:
                 wanted[(block.stimulus_set, stim.id, cond)] = None
     practice = protocol.presentation.practice
     if practice is not None:

@@ -32,7 +32,15 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         protocol_sha256=protocol_hash(args.protocol),
         accept_protocol_change=args.accept_protocol_change,
     )
-    results = analyze_study(data, protocol, method=args.method)
+    import numpy as np
+
+    from facelab.analysis.tasks import analyze_tasks
+
+    vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
+    results = analyze_study(vas, protocol, method=args.method) if not vas.empty else None
+    tasks = analyze_tasks(
+        data, protocol, rng=np.random.default_rng(args.seed), n_boot=args.bootstrap
+    )
     if args.out:
         out = output_dir(args.out, option="--out")
     elif results_dir.name == protocol.study.id:
@@ -46,6 +54,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         out=output_dir(out, option="--out"),
         protocol_path=Path(args.protocol),
         check=check,
+        tasks=tasks,
     )
     kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
     print(
@@ -54,16 +63,50 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     )
     if check.provenance == "unknown":
         print("  provenance unknown: some sessions do not say whether they were simulated")
-    for note in (*check.notes, *results.notes):
+    for note in (*check.notes, *(results.notes if results else ()), *tasks.notes):
         print(f"  note: {note}")
-    for row in results.layout.itertuples():
+    for row in results.layout.itertuples() if results is not None else ():
         print(
             f"  {row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}: "
             f"F({row.df1:g},{row.df2:g}) = {row.f:7.3f}, p = {row.anova_p:.4f}; "
             f"pairs p<.05: {row.pairs_p_lt_05}"
         )
+    _print_tasks(tasks)
     print(f"report: {files.html}\ntables and figures: {files.folder}")
     return 0
+
+
+def _print_tasks(tasks: object) -> None:
+    tables = getattr(tasks, "tables", {})
+    fits = tables.get("psychometric_fits")
+    if fits is not None:
+        for r in fits[fits["participant"] == "pooled"].itertuples():
+            print(
+                f"  {r.task:>12} psychometric (pooled, gamma {r.gamma:g}): midpoint "
+                f"{r.midpoint:.3f} [{r.midpoint_ci_low:.3f}, {r.midpoint_ci_high:.3f}], "
+                f"slope {r.beta:.3g}, lapse {r.lapse:.3f}, deviance {r.deviance:.2f} "
+                f"(df {r.deviance_df})"
+            )
+    stairs = tables.get("staircase_thresholds")
+    if stairs is not None:
+        print(
+            f"  staircase thresholds (last reversals): median {stairs['threshold'].median():.3f} "
+            f"over {len(stairs)} participants"
+        )
+    ident = tables.get("identification_summary")
+    if ident is not None:
+        for r in ident[ident["participant"] == "pooled"].itertuples():
+            print(
+                f"  {r.task:>12} identification (pooled): accuracy {r.accuracy:.3f} "
+                f"(chance {r.chance:.3f}), kappa {r.kappa:.3f}, n = {r.n}"
+            )
+    trend = tables.get("trend_contrast")
+    if trend is not None:
+        for r in trend.itertuples():
+            print(
+                f"  {r.item:>12} / {r.stimulus_set:<10} linear trend: slope {r.slope:.3g} "
+                f"per level, F(1,{r.df}) = {r.F:.3f}, p = {r.p:.4f}"
+            )
 
 
 def _cmd_power(args: argparse.Namespace) -> int:
@@ -183,6 +226,16 @@ def register(add: AddCommand) -> None:
         help="primary procedure: rm (sound, default) or paper (pooled ANOVA + Tukey)",
     )
     p.add_argument("--exclude", action="append", metavar="ID", help="leave out a participant")
+    p.add_argument(
+        "--bootstrap",
+        type=int,
+        default=200,
+        metavar="N",
+        help="parametric-bootstrap resamples for psychometric CIs (default 200; 0: none)",
+    )
+    p.add_argument(
+        "--seed", type=int, default=1, help="seed of the bootstrap generator (default 1)"
+    )
     p.add_argument(
         "--accept-protocol-change",
         action="store_true",

@@ -19,7 +19,12 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             f"ok: {path}: study {protocol.study.id!r}, {len(protocol.conditions)} conditions, "
             f"{sum(len(s.stimuli) for s in protocol.stimulus_sets)} stimuli in "
             f"{len(protocol.stimulus_sets)} sets, {len(protocol.blocks)} blocks, "
-            f"{n_trials} trials x {len(protocol.items)} items per participant"
+            + (
+                f"{n_trials} trials x {len(protocol.items)} items per participant"
+                if not protocol.tasks
+                else f"{n_trials} trials per participant; tasks: "
+                + ", ".join(f"{t.id} ({t.type})" for t in protocol.tasks)
+            )
         )
     return 0
 

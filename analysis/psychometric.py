@@ -1,0 +1,341 @@
+"""Psychometric functions: maximum-likelihood fits with a fixed guess rate and a free lapse rate.
+
+The model of the probability of a "yes" (a correct answer in 2AFC, the comparison chosen in a
+preference task) at stimulus level ``x``::
+
+    P(x) = gamma + (1 - gamma - lambda) * F(x)
+
+* ``gamma`` - the guess rate, fixed by the task: 0.5 for 2AFC with a correct answer, 1/k for
+  identification among k labels, 0 for a preference (which looked more ...?) task;
+* ``lambda`` - the lapse rate, free in ``[0, 0.1]`` (bounds configurable);
+* ``F`` - a sigmoid from :data:`SIGMOIDS`:
+
+  - ``logistic``: ``F = 1 / (1 + exp(-beta * (x - alpha)))``; midpoint ``alpha``;
+  - ``weibull``: ``F = 1 - exp(-(x / alpha) ** beta)`` (``x > 0``); midpoint
+    ``alpha * ln(2) ** (1 / beta)``.
+
+Every fit reports the midpoint of F (the level where F = 0.5), the slope parameter ``beta``,
+the slope of F at its midpoint (per level unit), lambda, the deviance against the saturated
+model with its degrees of freedom, and percentile confidence intervals from a parametric
+bootstrap (data drawn from the fitted function at the observed levels and counts, refitted).
+
+Tables in and out are tidy: counts with columns ``level, n, k`` (trials, "yes" answers) -
+:func:`count_responses` makes them from trial rows - and one row per fit out. The reference
+values in ``tests/reference/psychometric_R.json`` come from R - ``glm`` with psyphy's
+``mafc``/``logit.2asym`` links, lambda profiled with ``optimize`` - written by
+``tests/reference/psychometric.R``; the log-likelihood includes the binomial coefficients,
+as R's ``logLik`` does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, special
+
+from facelab.errors import AnalysisError
+
+__all__ = [
+    "FIT_COLUMNS",
+    "SIGMOIDS",
+    "PsychometricFit",
+    "count_responses",
+    "fit_psychometric",
+    "fit_table",
+    "predict",
+]
+
+_EPS = 1e-12
+
+
+def _logistic(x: np.ndarray, alpha: float, beta: float) -> np.ndarray:
+    return special.expit(beta * (x - alpha))
+
+
+def _weibull(x: np.ndarray, alpha: float, beta: float) -> np.ndarray:
+    z = np.clip(np.asarray(x, dtype=float), 0.0, None) / alpha
+    return -np.expm1(-(z**beta))
+
+
+#: name -> F(x, alpha, beta)
+SIGMOIDS: dict[str, Callable[[np.ndarray, float, float], np.ndarray]] = {
+    "logistic": _logistic,
+    "weibull": _weibull,
+}
+
+
+def _midpoint(sigmoid: str, alpha: float, beta: float) -> float:
+    return alpha if sigmoid == "logistic" else alpha * np.log(2.0) ** (1.0 / beta)
+
+
+def _slope_at_midpoint(sigmoid: str, alpha: float, beta: float) -> float:
+    if sigmoid == "logistic":
+        return beta / 4.0
+    return beta * np.log(2.0) / (2.0 * _midpoint(sigmoid, alpha, beta))
+
+
+def predict(
+    x: np.ndarray | Sequence[float],
+    *,
+    sigmoid: str,
+    alpha: float,
+    beta: float,
+    gamma: float,
+    lapse: float,
+) -> np.ndarray:
+    """P(x) of the model above; ``x`` any shape, returns the same shape."""
+    f = SIGMOIDS[sigmoid](np.asarray(x, dtype=float), alpha, beta)
+    return gamma + (1.0 - gamma - lapse) * f
+
+
+@dataclass(frozen=True)
+class PsychometricFit:
+    """One maximum-likelihood fit. CIs are NaN when no bootstrap was asked for."""
+
+    sigmoid: str
+    gamma: float
+    alpha: float
+    beta: float
+    lapse: float
+    midpoint: float
+    slope_at_midpoint: float
+    deviance: float
+    deviance_df: int
+    log_likelihood: float
+    n_trials: int
+    n_levels: int
+    converged: bool
+    midpoint_ci_low: float = float("nan")
+    midpoint_ci_high: float = float("nan")
+    beta_ci_low: float = float("nan")
+    beta_ci_high: float = float("nan")
+    lapse_ci_low: float = float("nan")
+    lapse_ci_high: float = float("nan")
+    n_boot: int = 0
+
+
+FIT_COLUMNS: tuple[str, ...] = tuple(PsychometricFit.__dataclass_fields__)
+
+
+def count_responses(
+    trials: pd.DataFrame, *, x: str = "level", y: str = "correct", by: Sequence[str] = ()
+) -> pd.DataFrame:
+    """Trial rows (``y`` 0/1 or bool) -> counts ``[*by, level, n, k]`` sorted by level."""
+    missing = [c for c in (x, y, *by) if c not in trials.columns]
+    if missing:
+        raise AnalysisError(f"psychometric data lack column(s) {missing}")
+    data = trials.dropna(subset=[x, y])
+    values = pd.to_numeric(data[y].astype(float), errors="coerce")
+    if values.isna().any() or not values.isin([0.0, 1.0]).all():
+        raise AnalysisError(f"column {y!r} must hold 0/1 answers")
+    data = data.assign(_y=values, _x=pd.to_numeric(data[x], errors="coerce"))
+    keys = [*by, "_x"]
+    out = data.groupby(keys, sort=True).agg(n=("_y", "size"), k=("_y", "sum")).reset_index()
+    out = out.rename(columns={"_x": "level"})
+    out["k"] = out["k"].astype(int)
+    return out
+
+
+def _neg_loglik(
+    params: np.ndarray, x: np.ndarray, n: np.ndarray, k: np.ndarray, sigmoid: str, gamma: float
+) -> float:
+    alpha, log_beta, lapse = params
+    p = predict(x, sigmoid=sigmoid, alpha=alpha, beta=np.exp(log_beta), gamma=gamma, lapse=lapse)
+    p = np.clip(p, _EPS, 1 - _EPS)
+    return -float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+
+
+def _log_binom(n: np.ndarray, k: np.ndarray) -> float:
+    return float(
+        np.sum(special.gammaln(n + 1) - special.gammaln(k + 1) - special.gammaln(n - k + 1))
+    )
+
+
+def _saturated_loglik(n: np.ndarray, k: np.ndarray) -> float:
+    q = k / n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(k > 0, k * np.log(q), 0.0) + np.where(
+            n - k > 0, (n - k) * np.log1p(-q), 0.0
+        )
+    return float(np.sum(terms))
+
+
+def _starts(x: np.ndarray, sigmoid: str, lapse_bounds: tuple[float, float]) -> list[np.ndarray]:
+    span = float(np.ptp(x)) or 1.0
+    lapse0 = min(max(0.02, lapse_bounds[0]), lapse_bounds[1])
+    starts = []
+    for q in (0.25, 0.5, 0.75):
+        mid = float(np.quantile(x, q))
+        if sigmoid == "logistic":
+            for beta in (2.0 / span, 8.0 / span, 30.0 / span):
+                starts.append(np.array([mid, np.log(beta), lapse0]))
+        else:
+            for beta in (1.0, 3.0, 8.0):
+                starts.append(np.array([max(mid, 1e-6), np.log(beta), lapse0]))
+    return starts
+
+
+def fit_psychometric(
+    counts: pd.DataFrame,
+    *,
+    sigmoid: str = "logistic",
+    gamma: float,
+    lapse_bounds: tuple[float, float] = (0.0, 0.1),
+    n_boot: int = 0,
+    rng: np.random.Generator | None = None,
+    ci: float = 0.95,
+) -> PsychometricFit:
+    """Maximum-likelihood fit of ``counts`` (columns ``level, n, k``).
+
+    Parameters
+    ----------
+    counts : one row per level: ``level`` (stimulus units), ``n`` trials, ``k`` "yes" answers.
+    sigmoid : ``logistic`` or ``weibull`` (Weibull needs levels >= 0).
+    gamma : the guess rate, fixed (0.5 for 2AFC, 1/k for k-label identification, 0 for
+        preference).
+    lapse_bounds : bounds of the free lapse rate; ``(0, 0)`` fixes it at 0.
+    n_boot : parametric-bootstrap resamples for the CIs (0: none); needs ``rng``.
+    """
+    if sigmoid not in SIGMOIDS:
+        raise AnalysisError(f"unknown sigmoid {sigmoid!r}; expected one of {', '.join(SIGMOIDS)}")
+    if not 0.0 <= gamma < 1.0:
+        raise AnalysisError(f"guess rate gamma must be in [0, 1), got {gamma}")
+    lo, hi = lapse_bounds
+    if not 0.0 <= lo <= hi < 1.0 - gamma:
+        raise AnalysisError(
+            f"lapse bounds {lapse_bounds} must satisfy 0 <= low <= high < 1 - gamma"
+        )
+    x = counts["level"].to_numpy(dtype=float)
+    n = counts["n"].to_numpy(dtype=float)
+    k = counts["k"].to_numpy(dtype=float)
+    if len(x) < 2 or len(np.unique(x)) < 2:
+        raise AnalysisError("a psychometric fit needs answers at two or more levels")
+    if np.any(n <= 0) or np.any(k < 0) or np.any(k > n):
+        raise AnalysisError("counts need n > 0 and 0 <= k <= n at every level")
+    if sigmoid == "weibull" and np.any(x < 0):
+        raise AnalysisError("the Weibull function needs levels >= 0; use the logistic")
+    best = _fit(x, n, k, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds)
+    alpha, log_beta, lapse = best.x
+    beta = float(np.exp(log_beta))
+    loglik = -float(best.fun)  # without the binomial coefficients (they cancel in the deviance)
+    fit = PsychometricFit(
+        sigmoid=sigmoid,
+        gamma=gamma,
+        alpha=float(alpha),
+        beta=beta,
+        lapse=float(lapse),
+        midpoint=float(_midpoint(sigmoid, alpha, beta)),
+        slope_at_midpoint=float(_slope_at_midpoint(sigmoid, alpha, beta)),
+        deviance=max(0.0, 2.0 * (_saturated_loglik(n, k) - loglik)),
+        deviance_df=int(len(x) - (3 if hi > lo else 2)),
+        log_likelihood=loglik + _log_binom(n, k),
+        n_trials=int(n.sum()),
+        n_levels=len(x),
+        converged=bool(best.success),
+    )
+    if n_boot <= 0:
+        return fit
+    if rng is None:
+        raise AnalysisError("a bootstrap needs a seeded numpy Generator (rng=)")
+    p_hat = predict(x, sigmoid=sigmoid, alpha=alpha, beta=beta, gamma=gamma, lapse=lapse)
+    draws = np.empty((n_boot, 3))
+    for b in range(n_boot):
+        kb = rng.binomial(n.astype(int), p_hat).astype(float)
+        res = _fit(x, n, kb, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds, start=best.x)
+        a_b, lb_b, l_b = res.x
+        draws[b] = (_midpoint(sigmoid, a_b, np.exp(lb_b)), np.exp(lb_b), l_b)
+    tail = (1.0 - ci) / 2.0 * 100.0
+    low, high = np.percentile(draws, [tail, 100.0 - tail], axis=0)
+    return PsychometricFit(
+        **{
+            **asdict(fit),
+            "midpoint_ci_low": float(low[0]),
+            "midpoint_ci_high": float(high[0]),
+            "beta_ci_low": float(low[1]),
+            "beta_ci_high": float(high[1]),
+            "lapse_ci_low": float(low[2]),
+            "lapse_ci_high": float(high[2]),
+            "n_boot": n_boot,
+        }
+    )
+
+
+def _fit(
+    x: np.ndarray,
+    n: np.ndarray,
+    k: np.ndarray,
+    *,
+    sigmoid: str,
+    gamma: float,
+    lapse_bounds: tuple[float, float],
+    start: np.ndarray | None = None,
+) -> optimize.OptimizeResult:
+    span = float(np.ptp(x)) or 1.0
+    if sigmoid == "logistic":
+        alpha_bounds = (float(x.min()) - 2 * span, float(x.max()) + 2 * span)
+        beta_bounds = (np.log(1e-3 / span), np.log(1e3 / span))
+    else:
+        positive = x[x > 0]
+        alpha_bounds = (float(positive.min()) / 10 if len(positive) else 1e-6, float(x.max()) * 10)
+        beta_bounds = (np.log(0.1), np.log(50.0))
+    bounds = [alpha_bounds, beta_bounds, lapse_bounds]
+    starts = [start] if start is not None else _starts(x, sigmoid, lapse_bounds)
+    best = None
+    for s0 in starts:
+        s0 = np.array([np.clip(v, b[0], b[1]) for v, b in zip(s0, bounds, strict=True)])
+        res = optimize.minimize(
+            _neg_loglik,
+            s0,
+            args=(x, n, k, sigmoid, gamma),
+            method="L-BFGS-B",
+            bounds=bounds,
+        )
+        if best is None or res.fun < best.fun:
+            best = res
+    assert best is not None
+    return best
+
+
+def fit_table(
+    trials: pd.DataFrame,
+    *,
+    by: Sequence[str] = ("participant",),
+    x: str = "level",
+    y: str = "correct",
+    sigmoid: str = "logistic",
+    gamma: float,
+    lapse_bounds: tuple[float, float] = (0.0, 0.1),
+    n_boot: int = 200,
+    rng: np.random.Generator,
+) -> pd.DataFrame:
+    """One fit per group of ``by`` and one pooled over all (``by`` columns ``"pooled"``).
+
+    Returns ``[*by, *FIT_COLUMNS]``; a group whose fit is impossible (answers at one level only)
+    gets a row with NaN estimates and ``converged = False``.
+    """
+    counts = count_responses(trials, x=x, y=y, by=by)
+    rows = []
+    groups = list(counts.groupby(list(by), sort=True)) if by else []
+    pooled = counts.groupby("level", as_index=False)[["n", "k"]].sum()
+    for key, part in [*groups, (("pooled",) * len(by), pooled)]:
+        key = key if isinstance(key, tuple) else (key,)
+        try:
+            fit = asdict(
+                fit_psychometric(
+                    part,
+                    sigmoid=sigmoid,
+                    gamma=gamma,
+                    lapse_bounds=lapse_bounds,
+                    n_boot=n_boot,
+                    rng=rng,
+                )
+            )
+        except AnalysisError:
+            fit = {c: float("nan") for c in FIT_COLUMNS}
+            fit.update(sigmoid=sigmoid, gamma=gamma, converged=False, n_boot=0)
+            fit.update(n_trials=int(part["n"].sum()), n_levels=len(part))
+        rows.append({**dict(zip(by, key, strict=True)), **fit})
+    return pd.DataFrame(rows, columns=[*by, *FIT_COLUMNS])

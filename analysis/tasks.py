@@ -1,0 +1,185 @@
+"""The analyses of a protocol's tasks and graded designs, as tidy tables and figures.
+
+* forced choice (``choice_2afc``), constant stimuli or staircase: a psychometric fit of each
+  participant and of everyone pooled (:mod:`facelab.analysis.psychometric`); y is "correct"
+  when the task has a correct answer (guess rate 1/2), "chose the comparison" for a
+  preference (guess rate 0); x is the comparison's level;
+* staircases: also the classic estimate, the mean level of each participant's last reversals;
+* identification: confusion matrix, accuracy, per-class recall and Cohen's kappa
+  (:mod:`facelab.analysis.identification`);
+* graded VAS designs (every condition of the item's block has a level): the linear trend
+  contrast and the random-slope mixed model (:mod:`facelab.analysis.graded`).
+
+:func:`analyze_tasks` returns :class:`TaskResults`: named tables (written as CSV) and
+figure specifications the report draws.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from facelab.analysis import graded, identification, psychometric
+from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
+from facelab.staircase import reversal_threshold
+
+__all__ = ["TaskResults", "analyze_tasks", "choice_outcome"]
+
+STAIRCASE_REVERSALS = 6  # reversals averaged for the staircase estimate
+
+
+@dataclass
+class TaskResults:
+    tables: dict[str, pd.DataFrame] = field(default_factory=dict)
+    # (task id, pooled counts, curves, gamma, title) per choice task
+    psychometric: list[tuple[ChoiceTask, pd.DataFrame, pd.DataFrame, float]] = field(
+        default_factory=list
+    )
+    # (task, confusion matrix) per identify task
+    confusion: list[tuple[IdentifyTask, pd.DataFrame]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def empty(self) -> bool:
+        return not self.tables
+
+
+def choice_outcome(rows: pd.DataFrame, task: ChoiceTask) -> tuple[pd.Series, float]:
+    """(y, gamma): 'correct' for a scored task (gamma 1/2), else 'chose the comparison'."""
+    if task.correct == "comparison":
+        return rows["correct"].astype(float), 0.5
+    return (rows["response"] == rows["condition"]).astype(float), 0.0
+
+
+def _curves(fits: pd.DataFrame, levels: np.ndarray) -> pd.DataFrame:
+    grid = np.linspace(levels.min(), levels.max(), 121)
+    parts = []
+    for fit in fits.itertuples():
+        if not fit.converged or not np.isfinite(fit.alpha):
+            continue
+        p = psychometric.predict(
+            grid,
+            sigmoid=fit.sigmoid,
+            alpha=fit.alpha,
+            beta=fit.beta,
+            gamma=fit.gamma,
+            lapse=fit.lapse,
+        )
+        parts.append(pd.DataFrame({"participant": fit.participant, "level": grid, "p": p}))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+
+
+def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> pd.DataFrame:
+    from facelab.staircase import UpDownStaircase
+
+    out = []
+    block = next(b for b in protocol.blocks if b.id == block_id)
+    rule = block.staircase
+    assert rule is not None
+    conditions = sorted(
+        protocol.block_conditions(block),
+        key=lambda c: float(protocol.condition(c).level or 0.0),
+        reverse=rule.easier == "higher",
+    )
+    for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
+        state = UpDownStaircase(
+            grid=tuple(conditions),
+            levels=tuple(float(protocol.condition(c).level or 0.0) for c in conditions),
+            start=conditions.index(rule.start),
+            up=rule.up,
+            down=rule.down,
+            step=rule.step,
+        )
+        for r in part.itertuples():
+            state.update(bool(r.correct))
+        out.append(
+            {
+                "participant": pid,
+                "block": block_id,
+                "trials": state.trials,
+                "reversals": len(state.reversals),
+                "threshold": reversal_threshold(state.reversals, last=STAIRCASE_REVERSALS),
+                "last_level": float(part["level"].iloc[-1]),
+            }
+        )
+    return pd.DataFrame(out)
+
+
+def analyze_tasks(
+    data: pd.DataFrame, protocol: Protocol, *, rng: np.random.Generator, n_boot: int = 200
+) -> TaskResults:
+    """Every task and graded-design analysis the protocol calls for (see the module)."""
+    res = TaskResults()
+    psy_tables, stair_tables, id_summary, id_recall, id_matrix = [], [], [], [], []
+    for task in protocol.tasks:
+        rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
+        if rows.empty:
+            res.notes.append(f"no answers for task {task.id!r}: not analysed")
+            continue
+        if isinstance(task, ChoiceTask):
+            y, gamma = choice_outcome(rows, task)
+            trials = rows.assign(y=y.to_numpy())
+            fits = psychometric.fit_table(
+                trials, by=("participant",), x="level", y="y", gamma=gamma, n_boot=n_boot, rng=rng
+            )
+            psy_tables.append(fits.assign(task=task.id, gamma=gamma))
+            counts = psychometric.count_responses(trials, x="level", y="y")
+            curves = _curves(fits, counts["level"].to_numpy(dtype=float))
+            res.psychometric.append((task, counts, curves, gamma))
+            for block in protocol.blocks:
+                if block.task == task.id and block.design == "staircase":
+                    part = trials[trials["block"] == block.id]
+                    if not part.empty:
+                        stair_tables.append(_staircase_table(part, protocol, block.id))
+        else:
+            labels = [lb.id for lb in task.labels]
+            if not task.answers:
+                res.notes.append(
+                    f"task {task.id!r} names no answers: only the answer counts are tabled"
+                )
+            target = rows["condition"].map(task.answers)
+            scored = rows.assign(target=target).dropna(subset=["target"])
+            if not scored.empty:
+                summary, recall = identification.identification_summary(scored, labels=labels)
+                matrix = identification.confusion_matrix(scored, labels=labels)
+                id_summary.append(summary.assign(task=task.id))
+                id_recall.append(recall.assign(task=task.id))
+                long = matrix.stack().rename("count").reset_index()
+                id_matrix.append(long.assign(task=task.id))
+                res.confusion.append((task, matrix))
+    if psy_tables:
+        res.tables["psychometric_fits"] = _first(pd.concat(psy_tables, ignore_index=True), "task")
+    if stair_tables:
+        res.tables["staircase_thresholds"] = pd.concat(stair_tables, ignore_index=True)
+    if id_summary:
+        res.tables["identification_summary"] = _first(pd.concat(id_summary), "task")
+        res.tables["identification_recall"] = _first(pd.concat(id_recall), "task")
+        res.tables["confusion_matrix"] = _first(pd.concat(id_matrix), "task")
+    _graded(data, protocol, res)
+    return res
+
+
+def _first(frame: pd.DataFrame, column: str) -> pd.DataFrame:
+    return frame[[column, *[c for c in frame.columns if c != column]]].reset_index(drop=True)
+
+
+def _graded(data: pd.DataFrame, protocol: Protocol, res: TaskResults) -> None:
+    """Trend contrast and mixed model for VAS items of blocks whose conditions all have levels."""
+    graded_blocks = [
+        b.id
+        for b in protocol.blocks
+        if b.task is None
+        and all(protocol.condition(c).level is not None for c in protocol.block_conditions(b))
+    ]
+    vas = data[(data["screen"].fillna("vas") == "vas") & data["block"].isin(graded_blocks)]
+    vas = vas.dropna(subset=["level", "rating"])
+    if vas.empty or vas["level"].nunique() < 2:
+        return
+    by = ("item", "stimulus_set")
+    res.tables["trend_contrast"] = graded.trend_contrast(vas, by=by)
+    if vas["participant"].nunique() >= 3:
+        res.tables["graded_lmm"] = graded.graded_lmm(vas, by=by)
+    else:
+        res.notes.append("the random-slope model needs three or more participants: not fitted")

@@ -1,0 +1,161 @@
+"""The task screens in the real PsychoPy window (Xvfb), driven by the scripted participant:
+a forced-choice staircase killed mid-session and resumed, and an identification session."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from facelab.experiment.cli import main
+from facelab.protocol import load_protocol
+from facelab.resources import protocol_path
+from facelab.staircase import UpDownStaircase
+
+pytestmark = [pytest.mark.slow, pytest.mark.display]
+EXE = str(Path(sys.executable).with_name("facelab"))
+
+
+def _short(name: str, root: Path, edits: dict[str, str]) -> Path:
+    text = protocol_path(name).read_text(encoding="utf-8")
+    text = text.replace(
+        "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
+        "text: あ。い。, expected_vowels: ai",
+    )
+    for old, new in edits.items():
+        text = re.sub(old, new, text)
+    path = root / f"{name}.yaml"
+    path.write_text(text, encoding="utf-8")
+    assert (
+        main(
+            [
+                "render",
+                str(path),
+                "--out",
+                str(root / "clips"),
+                "--size",
+                "320x180",
+                "--fps",
+                "15",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    return path
+
+
+def _run(path: Path, root: Path, *extra: str) -> subprocess.Popen:
+    if not os.environ.get("DISPLAY"):
+        pytest.fail("no DISPLAY: run the tests with the README's test command (xvfb-run)")
+    cmd = [
+        EXE,
+        "run",
+        str(path),
+        "--clips",
+        str(root / "clips"),
+        "--results",
+        str(root / "results"),
+        "--participant",
+        "P01",
+        "--simulate",
+        "--windowed",
+        "--size",
+        "800x500",
+        "--screenshots",
+        str(root / "shots"),
+        *extra,
+    ]
+    env = {**os.environ, "SDL_AUDIODRIVER": "dummy"}
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _session(root: Path, study: str, suffix: str) -> Path:
+    return root / "results" / study / "sub-P01" / "ses-1" / f"sub-P01_ses-1_task-{study}{suffix}"
+
+
+def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
+    path = _short("gain_staircase", tmp_path, {r"trials: 50": "trials: 8", r"practice: .*\n": ""})
+    proc = _run(path, tmp_path)
+    saved = 0
+    assert proc.stdout is not None
+    while saved < 3:
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()[-1500:] if proc.stderr else ""
+        saved += line.endswith("(saved)\n")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    resumed = _run(path, tmp_path, "--resume")
+    _, err = resumed.communicate(timeout=600)
+    assert resumed.returncode == 0, err[-1500:]
+    rows = list(
+        csv.DictReader(
+            _session(tmp_path, "gainstair", "_beh.tsv").read_text(encoding="utf-8").splitlines(),
+            delimiter="\t",
+        )
+    )
+    assert [int(r["trial_index"]) for r in rows] == list(range(1, 9))
+    assert {r["screen"] for r in rows} == {"choice_2afc"}
+    # the levels shown follow the rule from the logged answers, across the kill
+    protocol = load_protocol(path)
+    from facelab.experiment.adaptive import new_staircase
+
+    stair: UpDownStaircase = new_staircase(protocol, "main")
+    for r in rows:
+        assert r["condition"] == stair.condition
+        stair.update(r["correct"] == "1")
+    steps = [
+        json.loads(x)
+        for x in _session(tmp_path, "gainstair", "_staircase.jsonl").read_text().splitlines()
+    ]
+    assert len(steps) >= 8 and steps[-1]["next_condition"] == stair.condition
+    # what the scripted participant pressed is what was logged (interval 1 or 2)
+    actions = [
+        json.loads(x)
+        for x in _session(tmp_path, "gainstair", "_actions.jsonl").read_text().splitlines()
+    ]
+    pressed = {a["trial_index"]: a["value"] for a in actions if a["trial_index"]}
+    for r in rows:
+        chose_comparison = pressed[int(r["trial_index"])] == int(r["position"])
+        assert r["response"] == (r["condition"] if chose_comparison else "g100")
+    assert (tmp_path / "shots" / "choice_2afc_screen.png").exists()
+
+
+def test_identification_in_the_window(tmp_path: Path) -> None:
+    path = _short(
+        "method_identify",
+        tmp_path,
+        {
+            r"    sets: 4": "    sets: 1",
+            r"presentations_per_condition: 2": "presentations_per_condition: 1",
+            r"      - \{id: sentence.*\n": "",
+        },
+    )
+    proc = _run(path, tmp_path)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-1500:]
+    rows = list(
+        csv.DictReader(
+            _session(tmp_path, "methodid", "_beh.tsv").read_text(encoding="utf-8").splitlines(),
+            delimiter="\t",
+        )
+    )
+    actions = [
+        json.loads(x)
+        for x in _session(tmp_path, "methodid", "_actions.jsonl").read_text().splitlines()
+    ]
+    assert [r["response"] for r in rows] == [a["value"] for a in actions if a["trial_index"]]
+    answers = {
+        "baseline": "visemes",
+        "standard": "vowel_standard",
+        "emphasized": "vowel_emphasized",
+    }
+    assert all(r["correct"] == str(int(answers[r["condition"]] == r["response"])) for r in rows)
+    assert (tmp_path / "shots" / "identify_screen.png").exists()

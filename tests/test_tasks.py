@@ -1,0 +1,348 @@
+"""Forced choice, identification, constant stimuli and staircases: protocol, design, timeline,
+simulation, analyses (against R), and the shipped example protocols end to end."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from facelab.analysis import graded, identification, psychometric, stats
+from facelab.analysis.load import load_results
+from facelab.analysis.tasks import analyze_tasks
+from facelab.design import PENDING, build_trials, trials_frame
+from facelab.errors import ProtocolError, SessionError
+from facelab.experiment.adaptive import Staircases, new_staircase
+from facelab.experiment.cli import main
+from facelab.experiment.simulate import simulate_study
+from facelab.experiment.timeline import ChoiceAnswer, ChoiceScreen, compile_timeline, trial_screens
+from facelab.protocol import load_protocol
+from facelab.resources import protocol_path
+from facelab.sessionlog import SessionContext
+from facelab.staircase import UpDownStaircase, convergence_probability
+
+REF = Path(__file__).parent / "reference"
+EXAMPLES = ("gain_2afc", "gain_staircase", "method_identify", "gain_vas")
+
+
+# --------------------------------------------------------------------------- analyses vs R
+
+
+@pytest.mark.parametrize(
+    ("case", "data", "kwargs"),
+    [
+        ("afc_logistic_lapse0", "psychometric_2afc.csv", {"gamma": 0.5, "lapse_bounds": (0, 0)}),
+        ("afc_logistic_lapse", "psychometric_2afc.csv", {"gamma": 0.5}),
+        (
+            "afc_weibull_lapse0",
+            "psychometric_2afc.csv",
+            {"gamma": 0.5, "lapse_bounds": (0, 0), "sigmoid": "weibull"},
+        ),
+        ("yesno_logistic_lapse0", "psychometric_yesno.csv", {"gamma": 0.0, "lapse_bounds": (0, 0)}),
+    ],
+)
+def test_psychometric_fit_matches_r(case, data, kwargs):
+    ref = json.loads((REF / "psychometric_R.json").read_text())[case]
+    fit = psychometric.fit_psychometric(pd.read_csv(REF / data), **kwargs)
+    assert fit.alpha == pytest.approx(ref["alpha"], rel=1e-4)
+    assert fit.beta == pytest.approx(ref["beta"], rel=1e-3)
+    assert fit.deviance == pytest.approx(ref["deviance"], rel=1e-4, abs=1e-6)
+    if "lapse" in ref:
+        assert fit.lapse == pytest.approx(ref["lapse"], rel=1e-3)
+    if "loglik" in ref:
+        assert fit.log_likelihood == pytest.approx(ref["loglik"], rel=1e-6)
+
+
+def test_graded_trend_and_mixed_model_match_r():
+    ref = json.loads((REF / "graded_R.json").read_text())
+    data = pd.read_csv(REF / "graded.csv")
+    trend = graded.trend_contrast(data).iloc[0]
+    for key in ("slope", "se", "t", "p"):
+        assert trend[key] == pytest.approx(ref["trend"][key], rel=1e-6)
+    assert trend["df"] == ref["trend"]["df"]
+    lmm = graded.graded_lmm(data).iloc[0]
+    assert lmm["converged"]
+    for key in ("intercept", "slope"):
+        assert lmm[key] == pytest.approx(ref["lmm"][key], rel=1e-5)
+    for key in ("slope_se", "sd_intercept", "sd_slope", "sd_residual"):
+        assert lmm[key] == pytest.approx(ref["lmm"][key], rel=2e-3)
+    assert lmm["corr"] == pytest.approx(ref["lmm"]["corr"], abs=2e-3)
+
+
+def test_confusion_accuracy_and_kappa_against_sklearn():
+    metrics = pytest.importorskip("sklearn.metrics")
+    rng = np.random.default_rng(5)
+    labels = ["joy", "anger", "fear", "neutral"]
+    target = rng.choice(labels, size=400)
+    response = np.where(rng.random(400) < 0.6, target, rng.choice(labels, size=400))
+    trials = pd.DataFrame({"participant": "P01", "target": target, "response": response})
+    summary, recall = identification.identification_summary(trials, labels=labels)
+    pooled = summary[summary["participant"] == "pooled"].iloc[0]
+    assert pooled["kappa"] == pytest.approx(metrics.cohen_kappa_score(target, response))
+    assert pooled["accuracy"] == pytest.approx(np.mean(target == response))
+    expected = metrics.recall_score(target, response, labels=labels, average=None)
+    got = recall[recall["participant"] == "pooled"].set_index("label").loc[labels, "recall"]
+    np.testing.assert_allclose(got.to_numpy(), expected)
+    matrix = identification.confusion_matrix(trials, labels=labels)
+    np.testing.assert_array_equal(
+        matrix.to_numpy(), metrics.confusion_matrix(target, response, labels=labels)
+    )
+
+
+def test_stats_psychometric_contract_per_trial_and_per_level_agree():
+    counts = pd.read_csv(REF / "psychometric_2afc.csv")
+    per_level = counts.assign(correct=counts["k"] / counts["n"])[["level", "correct", "n"]]
+    rows = [
+        {"level": r.level, "correct": int(i < r.k)}
+        for r in counts.itertuples()
+        for i in range(int(r.n))
+    ]
+    a = stats.psychometric(pd.DataFrame(rows), level="level", correct="correct", n_boot=20)
+    b = stats.psychometric(per_level, level="level", correct="correct", n_boot=20)
+    assert list(a.columns) == [
+        "subject",
+        "n",
+        "midpoint",
+        "slope",
+        "lapse",
+        "deviance",
+        "midpoint_ci_low",
+        "midpoint_ci_high",
+    ]
+    pd.testing.assert_frame_equal(a, b)
+    assert a.loc[0, "midpoint_ci_low"] < a.loc[0, "midpoint"] < a.loc[0, "midpoint_ci_high"]
+
+
+def test_fit_recovers_known_observer_within_its_ci():
+    rng = np.random.default_rng(3)
+    levels = np.linspace(0.0, 1.0, 8)
+    truth = {"alpha": 0.42, "beta": 9.0, "lapse": 0.03}
+    n = np.full(len(levels), 80)
+    p = psychometric.predict(levels, sigmoid="logistic", gamma=0.5, **truth)
+    counts = pd.DataFrame({"level": levels, "n": n, "k": rng.binomial(n, p)})
+    fit = psychometric.fit_psychometric(counts, gamma=0.5, n_boot=300, rng=rng)
+    assert fit.midpoint_ci_low <= truth["alpha"] <= fit.midpoint_ci_high
+    assert fit.beta_ci_low <= truth["beta"] <= fit.beta_ci_high
+    assert fit.lapse_ci_low <= truth["lapse"] <= fit.lapse_ci_high
+
+
+def test_psychometric_refuses_bad_input():
+    from facelab.errors import AnalysisError
+
+    one_level = pd.DataFrame({"level": [0.3], "n": [10], "k": [7]})
+    with pytest.raises(AnalysisError, match="two or more levels"):
+        psychometric.fit_psychometric(one_level, gamma=0.5)
+    with pytest.raises(AnalysisError, match="Weibull"):
+        psychometric.fit_psychometric(
+            pd.DataFrame({"level": [-1.0, 1.0], "n": [5, 5], "k": [3, 4]}),
+            gamma=0.5,
+            sigmoid="weibull",
+        )
+
+
+# --------------------------------------------------------------------------- protocol & design
+
+
+def _protocol(tmp_path: Path, name: str, edit=lambda s: s):
+    text = edit(protocol_path(name).read_text(encoding="utf-8"))
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("name", "old", "new", "message"),
+    [
+        ("gain_2afc", "task: stronger", "task: weaker", "unknown task 'weaker'"),
+        ("gain_2afc", "standard: g100", "standard: g999", "unknown condition 'g999'"),
+        (
+            "gain_2afc",
+            "level: 0.1}",
+            "}",
+            "needs a 'level' on every condition of the block; missing on g110",
+        ),
+        (
+            "gain_staircase",
+            "    staircase: {rule: up_down, start: g160",
+            "    staircase: {rule: up_down, start: g100",
+            "start 'g100' is not among the block's conditions",
+        ),
+        ("gain_staircase", "    correct: comparison", "    correct: none", "adapts on correct"),
+        (
+            "method_identify",
+            "emphasized: vowel_emphasized}",
+            "emphasized: surprise}",
+            "unknown label 'surprise'",
+        ),
+    ],
+)
+def test_protocol_checks_of_tasks_and_designs(tmp_path, name, old, new, message):
+    path = _protocol(tmp_path, name, lambda s: s.replace(old, new, 1))
+    with pytest.raises(ProtocolError, match=message):
+        load_protocol(path)
+
+
+def test_choice_design_counterbalances_the_comparison_position():
+    protocol = load_protocol(protocol_path("gain_2afc"))
+    frame = trials_frame(build_trials(protocol, participant="P03"))
+    assert list(frame.columns[-2:]) == ["standard", "position"]
+    assert (frame["standard"] == "g100").all() and "g100" not in set(frame["condition"])
+    per_condition = frame.groupby("condition")["position"].value_counts().unstack()
+    assert (per_condition[1] == per_condition[2]).all()  # 10 showings each: 5 first, 5 second
+    # and the order differs between participants
+    other = trials_frame(build_trials(protocol, participant="P04"))
+    assert list(other["condition"]) != list(frame["condition"])
+
+
+def test_staircase_design_leaves_the_level_to_run_time():
+    protocol = load_protocol(protocol_path("gain_staircase"))
+    trials = build_trials(protocol, participant="P01")
+    assert len(trials) == 50 and {t.condition for t in trials} == {PENDING}
+    assert Counter(t.position for t in trials) == {1: 25, 2: 25}
+
+
+def test_vas_protocols_keep_their_design_columns():
+    frame = trials_frame(build_trials(load_protocol(protocol_path("kato2021")), participant="P01"))
+    assert list(frame.columns) == [
+        "trial_index",
+        "block",
+        "set_index",
+        "stimulus_set",
+        "stimulus",
+        "condition",
+        "repetition",
+    ]
+
+
+# --------------------------------------------------------------------------- timeline & staircase
+
+
+def test_choice_screen_scores_the_interval_that_held_the_comparison():
+    protocol = load_protocol(protocol_path("gain_2afc"))
+    trial = next(t for t in build_trials(protocol, participant="P01") if t.position == 2)
+    clip1, clip2, choice = trial_screens(protocol, trial)
+    assert clip1.clip[2] == "g100" and clip2.clip[2] == trial.condition  # comparison second
+    assert (clip1.interval, clip2.interval) == (1, 2) and clip2.gap_s == 0.5
+    ctx = SessionContext(
+        study="gain2afc", participant="P01", session=1, simulated=True, protocol_sha256="x"
+    )
+    (row,) = choice.rows([ChoiceAnswer(2, 0.8, "t")], context=ctx, playback=None)
+    assert (row["response"], row["correct"], row["position"]) == (trial.condition, 1, 2)
+    assert row["comparison"] == "g100" and row["level"] == protocol.condition(trial.condition).level
+    (row,) = choice.rows([ChoiceAnswer(1, 0.8, "t")], context=ctx, playback=None)
+    assert (row["response"], row["correct"]) == ("g100", 0)
+    assert isinstance(choice, ChoiceScreen)
+
+
+def test_up_down_rule_and_its_convergence_point():
+    s = UpDownStaircase(grid=("a", "b", "c", "d"), levels=(4, 3, 2, 1), start=0)
+    moves = [(s.update(c), s.condition)[1] for c in (True, True, True, True, False, True, True)]
+    assert moves == ["a", "b", "b", "c", "b", "b", "c"]
+    assert s.reversals == [2, 3]  # harder -> easier at level 2, easier -> harder at level 3
+    assert convergence_probability(up=1, down=2) == pytest.approx(0.7071, abs=1e-4)
+    assert convergence_probability(up=1, down=3) == pytest.approx(0.7937, abs=1e-4)
+
+
+def test_resumed_staircase_continues_the_same_staircase(tmp_path):
+    path = protocol_path("gain_staircase")
+    protocol = load_protocol(path)
+    (paths,) = simulate_study(
+        protocol, protocol_path=path, results=tmp_path, participants=1, seed=9
+    )
+    rows = load_results(tmp_path, study=protocol.study.id).sort_values("trial_index")
+    records = rows.to_dict("records")
+    trials = build_trials(protocol, participant="P01")
+    for cut in (1, 7, 23, 49):
+        resumed = Staircases(protocol, logged=records[:cut], record=None)
+        assert resumed.resolve(trials[cut]) == records[cut]["condition"]
+    # the step file agrees with the replay, and a log from another staircase is refused
+    steps = [json.loads(x) for x in paths.staircase.read_text().splitlines()]
+    assert [s["condition"] for s in steps] == [r["condition"] for r in records]
+    Staircases(protocol, logged=records, record=paths.staircase)
+    tampered = [dict(r) for r in records[:5]]
+    tampered[3]["condition"] = "g105"
+    with pytest.raises(SessionError, match="does not belong to this staircase"):
+        Staircases(protocol, logged=tampered)
+    start = new_staircase(protocol, "main")
+    assert start.condition == "g160" and start.grid[0] == "g160"  # easiest (highest) first
+
+
+def test_timeline_has_one_response_screen_per_task_trial():
+    protocol = load_protocol(protocol_path("method_identify"))
+    trials = build_trials(protocol, participant="P01")
+    screens = compile_timeline(protocol, trials, participant="P01", session=1)
+    keys = [k for s in screens for k in s.response_keys()]
+    assert len(keys) == len(trials) == len(set(keys))
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def test_simulated_observers_are_recovered(tmp_path):
+    rng = np.random.default_rng(4)
+    for name in ("gain_2afc", "method_identify"):
+        path = protocol_path(name)
+        protocol = load_protocol(path)
+        simulate_study(
+            protocol, protocol_path=path, results=tmp_path / name, participants=10, seed=2
+        )
+        data = load_results(tmp_path / name, study=protocol.study.id)
+        res = analyze_tasks(data, protocol, rng=rng, n_boot=200)
+        if name == "gain_2afc":
+            fits = res.tables["psychometric_fits"]
+            pooled = fits[fits["participant"] == "pooled"].iloc[0]
+            truth = protocol.simulation.observer
+            assert pooled["midpoint_ci_low"] <= truth.midpoint <= pooled["midpoint_ci_high"]
+            assert pooled["beta_ci_low"] <= truth.slope <= pooled["beta_ci_high"]
+        else:
+            summary = res.tables["identification_summary"]
+            pooled = summary[summary["participant"] == "pooled"].iloc[0]
+            confusion = protocol.simulation.identifier.confusion
+            expected = np.mean([confusion[lb][lb] for lb in confusion])  # balanced design
+            se = np.sqrt(expected * (1 - expected) / pooled["n"])
+            assert abs(pooled["accuracy"] - expected) < 3 * se
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
+    path = protocol_path(name)
+    assert main(["validate", str(path)]) == 0
+    results = tmp_path / "results"
+    assert (
+        main(
+            ["simulate", str(path), "--participants", "6", "--seed", "1", "--results", str(results)]
+        )
+        == 0
+    )
+    out = tmp_path / "analysis"
+    assert (
+        main(
+            [
+                "analyze",
+                str(results),
+                "--protocol",
+                str(path),
+                "--out",
+                str(out),
+                "--bootstrap",
+                "50",
+            ]
+        )
+        == 0
+    )
+    printed = capsys.readouterr().out
+    expected = {
+        "gain_2afc": ["psychometric_fits.csv", "fig_psychometric_stronger.png"],
+        "gain_staircase": ["psychometric_fits.csv", "staircase_thresholds.csv"],
+        "method_identify": ["identification_summary.csv", "fig_confusion_which_method.png"],
+        "gain_vas": ["trend_contrast.csv", "graded_lmm.csv", "rm_anova.csv"],
+    }[name]
+    for file in expected:
+        assert (out / file).exists(), file
+    report = (out / "report.html").read_text(encoding="utf-8")
+    assert "SIMULATED" in report
+    assert "note: no responses for condition" not in printed
