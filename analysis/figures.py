@@ -48,8 +48,10 @@ def rating_figure(
     ylabel: str,
     scale: tuple[float, float] = (0.0, 100.0),
     caption: str = "",
+    max_lines: int = 40,
 ) -> Figure:
-    """One figure.
+    """One figure. With more than ``max_lines`` participants their lines give way to the
+    mean and its 95 % CI per condition (1,000 lines show nothing and take seconds to draw).
 
     Parameters
     ----------
@@ -79,9 +81,24 @@ def rating_figure(
         )
         wide = cells.pivot(index="participant", columns="condition", values="mean")
         wide = wide.reindex(columns=list(conditions))
-        for _, row in wide.iterrows():
-            ax.plot(x, row.to_numpy(), color="0.55", linewidth=0.8, alpha=0.8, zorder=2)
-            ax.scatter(x, row.to_numpy(), s=16, color="#1f3b57", zorder=3)
+        if len(wide) <= max_lines:  # every participant's means, joined
+            for _, row in wide.iterrows():
+                ax.plot(x, row.to_numpy(), color="0.55", linewidth=0.8, alpha=0.8, zorder=2)
+                ax.scatter(x, row.to_numpy(), s=16, color="#1f3b57", zorder=3)
+        else:  # too many to see one by one: the mean with its 95 % CI per condition
+            mean = wide.mean().to_numpy()
+            half = 1.96 * wide.std(ddof=1).to_numpy() / np.sqrt(wide.notna().sum().to_numpy())
+            ax.errorbar(
+                x,
+                mean,
+                yerr=half,
+                fmt="o",
+                color="#c0504d",
+                capsize=4,
+                zorder=3,
+                label=f"mean and 95 % CI (n = {len(wide)})",
+            )
+            ax.legend(fontsize=7, loc="lower right", frameon=False)
         low, high = scale
         span = high - low
         top = high

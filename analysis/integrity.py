@@ -166,10 +166,7 @@ def check_data(
     # conditions every participant must have seen: not a forced choice's standard (it is the
     # 'comparison' column) and not a staircase's grid (the rule decides what is shown)
     due = {
-        c
-        for b in protocol.blocks
-        if b.design != "staircase"
-        for c in protocol.block_conditions(b)
+        c for b in protocol.blocks if b.design != "staircase" for c in protocol.block_conditions(b)
     }
     unseen_c = [c for c in conditions if c in due and c not in set(data["condition"])]
     unseen_i = [i for i in items if i not in set(data["item"])]

@@ -4,7 +4,8 @@
 (:meth:`Staircases.resolve`) and tells the answer (:meth:`Staircases.update`); each step is
 appended (fsynced) to the session's ``_staircase.jsonl``. The rule is deterministic
 (:mod:`facelab.staircase`), so on resume the state is rebuilt by replaying the block's logged
-answers in trial order, and checked against the last step written to ``_staircase.jsonl``.
+answers in trial order and checked against every step written to ``_staircase.jsonl``; a
+step whose answer was logged just before a crash is written then (``"rebuilt": true``).
 """
 
 from __future__ import annotations
@@ -63,35 +64,49 @@ class Staircases:
         for row in logged:
             if row.get("block") in self.state and row.get("correct") is not None:
                 by_block.setdefault(row["block"], []).append(row)
+        written = self._written()
         for block_id, rows in by_block.items():
             rows.sort(key=lambda r: int(r["trial_index"]))
-            try:
-                self.state[block_id].replay((r["condition"], bool(r["correct"])) for r in rows)
-            except ValueError as exc:
-                raise SessionError(f"staircase of block {block_id!r}: {exc}") from None
-        self._check_record()
+            state = self.state[block_id]
+            for r in rows:
+                if r["condition"] != state.condition:
+                    raise SessionError(
+                        f"staircase of block {block_id!r}: the log shows condition "
+                        f"{r['condition']!r} at trial {r['trial_index']} where the staircase was "
+                        f"at {state.condition!r}: the log does not belong to this staircase"
+                    )
+                entry = state.record(
+                    trial_index=int(r["trial_index"]),
+                    condition=r["condition"],
+                    correct=bool(r["correct"]),
+                )
+                key = (block_id, int(r["trial_index"]))
+                if key in written and written[key].get("next_condition") != state.condition:
+                    raise SessionError(
+                        f"staircase of block {block_id!r}: replaying the log gives "
+                        f"{state.condition!r} after trial {r['trial_index']}, "
+                        f"{self.record.name if self.record else ''} says "
+                        f"{written[key].get('next_condition')!r}; the session's files disagree"
+                    )
+                if key not in written and self.record is not None:
+                    # the answer was logged but the process ended before its step was written
+                    append_jsonl(
+                        self.record,
+                        {"block": block_id, "trials": state.trials, **entry, "rebuilt": True},
+                    )
 
-    def _check_record(self) -> None:
-        """The replayed state must continue where ``_staircase.jsonl`` says it stopped."""
+    def _written(self) -> dict[tuple[str, int], dict[str, Any]]:
+        """Steps already in ``_staircase.jsonl`` by (block, trial index)."""
         if self.record is None or not self.record.exists():
-            return
-        last: dict[str, dict[str, Any]] = {}
+            return {}
+        out: dict[tuple[str, int], dict[str, Any]] = {}
         for line in self.record.read_text(encoding="utf-8").splitlines():
             try:
                 entry = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut off by a crash; the log rows are the truth
-            last[entry.get("block")] = entry
-        for block_id, entry in last.items():
-            state = self.state.get(block_id)
-            if state is None or entry.get("trials") != state.trials:
-                continue  # the row was not logged before the crash: replay decides
-            if entry.get("next_condition") != state.condition:
-                raise SessionError(
-                    f"staircase of block {block_id!r}: replaying the log gives "
-                    f"{state.condition!r} next, {self.record.name} says "
-                    f"{entry.get('next_condition')!r}; the session's files do not agree"
-                )
+            out[(entry.get("block"), int(entry.get("trial_index", -1)))] = entry
+        return out
 
     def resolve(self, trial: Trial) -> str:
         """The condition a staircase trial shows."""

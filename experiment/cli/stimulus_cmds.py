@@ -144,6 +144,18 @@ def _cmd_measure_z(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import json
 
+    if args.what == "analyze":
+        from facelab.experiment.bench import bench_analyze
+        from facelab.resources import protocol_path
+
+        proto = Path(args.protocol) if args.protocol else protocol_path("kato2021")
+        print(
+            json.dumps(
+                bench_analyze(protocol=proto, participants=args.participants, runs=args.runs),
+                indent=2,
+            )
+        )
+        return 0
     if args.what == "visemes":
         from facelab.stimuli.bench import bench_visemes
 
@@ -200,7 +212,9 @@ def register(add: AddCommand) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
     p.add_argument("--force", action="store_true")
 
-    p = add("bench", "benchmarks that print JSON (visemes, render)", _cmd_bench)
-    p.add_argument("what", choices=["visemes", "render"])
+    p = add("bench", "benchmarks that print JSON (visemes, render, analyze)", _cmd_bench)
+    p.add_argument("what", choices=["visemes", "render", "analyze"])
+    p.add_argument("--participants", type=int, default=1000, help="analyze: simulated people")
+    p.add_argument("--protocol", metavar="PROTOCOL", help="analyze: default kato2021")
     p.add_argument("--runs", type=int, default=5, help="timing runs (median reported)")
     p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
