@@ -26,12 +26,9 @@ def find_logs(results: Path | str) -> list[Path]:
     return sorted(root.rglob("sub-*/ses-*/sub-*_beh.tsv"))
 
 
-def load_log(path: Path | str) -> pd.DataFrame:
-    """One session TSV as a DataFrame with :data:`LOG_COLUMNS`.
-
-    A last line cut off mid-write is an error here (resume the session to repair it).
-    """
-    path = Path(path)
+def _read_rows(path: Path) -> list[dict]:
+    """One session TSV's rows (dicts with :data:`LOG_COLUMNS` and ``source``), provenance
+    filled from the session file for logs older than the provenance columns."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -45,22 +42,37 @@ def load_log(path: Path | str) -> pd.DataFrame:
             f"{path}: the last line was cut off mid-write ({cut[:40]!r}…); run the session "
             "with --resume to repair it, then analyse"
         )
-    frame = pd.DataFrame(rows, columns=list(LOG_COLUMNS))
-    frame["source"] = str(path)
+    source = str(path)
+    for row in rows:
+        row["source"] = source
     # provenance: on every row since facelab 0.2; older logs take it from the session file
-    if frame["simulated"].isna().any() or frame["protocol_sha256"].isna().any():
+    if any(r["simulated"] is None or r["protocol_sha256"] is None for r in rows):
         sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
         if sidecar.exists():
             try:
                 meta = json.loads(sidecar.read_text(encoding="utf-8"))
             except json.JSONDecodeError as exc:
                 raise AnalysisError(f"{sidecar}: not valid JSON: {exc}") from None
-            if "simulated" in meta:
-                frame["simulated"] = frame["simulated"].fillna(bool(meta["simulated"]))
-            if meta.get("protocol_sha256"):
-                frame["protocol_sha256"] = frame["protocol_sha256"].fillna(meta["protocol_sha256"])
+            for row in rows:
+                if row["simulated"] is None and "simulated" in meta:
+                    row["simulated"] = bool(meta["simulated"])
+                if row["protocol_sha256"] is None and meta.get("protocol_sha256"):
+                    row["protocol_sha256"] = meta["protocol_sha256"]
+    return rows
+
+
+def _frame(rows: list[dict]) -> pd.DataFrame:
+    frame = pd.DataFrame(rows, columns=[*LOG_COLUMNS, "source"])
     frame["simulated"] = frame["simulated"].astype(object)
     return frame
+
+
+def load_log(path: Path | str) -> pd.DataFrame:
+    """One session TSV as a DataFrame with :data:`LOG_COLUMNS` (and ``source``).
+
+    A last line cut off mid-write is an error here (resume the session to repair it).
+    """
+    return _frame(_read_rows(Path(path)))
 
 
 def load_results(
@@ -77,7 +89,7 @@ def load_results(
     logs = find_logs(results)
     if not logs:
         raise AnalysisError(f"no session logs (sub-*/ses-*/*_beh.tsv) under {results}")
-    frame = pd.concat([load_log(p) for p in logs], ignore_index=True)
+    frame = _frame([row for p in logs for row in _read_rows(p)])
     studies = sorted(frame["study"].dropna().unique())
     if study is not None:
         frame = frame[frame["study"] == study].reset_index(drop=True)
