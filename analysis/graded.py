@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
+from facelab.analysis.stats import _require
 from facelab.errors import AnalysisError
 
 __all__ = ["LMM_COLUMNS", "TREND_COLUMNS", "graded_lmm", "trend_contrast"]
@@ -47,12 +48,6 @@ LMM_COLUMNS = (
 )
 
 
-def _need(data: pd.DataFrame, columns: Sequence[str]) -> None:
-    missing = [c for c in columns if c not in data.columns]
-    if missing:
-        raise AnalysisError(f"graded-design data lack column(s) {missing}")
-
-
 def trend_contrast(
     ratings: pd.DataFrame,
     *,
@@ -67,7 +62,7 @@ def trend_contrast(
     ``ratings``: one row per rating (or per cell mean). Participants missing a level are left
     out of that group's contrast (a contrast needs every level).
     """
-    _need(ratings, (dv, level, participant, *by))
+    _require(ratings, (dv, level, participant, *by))
     rows = []
     groups = list(ratings.groupby(list(by), sort=True)) if by else [((), ratings)]
     for key, part in groups:
@@ -113,7 +108,7 @@ def graded_lmm(
     """``dv ~ level + (1 + level | participant)`` by REML, one row per group of ``by``."""
     import statsmodels.formula.api as smf  # heavy; only needed here
 
-    _need(ratings, (dv, level, participant, *by))
+    _require(ratings, (dv, level, participant, *by))
     rows = []
     groups = list(ratings.groupby(list(by), sort=True)) if by else [((), ratings)]
     for key, part in groups:

@@ -17,17 +17,12 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
+from facelab.analysis.stats import _require
 from facelab.errors import AnalysisError
 
 __all__ = ["SUMMARY_COLUMNS", "cohen_kappa", "confusion_matrix", "identification_summary"]
 
 SUMMARY_COLUMNS = ("n", "accuracy", "chance", "kappa")
-
-
-def _check(trials: pd.DataFrame, columns: Sequence[str]) -> None:
-    missing = [c for c in columns if c not in trials.columns]
-    if missing:
-        raise AnalysisError(f"identification data lack column(s) {missing}")
 
 
 def confusion_matrix(
@@ -38,7 +33,7 @@ def confusion_matrix(
     response: str = "response",
 ) -> pd.DataFrame:
     """Counts: index = portrayed label, columns = chosen label, both in ``labels`` order."""
-    _check(trials, (target, response))
+    _require(trials, (target, response))
     unknown = sorted(set(trials[target]).union(trials[response]) - set(labels))
     if unknown:
         raise AnalysisError(f"labels {unknown} are not among the task's labels {list(labels)}")
@@ -76,7 +71,7 @@ def identification_summary(
     ``recall``: ``[*by, label, n, recall, precision]`` - recall = correct / portrayed;
     precision = correct / chosen (NaN when the label was never chosen).
     """
-    _check(trials, (*by, target, response))
+    _require(trials, (*by, target, response))
     groups = list(trials.groupby(list(by), sort=True)) if by else []
     summary, recall = [], []
     for key, part in [*groups, (("pooled",) * len(by), trials)]:

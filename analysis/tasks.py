@@ -22,8 +22,9 @@ import numpy as np
 import pandas as pd
 
 from facelab.analysis import graded, identification, psychometric
+from facelab.errors import AnalysisError
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
-from facelab.staircase import reversal_threshold
+from facelab.staircase import new_staircase, reversal_threshold
 
 __all__ = ["TaskResults", "analyze_tasks", "choice_outcome"]
 
@@ -33,7 +34,7 @@ STAIRCASE_REVERSALS = 6  # reversals averaged for the staircase estimate
 @dataclass
 class TaskResults:
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
-    # (task id, pooled counts, curves, gamma, title) per choice task
+    # (task, pooled counts, fitted curves, gamma) per choice task
     psychometric: list[tuple[ChoiceTask, pd.DataFrame, pd.DataFrame, float]] = field(
         default_factory=list
     )
@@ -72,28 +73,22 @@ def _curves(fits: pd.DataFrame, levels: np.ndarray) -> pd.DataFrame:
 
 
 def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> pd.DataFrame:
-    from facelab.staircase import UpDownStaircase
-
     out = []
-    block = next(b for b in protocol.blocks if b.id == block_id)
-    rule = block.staircase
-    assert rule is not None
-    conditions = sorted(
-        protocol.block_conditions(block),
-        key=lambda c: float(protocol.condition(c).level or 0.0),
-        reverse=rule.easier == "higher",
-    )
     for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
-        state = UpDownStaircase(
-            grid=tuple(conditions),
-            levels=tuple(float(protocol.condition(c).level or 0.0) for c in conditions),
-            start=conditions.index(rule.start),
-            up=rule.up,
-            down=rule.down,
-            step=rule.step,
-        )
-        for r in part.itertuples():
-            state.update(bool(r.correct))
+        state = new_staircase(protocol, block_id)
+        try:
+            state.replay(
+                zip(
+                    part["trial_index"],
+                    part["condition"],
+                    part["correct"].astype(bool),
+                    strict=True,
+                )
+            )
+        except ValueError as exc:
+            raise AnalysisError(
+                f"participant {pid}, staircase of block {block_id!r}: {exc}"
+            ) from None
         out.append(
             {
                 "participant": pid,

@@ -21,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["UpDownStaircase", "convergence_probability", "reversal_threshold"]
+from facelab.protocol import Protocol
+
+__all__ = ["UpDownStaircase", "convergence_probability", "new_staircase", "reversal_threshold"]
 
 
 def convergence_probability(*, up: int, down: int) -> float:
@@ -102,18 +104,43 @@ class UpDownStaircase:
             "reversals": len(self.reversals),
             "next_condition": self.condition,
             "next_level": self.level,
+            "trials": self.trials,
         }
 
-    def replay(self, answers: Iterable[tuple[str, bool]]) -> UpDownStaircase:
-        """Apply logged (condition, correct) answers in order; checks each was the one due."""
-        for condition, correct in answers:
+    def replay(self, answers: Iterable[tuple[int, str, bool]]) -> list[dict[str, Any]]:
+        """Apply logged (trial index, condition, correct) answers in order, checking each was
+        the one due; returns the :meth:`record` of every step."""
+        steps = []
+        for trial_index, condition, correct in answers:
             if condition != self.condition:
                 raise ValueError(
-                    f"the log shows condition {condition!r} where the staircase was at "
-                    f"{self.condition!r}: the log does not belong to this staircase"
+                    f"the log shows condition {condition!r} at trial {trial_index} where the "
+                    f"staircase was at {self.condition!r}: the log does not belong to this "
+                    "staircase"
                 )
-            self.update(correct)
-        return self
+            steps.append(self.record(trial_index=trial_index, condition=condition, correct=correct))
+        return steps
+
+
+def new_staircase(protocol: Protocol, block_id: str) -> UpDownStaircase:
+    """The fresh staircase of a staircase block: its conditions, easiest first."""
+    block = next(b for b in protocol.blocks if b.id == block_id)
+    rule = block.staircase
+    if rule is None:
+        raise ValueError(f"block {block_id!r} has no staircase rule")
+    conditions = sorted(
+        protocol.block_conditions(block),
+        key=lambda c: float(protocol.condition(c).level or 0.0),
+        reverse=rule.easier == "higher",
+    )
+    return UpDownStaircase(
+        grid=tuple(conditions),
+        levels=tuple(float(protocol.condition(c).level or 0.0) for c in conditions),
+        start=conditions.index(rule.start),
+        up=rule.up,
+        down=rule.down,
+        step=rule.step,
+    )
 
 
 def reversal_threshold(reversal_levels: Sequence[float], *, last: int = 6) -> float:

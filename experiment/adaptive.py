@@ -19,30 +19,9 @@ from facelab.design import Trial
 from facelab.errors import SessionError
 from facelab.protocol import Protocol
 from facelab.sessionlog import append_jsonl
-from facelab.staircase import UpDownStaircase
+from facelab.staircase import UpDownStaircase, new_staircase
 
-__all__ = ["Staircases", "new_staircase"]
-
-
-def new_staircase(protocol: Protocol, block_id: str) -> UpDownStaircase:
-    """The fresh staircase of a staircase block: its conditions, easiest first."""
-    block = next(b for b in protocol.blocks if b.id == block_id)
-    rule = block.staircase
-    if rule is None:
-        raise SessionError(f"block {block_id!r} has no staircase rule")
-    conditions = sorted(
-        protocol.block_conditions(block),
-        key=lambda c: float(protocol.condition(c).level or 0.0),
-        reverse=rule.easier == "higher",
-    )
-    return UpDownStaircase(
-        grid=tuple(conditions),
-        levels=tuple(float(protocol.condition(c).level or 0.0) for c in conditions),
-        start=conditions.index(rule.start),
-        up=rule.up,
-        down=rule.down,
-        step=rule.step,
-    )
+__all__ = ["Staircases"]
 
 
 class Staircases:
@@ -67,33 +46,24 @@ class Staircases:
         written = self._written()
         for block_id, rows in by_block.items():
             rows.sort(key=lambda r: int(r["trial_index"]))
-            state = self.state[block_id]
-            for r in rows:
-                if r["condition"] != state.condition:
-                    raise SessionError(
-                        f"staircase of block {block_id!r}: the log shows condition "
-                        f"{r['condition']!r} at trial {r['trial_index']} where the staircase was "
-                        f"at {state.condition!r}: the log does not belong to this staircase"
-                    )
-                entry = state.record(
-                    trial_index=int(r["trial_index"]),
-                    condition=r["condition"],
-                    correct=bool(r["correct"]),
+            try:
+                steps = self.state[block_id].replay(
+                    (int(r["trial_index"]), r["condition"], bool(r["correct"])) for r in rows
                 )
-                key = (block_id, int(r["trial_index"]))
-                if key in written and written[key].get("next_condition") != state.condition:
+            except ValueError as exc:
+                raise SessionError(f"staircase of block {block_id!r}: {exc}") from None
+            for step in steps:
+                key = (block_id, step["trial_index"])
+                if key in written and written[key].get("next_condition") != step["next_condition"]:
                     raise SessionError(
                         f"staircase of block {block_id!r}: replaying the log gives "
-                        f"{state.condition!r} after trial {r['trial_index']}, "
+                        f"{step['next_condition']!r} after trial {step['trial_index']}, "
                         f"{self.record.name if self.record else ''} says "
                         f"{written[key].get('next_condition')!r}; the session's files disagree"
                     )
                 if key not in written and self.record is not None:
                     # the answer was logged but the process ended before its step was written
-                    append_jsonl(
-                        self.record,
-                        {"block": block_id, "trials": state.trials, **entry, "rebuilt": True},
-                    )
+                    append_jsonl(self.record, {"block": block_id, **step, "rebuilt": True})
 
     def _written(self) -> dict[tuple[str, int], dict[str, Any]]:
         """Steps already in ``_staircase.jsonl`` by (block, trial index)."""
@@ -120,4 +90,4 @@ class Staircases:
             trial_index=trial.trial_index, condition=trial.condition, correct=bool(row["correct"])
         )
         if self.record is not None:
-            append_jsonl(self.record, {"block": trial.block, "trials": staircase.trials, **entry})
+            append_jsonl(self.record, {"block": trial.block, **entry})

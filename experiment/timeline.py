@@ -44,6 +44,7 @@ __all__ = [
     "Playback",
     "ResponseScreen",
     "Screen",
+    "TaskScreen",
     "TextScreen",
     "VasAnswer",
     "VasScreen",
@@ -174,7 +175,23 @@ class ResponseScreen(Screen):
     def rows(
         self, answers: Sequence[Any], *, context: SessionContext, playback: Playback | None
     ) -> list[dict[str, Any]]:
-        raise NotImplementedError
+        """The log rows of ``answers`` (every response screen class defines it)."""
+        raise NotImplementedError(f"{type(self).__name__} does not define rows()")
+
+    def _row(
+        self, *, context: SessionContext, playback: Playback | None, item: str, **answer: Any
+    ) -> dict[str, Any]:
+        """One log row of this screen's trial: the trial, clip and level columns filled in."""
+        return response_row(
+            context=context,
+            trial=self.trial,
+            item=item,
+            screen=self.kind,
+            clip_onset=None if playback is None else playback.onset,
+            clip_frames_dropped=None if playback is None else playback.dropped,
+            level=self.level,
+            **answer,
+        )
 
 
 @dataclass(frozen=True)
@@ -207,21 +224,29 @@ class VasScreen(ResponseScreen):
             return []
         by_item = {a.item: a for a in answers}
         return [
-            response_row(
+            self._row(
                 context=context,
-                trial=self.trial,
+                playback=playback,
                 item=item.id,
-                screen=self.kind,
                 rating=by_item[item.id].rating,
                 rating_start=by_item[item.id].rating_start,
                 rt_s=by_item[item.id].rt_s,
                 timestamp=by_item[item.id].timestamp,
-                clip_onset=None if playback is None else playback.onset,
-                clip_frames_dropped=None if playback is None else playback.dropped,
-                level=self.level,
             )
             for item in self.items
         ]
+
+
+@dataclass(frozen=True)
+class TaskScreen(ResponseScreen):
+    """A screen that collects a task's one answer per trial (forced choice, identification)."""
+
+    task: ChoiceTask | IdentifyTask | None = None
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        if self.practice or self.trial is None or self.task is None:
+            return ()
+        return ((self.trial.trial_index, self.task.id),)
 
 
 @dataclass(frozen=True)
@@ -234,16 +259,11 @@ class ChoiceAnswer:
 
 
 @dataclass(frozen=True)
-class ChoiceScreen(ResponseScreen):
+class ChoiceScreen(TaskScreen):
     """Which of the two clips? The comparison was in interval ``trial.position``."""
 
     kind: ClassVar[str] = "choice_2afc"
     task: ChoiceTask | None = None
-
-    def response_keys(self) -> tuple[tuple[int, str], ...]:
-        if self.practice or self.trial is None or self.task is None:
-            return ()
-        return ((self.trial.trial_index, self.task.id),)
 
     def rows(
         self, answers: Sequence[ChoiceAnswer], *, context: SessionContext, playback: Playback | None
@@ -254,18 +274,14 @@ class ChoiceScreen(ResponseScreen):
         assert self.trial is not None and self.task is not None
         chose_comparison = answer.choice == self.trial.position
         return [
-            response_row(
+            self._row(
                 context=context,
-                trial=self.trial,
+                playback=playback,
                 item=self.task.id,
-                screen=self.kind,
                 rt_s=answer.rt_s,
                 timestamp=answer.timestamp,
-                clip_onset=None if playback is None else playback.onset,
-                clip_frames_dropped=None if playback is None else playback.dropped,
                 response=self.trial.condition if chose_comparison else self.trial.standard,
                 correct=int(chose_comparison) if self.task.correct == "comparison" else None,
-                level=self.level,
             )
         ]
 
@@ -280,16 +296,11 @@ class IdentifyAnswer:
 
 
 @dataclass(frozen=True)
-class IdentifyScreen(ResponseScreen):
+class IdentifyScreen(TaskScreen):
     """Which label fits the clip? Correct when the task names the condition's label."""
 
     kind: ClassVar[str] = "identify"
     task: IdentifyTask | None = None
-
-    def response_keys(self) -> tuple[tuple[int, str], ...]:
-        if self.practice or self.trial is None or self.task is None:
-            return ()
-        return ((self.trial.trial_index, self.task.id),)
 
     def rows(
         self,
@@ -304,18 +315,14 @@ class IdentifyScreen(ResponseScreen):
         assert self.trial is not None and self.task is not None
         target = self.task.answers.get(self.trial.condition)
         return [
-            response_row(
+            self._row(
                 context=context,
-                trial=self.trial,
+                playback=playback,
                 item=self.task.id,
-                screen=self.kind,
                 rt_s=answer.rt_s,
                 timestamp=answer.timestamp,
-                clip_onset=None if playback is None else playback.onset,
-                clip_frames_dropped=None if playback is None else playback.dropped,
                 response=answer.label,
                 correct=None if target is None else int(answer.label == target),
-                level=self.level,
             )
         ]
 

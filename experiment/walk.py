@@ -81,7 +81,7 @@ def walk(
     playbacks: dict[int | None, Playback] = {}
     queue = list(screens)
     trials_done = 0
-    adaptive: dict[int | None, AdaptiveTrial] = {}
+    adaptive: set[int | None] = set()  # trials a staircase chose the condition of
     index = 0
     while index < len(queue):
         screen = queue[index]
@@ -91,7 +91,7 @@ def walk(
             assert screen.trial is not None
             expanded = screen.expand(staircases.resolve(screen.trial))
             queue[index : index + 1] = expanded
-            adaptive[screen.trial_index] = screen
+            adaptive.add(screen.trial_index)
             continue
         index += 1
         method = PRESENTERS.get(type(screen))

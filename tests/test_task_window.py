@@ -105,7 +105,7 @@ def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
     assert {r["screen"] for r in rows} == {"choice_2afc"}
     # the levels shown follow the rule from the logged answers, across the kill
     protocol = load_protocol(path)
-    from facelab.experiment.adaptive import new_staircase
+    from facelab.staircase import new_staircase
 
     stair: UpDownStaircase = new_staircase(protocol, "main")
     for r in rows:

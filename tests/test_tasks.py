@@ -16,14 +16,14 @@ from facelab.analysis.load import load_results
 from facelab.analysis.tasks import analyze_tasks
 from facelab.design import PENDING, build_trials, trials_frame
 from facelab.errors import ProtocolError, SessionError
-from facelab.experiment.adaptive import Staircases, new_staircase
+from facelab.experiment.adaptive import Staircases
 from facelab.experiment.cli import main
 from facelab.experiment.simulate import simulate_study
 from facelab.experiment.timeline import ChoiceAnswer, ChoiceScreen, compile_timeline, trial_screens
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 from facelab.sessionlog import SessionContext
-from facelab.staircase import UpDownStaircase, convergence_probability
+from facelab.staircase import UpDownStaircase, convergence_probability, new_staircase
 
 REF = Path(__file__).parent / "reference"
 EXAMPLES = ("gain_2afc", "gain_staircase", "method_identify", "gain_vas")
