@@ -397,7 +397,8 @@ def _rendering(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         avatar_path = base_dir / avatar
         if avatar_path.suffix.lower() not in AVATAR_SUFFIXES:
             yield Issue(
-                ("rendering", "avatar"), f"expected 'default' or a .gltf/.glb file, got {avatar!r}"
+                ("rendering", "avatar"),
+                f"expected 'default' or a .gltf/.glb/.vrm file, got {avatar!r}",
             )
         elif not avatar_path.is_file():
             yield Issue(("rendering", "avatar"), f"avatar file not found: {avatar_path}")

@@ -65,7 +65,7 @@ Localized = Annotated[
     ),
 ]
 AUDIO_SUFFIXES = (".wav", ".flac")
-AVATAR_SUFFIXES = (".gltf", ".glb")
+AVATAR_SUFFIXES = (".gltf", ".glb", ".vrm")
 
 
 class _Model(BaseModel):
@@ -289,16 +289,33 @@ class Presentation(_Model):
 
 
 class Camera(_Model):
-    distance_m: float = Field(0.65, gt=0.1, le=5.0, description="Eye-to-face distance.")
+    distance_m: float | None = Field(
+        None,
+        gt=0.1,
+        le=20.0,
+        description="Camera-to-face distance in metres; omitted: frames the head (0.65 m for "
+        "the default head, scaled with the head's height for other avatars).",
+    )
     fov_deg: float = Field(30.0, gt=5, lt=120, description="Vertical field of view.")
     height_m: float = Field(0.0, ge=-0.5, le=0.5, description="Camera height relative to the eyes.")
+    target_m: list[float] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="The point the camera aims at [x, y, z] in the avatar's metres; omitted: "
+        "the head's centre (from the head joint, the head mesh or the model's top).",
+    )
 
 
 class Rendering(_Model):
     width: int = Field(1280, ge=64, le=7680)
     height: int = Field(720, ge=64, le=4320)
     fps: int = Field(30, ge=1, le=240)
-    avatar: Text = Field("default", description="'default' or a .gltf/.glb file.")
+    avatar: Text = Field(
+        "default",
+        description="'default' or a .gltf/.glb/.vrm file (Ready Player Me, VRM 0.x/1.0, "
+        "skinned glTF).",
+    )
     camera: Camera = Field(default_factory=Camera)
     pad_s: float = Field(0.3, ge=0.0, le=5.0, description="Neutral face before and after speech.")
     msaa: Literal[1, 2, 4, 8] = Field(

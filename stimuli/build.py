@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from facelab.errors import StageError
+from facelab.methods import VowelBlendParams
 from facelab.protocol import Protocol
 from facelab.stimuli.avatar import Avatar, check_targets, default_head, load, with_viseme_mixes
 from facelab.stimuli.clip import (
@@ -34,10 +35,11 @@ from facelab.stimuli.clip import (
     weights_at,
 )
 from facelab.stimuli.clipspec import CLIP_COLUMNS, RENDER_VERSION, ClipJob, clip_spec_hash, plan
-from facelab.stimuli.drive import BlendshapeTrack, DriveInput, drive
+from facelab.stimuli.drive import BlendshapeTrack, DriveInput, drive, vowel_presets
 from facelab.stimuli.prepare import speech_for, tracks_for
 from facelab.stimuli.render import Renderer, RenderSettings
 from facelab.stimuli.speech import Speech
+from facelab.stimuli.targets import uses_vowel_presets
 from facelab.stimuli.visemes import VOWELS, VisemeTrack, vowel_segments
 
 __all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
@@ -58,6 +60,7 @@ def settings_for(protocol: Protocol) -> RenderSettings:
         width=r.width,
         height=r.height,
         distance_m=r.camera.distance_m,
+        target_m=tuple(r.camera.target_m) if r.camera.target_m is not None else None,
         fov_deg=r.camera.fov_deg,
         height_m=r.camera.height_m,
         background=tuple(r.background),
@@ -73,12 +76,26 @@ def _track_hash(track: BlendshapeTrack) -> str:
     return h.hexdigest()
 
 
+def stand_in(avatar: Avatar, method: str, params: dict) -> str | None:
+    """What plays in place of ``method`` on this avatar, if anything (for clip metadata)."""
+    if uses_vowel_presets(avatar, method, params):
+        return (
+            f"{avatar.source.get('kind')} vowel presets aa ih ou ee oh instead of ARKit Z "
+            "(Y = G * X)"
+        )
+    zero = avatar.source.get("zero_visemes")
+    if method != "vowel_blend" and zero:
+        return f"{avatar.source.get('kind')}: no shape for {' '.join(zero)} (vowel presets only)"
+    return None
+
+
 def _blendshapes(
     protocol: Protocol,
     job: ClipJob,
     speech: Speech,
     tracks: tuple[VisemeTrack, VisemeTrack | None],
     base_dir: Path,
+    avatar: Avatar,
 ) -> BlendshapeTrack:
     cond = protocol.condition(job.condition)
     analysed, isolated = tracks
@@ -87,11 +104,10 @@ def _blendshapes(
         if (isolated is not None and job.condition in job.stimulus.vowel_isolation)
         else analysed
     )
-    return drive(
-        cond.method,
-        DriveInput(track=viseme_track, phones=speech.phones, base_dir=base_dir),
-        cond.params,
-    )
+    inp = DriveInput(track=viseme_track, phones=speech.phones, base_dir=base_dir)
+    if uses_vowel_presets(avatar, cond.method, cond.params):
+        return vowel_presets(inp, VowelBlendParams.model_validate(cond.params))
+    return drive(cond.method, inp, cond.params)
 
 
 def build_clips(
@@ -125,7 +141,7 @@ def build_clips(
                 )
                 cache[key_stim] = (speech, tracks_for(job.stimulus, speech))
             speech, tracks = cache[key_stim]
-            bs = _blendshapes(protocol, job, speech, tracks, base_dir)
+            bs = _blendshapes(protocol, job, speech, tracks, base_dir, avatar)
             cond = protocol.condition(job.condition)
             audio = padded_audio(speech, pad_s=protocol.rendering.pad_s)
             n_frames = round(audio.duration_s * fps)
@@ -197,12 +213,16 @@ def build_clips(
                             "duration_s": info.duration_s,
                             "method": cond.method,
                             "params": cond.params,
+                            "avatar": avatar.name,
+                            "avatar_kind": avatar.source.get("kind", "unknown"),
+                            "stand_in": stand_in(avatar, cond.method, cond.params),
                         },
                         indent=2,
                     )
                     + "\n"
                 )
-                log(f"  rendered {job.clip_id} ({n_frames} frames)")
+                note = stand_in(avatar, cond.method, cond.params)
+                log(f"  rendered {job.clip_id} ({n_frames} frames)" + (f"; {note}" if note else ""))
             rows.append(
                 {
                     "clip_id": job.clip_id,
@@ -246,7 +266,15 @@ def contact_sheets(
     )
     if stim is None:
         raise StageError("no stimulus has expected_vowels: a contact sheet needs a vowel stimulus")
-    settings = replace(settings or settings_for(protocol), width=640, height=640, distance_m=0.36)
+    settings = settings or settings_for(protocol)
+    closer = 0.36 / 0.65
+    settings = replace(
+        settings,
+        width=640,
+        height=640,
+        distance_m=None if settings.distance_m is None else settings.distance_m * closer,
+        zoom=1 / closer,
+    )
     avatar = load_avatar(protocol, base_dir=base_dir)
     speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
     analysed, isolated = tracks_for(stim, speech)
@@ -262,7 +290,7 @@ def contact_sheets(
     with Renderer(avatar, settings) as renderer:
         for cond in protocol.conditions:
             job = ClipJob("", stim_set, stim, cond.id)
-            bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir)
+            bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir, avatar)
             tiles = []
             for (a, b), vowel in zip(segments, stim.expected_vowels or "", strict=True):
                 x = analysed.vowels()[a:b, VOWELS.index(vowel)]

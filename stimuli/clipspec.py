@@ -37,7 +37,7 @@ CLIP_COLUMNS = (
     "sha256",
     "spec_sha256",
 )
-RENDER_VERSION = "facelab-render-1"
+RENDER_VERSION = "facelab-render-2"  # 2: the default head with lids, ears, hair; new lighting
 
 
 @dataclass(frozen=True)

@@ -15,9 +15,11 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+from scipy import sparse
 
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.mesh import Avatar
+from facelab.stimuli.rig import Skeleton
 from facelab.stimuli.targets import VISEME_MIXES
 
 __all__ = ["default_head"]
@@ -40,6 +42,8 @@ MOUTH_HALF_W = 0.0235
 EYE_Y = 0.022
 EYE_X = 0.031
 EYE_R = 0.0118
+EYE_HALF_W, EYE_HALF_H = 0.0120, 0.0055  # the lid opening (an almond), half width and height
+LID_EXTENT = 0.0085  # skin above the upper lid margin that moves in a blink
 HINGE = np.array([0.0, -0.002, -0.012])  # jaw rotation axis point (x axis through it)
 
 SKIN = np.array([0.86, 0.68, 0.58])
@@ -49,10 +53,12 @@ HAIR = np.array([0.16, 0.11, 0.08])
 SCLERA = np.array([0.95, 0.94, 0.92])
 IRIS = np.array([0.30, 0.20, 0.12])
 PUPIL = np.array([0.03, 0.03, 0.03])
-TEETH = np.array([0.95, 0.93, 0.86])
+TEETH = np.array([0.86, 0.84, 0.77])
 MOUTH = np.array([0.20, 0.06, 0.07])
 TONGUE = np.array([0.66, 0.30, 0.32])
 CLOTH = np.array([0.22, 0.30, 0.42])
+LASH = np.array([0.10, 0.07, 0.06])
+EAR = np.array([0.84, 0.62, 0.54])
 
 
 def _front_surface(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -117,7 +123,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     y = HEAD_H * np.sin(p) + HEAD_CENTRE_Y
     z = HEAD_D * np.cos(p) * np.cos(t)
     # a narrower jaw and chin, a fuller cranium at the back
-    narrow = 1 - 0.22 * _smoothstep(-0.01, -0.11, y) * _smoothstep(-0.02, 0.06, z)
+    narrow = 1 - 0.17 * _smoothstep(-0.01, -0.11, y) * _smoothstep(-0.02, 0.06, z)
     x = x * narrow
     z = z * (1 - 0.12 * _smoothstep(-0.03, -0.11, y) * _smoothstep(0.0, 0.05, -z))
     z = z + _front_surface(x, y, z)
@@ -183,28 +189,49 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     centroid = verts[faces].mean(axis=1)
     for side in (1, -1):
         cx = side * EYE_X
-        dx = (centroid[:, 0] - cx) / 0.0128
-        dy = (centroid[:, 1] - EYE_Y - 0.0008 * (1 - dx**2)) / 0.0062
+        dx = (centroid[:, 0] - cx) / EYE_HALF_W
+        dy = (centroid[:, 1] - EYE_Y - 0.0008 * (1 - dx**2)) / EYE_HALF_H
         keep &= ~((dx**2 + dy**2 < 1.0) & (centroid[:, 2] > 0))
     faces = faces[keep]
-    # put skin near each eye on a sphere 1.2 mm outside the eyeball, so lids hug it
+    verts, lid_rim = _smooth_eye_openings(verts, faces)
+    # the lids: from the margin (on a shell 1.2 mm outside the eyeball) the skin blends back
+    # into the face surface by 1.7 times the opening's size
+    shell_r = EYE_R + 0.0012
     for side in (1, -1):
         ec = _eye_centre(side)
-        d = verts - ec
-        dist = np.linalg.norm(d, axis=1)
-        near = (np.hypot(verts[:, 0] - side * EYE_X, verts[:, 1] - EYE_Y) < 0.020) & (
-            verts[:, 2] > 0
-        )
-        target = ec + d / dist[:, None] * (EYE_R + 0.0012)
-        blend = _smoothstep(0.020, 0.012, np.hypot(verts[:, 0] - side * EYE_X, verts[:, 1] - EYE_Y))
-        blend = np.where(near, blend, 0.0)
-        verts = verts + (target - verts) * blend[:, None] * (dist < EYE_R + 0.006)[:, None]
+        rel_x = (verts[:, 0] - side * EYE_X) / EYE_HALF_W
+        rel_y = (verts[:, 1] - EYE_Y) / EYE_HALF_H
+        rho = np.hypot(rel_x, rel_y)
+        planar = (verts[:, 0] - ec[0]) ** 2 + (verts[:, 1] - ec[1]) ** 2
+        z_shell = ec[2] + np.sqrt(np.clip(shell_r**2 - planar, 0.0, None))
+        w = _smoothstep(1.7, 1.0, rho) * (verts[:, 2] > 0.03)
+        verts[:, 2] = w * z_shell + (1 - w) * verts[:, 2]
 
     # colours: skin, lips, brows, hair
     vx, vy, vz = verts[:, 0], verts[:, 1], verts[:, 2]
     colors = np.tile(SKIN, (len(verts), 1))
-    lip_w = np.exp(-0.5 * ((vx / 0.021) ** 8 + ((vy - MOUTH_Y) / 0.0065) ** 2)) * (vz > 0.03)
+    # the vermilion: an upper lip with a cupid's bow and a fuller lower lip, edged sharply
+    across = np.clip(1 - (vx / 0.0225) ** 2, 0, 1)
+    top = (
+        MOUTH_Y
+        + 0.0058 * across**0.6
+        + 0.0010 * np.exp(-(((np.abs(vx) - 0.0048) / 0.0030) ** 2))
+        - 0.0009 * np.exp(-((vx / 0.0022) ** 2))
+    )
+    bottom = MOUTH_Y - 0.0078 * across**0.7
+    lip_w = (
+        _smoothstep(top + 0.0010, top - 0.0010, vy)
+        * _smoothstep(bottom - 0.0010, bottom + 0.0010, vy)
+        * (vz > 0.03)
+        * _smoothstep(0.0235, 0.0215, np.abs(vx))
+    )
     colors = colors * (1 - lip_w[:, None]) + LIP * lip_w[:, None]
+    # nostrils and the shadowed underside of the nose
+    for sgn in (1, -1):
+        nostril = np.exp(
+            -0.5 * (((vx - sgn * 0.0062) / 0.0026) ** 2 + ((vy + 0.0385) / 0.0016) ** 2)
+        )
+        colors *= 1 - 0.55 * (nostril * (vz > 0.05))[:, None]
     # inner lips: lip colour at the edge, darkening to the mouth interior
     for inner in (upper_inner, lower_inner):
         ring = np.arange(len(inner)) // (len(inner) // 3)
@@ -213,24 +240,72 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     for side in (1, -1):
         bx = (vx - side * (EYE_X + 0.002)) / 0.020
         by = (vy - (EYE_Y + 0.016 - 0.004 * bx**2)) / 0.0028
-        brow_w = np.exp(-0.5 * (bx**8 + by**2)) * (vz > 0.03)
+        brow_w = (
+            0.9 * _smoothstep(0.2, 0.6, np.exp(-0.5 * (bx**8 + (by * 1.25) ** 2))) * (vz > 0.03)
+        )
         colors = colors * (1 - brow_w[:, None]) + BROW * brow_w[:, None]
+    # lash lines: dark along the upper lid margin, faint along the lower
+    for rim in (lid_rim,):
+        upper = verts[rim, 1] > EYE_Y + 0.0008
+        colors[rim[upper]] = LASH
+        colors[rim[~upper]] = colors[rim[~upper]] * 0.75 + LASH * 0.25
     hairline = 0.056 - 0.04 * _smoothstep(0.02, -0.06, vz) + 0.015 * (vx / HEAD_W) ** 2
     hair_w = _smoothstep(hairline - 0.003, hairline + 0.006, vy)
     hair_w = np.maximum(hair_w, _smoothstep(0.0, -0.04, vz) * _smoothstep(-0.06, -0.02, vy))
     hair_w *= ~np.isin(np.arange(len(verts)), np.concatenate([upper_inner, lower_inner]))
-    colors = colors * (1 - hair_w[:, None]) + HAIR * hair_w[:, None]
+    paint = _smoothstep(0.0, 0.3, hair_w)  # the scalp is dark wherever the hair shell may end
+    colors = colors * (1 - paint[:, None]) + HAIR * paint[:, None]
 
+    # drop the vertices the eye openings left unused, renumbering everything that refers to them
+    used = np.unique(faces)
+    remap = np.full(len(verts), -1)
+    remap[used] = np.arange(len(used))
     info = {
-        "upper_slit": upper_idx,
-        "lower_slit": lower_idx,
-        "corners": corners,
-        "upper_inner": upper_inner,
-        "lower_inner": lower_inner,
-        "mouth_row": np.array([mouth_row]),
-        "cols": np.array([cols]),
+        "upper_slit": remap[upper_idx],
+        "lower_slit": remap[lower_idx],
+        "corners": remap[corners],
+        "upper_inner": remap[upper_inner],
+        "lower_inner": remap[lower_inner],
+        "hair_w": hair_w[used],
     }
-    return _Part(verts, faces, colors, "skin"), info
+    return _Part(verts[used], remap[faces], colors[used], "skin"), info
+
+
+def _almond(side: int, angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of the lid opening's contour at polar ``angle`` (radians) around the eye."""
+    c, sn = np.cos(angle), np.sin(angle)
+    return side * EYE_X + EYE_HALF_W * c, EYE_Y + 0.0008 * (1 - c**2) + EYE_HALF_H * sn
+
+
+def _smooth_eye_openings(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Move the rim of each eye opening onto the almond contour and relax the skin around it
+    (umbrella smoothing in x, y with the rim and the outer skin held), so the lid margin is a
+    smooth curve rather than the grid's staircase. Returns the vertices and the rim indices."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = np.unique(uniq[counts == 1])
+    n = len(verts)
+    adj = sparse.coo_matrix(
+        (np.ones(2 * len(uniq)), (np.r_[uniq[:, 0], uniq[:, 1]], np.r_[uniq[:, 1], uniq[:, 0]])),
+        shape=(n, n),
+    ).tocsr()
+    degree = np.asarray(adj.sum(axis=1)).ravel()
+    verts = verts.copy()
+    rims = []
+    for side in (1, -1):
+        rel_x = (verts[:, 0] - side * EYE_X) / EYE_HALF_W
+        rel_y = (verts[:, 1] - EYE_Y) / EYE_HALF_H
+        rho = np.hypot(rel_x, rel_y)
+        front = verts[:, 2] > 0
+        rim = boundary[(rho[boundary] < 1.6) & front[boundary]]
+        verts[rim, 0], verts[rim, 1] = _almond(side, np.arctan2(rel_y[rim], rel_x[rim]))
+        band = np.nonzero(front & (rho < 2.2) & (degree > 1) & np.isin(np.arange(n), faces))[0]
+        band = np.setdiff1d(band, rim)
+        for _ in range(30):
+            mean = (adj @ verts[:, :2]) / np.maximum(degree, 1)[:, None]
+            verts[band, :2] = 0.5 * verts[band, :2] + 0.5 * mean[band]
+        rims.append(rim)
+    return verts, np.concatenate(rims)
 
 
 def _eye_centre(side: int) -> np.ndarray:
@@ -246,13 +321,68 @@ def _eye_z() -> float:
 
 
 def _eyeball(side: int) -> _Part:
-    v, f = _sphere(_eye_centre(side), np.array([EYE_R] * 3), 18, 28)
-    d = (v - _eye_centre(side)) / EYE_R
+    """A sphere whose rings are centred on the line of sight, so the iris and pupil edges are
+    circles (rings on each edge); the iris darkens towards its rim (the limbal ring)."""
+    centre = _eye_centre(side)
+    alpha = np.radians(
+        [
+            0.5,
+            4,
+            8,
+            11.5,
+            12.5,
+            16,
+            20,
+            24,
+            27,
+            29.5,
+            30.5,
+            34,
+            40,
+            50,
+            62,
+            75,
+            90,
+            110,
+            135,
+            160,
+            179.5,
+        ]
+    )
+    theta = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    a, t = np.meshgrid(alpha, theta, indexing="ij")
+    d = np.stack([np.sin(a) * np.cos(t), np.sin(a) * np.sin(t), np.cos(a)], -1).reshape(-1, 3)
+    faces = _grid_faces(len(alpha), len(theta), wrap=True)
+    tri = d[faces]
+    outward = np.einsum(
+        "fi,fi->f", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1)
+    )
+    faces = np.where((outward < 0)[:, None], faces[:, ::-1], faces)
+    # caps at the poles
+    n = len(d)
+    d = np.vstack([d, [[0, 0, 1], [0, 0, -1]]])
+    ring0 = np.arange(len(theta))
+    ring_last = (len(alpha) - 1) * len(theta) + ring0
+    cap = [[n, ring0[i], ring0[(i + 1) % len(theta)]] for i in ring0]
+    cap += [[n + 1, ring_last[(i + 1) % len(theta)], ring_last[i]] for i in ring0]
+    cap = np.array(cap)
+    tri = d[cap]
+    outward = np.einsum(
+        "fi,fi->f", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1)
+    )
+    cap = np.where((outward < 0)[:, None], cap[:, ::-1], cap)
+    faces = np.vstack([faces, cap])
     ang = np.degrees(np.arccos(np.clip(d[:, 2], -1, 1)))
-    colors = np.tile(SCLERA, (len(v), 1))
-    colors[ang < 34] = IRIS
-    colors[ang < 14] = PUPIL
-    return _Part(v, f, colors, f"eye_{'left' if side > 0 else 'right'}")
+    colors = np.tile(SCLERA, (len(d), 1))
+    iris = ang < 30
+    limbal = np.clip((ang - 20) / 10, 0, 1)[:, None]
+    colors[iris] = (IRIS * (1 - 0.55 * limbal) + 0.02 * limbal)[iris]
+    colors[ang < 12] = PUPIL
+    # the cornea bulges a little over the iris
+    radius = EYE_R * (1 + 0.06 * np.clip(1 - ang / 30, 0, 1) ** 2)
+    return _Part(
+        centre + d * radius[:, None], faces, colors, f"eye_{'left' if side > 0 else 'right'}"
+    )
 
 
 def _mouth_parts(surface: np.ndarray, info: dict) -> list[_Part]:
@@ -261,8 +391,10 @@ def _mouth_parts(surface: np.ndarray, info: dict) -> list[_Part]:
     bag_v, bag_f = _sphere(centre, np.array([0.030, 0.015, 0.028]), 14, 24)
     bag = _Part(bag_v, bag_f[:, ::-1], np.tile(MOUTH, (len(bag_v), 1)), "mouth")
 
-    def arch(y0: float, height: float, inset: float) -> tuple[np.ndarray, np.ndarray]:
-        ang = np.linspace(-0.95, 0.95, 20)
+    def arch(y0: float, height: float, inset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A closed band of teeth along an arc: vertices, outward-wound faces, colours (each
+        tooth edged by a faint gap, darker towards the back of the mouth)."""
+        ang = np.linspace(-0.95, 0.95, 49)
         radius = 0.024
         cz = lip_z - inset - radius
         rows = []
@@ -274,64 +406,123 @@ def _mouth_parts(surface: np.ndarray, info: dict) -> list[_Part]:
                         [r * np.sin(ang), np.full_like(ang, y0 + dy), cz + r * np.cos(ang)], -1
                     )
                 )
-        v = np.vstack(rows)
+        # each side (front, top, back, bottom) has its own vertices: crisp edges, flat normals
+        sides = ((0, 2), (2, 3), (3, 1), (1, 0))
+        v = np.vstack([rows[k] for pair in sides for k in pair])
         n = len(ang)
         faces = []
-        for a, b in ((0, 2), (2, 3), (3, 1), (1, 0)):
+        for s_i in range(len(sides)):
+            a, b = 2 * s_i, 2 * s_i + 1
             for i in range(n - 1):
                 faces += [
                     [a * n + i, b * n + i, a * n + i + 1],
                     [a * n + i + 1, b * n + i, b * n + i + 1],
                 ]
-        return v, np.array(faces)
+        faces = np.array(faces)
+        # wind every face outwards from the band's core line
+        tri = v[faces]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        mid = tri.mean(axis=1)
+        a_mid = np.arctan2(mid[:, 0], mid[:, 2] - cz)
+        core = np.stack(
+            [(radius - 0.002) * np.sin(a_mid), np.full(len(mid), y0 + height / 2),
+             cz + (radius - 0.002) * np.cos(a_mid)], -1)  # fmt: skip
+        flip = np.einsum("fi,fi->f", normal, mid - core) < 0
+        faces[flip] = faces[flip][:, ::-1]
+        a_all = np.tile(ang, 8)
+        gap = _smoothstep(0.92, 1.0, np.cos(2 * np.pi * a_all / 0.30))
+        shade = (1 - 0.30 * gap) * (1 - 0.40 * np.abs(a_all) / 0.95)
+        return v, faces, TEETH * shade[:, None]
 
-    up_v, up_f = arch(MOUTH_Y - 0.0022, 0.0095, 0.0080)  # shows 2 mm below the upper lip
-    lo_v, lo_f = arch(MOUTH_Y - 0.0058, 0.0060, 0.0135)
+    up_v, up_f, up_c = arch(MOUTH_Y - 0.0022, 0.0095, 0.0080)  # shows 2 mm below the upper lip
+    lo_v, lo_f, lo_c = arch(MOUTH_Y - 0.0058, 0.0060, 0.0135)
     tongue_v, tongue_f = _sphere(
         np.array([0.0, MOUTH_Y - 0.008, lip_z - 0.034]), np.array([0.016, 0.005, 0.016]), 10, 18
     )
     return [
         bag,
-        _Part(up_v, up_f, np.tile(TEETH, (len(up_v), 1)), "teeth_upper"),
-        _Part(lo_v, lo_f, np.tile(TEETH, (len(lo_v), 1)), "teeth_lower"),
+        _Part(up_v, up_f, up_c, "teeth_upper"),
+        _Part(lo_v, lo_f, lo_c, "teeth_lower"),
         _Part(tongue_v, tongue_f, np.tile(TONGUE, (len(tongue_v), 1)), "tongue"),
     ]
 
 
 def _body() -> list[_Part]:
-    neck_v, neck_f = [], []
-    rows, cols = 8, 40
+    neck_v = []
+    rows, cols = 16, 40
     ang = np.linspace(-np.pi, np.pi, cols, endpoint=False)
-    for i, yy in enumerate(np.linspace(-0.07, -0.20, rows)):
-        r = 0.046 + 0.004 * i / rows
+    for i, yy in enumerate(np.linspace(-0.07, -0.21, rows)):
+        r = 0.047 + 0.008 * (i / rows) ** 2
         neck_v.append(
-            np.stack([r * np.sin(ang), np.full(cols, yy), -0.012 + 0.9 * r * np.cos(ang)], -1)
+            np.stack([r * np.sin(ang), np.full(cols, yy), -0.014 + 0.92 * r * np.cos(ang)], -1)
         )
     neck_v = np.vstack(neck_v)
-    neck_f = _grid_faces(rows, cols, wrap=True)
-    torso_v, torso_f = _sphere(np.array([0.0, -0.30, -0.02]), np.array([0.20, 0.13, 0.11]), 16, 40)
+    neck_f = _grid_faces(rows, cols, wrap=True)[:, ::-1]  # rows go down here: flip the winding
+    torso_v, torso_f = _sphere(np.array([0.0, -0.285, -0.02]), np.array([0.20, 0.12, 0.11]), 16, 40)
     return [
         _Part(neck_v, neck_f, np.tile(SKIN * 0.95, (len(neck_v), 1)), "neck"),
         _Part(torso_v, torso_f, np.tile(CLOTH, (len(torso_v), 1)), "torso"),
     ]
 
 
+def _ear(side: int) -> _Part:
+    """A flattened shell with a hollow (the concha) on its outer face, wider at the top than at
+    the lobe, leaning back and flaring away from the head."""
+    v, f = _sphere(np.zeros(3), np.array([0.0055, 0.029, 0.016]), 16, 26)
+    outer = v[:, 0] > 0
+    concha = np.exp(-0.5 * (((v[:, 1] + 0.004) / 0.010) ** 2 + ((v[:, 2] + 0.001) / 0.0065) ** 2))
+    v[:, 0] -= 0.0075 * concha * outer
+    v[:, 2] *= 1 - 0.30 * _smoothstep(0.0, -0.028, v[:, 1])
+    lean, flare = np.radians(-12.0), np.radians(-30.0)
+    rx = np.array([[1, 0, 0], [0, np.cos(lean), -np.sin(lean)], [0, np.sin(lean), np.cos(lean)]])
+    ry = np.array(
+        [[np.cos(flare), 0, np.sin(flare)], [0, 1, 0], [-np.sin(flare), 0, np.cos(flare)]]
+    )
+    v = v @ (ry @ rx).T
+    colors = np.tile(EAR, (len(v), 1)) * (1 - 0.25 * (concha * outer))[:, None]
+    if side < 0:
+        v[:, 0] *= -1
+        f = f[:, ::-1]
+    v = v + np.array([side * 0.0720, -0.006, -0.012])
+    return _Part(v, f, colors, f"ear_{'left' if side > 0 else 'right'}")
+
+
+def _hair(skin: _Part, hair_w: np.ndarray) -> _Part:
+    """A shell of hair over the painted scalp: thickest on the crown, thinning to nothing at
+    the hairline, with faint strands."""
+    v = skin.vertices
+    keep = (hair_w > 0.3)[skin.faces].all(axis=1)
+    faces = skin.faces[keep]
+    used = np.unique(faces)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    out = v[used] - np.array([0.0, -0.005, -0.012])
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    thick = 0.0075 * _smoothstep(0.3, 0.95, hair_w[used])
+    thick *= 1 + 0.6 * _smoothstep(0.02, 0.10, v[used, 1])
+    hv = v[used] + out * thick[:, None]
+    streak = 1 + 0.12 * np.sin(90 * np.arctan2(v[used, 0], v[used, 2]) + 50 * v[used, 1])
+    return _Part(hv, remap[faces], HAIR * streak[:, None], "hair")
+
+
 @cache
 def _default_head_cached() -> Avatar:
     skin, info = _head_surface()
-    parts = [skin, _eyeball(1), _eyeball(-1), *_mouth_parts(skin.vertices, info), *_body()]
+    parts = [
+        skin,
+        _eyeball(1),
+        _eyeball(-1),
+        *_mouth_parts(skin.vertices, info),
+        *_body(),
+        _ear(1),
+        _ear(-1),
+        _hair(skin, info["hair_w"]),
+    ]
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
     verts = np.vstack([p.vertices for p in parts]).astype(np.float32)
     faces = np.vstack([p.faces + off for p, off in zip(parts, offsets, strict=False)])
-    # thin parts seen from both sides (teeth, inner lips) get both windings: back faces are culled
-    two_sided = np.concatenate(
-        [
-            np.arange(offsets[i], offsets[i + 1])
-            for i, p in enumerate(parts)
-            if p.name.startswith("teeth")
-        ]
-        + [info["upper_inner"], info["lower_inner"]]
-    )
+    # the inner lips are seen from both sides: they get both windings (back faces are culled)
+    two_sided = np.concatenate([info["upper_inner"], info["lower_inner"]])
     thin = np.isin(faces, two_sided).all(axis=1)
     faces = np.vstack([faces, faces[thin][:, ::-1]])
     colors = np.vstack([p.colors for p in parts]).astype(np.float32)
@@ -368,15 +559,81 @@ def _default_head_cached() -> Avatar:
         targets[name] = delta.astype(np.float32)
     lid = _lid_landmarks(verts, faces, part_index)
     landmarks.update(lid)
-    return Avatar(verts, faces, targets, landmarks, colors, "facelab default head", part_index)
+    return Avatar(
+        verts,
+        faces,
+        targets,
+        landmarks,
+        colors,
+        "facelab default head",
+        part_index,
+        skeleton=_skeleton(verts, part_index),
+        gloss=_gloss(len(verts), part_index),
+        source={"kind": "default"},
+    )
+
+
+#: joint name, parent index, rest pivot (m)
+_JOINTS = (
+    ("root", -1, (0.0, -0.24, -0.02)),
+    ("neck", 0, (0.0, -0.175, -0.015)),
+    ("head", 1, (0.0, -0.045, -0.02)),  # about the ear lobes (atlanto-occipital joint)
+    ("eye_left", 2, tuple(_eye_centre(1))),
+    ("eye_right", 2, tuple(_eye_centre(-1))),
+)
+
+
+def _skeleton(v: np.ndarray, parts: dict[str, np.ndarray]) -> Skeleton:
+    """Root (torso), neck, head and eye joints. The neck bends over its length (head weight
+    rising from 0 at y = -0.12 m to 1 at -0.07 m, neck weight from the shoulders up); the
+    face, jaw, teeth, ears and hair follow the head; each eyeball its eye joint."""
+    n = len(v)
+    y, z = v[:, 1], v[:, 2]
+    f_head = _smoothstep(-0.12, -0.07, y)
+    f_neck = _smoothstep(-0.205, -0.16, y)
+    w_head = np.ones(n)
+    neck = parts["neck"]
+    w_head[neck] = f_head[neck]
+    skin = parts["skin"]
+    w_head[skin] = np.maximum(f_head[skin], _smoothstep(-0.01, 0.03, z[skin]))
+    w_neck = (1 - w_head) * np.where(np.isin(np.arange(n), neck), f_neck, 1.0)
+    w_root = 1 - w_head - w_neck
+    joints = np.zeros((n, 4), np.int64)
+    weights = np.zeros((n, 4))
+    joints[:, 0], joints[:, 1], joints[:, 2] = 2, 1, 0
+    weights[:, 0], weights[:, 1], weights[:, 2] = w_head, w_neck, w_root
+    torso = parts["torso"]
+    weights[torso] = [1.0, 0.0, 0.0, 0.0]
+    joints[torso, 0] = 0
+    for j, part in ((3, "eye_left"), (4, "eye_right")):
+        joints[parts[part]] = [j, 0, 0, 0]
+        weights[parts[part]] = [1.0, 0.0, 0.0, 0.0]
+    return Skeleton(
+        tuple(name for name, _, _ in _JOINTS),
+        np.array([p for _, p, _ in _JOINTS]),
+        np.array([c for _, _, c in _JOINTS]),
+        joints,
+        weights,
+        {"neck": 1, "head": 2, "eye_left": 3, "eye_right": 4},
+    )
+
+
+def _gloss(n: int, parts: dict[str, np.ndarray]) -> np.ndarray:
+    """Specular strength per vertex: wet eyes and lips shine, teeth and cloth are matte."""
+    gloss = np.full(n, 0.35, np.float32)
+    for part, value in (
+        ("eye_left", 1.0), ("eye_right", 1.0), ("lips_inner", 0.6), ("teeth_upper", 0.12),
+        ("teeth_lower", 0.12), ("tongue", 0.45), ("mouth", 0.0), ("hair", 0.5),
+        ("ear_left", 0.25), ("ear_right", 0.25), ("torso", 0.05), ("neck", 0.25),
+    ):  # fmt: skip
+        gloss[parts[part]] = value
+    return gloss
 
 
 def default_head() -> Avatar:
     """The built-in head (cached; returns a shallow copy)."""
     h = _default_head_cached()
-    return Avatar(
-        h.neutral, h.faces, dict(h.targets), dict(h.landmarks), h.colors, h.name, dict(h.parts)
-    )
+    return h.replace(targets=dict(h.targets), landmarks=dict(h.landmarks), parts=dict(h.parts))
 
 
 def _lid_landmarks(
@@ -544,24 +801,30 @@ def _build_targets(
         eye = np.zeros(n, bool)
         eye[parts[f"eye_{side.lower()}"]] = True
         dxe = x - sgn * EYE_X
-        d = np.clip(dxe / 0.0128, -1, 1)
+        d = np.clip(dxe / EYE_HALF_W, -1, 1)
         bulge = EYE_Y + 0.0008 * (1 - d**2)
-        upper_margin = bulge + 0.0062 * np.sqrt(1 - d**2)
-        lower_margin = bulge - 0.0062 * np.sqrt(1 - d**2)
+        upper_margin = bulge + EYE_HALF_H * np.sqrt(1 - d**2)
+        lower_margin = bulge - EYE_HALF_H * np.sqrt(1 - d**2)
         near = (np.abs(dxe) < 0.022) & skin & (z > 0.03)
         across = _smoothstep(0.019, 0.012, np.abs(dxe))
         upper_lid = near * (y > bulge) * _smoothstep(0.012, 0.004, y - upper_margin) * across
         lower_lid = near * (y <= bulge) * _smoothstep(-0.010, -0.003, y - lower_margin) * across
         # blink: the upper margin comes down to 0.5 mm above the lower margin; the lid skin
-        # above it follows, compressed; vertices stay on a shell around the eyeball
-        closed = lower_margin + 0.0005 + 0.35 * (y - upper_margin)
-        moved = v + np.stack([np.zeros(n), (closed - y) * upper_lid, np.zeros(n)], -1)
+        # up to LID_EXTENT above it follows, compressed near the margin by a monotone map
+        # (no fold), so the brow stays put; vertices stay on a shell around the eyeball
+        gap = np.clip(upper_margin - lower_margin - 0.0005, 0.0, None)
+        u = y - upper_margin
+        lid_zone = near * (y > bulge) * (u >= -1e-4) * (u < LID_EXTENT)
+        uu = np.clip(u / LID_EXTENT, 0.0, 1.0)
+        g = gap / (2 * EYE_HALF_H - 0.0005)  # 1 mid-lid, 0 beyond the corners (map = identity)
+        closed = lower_margin + 0.0005 * g + uu ** (1 + 0.6 * g) * (LID_EXTENT + gap)
+        moved = v + np.stack([np.zeros(n), (closed - y) * lid_zone, np.zeros(n)], -1)
         rel = moved - ec
         dist = np.linalg.norm(rel, axis=1)
         shell = (
             ec + rel / np.maximum(dist, 1e-9)[:, None] * np.maximum(dist, EYE_R + 0.0014)[:, None]
         )
-        blink = np.where((upper_lid > 0)[:, None], shell - v, 0.0)
+        blink = np.where((lid_zone > 0)[:, None], shell - v, 0.0)
         t[f"eyeBlink{side}"] = blink
         t[f"eyeSquint{side}"] = (
             0.30 * blink

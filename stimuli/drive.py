@@ -32,7 +32,7 @@ from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
 from facelab.stimuli.speech import Phone
 from facelab.stimuli.visemes import VOWELS, VisemeTrack, from_phonemes
 
-__all__ = ["DRIVERS", "BlendshapeTrack", "DriveInput", "drive", "load_z"]
+__all__ = ["DRIVERS", "BlendshapeTrack", "DriveInput", "drive", "load_z", "vowel_presets"]
 
 DATA = package_file("facelab.stimuli", "data")
 
@@ -96,6 +96,15 @@ def vowel_blend(inp: DriveInput, params: VowelBlendParams) -> BlendshapeTrack:
     z_mat = load_z(params.z, base_dir=inp.base_dir)
     y = np.clip(params.gain * inp.track.vowels() @ z_mat.T, 0.0, 1.0)
     return BlendshapeTrack(inp.track.times, y, ARKIT_NAMES)
+
+
+def vowel_presets(inp: DriveInput, params: VowelBlendParams) -> BlendshapeTrack:
+    """The vowel-driven method on an avatar whose only mouth shapes are five vowel presets
+    (VRM aa ih ou ee oh, loaded as viseme_aa … viseme_oh): Y = clip(G * X), the vowel
+    intensities driving the presets directly - Z is not used."""
+    y = np.clip(params.gain * inp.track.vowels(), 0.0, 1.0)
+    names = ("viseme_aa", "viseme_ih", "viseme_ou", "viseme_E", "viseme_oh")  # a i u e o
+    return BlendshapeTrack(inp.track.times, y, names)
 
 
 def text_visemes(inp: DriveInput, params: TextVisemesParams) -> BlendshapeTrack:

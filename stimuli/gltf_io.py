@@ -6,16 +6,32 @@ its expressions there). It does not turn accessors into arrays, so :func:`access
 that here, with numpy: strides, sparse accessors and normalised integers, per the glTF 2.0
 specification §3.6.
 
-Reading: every triangle primitive of every mesh reachable from the default scene is placed
-with its node's world transform and merged; POSITION morph targets are merged by name
-(``mesh.extras.targetNames``, as Blender, Ready Player Me and most exporters write them),
-names normalised to ARKit camelCase / ``viseme_*`` (``_L``/``Left``, any case); a target a
-primitive lacks is zero there. Vertex colours come from COLOR_0 or the material's base colour.
+Reading: every triangle primitive of every mesh reachable from the default scene is merged
+into one avatar in the **rest world frame**:
+
+* unskinned meshes are placed with their node's world transform; if an ancestor node is a
+  joint, the mesh is bound rigidly to that joint (a hat or glasses follow the head);
+* skinned meshes (``JOINTS_0``/``WEIGHTS_0`` with a ``skin``) are placed by their rest skinning
+  matrices Σ w·(joint world · inverse bind) - the node's own transform is ignored, as glTF
+  2.0 §3.7.3 requires - and keep their joints and weights (:class:`~facelab.stimuli.rig.
+  Skeleton`: every skin's joints plus VRM humanoid bones, parents first; rig roles from the
+  VRM humanoid or by joint name, see :func:`~facelab.stimuli.rig.match_roles`);
+* POSITION morph targets are merged by name across meshes (``mesh.extras.targetNames`` or the
+  primitive's, as Blender, Ready Player Me and most exporters write them), so one ARKit name
+  drives the head, teeth and tongue meshes together; names are normalised to ARKit camelCase
+  / ``viseme_*`` (``_L``/``Left``, any case); a target a primitive lacks is zero there;
+* colours: the material's base colour × COLOR_0; a base-colour texture (PNG/JPEG, embedded,
+  data URI or beside the file) with its TEXCOORD set is kept for the renderer (alpha is
+  ignored: alpha-masked cards such as eyelashes draw opaque);
+* each mesh's vertices are listed in ``avatar.parts`` under the mesh name; VRM files are
+  handled by :mod:`facelab.stimuli.vrm` (presets, humanoid bones, VRM 0.x facing −z).
+
 Landmarks, if the file was written by facelab, come from ``extras.facelab.landmarks``.
 
 Writing: one mesh, one primitive (POSITION, COLOR_0, indices, one POSITION target per
-blendshape, ``targetNames`` in ``mesh.extras``), as ``.glb`` or ``.gltf`` with an embedded
-base64 buffer.
+blendshape, ``targetNames`` in ``mesh.extras``), and, for an avatar with a skeleton, its
+joints as nodes with a skin (JOINTS_0, WEIGHTS_0, inverse bind matrices) - as ``.glb`` or
+``.gltf`` with an embedded base64 buffer. Textures are not written.
 """
 
 from __future__ import annotations
@@ -30,6 +46,8 @@ import pygltflib
 from facelab.errors import AvatarError
 from facelab.stimuli.arkit import canonical_arkit_name
 from facelab.stimuli.mesh import Avatar
+from facelab.stimuli.rig import Skeleton, match_roles
+from facelab.stimuli.vrm import apply_vrm, detect_kind, humanoid_nodes
 
 __all__ = ["accessor", "buffers_of", "open_gltf", "read_gltf", "write_gltf"]
 
@@ -151,36 +169,118 @@ def _extras(obj: Any) -> dict:
     return extras if isinstance(extras, dict) else {}
 
 
-def read_gltf(path: Path) -> Avatar:
-    doc, buffers = open_gltf(path)
-    nodes = doc.nodes or []
-    scenes = doc.scenes or []
-    roots = scenes[doc.scene or 0].nodes if scenes else list(range(len(nodes)))
-    placed: list[tuple[int, np.ndarray]] = []
+def _get(obj: Any, key: str) -> Any:
+    """An attribute of a pygltflib object or a key of a plain dict (extensions are dicts)."""
+    return obj.get(key) if isinstance(obj, dict) else getattr(obj, key, None)
 
-    def visit(i: int, parent: np.ndarray) -> None:
-        node = nodes[i]
-        world = parent @ node_matrix(node)
-        if node.mesh is not None:
-            placed.append((node.mesh, world))
-        for child in node.children or []:
-            visit(child, world)
+
+def _image_bytes(doc: pygltflib.GLTF2, buffers: list[bytes], image: Any, path: Path) -> bytes:
+    view = _get(image, "bufferView")
+    if view is not None:
+        bv = doc.bufferViews[view]
+        start = bv.byteOffset or 0
+        return buffers[bv.buffer][start : start + bv.byteLength]
+    uri = _get(image, "uri") or ""
+    if uri.startswith("data:"):
+        return base64.b64decode(uri.split(",", 1)[1])
+    ext = path.parent / uri
+    if not ext.is_file():
+        raise AvatarError(f"{path}: image {uri!r} is missing")
+    return ext.read_bytes()
+
+
+def _decode_image(data: bytes, what: str) -> np.ndarray:
+    """(H, W, 4) uint8 RGBA from PNG/JPEG bytes."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
 
     try:
-        for r in roots or []:
-            visit(r, np.eye(4))
-    except (IndexError, TypeError) as exc:
-        raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+        with Image.open(io.BytesIO(data)) as img:
+            return np.asarray(img.convert("RGBA"), np.uint8).copy()
+    except (UnidentifiedImageError, OSError) as exc:
+        raise AvatarError(f"{what}: cannot decode the image ({exc})") from None
+
+
+class _Graph:
+    """Node hierarchy of the default scene: parent and rest world matrix of every node."""
+
+    def __init__(self, doc: pygltflib.GLTF2, path: Path):
+        nodes = doc.nodes or []
+        scenes = doc.scenes or []
+        roots = scenes[doc.scene or 0].nodes if scenes else list(range(len(nodes)))
+        self.parent: dict[int, int] = {}
+        self.world: dict[int, np.ndarray] = {}
+        self.order: list[int] = []  # parents before children
+        stack = [(r, -1, np.eye(4)) for r in reversed(roots or [])]
+        try:
+            while stack:
+                i, parent, above = stack.pop()
+                if i in self.world:
+                    raise AvatarError(
+                        f"{path}: node {i} is reached twice (a cycle or shared child)"
+                    )
+                self.parent[i] = parent
+                self.world[i] = above @ node_matrix(nodes[i])
+                self.order.append(i)
+                for child in reversed(nodes[i].children or []):
+                    stack.append((child, i, self.world[i]))
+        except (IndexError, TypeError) as exc:
+            raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+
+    def nearest(self, node: int, among: dict[int, int]) -> int | None:
+        """The value in ``among`` of ``node`` or its nearest ancestor that is a key there."""
+        while node >= 0:
+            if node in among:
+                return among[node]
+            node = self.parent.get(node, -1)
+        return None
+
+
+def read_gltf(path: Path) -> Avatar:
+    """An :class:`Avatar` from glTF 2.0 / VRM; see the module docstring for what is read."""
+    doc, buffers = open_gltf(path)
+    graph = _Graph(doc, path)
+    nodes = doc.nodes or []
+    kind = detect_kind(doc)
+    # the joints: every skin's joints plus the humanoid head/neck/eye nodes, parents first
+    joint_nodes = {j for sk in doc.skins or [] for j in (sk.joints or [])}
+    roles_by_node = humanoid_nodes(doc) if kind.startswith("vrm") else {}
+    joint_nodes |= set(roles_by_node.values())
+    joint_nodes &= set(graph.world)
+    ordered = [n for n in graph.order if n in joint_nodes]
+    joint_index = {n: i for i, n in enumerate(ordered)}
+    placed = [i for i in graph.order if nodes[i].mesh is not None]
     if not placed:
         raise AvatarError(f"{path}: no mesh in the scene")
-    positions, faces, colors, per_target = [], [], [], []
+    positions, faces, colors, uvs, face_tex, skins_j, skins_w, per_target = ([] for _ in range(8))
+    raw_targets: dict[tuple[int, int], list[tuple[int, np.ndarray]]] = {}
+    textures: list[np.ndarray] = []
+    texture_of_image: dict[int, int] = {}
     landmarks: dict[str, int] = {}
+    mesh_names: list[str] = []
+    parts: dict[str, np.ndarray] = {}
     offset = 0
     try:
-        for mesh_index, world in placed:
-            mesh = doc.meshes[mesh_index]
+        for node_index in placed:
+            node = nodes[node_index]
+            mesh = doc.meshes[node.mesh]
+            mesh_names.append(mesh.name or f"mesh_{node.mesh}")
             names = _extras(mesh).get("targetNames", [])
             facelab = _extras(mesh).get("facelab", {})
+            skin = doc.skins[node.skin] if node.skin is not None else None
+            if skin is not None:
+                ibm = (
+                    accessor(doc, buffers, skin.inverseBindMatrices)
+                    .astype(np.float64)
+                    .reshape(-1, 4, 4)
+                    .transpose(0, 2, 1)
+                    if skin.inverseBindMatrices is not None
+                    else np.tile(np.eye(4), (len(skin.joints), 1, 1))
+                )
+                rest = np.stack([graph.world[j] @ m for j, m in zip(skin.joints, ibm, strict=True)])
+                to_global = np.array([joint_index[j] for j in skin.joints], np.int64)
+            rigid = graph.nearest(node_index, joint_index)
             for prim in mesh.primitives:
                 if (prim.mode if prim.mode is not None else 4) != 4:
                     continue  # points and lines are not surfaces
@@ -189,35 +289,91 @@ def read_gltf(path: Path) -> Avatar:
                     raise KeyError("a primitive has no POSITION attribute")
                 pos = accessor(doc, buffers, attrs.POSITION).astype(np.float64)
                 n = len(pos)
-                pos_w = pos @ world[:3, :3].T + world[:3, 3]
+                if skin is not None and attrs.JOINTS_0 is not None and attrs.WEIGHTS_0 is not None:
+                    local_j = accessor(doc, buffers, attrs.JOINTS_0).astype(np.int64)
+                    w = accessor(doc, buffers, attrs.WEIGHTS_0).astype(np.float64)
+                    total = w.sum(axis=1, keepdims=True)
+                    w = np.where(total > 0, w / np.maximum(total, 1e-12), 0.0)
+                    blend = np.einsum("vk,vkij->vij", w, rest[local_j])  # (n, 4, 4)
+                    if np.allclose(
+                        blend, np.eye(4), rtol=0, atol=1e-6
+                    ):  # bound at rest: keep exact
+                        blend = np.broadcast_to(np.eye(4), blend.shape)
+                    lin = blend[:, :3, :3]
+                    pos_w = np.einsum("vij,vj->vi", lin, pos) + blend[:, :3, 3]
+                    joints_v = to_global[local_j]
+                    weights_v = w
+                else:
+                    world = graph.world[node_index]
+                    lin = np.broadcast_to(world[:3, :3], (n, 3, 3))
+                    pos_w = pos @ world[:3, :3].T + world[:3, 3]
+                    joints_v = np.zeros((n, 4), np.int64)
+                    weights_v = np.zeros((n, 4))
+                    if rigid is not None:
+                        joints_v[:, 0] = rigid
+                        weights_v[:, 0] = 1.0
                 idx = (
                     accessor(doc, buffers, prim.indices).reshape(-1)
                     if prim.indices is not None
                     else np.arange(n)
                 ).astype(np.int64)
+                base = [1.0, 1.0, 1.0, 1.0]
+                tex_index, tex_coord = -1, 0
+                if prim.material is not None:
+                    pbr = doc.materials[prim.material].pbrMetallicRoughness
+                    if pbr is not None and pbr.baseColorFactor is not None:
+                        base = list(pbr.baseColorFactor)
+                    info = _get(pbr, "baseColorTexture") if pbr is not None else None
+                    if info is not None and _get(info, "index") is not None:
+                        source = doc.textures[_get(info, "index")].source
+                        tex_coord = _get(info, "texCoord") or 0
+                        if source is not None:
+                            if source not in texture_of_image:
+                                texture_of_image[source] = len(textures)
+                                textures.append(
+                                    _decode_image(
+                                        _image_bytes(doc, buffers, doc.images[source], path),
+                                        f"{path}: image {source}",
+                                    )
+                                )
+                            tex_index = texture_of_image[source]
+                elif attrs.COLOR_0 is None:
+                    base = [0.8, 0.7, 0.65, 1.0]
+                col = np.tile(np.array(base[:3], np.float32), (n, 1))
                 if attrs.COLOR_0 is not None:
-                    col = accessor(doc, buffers, attrs.COLOR_0).astype(np.float32)[:, :3]
-                else:
-                    base = [0.8, 0.7, 0.65, 1]
-                    if prim.material is not None:
-                        pbr = doc.materials[prim.material].pbrMetallicRoughness
-                        if pbr is not None and pbr.baseColorFactor is not None:
-                            base = pbr.baseColorFactor
-                    col = np.tile(np.array(base[:3], np.float32), (n, 1))
+                    col = col * accessor(doc, buffers, attrs.COLOR_0).astype(np.float32)[:, :3]
+                uv_attr = attrs.TEXCOORD_1 if tex_coord == 1 else attrs.TEXCOORD_0
+                uv = (
+                    accessor(doc, buffers, uv_attr).astype(np.float32)
+                    if uv_attr is not None
+                    else np.zeros((n, 2), np.float32)
+                )
+                if tex_index >= 0 and uv_attr is None:
+                    tex_index = -1  # a texture without coordinates cannot be mapped
                 targets = {}
+                prim_names = _extras(prim).get("targetNames", names)
                 for k, tgt in enumerate(prim.targets or []):
-                    position = tgt.get("POSITION") if isinstance(tgt, dict) else tgt.POSITION
+                    position = _get(tgt, "POSITION")
                     if position is None:
                         continue
-                    raw_name = names[k] if k < len(names) else f"target_{k}"
-                    name = canonical_arkit_name(raw_name) or raw_name
-                    targets[name] = (
-                        accessor(doc, buffers, position).astype(np.float64) @ world[:3, :3].T
+                    delta = np.einsum(
+                        "vij,vj->vi", lin, accessor(doc, buffers, position).astype(np.float64)
                     )
+                    raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
+                    raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
+                    targets[canonical_arkit_name(raw_name) or raw_name] = delta
                 positions.append(pos_w)
                 faces.append(idx.reshape(-1, 3) + offset)
                 colors.append(col)
+                uvs.append(uv)
+                face_tex.append(np.full(len(idx) // 3, tex_index, np.int64))
+                skins_j.append(joints_v)
+                skins_w.append(weights_v)
                 per_target.append((offset, n, targets))
+                part = mesh.name or f"mesh_{node.mesh}"
+                parts[part] = np.concatenate(
+                    [parts.get(part, np.zeros(0, np.int64)), offset + np.arange(n)]
+                )
                 for key, value in facelab.get("landmarks", {}).items():
                     landmarks[key] = int(value) + offset
                 offset += n
@@ -231,14 +387,38 @@ def read_gltf(path: Path) -> Avatar:
     for start, n, t in per_target:
         for name, delta in t.items():
             merged[name][start : start + n] = delta
-    return Avatar(
+    skeleton = None
+    if ordered:
+        above = [graph.nearest(graph.parent[n], joint_index) for n in ordered]
+        parents = np.array([-1 if p is None else p for p in above], np.int64)
+        names_j = tuple(nodes[n].name or f"joint_{n}" for n in ordered)
+        roles = {r: joint_index[n] for r, n in roles_by_node.items() if n in joint_index}
+        for role, j in match_roles(names_j).items():
+            roles.setdefault(role, j)
+        skeleton = Skeleton(
+            names_j,
+            parents,
+            np.array([graph.world[n][:3, 3] for n in ordered]),
+            np.vstack(skins_j),
+            np.vstack(skins_w),
+            roles,
+        )
+    face_texture = np.concatenate(face_tex)
+    avatar = Avatar(
         verts,
         np.vstack(faces),
         {k: v.astype(np.float32) for k, v in merged.items()},
         landmarks,
         np.vstack(colors),
         name=path.stem,
+        parts=parts,
+        skeleton=skeleton,
+        uv=np.vstack(uvs) if textures else None,
+        textures=tuple(t[:, :, :3].copy() for t in textures),
+        face_texture=face_texture if textures else None,
+        source={"kind": kind, "file": path.name, "meshes": mesh_names},
     )
+    return apply_vrm(avatar, doc, raw_targets) if kind.startswith("vrm") else avatar
 
 
 class _BufferBuilder:
@@ -296,18 +476,45 @@ def write_gltf(avatar: Avatar, path: Path) -> None:
         {"POSITION": b.add(avatar.targets[n].astype(np.float32), "VEC3", 5126, 34962, True)}
         for n in names
     ]
+    attributes = pygltflib.Attributes(POSITION=pos, COLOR_0=col)
+    nodes = [pygltflib.Node(mesh=0, name=avatar.name)]
+    skins = []
+    sk = avatar.skeleton
+    if sk is not None:
+        # joints as nodes 1..J (rest rotation identity, translated to their pivots); the
+        # inverse bind matrix of a joint is then a translation by minus its pivot
+        attributes.JOINTS_0 = b.add(sk.joints.astype(np.uint16), "VEC4", 5123, 34962, False)
+        attributes.WEIGHTS_0 = b.add(sk.weights.astype(np.float32), "VEC4", 5126, 34962, False)
+        ibm = np.tile(np.eye(4, dtype=np.float32), (len(sk.names), 1, 1))
+        ibm[:, :3, 3] = -sk.pivots
+        ibm_acc = b.add(ibm.transpose(0, 2, 1).reshape(-1, 16), "MAT4", 5126, None, False)
+        for j, name in enumerate(sk.names):
+            parent = sk.parents[j]
+            offset = sk.pivots[j] - (sk.pivots[parent] if parent >= 0 else 0.0)
+            children = [int(c) + 1 for c in np.nonzero(sk.parents == j)[0]]
+            nodes.append(
+                pygltflib.Node(name=name, translation=offset.tolist(), children=children or None)
+            )
+        nodes[0].skin = 0
+        roots = [j + 1 for j in range(len(sk.names)) if sk.parents[j] < 0]
+        skins = [
+            pygltflib.Skin(joints=list(range(1, len(sk.names) + 1)), inverseBindMatrices=ibm_acc)
+        ]
+    else:
+        roots = []
     buffer = b.buffer()
     doc = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="facelab"),
         scene=0,
-        scenes=[pygltflib.Scene(nodes=[0])],
-        nodes=[pygltflib.Node(mesh=0, name=avatar.name)],
+        scenes=[pygltflib.Scene(nodes=[0, *roots])],
+        nodes=nodes,
+        skins=skins,
         meshes=[
             pygltflib.Mesh(
                 name=avatar.name,
                 primitives=[
                     pygltflib.Primitive(
-                        attributes=pygltflib.Attributes(POSITION=pos, COLOR_0=col),
+                        attributes=attributes,
                         indices=idx,
                         mode=4,
                         targets=targets,

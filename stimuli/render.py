@@ -34,19 +34,40 @@ from pyrender import renderer as _pr_renderer
 
 from facelab.errors import StageError
 from facelab.stimuli.mesh import Avatar
+from facelab.stimuli.rig import HeadPose
 
-__all__ = ["FrameTimes", "NaiveRenderer", "RenderSettings", "Renderer", "look_at", "vertex_normals"]
+__all__ = [
+    "DEFAULT_DISTANCE_M",
+    "FrameTimes",
+    "NaiveRenderer",
+    "RenderSettings",
+    "Renderer",
+    "look_at",
+    "vertex_normals",
+]
 
 
 @dataclass(frozen=True)
 class RenderSettings:
+    """Frame size; the camera (``distance_m`` None frames the head: 0.65 m for a head the size
+    of the default one, scaled with the head's height; ``target_m`` None aims at the head's
+    centre - found from landmarks, the head joint's vertices or the model's top); background
+    colour (linear 0-1) and multisampling."""
+
     width: int = 1280
     height: int = 720
-    distance_m: float = 0.65
+    distance_m: float | None = None
     fov_deg: float = 30.0
     height_m: float = 0.0
     background: tuple[float, float, float] = (0.5, 0.5, 0.5)
     msaa: int = 1  # 4 looks smoother but costs ~1.7x real time at 720p on a 2-core CPU
+    target_m: tuple[float, float, float] | None = None
+    zoom: float = 1.0  # divides the automatic distance (contact sheets come closer)
+
+
+#: camera distance for the default head, and that head's height from chin to crown (m)
+DEFAULT_DISTANCE_M = 0.65
+DEFAULT_HEAD_HEIGHT_M = 0.24
 
 
 @dataclass
@@ -104,26 +125,43 @@ def look_at(
 
 
 _LIGHTS = (  # direction towards the light (world), intensity
-    (np.array([-0.60, 0.65, 0.55]), 0.75),  # key, upper left of the viewer
-    (np.array([0.70, 0.10, 0.60]), 0.22),  # fill, right
-    (np.array([0.0, 0.35, -1.0]), 0.18),  # rim from behind
+    (np.array([-0.55, 0.60, 0.60]), 0.62),  # key, upper left of the viewer
+    (np.array([0.75, 0.15, 0.65]), 0.30),  # fill, right
+    (np.array([0.0, 0.35, -1.0]), 0.16),  # rim from behind
 )
+_WRAP = 0.25  # light wraps a little round the terminator, as it does on skin
 
 
-def _shade(base_linear: np.ndarray, normals: np.ndarray, view_dir: np.ndarray) -> np.ndarray:
-    """Soft lighting per vertex: hemisphere ambient + Lambert lights + faint specular, sRGB.
+def _shade(
+    base_linear: np.ndarray, normals: np.ndarray, view_dir: np.ndarray, gloss: np.ndarray
+) -> np.ndarray:
+    """Soft lighting per vertex: hemisphere ambient (sky above, warm bounce below), wrapped
+    Lambert key, fill and rim lights, and a Blinn-Phong highlight scaled by ``gloss``; sRGB.
 
-    base_linear : (V, 3) linear-light base colours; normals : (V, 3) unit normals.
+    base_linear : (V, 3) linear-light base colours; normals : (V, 3) unit normals;
+    gloss : (V,) specular strength.
     """
     dirs = np.stack([d / np.linalg.norm(d) for d, _ in _LIGHTS]).astype(np.float32)  # (L, 3)
     power = np.array([p for _, p in _LIGHTS], np.float32)
-    lam = np.clip(normals @ dirs.T, 0, None)  # (V, L)
-    light = 0.22 + 0.10 * normals[:, 1] + lam @ power
-    half = dirs + view_dir.astype(np.float32)
-    half /= np.linalg.norm(half, axis=1, keepdims=True)
-    spec = (np.clip(normals @ half[0], 0, None) ** 24) * (0.08 * power[0])
+    lam = np.clip((normals @ dirs.T + _WRAP) / (1 + _WRAP), 0, None)  # (V, L)
+    up = normals[:, 1]
+    ambient = 0.20 + 0.07 * up  # hemisphere: brighter from the sky than from the ground
+    light = ambient + lam @ power
+    half = dirs[0] + view_dir.astype(np.float32)
+    half /= np.linalg.norm(half)
+    spec = (np.clip(normals @ half, 0, None) ** 28) * (0.10 * power[0]) * gloss
     lin = base_linear * light[:, None] + spec[:, None]
     return np.sqrt(np.clip(lin, 0, 1))  # ~ gamma 1/2 (display encoding)
+
+
+@dataclass
+class _Group:
+    """The faces drawn with one material: their vertices, a pyrender primitive, its buffer."""
+
+    vertices: np.ndarray  # (n,) indices into the avatar's vertices
+    primitive: pyrender.Primitive
+    interleaved: np.ndarray  # (n, 7) or (n, 9) float32: position, [uv], colour
+    textured: bool
 
 
 class Renderer:
@@ -140,22 +178,57 @@ class Renderer:
             else np.tile([0.8, 0.7, 0.65], (len(avatar.neutral), 1))
         )
         self._base = np.asarray(base, np.float32) ** 2  # linear light (gamma 2 approximation)
-        self._face_centre = self._centre()
+        self._gloss = (
+            np.asarray(avatar.gloss, np.float32)
+            if avatar.gloss is not None
+            else np.full(len(avatar.neutral), 0.35, np.float32)
+        )
+        self._face_centre, self._distance = self._framing()
         self._view_dir = np.array([0.0, 0.0, 1.0])
         self._renderer: pyrender.OffscreenRenderer | None = None
+        self._groups: list[_Group] = []
 
-    def _centre(self) -> np.ndarray:
-        lm = self.avatar.landmarks
-        if "upper_lip" in lm and {"upper_lid_left", "upper_lid_right"} <= set(lm):
-            eyes = 0.5 * (
-                self.avatar.neutral[lm["upper_lid_left"]]
-                + self.avatar.neutral[lm["upper_lid_right"]]
+    def _framing(self) -> tuple[np.ndarray, float]:
+        """The point the camera aims at and its distance (see :class:`RenderSettings`)."""
+        s = self.settings
+        a = self.avatar
+        lm = a.landmarks
+        head_height = DEFAULT_HEAD_HEIGHT_M
+        if s.target_m is not None:
+            centre = np.asarray(s.target_m, float)
+        elif "upper_lip" in lm and {"upper_lid_left", "upper_lid_right"} <= set(lm):
+            eyes = 0.5 * (a.neutral[lm["upper_lid_left"]] + a.neutral[lm["upper_lid_right"]])
+            c = 0.5 * (eyes + a.neutral[lm["upper_lip"]])
+            centre = np.array([0.0, c[1] + 0.004, c[2] - 0.02])
+            if a.source.get("kind") != "default":
+                head_height = 3.2 * float(eyes[1] - a.neutral[lm["upper_lip"], 1])
+        else:
+            head = self._head_vertices()
+            lo, hi = head.min(axis=0), head.max(axis=0)
+            centre = np.array(
+                [(lo[0] + hi[0]) / 2, lo[1] + 0.52 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2]
             )
-            mouth = self.avatar.neutral[lm["upper_lip"]]
-            c = 0.5 * (eyes + mouth)
-            return np.array([0.0, c[1] + 0.004, c[2] - 0.02])
-        lo, hi = self.avatar.neutral.min(axis=0), self.avatar.neutral.max(axis=0)
-        return (lo + hi) / 2
+            head_height = float(hi[1] - lo[1])
+        distance = (
+            s.distance_m
+            if s.distance_m is not None
+            else DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M / s.zoom
+        )
+        return centre, float(distance)
+
+    def _head_vertices(self) -> np.ndarray:
+        """Rest vertices of the head: those skinned to the head joint, else the top eighth."""
+        a = self.avatar
+        sk = a.skeleton
+        if sk is not None and "head" in sk.roles:
+            rows = sk.vertices_of(sk.roles["head"])
+            if len(rows) >= 10:
+                return a.neutral[rows]
+        lo, hi = a.neutral.min(axis=0), a.neutral.max(axis=0)
+        height = hi[1] - lo[1]
+        if height > 0.6:  # a full body: its top 0.25 m or so is the head
+            return a.neutral[a.neutral[:, 1] > hi[1] - min(0.25, height / 6)]
+        return a.neutral
 
     def __enter__(self) -> Renderer:
         s = self.settings
@@ -168,51 +241,85 @@ class Renderer:
             ) from None
         _use_fast_framebuffer(self._renderer._renderer, msaa=s.msaa)
         self._scene = pyrender.Scene(bg_color=[*s.background, 1.0], ambient_light=[1.0, 1.0, 1.0])
-        colors = np.ones((len(self.avatar.neutral), 4), np.float32)
-        self._prim = pyrender.Primitive(
-            positions=self.avatar.neutral,
-            indices=self.avatar.faces,
-            color_0=colors,
-            material=pyrender.MetallicRoughnessMaterial(
-                baseColorFactor=[1.0, 1.0, 1.0, 1.0], doubleSided=False
-            ),
-        )
-        self._scene.add(pyrender.Mesh([self._prim]))
-        eye = self._face_centre + np.array([0.0, s.height_m, s.distance_m])
+        self._groups = self._make_groups()
+        self._scene.add(pyrender.Mesh([g.primitive for g in self._groups]))
+        eye = self._face_centre + np.array([0.0, s.height_m, self._distance])
         self._view_dir = (eye - self._face_centre) / np.linalg.norm(eye - self._face_centre)
         self._camera = pyrender.PerspectiveCamera(
-            yfov=np.radians(s.fov_deg), aspectRatio=s.width / s.height, znear=0.05, zfar=5.0
+            yfov=np.radians(s.fov_deg),
+            aspectRatio=s.width / s.height,
+            znear=max(0.01, 0.08 * self._distance),
+            zfar=20.0 * self._distance,
         )
         self._camera_pose = look_at(eye, self._face_centre)
         self._scene.add(self._camera, pose=self._camera_pose)
         self._naive_scene: pyrender.Scene | None = None
-        self._interleaved = np.zeros((len(self.avatar.neutral), 7), np.float32)
         self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)  # binds the buffers
         return self
+
+    def _make_groups(self) -> list[_Group]:
+        a = self.avatar
+        face_tex = a.face_texture if a.face_texture is not None else np.full(len(a.faces), -1)
+        groups = []
+        for tex in np.unique(face_tex):
+            faces = a.faces[face_tex == tex]
+            used, local = np.unique(faces, return_inverse=True)
+            local = local.reshape(-1, 3).astype(np.int32)
+            n = len(used)
+            textured = tex >= 0 and a.uv is not None
+            material = pyrender.MetallicRoughnessMaterial(
+                baseColorFactor=[1.0, 1.0, 1.0, 1.0],
+                doubleSided=False,
+                baseColorTexture=(
+                    # glTF puts uv (0, 0) at the image's first row; GL at its last
+                    pyrender.Texture(
+                        source=np.flipud(a.textures[tex]).copy(), source_channels="RGB"
+                    )
+                    if textured
+                    else None
+                ),
+            )
+            prim = pyrender.Primitive(
+                positions=a.neutral[used],
+                indices=local,
+                color_0=np.ones((n, 4), np.float32),
+                texcoord_0=a.uv[used] if textured else None,
+                material=material,
+            )
+            width = 9 if textured else 7
+            inter = np.zeros((n, width), np.float32)
+            if textured:
+                inter[:, 3:5] = a.uv[used]
+            inter[:, -1] = 1.0
+            groups.append(_Group(used, prim, inter, textured))
+        return groups
 
     def __exit__(self, *exc: object) -> None:
         if self._renderer is not None:
             self._renderer.delete()
             self._renderer = None
 
-    def frame(self, weights: np.ndarray) -> np.ndarray:
-        """Render the avatar with target weights (K,) in ``avatar.target_names`` order."""
-        t0 = time.perf_counter()
-        verts = self.avatar.deform(weights)
-        t1 = time.perf_counter()
+    def _lit(self, verts: np.ndarray) -> np.ndarray:
         normals = vertex_normals(verts, self.avatar.faces, self._incidence)
-        lit = _shade(self._base, normals, self._view_dir)
+        return _shade(self._base, normals, self._view_dir, self._gloss)
+
+    def frame(self, weights: np.ndarray, *, pose: HeadPose | None = None) -> np.ndarray:
+        """Render the avatar with target weights (K,) in ``avatar.target_names`` order, its
+        head, neck and eyes turned by ``pose`` (needs a skeleton)."""
+        t0 = time.perf_counter()
+        verts = self.avatar.deform(weights, pose=pose)
+        t1 = time.perf_counter()
+        lit = self._lit(verts)
         t2 = time.perf_counter()
-        self._interleaved[:, :3] = verts
-        self._interleaved[:, 3:6] = lit
-        self._interleaved[:, 6] = 1.0
         assert self._renderer is not None
-        if not self._prim._buffers:  # another scene was drawn since: pyrender dropped our buffers
+        if not self._groups[0].primitive._buffers:  # another scene was drawn since
             self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
-        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._prim._buffers[0])
-        GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, self._interleaved.nbytes, self._interleaved)
+        for g in self._groups:
+            g.interleaved[:, :3] = verts[g.vertices]
+            g.interleaved[:, -4:-1] = lit[g.vertices]
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, g.primitive._buffers[0])
+            GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, g.interleaved.nbytes, g.interleaved)
         t3 = time.perf_counter()
-        assert self._renderer is not None
         color = self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)[0]
         t4 = time.perf_counter()
         tm = self.times
@@ -235,8 +342,7 @@ class Renderer:
     def frame_rebuild(self, weights: np.ndarray) -> np.ndarray:
         """Same shading, but a new ``pyrender.Mesh`` per frame (isolates the rebuild cost)."""
         verts = self.avatar.deform(weights)
-        normals = vertex_normals(verts, self.avatar.faces, self._incidence)
-        lit = _shade(self._base, normals, self._view_dir)
+        lit = self._lit(verts)
         prim = pyrender.Primitive(
             positions=verts,
             indices=self.avatar.faces,

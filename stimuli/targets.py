@@ -11,8 +11,16 @@ from facelab.errors import AvatarError
 from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
 from facelab.stimuli.drive import load_z
 from facelab.stimuli.mesh import Avatar
+from facelab.stimuli.vrm import VOWEL_PRESET_TARGETS
 
-__all__ = ["VISEME_MIXES", "check_targets", "required_targets", "with_viseme_mixes"]
+__all__ = [
+    "VISEME_MIXES",
+    "check_targets",
+    "required_targets",
+    "uses_vowel_presets",
+    "vowel_presets_only",
+    "with_viseme_mixes",
+]
 
 
 #: viseme target -> ARKit mix used when an avatar has no viseme_* shapes (and by the
@@ -81,12 +89,27 @@ def required_targets(method: str, params: Mapping | None = None) -> set[str]:
     return set(VISEME_TARGETS[1:])
 
 
+def vowel_presets_only(avatar: Avatar) -> bool:
+    """A VRM whose mouth shapes are just the five vowel presets (no ARKit to build visemes)."""
+    return (
+        str(avatar.source.get("kind", "")).startswith("vrm")
+        and set(VOWEL_PRESET_TARGETS) <= set(avatar.targets)
+        and not {n for mix in VISEME_MIXES.values() for n in mix} <= set(avatar.targets)
+    )
+
+
 def with_viseme_mixes(avatar: Avatar) -> Avatar:
-    """Add ``viseme_*`` targets built from ARKit mixes where the avatar lacks them."""
+    """Add ``viseme_*`` targets built from ARKit mixes where the avatar lacks them. On a VRM
+    with only its five vowel presets, the consonant visemes get no shape (a zero target; the
+    clip metadata says so), as VRM lip-sync does."""
     missing = [v for v in VISEME_TARGETS if v not in avatar.targets]
     if not missing:
         return avatar
     targets = dict(avatar.targets)
+    if vowel_presets_only(avatar):
+        for v in missing:
+            targets[v] = np.zeros_like(avatar.neutral)
+        return avatar.replace(targets=targets, source={**avatar.source, "zero_visemes": missing})
     for v in missing:
         mix = VISEME_MIXES[v]
         absent = [n for n in mix if n not in targets]
@@ -99,19 +122,25 @@ def with_viseme_mixes(avatar: Avatar) -> Avatar:
         for n, w in mix.items():
             delta += w * targets[n]
         targets[v] = delta
-    return Avatar(
-        avatar.neutral,
-        avatar.faces,
-        targets,
-        avatar.landmarks,
-        avatar.colors,
-        avatar.name,
-        avatar.parts,
-    )
+    return avatar.replace(targets=targets)
+
+
+def uses_vowel_presets(avatar: Avatar, method: str, params: Mapping | None = None) -> bool:
+    """True when ``vowel_blend`` must play on a VRM's vowel presets (aa ih ou ee oh) because
+    the avatar lacks ARKit targets its Z uses."""
+    if method != "vowel_blend" or not str(avatar.source.get("kind", "")).startswith("vrm"):
+        return False
+    if required_targets(method, params) <= set(avatar.targets):
+        return False
+    return set(VOWEL_PRESET_TARGETS) <= set(avatar.targets)
 
 
 def check_targets(avatar: Avatar, method: str, params: Mapping | None = None) -> None:
     """Raise listing every target ``method`` needs that ``avatar`` lacks."""
+    if uses_vowel_presets(avatar, method, params) or (
+        method != "vowel_blend" and vowel_presets_only(avatar)
+    ):
+        return
     need = required_targets(method, params)
     if method != "vowel_blend" and not need <= set(avatar.targets):
         mixes = {n for v in need for n in VISEME_MIXES[v]}

@@ -115,7 +115,9 @@ def test_no_self_intersection_at_full_activation(head: Avatar, name: str) -> Non
     # no skin sinks into an eyeball (lids slide over it)
     for side in ("left", "right"):
         eye = v[head.parts[f"eye_{side}"]]
-        centre, radius = eye.mean(axis=0), np.linalg.norm(eye - eye.mean(axis=0), axis=1).max()
+        lo, hi = eye.min(axis=0), eye.max(axis=0)
+        radius = (hi[1] - lo[1]) / 2  # the sclera's radius (the cornea bulges in front)
+        centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] + radius])
         d = np.linalg.norm(v[skin] - centre, axis=1)
         assert d.min() > radius - 5e-4, f"skin inside the {side} eyeball"
 

@@ -20,6 +20,7 @@ from facelab import __version__
 from facelab.errors import FacelabError
 from facelab.experiment.cli import (
     analysis_cmds,
+    avatar_cmds,
     demo_cmd,
     protocol_cmds,
     session_cmds,
@@ -30,7 +31,7 @@ from facelab.experiment.cli.common import Handler
 __all__ = ["main"]
 
 #: Command families, in the order ``facelab --help`` lists them.
-FAMILIES = (protocol_cmds, stimulus_cmds, session_cmds, analysis_cmds, demo_cmd)
+FAMILIES = (protocol_cmds, stimulus_cmds, avatar_cmds, session_cmds, analysis_cmds, demo_cmd)
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -163,9 +163,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     from facelab.stimuli.bench import bench_render
 
+    avatars = ("default", "skinned50k") if args.avatar == "all" else (args.avatar,)
     print(
         json.dumps(
-            [bench_render(runs=args.runs, quick=args.quick, msaa=m) for m in (4, 1)], indent=2
+            [
+                bench_render(runs=args.runs, quick=args.quick, msaa=m, avatar=a)
+                for a in avatars
+                for m in (4, 1)
+            ],
+            indent=2,
         )
     )
     return 0
@@ -218,3 +224,9 @@ def register(add: AddCommand) -> None:
     p.add_argument("--protocol", metavar="PROTOCOL", help="analyze: default kato2021")
     p.add_argument("--runs", type=int, default=5, help="timing runs (median reported)")
     p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
+    p.add_argument(
+        "--avatar",
+        choices=["all", "default", "skinned50k"],
+        default="all",
+        help="render: the default head, a skinned ~50k-vertex sample, or both (default)",
+    )

@@ -1,0 +1,76 @@
+"""``facelab avatar``: inspect an avatar file, draw its contact sheet, write sample files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand, output_file
+
+__all__ = ["register"]
+
+
+def _load(spec: str):
+    from facelab.stimuli.avatar import default_head, load
+
+    return default_head() if spec == "default" else load(Path(spec))
+
+
+def _cmd_avatar(args: argparse.Namespace) -> int:
+    from facelab.stimuli.inspect import avatar_report, format_report, write_sheet
+
+    if args.action == "inspect":
+        if not args.file:
+            raise FacelabError(
+                "facelab avatar inspect FILE: give a .glb/.gltf/.vrm file or 'default'"
+            )
+        sheet = output_file(args.sheet, option="--sheet") if args.sheet else None
+        avatar = _load(args.file)
+        report = avatar_report(avatar)
+        print(
+            json.dumps(report, indent=2, ensure_ascii=False) if args.json else format_report(report)
+        )
+        if sheet is not None:
+            write_sheet(avatar, out=sheet, tile=args.tile)
+            print(f"wrote {sheet}")
+        return 0
+    # sample
+    from facelab.stimuli.avatar import default_head, save
+    from facelab.stimuli.sample_avatars import KINDS, write_sample
+
+    if not args.out:
+        raise FacelabError("facelab avatar sample: --out FILE is required")
+    out = output_file(args.out, option="--out", force=args.force)
+    if args.kind == "default":
+        save(default_head(), out)
+    elif args.kind in KINDS:
+        write_sample(out, kind=args.kind, head_rows=args.head_rows)
+    print(f"wrote {out}")
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add(
+        "avatar",
+        "inspect an avatar (what it offers, which conditions it can play, a contact sheet) "
+        "or write a sample avatar file",
+        _cmd_avatar,
+    )
+    p.add_argument("action", choices=["inspect", "sample"])
+    p.add_argument("file", nargs="?", metavar="FILE", help="inspect: .glb/.gltf/.vrm or 'default'")
+    p.add_argument("--json", action="store_true", help="inspect: print JSON")
+    p.add_argument("--sheet", metavar="PNG", help="inspect: also write a contact sheet")
+    p.add_argument("--tile", type=int, default=360, help="contact sheet tile size in pixels")
+    p.add_argument(
+        "--kind",
+        choices=["default", "skinned", "rpm", "vrm0", "vrm1"],
+        default="default",
+        help="sample: the default head (skinned glTF) or a stand-in for a Ready Player Me, "
+        "VRM 0.x / 1.0 or generic skinned export",
+    )
+    p.add_argument("--head-rows", type=int, default=40, help="sample: mesh density")
+    p.add_argument("--out", metavar="FILE", help="sample: file to write (.glb, .gltf, .vrm)")
+    p.add_argument("--force", action="store_true", help="sample: overwrite --out")
