@@ -22,6 +22,7 @@ from facelab.experiment.cli import (
     analysis_cmds,
     avatar_cmds,
     demo_cmd,
+    impression_cmds,
     protocol_cmds,
     session_cmds,
     stimulus_cmds,
@@ -31,7 +32,15 @@ from facelab.experiment.cli.common import Handler
 __all__ = ["main"]
 
 #: Command families, in the order ``facelab --help`` lists them.
-FAMILIES = (protocol_cmds, stimulus_cmds, avatar_cmds, session_cmds, analysis_cmds, demo_cmd)
+FAMILIES = (
+    protocol_cmds,
+    stimulus_cmds,
+    avatar_cmds,
+    impression_cmds,
+    session_cmds,
+    analysis_cmds,
+    demo_cmd,
+)
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -1,0 +1,177 @@
+"""``facelab impression``: fit an impression model (seed 001), render its levels, or write the
+synthetic expression database."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size
+
+__all__ = ["register"]
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from facelab.stimuli.impression import fit_impression, read_arkit_samples, read_vertex_samples
+
+    if not args.label:
+        raise FacelabError("facelab impression fit: --label COLUMN is required")
+    if not args.out:
+        raise FacelabError("facelab impression fit: --out MODEL.json is required")
+    out = output_file(args.out, option="--out", force=args.force)
+    samples = (
+        read_arkit_samples(Path(args.input))
+        if args.space == "arkit"
+        else read_vertex_samples(Path(args.input))
+    )
+    model = fit_impression(
+        samples,
+        label=args.label,
+        method=args.method,
+        k=args.k,
+        variance=args.variance,
+        positive=args.positive,
+        expressions=args.expression or None,
+        orthogonal_to_speech=args.orthogonal_to_speech,
+        svm_c=args.svm_c,
+    )
+    out.write_text(json.dumps(model.to_json(), indent=1) + "\n", encoding="utf-8")
+    print(f"impression model '{args.label}' ({args.method}, {model.k_rule}) -> {out}")
+    print(f"{'expression':<14} {'n':>4} {'K':>3} {'var':>6} {'delta':>8}  leave-one-person-out")
+    for e, m in model.expressions.items():
+        score = ", ".join(
+            f"{k} {v}" for k, v in m.cv.items() if k in ("accuracy", "balanced_accuracy", "r2", "r")
+        )
+        print(
+            f"{e:<14} {m.n:>4} {len(m.basis):>3} {m.cv.get('variance_explained', 0):>6.3f} "
+            f"{m.delta:>8.4f}  {score}"
+        )
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from facelab.stimuli.avatar import load
+    from facelab.stimuli.impression import ImpressionModel
+    from facelab.stimuli.impression_render import Timing, render_levels
+    from facelab.stimuli.render import RenderSettings
+
+    if not args.expression or len(args.expression) != 1:
+        raise FacelabError("facelab impression render: give one --expression NAME")
+    if not args.levels:
+        raise FacelabError("facelab impression render: give --levels Q [Q ...]")
+    if not args.out:
+        raise FacelabError("facelab impression render: --out DIR is required")
+    out = output_dir(args.out, option="--out")
+    model = ImpressionModel.load(Path(args.input))
+    size = parse_size(args.size) or (1280, 720)
+    avatar = load(Path(args.avatar)) if args.avatar else None
+    timing = Timing(
+        lead_s=args.lead_s, onset_s=args.onset_s, hold_s=args.hold_s, offset_s=args.offset_s,
+        ease=args.ease, k=args.k_ease,
+    )  # fmt: skip
+    rows = render_levels(
+        model,
+        expression=args.expression[0],
+        levels=args.levels,
+        out=out,
+        avatar=avatar,
+        settings=RenderSettings(width=size[0], height=size[1], msaa=args.msaa),
+        fps=args.fps,
+        timing=timing,
+    )
+    for r in rows:
+        print(
+            f"{r['path']}: q {r['q_intended']:g} -> realised {r['q_realised']:.3f}, "
+            f"decision {r['decision_value']:.3f}, {r['clipped_channels']} channels clipped"
+        )
+    print(f"wrote {len(rows)} clips, clips.csv, contact_{args.expression[0]}.png into {out}")
+    return 0
+
+
+def _synth(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from facelab.stimuli.arkit import ARKIT_NAMES
+    from facelab.stimuli.impression_synth import TRUE_DIRECTION, synthetic_samples
+
+    if not args.out:
+        raise FacelabError("facelab impression synth: --out SAMPLES.csv is required")
+    out = output_file(args.out, option="--out", force=args.force)
+    df = synthetic_samples(people=args.people, rng=np.random.default_rng(args.seed))
+    df.to_csv(out, index=False)
+    truth = out.with_suffix(".truth.json")
+    truth.write_text(
+        json.dumps(
+            {
+                "synthetic": True,
+                "note": "SYNTHETIC database from facelab.stimuli.impression_synth - not people",
+                "seed": args.seed,
+                "people": args.people,
+                "label": "friendly (high/low), friendly_rating (0-100)",
+                "true_direction": {
+                    n: round(float(v), 6) for n, v in zip(ARKIT_NAMES, TRUE_DIRECTION, strict=True)
+                },
+            },
+            indent=1,
+        )
+        + "\n",
+        encoding="utf-8",
+    )
+    print(f"wrote a SYNTHETIC database ({args.people} people x 8 expressions) to {out}; "
+          f"its true direction to {truth}")  # fmt: skip
+    return 0
+
+
+def _cmd_impression(args: argparse.Namespace) -> int:
+    return {"fit": _fit, "render": _render, "synth": _synth}[args.action](args)
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add(
+        "impression",
+        "impression stimuli (seed 001): fit a direction from labelled expression samples, "
+        "render clips at levels along it, or write a synthetic database",
+        _cmd_impression,
+    )
+    p.add_argument("action", choices=["fit", "render", "synth"])
+    p.add_argument("input", nargs="?", metavar="FILE", help="fit: SAMPLES.csv; render: MODEL.json")
+    p.add_argument("--label", metavar="COLUMN", help="fit: the label column")
+    p.add_argument(
+        "--space", choices=["arkit", "vertices"], default="arkit", help="fit: sample space"
+    )
+    p.add_argument("--k", type=int, help="fit: PCA components (default: by --variance)")
+    p.add_argument(
+        "--variance", type=float, default=0.9, help="fit: variance to keep (default 0.9)"
+    )
+    p.add_argument("--method", choices=["svm", "mean_diff", "ridge"], default="svm")
+    p.add_argument("--svm-c", type=float, default=0.1, help="fit: SVM C on RMS-scaled scores")
+    p.add_argument("--positive", metavar="CLASS", help="fit: the class the direction points to")
+    p.add_argument(
+        "--orthogonal-to-speech",
+        action="store_true",
+        help="fit: keep the direction clear of the speech methods' mouth shapes",
+    )
+    p.add_argument(
+        "--expression",
+        action="append",
+        metavar="NAME",
+        help="fit: expressions to model (repeat; default all); render: the one to play",
+    )
+    p.add_argument("--levels", type=float, nargs="+", metavar="Q", help="render: levels q_c")
+    p.add_argument("--size", metavar="WxH", help="render: default 1280x720")
+    p.add_argument("--fps", type=int, default=30)
+    p.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
+    p.add_argument("--avatar", metavar="FILE", help="render: an avatar file (default head)")
+    p.add_argument("--lead-s", type=float, default=0.3, help="render: neutral lead-in")
+    p.add_argument("--onset-s", type=float, default=0.6)
+    p.add_argument("--hold-s", type=float, default=1.2)
+    p.add_argument("--offset-s", type=float, default=0.6)
+    p.add_argument("--ease", choices=["sigmoid", "linear", "smoothstep"], default="sigmoid")
+    p.add_argument("--k-ease", type=float, default=5.0, help="render: sigmoid steepness (eq. 4)")
+    p.add_argument("--people", type=int, default=40, help="synth: people")
+    p.add_argument("--seed", type=int, default=1, help="synth: random seed")
+    p.add_argument("--out", metavar="PATH", help="fit: MODEL.json; render: DIR; synth: SAMPLES.csv")
+    p.add_argument("--force", action="store_true", help="overwrite --out (fit, synth)")

@@ -1,0 +1,316 @@
+"""Impression stimuli (seed 001): samples, the seed's model and its variants, levels, easing,
+clips - checked against the synthetic database's known true direction."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from facelab.errors import StageError
+from facelab.experiment.cli import main
+from facelab.stimuli.arkit import ARKIT_NAMES
+from facelab.stimuli.impression import (
+    ImpressionModel,
+    ease,
+    envelope,
+    fit_impression,
+    read_arkit_samples,
+    read_vertex_samples,
+    speech_basis,
+)
+from facelab.stimuli.impression_synth import (
+    TRUE_DIRECTION,
+    simulate_validation,
+    synthetic_samples,
+)
+
+
+@pytest.fixture(scope="module")
+def synth_csv(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("imp") / "synth.csv"
+    synthetic_samples(people=40, rng=np.random.default_rng(1)).to_csv(path, index=False)
+    return path
+
+
+@pytest.fixture(scope="module")
+def samples(synth_csv: Path):
+    return read_arkit_samples(synth_csv)
+
+
+def test_samples_are_displacements_from_each_persons_neutral(samples, synth_csv: Path) -> None:
+    raw = pd.read_csv(synth_csv)
+    assert samples.s.shape == (40 * 7, 52)
+    assert set(samples.labels) == {"friendly", "friendly_rating"}
+    row = raw[(raw.person == "synth05") & (raw.expression == "open_smile")][list(ARKIT_NAMES)]
+    neutral = raw[(raw.person == "synth05") & (raw.expression == "neutral")][list(ARKIT_NAMES)]
+    i = np.nonzero((samples.persons == "synth05") & (samples.expressions == "open_smile"))[0][0]
+    np.testing.assert_allclose(samples.s[i], row.to_numpy()[0] - neutral.to_numpy()[0])
+
+
+def test_without_a_neutral_row_the_rest_pose_is_the_neutral(
+    tmp_path: Path, synth_csv: Path
+) -> None:
+    raw = pd.read_csv(synth_csv)
+    raw[raw.expression != "neutral"].to_csv(tmp_path / "s.csv", index=False)
+    s = read_arkit_samples(tmp_path / "s.csv")
+    first = raw[raw.expression != "neutral"].iloc[0][list(ARKIT_NAMES)].to_numpy(float)
+    np.testing.assert_allclose(s.s[0], first)
+
+
+@pytest.mark.parametrize(
+    ("method", "label", "min_cos"),
+    [
+        ("svm", "friendly", 0.85),
+        ("mean_diff", "friendly", 0.85),
+        ("ridge", "friendly_rating", 0.85),
+    ],
+)
+def test_fitted_direction_recovers_the_true_one(
+    samples, method: str, label: str, min_cos: float
+) -> None:
+    model = fit_impression(
+        samples, label=label, method=method, expressions=["open_smile", "closed_smile"]
+    )
+    for e, m in model.expressions.items():
+        assert np.linalg.norm(m.direction) == pytest.approx(1.0)
+        assert m.direction @ TRUE_DIRECTION > min_cos, e
+        assert len(m.basis) <= m.n - 1
+        np.testing.assert_allclose(m.basis @ m.basis.T, np.eye(len(m.basis)), atol=1e-9)
+        # δ: one SD of the training projections on the direction
+        proj = (samples.s[samples.expressions == e] - m.mean) @ m.direction
+        assert m.delta == pytest.approx(np.std(proj, ddof=1))
+        key = "r2" if method == "ridge" else "accuracy"
+        assert m.cv["scheme"] == "leave-one-person-out" and m.cv["folds"] == 40
+        assert m.cv[key] > (0.2 if method == "ridge" else 0.65)
+
+
+def test_pca_follows_the_seed_and_k_is_bounded(samples) -> None:
+    model = fit_impression(samples, label="friendly", k=7, expressions=["open_smile"])
+    m = model.expressions["open_smile"]
+    s = samples.s[samples.expressions == "open_smile"]
+    np.testing.assert_allclose(m.mean, s.mean(axis=0))  # s̄
+    f = m.project(s)  # eq. 1
+    np.testing.assert_allclose(f, (s - s.mean(axis=0)) @ m.basis.T)
+    assert m.explained[0] >= m.explained[-1] and len(m.basis) == 7
+    with pytest.raises(StageError, match="K = 40"):
+        fit_impression(samples, label="friendly", k=40, expressions=["open_smile"])
+
+
+def test_levels_move_along_the_direction_and_clipping_is_reported(samples) -> None:
+    model = fit_impression(samples, label="friendly", expressions=["open_smile"])
+    m = model.expressions["open_smile"]
+    env = np.array([0.0, 1.0])
+    faces = {q: model.frames("open_smile", q, env) for q in (0.0, 0.5, 1.0)}
+    for q, (fr, info) in faces.items():
+        assert info["q_realised"] == pytest.approx(q, abs=1e-6)
+        step = fr[-1] - faces[0.0][0][-1]
+        np.testing.assert_allclose(step, q * m.delta * m.direction, atol=1e-9)
+    dv = [faces[q][1]["decision_value"] for q in (0.0, 0.5, 1.0)]
+    assert dv[0] < dv[1] < dv[2]  # the classifier sees more of the impression
+    # a huge level clips ARKit coefficients to [0, 1]: the realised level falls short
+    fr, info = model.frames("open_smile", 40.0, env)
+    assert fr.min() >= 0 and fr.max() <= 1
+    assert info["clipped_channels"] > 0 and info["q_realised"] < 40
+
+
+def test_orthogonal_to_speech_leaves_the_vowel_shapes_alone(samples) -> None:
+    model = fit_impression(
+        samples, label="friendly", expressions=["open_smile"], orthogonal_to_speech=True
+    )
+    d = model.expressions["open_smile"].direction
+    basis = speech_basis()
+    assert np.abs(basis @ d).max() < 1e-9
+    from facelab.stimuli.drive import load_z
+
+    assert np.abs(load_z("standard").T @ d).max() < 1e-9  # every vowel column
+
+
+def test_easing_is_normalised_and_the_envelope_has_its_phases() -> None:
+    x = np.linspace(0, 1, 101)
+    for kind in ("sigmoid", "linear", "smoothstep"):
+        e = ease(x, kind=kind)
+        assert e[0] == pytest.approx(0) and e[-1] == pytest.approx(1)
+        assert np.all(np.diff(e) >= -1e-12)
+    # eq. 4 on [-1, 1], rescaled: the seed's sigmoid with k = 5
+    sig = 1 / (1 + np.exp(-5 * (2 * x - 1)))
+    np.testing.assert_allclose(ease(x), (sig - sig[0]) / (sig[-1] - sig[0]))
+    env = envelope(fps=10, onset_s=1.0, hold_s=0.5, offset_s=1.0, lead_s=0.3)
+    assert len(env) == round(2.8 * 10) + 1
+    assert env[0] == 0 and env[-1] == pytest.approx(0) and env[13:19].min() == pytest.approx(1)
+    with pytest.raises(StageError):
+        ease(x, kind="bounce")
+
+
+def test_model_json_round_trips_with_named_directions(samples, tmp_path: Path) -> None:
+    model = fit_impression(samples, label="friendly", expressions=["open_smile", "closed_smile"])
+    data = model.to_json()
+    assert set(data["directions"]["open_smile"]) == set(ARKIT_NAMES)
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(data))
+    back = ImpressionModel.load(path)
+    env = np.array([0.0, 1.0])
+    np.testing.assert_allclose(
+        back.frames("closed_smile", 0.7, env)[0],
+        model.frames("closed_smile", 0.7, env)[0],
+        atol=1e-7,
+    )
+    assert back.data_sha256 == samples.sha256
+    with pytest.raises(StageError, match="no expression"):
+        back.model("grimace")
+
+
+def test_simulated_validation_ratings_rise_with_the_level(samples) -> None:
+    from facelab.analysis.graded import graded_lmm
+
+    model = fit_impression(samples, label="friendly", expressions=["open_smile"])
+    ratings = simulate_validation(
+        model, expression="open_smile", levels=[0, 0.5, 1], raters=24, rng=np.random.default_rng(3)
+    )
+    means = ratings.groupby("q").rating.mean()
+    assert means[0] < means[0.5] < means[1]
+    fit = graded_lmm(ratings.rename(columns={"rater": "participant", "q": "level"}), dv="rating")
+    assert fit["slope"].iloc[0] > 0 and fit["p"].iloc[0] < 0.05
+
+
+def test_bad_sample_files_are_named_errors(tmp_path: Path, synth_csv: Path) -> None:
+    raw = pd.read_csv(synth_csv)
+    bad = raw.copy()
+    bad.loc[3, "jawOpen"] = 1.7
+    bad.to_csv(tmp_path / "range.csv", index=False)
+    with pytest.raises(StageError, match=r"range\.csv:5: column 'jawOpen'"):
+        read_arkit_samples(tmp_path / "range.csv")
+    raw.drop(columns=["tongueOut"]).to_csv(tmp_path / "cols.csv", index=False)
+    with pytest.raises(StageError, match="missing ARKit columns tongueOut"):
+        read_arkit_samples(tmp_path / "cols.csv")
+    s = read_arkit_samples(synth_csv)
+    with pytest.raises(StageError, match="no label column 'kindness'"):
+        fit_impression(s, label="kindness")
+    with pytest.raises(StageError, match="ridge needs numeric"):
+        fit_impression(s, label="friendly", method="ridge")
+
+
+def test_vertex_space_database_of_meshes(tmp_path: Path) -> None:
+    """Meshes of one topology per person and expression (OBJ), displacements from each
+    person's neutral; the direction is recovered in vertex space."""
+    rng = np.random.default_rng(5)
+    grid = np.stack(np.meshgrid(np.linspace(-1, 1, 8), np.linspace(-1, 1, 8)), -1).reshape(-1, 2)
+    base = np.column_stack([grid * 0.05, np.zeros(len(grid))])
+    faces = [[i * 8 + j, i * 8 + j + 1, (i + 1) * 8 + j] for i in range(7) for j in range(7)]
+    smile = np.zeros_like(base)
+    smile[:, 1] = 0.01 * np.exp(-np.sum(grid**2, axis=1))
+    truth = np.zeros_like(base)
+    truth[:, 2] = 0.004 * grid[:, 0] ** 2
+    truth_unit = truth.reshape(-1) / np.linalg.norm(truth)
+    rows = []
+    for p in range(12):
+        person = base + rng.normal(0, 0.001, base.shape)
+        for expr, shape in (("neutral", 0 * smile), ("smile", smile)):
+            z = rng.normal()
+            v = person + shape * rng.normal(1, 0.1) + (z * truth if expr != "neutral" else 0)
+            name = f"p{p}_{expr}.obj"
+            lines = [f"v {a:.6f} {b:.6f} {c:.6f}" for a, b, c in v]
+            lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+            (tmp_path / name).write_text("\n".join(lines) + "\n")
+            rows.append(
+                {
+                    "person": f"p{p}",
+                    "expression": expr,
+                    "warm": "high" if z > 0 else "low",
+                    "file": name,
+                }
+            )
+    with open(tmp_path / "index.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=["person", "expression", "warm", "file"])
+        writer.writeheader()
+        writer.writerows(rows)
+    s = read_vertex_samples(tmp_path / "index.csv")
+    assert s.space == "vertices" and s.s.shape == (12, 64 * 3) and s.faces is not None
+    model = fit_impression(s, label="warm", method="mean_diff")
+    assert model.expressions["smile"].direction @ truth_unit > 0.9
+    with pytest.raises(StageError, match="orthogonal_to_speech needs ARKit"):
+        fit_impression(s, label="warm", orthogonal_to_speech=True)
+
+
+def test_impression_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    samples_csv = tmp_path / "synth.csv"
+    assert main(["impression", "synth", "--people", "20", "--out", str(samples_csv)]) == 0
+    truth = json.loads(samples_csv.with_suffix(".truth.json").read_text())
+    assert truth["synthetic"] is True
+    model = tmp_path / "model.json"
+    argv = [
+        "impression",
+        "fit",
+        str(samples_csv),
+        "--label",
+        "friendly",
+        "--expression",
+        "open_smile",
+        "--out",
+        str(model),
+    ]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "open_smile" in out and "accuracy" in out
+    data = json.loads(model.read_text())
+    assert set(data["directions"]) == {"open_smile"} and data["delta"]["open_smile"] > 0
+    assert main(argv) == 2  # refuses to overwrite without --force
+    assert (
+        main(
+            [
+                "impression",
+                "fit",
+                str(samples_csv),
+                "--label",
+                "nope",
+                "--out",
+                str(tmp_path / "x.json"),
+            ]
+        )
+        == 2
+    )
+
+
+@pytest.mark.slow
+def test_impression_render_writes_one_clip_per_level(tmp_path: Path, synth_csv: Path) -> None:
+    from facelab.stimuli.clip import probe
+
+    model = tmp_path / "model.json"
+    assert (
+        main(
+            [
+                "impression",
+                "fit",
+                str(synth_csv),
+                "--label",
+                "friendly",
+                "--expression",
+                "open_smile",
+                "--out",
+                str(model),
+            ]
+        )
+        == 0
+    )
+    out = tmp_path / "clips"
+    argv = ["impression", "render", str(model), "--expression", "open_smile", "--levels", "0",
+            "0.5", "1", "--size", "160x120", "--msaa", "1", "--hold-s", "0.4", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    rows = list(csv.DictReader((out / "clips.csv").read_text().splitlines()))
+    assert [r["path"] for r in rows] == [
+        "open_smile__q0.mp4",
+        "open_smile__q0.5.mp4",
+        "open_smile__q1.mp4",
+    ]
+    assert [float(r["q_realised"]) for r in rows] == pytest.approx([0, 0.5, 1], abs=1e-6)
+    dv = [float(r["decision_value"]) for r in rows]
+    assert dv == sorted(dv)
+    for r in rows:
+        video = next(s for s in probe(out / r["path"])["streams"] if s["codec_type"] == "video")
+        assert int(video["nb_read_frames"]) == round((0.3 + 0.6 + 0.4 + 0.6) * 30) + 1
+    assert (out / "contact_open_smile.png").stat().st_size > 10_000
+    assert (out / "channels_open_smile.png").is_file()
