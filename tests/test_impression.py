@@ -298,7 +298,8 @@ def test_impression_render_writes_one_clip_per_level(tmp_path: Path, synth_csv: 
     )
     out = tmp_path / "clips"
     argv = ["impression", "render", str(model), "--expression", "open_smile", "--levels", "0",
-            "0.5", "1", "--size", "160x120", "--msaa", "1", "--hold-s", "0.4", "--out", str(out)]  # fmt: skip
+            "0.5", "1", "--size", "160x120", "--msaa", "1", "--hold-s", "0.4",
+            "--out", str(out)]  # fmt: skip
     assert main(argv) == 0
     rows = list(csv.DictReader((out / "clips.csv").read_text().splitlines()))
     assert [r["path"] for r in rows] == [
