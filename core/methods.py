@@ -11,12 +11,14 @@ conditions without the audio or rendering stacks.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = [
     "BUILTIN_Z",
     "METHODS",
+    "ImpressionParams",
     "MethodSpec",
     "TextVisemesParams",
     "VisemeBaselineParams",
@@ -59,6 +61,28 @@ class TextVisemesParams(_Params):
     )
 
 
+class ImpressionParams(_Params):
+    """Seed 001: an expression edited along a learned impression direction, level ``q``."""
+
+    model: str = Field(description="An impression model (facelab impression fit), relative to "
+                       "the protocol file.")  # fmt: skip
+    expression: str = Field(description="The model's expression to show, e.g. open_smile.")
+    q: float = Field(ge=-5, le=5, description="The level q_c: f + q·δ·w (eq. 2).")
+    ease: Literal["sigmoid", "linear", "smoothstep"] = "sigmoid"
+    k: float = Field(5.0, gt=0, le=50, description="Sigmoid steepness (eq. 4).")
+    lead_s: float = Field(0.3, ge=0, le=10, description="Neutral before the onset (s).")
+    onset_s: float = Field(0.6, ge=0, le=10, description="Neutral -> expression (s).")
+    hold_s: float | None = Field(
+        None, ge=0, le=60, description="Expression held (s); omitted: until the offset ends "
+        "with the stimulus.",
+    )  # fmt: skip
+    offset_s: float = Field(0.6, ge=0, le=10, description="Expression -> neutral (s).")
+    speech: VowelBlendParams | None = Field(
+        None, description="Also lip-sync the stimulus's speech with the vowel-driven method "
+        "(added to the expression, clipped to [0, 1]); omitted: no speech animation.",
+    )  # fmt: skip
+
+
 @dataclass(frozen=True)
 class MethodSpec:
     """What the protocol layer needs to know about one animation method."""
@@ -87,6 +111,12 @@ METHODS: dict[str, MethodSpec] = {
             TextVisemesParams,
             "visemes from OpenJTalk phoneme timing, with coarticulation smoothing",
             needs_text=True,
+        ),
+        MethodSpec(
+            "impression",
+            ImpressionParams,
+            "seed 001: an expression moved along a learned impression direction to level q, "
+            "eased from neutral and back (optionally with vowel-driven speech on top)",
         ),
     )
 }

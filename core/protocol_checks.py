@@ -143,6 +143,39 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     f"expected one of {', '.join(BUILTIN_Z)} or an existing .csv file "
                     f"(52 rows x 5 vowels); {z_path} was not found",
                 )
+        if cond.method == "impression":
+            yield from _impression_model(params, base_dir, where)
+
+
+def _impression_model(params: Any, base_dir: Path, where: tuple) -> Iterator[Issue]:
+    """The model file of an ``impression`` condition: readable, ARKit space, has the
+    expression (read as JSON here; the model itself lives in facelab.stimuli)."""
+    import json
+
+    path = base_dir / params.model
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        yield Issue((*where, "params", "model"), f"{path} was not found")
+        return
+    except (OSError, ValueError) as exc:
+        yield Issue((*where, "params", "model"), f"{path}: not readable JSON ({exc})")
+        return
+    if not isinstance(data, dict) or data.get("format") != "facelab-impression-1":
+        yield Issue((*where, "params", "model"), f"{path}: not a facelab impression model")
+        return
+    if data.get("space") != "arkit":
+        yield Issue(
+            (*where, "params", "model"),
+            f"{path}: a {data.get('space')}-space model; conditions need an ARKit-space model "
+            "(render vertex-space models with facelab impression render)",
+        )
+    expressions = sorted(data.get("directions") or {})
+    if params.expression not in expressions:
+        yield Issue(
+            (*where, "params", "expression"),
+            f"the model has no expression {params.expression!r}; it has {', '.join(expressions)}",
+        )
 
 
 @_check("stimulus_sets", "conditions")

@@ -121,11 +121,15 @@ class TtsOptions(_Model):
 
 
 class Stimulus(_Model):
-    """One speech stimulus: a text for TTS or a recorded audio file."""
+    """One stimulus: a text for TTS, a recorded audio file, or silence of a given length
+    (expression clips without speech, e.g. impression levels)."""
 
     id: Id
     text: Text | None = Field(None, description="Japanese text to synthesise.")
     audio: Text | None = Field(None, description="WAV or FLAC file, relative to the protocol.")
+    silence_s: float | None = Field(
+        None, gt=0, le=60, description="A silent stimulus of this many seconds (no speech)."
+    )
     tts: TtsOptions = Field(default_factory=TtsOptions)
     expected_vowels: Annotated[str, StringConstraints(pattern=r"^[aiueo]+$")] | None = Field(
         None, description="The vowels spoken, in order (e.g. aiueo); needed for vowel isolation."
@@ -139,8 +143,10 @@ class Stimulus(_Model):
 
     @model_validator(mode="after")
     def _one_source(self) -> Stimulus:
-        if (self.text is None) == (self.audio is None):
-            raise ValueError("give exactly one of 'text' (for TTS) or 'audio' (a recording)")
+        if sum(v is not None for v in (self.text, self.audio, self.silence_s)) != 1:
+            raise ValueError(
+                "give exactly one of 'text' (for TTS), 'audio' (a recording) or 'silence_s'"
+            )
         if self.vowel_isolation and self.expected_vowels is None:
             raise ValueError("'vowel_isolation' needs 'expected_vowels' (e.g. aiueo)")
         return self

@@ -39,7 +39,7 @@ from facelab.stimuli.drive import BlendshapeTrack, DriveInput, drive, vowel_pres
 from facelab.stimuli.prepare import speech_for, tracks_for
 from facelab.stimuli.render import Renderer, RenderSettings
 from facelab.stimuli.speech import Speech
-from facelab.stimuli.targets import uses_vowel_presets
+from facelab.stimuli.targets import VISEME_METHODS, uses_vowel_presets
 from facelab.stimuli.visemes import VOWELS, VisemeTrack, vowel_segments
 
 __all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
@@ -48,7 +48,7 @@ __all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
 def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:
     spec = protocol.rendering.avatar
     avatar = default_head() if spec == "default" else load(base_dir / spec)
-    needs_visemes = any(c.method != "vowel_blend" for c in protocol.conditions)
+    needs_visemes = any(c.method in VISEME_METHODS for c in protocol.conditions)
     for cond in protocol.conditions:
         check_targets(avatar, cond.method, cond.params)
     return with_viseme_mixes(avatar) if needs_visemes else avatar
@@ -84,7 +84,7 @@ def stand_in(avatar: Avatar, method: str, params: dict) -> str | None:
             "(Y = G * X)"
         )
     zero = avatar.source.get("zero_visemes")
-    if method != "vowel_blend" and zero:
+    if method in VISEME_METHODS and zero:
         return f"{avatar.source.get('kind')}: no shape for {' '.join(zero)} (vowel presets only)"
     return None
 
@@ -216,6 +216,7 @@ def build_clips(
                             "avatar": avatar.name,
                             "avatar_kind": avatar.source.get("kind", "unknown"),
                             "stand_in": stand_in(avatar, cond.method, cond.params),
+                            **({"track_notes": bs.notes} if bs.notes else {}),
                         },
                         indent=2,
                     )
@@ -256,7 +257,9 @@ def build_clips(
 def contact_sheets(
     protocol: Protocol, *, protocol_path: Path, out: Path, settings: RenderSettings | None = None
 ) -> list[Path]:
-    """One PNG per condition: the face at the centre of each vowel of the vowel stimulus."""
+    """One PNG per condition: the face at the centre of each vowel of the vowel stimulus; a
+    protocol without a vowel stimulus gets one PNG of every condition at its strongest frame
+    (``contact_conditions.png``)."""
     from PIL import Image, ImageDraw
 
     base_dir = protocol_path.parent
@@ -264,9 +267,9 @@ def contact_sheets(
         ((s.id, st) for s in protocol.stimulus_sets for st in s.stimuli if st.expected_vowels),
         (None, None),
     )
-    if stim is None:
-        raise StageError("no stimulus has expected_vowels: a contact sheet needs a vowel stimulus")
     settings = settings or settings_for(protocol)
+    if stim is None:
+        return [_peak_sheet(protocol, base_dir=base_dir, out=out, settings=settings)]
     closer = 0.36 / 0.65
     settings = replace(
         settings,
@@ -317,6 +320,46 @@ def contact_sheets(
             sheet.save(path)
             paths.append(path)
     return paths
+
+
+def _peak_sheet(protocol: Protocol, *, base_dir: Path, out: Path, settings: RenderSettings) -> Path:
+    """Every condition on the first stimulus its blocks show, at the frame where its
+    blendshape weights sum highest, side by side."""
+    from PIL import Image, ImageDraw
+
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    tile_settings = replace(
+        settings, width=400, height=400, distance_m=None, zoom=1.9, target_m=settings.target_m
+    )
+    jobs = {job.condition: job for job in plan(protocol)}
+    font = _font(20)
+    tiles = []
+    with Renderer(avatar, tile_settings) as renderer:
+        for cond in protocol.conditions:
+            job = jobs.get(cond.id)
+            if job is None:
+                continue
+            speech = speech_for(
+                job.stimulus, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate
+            )
+            bs = _blendshapes(
+                protocol, job, speech, tracks_for(job.stimulus, speech), base_dir, avatar
+            )
+            peak = float(bs.times[int(np.argmax(bs.weights.sum(axis=1)))])
+            img = Image.fromarray(renderer.frame(weights_at(bs, avatar, t=peak)))
+            ImageDraw.Draw(img).text(
+                (10, 8), f"{cond.id}  t={peak:.2f}s", fill=(255, 255, 255), font=font
+            )
+            tiles.append(img)
+    if not tiles:
+        raise StageError("no condition is shown by any block: nothing to draw")
+    sheet = Image.new("RGB", (sum(t.width for t in tiles), tiles[0].height), (40, 40, 40))
+    for i, t in enumerate(tiles):
+        sheet.paste(t, (i * t.width, 0))
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "contact_conditions.png"
+    sheet.save(path)
+    return path
 
 
 def _font(size: int):

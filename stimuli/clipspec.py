@@ -82,6 +82,9 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
     z = cond.params.get("z")
     if isinstance(z, str) and z.lower().endswith(".csv"):
         files["z"] = _file_sha256(base_dir / z)
+    model = cond.params.get("model")
+    if isinstance(model, str):
+        files["model"] = _file_sha256(base_dir / model)
     if r.avatar != "default":
         files["avatar"] = _file_sha256(base_dir / r.avatar)
     spec = {
@@ -89,6 +92,7 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         "stimulus": {
             "text": stim.text,
             "audio": stim.audio,
+            "silence_s": stim.silence_s,
             "tts": stim.tts.model_dump(),
             "expected_vowels": stim.expected_vowels,
             "isolated": job.condition in stim.vowel_isolation,

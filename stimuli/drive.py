@@ -12,29 +12,27 @@ matrix (column j: the ARKit coefficients of vowel j).
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from facelab.errors import StageError
 from facelab.methods import (
-    BUILTIN_Z,
     METHODS,
+    ImpressionParams,
     TextVisemesParams,
     VisemeBaselineParams,
     VowelBlendParams,
 )
-from facelab.resources import package_file
 from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.impression import ImpressionModel, envelope_at
 from facelab.stimuli.speech import Phone
-from facelab.stimuli.visemes import VOWELS, VisemeTrack, from_phonemes
+from facelab.stimuli.visemes import VisemeTrack, from_phonemes
+from facelab.stimuli.zmatrix import load_z
 
 __all__ = ["DRIVERS", "BlendshapeTrack", "DriveInput", "drive", "load_z", "vowel_presets"]
-
-DATA = package_file("facelab.stimuli", "data")
 
 
 @dataclass(frozen=True)
@@ -44,6 +42,7 @@ class BlendshapeTrack:
     times: np.ndarray
     weights: np.ndarray
     names: tuple[str, ...]
+    notes: dict = field(default_factory=dict, compare=False)  # facts for the clip's JSON
 
     def column(self, name: str) -> np.ndarray:
         return self.weights[:, self.names.index(name)]
@@ -57,31 +56,6 @@ class DriveInput:
     track: VisemeTrack
     phones: tuple[Phone, ...] = ()
     base_dir: Path = Path(".")
-
-
-def load_z(z: str, *, base_dir: Path = Path(".")) -> np.ndarray:
-    """A Z matrix (52, 5): a shipped name (standard, emphasized) or a CSV path with a
-    ``blendshape`` column of ARKit names and columns a, i, u, e, o in [0, 1]."""
-    path = DATA / f"z_{z}.csv" if z in BUILTIN_Z else base_dir / z
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
-    except OSError as exc:
-        raise StageError(f"cannot read Z matrix {path}: {exc}") from None
-    if not rows or set(rows[0]) != {"blendshape", *VOWELS}:
-        raise StageError(f"{path}: expected columns blendshape, a, i, u, e, o")
-    by_name = {r["blendshape"]: r for r in rows}
-    missing = [n for n in ARKIT_NAMES if n not in by_name]
-    unknown = [n for n in by_name if n not in ARKIT_NAMES]
-    if missing or unknown:
-        raise StageError(f"{path}: missing ARKit rows {missing[:5]} / unknown rows {unknown[:5]}")
-    try:
-        z_mat = np.array([[float(by_name[n][v]) for v in VOWELS] for n in ARKIT_NAMES])
-    except ValueError as exc:
-        raise StageError(f"{path}: non-numeric value ({exc})") from None
-    if np.any(z_mat < 0) or np.any(z_mat > 1):
-        raise StageError(f"{path}: values must lie in [0, 1]")
-    return z_mat
 
 
 def viseme_baseline(inp: DriveInput, params: VisemeBaselineParams) -> BlendshapeTrack:
@@ -120,10 +94,36 @@ def text_visemes(inp: DriveInput, params: TextVisemesParams) -> BlendshapeTrack:
     return BlendshapeTrack(track.times, np.clip(params.gain * track.weights, 0, 1), VISEME_TARGETS)
 
 
+def impression(inp: DriveInput, params: ImpressionParams) -> BlendshapeTrack:
+    """Seed 001 on the track's frame times: X(t) = e(t)·ŝ_clipped (the avatar's rest face is the
+    neutral), with e the lead/onset/hold/offset envelope (hold omitted: until the offset ends
+    with the stimulus); optionally plus the vowel-driven speech track, clipped to [0, 1]."""
+    model = ImpressionModel.load_cached(inp.base_dir / params.model)
+    if model.space != "arkit":
+        raise StageError(f"{params.model}: conditions need an ARKit-space impression model")
+    times = inp.track.times
+    duration = float(times[-1]) if len(times) else 0.0
+    hold = params.hold_s
+    if hold is None:
+        hold = max(0.0, duration - params.lead_s - params.onset_s - params.offset_s)
+    env = envelope_at(
+        times, onset_s=params.onset_s, hold_s=hold, offset_s=params.offset_s,
+        lead_s=params.lead_s, kind=params.ease, k=params.k,
+    )  # fmt: skip
+    faces, info = model.frames(params.expression, params.q, env, neutral=np.zeros(52))
+    if params.speech is not None:
+        faces = np.clip(faces + vowel_blend(inp, params.speech).weights, 0.0, 1.0)
+    notes = {**info, "model_sha256": model.data_sha256, "speech": params.speech is not None}
+    moving = np.nonzero(np.any(faces > 0, axis=0))[0]  # only the channels used: avatars may
+    names = tuple(ARKIT_NAMES[j] for j in moving)  # lack the others
+    return BlendshapeTrack(times, faces[:, moving], names, notes)
+
+
 DRIVERS: dict[str, Callable[[DriveInput, object], BlendshapeTrack]] = {
     "viseme_baseline": viseme_baseline,  # type: ignore[dict-item]
     "vowel_blend": vowel_blend,  # type: ignore[dict-item]
     "text_visemes": text_visemes,  # type: ignore[dict-item]
+    "impression": impression,  # type: ignore[dict-item]
 }
 assert set(DRIVERS) == set(METHODS), "every registered method needs a driver"
 

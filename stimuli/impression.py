@@ -33,6 +33,7 @@ d divided by δ.
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import json
 from collections.abc import Sequence
@@ -43,6 +44,7 @@ import numpy as np
 
 from facelab.errors import StageError
 from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
+from facelab.stimuli.zmatrix import load_z
 
 __all__ = [
     "DIRECTION_METHODS",
@@ -52,6 +54,7 @@ __all__ = [
     "ImpressionModel",
     "ease",
     "envelope",
+    "envelope_at",
     "fit_impression",
     "read_arkit_samples",
     "read_vertex_samples",
@@ -272,6 +275,29 @@ def ease(x: np.ndarray | float, *, kind: str = "sigmoid", k: float = 5.0) -> np.
     raise StageError(f"unknown easing {kind!r}; expected one of {', '.join(EASINGS)}")
 
 
+def envelope_at(
+    t: np.ndarray,
+    *,
+    onset_s: float,
+    hold_s: float,
+    offset_s: float,
+    lead_s: float = 0.0,
+    kind: str = "sigmoid",
+    k: float = 5.0,
+) -> np.ndarray:
+    """Expression weight e at times t (s): 0 before ``lead_s``, eased onset, 1 while held,
+    eased offset, 0 after."""
+    if min(onset_s, hold_s, offset_s, lead_s) < 0:
+        raise StageError("onset, hold, offset and lead durations must be >= 0")
+    t = np.asarray(t, np.float64) - lead_s
+    rise = ease(t / onset_s, kind=kind, k=k) if onset_s > 0 else (t >= 0).astype(float)
+    after = t - onset_s - hold_s
+    fall = (
+        1 - ease(after / offset_s, kind=kind, k=k) if offset_s > 0 else (after <= 0).astype(float)
+    )
+    return np.where(t < 0, 0.0, np.where(after > 0, fall, rise))
+
+
 def envelope(
     *,
     fps: int,
@@ -287,13 +313,10 @@ def envelope(
     if min(onset_s, hold_s, offset_s, lead_s) < 0:
         raise StageError("onset, hold, offset and lead durations must be >= 0")
     n = round((lead_s + onset_s + hold_s + offset_s) * fps) + 1
-    t = np.arange(n) / fps - lead_s
-    rise = ease(t / onset_s, kind=kind, k=k) if onset_s > 0 else (t >= 0).astype(float)
-    after = t - onset_s - hold_s
-    fall = (
-        1 - ease(after / offset_s, kind=kind, k=k) if offset_s > 0 else (after <= 0).astype(float)
-    )
-    return np.where(t < 0, 0.0, np.where(after > 0, fall, rise))
+    return envelope_at(
+        np.arange(n) / fps, onset_s=onset_s, hold_s=hold_s, offset_s=offset_s, lead_s=lead_s,
+        kind=kind, k=k,
+    )  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- the model
@@ -464,6 +487,16 @@ class ImpressionModel:
             ) from None
 
     @classmethod
+    def load_cached(cls, path: Path) -> ImpressionModel:
+        """:meth:`load`, remembered per (path, size, modification time)."""
+        path = Path(path)
+        try:
+            st = path.stat()
+        except OSError as exc:
+            raise StageError(f"{path}: cannot read the impression model ({exc})") from None
+        return _load_cached(str(path.resolve()), st.st_size, st.st_mtime_ns)
+
+    @classmethod
     def load(cls, path: Path) -> ImpressionModel:
         path = Path(path)
         try:
@@ -473,11 +506,15 @@ class ImpressionModel:
         return cls.from_json(data, where=str(path))
 
 
+@functools.lru_cache(maxsize=16)
+def _load_cached(path: str, size: int, mtime_ns: int) -> ImpressionModel:
+    del size, mtime_ns  # part of the cache key only
+    return ImpressionModel.load(Path(path))
+
+
 def speech_basis() -> np.ndarray:
     """(R, 52) orthonormal rows spanning the mouth shapes of the speech methods: the columns
     of the shipped Z matrices (standard and emphasized)."""
-    from facelab.stimuli.drive import load_z
-
     cols = np.hstack([load_z("standard"), load_z("emphasized")])  # (52, 10)
     q, r = np.linalg.qr(cols)
     keep = np.abs(np.diag(r)) > 1e-9

@@ -27,8 +27,8 @@ import numpy as np
 import pandas as pd
 
 from facelab.stimuli.arkit import ARKIT_NAMES
-from facelab.stimuli.drive import load_z
 from facelab.stimuli.impression import ImpressionModel
+from facelab.stimuli.zmatrix import load_z
 
 __all__ = ["EXPRESSIONS", "TRUE_DIRECTION", "simulate_validation", "synthetic_samples"]
 

@@ -35,7 +35,10 @@ def playability(avatar: Avatar) -> dict[str, str]:
     have = set(avatar.targets)
     out = {}
     for method in METHODS:
-        if method == "vowel_blend":
+        if method == "impression":
+            n = len(have & set(ARKIT_NAMES))
+            out[method] = f"needs the ARKit targets its model moves (this avatar has {n}/52)"
+        elif method == "vowel_blend":
             need = set()
             for z in ("standard", "emphasized"):
                 zm = load_z(z)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from facelab.protocol import Protocol, Stimulus
 from facelab.stimuli.speech import Speech, load_audio, synthesize
 from facelab.stimuli.visemes import VisemeTrack, analyze, isolate_vowels
@@ -33,6 +35,9 @@ def find_stimulus(protocol: Protocol, ref: str) -> tuple[str, Stimulus]:
 
 def speech_for(stimulus: Stimulus, *, base_dir: Path, sample_rate: int) -> Speech:
     """TTS for a text stimulus (with its phoneme timeline), or the recording, at ``sample_rate``."""
+    if stimulus.silence_s is not None:
+        n = round(stimulus.silence_s * sample_rate)
+        return Speech(np.zeros(n, np.float32), sample_rate, source="silence")
     if stimulus.text is not None:
         return synthesize(
             stimulus.text,

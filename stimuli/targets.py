@@ -14,6 +14,7 @@ from facelab.stimuli.mesh import Avatar
 from facelab.stimuli.vrm import VOWEL_PRESET_TARGETS
 
 __all__ = [
+    "VISEME_METHODS",
     "VISEME_MIXES",
     "check_targets",
     "required_targets",
@@ -80,9 +81,16 @@ VISEME_MIXES: dict[str, dict[str, float]] = {
 }
 
 
+#: the methods that drive ``viseme_*`` targets
+VISEME_METHODS = ("viseme_baseline", "text_visemes")
+
+
 def required_targets(method: str, params: Mapping | None = None) -> set[str]:
     """Targets a method drives: vowel_blend the ARKit rows its Z uses; viseme methods the 14
-    viseme shapes (or, failing those, the ARKit shapes their mixes use)."""
+    viseme shapes (or, failing those, the ARKit shapes their mixes use); impression the ARKit
+    channels its model moves (checked when the clip is built: the model file is read there)."""
+    if method == "impression":
+        return set()
     if method == "vowel_blend":
         z = load_z(str((params or {}).get("z", "standard")))
         return {n for n, row in zip(ARKIT_NAMES, z, strict=True) if np.any(row > 0)}
@@ -138,11 +146,11 @@ def uses_vowel_presets(avatar: Avatar, method: str, params: Mapping | None = Non
 def check_targets(avatar: Avatar, method: str, params: Mapping | None = None) -> None:
     """Raise listing every target ``method`` needs that ``avatar`` lacks."""
     if uses_vowel_presets(avatar, method, params) or (
-        method != "vowel_blend" and vowel_presets_only(avatar)
+        method in VISEME_METHODS and vowel_presets_only(avatar)
     ):
         return
     need = required_targets(method, params)
-    if method != "vowel_blend" and not need <= set(avatar.targets):
+    if method in VISEME_METHODS and not need <= set(avatar.targets):
         mixes = {n for v in need for n in VISEME_MIXES[v]}
         missing = sorted(need - set(avatar.targets))
         lacking_mix = sorted(mixes - set(avatar.targets))

@@ -315,3 +315,134 @@ def test_impression_render_writes_one_clip_per_level(tmp_path: Path, synth_csv: 
         assert int(video["nb_read_frames"]) == round((0.3 + 0.6 + 0.4 + 0.6) * 30) + 1
     assert (out / "contact_open_smile.png").stat().st_size > 10_000
     assert (out / "channels_open_smile.png").is_file()
+
+
+# --------------------------------------------------------------------------- in protocols
+
+
+def test_shipped_impression_protocols_simulate_and_analyse(tmp_path: Path) -> None:
+    from facelab.resources import protocol_path
+
+    for name, expect in (
+        ("horii_impression", ["trend_contrast.csv", "graded_lmm.csv", "rm_anova.csv"]),
+        ("horii_impression_2afc", ["psychometric_fits.csv"]),
+    ):
+        path = protocol_path(name)
+        assert main(["validate", str(path)]) == 0
+        results, out = tmp_path / name / "results", tmp_path / name / "analysis"
+        argv = [
+            "simulate",
+            str(path),
+            "--participants",
+            "8",
+            "--seed",
+            "2",
+            "--results",
+            str(results),
+        ]
+        assert main(argv) == 0
+        assert (
+            main(
+                [
+                    "analyze",
+                    str(results),
+                    "--protocol",
+                    str(path),
+                    "--out",
+                    str(out),
+                    "--bootstrap",
+                    "30",
+                ]
+            )
+            == 0
+        )
+        for file in expect:
+            assert (out / file).exists(), file
+    trend = pd.read_csv(tmp_path / "horii_impression" / "analysis" / "trend_contrast.csv")
+    # one trend per item and smile (the blocks keep open and closed smiles apart)
+    assert set(zip(trend["item"], trend["stimulus_set"], strict=True)) == {
+        ("friendly", "open"), ("friendly", "closed"), ("natural", "open"), ("natural", "closed"),
+    }  # fmt: skip
+    assert (trend["slope"] > 0).all()
+
+
+def _horii(tmp_path: Path, edit=lambda s: s) -> Path:
+    from facelab.resources import protocol_path
+
+    src = protocol_path("horii_impression")
+    (tmp_path / "horii_friendly_model.json").write_bytes(
+        (src.parent / "horii_friendly_model.json").read_bytes()
+    )
+    path = tmp_path / "horii.yaml"
+    path.write_text(edit(src.read_text(encoding="utf-8")), encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            "expression: open_smile, q: 0.5}",
+            "expression: grimace, q: 0.5}",
+            "no expression 'grimace'",
+        ),
+        (
+            "model: horii_friendly_model.json, expression: open_smile, q: 0.0}",
+            "model: nowhere.json, expression: open_smile, q: 0.0}",
+            "nowhere.json was not found",
+        ),
+        ("q: 1.0}, level: 1.0}", "q: 9.0}, level: 1.0}", "less than or equal to 5"),
+        ("{id: smile, silence_s: 2.7}", "{id: smile, silence_s: 2.7, text: あ}", "exactly one of"),
+    ],
+)
+def test_impression_conditions_are_checked(
+    tmp_path: Path, old: str, new: str, message: str
+) -> None:
+    from facelab.errors import ProtocolError
+    from facelab.protocol import load_protocol
+
+    path = _horii(tmp_path, lambda s: s.replace(old, new, 1))
+    with pytest.raises(ProtocolError, match=message):
+        load_protocol(path)
+
+
+def test_impression_method_on_a_speech_track_adds_the_expression(samples, tmp_path: Path) -> None:
+    from facelab.methods import ImpressionParams, VowelBlendParams
+    from facelab.stimuli.drive import DriveInput, impression, vowel_blend
+    from facelab.stimuli.visemes import VISEMES, VisemeTrack
+
+    model = fit_impression(samples, label="friendly", expressions=["open_smile"])
+    (tmp_path / "m.json").write_text(json.dumps(model.to_json()))
+    times = np.arange(0, 3.0, 0.01)
+    weights = np.zeros((len(times), 15))
+    weights[:, VISEMES.index("aa")] = 0.5 * (np.sin(times * 9) > 0)
+    track = VisemeTrack(times, weights, VISEMES)
+    inp = DriveInput(track=track, base_dir=tmp_path)
+    silent = impression(inp, ImpressionParams(model="m.json", expression="open_smile", q=1.0))
+    t_peak = int(np.argmin(np.abs(times - 1.5)))
+    assert silent.notes["q_intended"] == 1.0 and silent.weights[0].max() == 0.0
+    assert silent.weights[t_peak].max() > 0.3  # held in the middle (hold fills the stimulus)
+    both = impression(inp, ImpressionParams(model="m.json", expression="open_smile", q=1.0,
+                                            speech=VowelBlendParams(z="standard")))  # fmt: skip
+    speech = vowel_blend(inp, VowelBlendParams(z="standard"))
+    jaw = both.names.index("jawOpen")
+    expected = np.clip(silent.column("jawOpen") + speech.column("jawOpen"), 0, 1)
+    np.testing.assert_allclose(both.weights[:, jaw], expected, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_impression_protocol_renders_with_levels_in_the_clip_metadata(tmp_path: Path) -> None:
+    path = _horii(tmp_path)
+    out = tmp_path / "clips"
+    argv = ["render", str(path), "--out", str(out), "--size", "160x120", "--fps", "10", "--quiet"]
+    assert main(argv) == 0
+    rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
+    assert len(rows) == 6
+    notes = {
+        r["condition"]: json.loads((out / f"{r['clip_id']}.json").read_text())["track_notes"]
+        for r in rows
+    }
+    for cond in ("open", "closed"):
+        q = [notes[f"{cond}_q{s}"]["q_intended"] for s in ("0", "05", "1")]
+        dv = [notes[f"{cond}_q{s}"]["decision_value"] for s in ("0", "05", "1")]
+        assert q == [0.0, 0.5, 1.0] and dv == sorted(dv)

@@ -1,0 +1,43 @@
+"""Z matrices (52 ARKit rows x 5 vowel columns a, i, u, e, o): the shipped ones and CSV files."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from facelab.errors import StageError
+from facelab.methods import BUILTIN_Z
+from facelab.resources import package_file
+from facelab.stimuli.arkit import ARKIT_NAMES
+from facelab.stimuli.visemes import VOWELS
+
+__all__ = ["DATA", "load_z"]
+
+DATA = package_file("facelab.stimuli", "data")
+
+
+def load_z(z: str, *, base_dir: Path = Path(".")) -> np.ndarray:
+    """A Z matrix (52, 5): a shipped name (standard, emphasized) or a CSV path with a
+    ``blendshape`` column of ARKit names and columns a, i, u, e, o in [0, 1]."""
+    path = DATA / f"z_{z}.csv" if z in BUILTIN_Z else base_dir / z
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as exc:
+        raise StageError(f"cannot read Z matrix {path}: {exc}") from None
+    if not rows or set(rows[0]) != {"blendshape", *VOWELS}:
+        raise StageError(f"{path}: expected columns blendshape, a, i, u, e, o")
+    by_name = {r["blendshape"]: r for r in rows}
+    missing = [n for n in ARKIT_NAMES if n not in by_name]
+    unknown = [n for n in by_name if n not in ARKIT_NAMES]
+    if missing or unknown:
+        raise StageError(f"{path}: missing ARKit rows {missing[:5]} / unknown rows {unknown[:5]}")
+    try:
+        z_mat = np.array([[float(by_name[n][v]) for v in VOWELS] for n in ARKIT_NAMES])
+    except ValueError as exc:
+        raise StageError(f"{path}: non-numeric value ({exc})") from None
+    if np.any(z_mat < 0) or np.any(z_mat > 1):
+        raise StageError(f"{path}: values must lie in [0, 1]")
+    return z_mat
