@@ -58,6 +58,7 @@ __all__ = [
     "fit_impression",
     "read_arkit_samples",
     "read_vertex_samples",
+    "samples_from_captures",
     "speech_basis",
 ]
 
@@ -167,6 +168,60 @@ def read_arkit_samples(path: Path) -> ExpressionSamples:
         hashlib.sha256(text.encode("utf-8")).hexdigest(),
         str(path),
     )
+
+
+def samples_from_captures(index: Path, *, window_s: float = 0.1, fps: float = 60.0) -> list[dict]:
+    """Face captures reduced to one row per (person, expression): an index CSV with columns
+    ``person, expression, <label columns…>, capture, time_s`` names a Live Link Face (or
+    generic ARKit) capture CSV, relative to the index, and the time (s from the capture's
+    start) of the expression; the row is the mean of the coefficients over
+    [time_s, time_s + window_s] (the nearest frame when the window holds none). Returns rows
+    for :func:`read_arkit_samples`' CSV (``person, expression, labels…, 52 ARKit names``)."""
+    from facelab.stimuli.measure_z import read_capture
+
+    index = Path(index)
+    try:
+        rows = list(csv.DictReader(index.read_text(encoding="utf-8-sig").splitlines()))
+    except OSError as exc:
+        raise StageError(f"{index}: cannot read ({exc.strerror or exc})") from None
+    if not rows or not {"person", "expression", "capture", "time_s"} <= set(rows[0]):
+        raise StageError(
+            f"{index}: expected columns person, expression, <labels...>, capture, time_s"
+        )
+    labels = [c for c in rows[0] if c not in ("person", "expression", "capture", "time_s")]
+    captures: dict[str, object] = {}
+    out = []
+    for i, row in enumerate(rows, start=2):
+        path = index.parent / row["capture"]
+        if row["capture"] not in captures:
+            captures[row["capture"]] = read_capture(path, fps=fps)
+        cap = captures[row["capture"]]
+        try:
+            t0 = float(row["time_s"])
+        except ValueError:
+            raise StageError(f"{index}:{i}: time_s {row['time_s']!r} is not a number") from None
+        if not cap.times[0] <= t0 <= cap.times[-1]:
+            raise StageError(
+                f"{index}:{i}: time_s {t0} is outside {row['capture']} (0-{cap.times[-1]:.2f} s)"
+            )
+        inside = (cap.times >= t0) & (cap.times <= t0 + window_s)
+        values = (
+            cap.coeffs[inside].mean(axis=0)
+            if inside.any()
+            else cap.coeffs[int(np.argmin(np.abs(cap.times - t0)))]
+        )
+        coeffs = {
+            n: round(float(np.clip(v, 0, 1)), 6) for n, v in zip(ARKIT_NAMES, values, strict=True)
+        }
+        out.append(
+            {
+                "person": row["person"],
+                "expression": row["expression"],
+                **{c: row[c] for c in labels},
+                **coeffs,
+            }
+        )
+    return out
 
 
 def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -446,3 +446,31 @@ def test_impression_protocol_renders_with_levels_in_the_clip_metadata(tmp_path: 
         q = [notes[f"{cond}_q{s}"]["q_intended"] for s in ("0", "05", "1")]
         dv = [notes[f"{cond}_q{s}"]["decision_value"] for s in ("0", "05", "1")]
         assert q == [0.0, 0.5, 1.0] and dv == sorted(dv)
+
+
+def test_face_captures_reduce_to_one_sample_row_per_expression(tmp_path: Path) -> None:
+    """Live Link Face CSVs (Timecode at 60 fps) -> the samples CSV `impression fit` reads."""
+    header = ["Timecode", "BlendShapeCount", *[n[0].upper() + n[1:] for n in ARKIT_NAMES]]
+    rows = []
+    for f in range(120):  # 2 s; jawOpen 0.2 before 1 s, 0.6 after
+        jaw = 0.2 if f < 60 else 0.6
+        values = [jaw if n == "jawOpen" else 0.0 for n in ARKIT_NAMES]
+        rows.append([f"10:00:{f // 60:02d}:{f % 60:02d}.000", "52", *values])
+    with open(tmp_path / "cap.csv", "w", newline="") as fh:
+        csv.writer(fh).writerows([header, *rows])
+    (tmp_path / "index.csv").write_text(
+        "person,expression,warm,capture,time_s\np1,neutral,,cap.csv,0.2\np1,open,high,cap.csv,1.2\n"
+    )
+    out = tmp_path / "samples.csv"
+    assert main(["impression", "samples", str(tmp_path / "index.csv"), "--out", str(out)]) == 0
+    s = read_arkit_samples(out)
+    assert list(s.expressions) == ["open"] and s.labels["warm"][0] == "high"
+    j = ARKIT_NAMES.index("jawOpen")
+    assert s.s[0, j] == pytest.approx(0.4)  # 0.6 in the window minus the neutral's 0.2
+    (tmp_path / "late.csv").write_text("person,expression,capture,time_s\np1,open,cap.csv,9\n")
+    assert (
+        main(
+            ["impression", "samples", str(tmp_path / "late.csv"), "--out", str(tmp_path / "x.csv")]
+        )
+        == 2
+    )

@@ -124,8 +124,26 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _samples(args: argparse.Namespace) -> int:
+    import csv
+
+    from facelab.stimuli.impression import samples_from_captures
+
+    if not args.input or not args.out:
+        raise FacelabError("facelab impression samples INDEX.csv --out SAMPLES.csv")
+    out = output_file(args.out, option="--out", force=args.force)
+    rows = samples_from_captures(Path(args.input), window_s=args.window, fps=args.capture_fps)
+    with open(out, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {len(rows)} samples (one row per person and expression) to {out}")
+    return 0
+
+
 def _cmd_impression(args: argparse.Namespace) -> int:
-    return {"fit": _fit, "render": _render, "synth": _synth}[args.action](args)
+    actions = {"fit": _fit, "render": _render, "synth": _synth, "samples": _samples}
+    return actions[args.action](args)
 
 
 def register(add: AddCommand) -> None:
@@ -136,8 +154,16 @@ def register(add: AddCommand) -> None:
         "render clips at levels along it, or write a synthetic database",
         _cmd_impression,
     )
-    p.add_argument("action", choices=["fit", "render", "synth"])
-    p.add_argument("input", nargs="?", metavar="FILE", help="fit: SAMPLES.csv; render: MODEL.json")
+    p.add_argument("action", choices=["fit", "render", "synth", "samples"])
+    p.add_argument(
+        "input",
+        nargs="?",
+        metavar="FILE",
+        help="fit: SAMPLES.csv; render: MODEL.json; samples: an index of captures "
+        "(person, expression, labels..., capture, time_s)",
+    )
+    p.add_argument("--window", type=float, default=0.1, help="samples: seconds averaged")
+    p.add_argument("--capture-fps", type=float, default=60.0, help="samples: Timecode rate")
     p.add_argument("--label", metavar="COLUMN", help="fit: the label column")
     p.add_argument(
         "--space", choices=["arkit", "vertices"], default="arkit", help="fit: sample space"
