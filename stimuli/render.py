@@ -217,13 +217,21 @@ class Renderer:
         return centre, float(distance)
 
     def _head_vertices(self) -> np.ndarray:
-        """Rest vertices of the head: those skinned to the head joint, else the top eighth."""
+        """Rest vertices of the head: those skinned to the head joint, else a mesh named like
+        a head (``Wolf3D_Head``, ``Face``, ``head``), else the model's top."""
         a = self.avatar
         sk = a.skeleton
         if sk is not None and "head" in sk.roles:
             rows = sk.vertices_of(sk.roles["head"])
             if len(rows) >= 10:
                 return a.neutral[rows]
+        named = [
+            idx
+            for name, idx in a.parts.items()
+            if any(key in name.lower() for key in ("head", "face")) and len(idx) >= 10
+        ]
+        if named:
+            return a.neutral[np.concatenate(named)]
         lo, hi = a.neutral.min(axis=0), a.neutral.max(axis=0)
         height = hi[1] - lo[1]
         if height > 0.6:  # a full body: its top 0.25 m or so is the head

@@ -282,3 +282,13 @@ def test_bench_render_runs_on_a_skinned_50k_vertex_avatar() -> None:
         entry = result[f"fps_{fps}"]
         assert entry["rtf"] > 0 and entry["clip_frames"] == entry["frames"]
         assert entry["stages_ms_per_frame"]["deform_ms"] > 0
+
+
+@pytest.mark.slow
+def test_framing_without_a_skeleton_uses_the_head_mesh(samples) -> None:
+    from facelab.stimuli.render import Renderer, RenderSettings
+
+    a = load(samples["rpm"]).replace(skeleton=None)
+    with Renderer(a, RenderSettings(width=320, height=320)) as r:
+        centre = r.project(np.array([HEAD_CENTRE]))[0]
+    assert abs(centre[0] - 160) < 16 and abs(centre[1] - 160) < 40
