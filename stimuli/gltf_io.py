@@ -457,6 +457,19 @@ class _BufferBuilder:
         )
         return len(self.accessors) - 1
 
+    def add_bytes(self, data: bytes) -> int:
+        """A 4-byte aligned buffer view of raw bytes (an image); returns the view index."""
+        pad = (-self.size) % 4
+        if pad:
+            self.blobs.append(b"\x00" * pad)
+            self.size += pad
+        self.views.append(
+            pygltflib.BufferView(buffer=0, byteOffset=self.size, byteLength=len(data))
+        )
+        self.blobs.append(data)
+        self.size += len(data)
+        return len(self.views) - 1
+
     def buffer(self) -> bytes:
         data = b"".join(self.blobs)
         return data + b"\x00" * ((-len(data)) % 4)

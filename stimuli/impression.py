@@ -364,9 +364,8 @@ def envelope(
     k: float = 5.0,
 ) -> np.ndarray:
     """(T,) expression weight per frame: ``lead_s`` neutral, eased onset, hold, eased offset
-    (back to neutral), and a last neutral frame. T = round((lead+onset+hold+offset) fps) + 1."""
-    if min(onset_s, hold_s, offset_s, lead_s) < 0:
-        raise StageError("onset, hold, offset and lead durations must be >= 0")
+    (back to neutral), and a last neutral frame. T = round((lead+onset+hold+offset) fps) + 1.
+    Durations are checked by :func:`envelope_at`."""
     n = round((lead_s + onset_s + hold_s + offset_s) * fps) + 1
     return envelope_at(
         np.arange(n) / fps, onset_s=onset_s, hold_s=hold_s, offset_s=offset_s, lead_s=lead_s,

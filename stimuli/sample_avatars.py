@@ -295,14 +295,7 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
         nodes.append(pygltflib.Node(name="hat", mesh=hat_mesh, matrix=local.T.reshape(-1).tolist()))
         nodes[node_of["Head"]].children.append(len(nodes) - 1)
     # --- texture, materials ------------------------------------------------------------------
-    png = _png(HAIR_RGB, SKIN_RGB)
-    pad = (-b.size) % 4
-    b.blobs.append(b"\x00" * pad)
-    b.size += pad
-    b.views.append(pygltflib.BufferView(buffer=0, byteOffset=b.size, byteLength=len(png)))
-    b.blobs.append(png)
-    b.size += len(png)
-    image_view = len(b.views) - 1
+    image_view = b.add_bytes(_png(HAIR_RGB, SKIN_RGB))
 
     def material(rgba, texture=False):
         pbr = pygltflib.PbrMetallicRoughness(baseColorFactor=rgba, metallicFactor=0.0)
