@@ -134,7 +134,14 @@ def analyze_tasks(
                 res.notes.append(
                     f"task {task.id!r} names no answers: only the answer counts are tabled"
                 )
-            target = rows["condition"].map(task.answers)
+            target = pd.Series(
+                [
+                    task.target(condition=c, stimulus=st)
+                    for c, st in zip(rows["condition"], rows["stimulus"], strict=True)
+                ],
+                index=rows.index,
+                dtype=object,
+            )
             scored = rows.assign(target=target).dropna(subset=["target"])
             if not scored.empty:
                 summary, recall = identification.identification_summary(scored, labels=labels)

@@ -24,6 +24,7 @@ from pathlib import Path
 __all__ = [
     "AnalysisError",
     "AvatarError",
+    "BehaviourError",
     "FacelabError",
     "Issue",
     "ProtocolError",
@@ -47,6 +48,10 @@ class StageError(FacelabError):
 
 class AvatarError(StageError):
     """An avatar file or mesh that facelab cannot use."""
+
+
+class BehaviourError(StageError):
+    """A behaviour library, annotation table, emotion or plan that cannot be used."""
 
 
 class SpeechError(StageError):

@@ -13,6 +13,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
 from facelab.methods import BUILTIN_Z, METHODS
 from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol
@@ -145,6 +146,28 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 )
         if cond.method == "impression":
             yield from _impression_model(params, base_dir, where)
+        if cond.behaviour not in BEHAVIOUR_MODES:
+            yield from _behaviour_library(base_dir / cond.behaviour, (*where, "behaviour"))
+
+
+def _behaviour_library(path: Path, where: tuple) -> Iterator[Issue]:
+    """A condition's custom behaviour library: a readable JSON/YAML mapping with units (the
+    units themselves are checked when clips are rendered, in facelab.stimuli)."""
+    import json
+
+    import yaml
+
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except FileNotFoundError:
+        yield Issue(where, f"behaviour library {path} was not found")
+        return
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        yield Issue(where, f"{path}: not readable JSON/YAML ({exc})")
+        return
+    if not isinstance(data, dict) or not isinstance(data.get("units"), list):
+        yield Issue(where, f"{path}: a behaviour library is a mapping with a list 'units'")
 
 
 def _impression_model(params: Any, base_dir: Path, where: tuple) -> Iterator[Issue]:
@@ -264,9 +287,13 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         if task.type == "identify":
             yield from _duplicates((lb.id for lb in task.labels), (*where, "labels"), "label")
             labels = {lb.id for lb in task.labels}
+            stimuli = {st.id for s in protocol.stimulus_sets for st in s.stimuli}
             for cond_id, label in task.answers.items():
-                if cond_id not in conditions:
-                    yield Issue((*where, "answers", cond_id), f"unknown condition {cond_id!r}")
+                if cond_id not in conditions and cond_id not in stimuli:
+                    yield Issue(
+                        (*where, "answers", cond_id),
+                        f"unknown condition or stimulus {cond_id!r}",
+                    )
                 if label not in labels:
                     yield Issue(
                         (*where, "answers", cond_id),

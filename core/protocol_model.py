@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
+from facelab.emotions import BEHAVIOUR_MODES, EMOTIONS, check_emotion
 from facelab.methods import METHODS
 
 __all__ = [
@@ -101,6 +102,30 @@ class Condition(_Model):
         "impression level q); needed by constant_stimuli and staircase blocks, and used as x "
         "by the psychometric and trend analyses.",
     )
+    behaviour: str = Field(
+        "none",
+        description="The non-verbal behaviour layer (seed 003) added to the speech animation: "
+        f"{', '.join(BEHAVIOUR_MODES)}, or a behaviour library file (JSON/YAML, relative to "
+        "the protocol) planned as composite.",
+    )
+    emotion: dict[str, float] | None = Field(
+        None,
+        description=f"The character's emotion for this condition ({', '.join(EMOTIONS)}: 0..1; "
+        "neutral follows eq. 4); omitted: the stimulus's emotion, else neutral.",
+    )
+
+    @model_validator(mode="after")
+    def _behaviour(self) -> Condition:
+        if self.behaviour not in BEHAVIOUR_MODES and not self.behaviour.lower().endswith(
+            (".json", ".yaml", ".yml")
+        ):
+            raise ValueError(
+                f"behaviour {self.behaviour!r}: use {', '.join(BEHAVIOUR_MODES)} or a library "
+                "file ending in .json/.yaml"
+            )
+        if self.emotion is not None:
+            check_emotion(self.emotion)
+        return self
 
 
 # --------------------------------------------------------------------------- stimuli
@@ -139,6 +164,11 @@ class Stimulus(_Model):
         description="Condition ids for which only the intended vowel's intensity is kept in "
         "each vowel segment (the rest set to 0).",
     )
+    emotion: dict[str, float] | None = Field(
+        None,
+        description=f"The emotion the stimulus is spoken with ({', '.join(EMOTIONS)}: 0..1), "
+        "for conditions with a behaviour layer.",
+    )
     note: str = ""
 
     @model_validator(mode="after")
@@ -149,6 +179,8 @@ class Stimulus(_Model):
             )
         if self.vowel_isolation and self.expected_vowels is None:
             raise ValueError("'vowel_isolation' needs 'expected_vowels' (e.g. aiueo)")
+        if self.emotion is not None:
+            check_emotion(self.emotion)
         return self
 
 
@@ -200,8 +232,15 @@ class IdentifyTask(_Model):
     labels: list[Label] = Field(min_length=2, max_length=9, description="Keys 1..9 choose.")
     answers: dict[Id, Id] = Field(
         default_factory=dict,
-        description="Condition id -> the label it portrays; scores answers as correct.",
+        description="Condition id or stimulus id -> the label it portrays (a condition's "
+        "entry wins); scores answers as correct.",
     )
+
+    def target(self, *, condition: str, stimulus: str | None = None) -> str | None:
+        """The label a trial portrays: by its condition, else by its stimulus."""
+        if condition in self.answers:
+            return self.answers[condition]
+        return self.answers.get(stimulus) if stimulus is not None else None
 
 
 Task = Annotated[ChoiceTask | IdentifyTask, Field(discriminator="type")]
@@ -330,6 +369,13 @@ class Rendering(_Model):
         "2-core CPU; 4 is smoother and about 1.7x slower.",
     )
     audio_sample_rate: int = Field(48000, ge=8000, le=192000)
+    behaviour_seed: int = Field(
+        1,
+        ge=0,
+        le=2**31 - 1,
+        description="Seed of the behaviour planner; with the stimulus it seeds each layer, so "
+        "conditions sharing a layer get the same random draws (yoked).",
+    )
     background: list[float] = Field(
         default_factory=lambda: [0.5, 0.5, 0.5], min_length=3, max_length=3
     )

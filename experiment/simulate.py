@@ -170,7 +170,9 @@ class ChoiceModel:
     def identify(self, screen: IdentifyScreen) -> str:
         assert screen.trial is not None and screen.task is not None
         labels = [lb.id for lb in screen.task.labels]
-        target = screen.task.answers.get(screen.trial.condition)
+        target = screen.task.target(
+            condition=screen.trial.condition, stimulus=screen.trial.stimulus
+        )
         if target is None:
             return labels[int(self.rng.integers(len(labels)))]
         row = self.identifier.confusion.get(target)

@@ -313,7 +313,7 @@ class IdentifyScreen(TaskScreen):
             return []
         (answer,) = answers
         assert self.trial is not None and self.task is not None
-        target = self.task.answers.get(self.trial.condition)
+        target = self.task.target(condition=self.trial.condition, stimulus=self.trial.stimulus)
         return [
             self._row(
                 context=context,

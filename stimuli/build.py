@@ -26,6 +26,7 @@ from facelab.errors import StageError
 from facelab.methods import VowelBlendParams
 from facelab.protocol import Protocol
 from facelab.stimuli.avatar import Avatar, check_targets, default_head, load, with_viseme_mixes
+from facelab.stimuli.behaviour import ClipBehaviour, behaviour_for_clip, clip_seed
 from facelab.stimuli.clip import (
     ClipInfo,
     encode,
@@ -110,6 +111,41 @@ def _blendshapes(
     return drive(cond.method, inp, cond.params)
 
 
+def _behaviour(
+    protocol: Protocol,
+    job: ClipJob,
+    speech: Speech,
+    base_dir: Path,
+    avatar: Avatar,
+    fps: int,
+    weights: np.ndarray,
+) -> ClipBehaviour | None:
+    cond = protocol.condition(job.condition)
+    return behaviour_for_clip(
+        setting=cond.behaviour,
+        emotion=cond.emotion if cond.emotion is not None else job.stimulus.emotion,
+        base_dir=base_dir,
+        seed=clip_seed(protocol.rendering.behaviour_seed, job.stimulus_set, job.stimulus.id),
+        speech=speech,
+        pad_s=protocol.rendering.pad_s,
+        fps=fps,
+        n_frames=len(weights),
+        weights=weights,
+        avatar=avatar,
+    )
+
+
+def _plan_hash(behaviour: ClipBehaviour) -> str:
+    text = json.dumps(behaviour.plan.to_json(), sort_keys=True, ensure_ascii=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
 def build_clips(
     protocol: Protocol,
     *,
@@ -145,6 +181,10 @@ def build_clips(
             cond = protocol.condition(job.condition)
             audio = padded_audio(speech, pad_s=protocol.rendering.pad_s)
             n_frames = round(audio.duration_s * fps)
+            weights = frame_weights(
+                bs, avatar, fps=fps, n_frames=n_frames, pad_s=protocol.rendering.pad_s
+            )
+            behaviour = _behaviour(protocol, job, speech, base_dir, avatar, fps, weights)
             key = hashlib.sha256(
                 json.dumps(
                     {
@@ -158,6 +198,7 @@ def build_clips(
                         "settings": settings.__dict__,
                         "fps": fps,
                         "pad_s": protocol.rendering.pad_s,
+                        **({"behaviour": _plan_hash(behaviour)} if behaviour is not None else {}),
                     },
                     sort_keys=True,
                     default=str,
@@ -189,12 +230,17 @@ def build_clips(
             if info is None:
                 if renderer is None:
                     renderer = Renderer(avatar, settings).__enter__()
-                weights = frame_weights(
-                    bs, avatar, fps=fps, n_frames=n_frames, pad_s=protocol.rendering.pad_s
-                )
                 tick = progress(job.clip_id, n_frames) if progress else None
+                frames = (
+                    (renderer.frame(w) for w in weights)
+                    if behaviour is None
+                    else (
+                        renderer.frame(w, pose=p)
+                        for w, p in zip(behaviour.weights, behaviour.poses, strict=True)
+                    )
+                )
                 info = encode(
-                    (renderer.frame(w) for w in weights),
+                    frames,
                     audio=audio,
                     out=mp4,
                     fps=fps,
@@ -217,11 +263,14 @@ def build_clips(
                             "avatar_kind": avatar.source.get("kind", "unknown"),
                             "stand_in": stand_in(avatar, cond.method, cond.params),
                             **({"track_notes": bs.notes} if bs.notes else {}),
+                            **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
                         },
                         indent=2,
                     )
                     + "\n"
                 )
+                if behaviour is not None:
+                    _write_json(out / f"{job.clip_id}.behaviour.json", behaviour.log())
                 note = stand_in(avatar, cond.method, cond.params)
                 log(f"  rendered {job.clip_id} ({n_frames} frames)" + (f"; {note}" if note else ""))
             rows.append(

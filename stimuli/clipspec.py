@@ -87,6 +87,8 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         files["model"] = _file_sha256(base_dir / model)
     if r.avatar != "default":
         files["avatar"] = _file_sha256(base_dir / r.avatar)
+    if cond.behaviour.lower().endswith((".json", ".yaml", ".yml")):
+        files["behaviour"] = _file_sha256(base_dir / cond.behaviour)
     spec = {
         "version": RENDER_VERSION,
         "stimulus": {
@@ -100,6 +102,15 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         "method": cond.method,
         "params": cond.params,
         "files": files,
+        **(
+            {
+                "behaviour": cond.behaviour,
+                "emotion": cond.emotion if cond.emotion is not None else stim.emotion,
+                "behaviour_seed": r.behaviour_seed,
+            }
+            if cond.behaviour != "none"
+            else {}
+        ),
         "avatar": r.avatar,
         "camera": r.camera.model_dump(),
         "pad_s": r.pad_s,

@@ -13,7 +13,6 @@ Empty, silent, clipped or unreadable audio raises :class:`SpeechError` naming th
 from __future__ import annotations
 
 import importlib.util
-import re
 import shutil
 import subprocess
 import tempfile
@@ -25,6 +24,7 @@ import numpy as np
 from scipy import signal
 
 from facelab.errors import SpeechError
+from facelab.stimuli.prosody import AccentPhrase, Word, accent_phrases, label_rows, words_with_times
 
 __all__ = [
     "DICTIONARY_DIR",
@@ -60,12 +60,16 @@ class Speech:
 
     samples : float32, shape (n,), in [-1, 1]; sample_rate in Hz.
     phones : tuple of :class:`Phone` (empty for recorded audio).
+    words, accents : the front end's timed words and accent phrases
+        (:mod:`facelab.stimuli.prosody`; empty for recorded audio).
     """
 
     samples: np.ndarray
     sample_rate: int
     phones: tuple[Phone, ...] = ()
     source: str = ""
+    words: tuple[Word, ...] = ()
+    accents: tuple[AccentPhrase, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -93,29 +97,12 @@ def _open_jtalk() -> str:
     return exe
 
 
-_LABEL_RE = re.compile(r"^(\d+) (\d+) \S*?\^\S*?-(\S+?)\+")
-
-
 def parse_trace(text: str) -> tuple[Phone, ...]:
     """Phones from the ``[Output label]`` section of an ``open_jtalk -ot`` trace.
 
     Label times are in 100 ns units; the phoneme sits between ``-`` and ``+``.
     """
-    phones: list[Phone] = []
-    in_labels = False
-    for line in text.splitlines():
-        if line.startswith("[Output label]"):
-            in_labels = True
-            continue
-        if in_labels:
-            if not line.strip():
-                break
-            match = _LABEL_RE.match(line)
-            if match is None:
-                raise SpeechError(f"unexpected OpenJTalk label line: {line[:60]!r}")
-            start, end, phoneme = int(match.group(1)), int(match.group(2)), match.group(3)
-            phones.append(Phone(phoneme, start * 1e-7, end * 1e-7))
-    return tuple(phones)
+    return tuple(Phone(ph, t0, t1) for t0, t1, ph, _ in label_rows(text))
 
 
 def synthesize(
@@ -171,14 +158,22 @@ def synthesize(
                 f"OpenJTalk could not read the text {clean[:30]!r}: "
                 f"{proc.stderr.strip() or 'no audio produced'}"
             )
-        phones = parse_trace((tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace"))
+        trace = (tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace")
+        phones = parse_trace(trace)
         samples, rate = _read_wav_pcm16(wav)
     speaking = [p for p in phones if p.phoneme not in ("sil", "pau")]
     if not speaking:
         raise SpeechError(f"OpenJTalk found nothing to pronounce in {clean[:30]!r}")
     if rate != sample_rate:
         samples = resample(samples, rate_in=rate, rate_out=sample_rate)
-    return Speech(samples=samples, sample_rate=sample_rate, phones=phones, source=f"tts:{clean}")
+    return Speech(
+        samples=samples,
+        sample_rate=sample_rate,
+        phones=phones,
+        source=f"tts:{clean}",
+        words=tuple(words_with_times(trace)),
+        accents=tuple(accent_phrases(trace)),
+    )
 
 
 def _read_wav_pcm16(path: Path) -> tuple[np.ndarray, int]:

@@ -21,6 +21,7 @@ from facelab.errors import FacelabError
 from facelab.experiment.cli import (
     analysis_cmds,
     avatar_cmds,
+    behaviour_cmds,
     demo_cmd,
     impression_cmds,
     protocol_cmds,
@@ -37,6 +38,7 @@ FAMILIES = (
     stimulus_cmds,
     avatar_cmds,
     impression_cmds,
+    behaviour_cmds,
     session_cmds,
     analysis_cmds,
     demo_cmd,

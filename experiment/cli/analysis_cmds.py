@@ -41,6 +41,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     tasks = analyze_tasks(
         data, protocol, rng=np.random.default_rng(args.seed), n_boot=args.bootstrap
     )
+    _behaviour_tables(args, protocol, results_dir, vas, tasks)
     if args.out:
         out = output_dir(args.out, option="--out")
     elif results_dir.name == protocol.study.id:
@@ -74,6 +75,29 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     _print_tasks(tasks)
     print(f"report: {files.html}\ntables and figures: {files.folder}")
     return 0
+
+
+def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
+    """Behaviour counts per clip and the covariate model, for protocols with a behaviour layer
+    (seed 003); the clip logs come from --clips (default: the study's clips folder)."""
+    if all(c.behaviour == "none" for c in protocol.conditions):
+        return
+    from facelab.analysis.behaviour import clip_behaviour, covariate_model
+
+    root = results_dir if results_dir.name == protocol.study.id else results_dir / protocol.study.id
+    clips = Path(args.clips) if args.clips else root / "clips"
+    if not (clips / "clips.csv").is_file():
+        tasks.notes.append(
+            f"behaviour covariates: no clips in {clips} (render them there, or pass --clips)"
+        )
+        return
+    counts = clip_behaviour(clips)
+    if counts.empty:
+        tasks.notes.append(f"behaviour covariates: no behaviour logs in {clips}")
+        return
+    tasks.tables["behaviour_counts"] = counts
+    if not vas.empty:
+        tasks.tables["behaviour_covariates"] = covariate_model(vas, counts)
 
 
 def _print_tasks(tasks: object) -> None:
@@ -226,6 +250,12 @@ def register(add: AddCommand) -> None:
         help="primary procedure: rm (sound, default) or paper (pooled ANOVA + Tukey)",
     )
     p.add_argument("--exclude", action="append", metavar="ID", help="leave out a participant")
+    p.add_argument(
+        "--clips",
+        metavar="DIR",
+        help="rendered clips with behaviour logs, for the behaviour covariates "
+        "(default: <results>/<study>/clips)",
+    )
     p.add_argument(
         "--bootstrap",
         type=int,

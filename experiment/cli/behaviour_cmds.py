@@ -1,0 +1,245 @@
+"""``facelab behaviour``: emotional non-verbal behaviour (seed 003, EMBOS) - fit a library
+from annotations, plan a clip's behaviour, render demonstration clips, draw the units."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size
+
+__all__ = ["register"]
+
+
+def _library(path: str | None):
+    from facelab.stimuli.behaviour_library import default_library, load_library
+
+    return default_library() if path in (None, "default") else load_library(Path(path))
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from facelab.stimuli.behaviour_fit import fit_library, format_report, read_annotations
+
+    if not args.input or not args.out:
+        raise FacelabError("facelab behaviour fit ANNOTATIONS --out LIBRARY.json")
+    out = output_file(args.out, option="--out", force=args.force)
+    table = read_annotations(Path(args.input))
+    library, stats = fit_library(table, alpha=args.alpha)
+    missing: list[str] = []
+    if args.motions != "none":
+        library, missing = library.with_motions(_library(args.motions))
+    out.write_text(
+        json.dumps(library.model_dump(mode="json", exclude_defaults=False), indent=1,
+                   ensure_ascii=False) + "\n",
+        encoding="utf-8",
+    )  # fmt: skip
+    report = format_report(stats, source=str(args.input), alpha=args.alpha)
+    if missing:
+        report += (
+            "\nNo motion (channels, curve) for: " + ", ".join(missing) + " - they are kept "
+            "with their statistics but not planned until a motion library names them.\n"
+        )
+    report_path = Path(args.report) if args.report else out.with_suffix(".report.md")
+    report_path.write_text(report, encoding="utf-8")
+    print(
+        f"fitted {len(library.units)} units from {len(table)} annotations "
+        f"({table['emotion'].nunique()} emotions) -> {out}; report {report_path}"
+    )
+    if missing:
+        print(f"  no motion for: {', '.join(missing)}")
+    return 0
+
+
+def _cues(args: argparse.Namespace, pad_s: float):
+    from facelab.stimuli.behaviour_plan import SpeechCues
+
+    if args.text and args.stimulus:
+        raise FacelabError("give --text or --stimulus, not both")
+    if args.text:
+        from facelab.stimuli.speech import synthesize
+
+        speech = synthesize(args.text)
+        return speech, SpeechCues.from_speech(speech, offset_s=pad_s)
+    if args.stimulus:
+        if not args.protocol:
+            raise FacelabError("--stimulus SET/ID needs --protocol PROTOCOL")
+        from facelab.protocol import load_protocol
+        from facelab.stimuli.prepare import find_stimulus, speech_for
+
+        protocol = load_protocol(args.protocol)
+        _, stim = find_stimulus(protocol, args.stimulus)
+        speech = speech_for(
+            stim,
+            base_dir=Path(args.protocol).parent,
+            sample_rate=protocol.rendering.audio_sample_rate,
+        )
+        return speech, SpeechCues.from_speech(speech, offset_s=pad_s)
+    return None, SpeechCues()
+
+
+def _plan(args: argparse.Namespace) -> int:
+    from facelab.stimuli.behaviour import layers_for
+    from facelab.stimuli.behaviour_plan import EmotionTimeline, parse_emotion, plan_behaviour
+
+    if not args.emotion or not args.out or args.duration_s is None:
+        raise FacelabError(
+            "facelab behaviour plan --emotion joy=0.8 (--text T | --stimulus SET/ID "
+            "--protocol P) --duration-s S --seed N --out PLAN.json"
+        )
+    if len(args.emotion) != 1:
+        raise FacelabError("plan: give one --emotion (e.g. joy=0.5,surprise=0.3)")
+    out = output_file(args.out, option="--out", force=args.force)
+    library = _library(args.library)
+    speech, cues = _cues(args, args.lead_s)
+    layers, neutral = layers_for(args.mode)
+    plan = plan_behaviour(
+        library,
+        emotion=EmotionTimeline.constant(parse_emotion(args.emotion[0])),
+        duration_s=args.duration_s,
+        seed=args.seed,
+        cues=cues,
+        layers=layers,
+        neutral_layers=neutral,
+    )
+    out.write_text(json.dumps(plan.to_json(), indent=1, ensure_ascii=False) + "\n", "utf-8")
+    print(f"{len(plan.events)} events over {args.duration_s:g} s -> {out}")
+    print("  " + ", ".join(f"{k} {v}" for k, v in plan.counts().items()))
+    if args.bml:
+        bml = output_file(args.bml, option="--bml")
+        bml.write_text(plan.to_bml(library), encoding="utf-8")
+        print(f"  BML 1.0 -> {bml}")
+    if args.figure:
+        import matplotlib.pyplot as plt
+
+        from facelab.stimuli.plots import plan_timeline_figure
+
+        fig_path = output_file(args.figure, option="--figure")
+        fig = plan_timeline_figure(
+            plan,
+            cues=cues,
+            phones=speech.phones if speech is not None else (),
+            offset_s=args.lead_s,
+            title=out.stem,
+        )
+        fig.savefig(fig_path)
+        plt.close(fig)
+        print(f"  timeline -> {fig_path}")
+    for note in plan.notes:
+        print(f"  note: {note}")
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from facelab.stimuli.avatar import default_head, load
+    from facelab.stimuli.behaviour_plan import parse_emotion
+    from facelab.stimuli.behaviour_render import render_behaviour_clips
+    from facelab.stimuli.render import RenderSettings
+
+    if not args.text or not args.out or not args.emotion:
+        raise FacelabError(
+            "facelab behaviour render --text T --emotion joy=0.8 [--emotion …] --out DIR"
+        )
+    out = output_dir(args.out, option="--out")
+    size = parse_size(args.size) or (1280, 720)
+    avatar = load(Path(args.avatar)) if args.avatar else default_head()
+    rows = render_behaviour_clips(
+        text=args.text,
+        emotions=[parse_emotion(e) for e in args.emotion],
+        modes=args.modes,
+        duration_s=args.duration_s or 30.0,
+        seed=args.seed,
+        out=out,
+        avatar=avatar,
+        settings=RenderSettings(width=size[0], height=size[1], msaa=args.msaa),
+        fps=args.fps,
+        lead_s=args.lead_s,
+        library=args.library or "default",
+    )
+    print(f"wrote {len(rows)} clips with event logs and timelines, and clips.csv into {out}")
+    return 0
+
+
+def _sheet(args: argparse.Namespace) -> int:
+    from facelab.stimuli.avatar import default_head, load
+    from facelab.stimuli.behaviour_render import unit_sheet
+
+    if not args.out:
+        raise FacelabError("facelab behaviour sheet --out SHEET.png")
+    out = output_file(args.out, option="--out")
+    avatar = load(Path(args.avatar)) if args.avatar else default_head()
+    unit_sheet(out=out, avatar=avatar, library=_library(args.library))
+    print(f"contact sheet of the library's units -> {out}")
+    return 0
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from facelab.stimuli.behaviour_synth import synthetic_annotations
+
+    if not args.out:
+        raise FacelabError("facelab behaviour synth --out ANNOTATIONS.csv")
+    out = output_file(args.out, option="--out", force=args.force)
+    table = synthetic_annotations(
+        library=_library(args.library), seconds=args.duration_s or 120.0, seed=args.seed
+    )
+    table.to_csv(out, index=False)
+    print(
+        f"wrote {len(table)} SYNTHETIC annotations ({table['emotion'].nunique()} emotions, "
+        f"planned from the library, not people) to {out}"
+    )
+    return 0
+
+
+def _cmd_behaviour(args: argparse.Namespace) -> int:
+    actions = {"fit": _fit, "plan": _plan, "render": _render, "sheet": _sheet, "synth": _synth}
+    return actions[args.action](args)
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add(
+        "behaviour",
+        "emotional non-verbal behaviour (seed 003): fit a unit library from annotations, plan "
+        "a clip's behaviour (JSON, BML, timeline), render demonstration clips, draw the units",
+        _cmd_behaviour,
+    )
+    p.add_argument("action", choices=["fit", "plan", "render", "sheet", "synth"])
+    p.add_argument(
+        "input", nargs="?", metavar="ANNOTATIONS",
+        help="fit: a table emotion,layer,behaviour,start_s,end_s (CSV) or an ELAN .eaf",
+    )  # fmt: skip
+    p.add_argument("--out", metavar="PATH", help="the file (or, for render, folder) to write")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file")
+    p.add_argument("--library", metavar="FILE", help="a behaviour library (default: shipped)")
+    p.add_argument("--alpha", type=float, default=0.3, help="fit: eq. 2's alpha (0.3)")
+    p.add_argument(
+        "--motions", default="default", metavar="FILE",
+        help="fit: take channels/curves/triggers of same-named units from this library "
+        "(default: the shipped one; 'none' to skip)",
+    )  # fmt: skip
+    p.add_argument("--report", metavar="MD", help="fit: report path (default LIBRARY.report.md)")
+    p.add_argument(
+        "--emotion", action="append", metavar="E",
+        help="plan/render: e.g. joy=0.8 or joy=0.5,surprise=0.3 (render: repeat per clip)",
+    )  # fmt: skip
+    p.add_argument("--text", metavar="TEXT", help="plan/render: Japanese text (OpenJTalk)")
+    p.add_argument("--stimulus", metavar="SET/ID", help="plan: a stimulus of --protocol")
+    p.add_argument("--protocol", metavar="PROTOCOL")
+    p.add_argument("--duration-s", type=float, metavar="S", help="plan/render/synth: seconds")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument(
+        "--mode", choices=["gestures_only", "composite"], default="composite",
+        help="plan: the layers planned from the emotion",
+    )  # fmt: skip
+    p.add_argument(
+        "--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",
+        help="render: behaviour modes per emotion (none gestures_only composite)",
+    )  # fmt: skip
+    p.add_argument("--lead-s", type=float, default=0.5, help="plan/render: silence before speech")
+    p.add_argument("--bml", metavar="XML", help="plan: also write BML 1.0")
+    p.add_argument("--figure", metavar="PNG", help="plan: a timeline figure")
+    p.add_argument("--size", metavar="WxH", help="render: default 1280x720")
+    p.add_argument("--fps", type=int, default=30)
+    p.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
+    p.add_argument("--avatar", metavar="FILE", help="render/sheet: an avatar (default head)")
