@@ -19,19 +19,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from matplotlib import font_manager
 from matplotlib.figure import Figure
 
+from facelab.resources import cjk_font
+
 __all__ = ["cjk_font", "confusion_figure", "psychometric_figure", "rating_figure", "stars"]
-
-
-def cjk_font() -> str | None:
-    """Name of an installed font family with Japanese glyphs, or None."""
-    names = {f.name for f in font_manager.fontManager.ttflist}
-    for name in ("Noto Sans CJK JP", "Noto Sans JP", "IPAexGothic", "IPAGothic", "TakaoGothic"):
-        if name in names:
-            return name
-    return None
 
 
 def stars(p: float) -> str:

@@ -15,7 +15,7 @@ import yaml
 
 from facelab.errors import FacelabError
 
-__all__ = ["copy_protocol", "package_file", "protocol_path", "shipped_protocols"]
+__all__ = ["cjk_font", "copy_protocol", "package_file", "protocol_path", "shipped_protocols"]
 
 _PROTOCOLS = "facelab.protocols"
 
@@ -95,3 +95,14 @@ def _companions(protocol: Path) -> list[Path]:
 
     walk(data)
     return sorted(set(out))
+
+
+def cjk_font() -> str | None:
+    """Name of an installed font family with Japanese glyphs (for matplotlib), or None."""
+    from matplotlib import font_manager
+
+    names = {f.name for f in font_manager.fontManager.ttflist}
+    for name in ("Noto Sans CJK JP", "Noto Sans JP", "IPAexGothic", "IPAGothic", "TakaoGothic"):
+        if name in names:
+            return name
+    return None

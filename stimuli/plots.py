@@ -54,8 +54,10 @@ def plan_timeline_figure(
     """One plan over time: a row per layer with its events (bars labelled by unit, a tick at
     each stroke), and below them the phoneme track of the speech (``phones`` shifted by
     ``offset_s``) with accent peaks and trigger words from ``cues``."""
+    from facelab.resources import cjk_font
     from facelab.stimuli.behaviour_library import LAYERS
 
+    font = cjk_font()
     layers = [layer for layer in LAYERS if layer in plan.layers] or list(LAYERS)
     fig, (ax, axp) = plt.subplots(
         2,
@@ -90,11 +92,12 @@ def plan_timeline_figure(
         vowel = p.phoneme.lower() in "aiueo"
         axp.broken_barh([(a, b - a)], (0.1, 0.5), color="#2ca02c" if vowel else "#bbbbbb")
         axp.text((a + b) / 2, 0.35, p.phoneme, ha="center", va="center", fontsize=5.5)
+    kw = {"fontfamily": font} if font else {}
     if cues is not None:
         for t in cues.accents:
             axp.plot([t, t], [0.6, 1.0], color="#d62728", lw=1)
         for surface, a, _b in cues.words:
-            axp.text(a, 0.72, surface, fontsize=6.5, va="bottom")
+            axp.text(a, 0.72, surface, fontsize=6.5, va="bottom", **kw)
     axp.set_yticks([])
     axp.set_ylim(0, 1.3)
     axp.set_xlabel("clip time (s); red ticks: accent peaks; green: vowels")

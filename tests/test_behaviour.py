@@ -1,0 +1,526 @@
+"""Emotional behaviour (seed 003, EMBOS): library rules, eqs. 2-5 against hand-computed
+answers, the planner's guarantees (determinism, yoking, ω_l, triggers, blink statistics),
+realisation on speech, protocols, clips with event logs, the CLI and the covariate model."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from facelab.errors import BehaviourError
+from facelab.experiment.cli import main
+from facelab.protocol import ProtocolError, load_protocol
+from facelab.stimuli.avatar import default_head
+from facelab.stimuli.behaviour_fit import check_annotations, fit_library, read_annotations
+from facelab.stimuli.behaviour_library import (
+    LAYERS,
+    Library,
+    default_library,
+    is_speech_channel,
+    load_library,
+)
+from facelab.stimuli.behaviour_plan import (
+    EmotionTimeline,
+    Plan,
+    SpeechCues,
+    blend,
+    complete_emotion,
+    parse_emotion,
+    plan_behaviour,
+)
+from facelab.stimuli.behaviour_realise import apply_to_weights, curve_values, realise
+
+# ------------------------------------------------------------------ the annotation table
+
+
+def _known_table() -> pd.DataFrame:
+    """A table whose eq. 2-3 answers are worked out by hand in the tests below."""
+    rows = [
+        # postures: joy 60 s annotated (upright 40, tilt 20); anger 40 s (upright 10, chin 30+)
+        ("joy", "posture", "upright", 0, 40),
+        ("joy", "posture", "tilt", 40, 60),
+        ("anger", "posture", "upright", 100, 110),
+        ("anger", "posture", "chin", 110, 140),
+        ("anger", "posture", "chin", 140, 150),
+        # mannerisms: joy glance x3 (1 s); anger glance x1 (2 s), squint x3 (1 s)
+        ("joy", "mannerism", "glance", 5, 6),
+        ("joy", "mannerism", "glance", 15, 16),
+        ("joy", "mannerism", "glance", 25, 26),
+        ("anger", "mannerism", "glance", 101, 103),
+        ("anger", "mannerism", "squint", 111, 112),
+        ("anger", "mannerism", "squint", 121, 122),
+        ("anger", "mannerism", "squint", 131, 132),
+        # gestures with a tie in share: joy nod x2, shake x2; anger shake x2
+        ("joy", "gesture", "nod", 1, 1.5),
+        ("joy", "gesture", "nod", 2, 2.5),
+        ("joy", "gesture", "shake", 3, 4),
+        ("joy", "gesture", "shake", 7, 8),
+        ("anger", "gesture", "shake", 104, 105),
+        ("anger", "gesture", "shake", 106, 107),
+    ]
+    return pd.DataFrame(rows, columns=["emotion", "layer", "behaviour", "start_s", "end_s"])
+
+
+@pytest.fixture(scope="module")
+def fitted() -> tuple[Library, pd.DataFrame]:
+    return fit_library(check_annotations(_known_table()), alpha=0.3)
+
+
+def _cell(stats: pd.DataFrame, behaviour: str, emotion: str) -> pd.Series:
+    row = stats[(stats["behaviour"] == behaviour) & (stats["emotion"] == emotion)]
+    assert len(row) == 1, (behaviour, emotion)
+    return row.iloc[0]
+
+
+def test_posture_intensity_and_wait_by_hand(fitted: tuple[Library, pd.DataFrame]) -> None:
+    _, stats = fitted
+    # joy: D = 2; share upright 40/60 (r 1), tilt 20/60 (r 2); universality upright 40/50 = 0.8
+    # (n 2), tilt 20/20 = 1 (n 1); E(1) = 1, E(2) = 0.5
+    up = _cell(stats, "upright", "joy")
+    assert up["universality"] == pytest.approx(0.8)
+    assert (up["rank_share"], up["rank_universality"]) == (1, 2)
+    assert up["intensity"] == pytest.approx(0.3 * 1 + 0.7 * 0.5)
+    assert _cell(stats, "tilt", "joy")["intensity"] == pytest.approx(0.3 * 0.5 + 0.7 * 1)
+    # anger: chin 40 s of 50 -> r 1, s 1 -> 1; upright share 0.2, s 0.2 -> both rank 2
+    assert _cell(stats, "chin", "anger")["intensity"] == pytest.approx(1.0)
+    assert _cell(stats, "upright", "anger")["intensity"] == pytest.approx(0.5)
+    # eq. 3 with L_e(joy) = 60: upright (60 - 40)/40 * 40 = 20; tilt (60 - 20)/20 * 20 = 40
+    assert up["wait_s"] == pytest.approx(20.0)
+    assert _cell(stats, "tilt", "joy")["wait_s"] == pytest.approx(40.0)
+    # chin in anger: two occurrences (30 s, 10 s): mean 20, total 40, L_e 50 -> (10/40)*20
+    chin = _cell(stats, "chin", "anger")
+    assert (chin["duration_s"], chin["L_e"]) == (pytest.approx(20.0), pytest.approx(50.0))
+    assert chin["wait_s"] == pytest.approx(5.0)
+
+
+def test_mannerism_and_gesture_intensities_by_hand(fitted: tuple[Library, pd.DataFrame]) -> None:
+    library, stats = fitted
+    # joy: glance is the only mannerism (D = 1) -> 1; L_w = (60 - 3)/3 * 1 = 19
+    g = _cell(stats, "glance", "joy")
+    assert (g["intensity"], g["wait_s"]) == (pytest.approx(1.0), pytest.approx(19.0))
+    # anger: glance 1 of 4 (share r 2), s = 1/4 (n 2) -> 0.5; squint -> 1; L_w(squint) =
+    # (50 - 3)/3 * 1
+    assert _cell(stats, "glance", "anger")["intensity"] == pytest.approx(0.5)
+    assert _cell(stats, "squint", "anger")["wait_s"] == pytest.approx(47 / 3)
+    # ties share the smallest rank: joy nod and shake both 2 of 4 -> r = 1 for both;
+    # universality nod 1 (n 1), shake 2/4 (n 2) -> nod 1, shake 0.3 + 0.7 * 0.5
+    nod, shake = _cell(stats, "nod", "joy"), _cell(stats, "shake", "joy")
+    assert nod["rank_share"] == shake["rank_share"] == 1
+    assert nod["intensity"] == pytest.approx(1.0)
+    assert shake["intensity"] == pytest.approx(0.65)
+    # behaviours not observed in an emotion get 0; the library carries all seven emotions
+    unit = library.unit("tilt")
+    assert unit.intensity["anger"] == 0.0 and len(unit.intensity) == 7
+    assert "anger" not in unit.duration_s
+    # continuity from transitions: joy postures upright -> tilt seen once
+    assert library.continuity["upright"]["tilt"] == pytest.approx(1.0)
+
+
+def test_annotation_errors_name_the_row(tmp_path: Path) -> None:
+    bad = _known_table()
+    bad.loc[3, "emotion"] = "happy"
+    with pytest.raises(BehaviourError, match=r"row 4: emotion 'happy'"):
+        check_annotations(bad)
+    bad = _known_table()
+    bad.loc[0, "end_s"] = 0
+    with pytest.raises(BehaviourError, match=r"row 1: .*end_s > start_s"):
+        check_annotations(bad)
+    with pytest.raises(BehaviourError, match="missing column"):
+        check_annotations(_known_table().drop(columns=["layer"]))
+    no_posture = _known_table()
+    no_posture = no_posture[~((no_posture.emotion == "anger") & (no_posture.layer == "posture"))]
+    with pytest.raises(BehaviourError, match="'anger' has no posture annotation"):
+        fit_library(check_annotations(no_posture))
+    with pytest.raises(BehaviourError, match="no such annotation file"):
+        read_annotations(tmp_path / "missing.csv")
+
+
+def test_elan_file_reads_like_the_csv(tmp_path: Path) -> None:
+    from pympi.Elan import Eaf, to_eaf
+
+    table = _known_table()
+    eaf = Eaf(author="facelab test")
+    eaf.add_tier("emotion")
+    eaf.add_annotation("emotion", 0, 90_000, "joy")
+    eaf.add_annotation("emotion", 90_000, 160_000, "anger")
+    for layer in ("posture", "mannerism", "gesture"):
+        eaf.add_tier(layer)
+    for r in table.itertuples():
+        eaf.add_annotation(r.layer, round(r.start_s * 1000), round(r.end_s * 1000), r.behaviour)
+    path = tmp_path / "ann.eaf"
+    to_eaf(str(path), eaf)
+    from_eaf = read_annotations(path)
+    assert len(from_eaf) == len(table)
+    lib_csv, _ = fit_library(check_annotations(table))
+    lib_eaf, _ = fit_library(from_eaf)
+    assert {u.behaviour: u.intensity for u in lib_csv.units} == {
+        u.behaviour: u.intensity for u in lib_eaf.units
+    }
+
+
+# ------------------------------------------------------------------ the library
+
+
+def test_default_library_loads_with_sources() -> None:
+    lib = default_library()
+    assert {u.layer for u in lib.units} == set(LAYERS)
+    assert len(lib.sources) >= 5 and all(u.source for u in lib.units)
+    assert all(u.has_motion for u in lib.units)
+
+
+def test_speech_channels_are_refused(tmp_path: Path) -> None:
+    assert is_speech_channel("jawOpen") and is_speech_channel("mouthPressLeft")
+    assert not is_speech_channel("mouthSmileLeft") and not is_speech_channel("mouthDimpleRight")
+    data = default_library().model_dump(mode="json")
+    data["units"][1]["channels"] = {"mouthPressLeft": 0.4}
+    path = tmp_path / "lib.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(BehaviourError, match=r"units\.1.*'upright'.*belongs to speech"):
+        load_library(path)
+    data["units"][1]["channels"] = {"browDownLeft": 0.4}
+    data["units"][1]["intensity"]["happy"] = 0.4
+    path.write_text(json.dumps(data))
+    with pytest.raises(BehaviourError, match="unknown emotion"):
+        load_library(path)
+
+
+def test_fitted_library_takes_motions_by_name(fitted: tuple[Library, pd.DataFrame]) -> None:
+    library, _ = fitted
+    motions = default_library()
+    renamed = library.model_copy(
+        update={
+            "units": [
+                u.model_copy(
+                    update={
+                        "behaviour": {"chin": "chin_up", "tilt": "head_tilt_smile"}.get(
+                            u.behaviour, u.behaviour
+                        )
+                    }
+                )
+                for u in library.units
+            ],
+            "continuity": {},
+        }
+    )
+    merged, missing = renamed.with_motions(motions)
+    assert missing == ["glance"]
+    assert merged.unit("chin_up").channels == motions.unit("chin_up").channels
+    assert merged.unit("chin_up").intensity == renamed.unit("chin_up").intensity
+
+
+# ------------------------------------------------------------------ eqs. 4 and 5
+
+
+def test_neutral_by_eq4_and_blend_by_eq5() -> None:
+    assert complete_emotion({"joy": 0.3, "anger": 0.2})[-1] == pytest.approx(0.5)
+    assert complete_emotion({"joy": 0.8, "anger": 0.5})[-1] == 0.0
+    assert complete_emotion({"neutral": 0.2})[-1] == 1.0  # a given neutral is replaced
+    with pytest.raises(BehaviourError, match="intensities lie in"):
+        complete_emotion({"joy": 1.5})
+    with pytest.raises(BehaviourError, match="name=value"):
+        parse_emotion("happy=1")
+    char = complete_emotion({"joy": 0.8})  # neutral 0.2
+    w_joy, w_neu = np.exp(-(0.2**2) / 0.25), np.exp(-(0.8**2) / 0.25)
+    expected = (w_joy * 2.0 + w_neu * 6.0) / (w_joy + w_neu)
+    assert blend({"joy": 2.0, "neutral": 6.0}, char, radius=0.5) == pytest.approx(expected)
+
+
+# ------------------------------------------------------------------ the planner
+
+
+def _cues() -> SpeechCues:
+    return SpeechCues(
+        words=(("いいえ", 0.6, 1.0), ("本当", 3.0, 3.4)),
+        accents=tuple(np.arange(0.8, 9.0, 0.7)),
+        phrase_ends=(4.0, 9.0),
+        speaking=((0.5, 4.0), (4.5, 9.0)),
+        pauses=(4.0,),
+    )
+
+
+def test_plan_is_deterministic_and_seeded() -> None:
+    lib = default_library()
+    emo = EmotionTimeline.constant({"joy": 0.8})
+    a = plan_behaviour(lib, emotion=emo, duration_s=12, seed=4, cues=_cues()).to_json()
+    b = plan_behaviour(lib, emotion=emo, duration_s=12, seed=4, cues=_cues()).to_json()
+    c = plan_behaviour(lib, emotion=emo, duration_s=12, seed=5, cues=_cues()).to_json()
+    assert a == b
+    assert a["events"] != c["events"]
+    again = Plan.from_json(json.loads(json.dumps(a)))
+    assert again.to_json() == a
+
+
+@pytest.mark.parametrize("emotion", ["joy", "anger", "sadness", "fear", "disgust", "surprise"])
+def test_plan_respects_layers_channels_and_triggers(emotion: str) -> None:
+    lib = default_library()
+    cues = _cues()
+    plan = plan_behaviour(
+        lib, emotion=EmotionTimeline.constant({emotion: 0.8}), duration_s=10, seed=2, cues=cues
+    )
+    for layer in LAYERS:  # one unit per layer at a time
+        ev = sorted((e for e in plan.events if e.layer == layer), key=lambda e: e.start_s)
+        assert all(b.start_s >= a.end_s - 1e-9 for a, b in itertools.pairwise(ev))
+    for i, a in enumerate(plan.events):  # ω_l: units sharing a channel never overlap
+        for b in plan.events[i + 1 :]:
+            if a.layer != b.layer and set(a.channels) & set(b.channels):
+                assert a.end_s <= b.start_s + 1e-9 or b.end_s <= a.start_s + 1e-9, (a, b)
+    triggers = {t for t, _ in cues.trigger_times(lib.unit("nod"))}
+    triggers |= {t for t, _ in cues.trigger_times(lib.unit("shake"))}
+    triggers |= {t for t, _ in cues.trigger_times(lib.unit("brow_raise"))}
+    for e in plan.events:
+        if e.layer == "gesture":  # the stroke lands on its trigger (within one step)
+            assert e.trigger is not None
+            assert min(abs(e.sync["stroke"] - t) for t in triggers) <= lib.step_s + 1e-9
+        assert e.end_s <= plan.duration_s + 1e-9
+
+
+def test_emotion_picks_its_units() -> None:
+    lib = default_library()
+    counts = {}
+    for emotion in ("sadness", "joy", "disgust"):
+        plan = plan_behaviour(
+            lib, emotion=EmotionTimeline.constant({emotion: 1.0}), duration_s=60, seed=3
+        )
+        posture = {}
+        for e in plan.events:
+            if e.layer == "posture":
+                posture[e.unit] = posture.get(e.unit, 0) + e.end_s - e.start_s
+        counts[emotion] = max(posture, key=posture.get)
+    assert counts == {"sadness": "head_down", "joy": "head_tilt_smile", "disgust": "turn_away"}
+
+
+def test_blinks_at_human_rates() -> None:
+    lib = default_library()
+    neutral = EmotionTimeline.constant({"neutral": 1.0})
+    rates, rates_speaking, intervals = [], [], []
+    talk = SpeechCues(speaking=((0.0, 600.0),))
+    for seed in range(3):
+        plan = plan_behaviour(lib, emotion=neutral, duration_s=600, seed=seed, layers=("blink",))
+        starts = np.array([e.start_s for e in plan.events])
+        rates.append(len(starts) / 10)
+        intervals += list(np.diff(starts))
+        spk = plan_behaviour(
+            lib, emotion=neutral, duration_s=600, seed=seed, cues=talk, layers=("blink",)
+        )
+        rates_speaking.append(len(spk.events) / 10)
+    rest, speaking = float(np.mean(rates)), float(np.mean(rates_speaking))
+    assert 14 <= rest <= 20, rest  # Bentivoglio 1997: 17/min at rest
+    assert 22 <= speaking <= 30, speaking  # 26/min in conversation
+    log_iv = np.log(np.array(intervals) - 0.25 + 1e-3)
+    assert np.std(np.array(intervals)) / np.mean(intervals) > 0.35  # irregular, not a clock
+    assert abs(float(pd.Series(log_iv).skew())) < 1.0  # roughly log-normal
+    curve = lib.unit("blink").curve
+    assert curve is not None and curve.phase("relax") < 0.5  # fast close, slow reopen
+
+
+def test_gesture_only_condition_is_yoked_with_composite() -> None:
+    lib = default_library()
+    emo = EmotionTimeline.constant({"anger": 0.8})
+    comp = plan_behaviour(lib, emotion=emo, duration_s=10, seed=9, cues=_cues())
+    gest = plan_behaviour(
+        lib, emotion=emo, duration_s=10, seed=9, cues=_cues(),
+        neutral_layers=("posture", "mannerism"),
+    )  # fmt: skip
+    blinks = [(e.start_s, e.end_s) for e in comp.events if e.layer == "blink"]
+    assert blinks == [(e.start_s, e.end_s) for e in gest.events if e.layer == "blink"]
+    postures = {e.unit for e in gest.events if e.layer == "posture"}
+    assert "chin_up" not in postures and "chin_up" in {e.unit for e in comp.events}
+
+
+def test_bml_export_is_xml_with_sync_points() -> None:
+    lib = default_library()
+    plan = plan_behaviour(
+        lib, emotion=EmotionTimeline.constant({"joy": 0.8}), duration_s=8, seed=1, cues=_cues()
+    )
+    root = ET.fromstring(plan.to_bml(lib).encode())
+    assert root.tag.endswith("bml") and len(root) == len(plan.events)
+    nods = [el for el in root if el.get("lexeme") == "NOD"]
+    assert nods and all(
+        float(n.get("start")) < float(n.get("stroke")) < float(n.get("end")) for n in nods
+    )
+
+
+# ------------------------------------------------------------------ realisation
+
+
+def test_realisation_leaves_speech_channels_and_reports_clamping() -> None:
+    avatar = default_head()
+    lib = default_library()
+    fps, n = 30, 300
+    plan = plan_behaviour(
+        lib, emotion=EmotionTimeline.constant({"joy": 1.0}), duration_s=n / fps, seed=1,
+        cues=_cues(),
+    )  # fmt: skip
+    frames = realise(plan, lib, fps=fps, n_frames=n)
+    rng = np.random.default_rng(0)
+    speech = rng.uniform(0, 1, size=(n, len(avatar.target_names))).astype(np.float32)
+    out, poses, report = apply_to_weights(
+        frames, speech, target_names=avatar.target_names, has_head=True, has_eyes=True
+    )
+    for j, name in enumerate(avatar.target_names):
+        if is_speech_channel(name) or name.startswith("viseme_"):
+            np.testing.assert_array_equal(out[:, j], speech[:, j])
+    assert out.min() >= 0 and out.max() <= 1
+    smile = avatar.target_names.index("mouthSmileLeft")
+    assert np.any(out[:, smile] > speech[:, smile])  # the corner channels add to speech
+    assert report["clamped_frames"].get("mouthSmileLeft", 0) > 0
+    nods = [e for e in plan.events if e.unit == "nod"]
+    assert nods and poses[round(nods[0].sync["stroke"] * fps)].pitch > 3
+    # an avatar without joints: head motion dropped and said so; gaze through eyeLook*
+    _, poses2, report2 = apply_to_weights(
+        frames, speech * 0, target_names=avatar.target_names, has_head=False, has_eyes=False
+    )
+    assert all(p is None or (p.yaw, p.pitch, p.roll) == (0, 0, 0) for p in poses2)
+    assert "neck_*/head_*" in report2["dropped"]
+
+
+def test_curve_is_smooth_between_keys() -> None:
+    curve = default_library().unit("nod").curve
+    assert curve is not None
+    phase = np.linspace(0, 1, 101)
+    v = curve_values(curve, phase)
+    assert v[0] == 0 and v[-1] == 0 and v.max() == pytest.approx(1.0)
+    assert np.max(np.abs(np.diff(v))) < 0.12
+
+
+# ------------------------------------------------------------------ protocols and clips
+
+
+def _protocol(tmp_path: Path, **cond: object) -> Path:
+    text = f"""
+schema_version: 1
+study: {{id: beh, title: behaviour test, participants_planned: 2}}
+seed: 1
+conditions:
+  - {{id: none, label: {{en: none}}, method: vowel_blend, behaviour: none}}
+  - {{id: comp, label: {{en: composite}}, method: vowel_blend, behaviour: {cond.get("behaviour", "composite")}}}
+stimulus_sets:
+  - id: s
+    stimuli:
+      - {{id: joy_a, text: いいえ、本当にそう思います。, emotion: {{joy: 0.9}}}}
+tasks:
+  - id: which
+    type: identify
+    question: {{en: Which emotion?}}
+    labels: [{{id: joy, text: {{en: joy}}}}, {{id: anger, text: {{en: anger}}}}]
+    answers: {{joy_a: joy}}
+blocks:
+  - {{id: b, stimulus_set: s, sets: 1, presentations_per_condition: 1}}
+  - {{id: c, stimulus_set: s, task: which, sets: 1, presentations_per_condition: 1}}
+items:
+  - {{id: human, question: {{en: human?}}, left_anchor: {{en: not at all}}, right_anchor: {{en: very}}}}
+presentation: {{language: en}}
+rendering: {{width: 160, height: 120, fps: 15, pad_s: 0.4, msaa: 1}}
+simulation:
+  effects: {{none: 0, comp: 10}}
+  identifier: {{accuracy: 0.8}}
+"""  # noqa: E501
+    path = tmp_path / "p.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_protocol_behaviour_settings_are_validated(tmp_path: Path) -> None:
+    p = load_protocol(_protocol(tmp_path))
+    assert p.condition("comp").behaviour == "composite"
+    task = p.tasks[0]
+    assert task.target(condition="comp", stimulus="joy_a") == "joy"
+    with pytest.raises(ProtocolError, match="behaviour 'wild'"):
+        load_protocol(_protocol(tmp_path, behaviour="wild"))
+    with pytest.raises(ProtocolError, match=r"behaviour library .*missing\.json was not found"):
+        load_protocol(_protocol(tmp_path, behaviour="missing.json"))
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("behclips")
+    proto = _protocol(tmp)
+    assert main(["render", str(proto), "--out", str(tmp / "clips"), "--quiet"]) == 0
+    return tmp
+
+
+def test_clips_carry_event_logs_and_yoked_seeds(rendered: Path) -> None:
+    clips = rendered / "clips"
+    log = json.loads((clips / "s__joy_a__comp.behaviour.json").read_text())
+    meta = json.loads((clips / "s__joy_a__comp.json").read_text())
+    assert log["mode"] == "composite" and log["events"]
+    assert meta["behaviour"]["counts"] == log["counts"]
+    assert not (clips / "s__joy_a__none.behaviour.json").exists()
+    from facelab.stimuli.clip import decode_frames
+
+    a = decode_frames(clips / "s__joy_a__none.mp4", width=160, height=120)
+    b = decode_frames(clips / "s__joy_a__comp.mp4", width=160, height=120)
+    assert a.shape == b.shape
+    per_frame = np.abs(a.astype(int) - b.astype(int)).max(axis=(1, 2, 3))
+    assert np.count_nonzero(per_frame > 40) >= 5  # the head visibly moves in many frames
+    # rendering again reuses every clip (the plan is deterministic)
+    before = (clips / "s__joy_a__comp.mp4").stat().st_mtime_ns
+    assert main(["render", str(rendered / "p.yaml"), "--out", str(clips), "--quiet"]) == 0
+    assert (clips / "s__joy_a__comp.mp4").stat().st_mtime_ns == before
+
+
+def test_analysis_uses_behaviour_counts_as_covariates(rendered: Path) -> None:
+    proto = rendered / "p.yaml"
+    res = rendered / "results"
+    assert (
+        main(["simulate", str(proto), "--participants", "6", "--seed", "1", "--results", str(res)])
+        == 0
+    )
+    assert (
+        main(["analyze", str(res), "--protocol", str(proto), "--clips", str(rendered / "clips")])
+        == 0
+    )
+    folder = res / "beh" / "analysis"
+    counts = pd.read_csv(folder / "behaviour_counts.csv")
+    assert set(counts["condition"]) == {"comp"} and counts["n_blink"].iloc[0] >= 0
+    cov = pd.read_csv(folder / "behaviour_covariates.csv")
+    assert "C(condition)[T.none]" in set(cov["term"])
+    ident = pd.read_csv(folder / "identification_summary.csv")
+    pooled = ident[ident["participant"] == "pooled"].iloc[0]
+    assert pooled["n"] == 12  # scored by the stimulus's answer: 6 participants x 2 clips
+
+
+# ------------------------------------------------------------------ the command line
+
+
+def test_cli_fit_plan_bml_figure(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ann = tmp_path / "ann.csv"
+    _known_table().to_csv(ann, index=False)
+    lib = tmp_path / "lib.json"
+    assert main(["behaviour", "fit", str(ann), "--out", str(lib)]) == 0
+    data = json.loads(lib.read_text())
+    assert {"layer", "behaviour", "intensity", "duration_s", "wait_s"} <= set(data["units"][0])
+    assert (tmp_path / "lib.report.md").read_text().count("|") > 20
+    plan = tmp_path / "plan.json"
+    args = ["behaviour", "plan", "--emotion", "joy=0.8", "--text", "はい、本当にそうですね。"]
+    args += ["--duration-s", "5", "--seed", "3", "--out", str(plan)]
+    args += ["--bml", str(tmp_path / "plan.xml"), "--figure", str(tmp_path / "plan.png")]
+    assert main(args) == 0
+    events = json.loads(plan.read_text())["events"]
+    assert events and {"unit", "layer", "start_s", "end_s", "channels", "scores"} <= set(events[0])
+    assert (tmp_path / "plan.png").stat().st_size > 10_000
+    ET.parse(tmp_path / "plan.xml")
+    assert main(["behaviour", "plan", "--emotion", "happy=1", "--duration-s", "5",
+                 "--out", str(plan), "--force"]) == 2  # fmt: skip
+    assert "happy=1" in capsys.readouterr().err
+
+
+def test_speech_cues_from_openjtalk_words_and_accents() -> None:
+    from facelab.stimuli.speech import synthesize
+
+    speech = synthesize("いいえ、私はそう思いません。")
+    words = [w for w in speech.words if w.morae]
+    assert [w.surface for w in words][:2] == ["いいえ", "私"]
+    assert all(a.start < a.end for a in speech.accents)
+    assert all(w0.end <= w1.start + 1e-9 for w0, w1 in itertools.pairwise(words))
+    cues = SpeechCues.from_speech(speech, offset_s=0.5)
+    assert cues.words[0][1] == pytest.approx(words[0].start + 0.5)
+    assert len(cues.accents) == len(speech.accents) >= 3
+    shake = [t for t, what in cues.trigger_times(default_library().unit("shake"))]
+    assert shake and shake[0] < 1.5  # いいえ triggers a shake
