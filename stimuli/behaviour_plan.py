@@ -516,8 +516,8 @@ def _plan_layer(
                 else:
                     trig_gain = u.triggers.gain if hit else 1.0
                 trig_what = hit[1] if hit else None
-            if start + l_d > duration_s:
-                continue
+            if start + l_d > duration_s and layer != "posture":
+                continue  # a posture may outlast the clip (it is seen being held)
             phi_time = 0.0 if t < wait_until[u.behaviour] else library.steady_time
             omega_l = (
                 0.0

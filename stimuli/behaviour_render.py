@@ -161,7 +161,7 @@ def unit_sheet(
     units = [u for u in library.units if u.has_motion]
     if not units:
         raise BehaviourError("the library has no unit with a motion to draw")
-    settings = RenderSettings(width=tile, height=tile, zoom=1.8, msaa=4)
+    settings = RenderSettings(width=tile, height=tile, zoom=1.35, msaa=4)
     roles = avatar.skeleton.roles if avatar.skeleton is not None else {}
     font = _font(15)
     tiles = []
@@ -186,7 +186,8 @@ def unit_sheet(
                 has_eyes={"eye_left", "eye_right"} <= set(roles),
             )  # fmt: skip
             img = Image.fromarray(renderer.frame(w[0], pose=poses[0]))
-            top = max(u.intensity, key=lambda e: u.intensity[e])
+            values = set(u.intensity.values())
+            top = max(u.intensity, key=lambda e: u.intensity[e]) if len(values) > 1 else "all"
             ImageDraw.Draw(img).text(
                 (8, 6), f"{u.behaviour}\n{u.layer} · {top}", fill=(255, 255, 255), font=font
             )

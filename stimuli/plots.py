@@ -83,7 +83,11 @@ def plan_timeline_figure(
     ax.set_ylim(0, len(layers))
     ax.set_xlim(0, plan.duration_s)
     ax.grid(axis="x", alpha=0.3)
-    emo = ", ".join(f"{k} {v:g}" for k, v in plan.emotion[0].items() if k != "time_s")
+    emo = "; ".join(
+        (f"{key['time_s']:g} s: " if len(plan.emotion) > 1 else "")
+        + ", ".join(f"{k} {v:g}" for k, v in key.items() if k != "time_s")
+        for key in plan.emotion
+    )
     ax.set_title(f"{title} - emotion {emo}; seed {plan.seed}", fontsize=10)
     for p in phones:
         if p.phoneme in ("sil", "pau"):

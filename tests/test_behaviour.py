@@ -277,7 +277,7 @@ def test_plan_respects_layers_channels_and_triggers(emotion: str) -> None:
         if e.layer == "gesture":  # the stroke lands on its trigger (within one step)
             assert e.trigger is not None
             assert min(abs(e.sync["stroke"] - t) for t in triggers) <= lib.step_s + 1e-9
-        assert e.end_s <= plan.duration_s + 1e-9
+        assert e.end_s <= plan.duration_s + 1e-9 or e.layer == "posture"
 
 
 def test_emotion_picks_its_units() -> None:

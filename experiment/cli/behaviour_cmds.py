@@ -79,24 +79,43 @@ def _cues(args: argparse.Namespace, pad_s: float):
     return None, SpeechCues()
 
 
+def _timeline(path: Path):
+    """``[{"time_s": 0, "joy": 0.8}, {"time_s": 5, "sadness": 0.6}, …]`` -> a timeline."""
+    from facelab.stimuli.behaviour_plan import EmotionTimeline
+
+    try:
+        keys = json.loads(path.read_text(encoding="utf-8"))
+        rows = [(float(k.pop("time_s")), {n: float(v) for n, v in k.items()}) for k in keys]
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise FacelabError(
+            f'--emotion-timeline {path}: expected a JSON list of {{"time_s": s, emotion: '
+            f"value…}} ({exc})"
+        ) from None
+    return EmotionTimeline.from_keys(rows)
+
+
 def _plan(args: argparse.Namespace) -> int:
     from facelab.stimuli.behaviour import layers_for
     from facelab.stimuli.behaviour_plan import EmotionTimeline, parse_emotion, plan_behaviour
 
-    if not args.emotion or not args.out or args.duration_s is None:
+    if not (args.emotion or args.emotion_timeline) or not args.out or args.duration_s is None:
         raise FacelabError(
-            "facelab behaviour plan --emotion joy=0.8 (--text T | --stimulus SET/ID "
-            "--protocol P) --duration-s S --seed N --out PLAN.json"
+            "facelab behaviour plan (--emotion joy=0.8 | --emotion-timeline KEYS.json) "
+            "(--text T | --stimulus SET/ID --protocol P) --duration-s S --seed N --out PLAN.json"
         )
-    if len(args.emotion) != 1:
+    if args.emotion_timeline:
+        emotion = _timeline(Path(args.emotion_timeline))
+    elif len(args.emotion) != 1:
         raise FacelabError("plan: give one --emotion (e.g. joy=0.5,surprise=0.3)")
+    else:
+        emotion = EmotionTimeline.constant(parse_emotion(args.emotion[0]))
     out = output_file(args.out, option="--out", force=args.force)
     library = _library(args.library)
     speech, cues = _cues(args, args.lead_s)
     layers, neutral = layers_for(args.mode)
     plan = plan_behaviour(
         library,
-        emotion=EmotionTimeline.constant(parse_emotion(args.emotion[0])),
+        emotion=emotion,
         duration_s=args.duration_s,
         seed=args.seed,
         cues=cues,
@@ -222,6 +241,10 @@ def register(add: AddCommand) -> None:
     p.add_argument(
         "--emotion", action="append", metavar="E",
         help="plan/render: e.g. joy=0.8 or joy=0.5,surprise=0.3 (render: repeat per clip)",
+    )  # fmt: skip
+    p.add_argument(
+        "--emotion-timeline", metavar="JSON",
+        help='plan: emotion keys over time, [{"time_s": 0, "joy": 0.8}, …] (linear between)',
     )  # fmt: skip
     p.add_argument("--text", metavar="TEXT", help="plan/render: Japanese text (OpenJTalk)")
     p.add_argument("--stimulus", metavar="SET/ID", help="plan: a stimulus of --protocol")
