@@ -14,7 +14,8 @@ unit m of the layer is scored
   c = 1 − Σ_k ĉ_k·(1 − I_m,k) with ĉ = I(t)/ΣI(t) (:func:`_closeness`), times
   E(rank) = (D − rank + 1)/D of c among the layer's D units (rank 1 = closest), times a
   trigger gain: units whose triggers ``require`` one get × 1
-  when a trigger word or prosodic event falls at t (the unit placed so its stroke lands on it)
+  when its start (placed so that its stroke lands on a trigger word or prosodic event) lies
+  within :data:`LOOKAHEAD_S` after t
   and × ``min_gain`` otherwise; ``boost`` triggers give × ``gain`` near a trigger.
 
 The best unit starts at t when its score exceeds ``library.rest_score``; its duration, wait
@@ -52,6 +53,12 @@ __all__ = [
     "parse_emotion",
     "plan_behaviour",
 ]
+
+
+#: A triggered gesture whose start lies within this many seconds competes now; the layer waits
+#: for the best candidate's start, so a better-suited gesture starting a little later is not
+#: pre-empted by an earlier one.
+LOOKAHEAD_S = 0.25
 
 
 def parse_emotion(text: str) -> dict[str, float]:
@@ -480,9 +487,12 @@ def _plan_layer(
     start_char = state.at(0.0)
     wait_until = {}
     for u in units:
-        # a stochastic unit (wait_cv > 0: blinks, mannerisms) starts at a random phase of its
-        # wait, as a stationary process would; the others are ready at the start
-        first = blend(u.wait_s, start_char, radius=radius) if u.wait_cv > 0 else 0.0
+        # a stochastic untriggered unit (wait_cv > 0: blinks, mannerisms) starts at a random
+        # phase of its wait, as a stationary process would; the others are ready at the start
+        triggered = u.triggers is not None and u.triggers.mode == "require"
+        first = (
+            blend(u.wait_s, start_char, radius=radius) if u.wait_cv > 0 and not triggered else 0.0
+        )
         wait_until[u.behaviour] = float(rng.uniform(0, first)) if first > 0 else 0.0
     triggers = {u.behaviour: cues.trigger_times(u) for u in units}
     channels = {u.behaviour: u.channel_names() for u in units}
@@ -505,8 +515,9 @@ def _plan_layer(
                 hit = None
                 for tau, what in triggers[u.behaviour]:
                     s = tau - stroke
-                    if u.triggers.mode == "require" and t <= s < t + step:
+                    if u.triggers.mode == "require" and t <= s < t + max(step, LOOKAHEAD_S):
                         hit = (tau, what)
+                        start = s  # placed so that its stroke lands on the trigger
                         break
                     if u.triggers.mode == "boost" and t - 0.3 <= tau < t + step:
                         hit = (tau, what)
@@ -518,7 +529,7 @@ def _plan_layer(
                 trig_what = hit[1] if hit else None
             if start + l_d > duration_s and layer != "posture":
                 continue  # a posture may outlast the clip (it is seen being held)
-            phi_time = 0.0 if t < wait_until[u.behaviour] else library.steady_time
+            phi_time = 0.0 if start < wait_until[u.behaviour] else library.steady_time
             omega_l = (
                 0.0
                 if any(
@@ -548,6 +559,8 @@ def _plan_layer(
         if best is None or best[0] <= library.rest_score:
             continue
         total, u, scores, l_d, trig_what, start = best
+        if start >= t + step:
+            continue  # the best starts later: wait for it (a better one may still appear)
         wait = blend(u.wait_s, char, radius=radius)
         if cues.is_speaking(start):
             wait *= u.speaking_wait_factor

@@ -524,3 +524,16 @@ def test_speech_cues_from_openjtalk_words_and_accents() -> None:
     assert len(cues.accents) == len(speech.accents) >= 3
     shake = [t for t, what in cues.trigger_times(default_library().unit("shake"))]
     assert shake and shake[0] < 1.5  # いいえ triggers a shake
+
+
+def test_the_better_suited_gesture_wins_a_shared_trigger() -> None:
+    # いいえ carries an accent: nod (accent) and shake (word) both fit; in disgust the shake
+    # is closer to the emotion and must not be pre-empted by the nod's earlier start
+    cues = SpeechCues(words=(("いいえ", 0.6, 1.0),), accents=(0.8,), speaking=((0.5, 1.2),))
+    lib = default_library()
+    for emotion, expected in (("disgust", "shake"), ("joy", "nod")):
+        plan = plan_behaviour(
+            lib, emotion=EmotionTimeline.constant({emotion: 0.9}), duration_s=3, seed=1,
+            cues=cues, layers=("gesture",),
+        )  # fmt: skip
+        assert [e.unit for e in plan.events] == [expected], emotion

@@ -63,17 +63,16 @@ def _cues(args: argparse.Namespace, pad_s: float):
         speech = synthesize(args.text)
         return speech, SpeechCues.from_speech(speech, offset_s=pad_s)
     if args.stimulus:
-        if not args.protocol:
-            raise FacelabError("--stimulus SET/ID needs --protocol PROTOCOL")
         from facelab.protocol import load_protocol
+        from facelab.resources import protocol_path
         from facelab.stimuli.prepare import find_stimulus, speech_for
 
-        protocol = load_protocol(args.protocol)
+        # without --protocol: the shipped seed-003 protocol's stimuli
+        path = Path(args.protocol) if args.protocol else protocol_path("hattori_behaviour")
+        protocol = load_protocol(path)
         _, stim = find_stimulus(protocol, args.stimulus)
         speech = speech_for(
-            stim,
-            base_dir=Path(args.protocol).parent,
-            sample_rate=protocol.rendering.audio_sample_rate,
+            stim, base_dir=path.parent, sample_rate=protocol.rendering.audio_sample_rate
         )
         return speech, SpeechCues.from_speech(speech, offset_s=pad_s)
     return None, SpeechCues()
@@ -248,7 +247,10 @@ def register(add: AddCommand) -> None:
     )  # fmt: skip
     p.add_argument("--text", metavar="TEXT", help="plan/render: Japanese text (OpenJTalk)")
     p.add_argument("--stimulus", metavar="SET/ID", help="plan: a stimulus of --protocol")
-    p.add_argument("--protocol", metavar="PROTOCOL")
+    p.add_argument(
+        "--protocol", metavar="PROTOCOL",
+        help="plan: the protocol of --stimulus (default: the shipped hattori_behaviour)",
+    )  # fmt: skip
     p.add_argument("--duration-s", type=float, metavar="S", help="plan/render/synth: seconds")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument(
