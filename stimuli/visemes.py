@@ -259,12 +259,15 @@ class _FrameGeometry:
     def for_rate(cls, sample_rate: int) -> _FrameGeometry:
         if sample_rate < 16_000:
             raise VisemeError(
-                f"sample rate {sample_rate} Hz is too low: the analyser needs "
-                ">= 16 kHz (the mel bands reach 7.6 kHz)"
+                f"sample rate {sample_rate} Hz is too low: the streaming analyser needs "
+                ">= 16 kHz (the mel bands reach 7.6 kHz); analyze() resamples lower rates"
             )
         hop = sample_rate * HOP_S
         if abs(hop - round(hop)) > 1e-9:
-            raise VisemeError(f"sample rate {sample_rate} Hz is not a multiple of 100 Hz")
+            raise VisemeError(
+                f"sample rate {sample_rate} Hz is not a multiple of 100 Hz (the streaming "
+                "analyser's 10 ms hop); analyze() resamples such rates"
+            )
         win = round(sample_rate * WINDOW_S)
         return cls(sample_rate, win, round(hop), 1 << (win - 1).bit_length())
 
@@ -496,20 +499,44 @@ class StreamingAnalyzer:
         return np.clip(out, 0.0, 1.0)
 
 
-def analyze(
-    samples: np.ndarray, *, sample_rate: int, model: VisemeModel | None = None
-) -> VisemeTrack:
-    """15 viseme weights per 10 ms frame from audio alone (see the module docstring).
+#: The lowest sample rate the offline functions accept (resampled inside).
+MIN_SAMPLE_RATE = 8_000
+_ANALYSIS_RATE = 16_000  # what other rates are resampled to
 
-    samples : (n,) mono float in [-1, 1]; sample_rate : Hz, >= 16 kHz, a multiple of 100.
-    Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
-    on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
-    """
+
+def analysis_input(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, int]:
+    """(samples, rate) the analyser can frame: rates >= 16 kHz that are multiples of 100 Hz
+    pass unchanged; any other rate >= 8 kHz (e.g. 11.025, 22.05, 44.1 kHz) is resampled to
+    16 kHz (polyphase). Below 16 kHz the upper mel bands see no energy, so expect lower
+    accuracy on 8-12 kHz telephone-band audio."""
     samples = np.asarray(samples)
     if samples.ndim != 1:
         raise VisemeError(f"expected mono samples of shape (n,), got shape {samples.shape}")
     if samples.size == 0:
         raise VisemeError("empty audio")
+    if sample_rate < MIN_SAMPLE_RATE:
+        raise VisemeError(
+            f"sample rate {sample_rate} Hz is too low: the analyser needs >= {MIN_SAMPLE_RATE} Hz"
+        )
+    if sample_rate >= _ANALYSIS_RATE and sample_rate % 100 == 0:
+        return samples, sample_rate
+    from facelab.stimuli.speech import resample
+
+    out = resample(samples.astype(np.float32), rate_in=sample_rate, rate_out=_ANALYSIS_RATE)
+    return out, _ANALYSIS_RATE
+
+
+def analyze(
+    samples: np.ndarray, *, sample_rate: int, model: VisemeModel | None = None
+) -> VisemeTrack:
+    """15 viseme weights per 10 ms frame from audio alone (see the module docstring).
+
+    samples : (n,) mono float in [-1, 1]; sample_rate : Hz, any rate >= 8 kHz
+    (:func:`analysis_input` resamples rates the framing cannot use).
+    Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
+    on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
+    """
+    samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
     stream = StreamingAnalyzer(sample_rate=sample_rate, model=model)
     head, tail = stream.feed(samples), stream.flush()
     return VisemeTrack(
@@ -521,6 +548,7 @@ def analyze(
 
 def features(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, np.ndarray]:
     """(times (T,), stacked features (T, D)) exactly as the analyser sees them (training)."""
+    samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
     geo = _FrameGeometry.for_rate(sample_rate)
     x = np.asarray(samples, dtype=np.float64)
     padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])

@@ -167,7 +167,7 @@ def test_calibration_adapts_to_a_speaker() -> None:
 
 def test_bad_inputs() -> None:
     with pytest.raises(VisemeError, match="too low"):
-        analyze(np.zeros(8000), sample_rate=8000)
+        analyze(np.zeros(4000), sample_rate=4000)
     with pytest.raises(VisemeError, match="mono"):
         analyze(np.zeros((100, 2)), sample_rate=RATE)
     with pytest.raises(VisemeError, match="empty"):
@@ -185,3 +185,30 @@ def test_bench_visemes_runs_and_reports_every_figure() -> None:
     assert ours["streaming"]["max_abs_difference_to_offline"] < 1e-9
     assert ours["streaming"]["algorithmic_latency_ms"] <= 40
     assert "vowel_accuracy_cores" in out["pylipsync"]
+
+
+@pytest.mark.parametrize("rate", [8_000, 11_025, 22_050, 44_100])
+def test_common_rates_are_resampled_inside(rate: int) -> None:
+    from facelab.stimuli.speech import resample
+
+    speech = synthesize("あおいうえ、いえあおう。")
+    ref = analyze(speech.samples, sample_rate=RATE).compensated()
+    low = resample(speech.samples, rate_in=RATE, rate_out=rate)
+    track = analyze(low, sample_rate=rate).compensated()
+    assert abs(track.times[-1] - ref.times[-1]) <= 0.011
+    n = min(len(track.times), len(ref.times))
+    vowels = [p for p in speech.phones if p.phoneme in VOWELS]
+    hits = [
+        np.argmax(track.vowels()[min(n - 1, round((p.start + p.end) * 50))])
+        == VOWELS.index(p.phoneme)
+        for p in vowels
+    ]
+    assert np.mean(hits) >= (0.6 if rate < 16_000 else 0.8), rate
+
+
+def test_held_out_voices_and_sentences_are_not_trained_on() -> None:
+    from facelab.stimuli.viseme_training import HELDOUT_VARIANTS, TRAIN_VARIANTS, corpus
+
+    assert not set(HELDOUT_VARIANTS) & set(TRAIN_VARIANTS)
+    train, held = corpus()
+    assert len(held) >= 10 and not set(train) & set(held)
