@@ -152,6 +152,11 @@ class Stimulus(_Model):
     id: Id
     text: Text | None = Field(None, description="Japanese text to synthesise.")
     audio: Text | None = Field(None, description="WAV or FLAC file, relative to the protocol.")
+    transcript: Text | None = Field(
+        None,
+        description="The words spoken in 'audio' (Japanese): its viseme track then comes from "
+        "aligning the text's phonemes to the recording instead of audio-only analysis.",
+    )
     silence_s: float | None = Field(
         None, gt=0, le=60, description="A silent stimulus of this many seconds (no speech)."
     )
@@ -177,6 +182,8 @@ class Stimulus(_Model):
             raise ValueError(
                 "give exactly one of 'text' (for TTS), 'audio' (a recording) or 'silence_s'"
             )
+        if self.transcript is not None and self.audio is None:
+            raise ValueError("'transcript' belongs to a recording: give it with 'audio'")
         if self.vowel_isolation and self.expected_vowels is None:
             raise ValueError("'vowel_isolation' needs 'expected_vowels' (e.g. aiueo)")
         if self.emotion is not None:

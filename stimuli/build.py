@@ -259,6 +259,13 @@ def build_clips(
                             "duration_s": info.duration_s,
                             "method": cond.method,
                             "params": cond.params,
+                            "track_source": (
+                                "phonemes of the transcript aligned to the recording"
+                                if job.stimulus.transcript
+                                else "silence"
+                                if job.stimulus.silence_s is not None
+                                else "audio analysis"
+                            ),
                             "avatar": avatar.name,
                             "avatar_kind": avatar.source.get("kind", "unknown"),
                             "stand_in": stand_in(avatar, cond.method, cond.params),

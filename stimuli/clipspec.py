@@ -94,6 +94,7 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         "stimulus": {
             "text": stim.text,
             "audio": stim.audio,
+            "transcript": stim.transcript,
             "silence_s": stim.silence_s,
             "tts": stim.tts.model_dump(),
             "expected_vowels": stim.expected_vowels,

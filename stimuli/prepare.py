@@ -7,9 +7,16 @@ from pathlib import Path
 
 import numpy as np
 
+from facelab.errors import VisemeError
 from facelab.protocol import Protocol, Stimulus
 from facelab.stimuli.speech import Speech, load_audio, synthesize
-from facelab.stimuli.visemes import VisemeTrack, analyze, isolate_vowels
+from facelab.stimuli.visemes import (
+    VisemeTrack,
+    align_phones,
+    analyze,
+    from_phonemes,
+    isolate_vowels,
+)
 
 __all__ = ["find_stimulus", "speech_for", "tracks_for"]
 
@@ -46,12 +53,30 @@ def speech_for(stimulus: Stimulus, *, base_dir: Path, sample_rate: int) -> Speec
             alpha=stimulus.tts.alpha,
             sample_rate=sample_rate,
         )
-    return load_audio(base_dir / str(stimulus.audio), sample_rate=sample_rate)
+    speech = load_audio(base_dir / str(stimulus.audio), sample_rate=sample_rate)
+    if stimulus.transcript is None:
+        return speech
+    try:
+        aligned = align_phones(speech.samples, sample_rate=sample_rate, text=stimulus.transcript)
+    except VisemeError as exc:
+        raise VisemeError(f"stimulus {stimulus.id!r} ({stimulus.audio}): {exc}") from None
+    return Speech(
+        speech.samples,
+        speech.sample_rate,
+        phones=aligned.phones,
+        source=speech.source,
+        words=aligned.words,
+        accents=aligned.accents,
+    )
 
 
 def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeTrack | None]:
-    """(analysed track with its latency removed, vowel-isolated track or None)."""
-    track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
+    """(analysed track with its latency removed, vowel-isolated track or None); a recording
+    with a transcript gets the track of its aligned phonemes instead (no latency)."""
+    if stimulus.transcript is not None and speech.phones:
+        track = from_phonemes(speech.phones, duration_s=speech.duration_s)
+    else:
+        track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
     isolated = None
     if stimulus.vowel_isolation and stimulus.expected_vowels:
         isolated = isolate_vowels(track, vowels=stimulus.expected_vowels)

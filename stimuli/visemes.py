@@ -50,9 +50,12 @@ __all__ = [
     "VISEMES",
     "VOWELS",
     "VOWEL_VISEMES",
+    "Alignment",
     "StreamingAnalyzer",
     "VisemeModel",
     "VisemeTrack",
+    "align",
+    "align_phones",
     "analyze",
     "calibrate",
     "default_model",
@@ -555,6 +558,163 @@ def features(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, np.n
     count = (len(x) - 1) // geo.hop + 1
     feats = _frame_features(padded, geo, 0, count)
     return np.arange(count) * HOP_S, _stack(feats, np.zeros((max(CONTEXT), feats.shape[1])))
+
+
+# --------------------------------------------------------------------------- alignment
+
+#: A stretch of speech longer than this that only one side has is a text/audio mismatch.
+MISMATCH_S = 0.6
+#: The largest local speaking-rate ratio between the recording and the TTS reference.
+MAX_SLOPE = 3.5
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Phones of ``text`` timed on a recording (:func:`align_phones`): ``phones`` (Phone, s),
+    ``words`` and ``accents`` of the front end moved onto the recording's time, the DTW
+    ``mean_cost`` and the reference (TTS) duration."""
+
+    phones: tuple
+    words: tuple
+    accents: tuple
+    mean_cost: float
+    reference_s: float
+
+
+def _cmvn(x: np.ndarray) -> np.ndarray:
+    return (x - x.mean(axis=0)) / (x.std(axis=0) + 1e-6)
+
+
+def _frame_level(samples: np.ndarray, sample_rate: int, n: int) -> np.ndarray:
+    hop = int(sample_rate * HOP_S)
+    padded = np.concatenate([samples, np.zeros(hop * (n + 1))])[: hop * n]
+    rms = np.sqrt((padded.reshape(n, hop).astype(np.float64) ** 2).mean(axis=1))
+    return 20 * np.log10(rms + 1e-9)
+
+
+def align_phones(samples: np.ndarray, *, sample_rate: int, text: str) -> Alignment:
+    """Time the phonemes of ``text`` on a recording of it.
+
+    The text is synthesised by OpenJTalk (its phone timeline known exactly); both signals
+    are turned into the analyser's features, normalised per utterance (cepstral mean and
+    variance - this removes most of the speaker) and aligned by DTW
+    (:func:`facelab.stimuli.dtw.dtw_path`); each reference phone boundary moves along the
+    path onto the recording. Where one side holds more than ``MISMATCH_S`` of speech that the
+    other lacks (a long horizontal or vertical run of the path over loud frames), the text
+    and the audio disagree and :class:`VisemeError` says where."""
+    from facelab.stimuli.dtw import dtw_path
+    from facelab.stimuli.speech import Phone, synthesize
+
+    samples, rate = analysis_input(samples, sample_rate=sample_rate)
+    ref = synthesize(text, sample_rate=rate)
+    _, xa = features(samples, sample_rate=rate)
+    _, xr = features(ref.samples, sample_rate=rate)
+    path, mean_cost = dtw_path(_cmvn(xr[:, 1:]), _cmvn(xa[:, 1:]))
+    level_a = _frame_level(samples, rate, len(xa))
+    level_r = _frame_level(ref.samples, rate, len(xr))
+    loud_a = level_a > np.percentile(level_a, 95) - 25
+    loud_r = level_r > np.percentile(level_r, 95) - 25
+    _check_runs(path, loud_r, loud_a)
+    # reference frame -> recording frame (median of the path's matches), monotone
+    mapped = np.zeros(len(xr))
+    for i in range(len(xr)):
+        mapped[i] = np.median(path[path[:, 0] == i, 1])
+    mapped = np.maximum.accumulate(mapped)
+    _check_slope(mapped, loud_r, loud_a)
+    end_a = len(samples) / rate
+
+    def move(t: float) -> float:
+        k = t * FPS
+        return float(min(end_a, np.interp(k, np.arange(len(mapped)), mapped) / FPS))
+
+    phones = tuple(Phone(p.phoneme, move(p.start), move(p.end)) for p in ref.phones)
+    words = tuple(
+        w if w.morae == 0 else type(w)(w.surface, w.reading, w.pos, w.morae, move(w.start),
+                                       move(w.end))
+        for w in ref.words
+    )  # fmt: skip
+    accents = tuple(
+        replace(a, start=move(a.start), end=move(a.end), peak=move(a.peak)) for a in ref.accents
+    )
+    return Alignment(phones, words, accents, mean_cost, ref.duration_s)
+
+
+def _check_slope(mapped: np.ndarray, loud_ref: np.ndarray, loud_rec: np.ndarray) -> None:
+    """A half-second of the text's speech stretched over more than MAX_SLOPE times as much
+    loud recording (extra speech), or squeezed into less than 1/MAX_SLOPE (missing speech)."""
+    w = int(0.5 * FPS)
+    for i in range(0, len(mapped) - w, 5):
+        if loud_ref[i : i + w].mean() < 0.5:
+            continue  # pauses may stretch freely
+        a, b = int(mapped[i]), int(mapped[i + w])
+        loud_span = int(loud_rec[a : b + 1].sum())
+        if loud_span > MAX_SLOPE * w:
+            raise VisemeError(
+                f"text and audio disagree: the recording has about {(loud_span - w) / FPS:.1f} s "
+                f"of speech the text does not have near {a / FPS:.2f} s of the recording"
+            )
+        if b - a < w / MAX_SLOPE:
+            raise VisemeError(
+                "text and audio disagree: the text has words the recording does not say "
+                f"near {a / FPS:.2f} s of the recording"
+            )
+
+
+def _check_runs(path: np.ndarray, loud_ref: np.ndarray, loud_rec: np.ndarray) -> None:
+    limit = int(MISMATCH_S * FPS)
+    # speech on one side matched to silence on the other, for longer than MISMATCH_S
+    for side, loud, other, what in (
+        (
+            1,
+            loud_rec,
+            loud_ref,
+            "the recording has about {:.1f} s of speech the text does not have",
+        ),
+        (0, loud_ref, loud_rec, "the text has words the recording does not say (about {:.1f} s)"),
+    ):
+        lonely = loud[path[:, side]] & ~other[path[:, 1 - side]]
+        frames = np.unique(path[lonely, side])
+        if len(frames):
+            breaks = np.flatnonzero(np.diff(frames) > 3)
+            for a, b in zip(np.r_[0, breaks + 1], np.r_[breaks, len(frames) - 1], strict=True):
+                if frames[b] - frames[a] + 1 > limit:
+                    at = path[np.flatnonzero(path[:, side] == frames[a])[0], 1] / FPS
+                    raise VisemeError(
+                        "text and audio disagree: "
+                        + what.format((frames[b] - frames[a] + 1) / FPS)
+                        + f" near {at:.2f} s of the recording"
+                    )
+    for axis, loud, what in (
+        (0, loud_rec, "the recording has about {:.1f} s of speech the text does not have"),
+        (1, loud_ref, "the text has words the recording does not say (about {:.1f} s)"),
+    ):
+        # runs where one index stays fixed while the other advances over loud frames
+        fixed = path[:, axis]
+        moving = path[:, 1 - axis]
+        start = 0
+        for k in range(1, len(path) + 1):
+            if k == len(path) or fixed[k] != fixed[start]:
+                run = moving[start:k]
+                n_loud = int(loud[run].sum()) if len(run) > 1 else 0
+                if n_loud > limit:
+                    where = path[start, 1] / FPS
+                    raise VisemeError(
+                        "text and audio disagree: "
+                        + what.format(n_loud / FPS)
+                        + f" near {where:.2f} s of the recording"
+                    )
+                start = k
+
+
+def align(
+    samples: np.ndarray, *, sample_rate: int, text: str, smoothing_s: float = 0.04
+) -> VisemeTrack:
+    """The viseme track of a recording whose words are known: the text's phonemes aligned to
+    the audio (:func:`align_phones`) and turned into visemes (:func:`from_phonemes`), frames
+    every 10 ms over the whole recording - the same track type as :func:`analyze`."""
+    result = align_phones(samples, sample_rate=sample_rate, text=text)
+    duration = len(np.asarray(samples)) / sample_rate
+    return from_phonemes(result.phones, smoothing_s=smoothing_s, duration_s=duration)
 
 
 # --------------------------------------------------------------------------- calibration

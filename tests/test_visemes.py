@@ -212,3 +212,68 @@ def test_held_out_voices_and_sentences_are_not_trained_on() -> None:
     assert not set(HELDOUT_VARIANTS) & set(TRAIN_VARIANTS)
     train, held = corpus()
     assert len(held) >= 10 and not set(train) & set(held)
+
+
+ALIGN_TEXTS = (
+    "向こうの丘の上に、白い家が一軒建っている。",
+    "植物を育てるには、水と光と愛情が必要だ。",
+)
+
+
+@pytest.mark.parametrize(
+    ("speed", "pitch", "alpha"), [(0.92, -3, 0.54), (1.15, 3, 0.57), (1.0, -10, 0.45)]
+)
+def test_align_times_the_text_on_an_unseen_voice_setting(
+    speed: float, pitch: float, alpha: float
+) -> None:
+    from facelab.stimuli.visemes import align, align_phones
+
+    hits, onsets = [], []
+    for text in ALIGN_TEXTS:
+        rec = synthesize(text, speed=speed, pitch_halftones=pitch, alpha=alpha)
+        res = align_phones(rec.samples, sample_rate=RATE, text=text)
+        track = align(rec.samples, sample_rate=RATE, text=text)
+        assert track.weights.shape[1] == 15 and track.latency_s == 0
+        assert [p.phoneme for p in res.phones] == [p.phoneme for p in rec.phones]
+        for truth, got in zip(rec.phones, res.phones, strict=True):
+            if truth.phoneme in VOWELS:
+                onsets.append(abs(truth.start - got.start))
+                frames = np.arange(int(truth.start * 100) + 1, int(truth.end * 100))
+                frames = frames[frames < len(track.times)]
+                hits += list(
+                    np.argmax(track.vowels()[frames], axis=1) == VOWELS.index(truth.phoneme)
+                )
+    assert np.mean(hits) >= 0.95
+    assert np.median(onsets) <= 0.030
+
+
+def test_align_reports_text_and_audio_that_disagree() -> None:
+    from facelab.stimuli.visemes import align_phones
+
+    a, b = ALIGN_TEXTS
+    rec = synthesize(a + b, pitch_halftones=-4, alpha=0.5)
+    align_phones(rec.samples, sample_rate=RATE, text=a + b)  # the right text passes
+    with pytest.raises(VisemeError, match="speech the text does not have"):
+        align_phones(rec.samples, sample_rate=RATE, text=a)
+    with pytest.raises(VisemeError, match="does not say"):
+        align_phones(
+            rec.samples, sample_rate=RATE, text=a + b + "会社の近くに、うどん屋があります。"
+        )
+
+
+def test_a_recording_with_a_transcript_is_aligned(tmp_path) -> None:
+    from facelab.protocol import Stimulus
+    from facelab.stimuli.prepare import speech_for, tracks_for
+    from facelab.stimuli.speech import write_wav
+
+    text = ALIGN_TEXTS[0]
+    rec = synthesize(text, pitch_halftones=-5, alpha=0.5, sample_rate=22_050)
+    write_wav(tmp_path / "rec.wav", rec)
+    stim = Stimulus(id="r", audio="rec.wav", transcript=text)
+    speech = speech_for(stim, base_dir=tmp_path, sample_rate=48_000)
+    assert [p.phoneme for p in speech.phones] == [p.phoneme for p in rec.phones]
+    assert speech.words and speech.accents  # the behaviour layer can use them
+    track, _ = tracks_for(stim, speech)
+    assert track.latency_s == 0 and abs(track.times[-1] - speech.duration_s) < 0.011
+    with pytest.raises(ValueError, match="give it with 'audio'"):
+        Stimulus(id="t", text=text, transcript=text)
