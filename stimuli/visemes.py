@@ -58,6 +58,7 @@ __all__ = [
     "align_phones",
     "analyze",
     "calibrate",
+    "choose_warp",
     "default_model",
     "from_phonemes",
     "isolate_vowels",
@@ -90,6 +91,7 @@ class VisemeTrack:
     weights: np.ndarray
     names: tuple[str, ...] = VISEMES
     latency_s: float = 0.0
+    warp: float = 1.0  # the mel-filter warp the analyser used (vocal-tract normalisation)
 
     @property
     def fps(self) -> float:
@@ -234,12 +236,20 @@ MEL_RANGE_HZ = (60.0, 7600.0)
 
 
 @cache
-def _mel_bank(sample_rate: int, n_fft: int) -> np.ndarray:
+def _mel_bank(sample_rate: int, n_fft: int, warp: float = 1.0) -> np.ndarray:
+    """Triangular mel filters; ``warp`` > 1 reads the spectrum at frequencies ``warp`` times
+    higher (vocal-tract-length normalisation of a shorter tract), < 1 lower."""
+
     def hz_to_mel(f: np.ndarray | float) -> np.ndarray | float:
         return 1127.0 * np.log1p(np.asarray(f) / 700.0)
 
     lo, hi = (hz_to_mel(f) for f in MEL_RANGE_HZ)
-    edges = 700.0 * np.expm1(np.linspace(lo, hi, N_MELS + 2) / 1127.0)
+    edges = 700.0 * np.expm1(np.linspace(lo, hi, N_MELS + 2) / 1127.0) * warp
+    if edges[-1] > sample_rate / 2:
+        raise VisemeError(
+            f"warp {warp}: the mel filters would pass {sample_rate / 2:.0f} Hz, the Nyquist "
+            f"frequency of {sample_rate} Hz audio"
+        )
     freqs = np.fft.rfftfreq(n_fft, 1.0 / sample_rate)
     bank = np.zeros((N_MELS, len(freqs)))
     for m in range(N_MELS):
@@ -282,18 +292,31 @@ def _emphasis(sample_rate: int, n_fft: int) -> np.ndarray:
     return np.abs(1 - 0.97 * np.exp(-1j * w)) ** 2
 
 
-def _frame_features(padded: np.ndarray, geo: _FrameGeometry, first: int, count: int) -> np.ndarray:
-    """(count, 13) level (dBFS RMS of the raw window) + c1..c12 for frames
+def _frame_power(
+    padded: np.ndarray, geo: _FrameGeometry, first: int, count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(pre-emphasised power spectra (count, n_fft/2+1), level dBFS (count,)) of frames
     ``first..first+count-1`` of a signal left-padded by ``win/2``: frame k is
     ``padded[k*hop : k*hop+win]``, centred on time k*hop."""
     idx = (first + np.arange(count))[:, None] * geo.hop + np.arange(geo.win)[None, :]
     raw = padded[idx]
     power = np.abs(rfft(raw * np.hamming(geo.win)[None, :], n=geo.n_fft, axis=1)) ** 2
     power *= _emphasis(geo.sample_rate, geo.n_fft)[None, :]
-    mel = np.log(power @ _mel_bank(geo.sample_rate, geo.n_fft).T + 1e-10)
-    ceps = dct(mel, type=2, norm="ortho", axis=1)[:, 1 : N_CEPS + 1]
     energy = 10 * np.log10(np.mean(np.square(raw), axis=1) + 1e-12)
-    return np.column_stack([energy, ceps])
+    return power, energy
+
+
+def _ceps(power: np.ndarray, geo: _FrameGeometry, warp: float) -> np.ndarray:
+    mel = np.log(power @ _mel_bank(geo.sample_rate, geo.n_fft, warp).T + 1e-10)
+    return dct(mel, type=2, norm="ortho", axis=1)[:, 1 : N_CEPS + 1]
+
+
+def _frame_features(
+    padded: np.ndarray, geo: _FrameGeometry, first: int, count: int, warp: float = 1.0
+) -> np.ndarray:
+    """(count, 13) level (dBFS RMS of the raw window) + c1..c12 (see :func:`_frame_power`)."""
+    power, energy = _frame_power(padded, geo, first, count)
+    return np.column_stack([energy, _ceps(power, geo, warp)])
 
 
 def _stack(feats: np.ndarray, history: np.ndarray) -> np.ndarray:
@@ -439,9 +462,12 @@ class StreamingAnalyzer:
     10 ms or less). ``analyze`` is exactly this class fed the whole signal, then flushed.
     """
 
-    def __init__(self, *, sample_rate: int, model: VisemeModel | None = None):
+    def __init__(self, *, sample_rate: int, model: VisemeModel | None = None, warp: float = 1.0):
         self.model = model or default_model()
         self.geo = _FrameGeometry.for_rate(sample_rate)
+        if not WARP_GRID[0] <= warp <= WARP_GRID[-1]:
+            raise VisemeError(f"warp {warp} outside {WARP_GRID[0]}..{WARP_GRID[-1]}")
+        self.warp = float(warp)
         self._buf = np.zeros(self.geo.win // 2, dtype=np.float64)  # left pad: frame 0 at t=0
         self._offset = 0  # samples dropped from the front of _buf
         self._next = 0  # next frame index
@@ -477,10 +503,15 @@ class StreamingAnalyzer:
         count = max(0, stop - self._next)
         if count == 0:
             return VisemeTrack(
-                times=np.zeros(0), weights=np.zeros((0, len(VISEMES))), latency_s=self.model.lag_s
+                times=np.zeros(0),
+                weights=np.zeros((0, len(VISEMES))),
+                latency_s=self.model.lag_s,
+                warp=self.warp,
             )
         # the buffer starts at a whole number of hops, so frame k is local frame k - offset/hop
-        feats = _frame_features(self._buf, geo, self._next - self._offset // geo.hop, count)
+        feats = _frame_features(
+            self._buf, geo, self._next - self._offset // geo.hop, count, self.warp
+        )
         stacked = _stack(feats, self._history)
         self._history = np.vstack([self._history, feats])[-max(CONTEXT) :]
         smooth = self._smooth(self.model.weights(stacked))
@@ -490,7 +521,7 @@ class StreamingAnalyzer:
         if drop > 0:  # samples before the next frame's window are no longer needed
             self._buf = self._buf[drop:]
             self._offset += drop
-        return VisemeTrack(times=times, weights=smooth, latency_s=self.model.lag_s)
+        return VisemeTrack(times=times, weights=smooth, latency_s=self.model.lag_s, warp=self.warp)
 
     def _smooth(self, raw: np.ndarray) -> np.ndarray:
         """One-pole low-pass per column, y[n] = y[n-1] + alpha (x[n] - y[n-1]), from silence."""
@@ -529,34 +560,107 @@ def analysis_input(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray
     return out, _ANALYSIS_RATE
 
 
-def analyze(
+#: Mel-filter warps tried by :func:`choose_warp` (> 1: a shorter vocal tract than training).
+WARP_GRID: tuple[float, ...] = tuple(round(0.72 + 0.04 * k, 2) for k in range(17))
+WARP_SELECT_S = 8.0  # at most this much audio chooses the warp
+
+
+def choose_warp(
     samples: np.ndarray, *, sample_rate: int, model: VisemeModel | None = None
+) -> float:
+    """Vocal-tract-length normalisation: the mel-filter warp (from :data:`WARP_GRID`, every
+    other one first, then the best one's neighbours) under which the model is most confident
+    about the utterance's loud frames - the mean log posterior of each frame's best class.
+    One FFT pass over every third frame (the context frames of the stacked features) of at
+    most ``WARP_SELECT_S`` of audio serves every warp."""
+    from scipy.special import logsumexp
+
+    model = model or default_model()
+    samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
+    x = np.asarray(samples[: int(WARP_SELECT_S * sample_rate)], dtype=np.float64)
+    # warps whose filters would pass the Nyquist frequency cannot be judged at this rate
+    grid = tuple(w for w in WARP_GRID if MEL_RANGE_HZ[1] * w < sample_rate / 2 - 100) or (1.0,)
+    geo = _FrameGeometry.for_rate(sample_rate)
+    stride = CONTEXT[1] - CONTEXT[0]
+    if tuple(stride * k for k in range(len(CONTEXT))) != CONTEXT:
+        stride = 1  # context lags not evenly spaced: every frame is needed
+    # every stride-th frame only: its context frames are the strided frames before it
+    sparse = replace(geo, hop=geo.hop * stride)
+    padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
+    count = (len(x) - 1) // sparse.hop + 1
+    power, energy = _frame_power(padded, sparse, 0, count)  # one FFT pass for every warp
+    loud = energy > model.gate_db[1] - 5
+    if loud.sum() < 10:
+        return 1.0  # too little speech to judge
+    lags = [c // stride for c in CONTEXT]
+    scores: dict[float, float] = {}
+
+    def score(warp: float) -> float:
+        if warp not in scores:
+            ceps = _ceps(power, geo, warp)
+            full = np.vstack([np.zeros((max(lags), ceps.shape[1])), ceps])
+            stacked = np.column_stack(
+                [full[max(lags) - lag : max(lags) - lag + len(ceps)] for lag in lags]
+            )
+            # log posteriors: the Gaussians' shared quadratic term cancels, leaving the
+            # model's linear discriminants
+            ll = stacked[loud] @ model._w.T + model._b
+            scores[warp] = float((ll.max(axis=1) - logsumexp(ll, axis=1)).mean())
+        return scores[warp]
+
+    coarse = max(grid[::2], key=score)  # then its neighbours on the fine grid
+    k = grid.index(coarse)
+    return max(grid[max(0, k - 1) : k + 2], key=score)
+
+
+def analyze(
+    samples: np.ndarray,
+    *,
+    sample_rate: int,
+    model: VisemeModel | None = None,
+    warp: float | str = "auto",
 ) -> VisemeTrack:
     """15 viseme weights per 10 ms frame from audio alone (see the module docstring).
 
     samples : (n,) mono float in [-1, 1]; sample_rate : Hz, any rate >= 8 kHz
     (:func:`analysis_input` resamples rates the framing cannot use).
+    warp : ``"auto"`` (default) normalises the speaker's vocal-tract length by
+    :func:`choose_warp` (a calibrated model is used as calibrated, warp 1); a number fixes it
+    (1 = as trained). The track's ``warp`` says which was used.
     Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
     on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
     """
     samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
-    stream = StreamingAnalyzer(sample_rate=sample_rate, model=model)
+    model = model or default_model()
+    if warp == "auto":
+        warp = (
+            1.0
+            if "calibrated" in model.info
+            else choose_warp(samples, sample_rate=sample_rate, model=model)
+        )
+    elif isinstance(warp, str):
+        raise VisemeError(f"warp {warp!r}: use 'auto' or a number")
+    stream = StreamingAnalyzer(sample_rate=sample_rate, model=model, warp=float(warp))
     head, tail = stream.feed(samples), stream.flush()
     return VisemeTrack(
         times=np.concatenate([head.times, tail.times]),
         weights=np.vstack([head.weights, tail.weights]),
         latency_s=stream.model.lag_s,
+        warp=stream.warp,
     )
 
 
-def features(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, np.ndarray]:
-    """(times (T,), stacked features (T, D)) exactly as the analyser sees them (training)."""
+def features(
+    samples: np.ndarray, *, sample_rate: int, warp: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """(times (T,), stacked features (T, D)) exactly as the analyser sees them (training);
+    ``warp`` scales the mel filters' frequencies (:func:`choose_warp`)."""
     samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
     geo = _FrameGeometry.for_rate(sample_rate)
     x = np.asarray(samples, dtype=np.float64)
     padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
     count = (len(x) - 1) // geo.hop + 1
-    feats = _frame_features(padded, geo, 0, count)
+    feats = _frame_features(padded, geo, 0, count, warp)
     return np.arange(count) * HOP_S, _stack(feats, np.zeros((max(CONTEXT), feats.shape[1])))
 
 
@@ -761,7 +865,7 @@ def calibrate(
     every other class moves by the average vowel shift; the level gate is set from the
     recording's vowel level (peak 2 dB below its 90th percentile).
     """
-    track = analyze(samples, sample_rate=sample_rate, model=model)
+    track = analyze(samples, sample_rate=sample_rate, model=model, warp=1.0)
     segs = vowel_segments(track)
     if len(segs) != len(vowels):
         raise VisemeError(
