@@ -209,6 +209,8 @@ class Unit(_Model):
                 )
         if names and self.curve is None:
             raise ValueError("a unit with channels needs a 'curve'")
+        if not self.duration_s or not self.wait_s:
+            raise ValueError("a unit needs duration_s and wait_s for at least one emotion")
         return self
 
     @property
