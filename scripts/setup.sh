@@ -12,13 +12,19 @@ VENV="$ROOT/.venv"
 # ffmpeg: clip encoding; libegl1 + libgl1-mesa-dri: offscreen rendering (EGL);
 # open-jtalk + naist-jdic: phoneme timing; xvfb + xauth: PsychoPy windows without a screen;
 # xdotool: the scripted participant of `facelab run --simulate` (real X clicks);
-# fonts-noto-cjk: Japanese text in windows and figures; libsndfile1/libportaudio2: audio I/O.
+# fonts-noto-cjk: Japanese text in windows and figures; libsndfile1/libportaudio2: audio I/O;
+# chromium + chromium-driver: simulated online participants and the browser tests;
+# postgresql: the online database at scale (the tests start one in a temporary folder).
 APT_PACKAGES=(
   ffmpeg libegl1 libgl1-mesa-dri libglu1-mesa
   open-jtalk open-jtalk-mecab-naist-jdic
   xvfb xauth xdotool fonts-noto-cjk
   libsndfile1 libportaudio2 libasound2
+  chromium chromium-driver postgresql
 )
+# npm installs jsPsych for `facelab serve` (from the pinned lockfile); Debian's nodejs/npm
+# only when no node is on PATH (a machine may have Node from elsewhere).
+if ! command -v npm >/dev/null 2>&1; then APT_PACKAGES+=(nodejs npm); fi
 
 log() { printf '[facelab setup] %s\n' "$*" >&2; }
 
@@ -72,4 +78,17 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
     exit 1
   fi
   echo "$WANT" >"$STAMP"
+fi
+
+WEB="$ROOT/experiment/online/web"
+WEB_STAMP="$WEB/node_modules/.facelab-lock"
+WEB_WANT="$(sha256sum "$WEB/package-lock.json" | cut -d' ' -f1)"
+if [ ! -f "$WEB_STAMP" ] || [ "$(cat "$WEB_STAMP")" != "$WEB_WANT" ]; then
+  log "installing jsPsych for facelab serve (npm ci, pinned lockfile)"
+  if ! (cd "$WEB" && npm ci --no-audit --no-fund --loglevel=error >"$VENV/npm.log" 2>&1); then
+    tail -20 "$VENV/npm.log" >&2
+    log "npm ci failed; see .venv/npm.log"
+    exit 1
+  fi
+  echo "$WEB_WANT" >"$WEB_STAMP"
 fi

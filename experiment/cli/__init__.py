@@ -24,6 +24,7 @@ from facelab.experiment.cli import (
     behaviour_cmds,
     demo_cmd,
     impression_cmds,
+    online_cmds,
     protocol_cmds,
     session_cmds,
     stimulus_cmds,
@@ -40,6 +41,7 @@ FAMILIES = (
     impression_cmds,
     behaviour_cmds,
     session_cmds,
+    online_cmds,
     analysis_cmds,
     demo_cmd,
 )

@@ -1,0 +1,141 @@
+"""Online commands: ``serve`` (the study in participants' browsers) and ``export`` (the
+database as the lab runner's session files)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from facelab.errors import FacelabError
+from facelab.experiment.cli.common import AddCommand, output_dir
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from facelab.experiment.online.serve import BackgroundServer, prepare_server
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    results = output_dir(args.results, option="--results")
+    if not 0 <= args.port <= 65535:
+        raise FacelabError(f"--port {args.port}: expected 1..65535 (0: any free port)")
+    if args.simulate_participants is not None and args.simulate_participants < 1:
+        raise FacelabError("--simulate-participants: expected a number >= 1")
+    consent = Path(args.consent).read_text(encoding="utf-8") if args.consent else None
+    clips = Path(args.clips) if args.clips else results / protocol.study.id / "clips"
+    server, made = prepare_server(
+        protocol,
+        protocol_path=Path(args.protocol),
+        clips_dir=clips,
+        db_url=args.db,
+        results=results,
+        completion_url=args.completion_url,
+        completion_code=args.completion_code,
+        consent=consent,
+        admin_secret=os.environ.get("FACELAB_ADMIN_SECRET"),
+    )
+    if args.simulate_participants:
+        from facelab.experiment.online.browser import run_simulated
+
+        with BackgroundServer(server, host=args.host, port=args.port) as bg:
+            print(f"serving {protocol.study.id!r} at {bg.url} for simulated participants")
+
+            def progress(k: int, outcome: str) -> None:
+                print(f"  simulated participant {k}: {outcome}", flush=True)
+
+            outcomes = run_simulated(
+                server,
+                bg.url,
+                args.simulate_participants,
+                seed=args.sim_seed,
+                parallel=args.parallel,
+                screenshots=Path(args.screenshots) if args.screenshots else None,
+                progress=progress,
+            )
+        done = sum(o == "complete" for o in outcomes.values())
+        print(f"{done} of {len(outcomes)} simulated participants complete")
+        return 0 if done == len(outcomes) else 1
+
+    import uvicorn
+
+    from facelab.experiment.online.server import create_app
+
+    base = f"http://{args.host}:{args.port}"
+    print(f"serving study {protocol.study.id!r} at {base} (database {server.engine.url!r})")
+    print(
+        f"  participants' link:  {base}/join   (Prolific: {base}/join?PROLIFIC_PID="
+        "{{%PROLIFIC_PID%}})"
+    )
+    print(f"  experimenter page:   {base}/admin")
+    if made:
+        print(
+            f"  experimenter secret: {made}   (new for this run; set FACELAB_ADMIN_SECRET "
+            "to keep one)"
+        )
+    sys.stdout.flush()
+    uvicorn.run(
+        create_app(server),
+        host=args.host,
+        port=args.port,
+        log_level="warning",
+        proxy_headers=True,
+        forwarded_allow_ips="127.0.0.1",
+    )
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from facelab.experiment.online.db import open_engine
+    from facelab.experiment.online.export import export_sessions
+
+    results = output_dir(args.results, option="--results")
+    engine = open_engine(args.db)
+    paths = export_sessions(engine, results=results, study=args.study)
+    print(f"exported {len(paths)} online sessions into {results}")
+    for p in paths:
+        print(f"  {p}")
+    return 0
+
+
+def register(add: AddCommand) -> None:
+    """Add this family's subcommands."""
+    p = add("serve", "serve the study to participants' browsers (online sessions)", _cmd_serve)
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument(
+        "--db",
+        metavar="URL",
+        help="database URL: sqlite:///PATH (default results/<study>/online.sqlite) or "
+        "postgresql+psycopg://USER@HOST/DB",
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--clips", metavar="DIR", help="rendered clips (default results/<study>/clips)")
+    p.add_argument("--results", default="results", metavar="DIR", help="results root")
+    p.add_argument("--consent", metavar="FILE", help="text shown first, with an 'I agree' button")
+    p.add_argument(
+        "--completion-url",
+        metavar="URL",
+        help="where the end screen sends a participant whose every response is stored "
+        "(e.g. https://app.prolific.com/submissions/complete?cc=CODE)",
+    )
+    p.add_argument("--completion-code", metavar="CODE", help="a code shown on the end screen")
+    p.add_argument(
+        "--simulate-participants",
+        type=int,
+        metavar="N",
+        help="drive N simulated participants through the real pages in headless Chromium, "
+        "then exit (the same N ids and tokens on every start: a second start resumes them)",
+    )
+    p.add_argument("--sim-seed", type=int, default=1, metavar="S", help="seed of their answers")
+    p.add_argument("--parallel", type=int, default=2, metavar="K", help="browsers at once")
+    p.add_argument("--screenshots", metavar="DIR", help="PNGs of the first participant's screens")
+
+    p = add(
+        "export",
+        "write the online database's sessions as the lab runner's files (for facelab analyze)",
+        _cmd_export,
+    )
+    p.add_argument("--db", required=True, metavar="URL", help="the database facelab serve used")
+    p.add_argument("--results", required=True, metavar="DIR", help="results root to write into")
+    p.add_argument("--study", metavar="ID", help="only this study")

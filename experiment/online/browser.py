@@ -1,0 +1,273 @@
+"""Simulated online participants: headless Chromium (Debian's ``chromium`` and
+``chromium-driver`` through Selenium) clicking through the real pages.
+
+Each simulated participant ``k`` (1..N) joins with the recruitment id ``sim-k``; its token is
+an HMAC of the study and ``k`` under the server's key, so starting again against the same
+database gives the same ids and tokens and resumes them. Before every answer it gives, it
+writes the answer to the ``actions`` table (``{"t", "trial_index", "item", "value"}`` - the
+lab's ``_actions.jsonl`` record), then clicks: the VAS line at the rating its
+:class:`~facelab.experiment.simulate.RatingModel` gives, then confirm; the option a
+:class:`~facelab.experiment.simulate.ChoiceModel` picks; "next" on text screens.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import shutil
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from facelab.design import participant_seed
+from facelab.errors import SessionError
+from facelab.experiment.online.db import Action, Participant
+from facelab.experiment.online.server import StudyServer
+from facelab.experiment.simulate import ChoiceModel, RatingModel
+from facelab.experiment.timeline import ChoiceScreen, IdentifyScreen, ResponseScreen
+
+__all__ = ["SimulatedBrowser", "chromium", "run_simulated", "simulated_token"]
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMEDRIVER = "/usr/bin/chromedriver"
+
+
+def simulated_token(server: StudyServer, k: int) -> str:
+    """The stable token of simulated participant ``k`` (256 bits, URL-safe hex)."""
+    return hmac.new(
+        server.hmac_key, f"simulated:{server.study.study}:{k}".encode(), hashlib.sha256
+    ).hexdigest()
+
+
+def chromium(*, size: tuple[int, int] = (1280, 800)) -> Any:
+    """A headless Chromium under Selenium, sound muted, autoplay allowed (no person to click)."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    exe = shutil.which("chromium") or CHROMIUM
+    driver_exe = shutil.which("chromedriver") or CHROMEDRIVER
+    if not Path(exe).exists() or not Path(driver_exe).exists():
+        raise SessionError(
+            "simulated online participants need Debian's chromium and chromium-driver "
+            "(apt-get install chromium chromium-driver)"
+        )
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = exe
+    for arg in (
+        "--headless=new",
+        f"--window-size={size[0]},{size[1]}",
+        "--no-sandbox",
+        "--disable-dev-shm-usage",
+        "--mute-audio",
+        "--autoplay-policy=no-user-gesture-required",
+        "--disable-gpu",
+    ):
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    return webdriver.Chrome(service=Service(executable_path=driver_exe), options=opts)
+
+
+_STATE_JS = """
+const el = document.querySelector('#app [data-facelab]');
+const fs = document.querySelector('#jspsych-fullscreen-btn');
+const consent = document.querySelector('#jspsych-html-button-response-btngroup button');
+if (fs) return {kind: 'fullscreen'};
+if (document.querySelector('#app [data-facelab=play]')) return {kind: 'play'};
+if (document.querySelector('#app [data-facelab=complete]')) return {kind: 'complete'};
+if (el) return {kind: el.dataset.facelab, seq: el.dataset.seq || null,
+                role: el.dataset.role || null,
+                trial: el.dataset.trial ? Number(el.dataset.trial) : null,
+                item: el.dataset.item || null};
+if (consent) return {kind: 'consent'};
+return {kind: 'wait'};
+"""
+
+
+@dataclass
+class SimulatedBrowser:
+    """One simulated participant driving one Chromium through the session."""
+
+    server: StudyServer
+    base_url: str
+    k: int
+    seed: int = 1
+    screenshots: Path | None = None
+    stop_after: int | None = None  # answers to give, then stop (tests: a closed tab)
+    driver: Any = None
+    given: int = 0
+    shots: set[str] = field(default_factory=set)
+
+    def participant(self) -> tuple[Participant, str]:
+        token = simulated_token(self.server, self.k)
+        p, _ = self.server.join(
+            recruitment=f"sim-{self.k}", source="simulated", simulated=True, token=token
+        )
+        return p, token
+
+    def _record(self, p: Participant, *, trial_index: int, item: str, value: Any) -> None:
+        with Session(self.server.engine) as db:
+            db.add(
+                Action(
+                    participant_pk=p.pk,
+                    record={
+                        "t": time.time(),
+                        "trial_index": trial_index,
+                        "item": item,
+                        "value": value,
+                    },
+                )
+            )
+            db.commit()
+
+    def _shot(self, name: str) -> None:
+        if self.screenshots is not None and name not in self.shots:
+            self.shots.add(name)
+            self.screenshots.mkdir(parents=True, exist_ok=True)
+            self.driver.save_screenshot(str(self.screenshots / f"{name}.png"))
+
+    def run(self, *, timeout_s: float = 900.0) -> str:
+        """Walk the session; returns "complete" or "stopped" (``stop_after`` reached)."""
+        from selenium.webdriver.common.action_chains import ActionChains
+        from selenium.webdriver.common.by import By
+
+        p, token = self.participant()
+        if p.completed is not None:
+            return "complete"
+        with Session(self.server.engine) as db:
+            runs = db.scalar(select(func.count()).where(Action.participant_pk == p.pk)) or 0
+        rng = np.random.default_rng(
+            [self.seed, participant_seed(0, p.participant) % 2**32, int(runs)]
+        )
+        rater = RatingModel(self.server.study.protocol, rng=rng)
+        chooser = ChoiceModel(self.server.study.protocol, rng=rng)
+        screens = {
+            (s.trial_index, s.kind): s
+            for s in self.server.study.screens(p.participant)
+            if isinstance(s, ResponseScreen) and not s.practice
+        }
+        own = self.driver is None
+        if own:
+            self.driver = chromium()
+        d = self.driver
+        try:
+            d.get(f"{self.base_url}/run#t={token}")
+            deadline = time.monotonic() + timeout_s
+            done_screens: set[Any] = set()
+            while time.monotonic() < deadline:
+                state = d.execute_script(_STATE_JS)
+                kind = state["kind"]
+                key = (kind, state.get("seq"))
+                if kind in ("wait", "loading", "clip", "saving") or key in done_screens:
+                    if kind == "clip":
+                        self._shot("clip")
+                    time.sleep(0.1)
+                    continue
+                if kind == "error":
+                    raise SessionError(
+                        f"simulated participant {self.k}: the page says "
+                        f"{d.find_element(By.CSS_SELECTOR, '[data-facelab=error]').text!r}"
+                    )
+                if kind == "complete":
+                    self._shot("complete")
+                    return "complete"
+                if (
+                    self.stop_after is not None
+                    and self.given >= self.stop_after
+                    and kind in ("vas", "choice_2afc", "identify")
+                ):
+                    return "stopped"
+                if kind == "consent":
+                    self._shot("consent")
+                    d.find_element(
+                        By.CSS_SELECTOR, "#jspsych-html-button-response-btngroup button"
+                    ).click()
+                elif kind == "play":  # play() was refused: click, as a person would
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=play]").click()
+                    time.sleep(0.3)
+                    continue
+                elif kind == "fullscreen":
+                    d.find_element(By.ID, "jspsych-fullscreen-btn").click()
+                elif kind == "text":
+                    self._shot(f"text-{state.get('role')}")
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=next]").click()
+                elif kind == "vas":
+                    trial = state["trial"]  # None on the practice trial (never logged)
+                    screen = screens.get((trial, "vas"))
+                    for wrap in d.find_elements(By.CSS_SELECTOR, ".facelab-vas-item"):
+                        item = wrap.get_attribute("data-item")
+                        vas = next(i for i in self.server.study.protocol.items if i.id == item)
+                        lo, hi = vas.range
+                        if screen is None or screen.trial is None:
+                            value = round(float(rng.uniform(lo, hi)), 2)
+                        else:
+                            value, _rt = rater.rate(
+                                item=item,
+                                stimulus_set=screen.trial.stimulus_set,
+                                condition=screen.trial.condition,
+                            )
+                            self._record(p, trial_index=trial, item=item, value=value)
+                        line = wrap.find_element(By.CSS_SELECTOR, "[data-facelab=line]")
+                        width = line.size["width"]
+                        dx = round((value - lo) / (hi - lo) * (width - 1) - (width - 1) / 2)
+                        ActionChains(d).move_to_element_with_offset(line, dx, 0).click().perform()
+                    self._shot("vas")
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
+                    self.given += 1
+                elif kind in ("choice_2afc", "identify"):
+                    trial = state["trial"]
+                    screen = screens.get((trial, kind))
+                    if screen is None:  # the practice trial: any answer
+                        options = d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]")
+                        value = options[int(rng.integers(len(options)))].get_attribute("data-value")
+                    elif isinstance(screen, ChoiceScreen):
+                        value = chooser.choose(screen)
+                    else:
+                        assert isinstance(screen, IdentifyScreen)
+                        value = chooser.identify(screen)
+                    if screen is not None:
+                        self._record(
+                            p, trial_index=trial, item=state.get("item") or "", value=value
+                        )
+                    self._shot(kind)
+                    d.find_element(
+                        By.CSS_SELECTOR, f"[data-facelab=option][data-value='{value}']"
+                    ).click()
+                    self.given += 1
+                done_screens.add(key)
+                time.sleep(0.05)
+            raise SessionError(f"simulated participant {self.k} did not finish in {timeout_s} s")
+        finally:
+            if own:
+                d.quit()
+                self.driver = None
+
+
+def run_simulated(
+    server: StudyServer,
+    base_url: str,
+    n: int,
+    *,
+    seed: int = 1,
+    parallel: int = 2,
+    screenshots: Path | None = None,
+    progress: Callable[[int, str], None] | None = None,
+) -> dict[int, str]:
+    """Drive simulated participants 1..n through the study; returns {k: outcome}."""
+
+    def one(k: int) -> str:
+        outcome = SimulatedBrowser(
+            server, base_url, k, seed=seed, screenshots=screenshots if k == 1 else None
+        ).run()
+        if progress is not None:
+            progress(k, outcome)
+        return outcome
+
+    with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+        return dict(zip(range(1, n + 1), pool.map(one, range(1, n + 1)), strict=True))

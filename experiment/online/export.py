@@ -1,0 +1,160 @@
+"""``facelab export``: the online database as the lab runner's session files.
+
+For every participant with at least one stored response::
+
+    <results>/<study>/sub-<ID>/ses-1/sub-<ID>_ses-1_task-<study>_beh.tsv       (same columns)
+                                     …_session.json   (mode: online, browser, recruitment
+                                                       source; no recruitment id, no token)
+                                     …_playback.jsonl (the browser's frame records)
+                                     …_actions.jsonl  (simulated participants only)
+
+so ``facelab analyze`` reads online and lab sessions side by side. Exporting again adds
+what arrived since (rows are appended through :class:`~facelab.sessionlog.SessionLog`,
+never rewritten); a session folder whose rows disagree with the database is an error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.engine import Engine
+from sqlalchemy.orm import Session
+
+from facelab.errors import SessionError
+from facelab.experiment.online.db import Action, Event, Participant, PlaybackRecord, Response
+from facelab.sessionlog import SessionLog, append_jsonl, session_paths
+
+__all__ = ["export_sessions"]
+
+_PLAYBACK_KEYS = (
+    "trial_index",
+    "clip",
+    "replay",
+    "onset",
+    "frames_expected",
+    "dropped",
+    "flip_times",
+    "frames_shown",
+)
+
+
+def _count_lines(path: Path) -> int:
+    if not path.exists():
+        return 0
+    return sum(1 for line in path.read_text(encoding="utf-8").splitlines() if line.strip())
+
+
+def _append_new(path: Path, records: Sequence[dict[str, Any]]) -> int:
+    """Append the records beyond those already in the file (both in database order)."""
+    have = _count_lines(path)
+    for record in records[have:]:
+        append_jsonl(path, record)
+    return max(0, len(records) - have)
+
+
+def export_sessions(engine: Engine, *, results: Path, study: str | None = None) -> list[Path]:
+    """Write or extend the session folders of every participant (of ``study``, or all)."""
+    out: list[Path] = []
+    with Session(engine) as db:
+        query = select(Participant).order_by(Participant.study, Participant.number)
+        if study is not None:
+            query = query.where(Participant.study == study)
+        people = db.scalars(query).all()
+        if study is not None and not people:
+            raise SessionError(f"the database has no participants of study {study!r}")
+        for p in people:
+            rows = db.scalars(
+                select(Response)
+                .where(Response.participant_pk == p.pk)
+                .order_by(Response.received, Response.pk)
+            ).all()
+            if not rows:
+                continue
+            playback = db.scalars(
+                select(PlaybackRecord)
+                .where(PlaybackRecord.participant_pk == p.pk)
+                .order_by(PlaybackRecord.pk)
+            ).all()
+            actions = db.scalars(
+                select(Action).where(Action.participant_pk == p.pk).order_by(Action.pk)
+            ).all()
+            events = db.scalars(
+                select(Event).where(Event.participant_pk == p.pk).order_by(Event.pk)
+            ).all()
+            out.append(_export_one(p, rows, playback, actions, events, results=results))
+    return out
+
+
+def _export_one(
+    p: Participant,
+    rows: Sequence[Response],
+    playback: Sequence[PlaybackRecord],
+    actions: Sequence[Action],
+    events: Sequence[Event],
+    *,
+    results: Path,
+) -> Path:
+    paths = session_paths(results, study=p.study, participant=p.participant, session=p.session)
+    provenance = {
+        "study": p.study,
+        "participant": p.participant,
+        "session": p.session,
+        "simulated": p.simulated,
+        "mode": "online",
+        "protocol_sha256": p.protocol_sha256,
+        "design_seed": int(p.design_seed),
+        "trial_order": p.trial_order,
+        "clips": p.clips,
+        "recruitment_source": p.recruitment_source,
+        "browser": p.browser,
+        "started": p.created.isoformat() if p.created else None,
+        "finished": p.completed.isoformat() if p.completed else None,
+        "events": [
+            {"kind": e.kind, "at": e.at.isoformat(), **({"detail": e.detail} if e.detail else {})}
+            for e in events
+            if e.kind != "browser"
+        ],
+        "resumes": [],
+    }
+    if paths.tsv.exists():
+        log = SessionLog.resume(
+            results, study=p.study, participant=p.participant, session=p.session
+        )
+        saved = log.provenance()
+        if saved.get("mode") != "online" or saved.get("protocol_sha256") != p.protocol_sha256:
+            raise SessionError(
+                f"{paths.folder} holds another session (mode {saved.get('mode')!r}); export "
+                "into another --results folder"
+            )
+        have = {(r["trial_index"], r["item"]) for r in log.rows}
+        log.update_provenance(
+            **{k: v for k, v in provenance.items() if k not in ("resumes", "events")},
+            events=provenance["events"][len(saved.get("events", [])) :],
+        )
+    else:
+        log = SessionLog.create(
+            results,
+            study=p.study,
+            participant=p.participant,
+            session=p.session,
+            provenance=provenance,
+        )
+        have = set()
+    for r in rows:
+        if (r.trial_index, r.item) in have:
+            continue
+        log.append(r.row)
+    _append_new(
+        paths.playback,
+        [
+            {k: rec.record.get(k) for k in _PLAYBACK_KEYS}
+            | {"browser": {k: v for k, v in rec.record.items() if k not in _PLAYBACK_KEYS}}
+            for rec in playback
+        ],
+    )
+    if actions:
+        _append_new(paths.actions, [a.record for a in actions])
+    return paths.tsv

@@ -1,0 +1,116 @@
+"""Wiring for ``facelab serve``: the protocol and its checked clips, the database, jsPsych
+from npm, the server on uvicorn (in the foreground, or in a thread while simulated
+participants run)."""
+
+from __future__ import annotations
+
+import secrets
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from facelab.errors import SessionError
+from facelab.experiment.online.db import default_url, open_engine
+from facelab.experiment.online.server import (
+    VENDOR_FILES,
+    WEB,
+    ServeConfig,
+    StudyServer,
+    create_app,
+)
+from facelab.experiment.online.study import OnlineStudy
+from facelab.experiment.preflight import check_clips
+from facelab.protocol import Protocol, protocol_hash
+
+__all__ = ["BackgroundServer", "prepare_server", "vendor_dir"]
+
+
+def vendor_dir() -> Path:
+    """jsPsych and its plugins, installed by ``npm ci`` from the pinned lockfile."""
+    base = WEB / "node_modules"
+    missing = [rel for rel in VENDOR_FILES.values() if not (base / rel).is_file()]
+    if missing:
+        raise SessionError(
+            f"jsPsych is not installed in {base} (missing {missing[0]}); run "
+            f"`npm ci --prefix {WEB}` (scripts/setup.sh does it)"
+        )
+    return base
+
+
+def prepare_server(
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    clips_dir: Path,
+    db_url: str | None,
+    results: Path,
+    completion_url: str | None = None,
+    completion_code: str | None = None,
+    consent: str | None = None,
+    admin_secret: str | None = None,
+) -> tuple[StudyServer, str | None]:
+    """The server for ``protocol``; returns it and a newly made experimenter secret (None
+    when ``admin_secret`` was given). Every clip is checked first (present, unchanged, from
+    the protocol as it is now), as before a lab session."""
+    base = protocol_path.parent
+    probe = OnlineStudy(protocol=protocol, protocol_sha256="", clips={})
+    clips = check_clips(protocol, probe.needed(), clips_dir, base_dir=base, verify_hashes=True)
+    study = OnlineStudy(
+        protocol=protocol, protocol_sha256=protocol_hash(protocol_path), clips=clips
+    )
+    config = ServeConfig(
+        study=study,
+        clip_paths={ref.sha256 + ".mp4": ref.path for ref in clips.values()},
+        vendor=vendor_dir(),
+        completion_url=completion_url,
+        completion_code=completion_code,
+        consent=consent,
+    )
+    engine = open_engine(db_url or default_url(results, protocol.study.id))
+    server = StudyServer(engine, config)
+    made = None
+    if admin_secret is None:
+        made = admin_secret = secrets.token_urlsafe(24)
+    server.set_admin_secret(admin_secret)
+    return server, made
+
+
+@dataclass
+class BackgroundServer:
+    """uvicorn serving ``server`` in a thread (for simulated participants and tests)."""
+
+    server: StudyServer
+    host: str = "127.0.0.1"
+    port: int = 0
+
+    def __enter__(self) -> BackgroundServer:
+        import socket
+
+        import uvicorn
+
+        if self.port == 0:
+            with socket.socket() as s:
+                s.bind((self.host, 0))
+                self.port = s.getsockname()[1]
+        config = uvicorn.Config(
+            create_app(self.server), host=self.host, port=self.port, log_level="warning"
+        )
+        self._uv = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self._uv.run, daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + 20
+        while not self._uv.started:
+            if time.monotonic() > deadline or not self._thread.is_alive():
+                raise SessionError(f"the server did not start on {self.host}:{self.port}")
+            time.sleep(0.05)
+        return self
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def __exit__(self, *exc: Any) -> None:
+        self._uv.should_exit = True
+        self._thread.join(timeout=10)

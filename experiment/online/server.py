@@ -1,0 +1,641 @@
+"""``facelab serve``: one study in participants' browsers (FastAPI on uvicorn).
+
+Pages and routes (all same-origin; no cookies; the participant's token travels in the
+``X-Facelab-Token`` header, never in a cookie, so there is nothing for CSRF to ride on):
+
+========================  ===================================================================
+``GET /join``             a new participant (or the returning one, by recruitment id): the
+                          server assigns the id (``P0001`` …, so Latin squares work) and a
+                          random 256-bit token, and redirects to ``/run#t=TOKEN`` (the
+                          fragment never reaches a server log or a Referer). Prolific's
+                          ``PROLIFIC_PID`` / MTurk's ``workerId`` are stored only as HMAC-SHA256
+                          under the server's key.
+``GET /run``              the session page (jsPsych shell + facelab's plugins)
+``GET /api/session``      the participant's remaining timeline (compiled here, never in the
+                          browser), clip names, counts
+``POST /api/response``    one answer; stored (one row per trial and item, the client's
+                          idempotency key unique) before the 200; a replay answers 200 again,
+                          a different value for a stored trial/item is 409
+``POST /api/playback``    one clip's presentation record (``_playback.jsonl`` keys)
+``POST /api/event``       play() refusals, fullscreen exits, the browser's description
+``GET /api/complete``     the completion code/redirect, only once every planned response is
+                          stored (409 with the count missing otherwise)
+``GET /clips/SHA.mp4``    a clip by its SHA-256 (the name never reveals the condition)
+``GET /admin``            progress per participant, behind the experimenter secret
+                          (``X-Facelab-Admin`` header; the page asks for it)
+========================  ===================================================================
+
+Every response carries a strict Content-Security-Policy (scripts, media and connections
+from this origin only - media also from the blob: URLs jsPsych's preload makes; style
+attributes are allowed because jsPsych's plugins write them in their HTML), ``nosniff``,
+``no-referrer`` and ``frame-ancestors 'none'``. Requests are rate-limited per token (and
+``/join`` per client address, kept in memory only; no IP address is stored).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import hmac
+import secrets
+import threading
+import time
+from collections import defaultdict, deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from sqlalchemy import func, select
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from facelab.design import participant_seed
+from facelab.experiment.online.db import (
+    Event,
+    Participant,
+    PlaybackRecord,
+    Response,
+    Setting,
+    utcnow,
+)
+from facelab.experiment.online.study import AnswerError, OnlineStudy, order_of
+from facelab.experiment.timeline import Playback
+
+__all__ = ["ServeConfig", "StudyServer", "create_app", "token_sha256"]
+
+WEB = Path(__file__).resolve().parent / "web"
+VENDOR_FILES = {
+    "jspsych.js": "jspsych/dist/index.browser.min.js",
+    "jspsych.css": "jspsych/css/jspsych.css",
+    "plugin-fullscreen.js": "@jspsych/plugin-fullscreen/dist/index.browser.min.js",
+    "plugin-browser-check.js": "@jspsych/plugin-browser-check/dist/index.browser.min.js",
+    "plugin-preload.js": "@jspsych/plugin-preload/dist/index.browser.min.js",
+    "plugin-html-button-response.js": (
+        "@jspsych/plugin-html-button-response/dist/index.browser.min.js"
+    ),
+}
+CSP = (
+    "default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; media-src 'self' blob:; connect-src 'self'; font-src 'self' data:; "
+    "base-uri 'none'; "
+    "form-action 'none'; frame-ancestors 'none'"
+)
+TOKEN_HEADER = "X-Facelab-Token"
+ADMIN_HEADER = "X-Facelab-Admin"
+RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
+
+Key = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
+ItemId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
+Iso = Annotated[str, StringConstraints(max_length=40)]
+
+
+def token_sha256(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+class AnswerIn(_Strict):
+    """One answer from the browser (every field checked; unknown fields refused)."""
+
+    client_key: Key
+    trial_index: int = Field(ge=1, le=100_000)
+    item: ItemId
+    rt_s: float = Field(ge=0, le=86_400)
+    rating: float | None = Field(None, ge=-1e6, le=1e6)
+    choice: int | None = Field(None, ge=1, le=2)
+    label: ItemId | None = None
+    timestamp: Iso
+    clip_onset: float | None = Field(None, ge=0, le=1e7)
+    clip_frames_dropped: int | None = Field(None, ge=0, le=1_000_000)
+
+
+class PlaybackIn(_Strict):
+    """How one clip was shown, as ``requestVideoFrameCallback`` saw it."""
+
+    client_key: Key
+    trial_index: int | None = Field(None, ge=1, le=100_000)
+    clip: Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{64}\.mp4$")]
+    replay: bool
+    onset: float | None = Field(None, ge=0, le=1e7)
+    frames_expected: int = Field(ge=0, le=1_000_000)
+    dropped: int = Field(ge=0, le=1_000_000)
+    flip_times: list[float] = Field(max_length=100_000)
+    frames_shown: list[int] = Field(max_length=100_000)
+    presented_frames: int = Field(ge=0, le=1_000_000)
+    media_time_end: float | None = Field(None, ge=0, le=1e6)
+    play_refused: str | None = Field(None, max_length=200)
+
+
+class EventIn(_Strict):
+    kind: Literal["browser", "play_refused", "fullscreen_exit", "resumed", "error"]
+    detail: dict[str, Any] = Field(default_factory=dict)
+
+
+@dataclass
+class ServeConfig:
+    """What ``facelab serve`` was given."""
+
+    study: OnlineStudy
+    clip_paths: dict[str, Path]  # "<sha256>.mp4" -> file
+    vendor: Path  # node_modules with jsPsych (npm ci in experiment/online/web)
+    completion_url: str | None = None  # e.g. Prolific's https://app.prolific.com/…?cc=CODE
+    completion_code: str | None = None
+    consent: str | None = None
+    rate_per_s: float = 20.0  # requests per second per token (burst: 4 s worth)
+    joins_per_min: int = 30  # new participants per minute per client address
+
+
+class _RateLimiter:
+    """Sliding-window counters held in memory only (keys are tokens' hashes or addresses)."""
+
+    def __init__(self) -> None:
+        self._hits: dict[str, deque[float]] = defaultdict(deque)
+        self._lock = threading.Lock()
+
+    def allow(self, key: str, *, limit: int, window_s: float) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            hits = self._hits[key]
+            while hits and now - hits[0] > window_s:
+                hits.popleft()
+            if len(hits) >= limit:
+                return False
+            hits.append(now)
+            return True
+
+
+class RefusedError(Exception):
+    """An HTTP error with a message for the participant's browser (and the tests)."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+class StudyServer:
+    """The study's state on top of the database; every method is one short transaction."""
+
+    def __init__(self, engine: Engine, config: ServeConfig):
+        self.engine = engine
+        self.config = config
+        self.study = config.study
+        self.limiter = _RateLimiter()
+        self._join_lock = threading.Lock()
+        self.hmac_key = bytes.fromhex(self._setting("hmac_key", lambda: secrets.token_hex(32)))
+
+    # -- settings and secrets
+
+    def _setting(self, key: str, make: Any) -> str:
+        with Session(self.engine) as db:
+            row = db.get(Setting, key)
+            if row is None:
+                db.add(Setting(key=key, value=make()))
+                try:
+                    db.commit()
+                except IntegrityError:  # another process made it first
+                    db.rollback()
+                row = db.get(Setting, key)
+            assert row is not None
+            return row.value
+
+    def keyed_hash(self, text: str) -> str:
+        return hmac.new(self.hmac_key, text.encode(), hashlib.sha256).hexdigest()
+
+    def set_admin_secret(self, secret: str) -> None:
+        with Session(self.engine) as db:
+            db.merge(Setting(key="admin_sha256", value=token_sha256(secret)))
+            db.commit()
+
+    def check_admin(self, secret: str | None) -> None:
+        with Session(self.engine) as db:
+            row = db.get(Setting, "admin_sha256")
+        if row is None or not secret or not hmac.compare_digest(row.value, token_sha256(secret)):
+            raise RefusedError(401, "experimenter secret missing or wrong")
+
+    # -- participants
+
+    def join(
+        self,
+        *,
+        recruitment: str | None,
+        source: str | None,
+        simulated: bool = False,
+        token: str | None = None,
+    ) -> tuple[Participant, str]:
+        """A new participant, or the returning one with a fresh token (the old one stops
+        working). ``token`` is given only for simulated participants (stable tokens)."""
+        rid = self.keyed_hash(f"{source}:{recruitment}") if recruitment else None
+        token = token or secrets.token_urlsafe(32)
+        with self._join_lock, Session(self.engine) as db:
+            existing = None
+            if rid is not None:
+                existing = db.scalars(
+                    select(Participant).where(
+                        Participant.study == self.study.study, Participant.recruitment_hash == rid
+                    )
+                ).first()
+            if existing is not None:
+                existing.token_sha256 = token_sha256(token)
+                db.add(Event(participant_pk=existing.pk, kind="rejoined", detail={}))
+                db.commit()
+                db.refresh(existing)
+                return existing, token
+            for _ in range(5):
+                number = (
+                    db.scalar(
+                        select(func.max(Participant.number)).where(
+                            Participant.study == self.study.study
+                        )
+                    )
+                    or 0
+                ) + 1
+                pid = f"P{number:04d}"
+                trials = self.study.trials(pid)
+                needed = {s.clip for s in self.study.screens(pid) if getattr(s, "clip", None)}
+                p = Participant(
+                    study=self.study.study,
+                    participant=pid,
+                    number=number,
+                    session=1,
+                    token_sha256=token_sha256(token),
+                    recruitment_hash=rid,
+                    recruitment_source=source,
+                    simulated=simulated,
+                    protocol_sha256=self.study.protocol_sha256,
+                    design_seed=str(participant_seed(self.study.protocol.seed, pid)),
+                    trial_order=order_of(trials),
+                    clips={"/".join(k): self.study.clip_sha256[k] for k in sorted(needed)},
+                    created=utcnow(),
+                )
+                db.add(p)
+                try:
+                    db.flush()
+                except IntegrityError:  # another server process took the number
+                    db.rollback()
+                    continue
+                db.add(Event(participant_pk=p.pk, kind="joined", detail={"source": source}))
+                db.commit()
+                db.refresh(p)
+                return p, token
+        raise RefusedError(503, "could not assign a participant id; try again")
+
+    def participant(self, token: str | None) -> Participant:
+        if not token or len(token) > 128:
+            raise RefusedError(401, f"missing or malformed {TOKEN_HEADER} header")
+        digest = token_sha256(token)
+        if not self.limiter.allow(digest, limit=int(self.config.rate_per_s * 4), window_s=4.0):
+            raise RefusedError(429, "too many requests; slow down")
+        with Session(self.engine) as db:
+            p = db.scalars(
+                select(Participant).where(
+                    Participant.token_sha256 == digest, Participant.study == self.study.study
+                )
+            ).first()
+        if p is None:
+            raise RefusedError(401, "unknown token (a rejoin gives a new one)")
+        if p.protocol_sha256 != self.study.protocol_sha256:
+            raise RefusedError(
+                409,
+                "the study's protocol changed since this participant started; the experimenter "
+                "must serve the original protocol to continue this session",
+            )
+        return p
+
+    def answered(self, p: Participant) -> set[tuple[int, str]]:
+        with Session(self.engine) as db:
+            rows = db.execute(
+                select(Response.trial_index, Response.item).where(Response.participant_pk == p.pk)
+            ).all()
+        return {(int(t), str(i)) for t, i in rows}
+
+    def session_state(self, p: Participant) -> dict[str, Any]:
+        answered = self.answered(p)
+        timeline = self.study.timeline_json(p.participant, answered, session=p.session)
+        planned = self.study.planned(p.participant)
+        pres = self.study.protocol.presentation
+        return {
+            "study": self.study.study,
+            "participant": p.participant,
+            "language": pres.language,
+            "fullscreen": pres.fullscreen,
+            "consent": self.config.consent or "",
+            "resumed": bool(answered),
+            "planned": len(planned),
+            "answered": len(answered & planned),
+            "clips": sorted({s["clip"] for s in timeline if s["kind"] == "clip"}),
+            "timeline": timeline,
+        }
+
+    def store_answer(self, p: Participant, answer: AnswerIn) -> dict[str, Any]:
+        values = answer.model_dump()
+        try:
+            when = dt.datetime.fromisoformat(answer.timestamp.replace("Z", "+00:00"))
+        except ValueError:
+            raise RefusedError(
+                422, f"timestamp: expected ISO 8601, got {answer.timestamp!r}"
+            ) from None
+        stamp = when.astimezone(dt.UTC).isoformat(timespec="milliseconds")
+        playback = (
+            None
+            if answer.clip_onset is None
+            else Playback(onset=answer.clip_onset, dropped=answer.clip_frames_dropped or 0)
+        )
+        try:
+            row = self.study.row(
+                participant=p.participant,
+                session=p.session,
+                simulated=p.simulated,
+                answer=values,
+                playback=playback,
+                timestamp=stamp,
+            )
+        except AnswerError as exc:
+            raise RefusedError(422, str(exc)) from None
+        with Session(self.engine) as db:
+            same = self._stored(db, p, answer, row)
+            if same is not None:
+                return same
+            db.add(
+                Response(
+                    participant_pk=p.pk,
+                    trial_index=answer.trial_index,
+                    item=answer.item,
+                    client_key=answer.client_key,
+                    row=row,
+                    received=utcnow(),
+                )
+            )
+            try:
+                db.commit()
+            except IntegrityError:  # a concurrent copy of the same answer won the race
+                db.rollback()
+                same = self._stored(db, p, answer, row)
+                if same is not None:
+                    return same
+                raise RefusedError(409, "this response conflicts with a stored one") from None
+        done = self._maybe_complete(p)
+        return {"stored": True, "replay": False, "complete": done}
+
+    @staticmethod
+    def _value(row: dict[str, Any]) -> Any:
+        return row["rating"] if row.get("rating") is not None else row.get("response")
+
+    def _stored(
+        self, db: Session, p: Participant, answer: AnswerIn, row: dict[str, Any]
+    ) -> dict[str, Any] | None:
+        """A replay's answer (200), or RefusedError(409) for a different value; None if new."""
+        old = db.scalars(
+            select(Response).where(
+                Response.participant_pk == p.pk,
+                Response.trial_index == answer.trial_index,
+                Response.item == answer.item,
+            )
+        ).first()
+        if old is None:
+            other = db.scalars(select(Response).where(Response.client_key == answer.client_key))
+            if other.first() is not None:
+                raise RefusedError(409, "client_key was already used for another response")
+            return None
+        new_value, old_value = self._value(row), self._value(old.row)
+        if old.client_key == answer.client_key or _same(old_value, new_value):
+            return {"stored": True, "replay": True, "complete": p.completed is not None}
+        raise RefusedError(
+            409,
+            f"trial {answer.trial_index} item {answer.item!r} already has a different "
+            f"response ({old_value!r}); it is kept, the new one ({new_value!r}) is refused",
+        )
+
+    def _maybe_complete(self, p: Participant) -> bool:
+        planned = self.study.planned(p.participant)
+        if not planned <= self.answered(p):
+            return False
+        with Session(self.engine) as db:
+            fresh = db.get(Participant, p.pk)
+            assert fresh is not None
+            if fresh.completed is None:
+                fresh.completed = utcnow()
+                db.add(Event(participant_pk=p.pk, kind="completed", detail={}))
+                db.commit()
+        return True
+
+    def store_playback(self, p: Participant, record: PlaybackIn) -> dict[str, Any]:
+        known = set(p.clips.values())
+        if record.clip[:-4] not in known:
+            raise RefusedError(422, f"clip: {record.clip} is not one of this participant's clips")
+        with Session(self.engine) as db:
+            if db.scalars(
+                select(PlaybackRecord).where(PlaybackRecord.client_key == record.client_key)
+            ).first():
+                return {"stored": True, "replay": True}
+            db.add(
+                PlaybackRecord(
+                    participant_pk=p.pk,
+                    client_key=record.client_key,
+                    record=record.model_dump(exclude={"client_key"}),
+                    received=utcnow(),
+                )
+            )
+            try:
+                db.commit()
+            except IntegrityError:
+                db.rollback()
+                return {"stored": True, "replay": True}
+        return {"stored": True, "replay": False}
+
+    def store_event(self, p: Participant, ev: EventIn) -> None:
+        if len(repr(ev.detail)) > 4000:
+            raise RefusedError(422, "detail: too large (at most 4000 characters)")
+        with Session(self.engine) as db:
+            if ev.kind == "browser":
+                fresh = db.get(Participant, p.pk)
+                assert fresh is not None
+                fresh.browser = ev.detail
+            db.add(Event(participant_pk=p.pk, kind=ev.kind, detail=ev.detail))
+            db.commit()
+
+    def completion(self, p: Participant) -> dict[str, Any]:
+        planned = self.study.planned(p.participant)
+        missing = planned - self.answered(p)
+        if missing:
+            raise RefusedError(
+                409, f"{len(missing)} of {len(planned)} responses are not stored yet"
+            )
+        self._maybe_complete(p)
+        return {
+            "complete": True,
+            "code": self.config.completion_code,
+            "redirect": self.config.completion_url,
+        }
+
+    def progress(self) -> list[dict[str, Any]]:
+        planned_n = {}
+        with Session(self.engine) as db:
+            counts = dict(
+                db.execute(
+                    select(Response.participant_pk, func.count()).group_by(Response.participant_pk)
+                ).all()
+            )
+            people = db.scalars(
+                select(Participant)
+                .where(Participant.study == self.study.study)
+                .order_by(Participant.number)
+            ).all()
+        out = []
+        for p in people:
+            if p.participant not in planned_n:
+                planned_n[p.participant] = len(self.study.planned(p.participant))
+            out.append(
+                {
+                    "participant": p.participant,
+                    "simulated": p.simulated,
+                    "source": p.recruitment_source,
+                    "responses": counts.get(p.pk, 0),
+                    "planned": planned_n[p.participant],
+                    "started": p.created.isoformat() if p.created else None,
+                    "completed": p.completed.isoformat() if p.completed else None,
+                }
+            )
+        return out
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return abs(float(a) - float(b)) < 1e-9
+    return a == b
+
+
+def create_app(server: StudyServer) -> FastAPI:
+    """The FastAPI application of ``server``."""
+    app = FastAPI(title="facelab serve", docs_url=None, redoc_url=None, openapi_url=None)
+    config = server.config
+
+    @app.middleware("http")
+    async def security_headers(request: Request, call_next: Any) -> Any:
+        origin = request.headers.get("origin")
+        if request.method == "POST" and origin is not None:
+            host = request.headers.get("host", "")
+            if origin.split("://", 1)[-1] != host:
+                return JSONResponse({"error": "cross-origin request refused"}, status_code=403)
+        response = await call_next(request)
+        response.headers["Content-Security-Policy"] = CSP
+        response.headers["X-Content-Type-Options"] = "nosniff"
+        response.headers["Referrer-Policy"] = "no-referrer"
+        response.headers["X-Frame-Options"] = "DENY"
+        response.headers["Cross-Origin-Opener-Policy"] = "same-origin"
+        if request.url.path.startswith("/api/"):
+            response.headers["Cache-Control"] = "no-store"
+        return response
+
+    @app.exception_handler(RefusedError)
+    async def refused(_request: Request, exc: RefusedError) -> JSONResponse:
+        return JSONResponse({"error": exc.message}, status_code=exc.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = [
+            f"{'.'.join(str(x) for x in e.get('loc', ())[1:]) or 'body'}: {e.get('msg')}"
+            for e in exc.errors()
+        ]
+        return JSONResponse({"error": "; ".join(problems)}, status_code=422)
+
+    def page(name: str) -> HTMLResponse:
+        return HTMLResponse((WEB / name).read_text(encoding="utf-8"))
+
+    @app.get("/join")
+    def join(request: Request) -> RedirectResponse:
+        address = request.client.host if request.client else "?"
+        if not server.limiter.allow("join:" + address, limit=config.joins_per_min, window_s=60.0):
+            raise RefusedError(
+                429, "too many new sessions from this address; try again in a minute"
+            )
+        recruitment, source = None, None
+        for param, name in RECRUITMENT_PARAMS.items():
+            value = request.query_params.get(param)
+            if value:
+                if len(value) > 128:
+                    raise RefusedError(422, f"{param}: at most 128 characters")
+                recruitment, source = value, name
+                break
+        _p, token = server.join(recruitment=recruitment, source=source)
+        return RedirectResponse(f"/run#t={token}", status_code=303)
+
+    @app.get("/")
+    def index() -> HTMLResponse:
+        return page("join.html")
+
+    @app.get("/favicon.ico")
+    def favicon() -> Any:
+        from fastapi.responses import Response as Empty
+
+        return Empty(status_code=204)
+
+    @app.get("/run")
+    def run() -> HTMLResponse:
+        return page("run.html")
+
+    @app.get("/admin")
+    def admin() -> HTMLResponse:
+        return page("admin.html")
+
+    @app.get("/static/{name}")
+    def static(name: str) -> FileResponse:
+        path = WEB / "static" / name
+        if "/" in name or name.startswith(".") or not path.is_file():
+            raise RefusedError(404, "not found")
+        return FileResponse(path)
+
+    @app.get("/vendor/{name}")
+    def vendor(name: str) -> FileResponse:
+        rel = VENDOR_FILES.get(name)
+        if rel is None or not (config.vendor / rel).is_file():
+            raise RefusedError(404, "not found")
+        return FileResponse(config.vendor / rel)
+
+    @app.get("/clips/{name}")
+    def clip(name: str) -> FileResponse:
+        path = config.clip_paths.get(name)
+        if path is None:
+            raise RefusedError(404, "not found")
+        return FileResponse(path, media_type="video/mp4")
+
+    @app.get("/api/session")
+    def session(request: Request) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.session_state(p)
+
+    @app.post("/api/response")
+    def response(request: Request, answer: AnswerIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.store_answer(p, answer)
+
+    @app.post("/api/playback")
+    def playback(request: Request, record: PlaybackIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.store_playback(p, record)
+
+    @app.post("/api/event")
+    def event(request: Request, ev: EventIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        server.store_event(p, ev)
+        return {"stored": True}
+
+    @app.get("/api/complete")
+    def complete(request: Request) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.completion(p)
+
+    @app.get("/api/admin/progress")
+    def progress(request: Request) -> dict[str, Any]:
+        server.check_admin(request.headers.get(ADMIN_HEADER))
+        return {"study": server.study.study, "participants": server.progress()}
+
+    return app

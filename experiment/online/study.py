@@ -1,0 +1,266 @@
+"""A study as the browser sees it: a participant's timeline as JSON, and a submitted answer
+checked against it and turned into the lab log row. Pure (no web, no database).
+
+The server is the only place the design runs: :meth:`OnlineStudy.screens` compiles the same
+timeline as the lab runner (:func:`facelab.experiment.timeline.compile_timeline`) for the
+participant id the server assigned, and :func:`facelab.experiment.timeline.remaining` gives
+what is left after a closed tab or a restart. The browser never randomises.
+
+Answers are validated field by field against the screen that asked for them (the trial and
+item must be the participant's, a rating within the item's range, a choice 1 or 2, a label
+one of the task's); anything else is an :class:`AnswerError` naming the field.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from facelab.design import build_trials
+from facelab.errors import SessionError
+from facelab.experiment.timeline import (
+    AdaptiveTrial,
+    ChoiceAnswer,
+    ChoiceScreen,
+    ClipKey,
+    ClipScreen,
+    IdentifyAnswer,
+    IdentifyScreen,
+    Playback,
+    ResponseScreen,
+    Screen,
+    TextScreen,
+    VasAnswer,
+    VasScreen,
+    compile_timeline,
+    localized,
+    needed_clips,
+    remaining,
+    ui,
+)
+from facelab.protocol import Protocol
+from facelab.sessionlog import SessionContext
+
+__all__ = ["AnswerError", "OnlineStudy", "order_of"]
+
+
+class AnswerError(ValueError):
+    """A submitted answer does not fit the screen it claims to answer (HTTP 422)."""
+
+
+def order_of(trials: Sequence[Any]) -> list[list[Any]]:
+    """The trial order as the session JSON records it (same as the lab runner)."""
+    return [[t.block, t.set_index, t.stimulus, t.condition, t.repetition] for t in trials]
+
+
+def _number(payload: Mapping[str, Any], key: str, *, lo: float, hi: float) -> float:
+    value = payload.get(key)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise AnswerError(f"{key}: expected a number, got {value!r}")
+    if not lo <= float(value) <= hi:
+        raise AnswerError(f"{key}: {value} is outside {lo}..{hi}")
+    return float(value)
+
+
+@dataclass
+class OnlineStudy:
+    """One protocol served online, with its checked clips (``{clip key: ClipRef}``: the
+    file's ``sha256``, ``fps`` and ``duration_s``, from :func:`~facelab.experiment.preflight.
+    check_clips`)."""
+
+    protocol: Protocol
+    protocol_sha256: str
+    clips: Mapping[ClipKey, Any]
+    _screens: dict[str, list[Screen]] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if any(b.design == "staircase" for b in self.protocol.blocks):
+            raise SessionError(
+                f"study {self.protocol.study.id!r}: staircase blocks are not served online yet "
+                "(the next level depends on the last answer); run them in the lab runner"
+            )
+
+    @property
+    def clip_sha256(self) -> dict[ClipKey, str]:
+        return {k: ref.sha256 for k, ref in self.clips.items()}
+
+    @property
+    def study(self) -> str:
+        return self.protocol.study.id
+
+    # -- the design
+
+    def trials(self, participant: str) -> list[Any]:
+        return build_trials(self.protocol, participant=participant)
+
+    def screens(self, participant: str, session: int = 1) -> list[Screen]:
+        """Every screen of the participant's session (cached: the design is pure)."""
+        key = f"{participant}/{session}"
+        if key not in self._screens:
+            trials = self.trials(participant)
+            self._screens[key] = compile_timeline(
+                self.protocol, trials, participant=participant, session=session
+            )
+        return self._screens[key]
+
+    def needed(self) -> set[ClipKey]:
+        """Every clip any participant may see (checked before serving)."""
+        return needed_clips(self.screens("P1"))
+
+    def planned(self, participant: str) -> set[tuple[int, str]]:
+        """Every (trial_index, item) the participant's session asks for."""
+        return {k for s in self.screens(participant) for k in s.response_keys()}
+
+    # -- to the browser
+
+    def timeline_json(
+        self, participant: str, answered: set[tuple[int, str]], *, session: int = 1
+    ) -> list[dict[str, Any]]:
+        """The screens still to show, as JSON for the browser's plugins."""
+        lang = self.protocol.presentation.language
+        todo = remaining(self.screens(participant, session), answered, language=lang)
+        shown_before = {t for t, _ in answered}
+        texts = ui(lang)
+        out: list[dict[str, Any]] = []
+        for s in todo:
+            if isinstance(s, TextScreen):
+                if s.role == "welcome":
+                    continue  # online: the consent/instructions page greets the participant
+                out.append({"kind": "text", "role": s.role, "text": s.text})
+            elif isinstance(s, ClipScreen):
+                ref = self.clips[s.clip]
+                out.append(
+                    {
+                        "kind": "clip",
+                        "trial_index": s.trial_index,
+                        "practice": s.practice,
+                        "replay": s.trial_index in shown_before,
+                        "clip": ref.sha256 + ".mp4",
+                        "fps": ref.fps,
+                        "frames": round(ref.duration_s * ref.fps),
+                        "interval": s.interval,
+                        "announce": texts["interval"].format(n=s.interval) if s.interval else "",
+                        "gap_s": s.gap_s,
+                    }
+                )
+            elif isinstance(s, VasScreen):
+                out.append(
+                    {
+                        "kind": "vas",
+                        "trial_index": s.trial_index,
+                        "practice": s.practice,
+                        "confirm": texts["confirm"],
+                        "items": [
+                            {
+                                "id": it.id,
+                                "question": localized(it.question, lang),
+                                "left": localized(it.left_anchor, lang),
+                                "right": localized(it.right_anchor, lang),
+                                "range": list(it.range),
+                            }
+                            for it in s.items
+                        ],
+                    }
+                )
+            elif isinstance(s, ChoiceScreen):
+                assert s.task is not None
+                out.append(
+                    {
+                        "kind": "choice_2afc",
+                        "trial_index": s.trial_index,
+                        "practice": s.practice,
+                        "item": s.task.id,
+                        "question": localized(s.task.question, lang),
+                        "options": [texts["interval"].format(n=1), texts["interval"].format(n=2)],
+                    }
+                )
+            elif isinstance(s, IdentifyScreen):
+                assert s.task is not None
+                out.append(
+                    {
+                        "kind": "identify",
+                        "trial_index": s.trial_index,
+                        "practice": s.practice,
+                        "item": s.task.id,
+                        "question": localized(s.task.question, lang),
+                        "labels": [
+                            {"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels
+                        ],
+                    }
+                )
+            elif isinstance(s, AdaptiveTrial):  # pragma: no cover - refused in __post_init__
+                raise AssertionError("staircase trials are not served online")
+        return out
+
+    # -- from the browser
+
+    def _screen_for(self, participant: str, trial_index: int, item: str) -> ResponseScreen:
+        for s in self.screens(participant):
+            if isinstance(s, ResponseScreen) and (trial_index, item) in s.response_keys():
+                return s
+        raise AnswerError(
+            f"trial_index {trial_index}, item {item!r}: not a response of this participant's "
+            "session"
+        )
+
+    def row(
+        self,
+        *,
+        participant: str,
+        session: int,
+        simulated: bool,
+        answer: Mapping[str, Any],
+        playback: Playback | None,
+        timestamp: str,
+    ) -> dict[str, Any]:
+        """The log row for one submitted answer, exactly as the lab runner writes it.
+
+        ``answer`` holds ``trial_index``, ``item``, ``rt_s`` and one of ``rating`` (VAS),
+        ``choice`` (2AFC: 1 or 2) or ``label`` (identify)."""
+        trial_index, item = answer["trial_index"], answer["item"]
+        screen = self._screen_for(participant, trial_index, item)
+        rt = _number(answer, "rt_s", lo=0.0, hi=24 * 3600.0)
+        context = SessionContext(
+            study=self.study,
+            participant=participant,
+            session=session,
+            simulated=simulated,
+            protocol_sha256=self.protocol_sha256,
+        )
+        if isinstance(screen, VasScreen):
+            (vas_item,) = [it for it in screen.items if it.id == item]
+            lo, hi = sorted(vas_item.range)
+            rating = _number(answer, "rating", lo=lo, hi=hi)
+            others = [
+                VasAnswer(item=it.id, rating=lo, rt_s=0.0, timestamp=timestamp)
+                for it in screen.items
+                if it.id != item
+            ]
+            mine = VasAnswer(item=item, rating=rating, rt_s=rt, timestamp=timestamp)
+            rows = screen.rows([mine, *others], context=context, playback=playback)
+            return next(r for r in rows if r["item"] == item)
+        if isinstance(screen, ChoiceScreen):
+            choice = answer.get("choice")
+            if choice not in (1, 2) or isinstance(choice, bool):
+                raise AnswerError(f"choice: expected 1 or 2, got {choice!r}")
+            (row,) = screen.rows(
+                [ChoiceAnswer(choice=choice, rt_s=rt, timestamp=timestamp)],
+                context=context,
+                playback=playback,
+            )
+            return row
+        if isinstance(screen, IdentifyScreen):
+            assert screen.task is not None
+            label = answer.get("label")
+            ids = [lb.id for lb in screen.task.labels]
+            if label not in ids:
+                raise AnswerError(f"label: expected one of {ids}, got {label!r}")
+            (row,) = screen.rows(
+                [IdentifyAnswer(label=label, rt_s=rt, timestamp=timestamp)],
+                context=context,
+                playback=playback,
+            )
+            return row
+        raise AnswerError(f"trial_index {trial_index}: screen {screen.kind} takes no answers")

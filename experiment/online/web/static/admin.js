@@ -1,0 +1,35 @@
+// The experimenter's progress page: the secret stays in this tab's memory only.
+"use strict";
+(function () {
+  const form = document.getElementById("login");
+  const status = document.getElementById("status");
+  const table = document.getElementById("progress");
+  let secret = "";
+  function cell(row, text) {
+    const td = document.createElement("td");
+    td.textContent = text === null || text === undefined ? "" : String(text);
+    row.appendChild(td);
+  }
+  async function refresh() {
+    const r = await fetch("/api/admin/progress", { headers: { "X-Facelab-Admin": secret } });
+    if (!r.ok) { status.textContent = (await r.json()).error; return; }
+    const data = await r.json();
+    const done = data.participants.filter((p) => p.completed).length;
+    status.textContent = `${data.study}: ${data.participants.length} participants, ${done} complete`;
+    table.textContent = "";
+    const head = table.insertRow();
+    for (const h of ["participant", "responses", "planned", "source", "simulated", "started", "completed"]) {
+      const th = document.createElement("th"); th.textContent = h; head.appendChild(th);
+    }
+    for (const p of data.participants) {
+      const row = table.insertRow();
+      for (const k of ["participant", "responses", "planned", "source", "simulated", "started", "completed"]) cell(row, p[k]);
+    }
+  }
+  form.addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    secret = document.getElementById("secret").value;
+    refresh();
+    setInterval(refresh, 5000);
+  });
+})();

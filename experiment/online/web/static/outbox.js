@@ -1,0 +1,80 @@
+// facelab's outbox: every answer is written to localStorage before it is sent, sent at once,
+// and retried (with back-off) until the server has stored it. Survives a closed tab: the
+// next page load sends what is left before asking the server where the session stands.
+"use strict";
+const FacelabOutbox = (function () {
+  const TOKEN_KEY = "facelab.token";
+  let token = null;
+  let flushing = null;
+  let delay = 500;
+  const listeners = [];
+
+  function key() { return "facelab.outbox." + token; }
+  function load() {
+    try { return JSON.parse(localStorage.getItem(key()) || "[]"); } catch (e) { return []; }
+  }
+  function save(items) { localStorage.setItem(key(), JSON.stringify(items)); }
+  function notify() { const n = load().length; listeners.forEach((f) => f(n)); }
+
+  function readToken() {
+    const m = location.hash.match(/(?:^#|&)t=([A-Za-z0-9_-]{20,128})/);
+    if (m) {
+      localStorage.setItem(TOKEN_KEY, m[1]);
+      history.replaceState(null, "", location.pathname); // the token leaves the address bar
+    }
+    token = localStorage.getItem(TOKEN_KEY);
+    return token;
+  }
+
+  function newKey() {
+    const b = new Uint8Array(16);
+    crypto.getRandomValues(b);
+    return Array.from(b, (x) => x.toString(16).padStart(2, "0")).join("");
+  }
+
+  async function request(method, url, body) {
+    const headers = { "X-Facelab-Token": token };
+    if (body !== undefined) headers["Content-Type"] = "application/json";
+    return fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), cache: "no-store" });
+  }
+
+  // Send everything in order; resolves when the outbox is empty (retries until then).
+  function flush() {
+    if (flushing) return flushing;
+    flushing = (async () => {
+      for (;;) {
+        const items = load();
+        if (!items.length) break;
+        const item = items[0];
+        let drop = false;
+        try {
+          const r = await request("POST", item.url, item.body);
+          if (r.ok) { drop = true; delay = 500; }
+          else if (r.status === 409 || r.status === 422) {
+            // refused for good (a conflicting or invalid answer): recorded as an event, not retried
+            const why = (await r.json().catch(() => ({}))).error || String(r.status);
+            console.warn("facelab: refused", item.url, why);
+            drop = true;
+          } else if (r.status === 401) {
+            throw new Error("token refused");
+          }
+        } catch (e) { /* network down or server restarting: retry below */ }
+        if (drop) { const rest = load(); rest.shift(); save(rest); notify(); continue; }
+        await new Promise((res) => setTimeout(res, delay));
+        delay = Math.min(delay * 2, 8000);
+      }
+    })().finally(() => { flushing = null; });  // (set after the assignment, even when empty)
+    return flushing;
+  }
+
+  function send(url, body) {
+    const items = load();
+    items.push({ url, body });
+    save(items);             // on disk (localStorage) before the first attempt
+    notify();
+    return flush();
+  }
+
+  return { readToken, send, flush, request, newKey, pending: () => load().length,
+           onChange: (f) => listeners.push(f), token: () => token };
+})();

@@ -1,0 +1,227 @@
+// facelab's jsPsych plugins: one per screen kind of the session timeline
+// (facelab.experiment.timeline), with the lab runner's rules. Each gets its screen as JSON
+// from the server; answers go through FacelabOutbox (stored locally first, then sent).
+"use strict";
+const FacelabSession = { playback: {}, ui: {} };
+
+function facelabEl(tag, cls, text) {
+  const e = document.createElement(tag);
+  if (cls) e.className = cls;
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+let facelabSeq = 0;
+// The root element of one screen: its kind, its place in the session (for drivers and tests).
+function facelabBox(cls, kind, screen) {
+  const box = facelabEl("div", cls);
+  box.dataset.facelab = kind;
+  box.dataset.seq = String(++facelabSeq);
+  if (screen && screen.trial_index !== null && screen.trial_index !== undefined) box.dataset.trial = String(screen.trial_index);
+  return box;
+}
+function facelabSleep(ms) { return new Promise((res) => setTimeout(res, ms)); }
+function facelabInfo(name) {
+  return { name, version: "1.0.0",
+           parameters: { screen: { type: jsPsychModule.ParameterType.OBJECT, default: undefined } },
+           data: {} };
+}
+function facelabAnswer(screen, item, fields, started) {
+  const pb = FacelabSession.playback[screen.trial_index] || null;
+  return Object.assign({
+    client_key: FacelabOutbox.newKey(),
+    trial_index: screen.trial_index,
+    item,
+    rt_s: Math.max(0, (performance.now() - started) / 1000),
+    timestamp: new Date().toISOString(),
+    clip_onset: pb ? pb.onset : null,
+    clip_frames_dropped: pb ? pb.dropped : null,
+  }, fields);
+}
+// Buttons also answer to keys (space for "next", 1..9 for choices).
+function facelabKeys(map) {
+  const handler = (ev) => { const b = map[ev.key]; if (b && !b.disabled) { ev.preventDefault(); b.click(); } };
+  document.addEventListener("keydown", handler);
+  return () => document.removeEventListener("keydown", handler);
+}
+
+class FacelabPlugin {
+  constructor(jsPsych) { this.jsPsych = jsPsych; }
+  trial(el, trial) {
+    el.textContent = "";
+    this.run(el, trial.screen).then((data) => { el.textContent = ""; this.jsPsych.finishTrial(data || {}); });
+  }
+}
+
+class FacelabText extends FacelabPlugin {
+  async run(el, s) {
+    const box = facelabBox("facelab-text", "text", s); box.dataset.role = s.role;
+    box.appendChild(facelabEl("p", "", s.text));
+    const next = facelabEl("button", "facelab-button", FacelabSession.ui.next);
+    next.dataset.facelab = "next";
+    box.appendChild(next); el.appendChild(box);
+    await new Promise((res) => { const off = facelabKeys({ " ": next }); next.addEventListener("click", () => { off(); res(); }, { once: true }); });
+    return { role: s.role };
+  }
+}
+FacelabText.info = facelabInfo("facelab-text");
+
+class FacelabClip extends FacelabPlugin {
+  async run(el, s) {
+    const box = facelabBox("facelab-clip", "clip", s);
+    const announce = facelabEl("div", "facelab-announce", s.announce || "");
+    const video = document.createElement("video");
+    video.playsInline = true; video.preload = "auto"; video.controls = false;
+    box.appendChild(announce); box.appendChild(video); el.appendChild(box);
+    if (s.gap_s) { video.hidden = true; await facelabSleep(s.gap_s * 1000); video.hidden = false; }
+    const frames = [];
+    const onFrame = (now, meta) => {
+      frames.push([meta.expectedDisplayTime, meta.mediaTime, meta.presentedFrames]);
+      video.requestVideoFrameCallback(onFrame);
+    };
+    if ("requestVideoFrameCallback" in video) video.requestVideoFrameCallback(onFrame);
+    const ended = new Promise((res) => video.addEventListener("ended", res, { once: true }));
+    video.src = this.jsPsych.pluginAPI.getVideoBuffer("/clips/" + s.clip);
+    let refused = null;
+    try { await video.play(); }
+    catch (e) {
+      refused = (e.name || "Error") + ": " + (e.message || "");
+      FacelabOutbox.send("/api/event", { kind: "play_refused", detail: { clip: s.clip, trial_index: s.trial_index, error: refused } });
+      const play = facelabEl("button", "facelab-button", "▶"); play.dataset.facelab = "play";
+      box.appendChild(play);
+      await new Promise((res) => play.addEventListener("click", res, { once: true }));
+      play.remove();
+      await video.play();
+    }
+    await ended;
+    const fps = s.fps;
+    const shown = frames.map((f) => Math.round(f[1] * fps));
+    const expected = s.frames || Math.round(video.duration * fps);
+    const dropped = Math.max(0, expected - new Set(shown).size);
+    const onset = frames.length ? frames[0][0] / 1000 : null;
+    const record = {
+      client_key: FacelabOutbox.newKey(), trial_index: s.practice ? null : s.trial_index,
+      clip: s.clip, replay: !!s.replay, onset, frames_expected: expected, dropped,
+      flip_times: frames.map((f) => f[0] / 1000), frames_shown: shown,
+      presented_frames: frames.length ? frames[frames.length - 1][2] : 0,
+      media_time_end: video.currentTime, play_refused: refused,
+    };
+    if (!s.practice) FacelabOutbox.send("/api/playback", record);
+    const prev = FacelabSession.playback[s.trial_index];
+    FacelabSession.playback[s.trial_index] = (s.interval === 2 && prev)
+      ? { onset: prev.onset, dropped: prev.dropped + dropped } : { onset, dropped };
+    return { clip: s.clip, dropped };
+  }
+}
+FacelabClip.info = facelabInfo("facelab-clip");
+
+class FacelabVas extends FacelabPlugin {
+  async run(el, s) {
+    const started = performance.now();
+    const box = facelabBox("facelab-vas", "vas", s); box.dataset.item = s.items.map((it) => it.id).join(",");
+    const values = {};
+    const confirm = facelabEl("button", "facelab-button", s.confirm);
+    confirm.disabled = true; confirm.dataset.facelab = "confirm";
+    for (const item of s.items) {
+      const wrap = facelabEl("div", "facelab-vas-item"); wrap.dataset.item = item.id;
+      wrap.appendChild(facelabEl("div", "facelab-question", item.question));
+      const scale = facelabEl("div", "facelab-scale");
+      const line = facelabEl("div", "facelab-line"); line.dataset.facelab = "line";
+      const marker = facelabEl("div", "facelab-marker"); line.appendChild(marker);
+      scale.appendChild(facelabEl("div", "facelab-anchor left", item.left));
+      scale.appendChild(line);
+      scale.appendChild(facelabEl("div", "facelab-anchor right", item.right));
+      wrap.appendChild(scale); box.appendChild(wrap);
+      const [lo, hi] = item.range;
+      const place = (ev) => {
+        const r = line.getBoundingClientRect();
+        const frac = Math.min(1, Math.max(0, (ev.clientX - r.left) / r.width));
+        values[item.id] = Math.round((lo + frac * (hi - lo)) * 100) / 100;
+        marker.style.left = (frac * 100) + "%";
+        marker.classList.add("shown");  // no marker until the first touch
+        confirm.disabled = s.items.some((it) => values[it.id] === undefined);
+      };
+      line.addEventListener("pointerdown", (ev) => { line.setPointerCapture(ev.pointerId); place(ev); });
+      line.addEventListener("pointermove", (ev) => { if (line.hasPointerCapture(ev.pointerId)) place(ev); });
+    }
+    box.appendChild(confirm); el.appendChild(box);
+    await new Promise((res) => confirm.addEventListener("click", res, { once: true }));
+    if (!s.practice) {
+      for (const item of s.items) {
+        FacelabOutbox.send("/api/response", facelabAnswer(s, item.id, { rating: values[item.id] }, started));
+      }
+    }
+    return { ratings: values };
+  }
+}
+FacelabVas.info = facelabInfo("facelab-vas");
+
+class FacelabChoice extends FacelabPlugin {
+  async buttons(el, s, kind, options) {
+    const started = performance.now();
+    const box = facelabBox("facelab-choice", kind, s); box.dataset.item = s.item;
+    box.appendChild(facelabEl("div", "facelab-question", s.question));
+    const row = facelabEl("div", "facelab-choices");
+    const keys = {};
+    const picked = new Promise((res) => {
+      options.forEach((opt, i) => {
+        const b = facelabEl("button", "facelab-button", opt.text);
+        b.dataset.facelab = "option"; b.dataset.value = String(opt.value);
+        b.addEventListener("click", () => res(opt.value), { once: true });
+        keys[String(i + 1)] = b; row.appendChild(b);
+      });
+    });
+    box.appendChild(row); el.appendChild(box);
+    const off = facelabKeys(keys);
+    const value = await picked;
+    off();
+    return { value, started };
+  }
+  async run(el, s) {
+    const { value, started } = await this.buttons(el, s, "choice_2afc",
+      s.options.map((text, i) => ({ text, value: i + 1 })));
+    if (!s.practice) FacelabOutbox.send("/api/response", facelabAnswer(s, s.item, { choice: value }, started));
+    return { choice: value };
+  }
+}
+FacelabChoice.info = facelabInfo("facelab-choice");
+
+class FacelabIdentify extends FacelabChoice {
+  async run(el, s) {
+    const { value, started } = await this.buttons(el, s, "identify",
+      s.labels.map((lb) => ({ text: lb.text, value: lb.id })));
+    if (!s.practice) FacelabOutbox.send("/api/response", facelabAnswer(s, s.item, { label: value }, started));
+    return { label: value };
+  }
+}
+FacelabIdentify.info = facelabInfo("facelab-identify");
+
+// The end: the text, then the completion code once the server has every response.
+// This screen never finishes: it stays as the session's last page.
+class FacelabComplete extends FacelabPlugin {
+  async run(el, s) {
+    const box = facelabBox("facelab-text", "end", s);
+    box.appendChild(facelabEl("p", "", s.text));
+    const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
+    box.appendChild(status); el.appendChild(box);
+    for (;;) {
+      await FacelabOutbox.flush();
+      try {
+        const r = await FacelabOutbox.request("GET", "/api/complete");
+        if (r.ok) {
+          const c = await r.json();
+          status.textContent = FacelabSession.ui.saved;
+          status.dataset.facelab = "complete";
+          if (c.code) box.appendChild(facelabEl("p", "facelab-code", c.code));
+          if (c.redirect) {
+            const a = facelabEl("a", "facelab-button", FacelabSession.ui.back);
+            a.href = c.redirect; a.dataset.facelab = "redirect"; box.appendChild(a);
+          }
+          if (document.fullscreenElement) document.exitFullscreen().catch(() => {});
+          return new Promise(() => {});  // the last page stays (jsPsych would clear it)
+        }
+      } catch (e) { /* retry */ }
+      await facelabSleep(2000);
+    }
+  }
+}
+FacelabComplete.info = facelabInfo("facelab-complete");
