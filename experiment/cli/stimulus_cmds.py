@@ -151,10 +151,31 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         proto = Path(args.protocol) if args.protocol else protocol_path("kato2021")
         print(
             json.dumps(
-                bench_analyze(protocol=proto, participants=args.participants, runs=args.runs),
+                bench_analyze(
+                    protocol=proto, participants=args.participants or 1000, runs=args.runs
+                ),
                 indent=2,
             )
         )
+        return 0
+    if args.what == "online":
+        args.participants = args.participants or 200
+        from facelab.experiment.online.load import load_test, postgres_cluster
+
+        if not args.protocol or not args.clips:
+            raise FacelabError("bench online needs --protocol and --clips (rendered clips)")
+        results = output_dir(args.results, option="--results")
+        figures = []
+        for database in ("sqlite", "postgresql") if args.db == "both" else (args.db,):
+            kw = dict(protocol_path=Path(args.protocol), clips=Path(args.clips),
+                      participants=args.participants, results=results)  # fmt: skip
+            if database == "postgresql":
+                with postgres_cluster() as url:
+                    figures.append(load_test(db_url=url, **kw))
+            else:
+                url = f"sqlite:///{(results / 'bench-online.sqlite').resolve()}"
+                figures.append(load_test(db_url=url, **kw))
+        print(json.dumps(figures, indent=2))
         return 0
     if args.what == "visemes":
         from facelab.stimuli.bench import bench_visemes
@@ -218,10 +239,28 @@ def register(add: AddCommand) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
     p.add_argument("--force", action="store_true")
 
-    p = add("bench", "benchmarks that print JSON (visemes, render, analyze)", _cmd_bench)
-    p.add_argument("what", choices=["visemes", "render", "analyze"])
-    p.add_argument("--participants", type=int, default=1000, help="analyze: simulated people")
-    p.add_argument("--protocol", metavar="PROTOCOL", help="analyze: default kato2021")
+    p = add("bench", "benchmarks that print JSON (visemes, render, analyze, online)", _cmd_bench)
+    p.add_argument("what", choices=["visemes", "render", "analyze", "online"])
+    p.add_argument(
+        "--participants",
+        type=int,
+        default=None,
+        help="analyze: simulated people (default 1000); online: concurrent clients (200)",
+    )
+    p.add_argument("--protocol", metavar="PROTOCOL", help="analyze (default kato2021), online")
+    p.add_argument("--clips", metavar="DIR", help="online: the protocol's rendered clips")
+    p.add_argument(
+        "--db",
+        choices=["sqlite", "postgresql", "both"],
+        default="both",
+        help="online: database(s) to load (PostgreSQL: a temporary server)",
+    )
+    p.add_argument(
+        "--results",
+        default="results/bench",
+        metavar="DIR",
+        help="online: where the SQLite database goes",
+    )
     p.add_argument("--runs", type=int, default=5, help="timing runs (median reported)")
     p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
     p.add_argument(

@@ -99,7 +99,7 @@ class SimulatedBrowser:
     k: int
     seed: int = 1
     screenshots: Path | None = None
-    stop_after: int | None = None  # answers to give, then stop (tests: a closed tab)
+    stop_after: int | None = None  # logged answers to give, then stop (a closed tab)
     driver: Any = None
     given: int = 0
     shots: set[str] = field(default_factory=set)
@@ -219,7 +219,7 @@ class SimulatedBrowser:
                         ActionChains(d).move_to_element_with_offset(line, dx, 0).click().perform()
                     self._shot("vas")
                     d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
-                    self.given += 1
+                    self.given += screen is not None  # practice answers are not counted
                 elif kind in ("choice_2afc", "identify"):
                     trial = state["trial"]
                     screen = screens.get((trial, kind))
@@ -239,7 +239,7 @@ class SimulatedBrowser:
                     d.find_element(
                         By.CSS_SELECTOR, f"[data-facelab=option][data-value='{value}']"
                     ).click()
-                    self.given += 1
+                    self.given += screen is not None
                 done_screens.add(key)
                 time.sleep(0.05)
             raise SessionError(f"simulated participant {self.k} did not finish in {timeout_s} s")

@@ -34,6 +34,7 @@ attributes are allowed because jsPsych's plugins write them in their HTML), ``no
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import hashlib
 import hmac
@@ -87,6 +88,7 @@ CSP = (
 )
 TOKEN_HEADER = "X-Facelab-Token"
 ADMIN_HEADER = "X-Facelab-Admin"
+TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
 RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
 
 Key = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
@@ -190,6 +192,14 @@ class StudyServer:
         self.study = config.study
         self.limiter = _RateLimiter()
         self._join_lock = threading.Lock()
+        # SQLite has one writer: queue writers here instead of in its busy handler (which
+        # sleeps up to 100 ms per retry); PostgreSQL takes concurrent writers itself.
+        self._writes: Any = (
+            threading.Lock()
+            if engine.url.get_backend_name() == "sqlite"
+            else contextlib.nullcontext()
+        )
+        self._by_token: dict[str, tuple[float, Participant]] = {}  # digest -> (when, row)
         self.hmac_key = bytes.fromhex(self._setting("hmac_key", lambda: secrets.token_hex(32)))
 
     # -- settings and secrets
@@ -244,6 +254,7 @@ class StudyServer:
                     )
                 ).first()
             if existing is not None:
+                self._by_token = {k: v for k, v in self._by_token.items() if v[1].pk != existing.pk}
                 existing.token_sha256 = token_sha256(token)
                 db.add(Event(participant_pk=existing.pk, kind="rejoined", detail={}))
                 db.commit()
@@ -294,7 +305,10 @@ class StudyServer:
         digest = token_sha256(token)
         if not self.limiter.allow(digest, limit=int(self.config.rate_per_s * 4), window_s=4.0):
             raise RefusedError(429, "too many requests; slow down")
-        with Session(self.engine) as db:
+        cached = self._by_token.get(digest)
+        if cached is not None and time.monotonic() - cached[0] < TOKEN_CACHE_S:
+            return cached[1]
+        with Session(self.engine, expire_on_commit=False) as db:
             p = db.scalars(
                 select(Participant).where(
                     Participant.token_sha256 == digest, Participant.study == self.study.study
@@ -308,6 +322,7 @@ class StudyServer:
                 "the study's protocol changed since this participant started; the experimenter "
                 "must serve the original protocol to continue this session",
             )
+        self._by_token[digest] = (time.monotonic(), p)
         return p
 
     def answered(self, p: Participant) -> set[tuple[int, str]]:
@@ -360,10 +375,7 @@ class StudyServer:
             )
         except AnswerError as exc:
             raise RefusedError(422, str(exc)) from None
-        with Session(self.engine) as db:
-            same = self._stored(db, p, answer, row)
-            if same is not None:
-                return same
+        with Session(self.engine) as db:  # insert first: the common case is one query
             db.add(
                 Response(
                     participant_pk=p.pk,
@@ -375,8 +387,9 @@ class StudyServer:
                 )
             )
             try:
-                db.commit()
-            except IntegrityError:  # a concurrent copy of the same answer won the race
+                with self._writes:
+                    db.commit()
+            except IntegrityError:  # stored before (a replay or a conflict), or a reused key
                 db.rollback()
                 same = self._stored(db, p, answer, row)
                 if same is not None:
@@ -407,7 +420,7 @@ class StudyServer:
             return None
         new_value, old_value = self._value(row), self._value(old.row)
         if old.client_key == answer.client_key or _same(old_value, new_value):
-            return {"stored": True, "replay": True, "complete": p.completed is not None}
+            return {"stored": True, "replay": True, "complete": self._maybe_complete(p)}
         raise RefusedError(
             409,
             f"trial {answer.trial_index} item {answer.item!r} already has a different "
@@ -415,10 +428,11 @@ class StudyServer:
         )
 
     def _maybe_complete(self, p: Participant) -> bool:
-        planned = self.study.planned(p.participant)
-        if not planned <= self.answered(p):
-            return False
-        with Session(self.engine) as db:
+        planned = len(self.study.planned(p.participant))
+        with self._writes, Session(self.engine) as db:  # stored rows are planned ones
+            count = db.scalar(select(func.count()).where(Response.participant_pk == p.pk))
+            if (count or 0) < planned:
+                return False
             fresh = db.get(Participant, p.pk)
             assert fresh is not None
             if fresh.completed is None:
@@ -445,7 +459,8 @@ class StudyServer:
                 )
             )
             try:
-                db.commit()
+                with self._writes:
+                    db.commit()
             except IntegrityError:
                 db.rollback()
                 return {"stored": True, "replay": True}
@@ -454,7 +469,7 @@ class StudyServer:
     def store_event(self, p: Participant, ev: EventIn) -> None:
         if len(repr(ev.detail)) > 4000:
             raise RefusedError(422, "detail: too large (at most 4000 characters)")
-        with Session(self.engine) as db:
+        with self._writes, Session(self.engine) as db:
             if ev.kind == "browser":
                 fresh = db.get(Participant, p.pk)
                 assert fresh is not None

@@ -1,0 +1,365 @@
+"""Online sessions: the server's API (tokens, validation, idempotency, completion, privacy),
+export to the lab files, and real headless Chromium participants - a full session, a tab
+closed mid-trial, the server SIGKILLed and restarted - and a 200-client load test on SQLite
+and PostgreSQL. Needs Debian's chromium, chromium-driver and postgresql (scripts/setup.sh)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from facelab.experiment.cli import main
+from facelab.experiment.online.browser import SimulatedBrowser, chromium
+from facelab.experiment.online.db import Action, Participant, PlaybackRecord, Response
+from facelab.experiment.online.export import export_sessions
+from facelab.experiment.online.load import (
+    free_port,
+    load_test,
+    postgres_cluster,
+    start_server,
+    wait_for_server,
+)
+from facelab.experiment.online.serve import BackgroundServer, prepare_server
+from facelab.experiment.online.server import create_app
+from facelab.protocol import load_protocol
+from facelab.sessionlog import SessionLog
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[1]
+PLANNED = 18  # 9 trials x 2 VAS items in the short study
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The paper's design, one set per block, 1-2 s clips at 320x180, rendered once."""
+    root = tmp_path_factory.mktemp("online")
+    text = (ROOT / "protocols" / "kato2021.yaml").read_text(encoding="utf-8")
+    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
+    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
+    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
+    text = text.replace("    sets: 2\n", "    sets: 1\n")
+    (root / "short.yaml").write_text(text, encoding="utf-8")
+    args = ["render", str(root / "short.yaml"), "--out", str(root / "clips")]
+    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0
+    return root
+
+
+def _server(study: Path, db: Path, **kw):
+    protocol = load_protocol(study / "short.yaml")
+    server, _ = prepare_server(
+        protocol,
+        protocol_path=study / "short.yaml",
+        clips_dir=study / "clips",
+        db_url=f"sqlite:///{db}",
+        results=db.parent,
+        admin_secret="experimenter-secret-123",
+        **kw,
+    )
+    return server
+
+
+def _answer(trial: int, item: str, rating: float, key: str) -> dict:
+    return {
+        "client_key": key,
+        "trial_index": trial,
+        "item": item,
+        "rt_s": 1.5,
+        "rating": rating,
+        "timestamp": "2026-11-23T08:00:00.000Z",
+        "clip_onset": 2.0,
+        "clip_frames_dropped": 0,
+    }
+
+
+def _rows(server, participant: str) -> list[dict]:
+    with Session(server.engine) as db:
+        p = db.scalars(select(Participant).where(Participant.participant == participant)).first()
+        if p is None:
+            return []
+        return [r.row for r in db.scalars(select(Response).where(Response.participant_pk == p.pk))]
+
+
+# --------------------------------------------------------------------------- the API
+
+
+def test_tokens_origin_and_every_field_are_checked(study: Path, tmp_path: Path) -> None:
+    server = _server(study, tmp_path / "db.sqlite")
+    client = TestClient(create_app(server))
+    _, token = server.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token}
+    assert client.get("/api/session").status_code == 401
+    assert client.get("/api/session", headers={"X-Facelab-Token": "x" * 43}).status_code == 401
+    r = client.get("/api/session", headers=ok)
+    assert r.status_code == 200
+    state = r.json()
+    assert state["participant"] == "P0001" and state["planned"] == PLANNED
+    clips = [s["clip"] for s in state["timeline"] if s["kind"] == "clip"]
+    assert clips and all(re.fullmatch(r"[0-9a-f]{64}\.mp4", c) for c in clips)
+    csp = r.headers["Content-Security-Policy"]
+    assert "script-src 'self'" in csp and "frame-ancestors 'none'" in csp
+    assert r.headers["X-Content-Type-Options"] == "nosniff"
+
+    good = _answer(1, "naturalness", 40.0, "aaaaaaaaaaaa0001")
+    bad = {**good, "rating": 140.0}
+    r = client.post("/api/response", json=bad, headers=ok)
+    assert r.status_code == 422 and "rating" in r.json()["error"]
+    r = client.post("/api/response", json={**good, "extra": 1}, headers=ok)
+    assert r.status_code == 422 and "extra" in r.json()["error"]
+    r = client.post("/api/response", json={**good, "trial_index": 99}, headers=ok)
+    assert r.status_code == 422 and "trial_index 99" in r.json()["error"]
+    r = client.post("/api/response", json={**good, "rating": "40"}, headers=ok)
+    assert r.status_code == 422  # strict: a string is not a number
+    r = client.post("/api/response", json=good, headers={**ok, "Origin": "https://evil.example"})
+    assert r.status_code == 403
+    r = client.post("/api/response", json=good, headers={"X-Facelab-Token": "y" * 43})
+    assert r.status_code == 401
+    assert _rows(server, "P0001") == []  # nothing refused was stored
+    r = client.get("/api/admin/progress", headers={"X-Facelab-Admin": "wrong"})
+    assert r.status_code == 401
+    r = client.get("/api/admin/progress", headers={"X-Facelab-Admin": "experimenter-secret-123"})
+    assert r.status_code == 200 and r.json()["participants"][0]["participant"] == "P0001"
+
+
+def test_replays_are_harmless_conflicts_refused_completion_waits(
+    study: Path, tmp_path: Path
+) -> None:
+    server = _server(study, tmp_path / "db.sqlite", completion_code="C0DE42")
+    client = TestClient(create_app(server))
+    p, token = server.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token}
+    keys = sorted(server.study.planned(p.participant))
+    first = _answer(*keys[0], 55.5, "bbbbbbbbbbbb0000")
+    r = client.post("/api/response", json=first, headers=ok)
+    assert r.json() == {"stored": True, "replay": False, "complete": False}
+    r = client.post("/api/response", json=first, headers=ok)  # the same request again
+    assert r.status_code == 200 and r.json()["replay"] is True
+    r = client.post("/api/response", json={**first, "client_key": "bbbbbbbbbbbb9999"}, headers=ok)
+    assert r.status_code == 200 and r.json()["replay"] is True  # same value, new key
+    r = client.post(
+        "/api/response",
+        json={**first, "client_key": "cccccccccccc0000", "rating": 10.0},
+        headers=ok,
+    )
+    assert r.status_code == 409 and "55.5" in r.json()["error"]
+    assert [row["rating"] for row in _rows(server, p.participant)] == [55.5]
+    assert client.get("/api/complete", headers=ok).status_code == 409
+    for n, key in enumerate(keys[1:], start=1):
+        r = client.post(
+            "/api/response", json=_answer(*key, 50.0, f"dddddddddddd{n:04d}"), headers=ok
+        )
+        assert r.status_code == 200
+    assert r.json()["complete"] is True
+    done = client.get("/api/complete", headers=ok)
+    assert done.status_code == 200 and done.json()["code"] == "C0DE42"
+    rows = _rows(server, p.participant)
+    assert len(rows) == PLANNED == len({(r["trial_index"], r["item"]) for r in rows})
+
+
+def test_join_assigns_ids_hashes_recruitment_ids_and_rejoin_resumes(
+    study: Path, tmp_path: Path
+) -> None:
+    db = tmp_path / "db.sqlite"
+    server = _server(study, db)
+    client = TestClient(create_app(server))
+    pid = "5f1e2d3c4b5a69788796a5b4"
+    r = client.get(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+    assert r.status_code == 303
+    token = re.fullmatch(r"/run#t=([A-Za-z0-9_-]+)", r.headers["location"]).group(1)
+    assert len(token) >= 43  # >= 256 bits, URL-safe base64
+    r2 = client.get("/join", follow_redirects=False)
+    token2 = r2.headers["location"].split("=", 1)[1]
+    names = [client.get("/api/session", headers={"X-Facelab-Token": t}).json()["participant"]
+             for t in (token, token2)]  # fmt: skip
+    assert names == ["P0001", "P0002"]  # numbered by the server: Latin squares work
+    r3 = client.get(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+    token3 = r3.headers["location"].split("=", 1)[1]
+    time.sleep(5.1)  # the token cache's lifetime
+    assert (
+        client.get("/api/session", headers={"X-Facelab-Token": token3}).json()["participant"]
+        == "P0001"
+    )
+    assert client.get("/api/session", headers={"X-Facelab-Token": token}).status_code == 401
+    server.engine.dispose()
+    raw = b"".join(p.read_bytes() for p in tmp_path.glob("db.sqlite*"))
+    assert pid.encode() not in raw and token.encode() not in raw  # neither stored in clear
+
+
+def test_export_writes_the_lab_files_and_only_adds(study: Path, tmp_path: Path) -> None:
+    server = _server(study, tmp_path / "db.sqlite")
+    client = TestClient(create_app(server))
+    p, token = server.join(recruitment=None, source="prolific")
+    keys = sorted(server.study.planned(p.participant))
+    for n, key in enumerate(keys[:5]):
+        body = _answer(*key, 20.0 + n, f"eeeeeeeeeeee{n:04d}")
+        client.post("/api/response", json=body, headers={"X-Facelab-Token": token})
+    out = tmp_path / "results"
+    (tsv,) = export_sessions(server.engine, results=out)
+    log = SessionLog.resume(out, study="kato2021", participant=p.participant, session=1)
+    assert len(log.rows) == 5 and log.provenance()["mode"] == "online"
+    for n, key in enumerate(keys[5:], start=5):
+        body = _answer(*key, 20.0 + n, f"eeeeeeeeeeee{n:04d}")
+        client.post("/api/response", json=body, headers={"X-Facelab-Token": token})
+    export_sessions(server.engine, results=out)
+    export_sessions(server.engine, results=out)  # again: nothing new, nothing doubled
+    rows = list(csv.DictReader(tsv.read_text(encoding="utf-8").splitlines(), delimiter="\t"))
+    assert len(rows) == PLANNED
+    assert [float(r["rating"]) for r in rows] == [20.0 + n for n in range(PLANNED)]
+    assert (
+        json.loads(tsv.with_name(tsv.name.replace("_beh.tsv", "_session.json")).read_text())[
+            "recruitment_source"
+        ]
+        == "prolific"
+    )
+
+
+# --------------------------------------------------------------------------- real browsers
+
+
+def _check_session(server, participant: str) -> None:
+    """Every planned response once, and each equal to what the participant clicked."""
+    rows = _rows(server, participant)
+    assert len(rows) == PLANNED == len({(r["trial_index"], r["item"]) for r in rows})
+    with Session(server.engine) as db:
+        p = db.scalars(select(Participant).where(Participant.participant == participant)).one()
+        actions = [
+            a.record for a in db.scalars(select(Action).where(Action.participant_pk == p.pk))
+        ]
+        assert p.completed is not None
+    clicked = {(a["trial_index"], a["item"]): a["value"] for a in actions}
+    for r in rows:  # the click lands on a pixel: within a fraction of a scale point
+        assert abs(r["rating"] - clicked[(r["trial_index"], r["item"])]) < 0.5, r
+
+
+def test_simulated_participants_in_chromium_then_export_and_analyze(
+    study: Path, tmp_path: Path
+) -> None:
+    db = tmp_path / "online.sqlite"
+    shots = tmp_path / "shots"
+    args = ["serve", str(study / "short.yaml"), "--clips", str(study / "clips"),
+            "--db", f"sqlite:///{db}", "--results", str(tmp_path), "--port", "0",
+            "--simulate-participants", "2", "--screenshots", str(shots)]  # fmt: skip
+    assert main(args) == 0
+    assert {p.name for p in shots.glob("*.png")} >= {
+        "text-instructions.png",
+        "clip.png",
+        "vas.png",
+        "complete.png",
+    }
+    server = _server(study, db)
+    for pid in ("P0001", "P0002"):
+        _check_session(server, pid)
+    with Session(server.engine) as s:
+        records = [r.record for r in s.scalars(select(PlaybackRecord))]
+    assert len(records) == 18  # 9 clips x 2 participants
+    for rec in records:  # requestVideoFrameCallback saw the frames
+        assert (
+            rec["frames_expected"] > 0 and rec["presented_frames"] >= 0.8 * rec["frames_expected"]
+        )
+        assert rec["play_refused"] is None and rec["onset"] > 0
+    assert main(args) == 0  # a second start: the same two, already complete
+    assert len(_rows(server, "P0001")) == PLANNED
+    out = tmp_path / "results"
+    assert main(["export", "--db", f"sqlite:///{db}", "--results", str(out)]) == 0
+    session = json.loads(next((out / "kato2021" / "sub-P0001").rglob("*_session.json")).read_text())
+    assert session["mode"] == "online" and session["simulated"] is True
+    assert next((out / "kato2021" / "sub-P0002").rglob("*_actions.jsonl")).stat().st_size > 0
+    report = tmp_path / "report"
+    code = main(
+        ["analyze", str(out), "--protocol", str(study / "short.yaml"), "--out", str(report),
+         "--bootstrap", "0"]
+    )  # fmt: skip
+    assert code == 0
+    assert any(report.rglob("*.csv"))
+
+
+def test_a_tab_closed_mid_trial_resumes_at_the_first_unanswered_screen(
+    study: Path, tmp_path: Path
+) -> None:
+    server = _server(study, tmp_path / "db.sqlite")
+    with BackgroundServer(server) as bg:
+        driver = chromium()
+        try:
+            first = SimulatedBrowser(server, bg.url, 1, stop_after=3, driver=driver)
+            assert first.run() == "stopped"  # on trial 2's second VAS screen
+            time.sleep(1.0)  # the outbox sends the third answer
+            driver.get("about:blank")  # the tab is gone
+            assert len(_rows(server, "P0001")) == 3
+            again = SimulatedBrowser(server, bg.url, 1, driver=driver)
+            assert again.run() == "complete"
+        finally:
+            driver.quit()
+    _check_session(server, "P0001")
+    with Session(server.engine) as s:
+        records = [r.record for r in s.scalars(select(PlaybackRecord))]
+    replays = [r for r in records if r["replay"]]
+    assert [r["trial_index"] for r in replays] == [2]  # the clip is shown again before rating
+
+
+def test_the_server_killed_mid_session_and_restarted_loses_nothing(
+    study: Path, tmp_path: Path
+) -> None:
+    db = tmp_path / "db.sqlite"
+    server = _server(study, db)
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+
+    def start():
+        return start_server(
+            study / "short.yaml", clips=study / "clips", db_url=f"sqlite:///{db}", port=port,
+            results=tmp_path,
+        )  # fmt: skip
+
+    proc = start()
+    wait_for_server(url)
+    outcome: list[str] = []
+    browser = SimulatedBrowser(server, url, 1)
+    thread = threading.Thread(target=lambda: outcome.append(browser.run(timeout_s=300)))
+    thread.start()
+    deadline = time.monotonic() + 120
+    while len(_rows(server, "P0001")) < 4 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    stored_at_kill = len(_rows(server, "P0001"))
+    time.sleep(4.0)  # the participant goes on answering; answers wait in localStorage
+    proc = start()
+    try:
+        thread.join(timeout=300)
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
+    assert outcome == ["complete"]
+    assert 4 <= stored_at_kill < PLANNED
+    _check_session(server, "P0001")
+
+
+# --------------------------------------------------------------------------- load
+
+
+@pytest.mark.parametrize("database", ["sqlite", "postgresql"])
+def test_200_concurrent_participants_lose_and_duplicate_nothing(
+    study: Path, tmp_path: Path, database: str
+) -> None:
+    kw = dict(protocol_path=study / "short.yaml", clips=study / "clips", participants=200,
+              results=tmp_path)  # fmt: skip
+    if database == "postgresql":
+        with postgres_cluster() as url:
+            figures = load_test(db_url=url, **kw)
+    else:
+        figures = load_test(db_url=f"sqlite:///{tmp_path / 'load.sqlite'}", **kw)
+    print(json.dumps(figures))
+    assert figures["responses_planned"] == 200 * PLANNED
+    assert figures["lost"] == 0 and figures["duplicated"] == 0
+    assert figures["responses_stored"] == 200 * PLANNED
+    assert figures["wall_s"] < 400  # bounded; the figures themselves go to bench online
