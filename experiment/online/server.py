@@ -528,27 +528,49 @@ def _same(a: Any, b: Any) -> bool:
     return a == b
 
 
-def create_app(server: StudyServer) -> FastAPI:
-    """The FastAPI application of ``server``."""
+_HEADERS = [
+    (b"content-security-policy", CSP.encode()),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"x-frame-options", b"DENY"),
+    (b"cross-origin-opener-policy", b"same-origin"),
+]
+
+
+class _SecurityHeaders:
+    """Pure ASGI middleware: cross-origin POSTs refused, security headers on every response
+    (cheaper than Starlette's BaseHTTPMiddleware under load)."""
+
+    def __init__(self, app: FastAPI):
+        self.app = app
+        self.state = app.state
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers") or [])
+        origin = headers.get(b"origin")
+        cross = origin is not None and origin.split(b"://", 1)[-1] != headers.get(b"host", b"")
+        if scope["method"] == "POST" and cross:
+            refusal = JSONResponse({"error": "cross-origin request refused"}, status_code=403)
+            await refusal(scope, receive, send)
+            return
+        api = scope["path"].startswith("/api/")
+
+        async def send_with_headers(message: Any) -> None:
+            if message["type"] == "http.response.start":
+                extra = _HEADERS + ([(b"cache-control", b"no-store")] if api else [])
+                message["headers"] = list(message.get("headers", [])) + extra
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+def create_app(server: StudyServer) -> Any:
+    """The FastAPI application of ``server`` (wrapped in the security-header middleware)."""
     app = FastAPI(title="facelab serve", docs_url=None, redoc_url=None, openapi_url=None)
     config = server.config
-
-    @app.middleware("http")
-    async def security_headers(request: Request, call_next: Any) -> Any:
-        origin = request.headers.get("origin")
-        if request.method == "POST" and origin is not None:
-            host = request.headers.get("host", "")
-            if origin.split("://", 1)[-1] != host:
-                return JSONResponse({"error": "cross-origin request refused"}, status_code=403)
-        response = await call_next(request)
-        response.headers["Content-Security-Policy"] = CSP
-        response.headers["X-Content-Type-Options"] = "nosniff"
-        response.headers["Referrer-Policy"] = "no-referrer"
-        response.headers["X-Frame-Options"] = "DENY"
-        response.headers["Cross-Origin-Opener-Policy"] = "same-origin"
-        if request.url.path.startswith("/api/"):
-            response.headers["Cache-Control"] = "no-store"
-        return response
 
     @app.exception_handler(RefusedError)
     async def refused(_request: Request, exc: RefusedError) -> JSONResponse:
@@ -653,4 +675,4 @@ def create_app(server: StudyServer) -> FastAPI:
         server.check_admin(request.headers.get(ADMIN_HEADER))
         return {"study": server.study.study, "participants": server.progress()}
 
-    return app
+    return _SecurityHeaders(app)
