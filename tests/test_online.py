@@ -363,3 +363,73 @@ def test_200_concurrent_participants_lose_and_duplicate_nothing(
     assert figures["lost"] == 0 and figures["duplicated"] == 0
     assert figures["responses_stored"] == 200 * PLANNED
     assert figures["wall_s"] < 400  # bounded; the figures themselves go to bench online
+
+
+# --------------------------------------------------------------------------- task screens
+
+
+def _task_study(root: Path, name: str, edits: dict[str, str]) -> Path:
+    from facelab.resources import protocol_path
+
+    text = protocol_path(name).read_text(encoding="utf-8")
+    text = text.replace(
+        "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
+        "text: あ。い。, expected_vowels: ai",
+    )
+    for old, new in edits.items():
+        text = re.sub(old, new, text)
+    path = root / f"{name}.yaml"
+    path.write_text(text, encoding="utf-8")
+    args = ["render", str(path), "--out", str(root / "clips"), "--size", "320x180"]
+    assert main([*args, "--fps", "15", "--quiet"]) == 0
+    return path
+
+
+@pytest.mark.parametrize(
+    ("name", "edits", "screen"),
+    [
+        (
+            "gain_2afc",
+            {
+                r"    sets: 2": "    sets: 1",
+                r"presentations_per_condition: 5": ("presentations_per_condition: 1"),
+            },
+            "choice_2afc",
+        ),
+        (
+            "method_identify",
+            {
+                r"    sets: 4": "    sets: 1",
+                r"presentations_per_condition: 2": ("presentations_per_condition: 1"),
+                r"      - \{id: sentence.*\n": "",
+            },
+            "identify",
+        ),
+    ],
+)
+def test_forced_choice_and_identification_in_chromium(
+    tmp_path: Path, name: str, edits: dict[str, str], screen: str
+) -> None:
+    path = _task_study(tmp_path, name, edits)
+    protocol = load_protocol(path)
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
+    assert (shots / f"{screen}.png").exists()
+    rows = _rows(server, "P0001")
+    assert rows and {r["screen"] for r in rows} == {screen}
+    assert len(rows) == len(server.study.planned("P0001"))
+    with Session(server.engine) as db:
+        actions = {(a.record["trial_index"]): a.record["value"] for a in db.scalars(select(Action))}
+    for r in rows:
+        if screen == "identify":
+            assert r["response"] == actions[r["trial_index"]]
+            assert r["correct"] in (0, 1)
+        else:  # the interval clicked -> the condition shown in it, scored against position
+            chose_comparison = actions[r["trial_index"]] == r["position"]
+            assert r["response"] == (r["condition"] if chose_comparison else "g100")
+            assert r["correct"] == int(chose_comparison)
