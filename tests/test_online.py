@@ -433,3 +433,20 @@ def test_forced_choice_and_identification_in_chromium(
             chose_comparison = actions[r["trial_index"]] == r["position"]
             assert r["response"] == (r["condition"] if chose_comparison else "g100")
             assert r["correct"] == int(chose_comparison)
+
+
+def test_bad_serve_and_export_input_is_a_clear_error(
+    study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = ["serve", str(study / "short.yaml"), "--clips", str(study / "clips"),
+            "--results", str(tmp_path)]  # fmt: skip
+    assert main([*base, "--consent", str(tmp_path / "missing.txt")]) == 2
+    assert "--consent" in capsys.readouterr().err
+    assert main([*base, "--db", "mysql://x/y"]) == 2
+    assert "expected a sqlite:///PATH or postgresql" in capsys.readouterr().err
+    assert main(["serve", str(study / "short.yaml"), "--clips", str(tmp_path)]) == 2
+    assert "no clip manifest" in capsys.readouterr().err
+    missing = f"sqlite:///{tmp_path / 'none.sqlite'}"
+    assert main(["export", "--db", missing, "--results", str(tmp_path / "out")]) == 2
+    assert "no such database file" in capsys.readouterr().err
+    assert not (tmp_path / "none.sqlite").exists()

@@ -22,7 +22,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise FacelabError(f"--port {args.port}: expected 1..65535 (0: any free port)")
     if args.simulate_participants is not None and args.simulate_participants < 1:
         raise FacelabError("--simulate-participants: expected a number >= 1")
-    consent = Path(args.consent).read_text(encoding="utf-8") if args.consent else None
+    consent = None
+    if args.consent:
+        try:
+            consent = Path(args.consent).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise FacelabError(
+                f"--consent {args.consent}: cannot read it as UTF-8 text ({exc})"
+            ) from None
     clips = Path(args.clips) if args.clips else results / protocol.study.id / "clips"
     server, made = prepare_server(
         protocol,
@@ -57,9 +64,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print(f"{done} of {len(outcomes)} simulated participants complete")
         return 0 if done == len(outcomes) else 1
 
+    import socket
+
     import uvicorn
 
     from facelab.experiment.online.server import create_app
+
+    with socket.socket() as probe:
+        try:
+            probe.bind((args.host, args.port))
+        except OSError as exc:
+            raise FacelabError(
+                f"--host {args.host} --port {args.port}: cannot listen ({exc})"
+            ) from None
 
     base = f"http://{args.host}:{args.port}"
     print(f"serving study {protocol.study.id!r} at {base} (database {server.engine.url!r})")
@@ -90,6 +107,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from facelab.experiment.online.export import export_sessions
 
     results = output_dir(args.results, option="--results")
+    if args.db.startswith("sqlite:///") and not Path(args.db[len("sqlite:///") :]).is_file():
+        raise FacelabError(f"--db {args.db}: no such database file (nothing was exported)")
     engine = open_engine(args.db)
     paths = export_sessions(engine, results=results, study=args.study)
     print(f"exported {len(paths)} online sessions into {results}")
