@@ -70,7 +70,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     from facelab.experiment.online.server import create_app
 
-    with socket.socket() as probe:
+    with socket.socket() as probe:  # as uvicorn binds: TIME_WAIT after a restart is fine
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((args.host, args.port))
         except OSError as exc:
