@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import hashlib
 import re
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -37,6 +39,7 @@ __all__ = [
     "count_trials",
     "participant_number",
     "participant_seed",
+    "trial_order",
     "trials_frame",
     "validate_participant_id",
 ]
@@ -267,6 +270,11 @@ def block_trials(protocol: Protocol, block: Block) -> int:
 def count_trials(protocol: Protocol) -> int:
     """How many trials :func:`build_trials` gives each participant (without building them)."""
     return sum(block_trials(protocol, block) for block in protocol.blocks)
+
+
+def trial_order(trials: Sequence[Trial]) -> list[list[Any]]:
+    """The trial order as a session's JSON records it (lab and online sessions alike)."""
+    return [[t.block, t.set_index, t.stimulus, t.condition, t.repetition] for t in trials]
 
 
 def trials_frame(trials: list[Trial]) -> pd.DataFrame:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from facelab.design import build_trials, participant_seed
+from facelab.design import build_trials, participant_seed, trial_order
 from facelab.errors import SessionError
 from facelab.experiment.adaptive import Staircases
 from facelab.experiment.preflight import (
@@ -76,10 +76,6 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _order(trials: list) -> list[list]:
-    return [[t.block, t.set_index, t.stimulus, t.condition, t.repetition] for t in trials]
-
-
 def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions) -> dict[str, Any]:
     """Run (or resume) one session; returns a summary.
 
@@ -117,7 +113,7 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                     f"{protocol_path} changed since this session started (its SHA-256 differs "
                     f"from the one in {paths.provenance}); resume with the original protocol file"
                 )
-            if saved.get("trial_order") != _order(trials):
+            if saved.get("trial_order") != trial_order(trials):
                 raise SessionError("the trial order differs from the one this session started with")
             if bool(saved.get("simulated")) != options.simulate:
                 raise SessionError(
@@ -154,7 +150,7 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                     "protocol_file": str(protocol_path),
                     "protocol_sha256": digest,
                     "design_seed": participant_seed(protocol.seed, pid),
-                    "trial_order": _order(trials),
+                    "trial_order": trial_order(trials),
                     "clips": clip_hashes,
                     "software": _versions(),
                     "audio_output": audio,

@@ -24,13 +24,12 @@ from facelab.experiment.online.browser import SimulatedBrowser, chromium
 from facelab.experiment.online.db import Action, Participant, PlaybackRecord, Response
 from facelab.experiment.online.export import export_sessions
 from facelab.experiment.online.load import (
-    free_port,
     load_test,
     postgres_cluster,
     start_server,
     wait_for_server,
 )
-from facelab.experiment.online.serve import BackgroundServer, prepare_server
+from facelab.experiment.online.serve import BackgroundServer, free_port, prepare_server
 from facelab.experiment.online.server import create_app
 from facelab.protocol import load_protocol
 from facelab.sessionlog import SessionLog

@@ -18,7 +18,6 @@ import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -33,19 +32,13 @@ from sqlalchemy.orm import Session
 
 from facelab.errors import SessionError
 from facelab.experiment.online.db import Participant, Response
-from facelab.experiment.online.serve import prepare_server
+from facelab.experiment.online.serve import free_port, prepare_server
 from facelab.experiment.timeline import ChoiceScreen, IdentifyScreen, VasScreen
 from facelab.protocol import load_protocol
 
-__all__ = ["free_port", "load_test", "postgres_cluster", "start_server", "wait_for_server"]
+__all__ = ["load_test", "postgres_cluster", "start_server", "wait_for_server"]
 
 PG_BIN = Path("/usr/lib/postgresql/15/bin")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_for_server(url: str, *, timeout_s: float = 60.0) -> None:

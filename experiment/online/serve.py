@@ -5,6 +5,7 @@ participants run)."""
 from __future__ import annotations
 
 import secrets
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ from facelab.experiment.online.study import OnlineStudy
 from facelab.experiment.preflight import check_clips
 from facelab.protocol import Protocol, protocol_hash
 
-__all__ = ["BackgroundServer", "prepare_server", "vendor_dir"]
+__all__ = ["BackgroundServer", "free_port", "prepare_server", "vendor_dir"]
 
 
 def vendor_dir() -> Path:
@@ -77,6 +78,13 @@ def prepare_server(
     return server, made
 
 
+def free_port(host: str = "127.0.0.1") -> int:
+    """A port nobody listens on now (for servers started by tests and benchmarks)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
 @dataclass
 class BackgroundServer:
     """uvicorn serving ``server`` in a thread (for simulated participants and tests)."""
@@ -86,14 +94,10 @@ class BackgroundServer:
     port: int = 0
 
     def __enter__(self) -> BackgroundServer:
-        import socket
-
         import uvicorn
 
         if self.port == 0:
-            with socket.socket() as s:
-                s.bind((self.host, 0))
-                self.port = s.getsockname()[1]
+            self.port = free_port(self.host)
         config = uvicorn.Config(
             create_app(self.server), host=self.host, port=self.port, log_level="warning"
         )

@@ -55,7 +55,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from facelab.design import participant_seed
+from facelab.design import participant_seed, trial_order
 from facelab.experiment.online.db import (
     Event,
     Participant,
@@ -64,7 +64,7 @@ from facelab.experiment.online.db import (
     Setting,
     utcnow,
 )
-from facelab.experiment.online.study import AnswerError, OnlineStudy, order_of
+from facelab.experiment.online.study import AnswerError, OnlineStudy
 from facelab.experiment.timeline import Playback
 
 __all__ = ["ServeConfig", "StudyServer", "create_app", "token_sha256"]
@@ -283,7 +283,7 @@ class StudyServer:
                     simulated=simulated,
                     protocol_sha256=self.study.protocol_sha256,
                     design_seed=str(participant_seed(self.study.protocol.seed, pid)),
-                    trial_order=order_of(trials),
+                    trial_order=trial_order(trials),
                     clips={"/".join(k): self.study.clip_sha256[k] for k in sorted(needed)},
                     created=utcnow(),
                 )

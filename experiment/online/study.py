@@ -14,7 +14,7 @@ one of the task's); anything else is an :class:`AnswerError` naming the field.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,16 +43,11 @@ from facelab.experiment.timeline import (
 from facelab.protocol import Protocol
 from facelab.sessionlog import SessionContext
 
-__all__ = ["AnswerError", "OnlineStudy", "order_of"]
+__all__ = ["AnswerError", "OnlineStudy"]
 
 
 class AnswerError(ValueError):
     """A submitted answer does not fit the screen it claims to answer (HTTP 422)."""
-
-
-def order_of(trials: Sequence[Any]) -> list[list[Any]]:
-    """The trial order as the session JSON records it (same as the lab runner)."""
-    return [[t.block, t.set_index, t.stimulus, t.condition, t.repetition] for t in trials]
 
 
 def _number(payload: Mapping[str, Any], key: str, *, lo: float, hi: float) -> float:
