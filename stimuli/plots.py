@@ -15,9 +15,16 @@ __all__ = ["vowel_track_figure"]
 COLOURS = {"a": "#d62728", "i": "#1f77b4", "u": "#2ca02c", "e": "#ff7f0e", "o": "#9467bd"}
 
 
-def vowel_track_figure(track: VisemeTrack, isolated: VisemeTrack | None, *, title: str) -> Figure:
-    """The 5 vowel intensities over time; with ``isolated``, a second panel below."""
-    panels = [("analyser output", track)] + ([("vowel isolation", isolated)] if isolated else [])
+def vowel_track_figure(
+    track: VisemeTrack,
+    isolated: VisemeTrack | None,
+    *,
+    title: str,
+    source: str = "analyser output",
+) -> Figure:
+    """The 5 vowel intensities over time; with ``isolated``, a second panel below.
+    ``source`` names where the track came from (the first panel's title)."""
+    panels = [(source, track)] + ([("vowel isolation", isolated)] if isolated else [])
     fig, axes = plt.subplots(
         len(panels),
         1,

@@ -1,25 +1,36 @@
-"""Training and evaluation of the viseme analyser on OpenJTalk speech with exact timing.
+"""Training and evaluation of the viseme analyser on synthetic speech with exact timing.
 
 Corpus: ``stimuli/data/corpus_ja.txt`` - the first 43 sentences train, the last 16 are held
-out. Voices: the mei HTS voice in variants of speed, pitch and all-pass constant; training
-and held-out variants use different values, so evaluation is on unseen sentences *and*
-unseen voice settings. Labels come from the OpenJTalk trace (the audio was generated from
-those durations), so they are exact up to the voice's 5 ms frame.
+out - plus three isolated-vowel drills (:data:`VOWEL_DRILLS`, training only).
 
-Rebuild the shipped model with ``python -m stimuli.viseme_training`` (about a minute).
+Voices, two synthesizers with their own phoneme timing (labels exact up to a 5 ms frame):
+
+* OpenJTalk's statistical ``mei`` voice in settings of speed, pitch (``fm``) and all-pass
+  constant (``a``, a vocal-tract-length-like timbre): :data:`TRAIN_VARIANTS` train,
+  :data:`HELDOUT_VARIANTS` and :data:`FAR_VARIANTS` (beyond the training grid) are held out;
+* eSpeak NG's formant voices (:mod:`facelab.stimuli.espeak`): :data:`ESPEAK_TRAIN` variants
+  train at random rates and pitches; the default voice and the variants in
+  :data:`ESPEAK_HELDOUT` are never trained on.
+
+Every training utterance also enters at a random mel-filter warp (vocal-tract-length
+augmentation). Evaluation is on held-out sentences *and* held-out voices.
+
+Rebuild the shipped model with ``python -m facelab.stimuli.viseme_training`` (about two
+minutes; needs eSpeak NG, which ``scripts/setup.sh`` installs).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from facelab.errors import VisemeError
 from facelab.resources import package_file
+from facelab.stimuli.espeak import EspeakVoice, espeak_synthesize
 from facelab.stimuli.speech import Phone, Speech, synthesize
 from facelab.stimuli.visemes import (
     HOP_S,
@@ -37,6 +48,8 @@ from facelab.stimuli.visemes import (
 )
 
 __all__ = [
+    "ESPEAK_HELDOUT",
+    "ESPEAK_TRAIN",
     "FAR_VARIANTS",
     "HELDOUT_VARIANTS",
     "TRAIN_VARIANTS",
@@ -46,7 +59,9 @@ __all__ = [
     "evaluate",
     "frame_labels",
     "per_voice",
+    "speak",
     "train",
+    "vowel_onset_errors",
 ]
 
 CORPUS = package_file("facelab.stimuli", "data", "corpus_ja.txt")
@@ -75,6 +90,12 @@ TRAIN_VARIANTS = tuple(
         (1.1, 0, 0.50),
         (1.0, 2, 0.60),
         (0.95, -2, 0.53),
+        (1.0, -9, 0.48),
+        (1.0, 9, 0.59),
+        (1.0, -8, 0.46),
+        (1.0, 8, 0.62),
+        (0.9, -10, 0.52),
+        (1.1, 10, 0.50),
     ]
 )
 HELDOUT_VARIANTS = tuple(
@@ -88,6 +109,67 @@ HELDOUT_VARIANTS = tuple(
     ]
 )
 
+#: eSpeak NG voice variants used in training (each utterance at a random rate and pitch).
+ESPEAK_TRAIN = tuple(
+    EspeakVoice(name)
+    for name in [
+        "f1",
+        "f2",
+        "f4",
+        "f5",
+        "m1",
+        "m2",
+        "m4",
+        "m5",
+        "m6",
+        "m7",
+        "klatt",
+        "klatt3",
+        "klatt4",
+        "Andy",
+        "anika",
+        "belinda",
+        "benjamin",
+        "edward",
+        "grandma",
+        "iven",
+        "linda",
+        "max",
+        "norbert",
+        "paul",
+        "quincy",
+        "steph",
+        "travis",
+        "victor",
+        "zac",
+    ]
+)
+#: eSpeak NG voices kept out of training: the default voice (never a training variant),
+#: three variants not in :data:`ESPEAK_TRAIN`, and two rate/pitch settings.
+ESPEAK_HELDOUT = (
+    EspeakVoice(""),
+    EspeakVoice("f3"),
+    EspeakVoice("m3"),
+    EspeakVoice("klatt2"),
+    EspeakVoice("", rate=220, pitch=30),
+    EspeakVoice("f3", rate=150, pitch=70),
+)
+
+Voice = Variant | EspeakVoice
+
+#: Isolated vowels in three orders and alone, spoken by every mei training variant (not in
+#: the corpus file: the held-out sentences stay sentences).
+VOWEL_DRILLS = (
+    "あ。い。う。え。お。",
+    "お。え。う。い。あ。",
+    "い、え、あ、お、う。",
+    "あ。",
+    "い。",
+    "う。",
+    "え。",
+    "お。",
+)
+
 
 def corpus() -> tuple[list[str], list[str]]:
     """(training sentences, held-out sentences)."""
@@ -96,9 +178,12 @@ def corpus() -> tuple[list[str], list[str]]:
     return sentences[:N_TRAIN], sentences[N_TRAIN:]
 
 
-def _synth(text: str, variant: Variant) -> Speech:
+def speak(text: str, voice: Voice) -> Speech:
+    """``text`` spoken by OpenJTalk mei in a :class:`Variant` or by eSpeak NG."""
+    if isinstance(voice, EspeakVoice):
+        return espeak_synthesize(text, voice=voice)
     return synthesize(
-        text, speed=variant.speed, pitch_halftones=variant.pitch_halftones, alpha=variant.alpha
+        text, speed=voice.speed, pitch_halftones=voice.pitch_halftones, alpha=voice.alpha
     )
 
 
@@ -120,44 +205,92 @@ def train(
     *,
     sentences: Iterable[str],
     variants: Sequence[Variant],
-    temperature: float = 2.0,
-    prior_power: float = 0.5,
-    ridge: float = 1e-3,
+    espeak_voices: Sequence[EspeakVoice] = (),
     rng: np.random.Generator,
     per_sentence: int = 4,
+    espeak_per_sentence: int = 6,
+    warp_range: tuple[float, float] = (0.8, 1.25),
+    hidden: int = 128,
+    temperature: float = 1.5,
+    drills: Sequence[str] = VOWEL_DRILLS,
+    l2: float = 1e-3,
 ) -> VisemeModel:
-    """Fit the linear-discriminant model on synthesised speech.
+    """Fit the neural viseme classifier on synthesised speech with exact labels.
 
-    Each sentence is spoken in ``per_sentence`` variants drawn from ``variants``. Priors are
-    the class frequencies to the power ``prior_power`` (flattened so rare visemes can win).
+    Each sentence is spoken in ``per_sentence`` mei variants drawn from ``variants`` and
+    ``espeak_per_sentence`` eSpeak voices from ``espeak_voices`` (each at a random rate
+    140..230 wpm and pitch 25..80); the isolated-vowel ``drills`` (the material of vowel
+    stimuli and calibration recordings, which sentences rarely contain: a vowel standing alone
+    and fading out) by every mei variant at a random speed 0.6..1.2 and as many eSpeak
+    voices. Every utterance enters twice: at warp 1 and at a random
+    mel-filter warp log-uniform in ``warp_range`` (vocal-tract-length augmentation). The
+    network (one ReLU layer of ``hidden`` units, softmax) is fitted by scikit-learn's Adam
+    with early stopping on a 10 % validation split; inference is numpy (:class:`VisemeModel`).
     """
+    from sklearn.neural_network import MLPClassifier
+
     xs, ys = [], []
-    for text in sentences:
-        for vi in rng.choice(len(variants), size=min(per_sentence, len(variants)), replace=False):
-            speech = _synth(text, variants[vi])
-            times, x = features(speech.samples, sample_rate=speech.sample_rate)
-            labels = frame_labels(speech.phones, times)
-            keep = (labels != "") & (x[:, 0] > -50.0)
-            xs.append(x[keep])
-            ys.append(labels[keep])
-    x_all, y_all = np.vstack(xs)[:, 1:], np.concatenate(ys)
+    n_sent = 0
+    texts = [(text, False) for text in sentences] + [(text, True) for text in drills]
+    for text, drill in texts:
+        n_sent += 1
+        if drill:  # every mei variant says the drills, at a random speed 0.6..1.2
+            voices: list[Voice] = [
+                replace(v, speed=round(float(rng.uniform(0.6, 1.2)), 2)) for v in variants
+            ]
+        else:
+            voices = [
+                variants[i]
+                for i in rng.choice(len(variants), min(per_sentence, len(variants)), False)
+            ]
+        if espeak_voices:
+            for i in rng.choice(
+                len(espeak_voices), min(espeak_per_sentence, len(espeak_voices)), replace=False
+            ):
+                v = espeak_voices[i]
+                voices.append(
+                    EspeakVoice(v.variant, int(rng.integers(140, 231)), int(rng.integers(25, 81)))
+                )
+        for voice in voices:
+            speech = speak(text, voice)
+            lo, hi = np.log(warp_range)
+            for warp in (1.0, float(np.exp(rng.uniform(lo, hi)))):
+                times, x = features(speech.samples, sample_rate=speech.sample_rate, warp=warp)
+                labels = frame_labels(speech.phones, times)
+                keep = (labels != "") & (x[:, 0] > -50.0)
+                xs.append(x[keep, 1:])
+                ys.append(labels[keep])
+    x_all, y_all = np.vstack(xs), np.concatenate(ys).astype(str)
     classes = tuple(c for c in SPEECH_CLASSES if np.any(y_all == c))
-    means = np.stack([x_all[y_all == c].mean(axis=0) for c in classes])
-    centred = x_all - means[[classes.index(c) for c in y_all]]
-    cov = centred.T @ centred / (len(x_all) - len(classes))
-    cov += ridge * np.trace(cov) / cov.shape[0] * np.eye(cov.shape[0])
-    counts = np.array([np.sum(y_all == c) for c in classes], dtype=float)
-    log_priors = prior_power * np.log(counts / counts.sum())
+    mean, sd = x_all.mean(axis=0), x_all.std(axis=0) + 1e-9
+    net = MLPClassifier(
+        hidden_layer_sizes=(hidden,),
+        alpha=l2,
+        max_iter=200,
+        early_stopping=True,
+        random_state=int(rng.integers(2**31)),
+    )
+    net.fit((x_all - mean) / sd, y_all)
+    order = [list(net.classes_).index(c) for c in classes]
+    counts = np.array([np.sum(y_all == c) for c in classes])
     return VisemeModel(
         classes=classes,
-        means=means,
-        precision=np.linalg.inv(cov),
-        log_priors=log_priors,
+        scale_mean=mean,
+        scale_sd=sd,
+        hidden_w=net.coefs_[0],
+        hidden_b=net.intercepts_[0],
+        out_w=net.coefs_[1][:, order],
+        out_b=net.intercepts_[1][order],
+        class_means=np.stack([x_all[y_all == c].mean(axis=0) for c in classes]),
         temperature=temperature,
         info={
-            "trained_on": f"{len(sentences)} sentences x {per_sentence} of {len(variants)} "
-            "mei variants",
+            "trained_on": f"{n_sent - len(drills)} sentences x ({per_sentence} of "
+            f"{len(variants)} mei variants + {espeak_per_sentence if espeak_voices else 0} "
+            f"of {len(espeak_voices)} eSpeak NG voices) and {len(drills)} vowel drills x "
+            f"(every mei variant + {espeak_per_sentence if espeak_voices else 0} eSpeak "
+            f"voices), each at warp 1 and one random warp in {warp_range[0]}..{warp_range[1]}",
             "frames": len(x_all),
+            "validation_accuracy": round(float(net.best_validation_score_), 4),
             "class_frames": dict(zip(classes, counts.astype(int).tolist(), strict=True)),
         },
     )
@@ -204,9 +337,9 @@ def score_track(
         ev.core_correct += int(np.sum(pred[core_sel] == truth))
 
 
-#: Voice settings far outside the training grid (pitch and all-pass beyond every training
-#: variant): the stand-in for "voices not used in training" - every variant is still the one
-#: OpenJTalk voice (mei); no other Japanese voice is installable offline here.
+#: mei settings no training variant has: the first two lie beyond every training variant in
+#: both pitch and all-pass constant (the grid's corners are (-8, .46) and (+8, .62)); the
+#: last two pair a low pitch with a high constant and a high pitch with a low one.
 FAR_VARIANTS = (
     Variant(1.0, -11, 0.44),
     Variant(1.0, 10, 0.63),
@@ -215,50 +348,85 @@ FAR_VARIANTS = (
 )
 
 
-def per_voice(model: VisemeModel, *, sentences: Sequence[str], variants: Sequence[Variant]) -> dict:
-    """Per voice setting: vowel accuracy (all frames) audio-only uncalibrated, after
-    ``calibrate()`` on that voice's あ。い。う。え。お。, and from ``align()`` with the text, plus
-    the median vowel-onset error of the alignment (ms)."""
+def per_voice(model: VisemeModel, *, sentences: Sequence[str], variants: Sequence[Voice]) -> dict:
+    """Per voice: vowel accuracy (all frames) audio-only uncalibrated (warp 1, the default),
+    with the per-utterance warp search (``warp="auto"``), after ``calibrate()`` on that voice's
+    あ。い。う。え。お。, and from ``align()`` with the text, plus the median vowel-onset error of
+    the alignment (ms, vowels matched by :func:`vowel_onset_errors`)."""
     out = {}
     for variant in variants:
-        cal_rec = _synth("あ。い。う。え。お。", variant)
+        cal_rec = speak("あ。い。う。え。お。", variant)
         try:
             tuned = calibrate(model, cal_rec.samples, sample_rate=cal_rec.sample_rate)
         except VisemeError as exc:
             tuned = None
             cal_note = str(exc)
         evs = {
-            k: Evaluation(np.zeros((5, 5), dtype=int)) for k in ("audio", "calibrated", "aligned")
+            k: Evaluation(np.zeros((5, 5), dtype=int))
+            for k in ("audio", "audio_auto", "calibrated", "aligned")
         }
-        onsets = []
+        onsets: list[float] = []
+        failures: list[str] = []
         for text in sentences:
-            speech = _synth(text, variant)
+            speech = speak(text, variant)
             track = analyze(
                 speech.samples, sample_rate=speech.sample_rate, model=model
             ).compensated()
             score_track(evs["audio"], track, track.times, speech.phones)
+            t1 = analyze(
+                speech.samples, sample_rate=speech.sample_rate, model=model, warp="auto"
+            ).compensated()
+            score_track(evs["audio_auto"], t1, t1.times, speech.phones)
             if tuned is not None:
                 t2 = analyze(
                     speech.samples, sample_rate=speech.sample_rate, model=tuned
                 ).compensated()
                 score_track(evs["calibrated"], t2, t2.times, speech.phones)
-            res = align_phones(speech.samples, sample_rate=speech.sample_rate, text=text)
+            try:
+                res = align_phones(speech.samples, sample_rate=speech.sample_rate, text=text)
+            except VisemeError as exc:  # text/audio disagreement found: count as all wrong
+                failures.append(f"{text[:12]}…: {exc}")
+                t3 = VisemeTrack(times=track.times, weights=np.zeros_like(track.weights))
+                score_track(evs["aligned"], t3, t3.times, speech.phones)
+                continue
             t3 = from_phonemes(res.phones, duration_s=speech.duration_s)
             score_track(evs["aligned"], t3, t3.times, speech.phones)
-            onsets += [
-                abs(a.start - b.start)
-                for a, b in zip(speech.phones, res.phones, strict=True)
-                if a.phoneme in VOWELS
-            ]
+            try:
+                onsets += vowel_onset_errors(speech.phones, res.phones)
+            except VisemeError as exc:
+                failures.append(f"{text[:12]}…: {exc}")
         out[variant.label()] = {
             "audio_only_uncalibrated": round(evs["audio"].all_accuracy, 4),
+            "audio_only_warp_search": round(evs["audio_auto"].all_accuracy, 4),
             "audio_only_calibrated": (
                 round(evs["calibrated"].all_accuracy, 4) if tuned is not None else cal_note
             ),
             "aligned_with_text": round(evs["aligned"].all_accuracy, 4),
-            "aligned_vowel_onset_error_ms_median": round(1000 * float(np.median(onsets)), 1),
+            "aligned_vowel_onset_error_ms_median": (
+                round(1000 * float(np.median(onsets)), 1) if onsets else None
+            ),
         }
+        if failures:
+            out[variant.label()]["align_refused"] = failures
     return out
+
+
+def vowel_onset_errors(truth: Sequence[Phone], aligned: Sequence[Phone]) -> list[float]:
+    """|onset difference| (s) of the vowels two phone sequences share: the vowel strings are
+    matched by longest common blocks (a synthesiser may say a vowel the front end devoices, or
+    lengthen one into two), and only matched vowels count."""
+    from difflib import SequenceMatcher
+
+    va = [p for p in truth if p.phoneme in VOWELS]
+    vb = [p for p in aligned if p.phoneme in VOWELS]
+    match = SequenceMatcher(
+        a="".join(p.phoneme for p in va), b="".join(p.phoneme for p in vb), autojunk=False
+    )
+    return [
+        abs(va[m.a + k].start - vb[m.b + k].start)
+        for m in match.get_matching_blocks()
+        for k in range(m.size)
+    ]
 
 
 def evaluate(
@@ -277,7 +445,7 @@ def evaluate(
     analyzer = _pylipsync(pylipsync_templates) if pylipsync_templates else None
     for text in sentences:
         for variant in variants:
-            speech = _synth(text, variant)
+            speech = speak(text, variant)
             audio_s += speech.duration_s
             t0 = time.perf_counter()
             track = analyze(speech.samples, sample_rate=speech.sample_rate, model=model)
@@ -362,7 +530,7 @@ def build_pylipsync_templates(
         (folder / "audio" / name).mkdir(parents=True, exist_ok=True)
     count = 0
     for si, text in enumerate(sentences):
-        speech = _synth(text, variants[si % len(variants)])
+        speech = speak(text, variants[si % len(variants)])
         for pi, phone in enumerate(speech.phones):
             if phone.phoneme in names and phone.end - phone.start >= 0.06:
                 a, b = int(phone.start * speech.sample_rate), int(phone.end * speech.sample_rate)
@@ -409,7 +577,9 @@ def main() -> None:
     rng = np.random.default_rng(20261122)
     train_sentences, _ = corpus()
     t0 = time.perf_counter()
-    model = train(sentences=train_sentences, variants=TRAIN_VARIANTS, rng=rng)
+    model = train(
+        sentences=train_sentences, variants=TRAIN_VARIANTS, espeak_voices=ESPEAK_TRAIN, rng=rng
+    )
     model.save(MODEL_PATH)
     print(
         f"trained on {model.info['frames']} frames in {time.perf_counter() - t0:.1f} s; "

@@ -9,19 +9,27 @@ Per 10 ms frame: a 32 ms Hamming window centred on the frame time, pre-emphasis 
 applied to the spectrum), mel filterbank
 (40 bands, 60-7600 Hz, computed at the input's own rate so nothing is resampled), log, DCT
 -> 12 cepstral coefficients (c1..c12, level independent) plus the log energy; stacked with the
-frames 30 ms and 60 ms earlier (causal context, no extra latency). A Gaussian classifier with
-one shared covariance (linear discriminant) gives posteriors over the viseme classes seen in
-Japanese speech; a temperature softens them into OVR-like blends, an absolute level gate
-(-50..-30 dBFS, as uLipSync) scales them, and ``sil`` takes the rest. Trained on OpenJTalk
-speech with exact phoneme times in many voice variants (``stimuli/viseme_training.py``).
+frames 30 ms and 60 ms earlier (causal context, no extra latency). A small neural network
+(one ReLU layer of 128 units, softmax) gives posteriors over the 13 viseme classes seen in
+Japanese speech; a temperature softens them into blends, an absolute level gate (-50..-30
+dBFS, as uLipSync) scales them, and ``sil`` takes the rest.
 
-Why this and not uLipSync's template matching: the LDA uses the same MFCC evidence but learns
-which directions separate the classes and weights them (uLipSync's L1/L2/cosine distances
-treat every coefficient alike), it yields probabilities (blends) rather than ad-hoc scores,
-and it covers consonant visemes, which templates of five vowels cannot. Calibration keeps
-uLipSync's idea - a short recording of the speaker's five vowels - as a MAP update of the
-vowel class means (and a shift of the others by the mean vowel shift): mean-only adaptation
-is what a handful of frames can estimate reliably.
+Speaker independence comes from the training data, not from a per-speaker step: two
+synthesizers with exact phoneme times (OpenJTalk's statistical mei voice in 14 settings of
+speed, pitch and all-pass constant, and eSpeak NG's formant voices in 29 variants at random
+rates and pitches), every utterance also entered at a random mel-filter warp of 0.8..1.25
+(vocal-tract-length augmentation) - see ``stimuli/viseme_training.py``. The network sees one
+frame and its causal context, so the streaming analyser is speaker-independent from its first
+frame. :func:`choose_warp` (vocal-tract-length normalisation chosen per utterance) remains
+as an option (``warp="auto"``); on the shipped model it helps some voices and hurts others,
+so it is off by default (``facelab bench visemes`` reports both).
+
+Why this and not uLipSync's template matching: the network uses the same MFCC evidence but
+learns which directions separate the classes across voices (uLipSync's L1/L2/cosine
+distances treat every coefficient alike and fit one speaker), it yields probabilities
+(blends) rather than ad-hoc scores, and it covers consonant visemes, which templates of five
+vowels cannot. Calibration keeps uLipSync's idea - a short recording of the speaker's five
+vowels - as an input bias and a regularised refit of the output layer (:func:`calibrate`).
 
 Latency: in streaming, a frame needs audio up to 16 ms (half a window) after its time, and
 the posteriors are smoothed by a one-pole filter (tau 10 ms, group delay ~6 ms):
@@ -71,6 +79,7 @@ VOWELS: tuple[str, ...] = ("a", "i", "u", "e", "o")
 VOWEL_VISEMES: tuple[str, ...] = ("aa", "ih", "ou", "E", "oh")
 _VOWEL_INDEX = [VISEMES.index(v) for v in VOWEL_VISEMES]
 MODEL_PATH = package_file("facelab.stimuli", "data", "viseme_model.json")
+MODEL_FORMAT = "facelab-viseme-mlp-1"
 FPS = 100.0
 
 
@@ -334,23 +343,33 @@ def _stack(feats: np.ndarray, history: np.ndarray) -> np.ndarray:
 
 @dataclass
 class VisemeModel:
-    """A linear-discriminant viseme classifier (see the module docstring)."""
+    """A small neural viseme classifier (see the module docstring).
+
+    Input: the stacked cepstra of :func:`features` without the level column, (T, D) with
+    D = 12 x len(CONTEXT); standardised by ``scale_mean``/``scale_sd``, less ``input_bias``
+    (speaker calibration, :func:`calibrate`); one ReLU hidden layer (``hidden_w`` (D, H),
+    ``hidden_b`` (H,)), a softmax output over ``classes`` (``out_w`` (H, C), ``out_b`` (C,)).
+    ``class_means`` (C, D) are the training frames' mean features per class, kept for
+    calibration.
+    """
 
     classes: tuple[str, ...]
-    means: np.ndarray  # (C, D)
-    precision: np.ndarray  # (D, D), inverse of the shared covariance
-    log_priors: np.ndarray  # (C,)
-    temperature: float = 2.0
+    scale_mean: np.ndarray  # (D,)
+    scale_sd: np.ndarray  # (D,)
+    hidden_w: np.ndarray  # (D, H)
+    hidden_b: np.ndarray  # (H,)
+    out_w: np.ndarray  # (H, C)
+    out_b: np.ndarray  # (C,)
+    class_means: np.ndarray  # (C, D)
+    input_bias: np.ndarray | None = None  # (D,), feature units; None = zeros
+    temperature: float = 1.5
     gate_db: tuple[float, float] = (-50.0, -30.0)
     smoothing_tau_s: float = 0.010
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self._refresh()
-
-    def _refresh(self) -> None:
-        self._w = self.means @ self.precision  # (C, D)
-        self._b = -0.5 * np.einsum("cd,cd->c", self._w, self.means) + self.log_priors
+        if self.input_bias is None:
+            self.input_bias = np.zeros(len(self.scale_mean))
         self._cols = np.array([VISEMES.index(c) for c in self.classes])
 
     @property
@@ -368,9 +387,14 @@ class VisemeModel:
         time, and its weights lag by :attr:`lag_s`."""
         return WINDOW_S / 2 + self.lag_s
 
+    def logits(self, ceps: np.ndarray) -> np.ndarray:
+        """(T, C) unnormalised log posteriors for stacked cepstra ``ceps`` (T, D)."""
+        z = (ceps - self.input_bias - self.scale_mean) / self.scale_sd
+        return np.maximum(z @ self.hidden_w + self.hidden_b, 0.0) @ self.out_w + self.out_b
+
     def posteriors(self, x: np.ndarray) -> np.ndarray:
-        """(T, C) class posteriors (tempered) for stacked features x (T, D)."""
-        logits = (x[:, 1:] @ self._w.T + self._b) / self.temperature
+        """(T, C) class posteriors (tempered) for stacked features x (T, 1 + D)."""
+        logits = self.logits(x[:, 1:]) / self.temperature
         logits -= logits.max(axis=1, keepdims=True)
         p = np.exp(logits)
         return p / p.sum(axis=1, keepdims=True)
@@ -388,13 +412,22 @@ class VisemeModel:
         return out
 
     # -- persistence
+    _ARRAYS = (
+        "scale_mean",
+        "scale_sd",
+        "hidden_w",
+        "hidden_b",
+        "out_w",
+        "out_b",
+        "class_means",
+        "input_bias",
+    )
+
     def to_json(self) -> dict:
         return {
-            "format": "facelab-viseme-lda-1",
+            "format": MODEL_FORMAT,
             "classes": list(self.classes),
-            "means": self.means.tolist(),
-            "precision": self.precision.tolist(),
-            "log_priors": self.log_priors.tolist(),
+            **{name: np.round(getattr(self, name), 7).tolist() for name in self._ARRAYS},
             "temperature": self.temperature,
             "gate_db": list(self.gate_db),
             "smoothing_tau_s": self.smoothing_tau_s,
@@ -411,21 +444,23 @@ class VisemeModel:
 
     @classmethod
     def from_json(cls, data: dict) -> VisemeModel:
-        if data.get("format") != "facelab-viseme-lda-1":
-            raise VisemeError("not a facelab viseme model file (format facelab-viseme-lda-1)")
+        if data.get("format") != MODEL_FORMAT:
+            raise VisemeError(
+                f"not a facelab viseme model file of format {MODEL_FORMAT} "
+                f"(found {data.get('format')!r}; retrain with python -m "
+                "facelab.stimuli.viseme_training)"
+            )
         return cls(
             classes=tuple(data["classes"]),
-            means=np.asarray(data["means"]),
-            precision=np.asarray(data["precision"]),
-            log_priors=np.asarray(data["log_priors"]),
+            **{name: np.asarray(data[name], dtype=float) for name in cls._ARRAYS},
             temperature=float(data["temperature"]),
             gate_db=tuple(data["gate_db"]),
             smoothing_tau_s=float(data["smoothing_tau_s"]),
             info=data.get("info", {}),
         )
 
-    def save(self, path: Path) -> None:
-        path.write_text(json.dumps(self.to_json()) + "\n", encoding="utf-8")
+    def save(self, path: Path | str) -> None:
+        Path(path).write_text(json.dumps(self.to_json()) + "\n", encoding="utf-8")
 
     @classmethod
     def load(cls, path: Path | str) -> VisemeModel:
@@ -448,7 +483,7 @@ def _default_model_cached() -> VisemeModel:
 def default_model() -> VisemeModel:
     """The shipped model (a copy; calibrate it freely)."""
     base = _default_model_cached()
-    return replace(base, means=base.means.copy(), info=dict(base.info))
+    return replace(base, input_bias=base.input_bias.copy(), info=dict(base.info))
 
 
 # --------------------------------------------------------------------------- analysis
@@ -602,9 +637,7 @@ def choose_warp(
             stacked = np.column_stack(
                 [full[max(lags) - lag : max(lags) - lag + len(ceps)] for lag in lags]
             )
-            # log posteriors: the Gaussians' shared quadratic term cancels, leaving the
-            # model's linear discriminants
-            ll = stacked[loud] @ model._w.T + model._b
+            ll = model.logits(stacked[loud])
             scores[warp] = float((ll.max(axis=1) - logsumexp(ll, axis=1)).mean())
         return scores[warp]
 
@@ -618,15 +651,16 @@ def analyze(
     *,
     sample_rate: int,
     model: VisemeModel | None = None,
-    warp: float | str = "auto",
+    warp: float | str = 1.0,
 ) -> VisemeTrack:
     """15 viseme weights per 10 ms frame from audio alone (see the module docstring).
 
     samples : (n,) mono float in [-1, 1]; sample_rate : Hz, any rate >= 8 kHz
     (:func:`analysis_input` resamples rates the framing cannot use).
-    warp : ``"auto"`` (default) normalises the speaker's vocal-tract length by
-    :func:`choose_warp` (a calibrated model is used as calibrated, warp 1); a number fixes it
-    (1 = as trained). The track's ``warp`` says which was used.
+    warp : mel-filter warp, 1 (default) = the filters the model was trained with (the model
+    is trained across voices and warps, see the module docstring); ``"auto"`` chooses one
+    per utterance by :func:`choose_warp` (a calibrated model always runs at warp 1). The
+    track's ``warp`` says which was used.
     Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
     on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
     """
@@ -685,8 +719,19 @@ class Alignment:
     reference_s: float
 
 
-def _cmvn(x: np.ndarray) -> np.ndarray:
-    return (x - x.mean(axis=0)) / (x.std(axis=0) + 1e-6)
+#: Log posteriors below this count as this (one class's absence is not evidence to align on).
+POSTERIOR_FLOOR = -8.0
+#: Weight of the level column in the posteriorgram (per 10 dB below the loud level).
+LEVEL_WEIGHT = 3.0
+
+
+def _posteriorgram(x: np.ndarray, model: VisemeModel) -> np.ndarray:
+    """(T, C + 1) DTW features from stacked features x (T, 1 + D): floored log posteriors
+    and the level in 10 dB steps from the utterance's 95th percentile, weighted."""
+    logits = model.logits(x[:, 1:])
+    logp = logits - np.logaddexp.reduce(logits, axis=1, keepdims=True)
+    level = (x[:, :1] - np.percentile(x[:, 0], 95)) / 10.0
+    return np.column_stack([np.maximum(logp, POSTERIOR_FLOOR), LEVEL_WEIGHT * level])
 
 
 def _frame_level(samples: np.ndarray, sample_rate: int, n: int) -> np.ndarray:
@@ -696,24 +741,30 @@ def _frame_level(samples: np.ndarray, sample_rate: int, n: int) -> np.ndarray:
     return 20 * np.log10(rms + 1e-9)
 
 
-def align_phones(samples: np.ndarray, *, sample_rate: int, text: str) -> Alignment:
+def align_phones(
+    samples: np.ndarray, *, sample_rate: int, text: str, model: VisemeModel | None = None
+) -> Alignment:
     """Time the phonemes of ``text`` on a recording of it.
 
     The text is synthesised by OpenJTalk (its phone timeline known exactly); both signals
-    are turned into the analyser's features, normalised per utterance (cepstral mean and
-    variance - this removes most of the speaker) and aligned by DTW
-    (:func:`facelab.stimuli.dtw.dtw_path`); each reference phone boundary moves along the
-    path onto the recording. Where one side holds more than ``MISMATCH_S`` of speech that the
-    other lacks (a long horizontal or vertical run of the path over loud frames), the text
-    and the audio disagree and :class:`VisemeError` says where."""
+    are turned into posteriorgrams - the analyser's log posteriors of the 13 viseme classes
+    per frame (floored at ``POSTERIOR_FLOOR``), plus the frame level relative to the
+    utterance's loud level - which are speaker-independent as far as the analyser is, and
+    aligned by DTW (:func:`facelab.stimuli.dtw.dtw_path`); each reference phone boundary
+    moves along the path onto the recording. (Cepstra normalised per utterance, the first
+    version, kept too much of the speaker: on eSpeak voices 0.44-0.83 of vowel frames.)
+    Where one side holds more than ``MISMATCH_S`` of speech that the other lacks (a long
+    horizontal or vertical run of the path over loud frames), the text and the audio
+    disagree and :class:`VisemeError` says where."""
     from facelab.stimuli.dtw import dtw_path
     from facelab.stimuli.speech import Phone, synthesize
 
     samples, rate = analysis_input(samples, sample_rate=sample_rate)
     ref = synthesize(text, sample_rate=rate)
+    model = model or default_model()
     _, xa = features(samples, sample_rate=rate)
     _, xr = features(ref.samples, sample_rate=rate)
-    path, mean_cost = dtw_path(_cmvn(xr[:, 1:]), _cmvn(xa[:, 1:]))
+    path, mean_cost = dtw_path(_posteriorgram(xr, model), _posteriorgram(xa, model))
     level_a = _frame_level(samples, rate, len(xa))
     level_r = _frame_level(ref.samples, rate, len(xr))
     loud_a = level_a > np.percentile(level_a, 95) - 25
@@ -811,12 +862,17 @@ def _check_runs(path: np.ndarray, loud_ref: np.ndarray, loud_rec: np.ndarray) ->
 
 
 def align(
-    samples: np.ndarray, *, sample_rate: int, text: str, smoothing_s: float = 0.04
+    samples: np.ndarray,
+    *,
+    sample_rate: int,
+    text: str,
+    smoothing_s: float = 0.04,
+    model: VisemeModel | None = None,
 ) -> VisemeTrack:
     """The viseme track of a recording whose words are known: the text's phonemes aligned to
     the audio (:func:`align_phones`) and turned into visemes (:func:`from_phonemes`), frames
     every 10 ms over the whole recording - the same track type as :func:`analyze`."""
-    result = align_phones(samples, sample_rate=sample_rate, text=text)
+    result = align_phones(samples, sample_rate=sample_rate, text=text, model=model)
     duration = len(np.asarray(samples)) / sample_rate
     return from_phonemes(result.phones, smoothing_s=smoothing_s, duration_s=duration)
 
@@ -856,14 +912,23 @@ def calibrate(
     sample_rate: int,
     vowels: str = "aiueo",
     prior_frames: float = 20.0,
+    steps: int = 60,
 ) -> VisemeModel:
     """Adapt ``model`` to a speaker from a recording of the vowels spoken in ``vowels`` order
     with pauses between them (e.g. あ、い、う、え、お).
 
-    Vowel segments are found with the model's own voicing decision; their middle 60 % frames
-    update each vowel's class mean by MAP (``prior_frames`` pseudo-frames of the old mean);
-    every other class moves by the average vowel shift; the level gate is set from the
-    recording's vowel level (peak 2 dB below its 90th percentile).
+    Vowel segments are found with the model's own voicing decision, their middle 60 % frames
+    are used:
+
+    1. an input bias (feature units) moves the speaker's vowels onto the training vowels: the
+       mean over vowels of (segment mean - class mean), each shrunk by n / (n + prior_frames);
+    2. the output layer is then fitted to those frames by ``steps`` of gradient descent on the
+       cross-entropy plus a penalty pulling it back to the shipped weights (strength
+       ``prior_frames`` frames' worth), so a handful of frames moves it only as far as they
+       justify;
+    3. the level gate is set from the vowel level (peak 2 dB below its 90th percentile).
+
+    The calibrated model runs at warp 1 (the calibration replaces the warp search).
     """
     track = analyze(samples, sample_rate=sample_rate, model=model, warp=1.0)
     segs = vowel_segments(track)
@@ -873,27 +938,40 @@ def calibrate(
             f"{len(vowels)} ({vowels}); leave clear pauses between the vowels"
         )
     _, x = features(samples, sample_rate=sample_rate)
-    new = model.means.copy()
-    shifts = []
+    cores, labels, shifts = [], [], []
     for (a, b), vowel in zip(segs, vowels, strict=True):
         n = b - a
         core = x[a + int(0.2 * n) : b - int(0.2 * n), 1:]
         c = model.classes.index(VOWEL_VISEMES[VOWELS.index(vowel)])
-        updated = (prior_frames * model.means[c] + core.sum(axis=0)) / (prior_frames + len(core))
-        shifts.append(updated - model.means[c])
-        new[c] = updated
-    shift = np.mean(shifts, axis=0)
-    vowel_rows = {model.classes.index(VOWEL_VISEMES[VOWELS.index(v)]) for v in vowels}
-    for c in range(len(model.classes)):
-        if c not in vowel_rows:
-            new[c] = model.means[c] + shift
-    levels = np.concatenate([x[a:b, 0] for a, b in segs])
+        shifts.append(
+            (core.mean(axis=0) - model.class_means[c]) * len(core) / (len(core) + prior_frames)
+        )
+        cores.append(core)
+        labels += [c] * len(core)
+    tuned = replace(model, input_bias=np.mean(shifts, axis=0))
+    feats, target = np.vstack(cores), np.array(labels)
+    z = (feats - tuned.input_bias - tuned.scale_mean) / tuned.scale_sd
+    hidden = np.maximum(z @ tuned.hidden_w + tuned.hidden_b, 0.0)
+    w0, b0 = tuned.out_w, tuned.out_b
+    w, b = w0.copy(), b0.copy()
+    onehot = np.eye(len(model.classes))[target]
+    strength = prior_frames / len(feats)
+    rate = 0.5 / max(float(np.mean(np.sum(hidden**2, axis=1))), 1e-9)
+    for _ in range(steps):
+        logits = hidden @ w + b
+        logits -= logits.max(axis=1, keepdims=True)
+        p = np.exp(logits)
+        p /= p.sum(axis=1, keepdims=True)
+        grad = (p - onehot) / len(feats)
+        w -= rate * (hidden.T @ grad + strength * (w - w0))
+        b -= rate * (grad.sum(axis=0) + strength * (b - b0))
+    levels = np.concatenate([x[a:b_, 0] for a, b_ in segs])
     top = float(np.percentile(levels, 90)) - 2.0
     info = {
         **model.info,
-        "calibrated": {"vowels": vowels, "segments_s": [[a * HOP_S, b * HOP_S] for a, b in segs]},
+        "calibrated": {"vowels": vowels, "segments_s": [[a * HOP_S, e * HOP_S] for a, e in segs]},
     }
-    return replace(model, means=new, gate_db=(top - 20.0, top), info=info)
+    return replace(tuned, out_w=w, out_b=b, gate_db=(top - 20.0, top), info=info)
 
 
 # --------------------------------------------------------------------------- vowel isolation

@@ -103,7 +103,12 @@ def _cmd_track(args: argparse.Namespace) -> int:
         )
         print(f"wrote {args.csv}")
     if args.plot:
-        fig = vowel_track_figure(track, isolated, title=f"{set_id}/{stim.id}")
+        source = (
+            "transcript aligned to the recording"
+            if stim.transcript
+            else f"analyser output (audio only, warp {track.warp:g})"
+        )
+        fig = vowel_track_figure(track, isolated, title=f"{set_id}/{stim.id}", source=source)
         fig.savefig(args.plot)
         print(f"wrote {args.plot}")
     return 0
