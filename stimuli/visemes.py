@@ -764,16 +764,24 @@ def align_phones(
     model = model or default_model()
     _, xa = features(samples, sample_rate=rate)
     _, xr = features(ref.samples, sample_rate=rate)
-    path, mean_cost = dtw_path(_posteriorgram(xr, model), _posteriorgram(xa, model))
     level_a = _frame_level(samples, rate, len(xa))
     level_r = _frame_level(ref.samples, rate, len(xr))
     loud_a = level_a > np.percentile(level_a, 95) - 25
     loud_r = level_r > np.percentile(level_r, 95) - 25
+    # leading and trailing silence stay out of the DTW (their lengths are arbitrary): the
+    # speech spans are aligned, the silences before and after map linearly
+    ra, rb = _speech_span(loud_r)
+    aa, ab = _speech_span(loud_a)
+    path, mean_cost = dtw_path(_posteriorgram(xr, model)[ra:rb], _posteriorgram(xa, model)[aa:ab])
+    path = path + np.array([ra, aa])
     _check_runs(path, loud_r, loud_a)
     # reference frame -> recording frame (median of the path's matches), monotone
     mapped = np.zeros(len(xr))
-    for i in range(len(xr)):
+    for i in range(ra, rb):
         mapped[i] = np.median(path[path[:, 0] == i, 1])
+    mapped[:ra] = np.arange(ra) * (aa / ra) if ra else mapped[:0]
+    tail = len(xr) - rb
+    mapped[rb:] = ab - 1 + (np.arange(1, tail + 1) * (len(xa) - ab) / tail if tail else 0)
     mapped = np.maximum.accumulate(mapped)
     _check_slope(mapped, loud_r, loud_a)
     end_a = len(samples) / rate
@@ -794,21 +802,32 @@ def align_phones(
     return Alignment(phones, words, accents, mean_cost, ref.duration_s)
 
 
+def _speech_span(loud: np.ndarray, *, margin: int = 5) -> tuple[int, int]:
+    """[first, last + 1) frames of speech (loud) widened by ``margin`` frames each side."""
+    idx = np.flatnonzero(loud)
+    if len(idx) == 0:
+        return 0, len(loud)
+    return max(0, int(idx[0]) - margin), min(len(loud), int(idx[-1]) + 1 + margin)
+
+
 def _check_slope(mapped: np.ndarray, loud_ref: np.ndarray, loud_rec: np.ndarray) -> None:
     """A half-second of the text's speech stretched over more than MAX_SLOPE times as much
-    loud recording (extra speech), or squeezed into less than 1/MAX_SLOPE (missing speech)."""
+    loud recording (extra speech), or squeezed into less than 1/MAX_SLOPE (missing speech),
+    both relative to the whole utterance's rate (loud recording frames per loud reference
+    frame, within 1/2..2): a speaker who is faster or slower throughout is not a mismatch."""
     w = int(0.5 * FPS)
+    rate = float(np.clip(loud_rec.sum() / max(loud_ref.sum(), 1), 0.5, 2.0))
     for i in range(0, len(mapped) - w, 5):
         if loud_ref[i : i + w].mean() < 0.5:
             continue  # pauses may stretch freely
         a, b = int(mapped[i]), int(mapped[i + w])
         loud_span = int(loud_rec[a : b + 1].sum())
-        if loud_span > MAX_SLOPE * w:
+        if loud_span > MAX_SLOPE * w * rate:
             raise VisemeError(
                 f"text and audio disagree: the recording has about {(loud_span - w) / FPS:.1f} s "
                 f"of speech the text does not have near {a / FPS:.2f} s of the recording"
             )
-        if b - a < w / MAX_SLOPE:
+        if b - a < w * rate / MAX_SLOPE:
             raise VisemeError(
                 "text and audio disagree: the text has words the recording does not say "
                 f"near {a / FPS:.2f} s of the recording"
