@@ -459,6 +459,10 @@ class SessionLog:
     paths: SessionPaths
     rows: list[dict[str, Any]] = field(default_factory=list)
     repaired: list[str] = field(default_factory=list)
+    _keys: set[tuple[int, str]] = field(default_factory=set, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._keys = {(row["trial_index"], row["item"]) for row in self.rows}
 
     # -- opening
 
@@ -538,18 +542,20 @@ class SessionLog:
         extra = [c for c in row if c not in LOG_COLUMNS]
         if missing or extra:
             raise StageError(f"log row has missing {missing} / unknown {extra} columns")
-        key = (row["trial_index"], row["item"])
-        if any((r["trial_index"], r["item"]) == key for r in self.rows):
+        line = "\t".join(_format(row[c]) for c in LOG_COLUMNS) + "\n"
+        parsed = _parse_row(line[:-1].split("\t"), LOG_COLUMNS, where=str(self.paths.tsv))
+        key = (parsed["trial_index"], parsed["item"])
+        if key in self._keys:  # a set: appending stays O(1) however long the session
             raise SessionError(
                 f"trial {key[0]} item {key[1]!r} is already logged; not writing it twice"
             )
-        line = "\t".join(_format(row[c]) for c in LOG_COLUMNS) + "\n"
         _append_line(self.paths.tsv, line)
-        self.rows.append(_parse_row(line[:-1].split("\t"), LOG_COLUMNS, where=str(self.paths.tsv)))
+        self.rows.append(parsed)
+        self._keys.add(key)
 
     def answered(self) -> set[tuple[int, str]]:
         """(trial_index, item) of every response already logged."""
-        return {(row["trial_index"], row["item"]) for row in self.rows}
+        return set(self._keys)
 
     def provenance(self) -> dict[str, Any]:
         """The session JSON as it is on disk."""

@@ -33,6 +33,7 @@ from facelab.experiment.online.serve import BackgroundServer, free_port, prepare
 from facelab.experiment.online.server import create_app
 from facelab.protocol import load_protocol
 from facelab.sessionlog import SessionLog
+from tests.task_protocols import short_task_protocol
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
@@ -367,23 +368,6 @@ def test_200_concurrent_participants_lose_and_duplicate_nothing(
 # --------------------------------------------------------------------------- task screens
 
 
-def _task_study(root: Path, name: str, edits: dict[str, str]) -> Path:
-    from facelab.resources import protocol_path
-
-    text = protocol_path(name).read_text(encoding="utf-8")
-    text = text.replace(
-        "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
-        "text: あ。い。, expected_vowels: ai",
-    )
-    for old, new in edits.items():
-        text = re.sub(old, new, text)
-    path = root / f"{name}.yaml"
-    path.write_text(text, encoding="utf-8")
-    args = ["render", str(path), "--out", str(root / "clips"), "--size", "320x180"]
-    assert main([*args, "--fps", "15", "--quiet"]) == 0
-    return path
-
-
 @pytest.mark.parametrize(
     ("name", "edits", "screen"),
     [
@@ -409,7 +393,7 @@ def _task_study(root: Path, name: str, edits: dict[str, str]) -> Path:
 def test_forced_choice_and_identification_in_chromium(
     tmp_path: Path, name: str, edits: dict[str, str], screen: str
 ) -> None:
-    path = _task_study(tmp_path, name, edits)
+    path = short_task_protocol(name, tmp_path, edits)
     protocol = load_protocol(path)
     server, _ = prepare_server(
         protocol, protocol_path=path, clips_dir=tmp_path / "clips",

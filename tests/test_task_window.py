@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -14,42 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from facelab.experiment.cli import main
 from facelab.protocol import load_protocol
-from facelab.resources import protocol_path
 from facelab.staircase import UpDownStaircase
+from tests.task_protocols import short_task_protocol
 
 pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))
-
-
-def _short(name: str, root: Path, edits: dict[str, str]) -> Path:
-    text = protocol_path(name).read_text(encoding="utf-8")
-    text = text.replace(
-        "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
-        "text: あ。い。, expected_vowels: ai",
-    )
-    for old, new in edits.items():
-        text = re.sub(old, new, text)
-    path = root / f"{name}.yaml"
-    path.write_text(text, encoding="utf-8")
-    assert (
-        main(
-            [
-                "render",
-                str(path),
-                "--out",
-                str(root / "clips"),
-                "--size",
-                "320x180",
-                "--fps",
-                "15",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    return path
 
 
 def _run(path: Path, root: Path, *extra: str) -> subprocess.Popen:
@@ -82,7 +51,9 @@ def _session(root: Path, study: str, suffix: str) -> Path:
 
 
 def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
-    path = _short("gain_staircase", tmp_path, {r"trials: 50": "trials: 8", r"practice: .*\n": ""})
+    path = short_task_protocol(
+        "gain_staircase", tmp_path, {r"trials: 50": "trials: 8", r"practice: .*\n": ""}
+    )
     proc = _run(path, tmp_path)
     saved = 0
     assert proc.stdout is not None
@@ -132,7 +103,7 @@ def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
 
 
 def test_identification_in_the_window(tmp_path: Path) -> None:
-    path = _short(
+    path = short_task_protocol(
         "method_identify",
         tmp_path,
         {

@@ -1,0 +1,28 @@
+"""A shipped task protocol cut down for tests (two vowels, edited by regex) and rendered
+small - shared by the lab-window and the online-session tests."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from facelab.experiment.cli import main
+from facelab.resources import protocol_path
+
+
+def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
+    """Write ``root/<name>.yaml`` (the shipped protocol with a two-vowel stimulus and
+    ``edits`` applied, ``{regex: replacement}``) and render its clips into ``root/clips``
+    at 320x180, 15 fps."""
+    text = protocol_path(name).read_text(encoding="utf-8")
+    text = text.replace(
+        "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
+        "text: あ。い。, expected_vowels: ai",
+    )
+    for old, new in edits.items():
+        text = re.sub(old, new, text)
+    path = root / f"{name}.yaml"
+    path.write_text(text, encoding="utf-8")
+    args = ["render", str(path), "--out", str(root / "clips"), "--size", "320x180"]
+    assert main([*args, "--fps", "15", "--quiet"]) == 0
+    return path
