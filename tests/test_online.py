@@ -433,3 +433,50 @@ def test_bad_serve_and_export_input_is_a_clear_error(
     assert main(["export", "--db", missing, "--results", str(tmp_path / "out")]) == 2
     assert "no such database file" in capsys.readouterr().err
     assert not (tmp_path / "none.sqlite").exists()
+
+
+def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
+    """The server runs the rule: each staircase trial's level is chosen from the stored
+    answers before it (never by the browser), in order; Chromium walks it to the end and
+    the levels shown follow the 1-up-2-down rule, as the lab runner's replay checks."""
+    from facelab.experiment.adaptive import Staircases
+
+    path = short_task_protocol(
+        "gain_staircase", tmp_path, {r"trials: 50": "trials: 6", r"practice: .*\n": ""}
+    )
+    protocol = load_protocol(path)
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    client = TestClient(create_app(server))
+    _, token = server.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token}
+    state = client.get("/api/session", headers=ok).json()
+    adaptive = [s for s in state["timeline"] if s["kind"] == "adaptive"]
+    assert len(adaptive) == 6 and state["planned"] == 6
+    assert len(state["clips"]) == len(protocol.conditions)  # every level preloads
+    first, second = adaptive[0]["trial_index"], adaptive[1]["trial_index"]
+    r = client.get(f"/api/adaptive/{second}", headers=ok)
+    assert r.status_code == 409 and f"answer to trial {first}" in r.json()["error"]
+    assert client.get("/api/adaptive/999", headers=ok).status_code == 409
+    screens = client.get(f"/api/adaptive/{first}", headers=ok).json()["screens"]
+    assert [s["kind"] for s in screens] == ["clip", "clip", "choice_2afc"]
+    answer = {"client_key": "b" * 16, "trial_index": first, "item": "stronger", "rt_s": 0.8,
+              "choice": 1, "timestamp": "2026-11-23T08:00:00.000Z"}  # fmt: skip
+    assert client.post("/api/response", json=answer, headers=ok).status_code == 200
+    assert client.get(f"/api/adaptive/{second}", headers=ok).status_code == 200
+    (row,) = _rows(server, "P0001")
+    assert row["condition"] == "g160" and row["block"] == "main"  # the staircase's start
+
+    with BackgroundServer(server) as bg:  # a second participant, in the browser
+        assert SimulatedBrowser(server, bg.url, 1, seed=3).run() == "complete"
+    rows = sorted(_rows(server, "P0002"), key=lambda r: r["trial_index"])
+    assert len(rows) == 6 and all(r["screen"] == "choice_2afc" for r in rows)
+    Staircases(protocol, logged=rows)  # replaying the rule gives exactly the levels shown
+    from facelab.staircase import new_staircase
+
+    rule = new_staircase(protocol, "main")
+    for r in rows:
+        assert r["condition"] == rule.condition
+        rule.update(bool(r["correct"]))

@@ -31,7 +31,12 @@ from facelab.errors import SessionError
 from facelab.experiment.online.db import Action, Participant
 from facelab.experiment.online.server import StudyServer
 from facelab.experiment.simulate import ChoiceModel, RatingModel
-from facelab.experiment.timeline import ChoiceScreen, IdentifyScreen, ResponseScreen
+from facelab.experiment.timeline import (
+    AdaptiveTrial,
+    ChoiceScreen,
+    IdentifyScreen,
+    ResponseScreen,
+)
 
 __all__ = ["SimulatedBrowser", "chromium", "run_simulated", "simulated_token"]
 
@@ -147,11 +152,24 @@ class SimulatedBrowser:
         )
         rater = RatingModel(self.server.study.protocol, rng=rng)
         chooser = ChoiceModel(self.server.study.protocol, rng=rng)
+        study = self.server.study
         screens = {
             (s.trial_index, s.kind): s
-            for s in self.server.study.screens(p.participant)
+            for s in study.screens(p.participant)
             if isinstance(s, ResponseScreen) and not s.practice
         }
+
+        def screen_for(trial: int | None, kind: str) -> ResponseScreen | None:
+            """The response screen on show; a staircase trial's at the level the server
+            chose from the answers stored so far (the page stored them before asking)."""
+            adaptive = screens.get((trial, "adaptive"))
+            if isinstance(adaptive, AdaptiveTrial):
+                expanded = study.expand_adaptive(
+                    p.participant, p.session, adaptive, self.server.logged(p)
+                )
+                return next(s for s in expanded if isinstance(s, ResponseScreen))
+            return screens.get((trial, kind))
+
         own = self.driver is None
         if own:
             self.driver = chromium()
@@ -222,7 +240,7 @@ class SimulatedBrowser:
                     self.given += screen is not None  # practice answers are not counted
                 elif kind in ("choice_2afc", "identify"):
                     trial = state["trial"]
-                    screen = screens.get((trial, kind))
+                    screen = screen_for(trial, kind)
                     if screen is None:  # the practice trial: any answer
                         options = d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]")
                         value = options[int(rng.integers(len(options)))].get_attribute("data-value")

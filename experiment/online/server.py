@@ -332,6 +332,22 @@ class StudyServer:
             ).all()
         return {(int(t), str(i)) for t, i in rows}
 
+    def logged(self, p: Participant) -> list[dict[str, Any]]:
+        """The participant's stored log rows (what a staircase's next level depends on)."""
+        with Session(self.engine) as db:
+            rows = db.scalars(select(Response.row).where(Response.participant_pk == p.pk)).all()
+        return [dict(r) for r in rows]
+
+    def adaptive(self, p: Participant, trial_index: int) -> dict[str, Any]:
+        """The screens of a staircase trial at the level the stored answers give."""
+        try:
+            screens = self.study.adaptive_json(
+                p.participant, trial_index, logged=self.logged(p), session=p.session
+            )
+        except AnswerError as exc:
+            raise RefusedError(409, str(exc)) from None
+        return {"trial_index": trial_index, "screens": screens}
+
     def session_state(self, p: Participant) -> dict[str, Any]:
         answered = self.answered(p)
         timeline = self.study.timeline_json(p.participant, answered, session=p.session)
@@ -346,7 +362,10 @@ class StudyServer:
             "resumed": bool(answered),
             "planned": len(planned),
             "answered": len(answered & planned),
-            "clips": sorted({s["clip"] for s in timeline if s["kind"] == "clip"}),
+            "clips": sorted(
+                {s["clip"] for s in timeline if s["kind"] == "clip"}
+                | {c for s in timeline if s["kind"] == "adaptive" for c in s["clips"]}
+            ),
             "timeline": timeline,
         }
 
@@ -372,6 +391,7 @@ class StudyServer:
                 answer=values,
                 playback=playback,
                 timestamp=stamp,
+                logged=lambda: self.logged(p),
             )
         except AnswerError as exc:
             raise RefusedError(422, str(exc)) from None
@@ -648,6 +668,11 @@ def create_app(server: StudyServer) -> Any:
     def session(request: Request) -> dict[str, Any]:
         p = server.participant(request.headers.get(TOKEN_HEADER))
         return server.session_state(p)
+
+    @app.get("/api/adaptive/{trial_index}")
+    def adaptive(request: Request, trial_index: int) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.adaptive(p, trial_index)
 
     @app.post("/api/response")
     def response(request: Request, answer: AnswerIn) -> dict[str, Any]:

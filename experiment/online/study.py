@@ -4,7 +4,10 @@ checked against it and turned into the lab log row. Pure (no web, no database).
 The server is the only place the design runs: :meth:`OnlineStudy.screens` compiles the same
 timeline as the lab runner (:func:`facelab.experiment.timeline.compile_timeline`) for the
 participant id the server assigned, and :func:`facelab.experiment.timeline.remaining` gives
-what is left after a closed tab or a restart. The browser never randomises.
+what is left after a closed tab or a restart. The browser never randomises, and never runs
+a staircase: a staircase trial's level comes from :meth:`OnlineStudy.adaptive_json`, which
+replays the participant's stored answers with the lab's
+:class:`~facelab.experiment.adaptive.Staircases`.
 
 Answers are validated field by field against the screen that asked for them (the trial and
 item must be the participant's, a rating within the item's range, a choice 1 or 2, a label
@@ -14,12 +17,13 @@ one of the task's); anything else is an :class:`AnswerError` naming the field.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from facelab.design import build_trials
 from facelab.errors import SessionError
+from facelab.experiment.adaptive import Staircases
 from facelab.experiment.timeline import (
     AdaptiveTrial,
     ChoiceAnswer,
@@ -70,13 +74,6 @@ class OnlineStudy:
     clips: Mapping[ClipKey, Any]
     _screens: dict[str, list[Screen]] = field(default_factory=dict, repr=False)
 
-    def __post_init__(self) -> None:
-        if any(b.design == "staircase" for b in self.protocol.blocks):
-            raise SessionError(
-                f"study {self.protocol.study.id!r}: staircase blocks are not served online yet "
-                "(the next level depends on the last answer); run them in the lab runner"
-            )
-
     @property
     def clip_sha256(self) -> dict[ClipKey, str]:
         return {k: ref.sha256 for k, ref in self.clips.items()}
@@ -113,81 +110,144 @@ class OnlineStudy:
     def timeline_json(
         self, participant: str, answered: set[tuple[int, str]], *, session: int = 1
     ) -> list[dict[str, Any]]:
-        """The screens still to show, as JSON for the browser's plugins."""
+        """The screens still to show, as JSON for the browser's plugins. A staircase trial
+        is a placeholder (``kind: adaptive``, with every clip it may show for preloading):
+        the browser asks :meth:`adaptive_json` for its screens once the answers before it
+        are stored."""
         lang = self.protocol.presentation.language
         todo = remaining(self.screens(participant, session), answered, language=lang)
         shown_before = {t for t, _ in answered}
-        texts = ui(lang)
         out: list[dict[str, Any]] = []
         for s in todo:
-            if isinstance(s, TextScreen):
-                if s.role == "welcome":
-                    continue  # online: the consent/instructions page greets the participant
-                out.append({"kind": "text", "role": s.role, "text": s.text})
-            elif isinstance(s, ClipScreen):
-                ref = self.clips[s.clip]
+            if isinstance(s, TextScreen) and s.role == "welcome":
+                continue  # online: the consent/instructions page greets the participant
+            if isinstance(s, AdaptiveTrial):
+                assert s.trial is not None
                 out.append(
                     {
-                        "kind": "clip",
+                        "kind": "adaptive",
                         "trial_index": s.trial_index,
-                        "practice": s.practice,
-                        "replay": s.trial_index in shown_before,
-                        "clip": ref.sha256 + ".mp4",
-                        "fps": ref.fps,
-                        "frames": round(ref.duration_s * ref.fps),
-                        "interval": s.interval,
-                        "announce": texts["interval"].format(n=s.interval) if s.interval else "",
-                        "gap_s": s.gap_s,
+                        "block": s.trial.block,
+                        "clips": sorted({self.clips[k].sha256 + ".mp4" for k in needed_clips([s])}),
                     }
                 )
-            elif isinstance(s, VasScreen):
-                out.append(
-                    {
-                        "kind": "vas",
-                        "trial_index": s.trial_index,
-                        "practice": s.practice,
-                        "confirm": texts["confirm"],
-                        "items": [
-                            {
-                                "id": it.id,
-                                "question": localized(it.question, lang),
-                                "left": localized(it.left_anchor, lang),
-                                "right": localized(it.right_anchor, lang),
-                                "range": list(it.range),
-                            }
-                            for it in s.items
-                        ],
-                    }
-                )
-            elif isinstance(s, ChoiceScreen):
-                assert s.task is not None
-                out.append(
-                    {
-                        "kind": "choice_2afc",
-                        "trial_index": s.trial_index,
-                        "practice": s.practice,
-                        "item": s.task.id,
-                        "question": localized(s.task.question, lang),
-                        "options": [texts["interval"].format(n=1), texts["interval"].format(n=2)],
-                    }
-                )
-            elif isinstance(s, IdentifyScreen):
-                assert s.task is not None
-                out.append(
-                    {
-                        "kind": "identify",
-                        "trial_index": s.trial_index,
-                        "practice": s.practice,
-                        "item": s.task.id,
-                        "question": localized(s.task.question, lang),
-                        "labels": [
-                            {"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels
-                        ],
-                    }
-                )
-            elif isinstance(s, AdaptiveTrial):  # pragma: no cover - refused in __post_init__
-                raise AssertionError("staircase trials are not served online")
+                continue
+            out.append(self._screen_json(s, shown_before))
         return out
+
+    def adaptive_json(
+        self,
+        participant: str,
+        trial_index: int,
+        *,
+        logged: Sequence[Mapping[str, Any]],
+        session: int = 1,
+    ) -> list[dict[str, Any]]:
+        """The screens of staircase trial ``trial_index`` at the level the block's staircase
+        chooses after the participant's stored answers ``logged`` (log rows). Refused
+        (:class:`AnswerError`) for a trial that is not a staircase trial of this session or
+        while an earlier trial of its block has no stored answer."""
+        screen = self._adaptive(participant, trial_index, session)
+        expanded = self.expand_adaptive(participant, session, screen, logged)
+        shown_before = {int(r["trial_index"]) for r in logged}
+        return [self._screen_json(s, shown_before) for s in expanded]
+
+    def _adaptive(self, participant: str, trial_index: int, session: int = 1) -> AdaptiveTrial:
+        for s in self.screens(participant, session):
+            if isinstance(s, AdaptiveTrial) and s.trial_index == trial_index:
+                return s
+        raise AnswerError(f"trial_index {trial_index}: not a staircase trial of this session")
+
+    def expand_adaptive(
+        self,
+        participant: str,
+        session: int,
+        screen: AdaptiveTrial,
+        logged: Sequence[Mapping[str, Any]],
+    ) -> list[Screen]:
+        """``screen``'s screens at the condition its staircase gives after the stored answers
+        of the earlier trials of its block (all of which must be stored)."""
+        trial = screen.trial
+        assert trial is not None
+        before = [r for r in logged if int(r["trial_index"]) < trial.trial_index]
+        have = {int(r["trial_index"]) for r in before if r.get("block") == trial.block}
+        earlier = [
+            s.trial_index
+            for s in self.screens(participant, session)
+            if isinstance(s, AdaptiveTrial)
+            and s.trial is not None
+            and s.trial.block == trial.block
+            and s.trial_index < trial.trial_index
+        ]
+        missing = [t for t in earlier if t not in have]
+        if missing:
+            raise AnswerError(
+                f"trial_index {trial.trial_index}: the staircase needs the answer to trial "
+                f"{missing[0]} first"
+            )
+        try:
+            staircases = Staircases(self.protocol, logged=before)
+        except SessionError as exc:
+            raise AnswerError(str(exc)) from None
+        return screen.expand(staircases.resolve(trial))
+
+    def _screen_json(self, s: Screen, shown_before: set[int]) -> dict[str, Any]:
+        lang = self.protocol.presentation.language
+        texts = ui(lang)
+        if isinstance(s, TextScreen):
+            return {"kind": "text", "role": s.role, "text": s.text}
+        if isinstance(s, ClipScreen):
+            ref = self.clips[s.clip]
+            return {
+                "kind": "clip",
+                "trial_index": s.trial_index,
+                "practice": s.practice,
+                "replay": s.trial_index in shown_before,
+                "clip": ref.sha256 + ".mp4",
+                "fps": ref.fps,
+                "frames": round(ref.duration_s * ref.fps),
+                "interval": s.interval,
+                "announce": texts["interval"].format(n=s.interval) if s.interval else "",
+                "gap_s": s.gap_s,
+            }
+        if isinstance(s, VasScreen):
+            return {
+                "kind": "vas",
+                "trial_index": s.trial_index,
+                "practice": s.practice,
+                "confirm": texts["confirm"],
+                "items": [
+                    {
+                        "id": it.id,
+                        "question": localized(it.question, lang),
+                        "left": localized(it.left_anchor, lang),
+                        "right": localized(it.right_anchor, lang),
+                        "range": list(it.range),
+                    }
+                    for it in s.items
+                ],
+            }
+        if isinstance(s, ChoiceScreen):
+            assert s.task is not None
+            return {
+                "kind": "choice_2afc",
+                "trial_index": s.trial_index,
+                "practice": s.practice,
+                "item": s.task.id,
+                "question": localized(s.task.question, lang),
+                "options": [texts["interval"].format(n=1), texts["interval"].format(n=2)],
+            }
+        if isinstance(s, IdentifyScreen):
+            assert s.task is not None
+            return {
+                "kind": "identify",
+                "trial_index": s.trial_index,
+                "practice": s.practice,
+                "item": s.task.id,
+                "question": localized(s.task.question, lang),
+                "labels": [{"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels],
+            }
+        raise TypeError(f"no browser form for screen {type(s).__name__}")  # pragma: no cover
 
     # -- from the browser
 
@@ -209,13 +269,24 @@ class OnlineStudy:
         answer: Mapping[str, Any],
         playback: Playback | None,
         timestamp: str,
+        logged: Callable[[], Sequence[Mapping[str, Any]]] | None = None,
     ) -> dict[str, Any]:
         """The log row for one submitted answer, exactly as the lab runner writes it.
 
         ``answer`` holds ``trial_index``, ``item``, ``rt_s`` and one of ``rating`` (VAS),
-        ``choice`` (2AFC: 1 or 2) or ``label`` (identify)."""
+        ``choice`` (2AFC: 1 or 2) or ``label`` (identify). ``logged`` gives the participant's
+        stored rows (asked only for a staircase trial, whose level they decide)."""
         trial_index, item = answer["trial_index"], answer["item"]
         screen = self._screen_for(participant, trial_index, item)
+        if isinstance(screen, AdaptiveTrial):  # at the level its staircase chose
+            expanded = self.expand_adaptive(
+                participant, session, screen, logged() if logged else []
+            )
+            screen = next(
+                x
+                for x in expanded
+                if isinstance(x, ResponseScreen) and (trial_index, item) in x.response_keys()
+            )
         rt = _number(answer, "rt_s", lo=0.0, hi=24 * 3600.0)
         context = SessionContext(
             study=self.study,

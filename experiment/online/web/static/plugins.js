@@ -195,6 +195,33 @@ class FacelabIdentify extends FacelabChoice {
 }
 FacelabIdentify.info = facelabInfo("facelab-identify");
 
+// A staircase trial: once every answer before it is stored, the server says which level it
+// shows (the rule runs there, as in the lab); its screens then run like any others.
+class FacelabAdaptive extends FacelabPlugin {
+  async run(el, s) {
+    let screens = null;
+    for (let attempt = 0; !screens; attempt++) {
+      await FacelabOutbox.flush();
+      try {
+        const r = await FacelabOutbox.request("GET", "/api/adaptive/" + s.trial_index);
+        if (r.ok) screens = (await r.json()).screens;
+      } catch (e) { /* server restarting: retry */ }
+      if (!screens) {
+        if (!el.firstChild) { const w = facelabEl("p", "facelab-note", FacelabSession.ui.loading); w.dataset.facelab = "wait"; el.appendChild(w); }
+        await facelabSleep(Math.min(8000, 300 * 2 ** attempt));
+      }
+    }
+    const kinds = { text: FacelabText, clip: FacelabClip, vas: FacelabVas, choice_2afc: FacelabChoice, identify: FacelabIdentify };
+    const shown = [];
+    for (const x of screens) {
+      el.textContent = "";
+      shown.push(await new kinds[x.kind](this.jsPsych).run(el, x));
+    }
+    return { adaptive: s.trial_index, screens: shown };
+  }
+}
+FacelabAdaptive.info = facelabInfo("facelab-adaptive");
+
 // The end: the text, then the completion code once the server has every response.
 // This screen never finishes: it stays as the session's last page.
 class FacelabComplete extends FacelabPlugin {
