@@ -19,7 +19,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
-from facelab.emotions import BEHAVIOUR_MODES, EMOTIONS, check_emotion
+from facelab.emotions import BEHAVIOUR_MODES, EMOTIONS, emotion_of
 from facelab.methods import METHODS
 
 __all__ = [
@@ -108,10 +108,12 @@ class Condition(_Model):
         f"{', '.join(BEHAVIOUR_MODES)}, or a behaviour library file (JSON/YAML, relative to "
         "the protocol) planned as composite.",
     )
-    emotion: dict[str, float] | None = Field(
+    emotion: dict[str, float] | list[dict[str, float]] | None = Field(
         None,
         description=f"The character's emotion for this condition ({', '.join(EMOTIONS)}: 0..1; "
-        "neutral follows eq. 4); omitted: the stimulus's emotion, else neutral.",
+        "neutral follows eq. 4), or a timeline of keys [{time_s: s, joy: 0.8}, …] (seconds in "
+        "the clip, linearly interpolated, held before the first and after the last key); "
+        "omitted: the stimulus's emotion, else neutral.",
     )
 
     @model_validator(mode="after")
@@ -124,7 +126,7 @@ class Condition(_Model):
                 "file ending in .json/.yaml"
             )
         if self.emotion is not None:
-            check_emotion(self.emotion)
+            emotion_of(self.emotion)
         return self
 
 
@@ -169,10 +171,11 @@ class Stimulus(_Model):
         description="Condition ids for which only the intended vowel's intensity is kept in "
         "each vowel segment (the rest set to 0).",
     )
-    emotion: dict[str, float] | None = Field(
+    emotion: dict[str, float] | list[dict[str, float]] | None = Field(
         None,
         description=f"The emotion the stimulus is spoken with ({', '.join(EMOTIONS)}: 0..1), "
-        "for conditions with a behaviour layer.",
+        "or a timeline of keys [{time_s: s, joy: 0.8}, …] (seconds in the clip), for "
+        "conditions with a behaviour layer.",
     )
     note: str = ""
 
@@ -187,7 +190,7 @@ class Stimulus(_Model):
         if self.vowel_isolation and self.expected_vowels is None:
             raise ValueError("'vowel_isolation' needs 'expected_vowels' (e.g. aiueo)")
         if self.emotion is not None:
-            check_emotion(self.emotion)
+            emotion_of(self.emotion)
         return self
 
 

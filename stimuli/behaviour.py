@@ -72,10 +72,23 @@ class ClipBehaviour:
         }
 
 
+def emotion_timeline(emotion: dict[str, float] | list[dict[str, float]] | None) -> EmotionTimeline:
+    """A protocol's emotion - a vector, a list of ``{time_s, <emotion>: v}`` keys, or None
+    (neutral) - as the planner's timeline."""
+    if emotion is None:
+        return EmotionTimeline.constant({"neutral": 1.0})
+    if isinstance(emotion, list):
+        return EmotionTimeline.from_keys(
+            (float(k["time_s"]), {n: float(v) for n, v in k.items() if n != "time_s"})
+            for k in emotion
+        )
+    return EmotionTimeline.constant(emotion)
+
+
 def behaviour_for_clip(
     *,
     setting: str,
-    emotion: dict[str, float] | None,
+    emotion: dict[str, float] | list[dict[str, float]] | None,
     base_dir: Path,
     seed: int,
     speech,
@@ -98,7 +111,7 @@ def behaviour_for_clip(
     layers, neutral = layers_for(mode)
     plan = plan_behaviour(
         library,
-        emotion=EmotionTimeline.constant(emotion or {"neutral": 1.0}),
+        emotion=emotion_timeline(emotion),
         duration_s=n_frames / fps,
         seed=seed,
         cues=SpeechCues.from_speech(speech, offset_s=pad_s),

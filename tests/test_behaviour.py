@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from facelab.emotions import EMOTIONS
 from facelab.errors import BehaviourError
 from facelab.experiment.cli import main
 from facelab.protocol import ProtocolError, load_protocol
@@ -537,3 +538,35 @@ def test_the_better_suited_gesture_wins_a_shared_trigger() -> None:
             cues=cues, layers=("gesture",),
         )  # fmt: skip
         assert [e.unit for e in plan.events] == [expected], emotion
+
+
+def test_emotion_timelines_in_protocols(tmp_path: Path) -> None:
+    """A condition may give the emotion as a timeline of keys; the plan follows it (the
+    posture of the first half is sadness's, of the second joy's) and bad keys are named."""
+    from facelab.stimuli.behaviour import emotion_timeline
+
+    keys = "[{time_s: 0, sadness: 1.0}, {time_s: 29, sadness: 1.0}, {time_s: 31, joy: 1.0}]"
+    p = load_protocol(_protocol(tmp_path, behaviour=f"composite, emotion: {keys}"))
+    emotion = p.condition("comp").emotion
+    assert isinstance(emotion, list) and emotion[2] == {"time_s": 31, "joy": 1.0}
+    timeline = emotion_timeline(emotion)
+    assert timeline.at(30.0)[EMOTIONS.index("sadness")] == pytest.approx(0.5, abs=0.01)
+    plan = plan_behaviour(default_library(), emotion=timeline, duration_s=60, seed=3)
+    assert [k["time_s"] for k in plan.emotion] == [0, 29, 31]
+    halves: dict[int, dict[str, float]] = {0: {}, 1: {}}
+    for e in plan.events:
+        if e.layer == "posture":
+            for half, (a, b) in enumerate(((0, 30), (30, 60))):
+                overlap = min(e.end_s, b) - max(e.start_s, a)
+                if overlap > 0:
+                    halves[half][e.unit] = halves[half].get(e.unit, 0) + overlap
+    assert max(halves[0], key=halves[0].get) == "head_down"
+    assert max(halves[1], key=halves[1].get) == "head_tilt_smile"
+    for bad, message in (
+        ("[{time_s: 2, joy: 1}, {time_s: 1, anger: 1}]", "after the previous key"),
+        ("[{joy: 1}]", "no time_s"),
+        ("[{time_s: 0, glee: 1}]", "unknown emotion 'glee'"),
+        ("[]", "at least one key"),
+    ):
+        with pytest.raises(ProtocolError, match=message):
+            load_protocol(_protocol(tmp_path, behaviour=f"composite, emotion: {bad}"))
