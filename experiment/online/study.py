@@ -44,7 +44,7 @@ from facelab.experiment.timeline import (
     remaining,
     ui,
 )
-from facelab.protocol import Protocol
+from facelab.protocol import IdentifyTask, Protocol
 from facelab.sessionlog import SessionContext
 
 __all__ = ["AnswerError", "OnlineStudy"]
@@ -227,25 +227,20 @@ class OnlineStudy:
                     for it in s.items
                 ],
             }
-        if isinstance(s, ChoiceScreen):
+        if isinstance(s, ChoiceScreen | IdentifyScreen):
             assert s.task is not None
-            return {
-                "kind": "choice_2afc",
+            asked = {
+                "kind": "choice_2afc" if isinstance(s, ChoiceScreen) else "identify",
                 "trial_index": s.trial_index,
                 "practice": s.practice,
                 "item": s.task.id,
                 "question": localized(s.task.question, lang),
-                "options": [texts["interval"].format(n=1), texts["interval"].format(n=2)],
             }
-        if isinstance(s, IdentifyScreen):
-            assert s.task is not None
-            return {
-                "kind": "identify",
-                "trial_index": s.trial_index,
-                "practice": s.practice,
-                "item": s.task.id,
-                "question": localized(s.task.question, lang),
-                "labels": [{"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels],
+            if isinstance(s, ChoiceScreen):
+                return asked | {"options": [texts["interval"].format(n=n) for n in (1, 2)]}
+            assert isinstance(s.task, IdentifyTask)
+            return asked | {
+                "labels": [{"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels]
             }
         raise TypeError(f"no browser form for screen {type(s).__name__}")  # pragma: no cover
 
