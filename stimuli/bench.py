@@ -43,22 +43,25 @@ def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
         result = evaluate(
             model, sentences=sentences, variants=variants, pylipsync_templates=templates
         )
+        result["per_voice"] = per_voice(
+            model,
+            sentences=sentences[:3] if quick else sentences[:8],
+            variants=(HELDOUT_VARIANTS[:1] + FAR_VARIANTS[:1] + ESPEAK_HELDOUT[:1])
+            if quick
+            else HELDOUT_VARIANTS + FAR_VARIANTS + ESPEAK_HELDOUT,
+            pylipsync_templates=templates,
+        )
     if templates is None:
         result["pylipsync"] = "not installed (pip install 'facelab[bench]')"
-    result["per_voice"] = per_voice(
-        model,
-        sentences=sentences[:3] if quick else sentences[:8],
-        variants=(HELDOUT_VARIANTS[:1] + FAR_VARIANTS[:1] + ESPEAK_HELDOUT[:1])
-        if quick
-        else HELDOUT_VARIANTS + FAR_VARIANTS + ESPEAK_HELDOUT,
-    )
     result["per_voice_note"] = (
         "voices kept out of training: OpenJTalk mei in held-out settings (r: speed, fm: "
         "pitch, a: all-pass; FAR settings lie beyond the training grid) and eSpeak NG "
         "(formant synthesis; the default voice and variants f3, m3, klatt2 are never trained "
         "on, other variants are). Labels are each synthesizer's own phoneme timing. align() "
         "uses mei as its reference, so its mei figures are optimistic; eSpeak NG's front end "
-        "also differs (it voices vowels OpenJTalk devoices), which costs aligned frames."
+        "also differs (it voices vowels OpenJTalk devoices), which costs aligned frames. "
+        "pylipsync_same_audio: pylipsync with templates from mei training audio (one speaker's "
+        "templates, as uLipSync is used)."
     )
 
     # speed: median of several runs on one long utterance (scipy.fft runs on one thread)

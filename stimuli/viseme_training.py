@@ -347,12 +347,20 @@ FAR_VARIANTS = (
 )
 
 
-def per_voice(model: VisemeModel, *, sentences: Sequence[str], variants: Sequence[Voice]) -> dict:
+def per_voice(
+    model: VisemeModel,
+    *,
+    sentences: Sequence[str],
+    variants: Sequence[Voice],
+    pylipsync_templates: Path | None = None,
+) -> dict:
     """Per voice: vowel accuracy (all frames) audio-only uncalibrated (warp 1, the default),
     with the per-utterance warp search (``warp="auto"``), after ``calibrate()`` on that voice's
     あ。い。う。え。お。, and from ``align()`` with the text, plus the median vowel-onset error of
-    the alignment (ms, vowels matched by :func:`vowel_onset_errors`)."""
+    the alignment (ms, vowels matched by :func:`vowel_onset_errors`); with templates, also
+    pylipsync's accuracy on the same audio."""
     out = {}
+    lipsync = _pylipsync(pylipsync_templates) if pylipsync_templates else None
     for variant in variants:
         cal_rec = speak("あ。い。う。え。お。", variant)
         try:
@@ -362,7 +370,7 @@ def per_voice(model: VisemeModel, *, sentences: Sequence[str], variants: Sequenc
             cal_note = str(exc)
         evs = {
             k: Evaluation(np.zeros((5, 5), dtype=int))
-            for k in ("audio", "audio_auto", "calibrated", "aligned")
+            for k in ("audio", "audio_auto", "calibrated", "aligned", "pylipsync")
         }
         onsets: list[float] = []
         failures: list[str] = []
@@ -376,6 +384,9 @@ def per_voice(model: VisemeModel, *, sentences: Sequence[str], variants: Sequenc
                 speech.samples, sample_rate=speech.sample_rate, model=model, warp="auto"
             ).compensated()
             score_track(evs["audio_auto"], t1, t1.times, speech.phones)
+            if lipsync is not None:
+                times, vowels = _pylipsync_vowels(lipsync, speech)
+                score_track(evs["pylipsync"], vowels, times, speech.phones)
             if tuned is not None:
                 t2 = analyze(
                     speech.samples, sample_rate=speech.sample_rate, model=tuned
@@ -402,6 +413,11 @@ def per_voice(model: VisemeModel, *, sentences: Sequence[str], variants: Sequenc
                 round(evs["calibrated"].all_accuracy, 4) if tuned is not None else cal_note
             ),
             "aligned_with_text": round(evs["aligned"].all_accuracy, 4),
+            **(
+                {"pylipsync_same_audio": round(evs["pylipsync"].all_accuracy, 4)}
+                if lipsync is not None
+                else {}
+            ),
             "aligned_vowel_onset_error_ms_median": (
                 round(1000 * float(np.median(onsets)), 1) if onsets else None
             ),
