@@ -475,7 +475,7 @@ def _default_model_cached() -> VisemeModel:
     if not MODEL_PATH.is_file():
         raise VisemeError(
             f"the shipped viseme model is missing: {MODEL_PATH} "
-            "(python -m stimuli.viseme_training rebuilds it)"
+            "(python -m facelab.stimuli.viseme_training rebuilds it)"
         )
     return VisemeModel.load(MODEL_PATH)
 
