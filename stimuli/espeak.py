@@ -25,7 +25,7 @@ import ctypes
 import ctypes.util
 import threading
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 
 import numpy as np
@@ -172,8 +172,10 @@ class _Engine:
             i += 1
         return 0
 
+    @cached_property
     def variants(self) -> frozenset[str]:
-        """Names of the voice variants installed (files of ``espeak-ng-data/voices/!v``)."""
+        """Names of the voice variants installed (files of ``espeak-ng-data/voices/!v``),
+        listed once per process."""
         path = ctypes.c_char_p()
         self.lib.espeak_Info.restype = ctypes.c_char_p
         self.lib.espeak_Info(ctypes.byref(path))
@@ -184,7 +186,7 @@ class _Engine:
 
     def speak(self, kana: str, voice: EspeakVoice) -> tuple[np.ndarray, list[tuple[int, str]]]:
         name = f"ja+{voice.variant}" if voice.variant else "ja"
-        if voice.variant and voice.variant not in self.variants():
+        if voice.variant and voice.variant not in self.variants:
             raise SpeechError(
                 f"eSpeak NG has no voice {name!r} (variants are the files of "
                 "espeak-ng-data/voices/!v, e.g. f3, m2, klatt2)"

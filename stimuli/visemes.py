@@ -779,9 +779,9 @@ def align_phones(
     mapped = np.zeros(len(xr))
     for i in range(ra, rb):
         mapped[i] = np.median(path[path[:, 0] == i, 1])
-    mapped[:ra] = np.arange(ra) * (aa / ra) if ra else mapped[:0]
+    mapped[:ra] = np.arange(ra) * aa / max(ra, 1)
     tail = len(xr) - rb
-    mapped[rb:] = ab - 1 + (np.arange(1, tail + 1) * (len(xa) - ab) / tail if tail else 0)
+    mapped[rb:] = ab - 1 + np.arange(1, tail + 1) * (len(xa) - ab) / max(tail, 1)
     mapped = np.maximum.accumulate(mapped)
     _check_slope(mapped, loud_r, loud_a)
     end_a = len(samples) / rate
