@@ -79,18 +79,20 @@ def _cues(args: argparse.Namespace, pad_s: float):
 
 
 def _timeline(path: Path):
-    """``[{"time_s": 0, "joy": 0.8}, {"time_s": 5, "sadness": 0.6}, …]`` -> a timeline."""
-    from facelab.stimuli.behaviour_plan import EmotionTimeline
+    """``[{"time_s": 0, "joy": 0.8}, {"time_s": 5, "sadness": 0.6}, …]`` -> a timeline
+    (the shape a protocol's ``emotion:`` timeline has)."""
+    from facelab.stimuli.behaviour import emotion_timeline
 
     try:
         keys = json.loads(path.read_text(encoding="utf-8"))
-        rows = [(float(k.pop("time_s")), {n: float(v) for n, v in k.items()}) for k in keys]
+        if not isinstance(keys, list):
+            raise TypeError(f"a {type(keys).__name__}, not a list")
+        return emotion_timeline(keys)
     except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
         raise FacelabError(
             f'--emotion-timeline {path}: expected a JSON list of {{"time_s": s, emotion: '
             f"value…}} ({exc})"
         ) from None
-    return EmotionTimeline.from_keys(rows)
 
 
 def _plan(args: argparse.Namespace) -> int:

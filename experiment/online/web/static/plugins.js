@@ -211,11 +211,10 @@ class FacelabAdaptive extends FacelabPlugin {
         await facelabSleep(Math.min(8000, 300 * 2 ** attempt));
       }
     }
-    const kinds = { text: FacelabText, clip: FacelabClip, vas: FacelabVas, choice_2afc: FacelabChoice, identify: FacelabIdentify };
     const shown = [];
     for (const x of screens) {
       el.textContent = "";
-      shown.push(await new kinds[x.kind](this.jsPsych).run(el, x));
+      shown.push(await new FacelabPlugins[x.kind](this.jsPsych).run(el, x));
     }
     return { adaptive: s.trial_index, screens: shown };
   }
@@ -252,3 +251,7 @@ class FacelabComplete extends FacelabPlugin {
   }
 }
 FacelabComplete.info = facelabInfo("facelab-complete");
+
+// The plugin of each screen kind the server sends (facelab.experiment.online.study).
+const FacelabPlugins = { text: FacelabText, clip: FacelabClip, vas: FacelabVas, choice_2afc: FacelabChoice,
+                         identify: FacelabIdentify, adaptive: FacelabAdaptive };

@@ -59,10 +59,8 @@ const FACELAB_UI = {
   if (state.clips.length) {
     timeline.push({ type: jsPsychPreload, video: state.clips.map((c) => "/clips/" + c), message: ui.loading, show_progress_bar: true, max_load_time: 600000 });
   }
-  const plugins = { text: FacelabText, clip: FacelabClip, vas: FacelabVas, choice_2afc: FacelabChoice,
-                    identify: FacelabIdentify, adaptive: FacelabAdaptive };
   for (const s of state.timeline) {
-    const type = s.kind === "text" && s.role === "end" ? FacelabComplete : plugins[s.kind];
+    const type = s.kind === "text" && s.role === "end" ? FacelabComplete : FacelabPlugins[s.kind];
     timeline.push({ type, screen: s });
   }
   document.addEventListener("fullscreenchange", () => {
