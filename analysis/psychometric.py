@@ -8,7 +8,7 @@ preference task) at stimulus level ``x``::
 * ``gamma`` - the guess rate, fixed by the task: 0.5 for 2AFC with a correct answer, 1/k for
   identification among k labels, 0 for a preference (which looked more ...?) task;
 * ``lambda`` - the lapse rate, free in ``[0, 0.1]`` (bounds configurable);
-* ``F`` - a sigmoid from :data:`SIGMOIDS`:
+* ``F`` - a sigmoid from :data:`SIGMOIDS` (:mod:`facelab.psychometric_function`):
 
   - ``logistic``: ``F = 1 / (1 + exp(-beta * (x - alpha)))``; midpoint ``alpha``;
   - ``weibull``: ``F = 1 - exp(-(x / alpha) ** beta)`` (``x > 0``); midpoint
@@ -29,7 +29,7 @@ as R's ``logLik`` does.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -37,6 +37,7 @@ import pandas as pd
 from scipy import optimize, special
 
 from facelab.errors import AnalysisError
+from facelab.psychometric_function import SIGMOIDS, midpoint, predict, slope_at_midpoint
 
 __all__ = [
     "FIT_COLUMNS",
@@ -49,46 +50,6 @@ __all__ = [
 ]
 
 _EPS = 1e-12
-
-
-def _logistic(x: np.ndarray, alpha: float, beta: float) -> np.ndarray:
-    return special.expit(beta * (x - alpha))
-
-
-def _weibull(x: np.ndarray, alpha: float, beta: float) -> np.ndarray:
-    z = np.clip(np.asarray(x, dtype=float), 0.0, None) / alpha
-    return -np.expm1(-(z**beta))
-
-
-#: name -> F(x, alpha, beta)
-SIGMOIDS: dict[str, Callable[[np.ndarray, float, float], np.ndarray]] = {
-    "logistic": _logistic,
-    "weibull": _weibull,
-}
-
-
-def _midpoint(sigmoid: str, alpha: float, beta: float) -> float:
-    return alpha if sigmoid == "logistic" else alpha * np.log(2.0) ** (1.0 / beta)
-
-
-def _slope_at_midpoint(sigmoid: str, alpha: float, beta: float) -> float:
-    if sigmoid == "logistic":
-        return beta / 4.0
-    return beta * np.log(2.0) / (2.0 * _midpoint(sigmoid, alpha, beta))
-
-
-def predict(
-    x: np.ndarray | Sequence[float],
-    *,
-    sigmoid: str,
-    alpha: float,
-    beta: float,
-    gamma: float,
-    lapse: float,
-) -> np.ndarray:
-    """P(x) of the model above; ``x`` any shape, returns the same shape."""
-    f = SIGMOIDS[sigmoid](np.asarray(x, dtype=float), alpha, beta)
-    return gamma + (1.0 - gamma - lapse) * f
 
 
 @dataclass(frozen=True)
@@ -227,8 +188,8 @@ def fit_psychometric(
         alpha=float(alpha),
         beta=beta,
         lapse=float(lapse),
-        midpoint=float(_midpoint(sigmoid, alpha, beta)),
-        slope_at_midpoint=float(_slope_at_midpoint(sigmoid, alpha, beta)),
+        midpoint=float(midpoint(sigmoid, alpha, beta)),
+        slope_at_midpoint=float(slope_at_midpoint(sigmoid, alpha, beta)),
         deviance=max(0.0, 2.0 * (_saturated_loglik(n, k) - loglik)),
         deviance_df=int(len(x) - (3 if hi > lo else 2)),
         log_likelihood=loglik + _log_binom(n, k),
@@ -246,7 +207,7 @@ def fit_psychometric(
         kb = rng.binomial(n.astype(int), p_hat).astype(float)
         res = _fit(x, n, kb, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds, start=best.x)
         a_b, lb_b, l_b = res.x
-        draws[b] = (_midpoint(sigmoid, a_b, np.exp(lb_b)), np.exp(lb_b), l_b)
+        draws[b] = (midpoint(sigmoid, a_b, np.exp(lb_b)), np.exp(lb_b), l_b)
     tail = (1.0 - ci) / 2.0 * 100.0
     low, high = np.percentile(draws, [tail, 100.0 - tail], axis=0)
     return PsychometricFit(

@@ -331,7 +331,8 @@ def write_report(
 _TASK_HEADINGS = {
     "psychometric_fits": "Psychometric fits, P = gamma + (1 - gamma - lambda) F(level), "
     "per participant and pooled (ML; 95 % parametric-bootstrap CIs)",
-    "staircase_thresholds": "Staircases: mean level of the last reversals",
+    "staircase_thresholds": "Staircases: each participant's threshold by the rule's own "
+    "estimate (up-down: mean level of the last reversals; QUEST+: posterior mean of the midpoint)",
     "identification_summary": "Identification: accuracy and Cohen's kappa",
     "identification_recall": "Identification: recall and precision per label",
     "confusion_matrix": "Identification: confusion counts (portrayed x answered)",

@@ -4,7 +4,8 @@
   participant and of everyone pooled (:mod:`facelab.analysis.psychometric`); y is "correct"
   when the task has a correct answer (guess rate 1/2), "chose the comparison" for a
   preference (guess rate 0); x is the comparison's level;
-* staircases: also the classic estimate, the mean level of each participant's last reversals;
+* staircases: also the rule's own estimate per participant - the mean level of the last
+  reversals (up-down) or the posterior mean of the midpoint with its SD (QUEST+);
 * identification: confusion matrix, accuracy, per-class recall and Cohen's kappa
   (:mod:`facelab.analysis.identification`);
 * graded VAS designs (every condition of the item's block has a level): the linear trend
@@ -24,11 +25,9 @@ import pandas as pd
 from facelab.analysis import graded, identification, psychometric
 from facelab.errors import AnalysisError
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
-from facelab.staircase import new_staircase, reversal_threshold
+from facelab.staircase import new_staircase
 
 __all__ = ["TaskResults", "analyze_tasks", "choice_outcome"]
-
-STAIRCASE_REVERSALS = 6  # reversals averaged for the staircase estimate
 
 
 @dataclass
@@ -74,6 +73,7 @@ def _curves(fits: pd.DataFrame, levels: np.ndarray) -> pd.DataFrame:
 
 def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> pd.DataFrame:
     out = []
+    rule = next(b.staircase for b in protocol.blocks if b.id == block_id)
     for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
         state = new_staircase(protocol, block_id)
         try:
@@ -89,13 +89,18 @@ def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> p
             raise AnalysisError(
                 f"participant {pid}, staircase of block {block_id!r}: {exc}"
             ) from None
+        estimate = state.estimate()
         out.append(
             {
                 "participant": pid,
                 "block": block_id,
+                "rule": rule.rule if rule else None,
+                "estimate": estimate.pop("estimate"),
                 "trials": state.trials,
                 "reversals": len(state.reversals),
-                "threshold": reversal_threshold(state.reversals, last=STAIRCASE_REVERSALS),
+                "threshold": estimate.pop("threshold"),
+                "threshold_sd": float("nan"),
+                **estimate,
                 "last_level": float(part["level"].iloc[-1]),
             }
         )

@@ -16,7 +16,7 @@ from pydantic import ValidationError
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
 from facelab.methods import BUILTIN_Z, METHODS
-from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol
+from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
 
 __all__ = ["clean_loc", "cross_check", "describe"]
 
@@ -273,6 +273,40 @@ def _blocks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     )
 
 
+_UP_DOWN_KEYS = ("up", "down", "step")
+_QUEST_KEYS = ("sigmoid", "threshold_points", "slopes", "lapse_rates")
+
+
+def _staircase_rule(
+    rule: StaircaseRule, levels: list[float | None], where: tuple[Any, ...]
+) -> Iterator[Issue]:
+    """The keys of a staircase rule fit its kind (each rule's own keys only)."""
+    where = (*where, "staircase")
+    own, other = (
+        (_UP_DOWN_KEYS, _QUEST_KEYS) if rule.rule == "up_down" else (_QUEST_KEYS, _UP_DOWN_KEYS)
+    )
+    for key in sorted(set(other) & rule.model_fields_set):
+        yield Issue(
+            (*where, key),
+            f"{key!r} belongs to rule {'quest_plus' if key in _QUEST_KEYS else 'up_down'}, "
+            f"not {rule.rule!r} (this rule's keys: {', '.join(own)})",
+        )
+    if rule.rule == "up_down" and rule.start is None:
+        yield Issue((*where, "start"), "rule 'up_down' needs a 'start' condition (an easy one)")
+    if rule.rule == "quest_plus" and rule.sigmoid == "weibull":
+        if rule.easier != "higher":
+            yield Issue(
+                (*where, "easier"),
+                "the Weibull function rises with the level: use "
+                "easier: higher, or sigmoid: logistic",
+            )
+        if any(lv is not None and lv <= 0 for lv in levels):
+            yield Issue(
+                (*where, "sigmoid"),
+                "the Weibull function needs every level > 0; use sigmoid: logistic",
+            )
+
+
 @_check("tasks", "blocks", "conditions", "items")
 def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Tasks are used consistently: references exist, graded designs have levels, a
@@ -328,12 +362,14 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             rule = block.staircase
             if rule is None:
                 yield Issue((*where, "staircase"), "design 'staircase' needs a 'staircase' rule")
-            elif rule.start not in block_conds:
-                yield Issue(
-                    (*where, "staircase", "start"),
-                    f"start {rule.start!r} is not among the block's conditions "
-                    f"({', '.join(block_conds)})",
-                )
+            else:
+                yield from _staircase_rule(rule, [conditions[c].level for c in block_conds], where)
+                if rule.start is not None and rule.start not in block_conds:
+                    yield Issue(
+                        (*where, "staircase", "start"),
+                        f"start {rule.start!r} is not among the block's conditions "
+                        f"({', '.join(block_conds)})",
+                    )
             if len(block_conds) < 2:
                 yield Issue((*where, "conditions"), "a staircase needs two or more levels")
             scorable = (

@@ -257,16 +257,55 @@ Task = Annotated[ChoiceTask | IdentifyTask, Field(discriminator="type")]
 
 
 class StaircaseRule(_Model):
-    """A transformed up-down staircase over the block's conditions ordered by level."""
+    """An adaptive rule over the block's conditions ordered by level: a transformed up-down
+    staircase, or QUEST+ (Watson, 2017) over a grid of psychometric functions."""
 
-    rule: Literal["up_down"] = "up_down"
-    start: Id = Field(description="The condition the staircase starts at (an easy one).")
-    up: int = Field(1, ge=1, le=5, description="Wrong answers in a row before it gets easier.")
-    down: int = Field(2, ge=1, le=5, description="Correct answers in a row before it gets harder.")
-    step: int = Field(1, ge=1, le=10, description="Grid steps per move.")
+    rule: Literal["up_down", "quest_plus"] = Field(
+        "up_down",
+        description="up_down: after 'down' correct answers in a row one step harder, after "
+        "'up' wrong answers one step easier; quest_plus: each trial at the level that "
+        "minimises the expected entropy of the posterior over (threshold, slope, lapse).",
+    )
+    start: Id | None = Field(
+        None,
+        description="The condition of the first trial (an easy one). Needed by up_down; "
+        "quest_plus chooses its first level itself unless a start is given.",
+    )
+    up: int = Field(
+        1, ge=1, le=5, description="up_down: wrong answers in a row before it gets easier."
+    )
+    down: int = Field(
+        2, ge=1, le=5, description="up_down: correct answers in a row before it gets harder."
+    )
+    step: int = Field(1, ge=1, le=10, description="up_down: grid steps per move.")
     trials: int = Field(ge=2, le=1000, description="Trials of the staircase.")
     easier: Literal["higher", "lower"] = Field(
         "higher", description="Which end of the level scale is easier to answer correctly."
+    )
+    sigmoid: Literal["logistic", "weibull"] = Field(
+        "logistic",
+        description="quest_plus: the psychometric function F (weibull needs levels > 0 and "
+        "easier: higher).",
+    )
+    threshold_points: int = Field(
+        41,
+        ge=5,
+        le=201,
+        description="quest_plus: threshold (alpha) values, evenly spaced from the lowest to "
+        "the highest level of the block.",
+    )
+    slopes: list[Annotated[float, Field(gt=0)]] | None = Field(
+        None,
+        min_length=1,
+        max_length=50,
+        description="quest_plus: slope (beta) values; default 9 values, logistic: "
+        "geometrically from 2 to 50 per level range, weibull: from 1 to 10.",
+    )
+    lapse_rates: list[Annotated[float, Field(ge=0, le=0.2)]] = Field(
+        [0.0, 0.01, 0.02, 0.04],
+        min_length=1,
+        max_length=20,
+        description="quest_plus: lapse-rate (lambda) values.",
     )
 
 

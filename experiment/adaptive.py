@@ -19,7 +19,7 @@ from facelab.design import Trial
 from facelab.errors import SessionError
 from facelab.protocol import Protocol
 from facelab.sessionlog import append_jsonl
-from facelab.staircase import UpDownStaircase, new_staircase
+from facelab.staircase import Staircase, new_staircase
 
 __all__ = ["Staircases"]
 
@@ -36,7 +36,7 @@ class Staircases:
     ):
         self.protocol = protocol
         self.record = record
-        self.state: dict[str, UpDownStaircase] = {
+        self.state: dict[str, Staircase] = {
             b.id: new_staircase(protocol, b.id) for b in protocol.blocks if b.design == "staircase"
         }
         by_block: dict[str, list[Mapping[str, Any]]] = {}

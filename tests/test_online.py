@@ -480,3 +480,38 @@ def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
     for r in rows:
         assert r["condition"] == rule.condition
         rule.update(bool(r["correct"]))
+
+
+def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_path: Path) -> None:
+    """QUEST+ online: each trial's level comes from the stored answers before it, as the
+    rule replayed in the lab gives it (answered through the API; the browser walk is the
+    up-down test's)."""
+    from facelab.staircase import new_staircase
+
+    path = short_task_protocol(
+        "gain_questplus", tmp_path, {r"trials: 30": "trials: 5", r"practice: .*\n": ""}
+    )
+    protocol = load_protocol(path)
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    client = TestClient(create_app(server))
+    _, token = server.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token}
+    adaptive = [
+        s for s in client.get("/api/session", headers=ok).json()["timeline"]
+        if s["kind"] == "adaptive"
+    ]  # fmt: skip
+    rule = new_staircase(protocol, "main")
+    for n, screen in enumerate(adaptive):
+        trial = screen["trial_index"]
+        client.get(f"/api/adaptive/{trial}", headers=ok).raise_for_status()
+        choice = 1 if n % 3 else 2  # some right, some wrong, whichever side the comparison is
+        answer = {"client_key": f"{n:016d}", "trial_index": trial, "item": "stronger",
+                  "rt_s": 0.8, "choice": choice, "timestamp": "2026-11-23T08:00:00.000Z"}  # fmt: skip
+        assert client.post("/api/response", json=answer, headers=ok).status_code == 200
+        (row,) = [r for r in _rows(server, "P0001") if r["trial_index"] == trial]
+        assert row["condition"] == rule.condition  # the level QUEST+ chose
+        rule.update(bool(row["correct"]))
+    assert len({r["condition"] for r in _rows(server, "P0001")}) >= 2

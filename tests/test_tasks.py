@@ -26,7 +26,7 @@ from facelab.sessionlog import SessionContext
 from facelab.staircase import UpDownStaircase, convergence_probability, new_staircase
 
 REF = Path(__file__).parent / "reference"
-EXAMPLES = ("gain_2afc", "gain_staircase", "method_identify", "gain_vas")
+EXAMPLES = ("gain_2afc", "gain_staircase", "gain_questplus", "method_identify", "gain_vas")
 
 
 # --------------------------------------------------------------------------- analyses vs R
@@ -338,6 +338,7 @@ def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
     expected = {
         "gain_2afc": ["psychometric_fits.csv", "fig_psychometric_stronger.png"],
         "gain_staircase": ["psychometric_fits.csv", "staircase_thresholds.csv"],
+        "gain_questplus": ["psychometric_fits.csv", "staircase_thresholds.csv"],
         "method_identify": ["identification_summary.csv", "fig_confusion_which_method.png"],
         "gain_vas": ["trend_contrast.csv", "graded_lmm.csv", "rm_anova.csv"],
     }[name]

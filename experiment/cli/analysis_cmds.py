@@ -113,10 +113,11 @@ def _print_tasks(tasks: object) -> None:
             )
     stairs = tables.get("staircase_thresholds")
     if stairs is not None:
-        print(
-            f"  staircase thresholds (last reversals): median {stairs['threshold'].median():.3f} "
-            f"over {len(stairs)} participants"
-        )
+        for (block, estimate), part in stairs.groupby(["block", "estimate"], sort=False):
+            print(
+                f"  staircase {block} ({estimate}): median threshold "
+                f"{part['threshold'].median():.3f} over {len(part)} participants"
+            )
     ident = tables.get("identification_summary")
     if ident is not None:
         for r in ident[ident["participant"] == "pooled"].itertuples():
