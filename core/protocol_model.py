@@ -414,8 +414,9 @@ class Rendering(_Model):
     pad_s: float = Field(0.3, ge=0.0, le=5.0, description="Neutral face before and after speech.")
     msaa: Literal[1, 2, 4, 8] = Field(
         1,
-        description="Multisample anti-aliasing: 1 renders 720p faster than real time on a "
-        "2-core CPU; 4 is smoother and about 1.7x slower.",
+        description="Multisample anti-aliasing: 1 renders 720p30 faster than real time on a "
+        "2-core CPU; 4 is smoother and about 2x slower. Software OpenGL (llvmpipe) takes at "
+        "most 4; a larger value is refused when rendering starts.",
     )
     audio_sample_rate: int = Field(48000, ge=8000, le=192000)
     behaviour_seed: int = Field(

@@ -9,12 +9,16 @@ exact silence, so picture and sound start together at t = 0 and end within one f
 
 from __future__ import annotations
 
+import contextlib
+import queue
 import shutil
 import subprocess
 import tempfile
+import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -85,6 +89,45 @@ def _ffmpeg() -> str:
     return exe
 
 
+class _PipeWriter:
+    """Writes frames to ffmpeg's stdin from a second thread, so the next frame is rendered
+    while this one is written (and ffmpeg encodes on the other core). At most ``depth``
+    frames wait; the pipe write releases the GIL."""
+
+    def __init__(self, pipe: IO[bytes], *, depth: int = 3):
+        self._pipe = pipe
+        self._queue: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=depth)
+        self._broken = threading.Event()
+        self.written = 0
+        self._thread = threading.Thread(target=self._run, name="facelab-ffmpeg-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (frame := self._queue.get()) is not None:
+            if self._broken.is_set():
+                continue  # drain what the renderer already queued
+            try:
+                self._pipe.write(memoryview(frame).cast("B"))
+                self.written += 1
+            except (BrokenPipeError, ValueError, OSError):
+                self._broken.set()
+
+    def put(self, frame: np.ndarray) -> bool:
+        """Queue a frame (waits while ``depth`` frames are queued); False once the pipe broke."""
+        if self._broken.is_set():
+            return False
+        self._queue.put(frame)
+        return True
+
+    def close(self) -> int:
+        """Write what is queued, close the pipe; returns the frames written."""
+        self._queue.put(None)
+        self._thread.join()
+        with contextlib.suppress(BrokenPipeError, OSError):
+            self._pipe.close()
+        return self.written
+
+
 def encode(
     frames: Iterable[np.ndarray],
     *,
@@ -153,21 +196,20 @@ def encode(
         ]
         proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
         assert proc.stdin is not None
-        written = 0
+        writer = _PipeWriter(proc.stdin)
         try:
             for frame in frames:
                 if frame.shape != (height, width, 3):
                     raise StageError(
                         f"frame of shape {frame.shape}, expected ({height}, {width}, 3)"
                     )
-                proc.stdin.write(np.ascontiguousarray(frame, dtype=np.uint8).tobytes())
-                written += 1
+                # a copy: the frame waits in the queue while the caller may reuse its buffer
+                if not writer.put(np.array(frame, dtype=np.uint8, order="C", copy=True)):
+                    break  # ffmpeg stopped reading: its exit code and message say why
                 if on_frame:
                     on_frame()
-        except BrokenPipeError:
-            pass
         finally:
-            proc.stdin.close()
+            written = writer.close()
             err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
             code = proc.wait()
         if code != 0 or written != n_frames:

@@ -104,6 +104,23 @@ class Skeleton:
             if role not in ROLES or not 0 <= j < n:
                 raise AvatarError(f"skeleton: bad role {role!r} -> joint {j}")
 
+    def influence(
+        self, moved: tuple[int, ...]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For the joints ``moved``: the rows (R,) some of them influence, the joints ``used``
+        (U,) by those rows, each row's influences as ``u * R + row`` (R, 4) with ``u`` the index
+        into ``used``, and their weights (R, 4) float32. Cached per set of moved joints (a clip
+        turns the same ones)."""
+        cache = self.__dict__.setdefault("_influence", {})
+        if moved not in cache:
+            hit = np.isin(self.joints, np.asarray(moved, np.int64)) & (self.weights > 0)
+            rows = np.nonzero(hit.any(axis=1))[0]
+            used, local = np.unique(self.joints[rows], return_inverse=True)
+            # as rows of the (U * R, 3) array of every used joint's transform of every row
+            flat = local.reshape(-1, 4) * len(rows) + np.arange(len(rows))[:, None]
+            cache[moved] = (rows, used, flat, self.weights[rows])
+        return cache[moved]
+
     def descendants(self, joint: int) -> np.ndarray:
         """Indices of ``joint`` and every joint below it."""
         inside = np.zeros(len(self.names), bool)
@@ -155,22 +172,29 @@ class Skeleton:
 
 
 def skin(vertices: np.ndarray, skeleton: Skeleton, pose: HeadPose) -> np.ndarray:
-    """Vertices (V, 3) posed by linear blend skinning (a copy; unmoved rows are unchanged)."""
+    """Vertices (V, 3) posed by linear blend skinning (a float32 copy; unmoved rows are
+    unchanged): ``v' = sum_k w_k (R_jk v + t_jk)`` over each vertex's four influences.
+
+    Only the rows that a moved joint influences are touched; each joint those rows use
+    transforms all of them once, and the rows take their weighted sum (cheaper than a
+    blended matrix per vertex)."""
     rotations = skeleton.pose_rotations(pose)
     if not rotations:
-        return vertices.copy()
+        return np.array(vertices, np.float32, copy=True)
     mats = skeleton.matrices(rotations)
-    moved_joints = np.nonzero(~np.all(np.isclose(mats, np.eye(4)), axis=(1, 2)))[0]
+    moved = tuple(np.nonzero(~np.all(np.isclose(mats, np.eye(4)), axis=(1, 2)))[0].tolist())
     out = np.array(vertices, np.float32, copy=True)
-    rows = np.nonzero((np.isin(skeleton.joints, moved_joints) & (skeleton.weights > 0)).any(1))[0]
+    rows, used, where, weights = skeleton.influence(moved)
     if rows.size == 0:
         return out
-    j = skeleton.joints[rows]  # (R, 4)
-    w = skeleton.weights[rows].astype(np.float64)  # (R, 4)
-    blended = np.einsum("rk,rkij->rij", w, mats[j][:, :, :3, :])  # (R, 3, 4)
-    unweighted = w.sum(axis=1) <= 0
-    v = vertices[rows].astype(np.float64)
-    posed = np.einsum("rij,rj->ri", blended[:, :, :3], v) + blended[:, :, 3]
+    v = out[rows]  # (R, 3)
+    m = mats[used].astype(np.float32)  # (U, 4, 4)
+    moved_v = v @ m[:, :3, :3].transpose(0, 2, 1) + m[:, None, :3, 3]  # (U, R, 3)
+    flat = moved_v.reshape(-1, 3)
+    posed = np.zeros_like(v)
+    for k in range(where.shape[1]):
+        posed += weights[:, k, None] * np.take(flat, where[:, k], axis=0)
+    unweighted = weights.sum(axis=1) <= 0
     posed[unweighted] = v[unweighted]
     out[rows] = posed
     return out

@@ -509,7 +509,7 @@ def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_pat
         client.get(f"/api/adaptive/{trial}", headers=ok).raise_for_status()
         choice = 1 if n % 3 else 2  # some right, some wrong, whichever side the comparison is
         answer = {"client_key": f"{n:016d}", "trial_index": trial, "item": "stronger",
-                  "rt_s": 0.8, "choice": choice, "timestamp": "2026-11-23T08:00:00.000Z"}  # fmt: skip
+                  "rt_s": 0.8, "choice": choice, "timestamp": "2026-11-23T08:00:00Z"}  # fmt: skip
         assert client.post("/api/response", json=answer, headers=ok).status_code == 200
         (row,) = [r for r in _rows(server, "P0001") if r["trial_index"] == trial]
         assert row["condition"] == rule.condition  # the level QUEST+ chose

@@ -166,3 +166,40 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
     assert changed == {"vowels__aiueo__emphasized.mp4"}
     meta = json.loads((out / "vowels__aiueo__emphasized.json").read_text())
     assert meta["params"]["gain"] == 1.2
+
+
+def test_msaa_beyond_what_opengl_offers_is_a_clear_error() -> None:
+    from facelab.errors import StageError
+
+    settings = RenderSettings(width=64, height=64, msaa=64)
+    with (
+        pytest.raises(StageError, match=r"rendering\.msaa is 64.*set rendering\.msaa to 1, 2"),
+        Renderer(default_head(), settings),
+    ):
+        pass
+
+
+def test_encode_keeps_each_frame_though_the_caller_reuses_its_buffer(tmp_path: Path) -> None:
+    """Frames wait in a queue for the writer thread: a producer that fills one buffer again
+    and again must still get every frame as it was when yielded."""
+    from facelab.errors import StageError
+    from facelab.stimuli.speech import Speech
+
+    n, fps = 24, 24
+    audio = Speech(np.zeros(48000, np.float32), 48000)
+    buf = np.zeros((48, 64, 3), np.uint8)
+
+    def frames(count: int, bad_at: int | None = None):
+        for k in range(count):
+            buf[:] = 10 * k
+            yield buf if k != bad_at else buf[:, :32]
+
+    encode(frames(n), audio=audio, out=tmp_path / "a.mp4", fps=fps, width=64, height=48, n_frames=n)
+    means = decode_frames(tmp_path / "a.mp4", width=64, height=48).reshape(n, -1).mean(axis=1)
+    np.testing.assert_allclose(means, 10 * np.arange(n), atol=3)
+    with pytest.raises(StageError, match=r"frame of shape \(48, 32, 3\)"):
+        encode(
+            frames(n, bad_at=5), audio=audio, out=tmp_path / "b.mp4", fps=fps, width=64,
+            height=48, n_frames=n,
+        )  # fmt: skip
+    assert not (tmp_path / "b.mp4").exists()

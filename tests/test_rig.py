@@ -292,3 +292,36 @@ def test_framing_without_a_skeleton_uses_the_head_mesh(samples) -> None:
     with Renderer(a, RenderSettings(width=320, height=320)) as r:
         centre = r.project(np.array([HEAD_CENTRE]))[0]
     assert abs(centre[0] - 160) < 16 and abs(centre[1] - 160) < 40
+
+
+def test_skinning_blends_each_influence_by_its_weight() -> None:
+    """Rows with several influences (as exporters write them) are the weighted sum of each
+    joint's transform of the vertex, the formula written out per vertex."""
+    from facelab.stimuli.rig import Skeleton
+
+    rng = np.random.default_rng(3)
+    n = 200
+    weights = rng.dirichlet(np.ones(3), size=n).astype(np.float32)
+    weights = np.column_stack([weights, np.zeros(n, np.float32)])
+    weights[:20] = 0.0  # unweighted rows stay where they are
+    joints = np.tile([0, 1, 2, 0], (n, 1))
+    sk = Skeleton(
+        names=("neck", "head", "eye"),
+        parents=np.array([-1, 0, 1]),
+        pivots=np.array([[0, 1.5, 0], [0, 1.6, 0], [0.03, 1.7, 0.08]]),
+        joints=joints,
+        weights=weights,
+        roles={"neck": 0, "head": 1, "eye_left": 2},
+    )
+    verts = rng.normal([0, 1.65, 0], 0.1, size=(n, 3)).astype(np.float32)
+    pose = HeadPose(yaw=25, pitch=-8, roll=4, neck_share=0.3, eye_yaw=10)
+    mats = sk.matrices(sk.pose_rotations(pose))
+    expect = np.array(
+        [
+            sum(w * (mats[j, :3, :3] @ v + mats[j, :3, 3]) for j, w in zip(js, ws, strict=True))
+            if ws.sum() > 0
+            else v
+            for v, js, ws in zip(verts.astype(float), joints, weights.astype(float), strict=True)
+        ]
+    )
+    np.testing.assert_allclose(skin(verts, sk, pose), expect, atol=2e-6)
