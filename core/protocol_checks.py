@@ -318,6 +318,14 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         where = ("tasks", ti)
         if task.type == "choice_2afc" and task.standard not in conditions:
             yield Issue((*where, "standard"), f"unknown condition {task.standard!r}")
+        if (
+            task.type == "choice_2afc"
+            and task.layout == "side_by_side"
+            and "gap_s" in task.model_fields_set
+        ):
+            yield Issue(
+                (*where, "gap_s"), "gap_s is the blank between sequential clips: not side_by_side"
+            )
         if task.type == "identify":
             yield from _duplicates((lb.id for lb in task.labels), (*where, "labels"), "label")
             labels = {lb.id for lb in task.labels}

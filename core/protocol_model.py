@@ -214,8 +214,8 @@ class Label(_Model):
 
 class ChoiceTask(_Model):
     """Two clips of the same stimulus, the block's standard and a comparison, one after the
-    other; the participant picks one (key 1/2 or a click). Which one comes first is
-    counterbalanced in the design and logged (``position``)."""
+    other or side by side; the participant picks one (key 1/2 or a click). Which one comes
+    first (or left) is counterbalanced in the design and logged (``position``)."""
 
     id: Id
     type: Literal["choice_2afc"]
@@ -227,10 +227,15 @@ class ChoiceTask(_Model):
         "discrimination; guess rate 1/2); none: a preference, no answer is correct (guess "
         "rate 0).",
     )
-    layout: Literal["sequential"] = Field(
-        "sequential", description="sequential: the two clips one after the other."
+    layout: Literal["sequential", "side_by_side"] = Field(
+        "sequential",
+        description="sequential: the two clips one after the other; side_by_side: both at "
+        "once, left and right (position 1 = left), with the standard's sound (the clips of "
+        "one stimulus share its speech; silent clips suit this layout best).",
     )
-    gap_s: float = Field(0.5, ge=0.0, le=10.0, description="Blank between the two clips.")
+    gap_s: float = Field(
+        0.5, ge=0.0, le=10.0, description="sequential: blank between the two clips."
+    )
 
 
 class IdentifyTask(_Model):

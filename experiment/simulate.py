@@ -34,9 +34,11 @@ from facelab.experiment.adaptive import Staircases
 from facelab.experiment.timeline import (
     ChoiceAnswer,
     ChoiceScreen,
+    ClipPairScreen,
     ClipScreen,
     IdentifyAnswer,
     IdentifyScreen,
+    PairPlayback,
     Playback,
     TextScreen,
     VasAnswer,
@@ -203,6 +205,10 @@ class SimulatedParticipant:
         onset = self.clock
         self.clock += _CLIP_S
         return Playback(onset=round(onset, 3), dropped=0)
+
+    def clip_pair(self, screen: ClipPairScreen) -> PairPlayback:
+        both = self.clip(screen)  # watched together
+        return PairPlayback(left=both, right=both)
 
     def vas(self, screen: VasScreen) -> list[VasAnswer]:
         answers = []

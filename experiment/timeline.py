@@ -38,9 +38,11 @@ __all__ = [
     "ChoiceAnswer",
     "ChoiceScreen",
     "ClipKey",
+    "ClipPairScreen",
     "ClipScreen",
     "IdentifyAnswer",
     "IdentifyScreen",
+    "PairPlayback",
     "Playback",
     "ResponseScreen",
     "Screen",
@@ -70,6 +72,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "break": "休憩です。準備ができたらスペースキーを押してください。",
         "end": "終了です。ありがとうございました。",
         "interval": "{n} つ目",
+        "left": "左",
+        "right": "右",
         "choice_keys": "1 か 2 のキー、またはクリックで答えてください",
         "label_keys": "数字キー、またはクリックで答えてください",
     },
@@ -83,6 +87,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "break": "Take a break. Press space when you are ready.",
         "end": "This is the end. Thank you.",
         "interval": "Clip {n}",
+        "left": "Left",
+        "right": "Right",
         "choice_keys": "Press 1 or 2, or click",
         "label_keys": "Press a number key, or click",
     },
@@ -139,6 +145,24 @@ class ClipScreen(Screen):
     interval: int | None = None  # 1 or 2 in a forced choice (announced before the clip)
     gap_s: float = 0.0  # blank before the clip (between the two clips of a forced choice)
 
+    def clips(self) -> tuple[ClipKey, ...]:
+        """The clips this screen shows."""
+        return (self.clip,)
+
+
+@dataclass(frozen=True)
+class ClipPairScreen(ClipScreen):
+    """Two clips at once, side by side (a side-by-side forced choice): ``clip`` on the left,
+    ``right`` on the right, started together; the sound is that of the clip on side
+    ``sound`` (1 left, 2 right), the other plays muted. Produces a :class:`PairPlayback`."""
+
+    kind: ClassVar[str] = "clip_pair"
+    right: ClipKey = ("", "", "")
+    sound: int = 1
+
+    def clips(self) -> tuple[ClipKey, ...]:
+        return (self.clip, self.right)
+
 
 @dataclass(frozen=True)
 class Playback:
@@ -162,6 +186,22 @@ class Playback:
             "flip_times": list(self.flip_times),
             "frames_shown": list(self.frames_shown),
         }
+
+
+@dataclass(frozen=True)
+class PairPlayback:
+    """How the two clips of a :class:`ClipPairScreen` were shown, each with its own record."""
+
+    left: Playback
+    right: Playback
+
+    def combined(self) -> Playback:
+        """The trial's playback for its log rows: the earlier onset, frames dropped in both."""
+        return Playback(
+            onset=min(self.left.onset, self.right.onset),
+            dropped=self.left.dropped + self.right.dropped,
+            frames_expected=self.left.frames_expected + self.right.frames_expected,
+        )
 
 
 @dataclass(frozen=True)
@@ -260,10 +300,18 @@ class ChoiceAnswer:
 
 @dataclass(frozen=True)
 class ChoiceScreen(TaskScreen):
-    """Which of the two clips? The comparison was in interval ``trial.position``."""
+    """Which of the two clips? The comparison was in interval (or on side) ``trial.position``;
+    answer 1 is the first (left) clip, 2 the second (right)."""
 
     kind: ClassVar[str] = "choice_2afc"
     task: ChoiceTask | None = None
+
+    def options(self, lang: str) -> list[str]:
+        """The two answers' texts: "Clip 1"/"Clip 2", or "Left"/"Right" side by side."""
+        texts = ui(lang)
+        if self.task is not None and self.task.layout == "side_by_side":
+            return [texts["left"], texts["right"]]
+        return [texts["interval"].format(n=n) for n in (1, 2)]
 
     def rows(
         self, answers: Sequence[ChoiceAnswer], *, context: SessionContext, playback: Playback | None
@@ -388,6 +436,17 @@ def trial_screens(
         ]
     standard = (trial.stimulus_set, trial.stimulus, trial.standard or task.standard)
     first, second = (clip, standard) if (trial.position or 1) == 1 else (standard, clip)
+    if task.layout == "side_by_side":  # position: the comparison's side, 1 left, 2 right
+        return [
+            ClipPairScreen(
+                trial=shown,
+                clip=first,
+                right=second,
+                practice=practice,
+                sound=1 if first == standard else 2,
+            ),
+            ChoiceScreen(trial=shown, practice=practice, level=level, task=task),
+        ]
     return [
         ClipScreen(trial=shown, clip=first, practice=practice, interval=1),
         ClipScreen(trial=shown, clip=second, practice=practice, interval=2, gap_s=task.gap_s),
@@ -438,12 +497,14 @@ def needed_clips(screens: Sequence[Screen]) -> set[ClipKey]:
     needed: set[ClipKey] = set()
     for s in screens:
         if isinstance(s, ClipScreen):
-            needed.add(s.clip)
+            needed.update(s.clips())
         elif isinstance(s, AdaptiveTrial):
             assert s.trial is not None and s.protocol is not None
             block = next(b for b in s.protocol.blocks if b.id == s.trial.block)
             for cond in s.protocol.block_conditions(block):
-                needed |= {x.clip for x in s.expand(cond) if isinstance(x, ClipScreen)}
+                needed |= {
+                    c for x in s.expand(cond) if isinstance(x, ClipScreen) for c in x.clips()
+                }
     return needed
 
 

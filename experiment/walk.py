@@ -17,9 +17,11 @@ from facelab.experiment.timeline import (
     AdaptiveTrial,
     ChoiceAnswer,
     ChoiceScreen,
+    ClipPairScreen,
     ClipScreen,
     IdentifyAnswer,
     IdentifyScreen,
+    PairPlayback,
     Playback,
     ResponseScreen,
     Screen,
@@ -35,6 +37,7 @@ __all__ = ["PRESENTERS", "Presenter", "walk"]
 class Presenter(Protocol):
     def text(self, screen: TextScreen) -> None: ...
     def clip(self, screen: ClipScreen) -> Playback: ...
+    def clip_pair(self, screen: ClipPairScreen) -> PairPlayback: ...
     def vas(self, screen: VasScreen) -> list[VasAnswer]: ...
     def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]: ...
     def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]: ...
@@ -44,6 +47,7 @@ class Presenter(Protocol):
 PRESENTERS: dict[type[Screen], str] = {
     TextScreen: "text",
     ClipScreen: "clip",
+    ClipPairScreen: "clip_pair",
     VasScreen: "vas",
     ChoiceScreen: "choice",
     IdentifyScreen: "identify",
@@ -99,15 +103,20 @@ def walk(
             raise TypeError(f"no presenter for screen type {type(screen).__name__}")
         result = getattr(presenter, method)(screen)
         if isinstance(screen, ClipScreen):
+            # one playback record per clip (a side-by-side pair has two, with their own frames)
+            shown = (result.left, result.right) if isinstance(result, PairPlayback) else (result,)
             if record_playback and not screen.practice:
-                append_jsonl(
-                    log.paths.playback,
-                    result.record(
-                        trial_index=screen.trial_index,
-                        clip="__".join(screen.clip),
-                        replay=screen.trial_index in replayed,
-                    ),
-                )
+                for clip, playback in zip(screen.clips(), shown, strict=True):
+                    append_jsonl(
+                        log.paths.playback,
+                        playback.record(
+                            trial_index=screen.trial_index,
+                            clip="__".join(clip),
+                            replay=screen.trial_index in replayed,
+                        ),
+                    )
+            if isinstance(result, PairPlayback):
+                result = result.combined()
             if screen.interval == 2:
                 result = _combine(playbacks.get(screen.trial_index), result)
             playbacks[screen.trial_index] = result

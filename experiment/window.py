@@ -31,9 +31,11 @@ from facelab.experiment.timeline import (
     ChoiceAnswer,
     ChoiceScreen,
     ClipKey,
+    ClipPairScreen,
     ClipScreen,
     IdentifyAnswer,
     IdentifyScreen,
+    PairPlayback,
     Playback,
     TextScreen,
     VasAnswer,
@@ -208,58 +210,105 @@ class Window:
         """Play one clip with sound; returns onset, flips and dropped frames."""
         if screen.interval is not None:
             self._announce(screen)
-        ref = self.clips[screen.clip]
-        shot = None if screen.practice else "clip_mid_playback"
         w, h = self.size
         scale = min(0.95 * w / 16, 0.80 * h / 9)
-        movie = self.visual.MovieStim(
-            self.win,
-            str(ref.path),
-            size=(16 * scale, 9 * scale),
-            pos=(0, 0.05 * h),
-            noAudio=False,
-            autoStart=False,
-            loop=False,
+        (playback,) = self._play(
+            [screen.clip],
+            sizes=[(16 * scale, 9 * scale)],
+            positions=[(0, 0.05 * h)],
+            sound=0,
+            shot=None if screen.practice else "clip_mid_playback",
         )
-        fps = ref.fps
+        return playback
+
+    def clip_pair(self, screen: ClipPairScreen) -> PairPlayback:
+        """Play two clips at once, left and right, with the sound of side ``screen.sound``."""
+        w, h = self.size
+        scale = min(0.47 * w / 16, 0.80 * h / 9)
+        left, right = self._play(
+            list(screen.clips()),
+            sizes=[(16 * scale, 9 * scale)] * 2,
+            positions=[(-0.245 * w, 0.05 * h), (0.245 * w, 0.05 * h)],
+            sound=screen.sound - 1,
+            shot=None if screen.practice else "clip_pair_mid_playback",
+        )
+        return PairPlayback(left=left, right=right)
+
+    def _play(
+        self,
+        keys: list[ClipKey],
+        *,
+        sizes: list[tuple[float, float]],
+        positions: list[tuple[float, float]],
+        sound: int,
+        shot: str | None,
+    ) -> list[Playback]:
+        """Play the clips ``keys`` together (started on the same flip), only clip ``sound``
+        with its sound; one :class:`Playback` per clip, timed on the shared flips."""
+        refs = [self.clips[k] for k in keys]
+        movies = [
+            self.visual.MovieStim(
+                self.win,
+                str(ref.path),
+                size=size,
+                pos=pos,
+                noAudio=i != sound,
+                autoStart=False,
+                loop=False,
+            )
+            for i, (ref, size, pos) in enumerate(zip(refs, sizes, positions, strict=True))
+        ]
+        longest = max(ref.duration_s for ref in refs)
         flips: list[float] = []
-        shown: list[int] = []
+        shown: list[list[int]] = [[] for _ in movies]
         checked = False
         self._clear_events()
-        movie.play()
-        deadline = time.perf_counter() + ref.duration_s + 10.0
+        for movie in movies:
+            movie.play()
+        deadline = time.perf_counter() + longest + 10.0
         try:
-            while not movie.isFinished:
-                movie.draw()
-                if not checked and movie.movieTime > 0:
-                    self._check_pixels(movie)
+            while not all(movie.isFinished for movie in movies):
+                for movie in movies:
+                    movie.draw()
+                if not checked and all(movie.movieTime > 0 for movie in movies):
+                    for movie in movies:
+                        self._check_pixels(movie)
                     checked = True
-                if shot and movie.movieTime >= ref.duration_s / 2:
+                if shot and max(movie.movieTime for movie in movies) >= longest / 2:
                     self._screenshot(shot)
                     shot = None
                 flips.append(self.win.flip())
-                shown.append(round(movie.movieTime * fps))
-                keys = self.event.getKeys(keyList=["escape"])
-                if keys:
-                    movie.pause()
-                    self._check_escape(keys)
-                    movie.play()
+                for frames, movie, ref in zip(shown, movies, refs, strict=True):
+                    frames.append(round(movie.movieTime * ref.fps))
+                keys_down = self.event.getKeys(keyList=["escape"])
+                if keys_down:
+                    for movie in movies:
+                        movie.pause()
+                    self._check_escape(keys_down)
+                    for movie in movies:
+                        movie.play()
                 if time.perf_counter() > deadline:
                     raise SessionError(
-                        f"playback of {ref.path.name} did not finish (stalled decoder?)"
+                        f"playback of {', '.join(r.path.name for r in refs)} did not finish "
+                        "(stalled decoder?)"
                     )
         finally:
-            movie.stop()
-            movie.unload()
-        distinct = sorted(set(shown))
-        expected = max(1, round(ref.duration_s * fps))
-        return Playback(
-            onset=round(float(flips[0]), 4) if flips else float("nan"),
-            dropped=max(0, expected - len(distinct)),
-            frames_expected=expected,
-            flip_times=tuple(round(f - flips[0], 5) for f in flips) if flips else (),
-            frames_shown=tuple(shown),
-        )
+            for movie in movies:
+                movie.stop()
+                movie.unload()
+        out = []
+        for ref, frames in zip(refs, shown, strict=True):
+            expected = max(1, round(ref.duration_s * ref.fps))
+            out.append(
+                Playback(
+                    onset=round(float(flips[0]), 4) if flips else float("nan"),
+                    dropped=max(0, expected - len(set(frames))),
+                    frames_expected=expected,
+                    flip_times=tuple(round(f - flips[0], 5) for f in flips) if flips else (),
+                    frames_shown=tuple(frames),
+                )
+            )
+        return out
 
     def _check_pixels(self, movie: Any) -> None:
         img = np.asarray(self.win.getMovieFrame(buffer="back"), dtype=np.float32)
@@ -366,7 +415,7 @@ class Window:
                 scripted = (pick - 1, pick, screen.trial_index, screen.task.id)
         index, rt = self._choose(
             question=localized(screen.task.question, self.lang),
-            options=["1", "2"],
+            options=["1", "2"] if screen.task.layout == "sequential" else screen.options(self.lang),
             hint=self.ui["choice_keys"],
             shot=None if screen.practice else "choice_2afc_screen",
             scripted=scripted,

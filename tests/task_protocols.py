@@ -19,6 +19,12 @@ def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
         "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
         "text: あ。い。, expected_vowels: ai",
     )
+    # files the protocol names beside itself (impression models) stay where they ship
+    text = re.sub(
+        r"model: ([\w.-]+\.json)",
+        lambda m: f"model: {protocol_path(name).parent / m.group(1)}",
+        text,
+    )
     for old, new in edits.items():
         text = re.sub(old, new, text)
     path = root / f"{name}.yaml"

@@ -473,6 +473,13 @@ def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
         assert SimulatedBrowser(server, bg.url, 1, seed=3).run() == "complete"
     rows = sorted(_rows(server, "P0002"), key=lambda r: r["trial_index"])
     assert len(rows) == 6 and all(r["screen"] == "choice_2afc" for r in rows)
+    with Session(server.engine) as db:  # the clips of every level are the participant's own
+        pk = db.scalars(select(Participant.pk).where(Participant.participant == "P0002")).one()
+        shown = [
+            r.record["trial_index"]
+            for r in db.scalars(select(PlaybackRecord).where(PlaybackRecord.participant_pk == pk))
+        ]
+    assert sorted(shown) == sorted(r["trial_index"] for r in rows for _ in range(2))
     Staircases(protocol, logged=rows)  # replaying the rule gives exactly the levels shown
     from facelab.staircase import new_staircase
 
@@ -515,3 +522,44 @@ def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_pat
         assert row["condition"] == rule.condition  # the level QUEST+ chose
         rule.update(bool(row["correct"]))
     assert len({r["condition"] for r in _rows(server, "P0001")}) >= 2
+
+
+def test_side_by_side_choice_in_chromium(tmp_path: Path) -> None:
+    """Two videos at once: both play (requestVideoFrameCallback saw each one's frames), a
+    playback record per video, the side clicked scored against the logged position."""
+    path = short_task_protocol(
+        "horii_impression_side",
+        tmp_path,
+        {
+            r"sets: 2": "sets: 1",
+            r"presentations_per_condition: 4": "presentations_per_condition: 2",
+            r"conditions: \[q025, q05, q075, q1, q15\]": "conditions: [q15]",
+            r"silence_s: 2.7": "silence_s: 1.2",
+            r"  practice: .*\n": "",
+        },
+    )
+    protocol = load_protocol(path)
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
+    assert (shots / "clip_pair.png").exists() and (shots / "choice_2afc.png").exists()
+    rows = _rows(server, "P0001")
+    assert len(rows) == 2 and {r["position"] for r in rows} == {1, 2}
+    with Session(server.engine) as db:
+        actions = {a.record["trial_index"]: a.record["value"] for a in db.scalars(select(Action))}
+        records = [r.record for r in db.scalars(select(PlaybackRecord))]
+    for r in rows:
+        chose_comparison = actions[r["trial_index"]] == r["position"]
+        assert r["response"] == ("q15" if chose_comparison else "q0")
+        assert r["clip_onset"] is not None
+    assert sorted(rec["trial_index"] for rec in records) == [1, 1, 2, 2]
+    for trial in (1, 2):
+        pair = [rec for rec in records if rec["trial_index"] == trial]
+        assert len({rec["clip"] for rec in pair}) == 2  # the two different clips
+        for rec in pair:
+            assert rec["presented_frames"] >= 0.8 * rec["frames_expected"] > 0
+            assert rec["play_refused"] is None

@@ -133,3 +133,60 @@ def test_identification_in_the_window(tmp_path: Path) -> None:
     }
     assert all(r["correct"] == str(int(answers[r["condition"]] == r["response"])) for r in rows)
     assert (tmp_path / "shots" / "identify_screen.png").exists()
+
+
+def test_side_by_side_choice_in_the_window(tmp_path: Path) -> None:
+    """Two silent clips at once, left and right: both drawn (each half of the screenshot
+    shows a face), a playback record per clip, the side of the comparison logged."""
+    import numpy as np
+    from PIL import Image
+
+    path = short_task_protocol(
+        "horii_impression_side",
+        tmp_path,
+        {
+            r"sets: 2": "sets: 1",
+            r"presentations_per_condition: 4": "presentations_per_condition: 2",
+            r"conditions: \[q025, q05, q075, q1, q15\]": "conditions: [q15]",
+            r"silence_s: 2.7": "silence_s: 1.2",
+        },
+    )
+    proc = _run(path, tmp_path)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-1500:]
+    study = "horii_impression_side"
+    rows = list(
+        csv.DictReader(
+            _session(tmp_path, study, "_beh.tsv").read_text(encoding="utf-8").splitlines(),
+            delimiter="\t",
+        )
+    )
+    assert len(rows) == 2 and {r["position"] for r in rows} == {"1", "2"}  # both sides
+    actions = [
+        json.loads(x) for x in _session(tmp_path, study, "_actions.jsonl").read_text().splitlines()
+    ]
+    pressed = {a["trial_index"]: a["value"] for a in actions if a["trial_index"]}
+    for r in rows:
+        chose_comparison = pressed[int(r["trial_index"])] == int(r["position"])
+        assert r["response"] == ("q15" if chose_comparison else "q0")
+        assert r["clip_onset"] != ""
+    playback = [
+        json.loads(x) for x in _session(tmp_path, study, "_playback.jsonl").read_text().splitlines()
+    ]
+    assert len(playback) == 4  # one record per clip, two clips per trial
+    for r in rows:
+        mine = [p for p in playback if p["trial_index"] == int(r["trial_index"])]
+        left = "q15" if r["position"] == "1" else "q0"
+        assert [p["clip"].rsplit("__", 1)[1] for p in mine] == [
+            left,
+            "q0" if left == "q15" else "q15",
+        ]
+        assert mine[0]["onset"] == mine[1]["onset"]  # started on the same flip
+        assert all(p["frames_expected"] > 0 for p in mine)
+    shot = np.asarray(
+        Image.open(tmp_path / "shots" / "clip_pair_mid_playback.png").convert("L"), float
+    )
+    h, w = shot.shape
+    for half in (shot[h // 4 : 3 * h // 4, : w // 2], shot[h // 4 : 3 * h // 4, w // 2 :]):
+        assert half.std() > 10  # a face on each side, not a blank or a black square
+    assert (tmp_path / "shots" / "choice_2afc_screen.png").exists()

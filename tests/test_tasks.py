@@ -26,7 +26,14 @@ from facelab.sessionlog import SessionContext
 from facelab.staircase import UpDownStaircase, convergence_probability, new_staircase
 
 REF = Path(__file__).parent / "reference"
-EXAMPLES = ("gain_2afc", "gain_staircase", "gain_questplus", "method_identify", "gain_vas")
+EXAMPLES = (
+    "gain_2afc",
+    "gain_staircase",
+    "gain_questplus",
+    "method_identify",
+    "gain_vas",
+    "horii_impression_side",
+)
 
 
 # --------------------------------------------------------------------------- analyses vs R
@@ -172,6 +179,13 @@ def _protocol(tmp_path: Path, name: str, edit=lambda s: s):
             "start 'g100' is not among the block's conditions",
         ),
         ("gain_staircase", "    correct: comparison", "    correct: none", "adapts on correct"),
+        (
+            "gain_2afc",
+            "    gap_s: 0.5",
+            "    layout: side_by_side\n    gap_s: 0.5",
+            "gap_s is the blank between sequential clips",
+        ),
+        ("gain_2afc", "    gap_s: 0.5", "    layout: beside", "'sequential' or 'side_by_side'"),
         (
             "method_identify",
             "emphasized: vowel_emphasized}",
@@ -339,6 +353,7 @@ def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
         "gain_2afc": ["psychometric_fits.csv", "fig_psychometric_stronger.png"],
         "gain_staircase": ["psychometric_fits.csv", "staircase_thresholds.csv"],
         "gain_questplus": ["psychometric_fits.csv", "staircase_thresholds.csv"],
+        "horii_impression_side": ["psychometric_fits.csv", "fig_psychometric_friendlier.png"],
         "method_identify": ["identification_summary.csv", "fig_confusion_which_method.png"],
         "gain_vas": ["trend_contrast.csv", "graded_lmm.csv", "rm_anova.csv"],
     }[name]

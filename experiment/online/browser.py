@@ -182,9 +182,12 @@ class SimulatedBrowser:
                 state = d.execute_script(_STATE_JS)
                 kind = state["kind"]
                 key = (kind, state.get("seq"))
-                if kind in ("wait", "loading", "clip", "saving") or key in done_screens:
-                    if kind == "clip":
-                        self._shot("clip")
+                if (
+                    kind in ("wait", "loading", "clip", "clip_pair", "saving")
+                    or key in done_screens
+                ):
+                    if kind in ("clip", "clip_pair"):
+                        self._shot(kind)
                     time.sleep(0.1)
                     continue
                 if kind == "error":

@@ -65,7 +65,7 @@ from facelab.experiment.online.db import (
     utcnow,
 )
 from facelab.experiment.online.study import AnswerError, OnlineStudy
-from facelab.experiment.timeline import Playback
+from facelab.experiment.timeline import Playback, needed_clips
 
 __all__ = ["ServeConfig", "StudyServer", "create_app", "token_sha256"]
 
@@ -271,7 +271,8 @@ class StudyServer:
                 ) + 1
                 pid = f"P{number:04d}"
                 trials = self.study.trials(pid)
-                needed = {s.clip for s in self.study.screens(pid) if getattr(s, "clip", None)}
+                # every clip the session may show: both of a pair, every level of a staircase
+                needed = needed_clips(self.study.screens(pid))
                 p = Participant(
                     study=self.study.study,
                     participant=pid,
@@ -364,6 +365,7 @@ class StudyServer:
             "answered": len(answered & planned),
             "clips": sorted(
                 {s["clip"] for s in timeline if s["kind"] == "clip"}
+                | {c["clip"] for s in timeline if s["kind"] == "clip_pair" for c in s["clips"]}
                 | {c for s in timeline if s["kind"] == "adaptive" for c in s["clips"]}
             ),
             "timeline": timeline,

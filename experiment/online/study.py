@@ -29,6 +29,7 @@ from facelab.experiment.timeline import (
     ChoiceAnswer,
     ChoiceScreen,
     ClipKey,
+    ClipPairScreen,
     ClipScreen,
     IdentifyAnswer,
     IdentifyScreen,
@@ -191,21 +192,36 @@ class OnlineStudy:
             raise AnswerError(str(exc)) from None
         return screen.expand(staircases.resolve(trial))
 
+    def _clip_json(self, key: ClipKey) -> dict[str, Any]:
+        """A clip as the browser fetches it: by its hash (the name never says the condition)."""
+        ref = self.clips[key]
+        return {
+            "clip": ref.sha256 + ".mp4",
+            "fps": ref.fps,
+            "frames": round(ref.duration_s * ref.fps),
+        }
+
     def _screen_json(self, s: Screen, shown_before: set[int]) -> dict[str, Any]:
         lang = self.protocol.presentation.language
         texts = ui(lang)
         if isinstance(s, TextScreen):
             return {"kind": "text", "role": s.role, "text": s.text}
+        if isinstance(s, ClipPairScreen):
+            return {
+                "kind": "clip_pair",
+                "trial_index": s.trial_index,
+                "practice": s.practice,
+                "replay": s.trial_index in shown_before,
+                "clips": [self._clip_json(c) for c in s.clips()],
+                "sound": s.sound,
+            }
         if isinstance(s, ClipScreen):
-            ref = self.clips[s.clip]
             return {
                 "kind": "clip",
                 "trial_index": s.trial_index,
                 "practice": s.practice,
                 "replay": s.trial_index in shown_before,
-                "clip": ref.sha256 + ".mp4",
-                "fps": ref.fps,
-                "frames": round(ref.duration_s * ref.fps),
+                **self._clip_json(s.clip),
                 "interval": s.interval,
                 "announce": texts["interval"].format(n=s.interval) if s.interval else "",
                 "gap_s": s.gap_s,
@@ -237,7 +253,7 @@ class OnlineStudy:
                 "question": localized(s.task.question, lang),
             }
             if isinstance(s, ChoiceScreen):
-                return asked | {"options": [texts["interval"].format(n=n) for n in (1, 2)]}
+                return asked | {"options": s.options(lang)}
             assert isinstance(s.task, IdentifyTask)
             return asked | {
                 "labels": [{"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels]

@@ -65,47 +65,65 @@ class FacelabText extends FacelabPlugin {
 }
 FacelabText.info = facelabInfo("facelab-text");
 
+// One <video> of a clip screen, with the frames requestVideoFrameCallback reports.
+function facelabVideo(clip, muted) {
+  const video = document.createElement("video");
+  video.playsInline = true; video.preload = "auto"; video.controls = false; video.muted = !!muted;
+  const frames = [];
+  const onFrame = (now, meta) => {
+    frames.push([meta.expectedDisplayTime, meta.mediaTime, meta.presentedFrames]);
+    video.requestVideoFrameCallback(onFrame);
+  };
+  if ("requestVideoFrameCallback" in video) video.requestVideoFrameCallback(onFrame);
+  const ended = new Promise((res) => video.addEventListener("ended", res, { once: true }));
+  return { video, frames, ended, clip };
+}
+// Start the videos together (every play() awaited; a refusal logged, then a click starts
+// them) and wait until all have ended. Returns the refusal, or null.
+async function facelabPlayAll(plugin, box, s, videos) {
+  for (const v of videos) v.video.src = plugin.jsPsych.pluginAPI.getVideoBuffer("/clips/" + v.clip.clip);
+  const playAll = () => Promise.all(videos.map((v) => v.video.play()));
+  let refused = null;
+  try { await playAll(); }
+  catch (e) {
+    refused = (e.name || "Error") + ": " + (e.message || "");
+    FacelabOutbox.send("/api/event", { kind: "play_refused", detail: { clip: videos.map((v) => v.clip.clip).join(" "), trial_index: s.trial_index, error: refused } });
+    const play = facelabEl("button", "facelab-button", "▶"); play.dataset.facelab = "play";
+    box.appendChild(play);
+    await new Promise((res) => play.addEventListener("click", res, { once: true }));
+    play.remove();
+    await playAll();
+  }
+  await Promise.all(videos.map((v) => v.ended));
+  return refused;
+}
+// The _playback.jsonl record of one video (sent unless practice); returns onset and drops.
+function facelabPlayback(s, v, refused) {
+  const fps = v.clip.fps;
+  const shown = v.frames.map((f) => Math.round(f[1] * fps));
+  const expected = v.clip.frames || Math.round(v.video.duration * fps);
+  const dropped = Math.max(0, expected - new Set(shown).size);
+  const onset = v.frames.length ? v.frames[0][0] / 1000 : null;
+  const record = {
+    client_key: FacelabOutbox.newKey(), trial_index: s.practice ? null : s.trial_index,
+    clip: v.clip.clip, replay: !!s.replay, onset, frames_expected: expected, dropped,
+    flip_times: v.frames.map((f) => f[0] / 1000), frames_shown: shown,
+    presented_frames: v.frames.length ? v.frames[v.frames.length - 1][2] : 0,
+    media_time_end: v.video.currentTime, play_refused: refused,
+  };
+  if (!s.practice) FacelabOutbox.send("/api/playback", record);
+  return { onset, dropped };
+}
+
 class FacelabClip extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-clip", "clip", s);
     const announce = facelabEl("div", "facelab-announce", s.announce || "");
-    const video = document.createElement("video");
-    video.playsInline = true; video.preload = "auto"; video.controls = false;
-    box.appendChild(announce); box.appendChild(video); el.appendChild(box);
-    if (s.gap_s) { video.hidden = true; await facelabSleep(s.gap_s * 1000); video.hidden = false; }
-    const frames = [];
-    const onFrame = (now, meta) => {
-      frames.push([meta.expectedDisplayTime, meta.mediaTime, meta.presentedFrames]);
-      video.requestVideoFrameCallback(onFrame);
-    };
-    if ("requestVideoFrameCallback" in video) video.requestVideoFrameCallback(onFrame);
-    const ended = new Promise((res) => video.addEventListener("ended", res, { once: true }));
-    video.src = this.jsPsych.pluginAPI.getVideoBuffer("/clips/" + s.clip);
-    let refused = null;
-    try { await video.play(); }
-    catch (e) {
-      refused = (e.name || "Error") + ": " + (e.message || "");
-      FacelabOutbox.send("/api/event", { kind: "play_refused", detail: { clip: s.clip, trial_index: s.trial_index, error: refused } });
-      const play = facelabEl("button", "facelab-button", "▶"); play.dataset.facelab = "play";
-      box.appendChild(play);
-      await new Promise((res) => play.addEventListener("click", res, { once: true }));
-      play.remove();
-      await video.play();
-    }
-    await ended;
-    const fps = s.fps;
-    const shown = frames.map((f) => Math.round(f[1] * fps));
-    const expected = s.frames || Math.round(video.duration * fps);
-    const dropped = Math.max(0, expected - new Set(shown).size);
-    const onset = frames.length ? frames[0][0] / 1000 : null;
-    const record = {
-      client_key: FacelabOutbox.newKey(), trial_index: s.practice ? null : s.trial_index,
-      clip: s.clip, replay: !!s.replay, onset, frames_expected: expected, dropped,
-      flip_times: frames.map((f) => f[0] / 1000), frames_shown: shown,
-      presented_frames: frames.length ? frames[frames.length - 1][2] : 0,
-      media_time_end: video.currentTime, play_refused: refused,
-    };
-    if (!s.practice) FacelabOutbox.send("/api/playback", record);
+    const v = facelabVideo(s, false);
+    box.appendChild(announce); box.appendChild(v.video); el.appendChild(box);
+    if (s.gap_s) { v.video.hidden = true; await facelabSleep(s.gap_s * 1000); v.video.hidden = false; }
+    const refused = await facelabPlayAll(this, box, s, [v]);
+    const { onset, dropped } = facelabPlayback(s, v, refused);
     const prev = FacelabSession.playback[s.trial_index];
     FacelabSession.playback[s.trial_index] = (s.interval === 2 && prev)
       ? { onset: prev.onset, dropped: prev.dropped + dropped } : { onset, dropped };
@@ -113,6 +131,26 @@ class FacelabClip extends FacelabPlugin {
   }
 }
 FacelabClip.info = facelabInfo("facelab-clip");
+
+// Two clips at once, left and right; only the clip on side s.sound has its sound.
+class FacelabClipPair extends FacelabPlugin {
+  async run(el, s) {
+    const box = facelabBox("facelab-clip facelab-pair", "clip_pair", s);
+    const videos = s.clips.map((c, i) => facelabVideo(c, i + 1 !== s.sound));
+    const row = facelabEl("div", "facelab-pair-row");
+    for (const v of videos) row.appendChild(v.video);
+    box.appendChild(row); el.appendChild(box);
+    const refused = await facelabPlayAll(this, box, s, videos);
+    const both = videos.map((v) => facelabPlayback(s, v, refused));
+    const onsets = both.map((b) => b.onset).filter((x) => x !== null);
+    FacelabSession.playback[s.trial_index] = {
+      onset: onsets.length ? Math.min(...onsets) : null,
+      dropped: both.reduce((n, b) => n + b.dropped, 0),
+    };
+    return { clips: s.clips.map((c) => c.clip), dropped: FacelabSession.playback[s.trial_index].dropped };
+  }
+}
+FacelabClipPair.info = facelabInfo("facelab-clip-pair");
 
 class FacelabVas extends FacelabPlugin {
   async run(el, s) {
@@ -253,5 +291,5 @@ class FacelabComplete extends FacelabPlugin {
 FacelabComplete.info = facelabInfo("facelab-complete");
 
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
-const FacelabPlugins = { text: FacelabText, clip: FacelabClip, vas: FacelabVas, choice_2afc: FacelabChoice,
-                         identify: FacelabIdentify, adaptive: FacelabAdaptive };
+const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,
+                         choice_2afc: FacelabChoice, identify: FacelabIdentify, adaptive: FacelabAdaptive };
