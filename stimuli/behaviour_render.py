@@ -99,12 +99,9 @@ def render_behaviour_clips(
                     weights=speech_weights, avatar=avatar,
                 )  # fmt: skip
                 if beh is None:
-                    frames = (renderer.frame(w) for w in speech_weights)
+                    frames = renderer.frames(speech_weights)
                 else:
-                    frames = (
-                        renderer.frame(w, pose=p)
-                        for w, p in zip(beh.weights, beh.poses, strict=True)
-                    )
+                    frames = renderer.frames(beh.weights, beh.poses)
                 mp4 = out / f"{clip_id}.mp4"
                 info = encode(
                     frames, audio=audio, out=mp4, fps=fps, width=settings.width,

@@ -189,7 +189,7 @@ def bench_render(
                 r.times = type(r.times)()
                 t0 = time.perf_counter()
                 encode(
-                    (r.frame(w, pose=p) for w, p in zip(weights, poses(n, fps), strict=True)),
+                    r.frames(weights, poses(n, fps)),
                     audio=audio,
                     out=out,
                     fps=fps,
@@ -227,7 +227,7 @@ def bench_render(
                 # head would dominate them, so one more pass renders the clip with it still
                 still = Path(tmp) / f"still{fps}.mp4"
                 encode(
-                    (r.frame(w) for w in weights),
+                    r.frames(weights),
                     audio=audio,
                     out=still,
                     fps=fps,

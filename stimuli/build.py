@@ -232,12 +232,9 @@ def build_clips(
                     renderer = Renderer(avatar, settings).__enter__()
                 tick = progress(job.clip_id, n_frames) if progress else None
                 frames = (
-                    (renderer.frame(w) for w in weights)
+                    renderer.frames(weights)
                     if behaviour is None
-                    else (
-                        renderer.frame(w, pose=p)
-                        for w, p in zip(behaviour.weights, behaviour.poses, strict=True)
-                    )
+                    else renderer.frames(behaviour.weights, behaviour.poses)
                 )
                 info = encode(
                     frames,

@@ -131,7 +131,7 @@ def render_levels(
             name = clip_name(expression, q)
             mp4 = out / f"{name}.mp4"
             clip = encode(
-                (r.frame(w) for w in weights),
+                r.frames(weights),
                 audio=silence, out=mp4, fps=fps, width=settings.width, height=settings.height,
                 n_frames=n,
             )  # fmt: skip

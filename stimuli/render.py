@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -330,11 +331,42 @@ class Renderer:
     def frame(self, weights: np.ndarray, *, pose: HeadPose | None = None) -> np.ndarray:
         """Render the avatar with target weights (K,) in ``avatar.target_names`` order, its
         head, neck and eyes turned by ``pose`` (needs a skeleton)."""
+        self._upload(*self._prepare(weights, pose))
+        self._draw()
+        return self._collect()
+
+    def frames(
+        self, weights: Iterable[np.ndarray], poses: Iterable[HeadPose | None] | None = None
+    ) -> Iterator[np.ndarray]:
+        """The frames of a clip, pipelined: while OpenGL (llvmpipe's threads) rasterises
+        frame k, frame k + 1 is deformed and lit on the CPU. The same pictures as calling
+        :meth:`frame` for each (weights, pose) pair."""
+        pairs = (
+            zip(weights, poses, strict=True) if poses is not None else ((w, None) for w in weights)
+        )
+        drawn = False
+        for w, pose in pairs:
+            prepared = self._prepare(w, pose)  # overlaps the previous frame's rasterisation
+            if drawn:
+                yield self._collect()
+            self._upload(*prepared)
+            self._draw()
+            drawn = True
+        if drawn:
+            yield self._collect()
+
+    def _prepare(self, weights: np.ndarray, pose: HeadPose | None) -> tuple[np.ndarray, np.ndarray]:
+        """Deformed vertices and their lit colours (CPU)."""
         t0 = time.perf_counter()
         verts = self.avatar.deform(weights, pose=pose)
         t1 = time.perf_counter()
         lit = self._lit(verts)
-        t2 = time.perf_counter()
+        self.times.deform += t1 - t0
+        self.times.shade += time.perf_counter() - t1
+        return verts, lit
+
+    def _upload(self, verts: np.ndarray, lit: np.ndarray) -> None:
+        t0 = time.perf_counter()
         assert self._renderer is not None
         if not self._groups[0].primitive._buffers:  # another scene was drawn since
             self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
@@ -343,15 +375,27 @@ class Renderer:
             g.interleaved[:, -4:-1] = lit[g.vertices]
             GL.glBindBuffer(GL.GL_ARRAY_BUFFER, g.primitive._buffers[0])
             GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, g.interleaved.nbytes, g.interleaved)
-        t3 = time.perf_counter()
-        color = self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)[0]
-        t4 = time.perf_counter()
-        tm = self.times
-        tm.deform += t1 - t0
-        tm.shade += t2 - t1
-        tm.upload += t3 - t2
-        tm.raster_readback += t4 - t3
-        tm.frames += 1
+        self.times.upload += time.perf_counter() - t0
+
+    def _draw(self) -> None:
+        """Issue the frame's drawing and let the rasteriser start (no read-back yet)."""
+        t0 = time.perf_counter()
+        assert self._renderer is not None
+        gl = self._renderer._renderer
+        gl._facelab_defer_read = True
+        try:
+            self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
+        finally:
+            gl._facelab_defer_read = False
+        self.times.raster_readback += time.perf_counter() - t0
+
+    def _collect(self) -> np.ndarray:
+        """The drawn frame, read back (waits for the rasteriser)."""
+        t0 = time.perf_counter()
+        assert self._renderer is not None
+        color = self._renderer._renderer._facelab_read()
+        self.times.raster_readback += time.perf_counter() - t0
+        self.times.frames += 1
         return color
 
     def project(self, points: np.ndarray) -> np.ndarray:
@@ -470,7 +514,13 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
 
     def read(
         self: _pr_renderer.Renderer, scene: pyrender.Scene, flags: int
-    ) -> tuple[np.ndarray, None]:
+    ) -> tuple[np.ndarray | None, None]:
+        if getattr(self, "_facelab_defer_read", False):
+            GL.glFlush()  # the rasteriser starts now; read_now() collects the picture
+            return None, None
+        return read_now(self), None
+
+    def read_now(self: _pr_renderer.Renderer) -> np.ndarray:
         w, h = self._main_fb_dims
         if self._main_fb != self._main_fb_ms:
             GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
@@ -482,7 +532,7 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
         rgb = np.empty((h, w, 3), np.uint8)
         for c in range(3):  # three plain strided copies: ~10x faster than a fancy index
             rgb[..., c] = bgra[..., 2 - c]
-        return rgb, None
+        return rgb
 
     def delete_fb(self: _pr_renderer.Renderer) -> None:
         for fb in {self._main_fb, self._main_fb_ms} - {None}:
@@ -497,4 +547,5 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
 
     renderer._configure_main_framebuffer = types.MethodType(configure, renderer)
     renderer._read_main_framebuffer = types.MethodType(read, renderer)
+    renderer._facelab_read = types.MethodType(read_now, renderer)
     renderer._delete_main_framebuffer = types.MethodType(delete_fb, renderer)

@@ -69,6 +69,37 @@ def euler_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return ry @ rx @ rz
 
 
+@dataclass(frozen=True)
+class _Influence:
+    """The rows (R,) some moved joint influences, split for speed: ``rigid[u]`` are positions
+    in ``rows`` of the rows bound to joint ``used[u]`` alone (weight 1: most vertices of a
+    head), ``blend`` the positions of the others, each with its influences as
+    ``u * B + i`` (B, 4) into the (U * B, 3) array of every used joint's transform of the B
+    blended rows, and their weights (B, 4) float32."""
+
+    rows: np.ndarray
+    used: np.ndarray
+    rigid: tuple[np.ndarray, ...]
+    blend: np.ndarray
+    blend_where: np.ndarray
+    blend_weights: np.ndarray
+
+    @classmethod
+    def of(cls, skeleton: Skeleton, moved: tuple[int, ...]) -> _Influence:
+        hit = np.isin(skeleton.joints, np.asarray(moved, np.int64)) & (skeleton.weights > 0)
+        rows = np.nonzero(hit.any(axis=1))[0]
+        weights = skeleton.weights[rows]
+        used, local = np.unique(skeleton.joints[rows], return_inverse=True)
+        local = local.reshape(-1, 4)
+        top = np.argmax(weights, axis=1)
+        alone = np.isclose(weights[np.arange(len(rows)), top], 1.0, atol=1e-6)
+        owner = local[np.arange(len(rows)), top]
+        rigid = tuple(np.nonzero(alone & (owner == u))[0] for u in range(len(used)))
+        blend = np.nonzero(~alone)[0]
+        where = local[blend] * len(blend) + np.arange(len(blend))[:, None]
+        return cls(rows, used, rigid, blend, where, weights[blend])
+
+
 @dataclass
 class Skeleton:
     """Joints and per-vertex skin weights, all in the rest world frame.
@@ -104,21 +135,12 @@ class Skeleton:
             if role not in ROLES or not 0 <= j < n:
                 raise AvatarError(f"skeleton: bad role {role!r} -> joint {j}")
 
-    def influence(
-        self, moved: tuple[int, ...]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """For the joints ``moved``: the rows (R,) some of them influence, the joints ``used``
-        (U,) by those rows, each row's influences as ``u * R + row`` (R, 4) with ``u`` the index
-        into ``used``, and their weights (R, 4) float32. Cached per set of moved joints (a clip
-        turns the same ones)."""
+    def influence(self, moved: tuple[int, ...]) -> _Influence:
+        """How the joints ``moved`` reach the vertices (see :class:`_Influence`). Cached per
+        set of moved joints (a clip turns the same ones every frame)."""
         cache = self.__dict__.setdefault("_influence", {})
         if moved not in cache:
-            hit = np.isin(self.joints, np.asarray(moved, np.int64)) & (self.weights > 0)
-            rows = np.nonzero(hit.any(axis=1))[0]
-            used, local = np.unique(self.joints[rows], return_inverse=True)
-            # as rows of the (U * R, 3) array of every used joint's transform of every row
-            flat = local.reshape(-1, 4) * len(rows) + np.arange(len(rows))[:, None]
-            cache[moved] = (rows, used, flat, self.weights[rows])
+            cache[moved] = _Influence.of(self, moved)
         return cache[moved]
 
     def descendants(self, joint: int) -> np.ndarray:
@@ -175,28 +197,33 @@ def skin(vertices: np.ndarray, skeleton: Skeleton, pose: HeadPose) -> np.ndarray
     """Vertices (V, 3) posed by linear blend skinning (a float32 copy; unmoved rows are
     unchanged): ``v' = sum_k w_k (R_jk v + t_jk)`` over each vertex's four influences.
 
-    Only the rows that a moved joint influences are touched; each joint those rows use
-    transforms all of them once, and the rows take their weighted sum (cheaper than a
-    blended matrix per vertex)."""
+    Only the rows that a moved joint influences are touched: rows bound to one joint are
+    moved by that joint's transform (one matmul per joint); for the others each used joint
+    transforms all of them once and each row takes its weighted sum (cheaper than a blended
+    matrix per vertex)."""
     rotations = skeleton.pose_rotations(pose)
     if not rotations:
         return np.array(vertices, np.float32, copy=True)
     mats = skeleton.matrices(rotations)
     moved = tuple(np.nonzero(~np.all(np.isclose(mats, np.eye(4)), axis=(1, 2)))[0].tolist())
     out = np.array(vertices, np.float32, copy=True)
-    rows, used, where, weights = skeleton.influence(moved)
-    if rows.size == 0:
+    inf = skeleton.influence(moved)
+    if inf.rows.size == 0:
         return out
-    v = out[rows]  # (R, 3)
-    m = mats[used].astype(np.float32)  # (U, 4, 4)
-    moved_v = v @ m[:, :3, :3].transpose(0, 2, 1) + m[:, None, :3, 3]  # (U, R, 3)
-    flat = moved_v.reshape(-1, 3)
-    posed = np.zeros_like(v)
-    for k in range(where.shape[1]):
-        posed += weights[:, k, None] * np.take(flat, where[:, k], axis=0)
-    unweighted = weights.sum(axis=1) <= 0
-    posed[unweighted] = v[unweighted]
-    out[rows] = posed
+    v = out[inf.rows]  # (R, 3)
+    m = mats[inf.used].astype(np.float32)  # (U, 4, 4)
+    posed = np.empty_like(v)
+    for u, idx in enumerate(inf.rigid):
+        if idx.size:
+            posed[idx] = v[idx] @ m[u, :3, :3].T + m[u, :3, 3]
+    if inf.blend.size:
+        vb = v[inf.blend]
+        flat = (vb @ m[:, :3, :3].transpose(0, 2, 1) + m[:, None, :3, 3]).reshape(-1, 3)
+        acc = np.zeros_like(vb)
+        for k in range(inf.blend_where.shape[1]):
+            acc += inf.blend_weights[:, k, None] * np.take(flat, inf.blend_where[:, k], axis=0)
+        posed[inf.blend] = acc
+    out[inf.rows] = posed
     return out
 
 

@@ -203,3 +203,22 @@ def test_encode_keeps_each_frame_though_the_caller_reuses_its_buffer(tmp_path: P
             height=48, n_frames=n,
         )  # fmt: skip
     assert not (tmp_path / "b.mp4").exists()
+
+
+def test_pipelined_frames_equal_frame_by_frame() -> None:
+    """Renderer.frames (CPU work of frame k + 1 during the rasterisation of frame k) draws
+    exactly what frame() draws, pose by pose."""
+    from facelab.stimuli.rig import HeadPose
+
+    head = default_head()
+    weights = [head.weight_vector({"jawOpen": 0.1 * k, "eyeBlinkLeft": 0.2 * k}) for k in range(5)]
+    poses = [HeadPose(yaw=4.0 * k, eye_pitch=-2.0 * k) for k in range(5)]
+    with Renderer(head, SMALL) as r:
+        one_by_one = [r.frame(w, pose=p) for w, p in zip(weights, poses, strict=True)]
+        piped = list(r.frames(weights, poses))
+        still = list(r.frames(weights[:2]))
+    assert len(piped) == 5 and all(
+        np.array_equal(a, b) for a, b in zip(one_by_one, piped, strict=True)
+    )
+    assert not np.array_equal(piped[0], piped[4])  # the frames differ: the head moved
+    assert len(still) == 2

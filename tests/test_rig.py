@@ -304,6 +304,8 @@ def test_skinning_blends_each_influence_by_its_weight() -> None:
     weights = rng.dirichlet(np.ones(3), size=n).astype(np.float32)
     weights = np.column_stack([weights, np.zeros(n, np.float32)])
     weights[:20] = 0.0  # unweighted rows stay where they are
+    weights[20:80] = [0.0, 1.0, 0.0, 0.0]  # rows bound to the head alone (the fast path)
+    weights[80:100] = [0.0, 0.0, 1.0, 0.0]  # ... and to the eye alone
     joints = np.tile([0, 1, 2, 0], (n, 1))
     sk = Skeleton(
         names=("neck", "head", "eye"),
