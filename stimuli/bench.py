@@ -213,6 +213,10 @@ def bench_render(
                     **render_ms,
                     "encoding_and_pipe_ms": round(max(0.0, per_frame - render_total), 2),
                 },
+                "stages_note": "main-thread time per stage; frames are pipelined (frame k+1 "
+                "is deformed and shaded while llvmpipe rasterises frame k, ffmpeg encodes in "
+                "its own process), so stages overlap and share the cores: their sum can "
+                "exceed per_frame_ms, and encoding_and_pipe_ms is only the remainder",
             }
             meta = probe(out)
             video = next(s for s in meta["streams"] if s["codec_type"] == "video")
