@@ -32,3 +32,16 @@ def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
     args = ["render", str(path), "--out", str(root / "clips"), "--size", "320x180"]
     assert main([*args, "--fps", "15", "--quiet"]) == 0
     return path
+
+
+#: horii_impression_side cut to two side-by-side trials (comparison left once, right once)
+SIDE_BY_SIDE = (
+    "horii_impression_side",
+    {
+        r"sets: 2": "sets: 1",
+        r"presentations_per_condition: 4": "presentations_per_condition: 2",
+        r"conditions: \[q025, q05, q075, q1, q15\]": "conditions: [q15]",
+        r"silence_s: 2.7": "silence_s: 1.2",
+        r"  practice: .*\n": "",
+    },
+)

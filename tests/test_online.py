@@ -33,7 +33,7 @@ from facelab.experiment.online.serve import BackgroundServer, free_port, prepare
 from facelab.experiment.online.server import create_app
 from facelab.protocol import load_protocol
 from facelab.sessionlog import SessionLog
-from tests.task_protocols import short_task_protocol
+from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,6 +80,17 @@ def _answer(trial: int, item: str, rating: float, key: str) -> dict:
         "clip_onset": 2.0,
         "clip_frames_dropped": 0,
     }
+
+
+def _task_server(name: str, edits: dict[str, str], root: Path):
+    """A shipped task protocol cut short, rendered small, and its server on a fresh SQLite."""
+    path = short_task_protocol(name, root, edits)
+    protocol = load_protocol(path)
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=root / "clips",
+        db_url=f"sqlite:///{root / 'db.sqlite'}", results=root, admin_secret="s" * 20,
+    )  # fmt: skip
+    return protocol, server
 
 
 def _rows(server, participant: str) -> list[dict]:
@@ -393,12 +404,7 @@ def test_200_concurrent_participants_lose_and_duplicate_nothing(
 def test_forced_choice_and_identification_in_chromium(
     tmp_path: Path, name: str, edits: dict[str, str], screen: str
 ) -> None:
-    path = short_task_protocol(name, tmp_path, edits)
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
+    _, server = _task_server(name, edits, tmp_path)
     shots = tmp_path / "shots"
     with BackgroundServer(server) as bg:
         assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
@@ -441,14 +447,9 @@ def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
     the levels shown follow the 1-up-2-down rule, as the lab runner's replay checks."""
     from facelab.experiment.adaptive import Staircases
 
-    path = short_task_protocol(
-        "gain_staircase", tmp_path, {r"trials: 50": "trials: 6", r"practice: .*\n": ""}
+    protocol, server = _task_server(
+        "gain_staircase", {r"trials: 50": "trials: 6", r"practice: .*\n": ""}, tmp_path
     )
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
     client = TestClient(create_app(server))
     _, token = server.join(recruitment=None, source=None)
     ok = {"X-Facelab-Token": token}
@@ -495,14 +496,9 @@ def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_pat
     up-down test's)."""
     from facelab.staircase import new_staircase
 
-    path = short_task_protocol(
-        "gain_questplus", tmp_path, {r"trials: 30": "trials: 5", r"practice: .*\n": ""}
+    protocol, server = _task_server(
+        "gain_questplus", {r"trials: 30": "trials: 5", r"practice: .*\n": ""}, tmp_path
     )
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
     client = TestClient(create_app(server))
     _, token = server.join(recruitment=None, source=None)
     ok = {"X-Facelab-Token": token}
@@ -527,22 +523,7 @@ def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_pat
 def test_side_by_side_choice_in_chromium(tmp_path: Path) -> None:
     """Two videos at once: both play (requestVideoFrameCallback saw each one's frames), a
     playback record per video, the side clicked scored against the logged position."""
-    path = short_task_protocol(
-        "horii_impression_side",
-        tmp_path,
-        {
-            r"sets: 2": "sets: 1",
-            r"presentations_per_condition: 4": "presentations_per_condition: 2",
-            r"conditions: \[q025, q05, q075, q1, q15\]": "conditions: [q15]",
-            r"silence_s: 2.7": "silence_s: 1.2",
-            r"  practice: .*\n": "",
-        },
-    )
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
+    _, server = _task_server(*SIDE_BY_SIDE, tmp_path)
     shots = tmp_path / "shots"
     with BackgroundServer(server) as bg:
         assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"

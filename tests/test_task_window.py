@@ -15,7 +15,7 @@ import pytest
 
 from facelab.protocol import load_protocol
 from facelab.staircase import UpDownStaircase
-from tests.task_protocols import short_task_protocol
+from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol
 
 pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))
@@ -50,6 +50,11 @@ def _session(root: Path, study: str, suffix: str) -> Path:
     return root / "results" / study / "sub-P01" / "ses-1" / f"sub-P01_ses-1_task-{study}{suffix}"
 
 
+def _beh_rows(root: Path, study: str) -> list[dict[str, str]]:
+    text = _session(root, study, "_beh.tsv").read_text(encoding="utf-8")
+    return list(csv.DictReader(text.splitlines(), delimiter="\t"))
+
+
 def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
     path = short_task_protocol(
         "gain_staircase", tmp_path, {r"trials: 50": "trials: 8", r"practice: .*\n": ""}
@@ -66,12 +71,7 @@ def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
     resumed = _run(path, tmp_path, "--resume")
     _, err = resumed.communicate(timeout=600)
     assert resumed.returncode == 0, err[-1500:]
-    rows = list(
-        csv.DictReader(
-            _session(tmp_path, "gainstair", "_beh.tsv").read_text(encoding="utf-8").splitlines(),
-            delimiter="\t",
-        )
-    )
+    rows = _beh_rows(tmp_path, "gainstair")
     assert [int(r["trial_index"]) for r in rows] == list(range(1, 9))
     assert {r["screen"] for r in rows} == {"choice_2afc"}
     # the levels shown follow the rule from the logged answers, across the kill
@@ -115,12 +115,7 @@ def test_identification_in_the_window(tmp_path: Path) -> None:
     proc = _run(path, tmp_path)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-1500:]
-    rows = list(
-        csv.DictReader(
-            _session(tmp_path, "methodid", "_beh.tsv").read_text(encoding="utf-8").splitlines(),
-            delimiter="\t",
-        )
-    )
+    rows = _beh_rows(tmp_path, "methodid")
     actions = [
         json.loads(x)
         for x in _session(tmp_path, "methodid", "_actions.jsonl").read_text().splitlines()
@@ -141,26 +136,13 @@ def test_side_by_side_choice_in_the_window(tmp_path: Path) -> None:
     import numpy as np
     from PIL import Image
 
-    path = short_task_protocol(
-        "horii_impression_side",
-        tmp_path,
-        {
-            r"sets: 2": "sets: 1",
-            r"presentations_per_condition: 4": "presentations_per_condition: 2",
-            r"conditions: \[q025, q05, q075, q1, q15\]": "conditions: [q15]",
-            r"silence_s: 2.7": "silence_s: 1.2",
-        },
-    )
+    name, edits = SIDE_BY_SIDE
+    path = short_task_protocol(name, tmp_path, edits)
     proc = _run(path, tmp_path)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-1500:]
     study = "horii_impression_side"
-    rows = list(
-        csv.DictReader(
-            _session(tmp_path, study, "_beh.tsv").read_text(encoding="utf-8").splitlines(),
-            delimiter="\t",
-        )
-    )
+    rows = _beh_rows(tmp_path, study)
     assert len(rows) == 2 and {r["position"] for r in rows} == {"1", "2"}  # both sides
     actions = [
         json.loads(x) for x in _session(tmp_path, study, "_actions.jsonl").read_text().splitlines()

@@ -206,21 +206,16 @@ class OnlineStudy:
         texts = ui(lang)
         if isinstance(s, TextScreen):
             return {"kind": "text", "role": s.role, "text": s.text}
-        if isinstance(s, ClipPairScreen):
-            return {
-                "kind": "clip_pair",
-                "trial_index": s.trial_index,
-                "practice": s.practice,
-                "replay": s.trial_index in shown_before,
-                "clips": [self._clip_json(c) for c in s.clips()],
-                "sound": s.sound,
-            }
         if isinstance(s, ClipScreen):
-            return {
-                "kind": "clip",
+            shown = {
+                "kind": s.kind,
                 "trial_index": s.trial_index,
                 "practice": s.practice,
                 "replay": s.trial_index in shown_before,
+            }
+            if isinstance(s, ClipPairScreen):
+                return shown | {"clips": [self._clip_json(c) for c in s.clips()], "sound": s.sound}
+            return shown | {
                 **self._clip_json(s.clip),
                 "interval": s.interval,
                 "announce": texts["interval"].format(n=s.interval) if s.interval else "",
