@@ -293,6 +293,12 @@ def _staircase_rule(
         )
     if rule.rule == "up_down" and rule.start is None:
         yield Issue((*where, "start"), "rule 'up_down' needs a 'start' condition (an easy one)")
+    if rule.rule == "quest_plus" and not any(lp > 0 for lp in rule.lapse_rates):
+        yield Issue(
+            (*where, "lapse_rates"),
+            "QUEST+ needs a lapse rate above 0 on its grid: without one, a single wrong answer "
+            "at an easy level can rule out every psychometric function",
+        )
     if rule.rule == "quest_plus" and rule.sigmoid == "weibull":
         if rule.easier != "higher":
             yield Issue(

@@ -168,6 +168,7 @@ def test_resumed_quest_plus_session_continues_the_same_run(tmp_path):
         ("easier: higher", "easier: lower", None),
         ("level: 0.05}", "level: -0.05}", None),
         ("lapse_rates: [0.0, 0.02, 0.04]", "lapse_rates: [0.5]", "less than or equal to 0.2"),
+        ("lapse_rates: [0.0, 0.02, 0.04]", "lapse_rates: [0.0]", "needs a lapse rate above 0"),
     ],
 )
 def test_quest_plus_rule_is_validated(tmp_path, old, new, message):
