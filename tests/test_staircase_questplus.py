@@ -189,3 +189,26 @@ def test_quest_plus_rule_is_validated(tmp_path, old, new, message):
         return
     with pytest.raises(ProtocolError, match=re.escape(message)):
         load_protocol(path)
+
+
+def test_quest_plus_in_30_trials_is_as_precise_as_up_down_in_50():
+    """The claim in gain_questplus.yaml, on its simulated observer: over 200 runs the RMSE of
+    QUEST+'s midpoint after 30 trials is no larger than the 1-up-2-down reversal estimate's
+    after 50 (gain_staircase.yaml)."""
+    quest = load_protocol(protocol_path("gain_questplus"))
+    updown = load_protocol(protocol_path("gain_staircase"))
+    obs = quest.simulation.observer
+
+    def rmse(protocol, trials: int) -> float:
+        errors = []
+        for seed in range(200):
+            rng = np.random.default_rng(seed)
+            stair = new_staircase(protocol, "main")
+            for _ in range(trials):
+                p = predict(stair.level, sigmoid="logistic", alpha=obs.midpoint,
+                            beta=obs.slope, gamma=0.5, lapse=obs.lapse)  # fmt: skip
+                stair.update(bool(rng.random() < p))
+            errors.append(stair.estimate()["threshold"] - obs.midpoint)
+        return float(np.sqrt(np.mean(np.square(errors))))
+
+    assert rmse(quest, 30) <= rmse(updown, 50)
