@@ -23,7 +23,14 @@ from matplotlib.figure import Figure
 
 from facelab.resources import cjk_font
 
-__all__ = ["cjk_font", "confusion_figure", "psychometric_figure", "rating_figure", "stars"]
+__all__ = [
+    "cjk_font",
+    "confusion_figure",
+    "psychometric_figure",
+    "rating_figure",
+    "staircase_figure",
+    "stars",
+]
 
 
 def stars(p: float) -> str:
@@ -185,6 +192,70 @@ def psychometric_figure(
         ax.set_ylabel(ylabel)
         ax.set_title(title, fontsize=10)
         ax.legend(fontsize=7, loc="lower right", frameon=False)
+        ax.spines[["top", "right"]].set_visible(False)
+        return fig
+
+
+def staircase_figure(
+    track: pd.DataFrame,
+    thresholds: pd.DataFrame,
+    *,
+    title: str,
+    ylabel: str,
+    caption: str = "",
+    max_lines: int = 40,
+    max_markers: int = 8,
+) -> Figure:
+    """Each participant's staircase: the level shown at each step (grey lines; with few
+    participants also the answers, filled = correct, open = wrong, and reversals ringed),
+    the median level per step (bold), and the median threshold estimate (dashed). Beyond
+    ``max_lines`` participants, the 10-90 % band of levels per step instead of lines.
+
+    Parameters
+    ----------
+    track : ``participant, step, level, correct, reversal`` (one row per step).
+    thresholds : ``participant, threshold, estimate`` (one row per participant).
+    """
+    with plt.rc_context(_rc()):
+        fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=150, layout="constrained")
+        ids = list(dict.fromkeys(track["participant"]))
+        if len(ids) <= max_lines:
+            for pid in ids:
+                one = track[track["participant"] == pid]
+                ax.step(one["step"], one["level"], where="mid", color="0.7", lw=0.8, zorder=1)
+                if len(ids) <= max_markers:
+                    right = one[one["correct"] == 1]
+                    wrong = one[one["correct"] == 0]
+                    ax.scatter(right["step"], right["level"], s=14, color="0.35", zorder=2)
+                    ax.scatter(
+                        wrong["step"], wrong["level"], s=14, facecolor="white",
+                        edgecolor="0.35", zorder=2,
+                    )  # fmt: skip
+                    rev = one[one["reversal"]]
+                    ax.scatter(
+                        rev["step"], rev["level"], s=60, facecolor="none",
+                        edgecolor="#c0504d", lw=1.0, zorder=3,
+                    )  # fmt: skip
+        else:
+            band = track.groupby("step")["level"].quantile([0.1, 0.9]).unstack()
+            ax.fill_between(
+                band.index, band[0.1], band[0.9], color="0.85", zorder=1, step="mid",
+                label=f"10-90 % of {len(ids)} participants",
+            )  # fmt: skip
+        median = track.groupby("step")["level"].median()
+        ax.step(median.index, median.values, where="mid", color="#1f3b57", lw=2.0, zorder=4,
+                label="median level")  # fmt: skip
+        finite = thresholds["threshold"].dropna()
+        if len(finite):
+            estimate = str(thresholds["estimate"].iloc[0])
+            ax.axhline(
+                float(finite.median()), color="#c0504d", ls="--", lw=1.2, zorder=5,
+                label=f"median threshold ({estimate})",
+            )  # fmt: skip
+        ax.set_xlabel("trial of the staircase" + (f"\n{caption}" if caption else ""), fontsize=9)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=10)
+        ax.legend(fontsize=7, loc="best", frameon=False)
         ax.spines[["top", "right"]].set_visible(False)
         return fig
 

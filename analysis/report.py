@@ -331,6 +331,7 @@ def write_report(
 _TASK_HEADINGS = {
     "psychometric_fits": "Psychometric fits, P = gamma + (1 - gamma - lambda) F(level), "
     "per participant and pooled (ML; 95 % parametric-bootstrap CIs)",
+    "staircase_tracks": "Staircases: every step (level shown, answer, reversal, running estimate)",
     "staircase_thresholds": "Staircases: each participant's threshold by the rule's own "
     "estimate (up-down: mean level of the last reversals; QUEST+: posterior mean of the midpoint)",
     "identification_summary": "Identification: accuracy and Cohen's kappa",
@@ -389,6 +390,16 @@ def _task_figures(
         )
         paths = figures.save(fig, out / f"fig_psychometric_{task.id}")
         blocks.append((f"psychometric: {task.id}", paths[0]))
+    for task, block_id, track, thresholds in tasks.staircases:
+        fig = figures.staircase_figure(
+            track,
+            thresholds,
+            title=f"{_text(task.question, language)} (block {block_id})",
+            ylabel="level shown",
+            caption=f"rule: {thresholds['rule'].iloc[0]}; red rings: reversals{tag}",
+        )
+        paths = figures.save(fig, out / f"fig_staircase_{block_id}")
+        blocks.append((f"staircase: {block_id}", paths[0]))
     for task, matrix in tasks.confusion:
         labels = [_text(lb.text, language) for lb in task.labels]
         fig = figures.confusion_figure(

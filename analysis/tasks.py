@@ -39,6 +39,10 @@ class TaskResults:
     )
     # (task, confusion matrix) per identify task
     confusion: list[tuple[IdentifyTask, pd.DataFrame]] = field(default_factory=list)
+    # (task, block id, track, thresholds) per staircase block
+    staircases: list[tuple[ChoiceTask | IdentifyTask, str, pd.DataFrame, pd.DataFrame]] = field(
+        default_factory=list
+    )
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -71,13 +75,17 @@ def _curves(fits: pd.DataFrame, levels: np.ndarray) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
 
-def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> pd.DataFrame:
-    out = []
+def _staircase_tables(
+    rows: pd.DataFrame, protocol: Protocol, block_id: str
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Each participant's staircase replayed from the log: (thresholds, one row per
+    participant; track, one row per step: the level shown, the answer, reversals)."""
+    out, track = [], []
     rule = next(b.staircase for b in protocol.blocks if b.id == block_id)
     for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
         state = new_staircase(protocol, block_id)
         try:
-            state.replay(
+            steps = state.replay(
                 zip(
                     part["trial_index"],
                     part["condition"],
@@ -89,6 +97,19 @@ def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> p
             raise AnalysisError(
                 f"participant {pid}, staircase of block {block_id!r}: {exc}"
             ) from None
+        track += [
+            {
+                "participant": pid,
+                "block": block_id,
+                "step": k,
+                "trial_index": st["trial_index"],
+                "level": st["level"],
+                "correct": int(st["correct"]),
+                "reversal": bool(st["reversal"]),
+                "threshold": st["threshold"],
+            }
+            for k, st in enumerate(steps, start=1)
+        ]
         estimate = state.estimate()
         out.append(
             {
@@ -104,7 +125,7 @@ def _staircase_table(rows: pd.DataFrame, protocol: Protocol, block_id: str) -> p
                 "last_level": float(part["level"].iloc[-1]),
             }
         )
-    return pd.DataFrame(out)
+    return pd.DataFrame(out), pd.DataFrame(track)
 
 
 def analyze_tasks(
@@ -112,12 +133,21 @@ def analyze_tasks(
 ) -> TaskResults:
     """Every task and graded-design analysis the protocol calls for (see the module)."""
     res = TaskResults()
-    psy_tables, stair_tables, id_summary, id_recall, id_matrix = [], [], [], [], []
+    psy_tables, stair_tables, stair_tracks = [], [], []
+    id_summary, id_recall, id_matrix = [], [], []
     for task in protocol.tasks:
         rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
         if rows.empty:
             res.notes.append(f"no answers for task {task.id!r}: not analysed")
             continue
+        for block in protocol.blocks:  # forced choice or identification: scored answers
+            if block.task == task.id and block.design == "staircase":
+                part = rows[rows["block"] == block.id]
+                if not part.empty:
+                    thresholds, track = _staircase_tables(part, protocol, block.id)
+                    stair_tables.append(thresholds)
+                    stair_tracks.append(track)
+                    res.staircases.append((task, block.id, track, thresholds))
         if isinstance(task, ChoiceTask):
             y, gamma = choice_outcome(rows, task)
             trials = rows.assign(y=y.to_numpy())
@@ -128,11 +158,6 @@ def analyze_tasks(
             counts = psychometric.count_responses(trials, x="level", y="y")
             curves = _curves(fits, counts["level"].to_numpy(dtype=float))
             res.psychometric.append((task, counts, curves, gamma))
-            for block in protocol.blocks:
-                if block.task == task.id and block.design == "staircase":
-                    part = trials[trials["block"] == block.id]
-                    if not part.empty:
-                        stair_tables.append(_staircase_table(part, protocol, block.id))
         else:
             labels = [lb.id for lb in task.labels]
             if not task.answers:
@@ -160,6 +185,7 @@ def analyze_tasks(
         res.tables["psychometric_fits"] = _first(pd.concat(psy_tables, ignore_index=True), "task")
     if stair_tables:
         res.tables["staircase_thresholds"] = pd.concat(stair_tables, ignore_index=True)
+        res.tables["staircase_tracks"] = pd.concat(stair_tracks, ignore_index=True)
     if id_summary:
         res.tables["identification_summary"] = _first(pd.concat(id_summary), "task")
         res.tables["identification_recall"] = _first(pd.concat(id_recall), "task")

@@ -351,14 +351,34 @@ def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
     printed = capsys.readouterr().out
     expected = {
         "gain_2afc": ["psychometric_fits.csv", "fig_psychometric_stronger.png"],
-        "gain_staircase": ["psychometric_fits.csv", "staircase_thresholds.csv"],
-        "gain_questplus": ["psychometric_fits.csv", "staircase_thresholds.csv"],
+        "gain_staircase": [
+            "staircase_thresholds.csv",
+            "staircase_tracks.csv",
+            "fig_staircase_main.png",
+        ],
+        "gain_questplus": [
+            "staircase_thresholds.csv",
+            "staircase_tracks.csv",
+            "fig_staircase_main.png",
+        ],
         "horii_impression_side": ["psychometric_fits.csv", "fig_psychometric_friendlier.png"],
         "method_identify": ["identification_summary.csv", "fig_confusion_which_method.png"],
         "gain_vas": ["trend_contrast.csv", "graded_lmm.csv", "rm_anova.csv"],
     }[name]
     for file in expected:
         assert (out / file).exists(), file
+    if (out / "staircase_tracks.csv").exists():  # every step of every participant, once
+        track = pd.read_csv(out / "staircase_tracks.csv")
+        thresholds = pd.read_csv(out / "staircase_thresholds.csv")
+        per = track.groupby("participant").agg(
+            trials=("step", "size"), reversals=("reversal", "sum")
+        )
+        merged = thresholds.set_index("participant")[["trials", "reversals"]]
+        pd.testing.assert_frame_equal(per.sort_index(), merged.sort_index(), check_dtype=False)
+        last = track.sort_values("step").groupby("participant")["threshold"].last()
+        np.testing.assert_allclose(
+            last.sort_index(), thresholds.set_index("participant")["threshold"].sort_index()
+        )
     report = (out / "report.html").read_text(encoding="utf-8")
     assert "SIMULATED" in report
     assert "note: no responses for condition" not in printed
