@@ -382,3 +382,31 @@ def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
     report = (out / "report.html").read_text(encoding="utf-8")
     assert "SIMULATED" in report
     assert "note: no responses for condition" not in printed
+
+
+def test_an_identification_staircase_is_analysed(tmp_path):
+    """A staircase may adapt on identification answers (guess rate 1/k): its thresholds and
+    tracks are tabled like a forced choice's."""
+
+    def to_identify(text: str) -> str:
+        start, end = text.index("tasks:\n"), text.index("blocks:\n")
+        task = (
+            "tasks:\n  - id: stronger\n    type: identify\n    question: {ja: どちら, en: Which?}\n"
+            "    labels: [{id: weak, text: {ja: 弱, en: weak}},"
+            " {id: strong, text: {ja: 強, en: strong}}]\n"
+            "    answers: {g105: weak, g110: weak, g120: weak, g130: strong, g140: strong,"
+            " g160: strong}\n\n"
+        )
+        text = text[:start] + task + text[end:]
+        return text.replace("trials: 50, easier: higher}", "trials: 12, easier: higher}\n"
+                            "    conditions: [g105, g110, g120, g130, g140, g160]")  # fmt: skip
+
+    path = _protocol(tmp_path, "gain_staircase", to_identify)
+    protocol = load_protocol(path)
+    simulate_study(protocol, protocol_path=path, results=tmp_path / "r", participants=3, seed=2)
+    data = load_results(tmp_path / "r", study=protocol.study.id)
+    res = analyze_tasks(data, protocol, rng=np.random.default_rng(0), n_boot=0)
+    thresholds = res.tables["staircase_thresholds"]
+    assert list(thresholds["trials"]) == [12, 12, 12]
+    assert len(res.tables["staircase_tracks"]) == 36 and len(res.staircases) == 1
+    assert "identification_summary" in res.tables
