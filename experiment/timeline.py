@@ -187,6 +187,15 @@ class Playback:
             "frames_shown": list(self.frames_shown),
         }
 
+    def joined(self, other: Playback) -> Playback:
+        """The playback of a trial with two clips (in sequence or side by side): this one's
+        onset, the frames expected and dropped in both."""
+        return Playback(
+            onset=self.onset,
+            dropped=self.dropped + other.dropped,
+            frames_expected=self.frames_expected + other.frames_expected,
+        )
+
 
 @dataclass(frozen=True)
 class PairPlayback:
@@ -196,12 +205,8 @@ class PairPlayback:
     right: Playback
 
     def combined(self) -> Playback:
-        """The trial's playback for its log rows: the earlier onset, frames dropped in both."""
-        return Playback(
-            onset=min(self.left.onset, self.right.onset),
-            dropped=self.left.dropped + self.right.dropped,
-            frames_expected=self.left.frames_expected + self.right.frames_expected,
-        )
+        """The trial's playback for its log rows (both clips start on the same flip)."""
+        return self.left.joined(self.right)
 
 
 @dataclass(frozen=True)

@@ -54,17 +54,6 @@ PRESENTERS: dict[type[Screen], str] = {
 }
 
 
-def _combine(first: Playback | None, second: Playback) -> Playback:
-    """The playback of a trial with two clips: the first onset, the frames dropped in both."""
-    if first is None:
-        return second
-    return Playback(
-        onset=first.onset,
-        dropped=first.dropped + second.dropped,
-        frames_expected=first.frames_expected + second.frames_expected,
-    )
-
-
 def walk(
     screens: Sequence[Screen],
     *,
@@ -117,8 +106,9 @@ def walk(
                     )
             if isinstance(result, PairPlayback):
                 result = result.combined()
-            if screen.interval == 2:
-                result = _combine(playbacks.get(screen.trial_index), result)
+            first = playbacks.get(screen.trial_index)
+            if screen.interval == 2 and first is not None:
+                result = first.joined(result)
             playbacks[screen.trial_index] = result
         elif isinstance(screen, ResponseScreen):
             rows = screen.rows(result, context=context, playback=playbacks.get(screen.trial_index))

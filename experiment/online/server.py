@@ -351,7 +351,7 @@ class StudyServer:
 
     def session_state(self, p: Participant) -> dict[str, Any]:
         answered = self.answered(p)
-        timeline = self.study.timeline_json(p.participant, answered, session=p.session)
+        timeline, clips = self.study.timeline_json(p.participant, answered, session=p.session)
         planned = self.study.planned(p.participant)
         pres = self.study.protocol.presentation
         return {
@@ -363,11 +363,7 @@ class StudyServer:
             "resumed": bool(answered),
             "planned": len(planned),
             "answered": len(answered & planned),
-            "clips": sorted(
-                {s["clip"] for s in timeline if s["kind"] == "clip"}
-                | {c["clip"] for s in timeline if s["kind"] == "clip_pair" for c in s["clips"]}
-                | {c for s in timeline if s["kind"] == "adaptive" for c in s["clips"]}
-            ),
+            "clips": clips,
             "timeline": timeline,
         }
 

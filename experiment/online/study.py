@@ -110,11 +110,11 @@ class OnlineStudy:
 
     def timeline_json(
         self, participant: str, answered: set[tuple[int, str]], *, session: int = 1
-    ) -> list[dict[str, Any]]:
-        """The screens still to show, as JSON for the browser's plugins. A staircase trial
-        is a placeholder (``kind: adaptive``, with every clip it may show for preloading):
-        the browser asks :meth:`adaptive_json` for its screens once the answers before it
-        are stored."""
+    ) -> tuple[list[dict[str, Any]], list[str]]:
+        """The screens still to show, as JSON for the browser's plugins, and the clip files
+        they may show (for preloading: both clips of a pair, every level of a staircase). A
+        staircase trial is a placeholder (``kind: adaptive``): the browser asks
+        :meth:`adaptive_json` for its screens once the answers before it are stored."""
         lang = self.protocol.presentation.language
         todo = remaining(self.screens(participant, session), answered, language=lang)
         shown_before = {t for t, _ in answered}
@@ -125,16 +125,11 @@ class OnlineStudy:
             if isinstance(s, AdaptiveTrial):
                 assert s.trial is not None
                 out.append(
-                    {
-                        "kind": "adaptive",
-                        "trial_index": s.trial_index,
-                        "block": s.trial.block,
-                        "clips": sorted({self.clips[k].sha256 + ".mp4" for k in needed_clips([s])}),
-                    }
+                    {"kind": "adaptive", "trial_index": s.trial_index, "block": s.trial.block}
                 )
                 continue
             out.append(self._screen_json(s, shown_before))
-        return out
+        return out, sorted(self.clips[k].sha256 + ".mp4" for k in needed_clips(todo))
 
     def adaptive_json(
         self,
