@@ -27,6 +27,7 @@ and the replay is checked against it.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -60,11 +61,12 @@ def convergence_probability(*, up: int, down: int) -> float:
     return float(0.5 ** (1.0 / down))
 
 
-class _Rule:
+class _Rule(abc.ABC):
     """What both rules share: the grid, the record of a step and the replay of a log.
 
     Subclasses set ``grid`` (condition ids, easiest first), ``levels``, ``index`` (the grid
-    point shown next), ``trials`` and ``reversals`` and implement :meth:`_move`."""
+    point shown next), ``trials`` and ``reversals`` and implement :meth:`_move` and
+    :meth:`estimate`."""
 
     grid: tuple[str, ...]
     levels: tuple[float, ...]
@@ -82,13 +84,17 @@ class _Rule:
     def level(self) -> float:
         return self.levels[self.index]
 
+    def _check_grid(self) -> None:
+        if len(self.grid) != len(self.levels) or len(self.grid) < 2:
+            raise ValueError("a staircase needs two or more grid points, each with a level")
+
+    @abc.abstractmethod
     def _move(self, correct: bool) -> int:
         """Apply an answer at the current level and return the next grid index."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def estimate(self) -> dict[str, Any]:
         """The rule's threshold estimate (level units) so far."""
-        raise NotImplementedError
 
     def update(self, correct: bool) -> bool:
         """Apply one answer at the current level; returns whether the direction of the level
@@ -156,8 +162,7 @@ class UpDownStaircase(_Rule):
     reversals: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        if len(self.grid) != len(self.levels) or len(self.grid) < 2:
-            raise ValueError("a staircase needs two or more grid points, each with a level")
+        self._check_grid()
         if self.index < 0:
             self.index = self.start
 
@@ -214,8 +219,7 @@ class QuestPlusStaircase(_Rule):
     likelihood: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if len(self.grid) != len(self.levels) or len(self.grid) < 2:
-            raise ValueError("a staircase needs two or more grid points, each with a level")
+        self._check_grid()
         if not 0.0 <= self.gamma < 1.0 or any(
             not 0.0 <= lp < 1.0 - self.gamma for lp in self.lapses
         ):

@@ -98,6 +98,7 @@ class _PipeWriter:
         self._pipe = pipe
         self._queue: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=depth)
         self._broken = threading.Event()
+        self._error: BaseException | None = None  # anything but a closed pipe
         self.written = 0
         self._thread = threading.Thread(target=self._run, name="facelab-ffmpeg-writer", daemon=True)
         self._thread.start()
@@ -110,6 +111,9 @@ class _PipeWriter:
                 self._pipe.write(memoryview(frame).cast("B"))
                 self.written += 1
             except (BrokenPipeError, ValueError, OSError):
+                self._broken.set()  # ffmpeg stopped reading
+            except Exception as exc:  # keep draining, or put() would wait for ever
+                self._error = exc
                 self._broken.set()
 
     def put(self, frame: np.ndarray) -> bool:
@@ -125,6 +129,8 @@ class _PipeWriter:
         self._thread.join()
         with contextlib.suppress(BrokenPipeError, OSError):
             self._pipe.close()
+        if self._error is not None:
+            raise self._error
         return self.written
 
 

@@ -92,7 +92,10 @@ class _Influence:
         used, local = np.unique(skeleton.joints[rows], return_inverse=True)
         local = local.reshape(-1, 4)
         top = np.argmax(weights, axis=1)
-        alone = np.isclose(weights[np.arange(len(rows)), top], 1.0, atol=1e-6)
+        # bound to one joint: its weight is 1 and the others are 0 (not merely the largest)
+        alone = np.isclose(weights.max(axis=1), 1.0, atol=1e-6) & np.isclose(
+            weights.sum(axis=1), 1.0, atol=1e-6
+        )
         owner = local[np.arange(len(rows)), top]
         rigid = tuple(np.nonzero(alone & (owner == u))[0] for u in range(len(used)))
         blend = np.nonzero(~alone)[0]
@@ -116,6 +119,10 @@ class Skeleton:
     joints: np.ndarray
     weights: np.ndarray
     roles: dict[str, int] = field(default_factory=dict)
+    # moved joints -> how they reach the vertices (see influence())
+    _influence: dict[tuple[int, ...], _Influence] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         self.parents = np.asarray(self.parents, np.int64)
@@ -138,10 +145,9 @@ class Skeleton:
     def influence(self, moved: tuple[int, ...]) -> _Influence:
         """How the joints ``moved`` reach the vertices (see :class:`_Influence`). Cached per
         set of moved joints (a clip turns the same ones every frame)."""
-        cache = self.__dict__.setdefault("_influence", {})
-        if moved not in cache:
-            cache[moved] = _Influence.of(self, moved)
-        return cache[moved]
+        if moved not in self._influence:
+            self._influence[moved] = _Influence.of(self, moved)
+        return self._influence[moved]
 
     def descendants(self, joint: int) -> np.ndarray:
         """Indices of ``joint`` and every joint below it."""
