@@ -9,6 +9,10 @@ mixed model ``rating ~ C(condition) + n_posture + n_mannerism + n_gesture + n_bl
 random intercept per participant (statsmodels MixedLM, ML), returning every fixed effect -
 so the condition effect is read with the amount of behaviour held fixed. Covariates that do not
 vary (or are collinear with the conditions) are dropped and named in the ``note`` column.
+:func:`identification_covariates` does the same for identification answers: a logistic GEE of
+a right answer on the condition and the counts (:func:`facelab.analysis.identification.
+correct_model`), so "composite behaviour was recognised more often" can be read with the
+number of events held fixed.
 """
 
 from __future__ import annotations
@@ -20,10 +24,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from facelab.analysis.stats import _require
+from facelab.analysis.identification import correct_model
+from facelab.analysis.stats import _require, levels, screen_covariates
 from facelab.errors import AnalysisError
 
-__all__ = ["COVARIATE_COLUMNS", "LAYER_COUNTS", "clip_behaviour", "covariate_model"]
+__all__ = [
+    "COVARIATE_COLUMNS",
+    "LAYER_COUNTS",
+    "clip_behaviour",
+    "covariate_model",
+    "identification_covariates",
+]
 
 LAYER_COUNTS = ("n_posture", "n_mannerism", "n_gesture", "n_blink")
 COVARIATE_COLUMNS = ("item", "term", "estimate", "se", "z", "p", "n_obs", "n_participants", "note")
@@ -78,33 +89,28 @@ def covariate_model(
     subject: str = "participant",
     condition: str = "condition",
     covariates: tuple[str, ...] = LAYER_COUNTS,
+    conditions: tuple[str, ...] | None = None,
 ) -> pd.DataFrame:
     """Per item, ``dv ~ C(condition) + covariates`` with a random intercept per subject.
 
     ``data``: one row per rating with ``stimulus_set, stimulus, condition``; ``counts``: from
-    :func:`clip_behaviour`. Ratings of clips without a log get zero counts (no behaviour)."""
+    :func:`clip_behaviour`. Ratings of clips without a log get zero counts (no behaviour).
+    The reference condition is the first of ``conditions`` (default: order of first
+    appearance); ``note`` names it and any covariate dropped."""
     _require(data, (dv, item, subject, condition, "stimulus_set", "stimulus"))
     import statsmodels.formula.api as smf
 
-    keys = ["stimulus_set", "stimulus", "condition"]
-    merged = data.merge(counts[[*keys, *covariates]], on=keys, how="left")
-    merged[list(covariates)] = merged[list(covariates)].fillna(0)
+    merged = _with_counts(data, counts, covariates)
+    order = list(conditions) if conditions is not None else levels(merged[condition])
+    merged[condition] = pd.Categorical(merged[condition], categories=order)
     parts = []
     for it, part in merged.groupby(item, sort=True):
         part = part.dropna(subset=[dv])
-        used, dropped = [], []
-        for c in covariates:
-            if part[c].nunique() < 2:
-                dropped.append(f"{c} constant")
-                continue
-            # collinear with the condition means: the covariate adds nothing within conditions
-            within = part[c] - part.groupby(condition)[c].transform("mean")
-            if float(np.abs(within).max()) < 1e-12:
-                dropped.append(f"{c} fixed by condition")
-                continue
-            used.append(c)
+        used, dropped = screen_covariates(part, covariates, condition=condition)
         formula = f"{dv} ~ C({condition})" + "".join(f" + {c}" for c in used)
-        note = "; ".join(dropped)
+        present = [c for c in order if c in set(part[condition])]
+        part = part.assign(**{condition: pd.Categorical(part[condition], categories=present)})
+        note = "; ".join([f"reference: {present[0]}", *dropped])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
@@ -126,3 +132,33 @@ def covariate_model(
                 }
             )
     return pd.DataFrame(parts, columns=list(COVARIATE_COLUMNS))
+
+
+def identification_covariates(
+    trials: pd.DataFrame,
+    counts: pd.DataFrame,
+    *,
+    conditions: tuple[str, ...] | None = None,
+    covariates: tuple[str, ...] = LAYER_COUNTS,
+) -> pd.DataFrame:
+    """``logit P(correct) ~ C(condition) + covariates``, clustered by participant.
+
+    ``trials``: scored identification answers (``correct`` 0/1, ``participant``,
+    ``stimulus_set, stimulus, condition``); ``counts``: from :func:`clip_behaviour`. Answers
+    to clips without a log get zero counts."""
+    _require(trials, ("correct", "participant", "stimulus_set", "stimulus", "condition"))
+    merged = _with_counts(trials, counts, covariates)
+    return correct_model(merged, covariates=covariates, conditions=conditions)
+
+
+def _with_counts(
+    data: pd.DataFrame, counts: pd.DataFrame, covariates: tuple[str, ...]
+) -> pd.DataFrame:
+    """``data`` with each clip's behaviour counts (0 for clips without a log)."""
+    keys = ["stimulus_set", "stimulus", "condition"]
+    missing = [c for c in (*keys, *covariates) if c not in counts.columns]
+    if missing:
+        raise AnalysisError(f"the behaviour counts have no column(s) {missing}")
+    merged = data.merge(counts[[*keys, *covariates]], on=keys, how="left")
+    merged[list(covariates)] = merged[list(covariates)].fillna(0)
+    return merged

@@ -10,7 +10,7 @@ without one, figures fall back to English labels rather than draw empty boxes.
 from __future__ import annotations
 
 import textwrap
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -261,35 +261,51 @@ def staircase_figure(
 
 
 def confusion_figure(
-    matrix: pd.DataFrame, *, labels: Sequence[str], title: str, caption: str = ""
+    matrix: pd.DataFrame | Mapping[str, pd.DataFrame],
+    *,
+    labels: Sequence[str],
+    title: str,
+    caption: str = "",
 ) -> Figure:
-    """A heat map of row proportions (each portrayed label's answers sum to 1), with counts."""
-    counts = matrix.to_numpy(dtype=float)
-    rows = counts.sum(axis=1, keepdims=True)
-    share = np.divide(counts, rows, out=np.zeros_like(counts), where=rows > 0)
+    """A heat map of row proportions (each portrayed label's answers sum to 1), with counts;
+    given ``{panel title: matrix}`` (e.g. one per condition), one panel each on a shared
+    colour scale."""
+    panels = dict(matrix) if isinstance(matrix, Mapping) else {"": matrix}
+    k, n = len(labels), len(panels)
     with plt.rc_context(_rc()):
-        k = len(labels)
-        fig, ax = plt.subplots(
-            figsize=(1.2 + 0.9 * k, 1.0 + 0.8 * k), dpi=150, layout="constrained"
+        fig, axes = plt.subplots(
+            1,
+            n,
+            figsize=(n * (0.4 + 0.9 * k) + 0.8, 1.0 + 0.8 * k),
+            dpi=150,
+            layout="constrained",
+            squeeze=False,
         )
-        im = ax.imshow(share, cmap="Blues", vmin=0, vmax=1)
-        for i in range(k):
-            for j in range(k):
-                ax.text(
-                    j,
-                    i,
-                    f"{share[i, j]:.2f}\n({int(counts[i, j])})",
-                    ha="center",
-                    va="center",
-                    fontsize=7,
-                    color="white" if share[i, j] > 0.6 else "black",
-                )
-        ax.set_xticks(range(k), labels=list(labels), rotation=30, ha="right", fontsize=8)
-        ax.set_yticks(range(k), labels=list(labels), fontsize=8)
-        ax.set_xlabel("answer" + (f"\n{caption}" if caption else ""), fontsize=8)
-        ax.set_ylabel("portrayed")
-        ax.set_title(title, fontsize=10)
-        fig.colorbar(im, ax=ax, shrink=0.8, label="share of the row")
+        for ax, (name, m) in zip(axes[0], panels.items(), strict=True):
+            counts = m.to_numpy(dtype=float)
+            rows = counts.sum(axis=1, keepdims=True)
+            share = np.divide(counts, rows, out=np.zeros_like(counts), where=rows > 0)
+            im = ax.imshow(share, cmap="Blues", vmin=0, vmax=1)
+            for i in range(k):
+                for j in range(k):
+                    ax.text(
+                        j,
+                        i,
+                        f"{share[i, j]:.2f}\n({int(counts[i, j])})",
+                        ha="center",
+                        va="center",
+                        fontsize=7,
+                        color="white" if share[i, j] > 0.6 else "black",
+                    )
+            ax.set_xticks(range(k), labels=list(labels), rotation=30, ha="right", fontsize=8)
+            ax.set_yticks(range(k), labels=list(labels) if ax is axes[0][0] else [], fontsize=8)
+            accuracy = np.trace(counts) / counts.sum() if counts.sum() else float("nan")
+            if name:
+                ax.set_title(f"{name} (accuracy {accuracy:.2f}, n {int(counts.sum())})", fontsize=9)
+        axes[0][0].set_ylabel("portrayed")
+        fig.supxlabel("answer" + (f"\n{caption}" if caption else ""), fontsize=8)
+        fig.suptitle(title, fontsize=10)
+        fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label="share of the row")
         return fig
 
 

@@ -8,21 +8,49 @@ nobody chose it.
 Cohen's kappa is agreement beyond chance between the portrayed and the chosen labels::
 
     kappa = (p_o - p_e) / (1 - p_e),  p_o = sum_i C_ii / N,  p_e = sum_i (row_i * col_i) / N^2
+
+Whether a condition changes how often the portrayed label is named (e.g. composite vs
+gesture-only behaviour, seed 003) is :func:`correct_model`: a logistic GEE of "answer was
+right" on the condition (and covariates), clustered by participant - checked against R's
+geepack (tests/reference/identification.R).
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
+from scipy import stats as sps
 
-from facelab.analysis.stats import _require
+from facelab.analysis.stats import _require, levels, screen_covariates
 from facelab.errors import AnalysisError
 
-__all__ = ["SUMMARY_COLUMNS", "cohen_kappa", "confusion_matrix", "identification_summary"]
+__all__ = [
+    "MODEL_COLUMNS",
+    "SUMMARY_COLUMNS",
+    "cohen_kappa",
+    "confusion_matrix",
+    "correct_model",
+    "identification_summary",
+]
 
 SUMMARY_COLUMNS = ("n", "accuracy", "chance", "kappa")
+MODEL_COLUMNS = (
+    "term",
+    "estimate",
+    "se",
+    "z",
+    "p",
+    "odds_ratio",
+    "or_ci_low",
+    "or_ci_high",
+    "n_obs",
+    "n_participants",
+    "correlation",
+    "note",
+)
 
 
 def confusion_matrix(
@@ -104,3 +132,85 @@ def identification_summary(
         pd.DataFrame(summary, columns=[*by, *SUMMARY_COLUMNS]),
         pd.DataFrame(recall, columns=[*by, "label", "n", "recall", "precision"]),
     )
+
+
+def correct_model(
+    trials: pd.DataFrame,
+    *,
+    correct: str = "correct",
+    condition: str = "condition",
+    subject: str = "participant",
+    covariates: Sequence[str] = (),
+    conditions: Sequence[str] | None = None,
+) -> pd.DataFrame:
+    """Does the condition change the odds of a right answer? A logistic GEE.
+
+    ``logit P(correct) = b0 + b_condition + sum_j c_j * covariate_j``, population-averaged,
+    with an exchangeable working correlation among one participant's answers and robust
+    (sandwich) standard errors, which do not depend on the scale. The reference condition is
+    the first of ``conditions`` (default: order of first appearance), so ``C(condition)[T.x]``
+    is the log odds ratio of x against it. Wald z tests; ``odds_ratio`` and its 95 % CI are
+    exp(estimate +- 1.96 se). ``correlation`` is the estimated within-participant
+    correlation (moment estimator, no degrees-of-freedom correction). Covariates that are
+    constant or fixed by the condition are dropped and named in ``note``. Matches R
+    ``geepack::geeglm(..., family = binomial, corstr = "exchangeable")`` to 1e-6 (estimates,
+    SEs, correlation; tests/reference/identification.R); the sandwich SEs are optimistic with few
+    participants (fewer than about 40), so read p near .05 with care.
+
+    ``trials``: one row per answer with ``correct`` (0/1 or bool), ``condition``, ``subject``
+    and the covariate columns. Returns one row per model term (:data:`MODEL_COLUMNS`)."""
+    _require(trials, (correct, condition, subject, *covariates))
+    data = trials.dropna(subset=[correct]).copy()
+    y = data[correct].astype(float)
+    if not set(y.unique()) <= {0.0, 1.0}:
+        raise AnalysisError(f"column {correct!r} must be 0/1 (right / wrong answer)")
+    order = list(conditions) if conditions is not None else levels(data[condition])
+    present = [c for c in order if c in set(data[condition])]
+    if len(present) < 2:
+        raise AnalysisError(
+            f"the condition model needs answers in two or more conditions; have {present}"
+        )
+    if data[subject].nunique() < 2:
+        raise AnalysisError("the condition model needs answers from two or more participants")
+    used, dropped = screen_covariates(data, covariates, condition=condition)
+    import statsmodels.api as sm
+    import statsmodels.formula.api as smf
+
+    data = data.assign(_y=y, _c=pd.Categorical(data[condition], categories=present))
+    data = data.sort_values(subject, kind="stable")
+    formula = "_y ~ C(_c)" + "".join(f" + {c}" for c in used)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            fit = smf.gee(
+                formula,
+                groups=subject,
+                data=data,
+                family=sm.families.Binomial(),
+                cov_struct=sm.cov_struct.Exchangeable(),
+            ).fit(ddof_scale=0, ctol=1e-10, maxiter=200)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            raise AnalysisError(f"the condition model failed ({exc})") from None
+    rho = float(np.atleast_1d(fit.cov_struct.dep_params)[0])
+    z_crit = sps.norm.ppf(0.975)
+    rows = []
+    for term in fit.params.index:
+        est, se = float(fit.params[term]), float(fit.bse[term])
+        name = term.replace("C(_c)", f"C({condition})")
+        rows.append(
+            {
+                "term": name,
+                "estimate": est,
+                "se": se,
+                "z": est / se if se > 0 else float("nan"),
+                "p": float(2 * sps.norm.sf(abs(est / se))) if se > 0 else float("nan"),
+                "odds_ratio": float(np.exp(est)),
+                "or_ci_low": float(np.exp(est - z_crit * se)),
+                "or_ci_high": float(np.exp(est + z_crit * se)),
+                "n_obs": len(data),
+                "n_participants": int(data[subject].nunique()),
+                "correlation": rho,
+                "note": "; ".join([f"reference: {present[0]}", *dropped]),
+            }
+        )
+    return pd.DataFrame(rows, columns=list(MODEL_COLUMNS))

@@ -337,6 +337,12 @@ _TASK_HEADINGS = {
     "identification_summary": "Identification: accuracy and Cohen's kappa",
     "identification_recall": "Identification: recall and precision per label",
     "confusion_matrix": "Identification: confusion counts (portrayed x answered)",
+    "identification_by_condition": "Identification: accuracy and Cohen's kappa per condition",
+    "identification_condition_model": "Identification: logistic GEE of a right answer on the "
+    "condition (exchangeable within participant, robust SEs; odds ratios against the first "
+    "condition)",
+    "identification_covariates": "Identification with behaviour counts as covariates "
+    "(logistic GEE, odds ratios)",
     "trend_contrast": "Graded design: linear trend contrast of the RM ANOVA (slope per level "
     "unit, own error term)",
     "graded_lmm": "Graded design: mixed model rating ~ level + (1 + level | participant), REML",
@@ -364,7 +370,13 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
             "deviance_df",
         ]
         out.append(("Psychometric fits (pooled)", pooled[cols]))
-    for name in ("staircase_thresholds", "identification_summary", "trend_contrast", "graded_lmm"):
+    for name in (
+        "staircase_thresholds",
+        "identification_summary",
+        "identification_by_condition",
+        "trend_contrast",
+        "graded_lmm",
+    ):
         if name in tasks.tables:
             frame = tasks.tables[name]
             if name == "identification_summary":
@@ -407,6 +419,15 @@ def _task_figures(
         )
         paths = figures.save(fig, out / f"fig_confusion_{task.id}")
         blocks.append((f"confusion: {task.id}", paths[0]))
+    conditions = {c.id: c for c in protocol.conditions}
+    for task, matrices in tasks.confusion_by_condition:
+        labels = [_text(lb.text, language) for lb in task.labels]
+        panels = {_text(conditions[c].label, language): m for c, m in matrices.items()}
+        fig = figures.confusion_figure(
+            panels, labels=labels, title=_text(task.question, language), caption=tag.strip()
+        )
+        paths = figures.save(fig, out / f"fig_confusion_{task.id}_by_condition")
+        blocks.append((f"confusion by condition: {task.id}", paths[0]))
     return blocks
 
 

@@ -70,6 +70,25 @@ def _numeric(data: pd.DataFrame, dv: str) -> pd.Series:
     return values.astype(float)
 
 
+def screen_covariates(
+    data: pd.DataFrame, covariates: Sequence[str], *, condition: str
+) -> tuple[list[str], list[str]]:
+    """(usable, dropped notes): a covariate is dropped when it is constant, or when it is
+    fixed by the condition (no variation within any condition: collinear with the condition
+    terms, so it adds nothing to a model that has them)."""
+    used, dropped = [], []
+    for c in covariates:
+        if data[c].nunique() < 2:
+            dropped.append(f"{c} constant")
+            continue
+        within = data[c] - data.groupby(condition, observed=True)[c].transform("mean")
+        if float(np.abs(within).max()) < 1e-12:
+            dropped.append(f"{c} fixed by condition")
+            continue
+        used.append(c)
+    return used, dropped
+
+
 def levels(series: pd.Series) -> list:
     """Levels of a factor column: category order if categorical, else first appearance."""
     if isinstance(series.dtype, pd.CategoricalDtype):

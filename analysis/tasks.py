@@ -7,7 +7,10 @@
 * staircases: also the rule's own estimate per participant - the mean level of the last
   reversals (up-down) or the posterior mean of the midpoint with its SD (QUEST+);
 * identification: confusion matrix, accuracy, per-class recall and Cohen's kappa
-  (:mod:`facelab.analysis.identification`);
+  (:mod:`facelab.analysis.identification`); when two or more conditions each portray
+  several labels (e.g. emotions under two behaviour conditions), also accuracy and kappa per
+  condition, a confusion matrix per condition, and a logistic GEE of a right answer on the
+  condition;
 * graded VAS designs (every condition of the item's block has a level): the linear trend
   contrast and the random-slope mixed model (:mod:`facelab.analysis.graded`).
 
@@ -39,6 +42,12 @@ class TaskResults:
     )
     # (task, confusion matrix) per identify task
     confusion: list[tuple[IdentifyTask, pd.DataFrame]] = field(default_factory=list)
+    # (task, {condition: confusion matrix}) per identify task whose conditions are compared
+    confusion_by_condition: list[tuple[IdentifyTask, dict[str, pd.DataFrame]]] = field(
+        default_factory=list
+    )
+    # task id -> its scored identification answers (target and correct columns added)
+    identification_trials: dict[str, pd.DataFrame] = field(default_factory=dict)
     # (task, block id, track, thresholds) per staircase block
     staircases: list[tuple[ChoiceTask | IdentifyTask, str, pd.DataFrame, pd.DataFrame]] = field(
         default_factory=list
@@ -135,6 +144,7 @@ def analyze_tasks(
     res = TaskResults()
     psy_tables, stair_tables, stair_tracks = [], [], []
     id_summary, id_recall, id_matrix = [], [], []
+    id_by_condition, id_models = [], []
     for task in protocol.tasks:
         rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
         if rows.empty:
@@ -173,7 +183,9 @@ def analyze_tasks(
                 dtype=object,
             )
             scored = rows.assign(target=target).dropna(subset=["target"])
+            scored = scored.assign(correct=(scored["response"] == scored["target"]).astype(int))
             if not scored.empty:
+                res.identification_trials[task.id] = scored
                 summary, recall = identification.identification_summary(scored, labels=labels)
                 matrix = identification.confusion_matrix(scored, labels=labels)
                 id_summary.append(summary.assign(task=task.id))
@@ -181,6 +193,19 @@ def analyze_tasks(
                 long = matrix.stack().rename("count").reset_index()
                 id_matrix.append(long.assign(task=task.id))
                 res.confusion.append((task, matrix))
+                if _compares_conditions(scored):
+                    by_cond, cond_model = _identification_by_condition(scored, task, protocol)
+                    id_by_condition.append(by_cond)
+                    id_models.append(cond_model)
+                    res.confusion_by_condition.append(
+                        (
+                            task,
+                            {
+                                c: identification.confusion_matrix(part, labels=labels)
+                                for c, part in _by_protocol_order(scored, protocol)
+                            },
+                        )
+                    )
     if psy_tables:
         res.tables["psychometric_fits"] = _first(pd.concat(psy_tables, ignore_index=True), "task")
     if stair_tables:
@@ -190,8 +215,43 @@ def analyze_tasks(
         res.tables["identification_summary"] = _first(pd.concat(id_summary), "task")
         res.tables["identification_recall"] = _first(pd.concat(id_recall), "task")
         res.tables["confusion_matrix"] = _first(pd.concat(id_matrix), "task")
+    if id_by_condition:
+        res.tables["identification_by_condition"] = pd.concat(id_by_condition, ignore_index=True)
+        res.tables["identification_condition_model"] = pd.concat(id_models, ignore_index=True)
     _graded(data, protocol, res)
     return res
+
+
+def _compares_conditions(scored: pd.DataFrame) -> bool:
+    """True when an identification can be compared between conditions: two or more
+    conditions, each with two or more portrayed labels (when the answer is the condition
+    itself, per-condition accuracy is just the label's recall)."""
+    per = scored.groupby("condition")["target"].nunique()
+    return len(per) >= 2 and bool((per >= 2).all())
+
+
+def _by_protocol_order(scored: pd.DataFrame, protocol: Protocol) -> list[tuple[str, pd.DataFrame]]:
+    order = [c.id for c in protocol.conditions]
+    present = set(scored["condition"])
+    return [(c, scored[scored["condition"] == c]) for c in order if c in present]
+
+
+def _identification_by_condition(
+    scored: pd.DataFrame, task: IdentifyTask, protocol: Protocol
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Accuracy and kappa per condition (pooled over participants), and the logistic GEE of
+    a right answer on the condition (:func:`identification.correct_model`)."""
+    labels = [lb.id for lb in task.labels]
+    rows = []
+    for c, part in _by_protocol_order(scored, protocol):
+        summary, _ = identification.identification_summary(part, labels=labels, by=())
+        rows.append(summary.assign(task=task.id, condition=c))
+    table = pd.concat(rows, ignore_index=True)
+    table = table[["task", "condition", *identification.SUMMARY_COLUMNS]]
+    model = identification.correct_model(
+        scored, conditions=[c for c, _ in _by_protocol_order(scored, protocol)]
+    )
+    return table, _first(model.assign(task=task.id), "task")
 
 
 def _first(frame: pd.DataFrame, column: str) -> pd.DataFrame:

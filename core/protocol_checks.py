@@ -467,6 +467,12 @@ def _simulation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 ("simulation", "effects", cond_id),
                 f"unknown condition {cond_id!r}; conditions: {known_conditions}",
             )
+    for cond_id in sim.identifier.condition_accuracy:
+        if cond_id not in condition_ids:
+            yield Issue(
+                ("simulation", "identifier", "condition_accuracy", cond_id),
+                f"unknown condition {cond_id!r}; conditions: {known_conditions}",
+            )
     for oi, override in enumerate(sim.overrides):
         where = ("simulation", "overrides", oi)
         if override.item is not None and override.item not in item_ids:

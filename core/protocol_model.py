@@ -477,9 +477,14 @@ class Observer(_Model):
 
 class Identifier(_Model):
     """A simulated identifier: the portrayed label is chosen with probability 'accuracy'
-    (or a row of 'confusion'), otherwise another label uniformly."""
+    (per condition: 'condition_accuracy'; or a row of 'confusion'), otherwise another label
+    uniformly."""
 
     accuracy: float = Field(0.7, ge=0, le=1)
+    condition_accuracy: dict[Id, Annotated[float, Field(ge=0, le=1)]] = Field(
+        default_factory=dict,
+        description="Condition id -> accuracy in that condition (replaces 'accuracy' there).",
+    )
     confusion: dict[Id, dict[Id, float]] = Field(
         default_factory=dict,
         description="Portrayed label -> {chosen label: probability}; rows replace 'accuracy'.",

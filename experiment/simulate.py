@@ -136,8 +136,9 @@ class ChoiceModel:
     * forced choice: the comparison is chosen with ``P = gamma + (1 - gamma - lapse) *
       logistic(slope * (level - midpoint_p))``, gamma 1/2 when the task has a correct answer
       (else 0), ``midpoint_p ~ N(midpoint, midpoint_sd)`` per participant;
-    * identification: the portrayed label with probability ``accuracy`` (or a row of
-      ``confusion``), otherwise one of the other labels uniformly.
+    * identification: the portrayed label with probability ``accuracy`` (or the trial's
+      condition's ``condition_accuracy``, or a row of ``confusion``), otherwise one of the
+      other labels uniformly.
     """
 
     def __init__(self, protocol: Protocol, *, rng: np.random.Generator):
@@ -181,7 +182,10 @@ class ChoiceModel:
         if row:
             probs = np.array([row.get(lb, 0.0) for lb in labels], dtype=float)
             return labels[int(self.rng.choice(len(labels), p=probs / probs.sum()))]
-        if self.rng.random() < self.identifier.accuracy:
+        accuracy = self.identifier.condition_accuracy.get(
+            screen.trial.condition, self.identifier.accuracy
+        )
+        if self.rng.random() < accuracy:
             return target
         others = [lb for lb in labels if lb != target]
         return others[int(self.rng.integers(len(others)))]

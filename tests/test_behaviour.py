@@ -481,7 +481,13 @@ def test_analysis_uses_behaviour_counts_as_covariates(rendered: Path) -> None:
     counts = pd.read_csv(folder / "behaviour_counts.csv")
     assert set(counts["condition"]) == {"comp"} and counts["n_blink"].iloc[0] >= 0
     cov = pd.read_csv(folder / "behaviour_covariates.csv")
-    assert "C(condition)[T.none]" in set(cov["term"])
+    assert "C(condition)[T.comp]" in set(cov["term"])  # against the protocol's first condition
+    assert cov["note"].iloc[0].startswith("reference: none")
+    # identification answers get the same covariates (one clip per condition here, so each
+    # count is fixed by the condition and dropped, and named)
+    ident_cov = pd.read_csv(folder / "identification_covariates.csv")
+    assert set(ident_cov["term"]) == {"Intercept", "C(condition)[T.comp]"}
+    assert "n_blink fixed by condition" in ident_cov["note"].iloc[0]
     ident = pd.read_csv(folder / "identification_summary.csv")
     pooled = ident[ident["participant"] == "pooled"].iloc[0]
     assert pooled["n"] == 12  # scored by the stimulus's answer: 6 participants x 2 clips

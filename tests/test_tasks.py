@@ -15,7 +15,7 @@ from facelab.analysis import graded, identification, psychometric, stats
 from facelab.analysis.load import load_results
 from facelab.analysis.tasks import analyze_tasks
 from facelab.design import PENDING, build_trials, trials_frame
-from facelab.errors import ProtocolError, SessionError
+from facelab.errors import AnalysisError, ProtocolError, SessionError
 from facelab.experiment.adaptive import Staircases
 from facelab.experiment.cli import main
 from facelab.experiment.simulate import simulate_study
@@ -98,6 +98,42 @@ def test_confusion_accuracy_and_kappa_against_sklearn():
     np.testing.assert_array_equal(
         matrix.to_numpy(), metrics.confusion_matrix(target, response, labels=labels)
     )
+
+
+def test_condition_model_matches_geepack():
+    ref = json.loads((REF / "identification_R.json").read_text())
+    data = pd.read_csv(REF / "identification.csv")
+    order = ["none", "gestures_only", "composite"]
+    for key, covariates in (("condition", ()), ("covariate", ("n_gesture",))):
+        got = identification.correct_model(data, covariates=covariates, conditions=order)
+        got = got.set_index("term")
+        for r_term, values in ref[key]["terms"].items():
+            term = {"(Intercept)": "Intercept", "n_gesture": "n_gesture"}.get(
+                r_term, f"C(condition)[T.{r_term.removeprefix('condition')}]"
+            )
+            assert got.loc[term, "estimate"] == pytest.approx(values["estimate"], rel=1e-6)
+            assert got.loc[term, "se"] == pytest.approx(values["se"], rel=1e-6)
+        assert got["correlation"].iloc[0] == pytest.approx(ref[key]["correlation"], rel=1e-6)
+        composite = got.loc["C(condition)[T.composite]"]
+        assert composite["odds_ratio"] == pytest.approx(np.exp(composite["estimate"]))
+        assert composite["or_ci_low"] < composite["odds_ratio"] < composite["or_ci_high"]
+        assert got["note"].iloc[0].startswith("reference: none")
+
+
+def test_condition_model_refuses_what_it_cannot_fit():
+    data = pd.read_csv(REF / "identification.csv")
+    with pytest.raises(AnalysisError, match="two or more conditions"):
+        identification.correct_model(data[data["condition"] == "none"])
+    with pytest.raises(AnalysisError, match="two or more participants"):
+        identification.correct_model(data[data["participant"] == "P01"])
+    with pytest.raises(AnalysisError, match="must be 0/1"):
+        identification.correct_model(data.assign(correct=data["correct"] * 2))
+    with pytest.raises(AnalysisError, match="missing column"):
+        identification.correct_model(data, covariates=("n_blink",))
+    # a covariate that only marks the condition is dropped and named, not fitted
+    marked = data.assign(n_blink=(data["condition"] == "composite").astype(int) * 3)
+    got = identification.correct_model(marked, covariates=("n_gesture", "n_blink"))
+    assert "n_blink" not in set(got["term"]) and "n_blink fixed by condition" in got["note"][0]
 
 
 def test_stats_psychometric_contract_per_trial_and_per_level_agree():
@@ -319,6 +355,45 @@ def test_simulated_observers_are_recovered(tmp_path):
             expected = np.mean([confusion[lb][lb] for lb in confusion])  # balanced design
             se = np.sqrt(expected * (1 - expected) / pooled["n"])
             assert abs(pooled["accuracy"] - expected) < 3 * se
+
+
+def test_identification_is_compared_between_conditions(tmp_path):
+    """Emotions portrayed under two behaviour conditions (seed 003): simulated identifiers
+    name the emotion more often under composite behaviour; the analysis finds it."""
+    path = protocol_path("hattori_behaviour")
+    protocol = load_protocol(path)
+    truth = protocol.simulation.identifier.condition_accuracy
+    simulate_study(protocol, protocol_path=path, results=tmp_path, participants=30, seed=8)
+    data = load_results(tmp_path, study=protocol.study.id)
+    res = analyze_tasks(data, protocol, rng=np.random.default_rng(1), n_boot=20)
+    by = res.tables["identification_by_condition"].set_index("condition")
+    assert list(by.index) == ["gestures_only", "composite"]  # the protocol's order
+    for cond, p in truth.items():
+        se = np.sqrt(p * (1 - p) / by.loc[cond, "n"])
+        assert abs(by.loc[cond, "accuracy"] - p) < 3 * se
+    model = res.tables["identification_condition_model"].set_index("term")
+    effect = model.loc["C(condition)[T.composite]"]
+    log_or = np.log(truth["composite"] / (1 - truth["composite"])) - np.log(
+        truth["gestures_only"] / (1 - truth["gestures_only"])
+    )
+    assert effect["p"] < 0.001
+    assert effect["estimate"] - 3 * effect["se"] < log_or < effect["estimate"] + 3 * effect["se"]
+    ((task, matrices),) = res.confusion_by_condition
+    assert task.id == "which_emotion" and list(matrices) == ["gestures_only", "composite"]
+    for cond, m in matrices.items():
+        assert int(np.trace(m.to_numpy())) == round(by.loc[cond, "accuracy"] * by.loc[cond, "n"])
+    # method_identify's answer is the condition itself: nothing to compare between conditions
+    other = protocol_path("method_identify")
+    simulate_study(
+        load_protocol(other), protocol_path=other, results=tmp_path / "m", participants=3, seed=1
+    )
+    res = analyze_tasks(
+        load_results(tmp_path / "m", study=load_protocol(other).study.id),
+        load_protocol(other),
+        rng=np.random.default_rng(1),
+        n_boot=20,
+    )
+    assert "identification_by_condition" not in res.tables and not res.confusion_by_condition
 
 
 @pytest.mark.parametrize("name", EXAMPLES)

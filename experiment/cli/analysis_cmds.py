@@ -82,7 +82,13 @@ def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
     (seed 003); the clip logs come from --clips (default: the study's clips folder)."""
     if all(c.behaviour == "none" for c in protocol.conditions):
         return
-    from facelab.analysis.behaviour import clip_behaviour, covariate_model
+    import pandas as pd
+
+    from facelab.analysis.behaviour import (
+        clip_behaviour,
+        covariate_model,
+        identification_covariates,
+    )
 
     root = results_dir if results_dir.name == protocol.study.id else results_dir / protocol.study.id
     clips = Path(args.clips) if args.clips else root / "clips"
@@ -96,8 +102,21 @@ def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
         tasks.notes.append(f"behaviour covariates: no behaviour logs in {clips}")
         return
     tasks.tables["behaviour_counts"] = counts
+    order = tuple(c.id for c in protocol.conditions)
     if not vas.empty:
-        tasks.tables["behaviour_covariates"] = covariate_model(vas, counts)
+        present = tuple(c for c in order if c in set(vas["condition"]))
+        tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=present)
+    models = []
+    for task_id, trials in tasks.identification_trials.items():
+        present = tuple(c for c in order if c in set(trials["condition"]))
+        if len(present) >= 2 and trials["participant"].nunique() >= 2:
+            model = identification_covariates(trials, counts, conditions=present)
+            models.append(model.assign(task=task_id))
+    if models:
+        frame = pd.concat(models, ignore_index=True)
+        tasks.tables["identification_covariates"] = frame[
+            ["task", *[c for c in frame.columns if c != "task"]]
+        ]
 
 
 def _print_tasks(tasks: object) -> None:
