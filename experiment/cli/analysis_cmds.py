@@ -144,6 +144,19 @@ def _print_tasks(tasks: object) -> None:
                 f"  {r.task:>12} identification (pooled): accuracy {r.accuracy:.3f} "
                 f"(chance {r.chance:.3f}), kappa {r.kappa:.3f}, n = {r.n}"
             )
+    by_condition = tables.get("identification_by_condition")
+    if by_condition is not None:
+        for r in by_condition.itertuples():
+            print(
+                f"  {r.task:>12} identification in {r.condition}: accuracy {r.accuracy:.3f}, "
+                f"kappa {r.kappa:.3f}, n = {r.n}"
+            )
+        model = tables["identification_condition_model"]
+        for r in model[model["term"].str.startswith("C(")].itertuples():
+            print(
+                f"  {r.task:>12} {r.term} ({r.note.split(';')[0]}): odds ratio "
+                f"{r.odds_ratio:.2f} [{r.or_ci_low:.2f}, {r.or_ci_high:.2f}], p = {r.p:.4f}"
+            )
     trend = tables.get("trend_contrast")
     if trend is not None:
         for r in trend.itertuples():
