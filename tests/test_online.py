@@ -489,6 +489,33 @@ def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
         assert r["condition"] == rule.condition
         rule.update(bool(r["correct"]))
 
+    # export: without the protocol no staircase record; with it, the lab runner's record
+    out = tmp_path / "export"
+    export_sessions(server.engine, results=out)
+    assert not list(out.rglob("*_staircase.jsonl"))
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    proto = tmp_path / "gain_staircase.yaml"
+    assert main(["export", "--db", url, "--results", str(out), "--protocol", str(proto)]) == 0
+    stair_file = next(out.rglob("sub-P0002*_staircase.jsonl"))
+    steps = [json.loads(line) for line in stair_file.read_text().splitlines()]
+    rule = new_staircase(protocol, "main")
+    assert [s["trial_index"] for s in steps] == [r["trial_index"] for r in rows]
+    for step, r in zip(steps, rows, strict=True):
+        assert step["block"] == "main" and step["rebuilt"] is True
+        assert step["condition"] == r["condition"]
+        rule.update(bool(r["correct"]))
+        assert step["next_condition"] == rule.condition
+    assert main(["export", "--db", url, "--results", str(out), "--protocol", str(proto)]) == 0
+    assert stair_file.read_text().count("\n") == len(rows)  # again: nothing doubled
+    # a protocol version other than the one the sessions ran: exported, without the record
+    notes: list[str] = []
+    export_sessions(
+        server.engine, results=tmp_path / "export2", protocol=protocol,
+        protocol_sha256="0" * 64, notes=notes,
+    )  # fmt: skip
+    assert any("P0002: ran another version" in n for n in notes)
+    assert not list((tmp_path / "export2").rglob("*_staircase.jsonl"))
+
 
 def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_path: Path) -> None:
     """QUEST+ online: each trial's level comes from the stored answers before it, as the

@@ -110,11 +110,27 @@ def _cmd_export(args: argparse.Namespace) -> int:
     results = output_dir(args.results, option="--results")
     if args.db.startswith("sqlite:///") and not Path(args.db[len("sqlite:///") :]).is_file():
         raise FacelabError(f"--db {args.db}: no such database file (nothing was exported)")
+    protocol = digest = None
+    if args.protocol:
+        from facelab.protocol import load_protocol, protocol_hash
+
+        protocol = load_protocol(args.protocol)
+        digest = protocol_hash(args.protocol)
     engine = open_engine(args.db)
-    paths = export_sessions(engine, results=results, study=args.study)
+    notes: list[str] = []
+    paths = export_sessions(
+        engine,
+        results=results,
+        study=args.study or (protocol.study.id if protocol else None),
+        protocol=protocol,
+        protocol_sha256=digest,
+        notes=notes,
+    )
     print(f"exported {len(paths)} online sessions into {results}")
     for p in paths:
         print(f"  {p}")
+    for note in notes:
+        print(f"  note: {note}")
     return 0
 
 
@@ -159,3 +175,9 @@ def register(add: AddCommand) -> None:
     p.add_argument("--db", required=True, metavar="URL", help="the database facelab serve used")
     p.add_argument("--results", required=True, metavar="DIR", help="results root to write into")
     p.add_argument("--study", metavar="ID", help="only this study")
+    p.add_argument(
+        "--protocol",
+        metavar="P",
+        help="the protocol the sessions ran: also writes each staircase session's "
+        "_staircase.jsonl (the database does not hold the protocol); implies --study",
+    )

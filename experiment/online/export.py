@@ -7,10 +7,17 @@ For every participant with at least one stored response::
                                                        source; no recruitment id, no token)
                                      …_playback.jsonl (the browser's frame records)
                                      …_actions.jsonl  (simulated participants only)
+                                     …_staircase.jsonl (with the protocol: staircase blocks)
 
-so ``facelab analyze`` reads online and lab sessions side by side. Exporting again adds
-what arrived since (rows are appended through :class:`~facelab.sessionlog.SessionLog`,
-never rewritten); a session folder whose rows disagree with the database is an error.
+so ``facelab analyze`` reads online and lab sessions side by side. The database does not hold
+the protocol, so the staircase record - every step of every staircase, as the lab runner
+writes it - is written only when the protocol is given (``facelab export --protocol P``) and
+is the version the session ran (same SHA-256); its steps are replayed from the stored
+answers, exactly as the server chose each level, and marked ``"rebuilt": true``.
+
+Exporting again adds what arrived since (rows are appended through
+:class:`~facelab.sessionlog.SessionLog`, never rewritten); a session folder whose rows
+disagree with the database is an error.
 """
 
 from __future__ import annotations
@@ -24,7 +31,9 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from facelab.errors import SessionError
+from facelab.experiment.adaptive import Staircases
 from facelab.experiment.online.db import Action, Event, Participant, PlaybackRecord, Response
+from facelab.protocol import Protocol
 from facelab.sessionlog import SessionLog, append_jsonl, session_paths
 
 __all__ = ["export_sessions"]
@@ -55,8 +64,24 @@ def _append_new(path: Path, records: Sequence[dict[str, Any]]) -> int:
     return max(0, len(records) - have)
 
 
-def export_sessions(engine: Engine, *, results: Path, study: str | None = None) -> list[Path]:
-    """Write or extend the session folders of every participant (of ``study``, or all)."""
+def export_sessions(
+    engine: Engine,
+    *,
+    results: Path,
+    study: str | None = None,
+    protocol: Protocol | None = None,
+    protocol_sha256: str | None = None,
+    notes: list[str] | None = None,
+) -> list[Path]:
+    """Write or extend the session folders of every participant (of ``study``, or all).
+
+    With ``protocol`` (and its file's ``protocol_sha256``), the sessions of that study that
+    ran that version also get their ``_staircase.jsonl``; a session of another version is
+    exported without it and named in ``notes``."""
+    if (protocol is None) != (protocol_sha256 is None):
+        raise ValueError("give protocol and protocol_sha256 together")
+    if protocol is not None and study is not None and study != protocol.study.id:
+        raise SessionError(f"--study {study!r} is not the protocol's study {protocol.study.id!r}")
     out: list[Path] = []
     with Session(engine) as db:
         query = select(Participant).order_by(Participant.study, Participant.number)
@@ -84,8 +109,32 @@ def export_sessions(engine: Engine, *, results: Path, study: str | None = None) 
             events = db.scalars(
                 select(Event).where(Event.participant_pk == p.pk).order_by(Event.pk)
             ).all()
-            out.append(_export_one(p, rows, playback, actions, events, results=results))
+            path = _export_one(p, rows, playback, actions, events, results=results)
+            out.append(path)
+            if protocol is not None and p.study == protocol.study.id:
+                if p.protocol_sha256 != protocol_sha256:
+                    if notes is not None:
+                        notes.append(
+                            f"{p.participant}: ran another version of the protocol "
+                            f"(SHA-256 {p.protocol_sha256[:12]}…): no _staircase.jsonl written"
+                        )
+                    continue
+                _write_staircases(protocol, results=results, participant=p)
     return out
+
+
+def _write_staircases(protocol: Protocol, *, results: Path, participant: Participant) -> None:
+    """The session's staircase record, replayed from its exported rows (only the steps not
+    yet in the file are added; a file that disagrees with the rows is an error)."""
+    if not any(b.design == "staircase" for b in protocol.blocks):
+        return
+    log = SessionLog.resume(
+        results,
+        study=participant.study,
+        participant=participant.participant,
+        session=participant.session,
+    )
+    Staircases(protocol, logged=log.rows, record=log.paths.staircase)
 
 
 def _export_one(
