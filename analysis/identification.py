@@ -172,6 +172,15 @@ def correct_model(
         )
     if data[subject].nunique() < 2:
         raise AnalysisError("the condition model needs answers from two or more participants")
+    share = y.groupby(data[condition]).mean()
+    extreme = [f"{c} ({'all right' if share[c] == 1 else 'all wrong'})" for c in present
+               if share[c] in (0.0, 1.0)]  # fmt: skip
+    if extreme:
+        raise AnalysisError(
+            "the condition model cannot be fitted: every answer in "
+            f"{', '.join(extreme)} is the same, so its odds ratio is infinite; report the "
+            "accuracies per condition instead"
+        )
     used, dropped = screen_covariates(data, covariates, condition=condition)
     import statsmodels.api as sm
     import statsmodels.formula.api as smf
@@ -191,6 +200,10 @@ def correct_model(
             ).fit(ddof_scale=0, ctol=1e-10, maxiter=200)
         except (ValueError, np.linalg.LinAlgError) as exc:
             raise AnalysisError(f"the condition model failed ({exc})") from None
+    if not np.all(np.isfinite(fit.params)) or not np.all(np.isfinite(fit.bse)):
+        raise AnalysisError(
+            f"the condition model did not converge ({formula.replace('_y', correct)})"
+        )
     rho = float(np.atleast_1d(fit.cov_struct.dep_params)[0])
     z_crit = sps.norm.ppf(0.975)
     rows = []

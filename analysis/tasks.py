@@ -194,9 +194,10 @@ def analyze_tasks(
                 id_matrix.append(long.assign(task=task.id))
                 res.confusion.append((task, matrix))
                 if _compares_conditions(scored):
-                    by_cond, cond_model = _identification_by_condition(scored, task, protocol)
+                    by_cond, cond_model = _identification_by_condition(scored, task, protocol, res)
                     id_by_condition.append(by_cond)
-                    id_models.append(cond_model)
+                    if cond_model is not None:
+                        id_models.append(cond_model)
                     res.confusion_by_condition.append(
                         (
                             task,
@@ -217,6 +218,7 @@ def analyze_tasks(
         res.tables["confusion_matrix"] = _first(pd.concat(id_matrix), "task")
     if id_by_condition:
         res.tables["identification_by_condition"] = pd.concat(id_by_condition, ignore_index=True)
+    if id_models:
         res.tables["identification_condition_model"] = pd.concat(id_models, ignore_index=True)
     _graded(data, protocol, res)
     return res
@@ -237,10 +239,11 @@ def _by_protocol_order(scored: pd.DataFrame, protocol: Protocol) -> list[tuple[s
 
 
 def _identification_by_condition(
-    scored: pd.DataFrame, task: IdentifyTask, protocol: Protocol
-) -> tuple[pd.DataFrame, pd.DataFrame]:
+    scored: pd.DataFrame, task: IdentifyTask, protocol: Protocol, res: TaskResults
+) -> tuple[pd.DataFrame, pd.DataFrame | None]:
     """Accuracy and kappa per condition (pooled over participants), and the logistic GEE of
-    a right answer on the condition (:func:`identification.correct_model`)."""
+    a right answer on the condition (:func:`identification.correct_model`; None, with a note,
+    when it cannot be fitted)."""
     labels = [lb.id for lb in task.labels]
     rows = []
     for c, part in _by_protocol_order(scored, protocol):
@@ -248,9 +251,13 @@ def _identification_by_condition(
         rows.append(summary.assign(task=task.id, condition=c))
     table = pd.concat(rows, ignore_index=True)
     table = table[["task", "condition", *identification.SUMMARY_COLUMNS]]
-    model = identification.correct_model(
-        scored, conditions=[c for c, _ in _by_protocol_order(scored, protocol)]
-    )
+    try:
+        model = identification.correct_model(
+            scored, conditions=[c for c, _ in _by_protocol_order(scored, protocol)]
+        )
+    except AnalysisError as exc:
+        res.notes.append(f"task {task.id!r}: {exc}")
+        return table, None
     return table, _first(model.assign(task=task.id), "task")
 
 

@@ -130,6 +130,9 @@ def test_condition_model_refuses_what_it_cannot_fit():
         identification.correct_model(data.assign(correct=data["correct"] * 2))
     with pytest.raises(AnalysisError, match="missing column"):
         identification.correct_model(data, covariates=("n_blink",))
+    one_sided = data.assign(correct=data["correct"].where(data["condition"] != "composite", 1))
+    with pytest.raises(AnalysisError, match=r"composite \(all right\) is the same"):
+        identification.correct_model(one_sided)
     # a covariate that only marks the condition is dropped and named, not fitted
     marked = data.assign(n_blink=(data["condition"] == "composite").astype(int) * 3)
     got = identification.correct_model(marked, covariates=("n_gesture", "n_blink"))

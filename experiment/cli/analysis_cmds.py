@@ -89,6 +89,7 @@ def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
         covariate_model,
         identification_covariates,
     )
+    from facelab.errors import AnalysisError
 
     root = results_dir if results_dir.name == protocol.study.id else results_dir / protocol.study.id
     clips = Path(args.clips) if args.clips else root / "clips"
@@ -110,7 +111,11 @@ def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
     for task_id, trials in tasks.identification_trials.items():
         present = tuple(c for c in order if c in set(trials["condition"]))
         if len(present) >= 2 and trials["participant"].nunique() >= 2:
-            model = identification_covariates(trials, counts, conditions=present)
+            try:
+                model = identification_covariates(trials, counts, conditions=present)
+            except AnalysisError as exc:
+                tasks.notes.append(f"behaviour covariates of task {task_id!r}: {exc}")
+                continue
             models.append(model.assign(task=task_id))
     if models:
         frame = pd.concat(models, ignore_index=True)
@@ -151,7 +156,8 @@ def _print_tasks(tasks: object) -> None:
                 f"  {r.task:>12} identification in {r.condition}: accuracy {r.accuracy:.3f}, "
                 f"kappa {r.kappa:.3f}, n = {r.n}"
             )
-        model = tables["identification_condition_model"]
+    model = tables.get("identification_condition_model")
+    if model is not None:
         for r in model[model["term"].str.startswith("C(")].itertuples():
             print(
                 f"  {r.task:>12} {r.term} ({r.note.split(';')[0]}): odds ratio "
