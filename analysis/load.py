@@ -15,7 +15,7 @@ import pandas as pd
 from facelab.errors import AnalysisError, StageError
 from facelab.sessionlog import LOG_COLUMNS, parse_log_text
 
-__all__ = ["find_logs", "load_log", "load_results", "session_summary"]
+__all__ = ["find_logs", "frame_from_rows", "load_log", "load_results", "session_summary"]
 
 
 def find_logs(results: Path | str) -> list[Path]:
@@ -61,7 +61,8 @@ def _read_rows(path: Path) -> list[dict]:
     return rows
 
 
-def _frame(rows: list[dict]) -> pd.DataFrame:
+def frame_from_rows(rows: list[dict]) -> pd.DataFrame:
+    """Log rows (dicts with :data:`LOG_COLUMNS`) as the DataFrame the analyses take."""
     frame = pd.DataFrame(rows, columns=[*LOG_COLUMNS, "source"])
     frame["simulated"] = frame["simulated"].astype(object)
     return frame
@@ -72,7 +73,7 @@ def load_log(path: Path | str) -> pd.DataFrame:
 
     A last line cut off mid-write is an error here (resume the session to repair it).
     """
-    return _frame(_read_rows(Path(path)))
+    return frame_from_rows(_read_rows(Path(path)))
 
 
 def load_results(
@@ -89,7 +90,7 @@ def load_results(
     logs = find_logs(results)
     if not logs:
         raise AnalysisError(f"no session logs (sub-*/ses-*/*_beh.tsv) under {results}")
-    frame = _frame([row for p in logs for row in _read_rows(p)])
+    frame = frame_from_rows([row for p in logs for row in _read_rows(p)])
     studies = sorted(frame["study"].dropna().unique())
     if study is not None:
         frame = frame[frame["study"] == study].reset_index(drop=True)

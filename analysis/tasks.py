@@ -30,7 +30,15 @@ from facelab.errors import AnalysisError
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 from facelab.staircase import new_staircase
 
-__all__ = ["TaskResults", "analyze_tasks", "choice_outcome"]
+__all__ = [
+    "TaskResults",
+    "analyze_tasks",
+    "choice_outcome",
+    "compares_conditions",
+    "graded_ratings",
+    "in_protocol_order",
+    "score_identification",
+]
 
 
 @dataclass
@@ -174,16 +182,7 @@ def analyze_tasks(
                 res.notes.append(
                     f"task {task.id!r} names no answers: only the answer counts are tabled"
                 )
-            target = pd.Series(
-                [
-                    task.target(condition=c, stimulus=st)
-                    for c, st in zip(rows["condition"], rows["stimulus"], strict=True)
-                ],
-                index=rows.index,
-                dtype=object,
-            )
-            scored = rows.assign(target=target).dropna(subset=["target"])
-            scored = scored.assign(correct=(scored["response"] == scored["target"]).astype(int))
+            scored = score_identification(rows, task)
             if not scored.empty:
                 res.identification_trials[task.id] = scored
                 summary, recall = identification.identification_summary(scored, labels=labels)
@@ -193,7 +192,7 @@ def analyze_tasks(
                 long = matrix.stack().rename("count").reset_index()
                 id_matrix.append(long.assign(task=task.id))
                 res.confusion.append((task, matrix))
-                if _compares_conditions(scored):
+                if compares_conditions(scored):
                     by_cond, cond_model = _identification_by_condition(scored, task, protocol, res)
                     id_by_condition.append(by_cond)
                     if cond_model is not None:
@@ -203,7 +202,7 @@ def analyze_tasks(
                             task,
                             {
                                 c: identification.confusion_matrix(part, labels=labels)
-                                for c, part in _by_protocol_order(scored, protocol)
+                                for c, part in in_protocol_order(scored, protocol)
                             },
                         )
                     )
@@ -224,7 +223,22 @@ def analyze_tasks(
     return res
 
 
-def _compares_conditions(scored: pd.DataFrame) -> bool:
+def score_identification(rows: pd.DataFrame, task: IdentifyTask) -> pd.DataFrame:
+    """An identify task's answer rows with ``target`` (the label the trial portrays) and
+    ``correct`` (0/1); rows whose trial portrays no label of the task's answers are left out."""
+    target = pd.Series(
+        [
+            task.target(condition=c, stimulus=st)
+            for c, st in zip(rows["condition"], rows["stimulus"], strict=True)
+        ],
+        index=rows.index,
+        dtype=object,
+    )
+    scored = rows.assign(target=target).dropna(subset=["target"])
+    return scored.assign(correct=(scored["response"] == scored["target"]).astype(int))
+
+
+def compares_conditions(scored: pd.DataFrame) -> bool:
     """True when an identification can be compared between conditions: two or more
     conditions, each with two or more portrayed labels (when the answer is the condition
     itself, per-condition accuracy is just the label's recall)."""
@@ -232,7 +246,7 @@ def _compares_conditions(scored: pd.DataFrame) -> bool:
     return len(per) >= 2 and bool((per >= 2).all())
 
 
-def _by_protocol_order(scored: pd.DataFrame, protocol: Protocol) -> list[tuple[str, pd.DataFrame]]:
+def in_protocol_order(scored: pd.DataFrame, protocol: Protocol) -> list[tuple[str, pd.DataFrame]]:
     order = [c.id for c in protocol.conditions]
     present = set(scored["condition"])
     return [(c, scored[scored["condition"] == c]) for c in order if c in present]
@@ -246,14 +260,14 @@ def _identification_by_condition(
     when it cannot be fitted)."""
     labels = [lb.id for lb in task.labels]
     rows = []
-    for c, part in _by_protocol_order(scored, protocol):
+    for c, part in in_protocol_order(scored, protocol):
         summary, _ = identification.identification_summary(part, labels=labels, by=())
         rows.append(summary.assign(task=task.id, condition=c))
     table = pd.concat(rows, ignore_index=True)
     table = table[["task", "condition", *identification.SUMMARY_COLUMNS]]
     try:
         model = identification.correct_model(
-            scored, conditions=[c for c, _ in _by_protocol_order(scored, protocol)]
+            scored, conditions=[c for c, _ in in_protocol_order(scored, protocol)]
         )
     except AnalysisError as exc:
         res.notes.append(f"task {task.id!r}: {exc}")
@@ -265,8 +279,9 @@ def _first(frame: pd.DataFrame, column: str) -> pd.DataFrame:
     return frame[[column, *[c for c in frame.columns if c != column]]].reset_index(drop=True)
 
 
-def _graded(data: pd.DataFrame, protocol: Protocol, res: TaskResults) -> None:
-    """Trend contrast and mixed model for VAS items of blocks whose conditions all have levels."""
+def graded_ratings(data: pd.DataFrame, protocol: Protocol) -> pd.DataFrame:
+    """The VAS ratings of blocks whose conditions all have levels (graded designs), with a
+    level; empty when there are none or only one level."""
     graded_blocks = [
         b.id
         for b in protocol.blocks
@@ -275,7 +290,13 @@ def _graded(data: pd.DataFrame, protocol: Protocol, res: TaskResults) -> None:
     ]
     vas = data[(data["screen"].fillna("vas") == "vas") & data["block"].isin(graded_blocks)]
     vas = vas.dropna(subset=["level", "rating"])
-    if vas.empty or vas["level"].nunique() < 2:
+    return vas.iloc[0:0] if vas["level"].nunique() < 2 else vas
+
+
+def _graded(data: pd.DataFrame, protocol: Protocol, res: TaskResults) -> None:
+    """Trend contrast and mixed model for VAS items of blocks whose conditions all have levels."""
+    vas = graded_ratings(data, protocol)
+    if vas.empty:
         return
     by = ("item", "stimulus_set")
     res.tables["trend_contrast"] = graded.trend_contrast(vas, by=by)

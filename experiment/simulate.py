@@ -62,6 +62,7 @@ __all__ = [
     "condition_effect",
     "simulate_participant",
     "simulate_study",
+    "simulated_rows",
 ]
 
 _CLOCK_START = dt.datetime(2026, 1, 1, 9, 0, 0, tzinfo=dt.UTC)
@@ -296,27 +297,90 @@ def simulate_participant(
             session=session,
             provenance=provenance,
         )
-        context = SessionContext(
-            study=protocol.study.id,
+        presenter = _answer_session(
+            protocol,
+            trials,
             participant=participant,
             session=session,
-            simulated=True,
+            rng=rng,
+            effects=effects,
             protocol_sha256=digest,
-        )
-        screens = compile_timeline(protocol, trials, participant=participant, session=session)
-        rater = RatingModel(protocol, rng=rng, effects=effects)
-        chooser = ChoiceModel(protocol, rng=rng) if protocol.tasks else None
-        presenter = SimulatedParticipant(rater, chooser)
-        walk(
-            screens,
-            presenter=presenter,
             log=log,
-            context=context,
-            record_playback=False,
             staircases=Staircases(protocol, record=log.paths.staircase),
         )
         log.update_provenance(finished=presenter._stamp())
     return log.paths
+
+
+def _answer_session(
+    protocol: Protocol,
+    trials: list[Any],
+    *,
+    participant: str,
+    session: int,
+    rng: np.random.Generator,
+    effects: Mapping[str, float] | None,
+    protocol_sha256: str,
+    log: Any,
+    staircases: Staircases,
+) -> SimulatedParticipant:
+    """Walk one participant's timeline with a simulated participant, rows into ``log``."""
+    context = SessionContext(
+        study=protocol.study.id,
+        participant=participant,
+        session=session,
+        simulated=True,
+        protocol_sha256=protocol_sha256,
+    )
+    screens = compile_timeline(protocol, trials, participant=participant, session=session)
+    rater = RatingModel(protocol, rng=rng, effects=effects)
+    chooser = ChoiceModel(protocol, rng=rng) if protocol.tasks else None
+    presenter = SimulatedParticipant(rater, chooser)
+    walk(
+        screens,
+        presenter=presenter,
+        log=log,
+        context=context,
+        record_playback=False,
+        staircases=staircases,
+    )
+    return presenter
+
+
+class _RowsInMemory:
+    """The part of a session log :func:`walk` writes to, kept in memory."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+
+    def append(self, row: dict[str, Any]) -> None:
+        self.rows.append(dict(row))
+
+
+def simulated_rows(
+    protocol: Protocol,
+    *,
+    participant: str,
+    rng: np.random.Generator,
+    effects: Mapping[str, float] | None = None,
+    session: int = 1,
+) -> list[dict[str, Any]]:
+    """One simulated participant's log rows, in memory (nothing is written): the same
+    design, timeline and answer models as :func:`simulate_participant` - for power
+    simulations that need thousands of sessions."""
+    memory = _RowsInMemory()
+    _answer_session(
+        protocol,
+        build_trials(protocol, participant=participant),
+        participant=participant,
+        session=session,
+        rng=rng,
+        effects=effects,
+        protocol_sha256="",
+        log=memory,
+        staircases=Staircases(protocol),
+    )
+    return memory.rows
 
 
 def simulate_study(

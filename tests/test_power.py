@@ -113,3 +113,97 @@ def test_tiny_p_stays_finite_and_exact() -> None:
         est = power.implied_effect(p=p, df1=2, df2=45)
         assert np.isfinite(est["f"]) and 0 < est["eta_p_sq"] < 1
         assert sps.f.logsf(est["f"], 2, 45) == pytest.approx(np.log(p), rel=1e-9)
+
+
+# ------------------------------------------------------------- power of a protocol, simulated
+
+_TWO_CONDITIONS = """
+schema_version: 1
+study: {id: pow, title: power test, participants_planned: 20}
+seed: 4
+conditions:
+  - {id: a, label: {en: a}, method: vowel_blend, params: {z: standard}}
+  - {id: b, label: {en: b}, method: vowel_blend, params: {z: emphasized}}
+stimulus_sets:
+  - id: s
+    stimuli:
+      - {id: s1, text: あ。}
+      - {id: s2, text: い。}
+      - {id: s3, text: う。}
+      - {id: s4, text: え。}
+blocks:
+  - {id: main, stimulus_set: s, sets: 1, presentations_per_condition: 1}
+items:
+  - {id: natural, question: {en: natural?}, left_anchor: {en: not}, right_anchor: {en: very}}
+presentation: {language: en}
+simulation:
+  model: {mean: 50, participant_sd: 8, interaction_sd: 3, noise_sd: 10}
+  effects: {a: 0, b: 4}
+"""
+
+
+def test_simulated_power_of_a_protocol_matches_the_formula(tmp_path: Path) -> None:
+    """The whole pipeline (design, timeline, simulated answers, RM ANOVA) at n = 20 against
+    the non-central F formula with f2 from the simulation model: 4 ratings per cell, so
+    sigma_e^2 = 3^2 + 10^2 / 4 and f2 = 2^2 / sigma_e^2 (effects 0 and 4)."""
+    from facelab.experiment.simulated_power import simulated_power
+    from facelab.protocol import load_protocol
+
+    path = tmp_path / "pow.yaml"
+    path.write_text(_TWO_CONDITIONS, encoding="utf-8")
+    protocol = load_protocol(path)
+    sims = 400
+    table = simulated_power(protocol, n_values=[20], sims=sims, rng=np.random.default_rng(7))
+    (row,) = table.itertuples()
+    assert (row.test, row.kind, row.n, row.failed) == ("natural/s", "rm_anova", 20, 0)
+    formula = power.rm_power(n=20, k=2, f2=4.0 / (9.0 + 100.0 / 4))
+    assert 0.3 < formula < 0.8  # a regime where the comparison can fail
+    assert abs(row.power - formula) < 3 * np.sqrt(formula * (1 - formula) / sims)
+
+
+@pytest.mark.slow
+def test_simulated_identification_test_keeps_alpha_with_few_participants() -> None:
+    """No true difference between the behaviour conditions: the identification GEE's
+    small-sample test rejects in at most alpha of simulated 8-participant studies (the plain
+    sandwich z test rejected in about 10 %)."""
+    from facelab.experiment.simulated_power import simulated_power
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    protocol = load_protocol(protocol_path("hattori_behaviour"))
+    sim = protocol.simulation.model_copy(
+        update={
+            "identifier": protocol.simulation.identifier.model_copy(
+                update={"condition_accuracy": {"gestures_only": 0.45, "composite": 0.45}}
+            )
+        }
+    )
+    protocol = protocol.model_copy(update={"simulation": sim})
+    sims = 200
+    table = simulated_power(protocol, n_values=[8], sims=sims, rng=np.random.default_rng(2))
+    ident = table[table["kind"] == "identification"].iloc[0]
+    assert ident["power"] <= 0.05 + 2 * np.sqrt(0.05 * 0.95 / sims)
+
+
+def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "pow.yaml"
+    path.write_text(_TWO_CONDITIONS, encoding="utf-8")
+    args = ["power", "--simulate", str(path), "--n", "6", "30", "--sims", "60"]
+    assert main([*args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    rows = {r["n"]: r for r in out["rows"]}
+    assert set(rows) == {6, 30} and rows[30]["power"] > rows[6]["power"]
+    assert out["assumptions"]["effects"] == {"a": 0.0, "b": 4.0}
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "natural/s" in text and "rm_anova" in text and "n for 0.8" in text
+    assert main(["power", "--simulate", str(path), "--n", "1"]) == 2
+    assert "2 or more" in capsys.readouterr().err
+    assert main(["power", "--simulate", str(path), "--reported-p", "0.01"]) == 2
+    assert "leave out --pilot and --reported-p" in capsys.readouterr().err
+    no_test = _TWO_CONDITIONS.replace("  - {id: b, label: {en: b}, method: vowel_blend, "
+                                      "params: {z: emphasized}}\n", "")  # fmt: skip
+    no_test = no_test.replace("effects: {a: 0, b: 4}", "effects: {a: 0}")
+    path.write_text(no_test, encoding="utf-8")
+    assert main(["power", "--simulate", str(path), "--sims", "5"]) == 2
+    assert "no test to simulate" in capsys.readouterr().err

@@ -112,12 +112,50 @@ def test_condition_model_matches_geepack():
                 r_term, f"C(condition)[T.{r_term.removeprefix('condition')}]"
             )
             assert got.loc[term, "estimate"] == pytest.approx(values["estimate"], rel=1e-6)
-            assert got.loc[term, "se"] == pytest.approx(values["se"], rel=1e-6)
+            assert got.loc[term, "se_robust"] == pytest.approx(values["se"], rel=1e-6)
         assert got["correlation"].iloc[0] == pytest.approx(ref[key]["correlation"], rel=1e-6)
+        # the bias-reduced SE, by the formula of Mancl & DeRouen (2001) written out here
+        x = np.column_stack(
+            [np.ones(len(data))]
+            + [(data["condition"] == c).to_numpy(float) for c in order[1:]]
+            + [data[c].to_numpy(float) for c in covariates]
+        )
+        se = _mancl_derouen_se(
+            x, data["correct"].to_numpy(float), data["participant"].to_numpy(),
+            beta=got["estimate"].to_numpy(), rho=got["correlation"].iloc[0],
+        )  # fmt: skip
+        np.testing.assert_allclose(got["se"].to_numpy(), se, rtol=1e-6)
+        assert (got["se"] > got["se_robust"]).all()  # the correction widens
+        assert (got["df"] == 18 - len(got)).all()
         composite = got.loc["C(condition)[T.composite]"]
         assert composite["odds_ratio"] == pytest.approx(np.exp(composite["estimate"]))
         assert composite["or_ci_low"] < composite["odds_ratio"] < composite["or_ci_high"]
         assert got["note"].iloc[0].startswith("reference: none")
+
+
+def _mancl_derouen_se(
+    x: np.ndarray, y: np.ndarray, cluster: np.ndarray, *, beta: np.ndarray, rho: float
+) -> np.ndarray:
+    """SEs of a logistic GEE with exchangeable correlation ``rho`` at ``beta``:
+    B^-1 (sum_i D_i' V_i^-1 (I - H_i)^-1 r_i r_i' (I - H_i)^-T V_i^-1 D_i) B^-1, with
+    D_i = A_i X_i, V_i = A_i^1/2 R A_i^1/2, A_i = diag(mu (1 - mu)), H_i = D_i B^-1 D_i' V_i^-1,
+    B = sum_i D_i' V_i^-1 D_i."""
+    parts = []
+    for c in dict.fromkeys(cluster):
+        xi, yi = x[cluster == c], y[cluster == c]
+        mu = 1 / (1 + np.exp(-xi @ beta))
+        a = mu * (1 - mu)
+        r_mat = np.full((len(yi), len(yi)), rho) + (1 - rho) * np.eye(len(yi))
+        v = np.sqrt(a)[:, None] * r_mat * np.sqrt(a)[None, :]
+        d = a[:, None] * xi
+        parts.append((d, np.linalg.inv(v), yi - mu))
+    b_inv = np.linalg.inv(sum(d.T @ vi @ d for d, vi, _ in parts))
+    meat = 0
+    for d, vi, r in parts:
+        h = d @ b_inv @ d.T @ vi
+        u = d.T @ vi @ np.linalg.solve(np.eye(len(r)) - h, r)
+        meat = meat + np.outer(u, u)
+    return np.sqrt(np.diag(b_inv @ meat @ b_inv))
 
 
 def test_condition_model_refuses_what_it_cannot_fit():
@@ -126,6 +164,8 @@ def test_condition_model_refuses_what_it_cannot_fit():
         identification.correct_model(data[data["condition"] == "none"])
     with pytest.raises(AnalysisError, match="two or more participants"):
         identification.correct_model(data[data["participant"] == "P01"])
+    with pytest.raises(AnalysisError, match="needs more participants than parameters"):
+        identification.correct_model(data[data["participant"].isin(["P01", "P02", "P03"])])
     with pytest.raises(AnalysisError, match="must be 0/1"):
         identification.correct_model(data.assign(correct=data["correct"] * 2))
     with pytest.raises(AnalysisError, match="missing column"):

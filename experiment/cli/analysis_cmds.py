@@ -179,6 +179,9 @@ def _cmd_power(args: argparse.Namespace) -> int:
 
     from facelab.analysis import power
 
+    if args.simulate:
+        return _simulated_power(args)
+    args.sims = 4000 if args.sims is None else args.sims
     rows: list[dict[str, object]] = []
     assumptions = ""
     if args.pilot:
@@ -277,6 +280,72 @@ def _cmd_power(args: argparse.Namespace) -> int:
     return 0
 
 
+def _simulated_power(args: argparse.Namespace) -> int:
+    """``facelab power --simulate PROTOCOL``: every test's power at each n, by simulation."""
+    import json
+
+    import numpy as np
+
+    from facelab.experiment.simulated_power import simulated_power
+    from facelab.protocol import load_protocol
+
+    if args.pilot or args.reported_p is not None:
+        raise FacelabError("--simulate takes the protocol's simulation section as the truth; "
+                           "leave out --pilot and --reported-p")  # fmt: skip
+    protocol = load_protocol(args.simulate)
+    n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
+    sims = 200 if args.sims is None else args.sims
+    table = simulated_power(
+        protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.seed),
+        alpha=args.alpha,
+    )  # fmt: skip
+    needed = {}
+    for (test, kind), part in table.groupby(["test", "kind"], sort=False):
+        enough = part[part["power"] >= args.power]
+        needed[(test, kind)] = int(enough["n"].min()) if not enough.empty else None
+    sim = protocol.simulation
+    truth = {
+        "effects": dict(sim.effects),
+        "model": sim.model.model_dump(),
+        "identifier": sim.identifier.model_dump(),
+    }
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "protocol": str(args.simulate),
+                    "assumptions": truth,
+                    "alpha": args.alpha,
+                    "target_power": args.power,
+                    "sims": sims,
+                    "seed": args.seed,
+                    "rows": table.to_dict(orient="records"),
+                    "n_needed": [{"test": t, "kind": k, "n": n} for (t, k), n in needed.items()],
+                },
+                indent=2,
+            )
+        )
+        return 0
+    print(
+        f"power by simulation of {protocol.study.id!r} ({sims} simulated studies per n, alpha "
+        f"{args.alpha:g}); truth = the protocol's simulation section: effects "
+        f"{dict(sim.effects)}"
+    )
+    head = "".join(f"{f'n={n}':>8}" for n in n_values)
+    print(f"  {'test':<44}{'kind':<16}{head}  n for {args.power:g}")
+    for (test, kind), part in table.groupby(["test", "kind"], sort=False):
+        cells = "".join(f"{v:8.2f}" for v in part.sort_values("n")["power"])
+        n = needed[(test, kind)]
+        print(f"  {test:<44}{kind:<16}{cells}  {n if n else f'> {n_values[-1]}'}")
+    failed = table[table["failed"] > 0]
+    for r in failed.itertuples():
+        print(f"  note: {r.test} ({r.kind}), n={r.n}: {r.failed} of {r.sims} fits failed")
+    print(
+        f"  Monte Carlo SE of a power p: sqrt(p (1 - p) / {sims}) (at most {0.5 / sims**0.5:.3f})"
+    )
+    return 0
+
+
 def register(add: AddCommand) -> None:
     """Add this family's subcommands."""
     p = add("analyze", "analyse session logs into tables, figures and a report", _cmd_analyze)
@@ -348,6 +417,25 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("--power", type=float, default=0.8, help="target power")
     p.add_argument("--alpha", type=float, default=0.05)
-    p.add_argument("--sims", type=int, default=4000, help="Monte Carlo runs for the check")
+    p.add_argument(
+        "--simulate",
+        metavar="PROTOCOL",
+        help="power of every test of PROTOCOL by simulating whole studies in memory, with its "
+        "simulation section as the truth (any design: VAS, identification, graded)",
+    )
+    p.add_argument(
+        "--n",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="with --simulate: numbers of participants to try (default 8 12 16 24 32)",
+    )
+    p.add_argument(
+        "--sims",
+        type=int,
+        metavar="S",
+        help="Monte Carlo runs: of the formula check (default 4000), or per n with "
+        "--simulate (default 200)",
+    )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true", help="print JSON")
