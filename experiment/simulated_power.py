@@ -20,18 +20,26 @@ The tests of a protocol (:func:`protocol_tests`):
 
 A run whose fit fails (e.g. every answer in a condition right) counts as not significant
 and is counted in ``failed``.
+
+Forced-choice tasks (constant stimuli or staircases) estimate a threshold rather than test
+a difference, so for them the question is precision (:func:`protocol_estimates`): the
+pooled psychometric midpoint of each simulated study, summarised per n as its mean, its SD
+across studies (the standard error a study of that size will have) and its root mean
+squared error against the simulated observer's midpoint.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
-from facelab.analysis import graded, identification, stats
+from facelab.analysis import graded, identification, psychometric, stats
 from facelab.analysis.load import frame_from_rows
 from facelab.analysis.tasks import (
+    choice_outcome,
     compares_conditions,
     graded_ratings,
     in_protocol_order,
@@ -39,11 +47,28 @@ from facelab.analysis.tasks import (
 )
 from facelab.errors import AnalysisError, StageError
 from facelab.experiment.simulate import simulated_rows
-from facelab.protocol import IdentifyTask, Protocol
+from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 
-__all__ = ["POWER_COLUMNS", "protocol_tests", "simulated_power"]
+__all__ = [
+    "POWER_COLUMNS",
+    "PRECISION_COLUMNS",
+    "ProtocolSimulation",
+    "protocol_estimates",
+    "protocol_tests",
+    "simulated_power",
+]
 
 POWER_COLUMNS = ("test", "kind", "n", "sims", "power", "mc_se", "failed")
+PRECISION_COLUMNS = ("estimate", "n", "sims", "truth", "mean", "sd", "rmse", "failed")
+
+
+@dataclass(frozen=True)
+class ProtocolSimulation:
+    """What :func:`simulated_power` measured: ``power`` (:data:`POWER_COLUMNS`, one row per
+    test and n) and ``precision`` (:data:`PRECISION_COLUMNS`, one row per estimate and n)."""
+
+    power: pd.DataFrame
+    precision: pd.DataFrame
 
 
 def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, str], float]:
@@ -86,6 +111,27 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
     return out
 
 
+def protocol_estimates(data: pd.DataFrame, protocol: Protocol) -> dict[str, float]:
+    """``{"<task> midpoint": value}``: each forced-choice task's pooled psychometric midpoint
+    (maximum likelihood, the task's guess rate, logistic); NaN when the fit fails."""
+    out: dict[str, float] = {}
+    for task in protocol.tasks:
+        if not isinstance(task, ChoiceTask):
+            continue
+        rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
+        if rows.empty:
+            continue
+        y, gamma = choice_outcome(rows, task)
+        counts = psychometric.count_responses(rows.assign(y=y.to_numpy()), x="level", y="y")
+        try:
+            fit = psychometric.fit_psychometric(counts, gamma=gamma)
+            value = fit.midpoint if fit.converged else float("nan")
+        except AnalysisError:
+            value = float("nan")
+        out[f"{task.id} midpoint"] = float(value)
+    return out
+
+
 def simulated_power(
     protocol: Protocol,
     *,
@@ -94,10 +140,10 @@ def simulated_power(
     rng: np.random.Generator,
     alpha: float = 0.05,
     effects: Mapping[str, float] | None = None,
-) -> pd.DataFrame:
-    """Power of every test of ``protocol`` for each number of participants in ``n_values``
-    (``sims`` simulated studies each, drawn from ``rng``); one row per test and n
-    (:data:`POWER_COLUMNS`). ``effects`` replaces ``simulation.effects``."""
+) -> ProtocolSimulation:
+    """Power of every test and precision of every estimate of ``protocol`` for each number
+    of participants in ``n_values`` (``sims`` simulated studies each, drawn from ``rng``).
+    ``effects`` replaces ``simulation.effects``."""
     if sims < 2:
         raise StageError(f"--sims must be at least 2, got {sims}")
     bad = [n for n in n_values if n < 2]
@@ -105,30 +151,28 @@ def simulated_power(
         raise StageError(f"numbers of participants must be 2 or more, got {list(n_values)}")
     if not 0 < alpha < 1:
         raise StageError(f"alpha must lie strictly between 0 and 1, got {alpha}")
-    rows = []
+    truth = protocol.simulation.observer.midpoint
+    power_rows, precision_rows = [], []
     for n in n_values:
         width = max(2, len(str(n)))
         ids = [f"P{i:0{width}d}" for i in range(1, n + 1)]
-        hits: dict[tuple[str, str], int] = {}
-        failed: dict[tuple[str, str], int] = {}
-        present: dict[tuple[str, str], int] = {}
+        p_values: dict[tuple[str, str], list[float]] = {}
+        estimates: dict[str, list[float]] = {}
         for study_rng in rng.spawn(sims):
             log = [
                 row
                 for pid, child in zip(ids, study_rng.spawn(n), strict=True)
                 for row in simulated_rows(protocol, participant=pid, rng=child, effects=effects)
             ]
-            for key, p in protocol_tests(frame_from_rows(log), protocol).items():
-                hits.setdefault(key, 0)
-                failed.setdefault(key, 0)
-                present[key] = present.get(key, 0) + 1
-                if np.isnan(p):
-                    failed[key] += 1
-                elif p < alpha:
-                    hits[key] += 1
-        for (test, kind), k in hits.items():
-            power = k / sims
-            rows.append(
+            data = frame_from_rows(log)
+            for key, p in protocol_tests(data, protocol).items():
+                p_values.setdefault(key, []).append(p)
+            for key, value in protocol_estimates(data, protocol).items():
+                estimates.setdefault(key, []).append(value)
+        for (test, kind), ps in p_values.items():
+            arr = np.asarray(ps, dtype=float)
+            power = float(np.sum(arr < alpha) / sims)
+            power_rows.append(
                 {
                     "test": test,
                     "kind": kind,
@@ -137,13 +181,31 @@ def simulated_power(
                     "power": power,
                     "mc_se": float(np.sqrt(power * (1 - power) / sims)),
                     # a run without the test (its fit refused) failed too
-                    "failed": failed[(test, kind)] + sims - present[(test, kind)],
+                    "failed": int(np.isnan(arr).sum()) + sims - len(arr),
                 }
             )
-    if not rows:
+        for name, values in estimates.items():
+            arr = np.asarray(values, dtype=float)
+            ok = arr[np.isfinite(arr)]
+            precision_rows.append(
+                {
+                    "estimate": name,
+                    "n": n,
+                    "sims": sims,
+                    "truth": truth,
+                    "mean": float(ok.mean()) if len(ok) else float("nan"),
+                    "sd": float(ok.std(ddof=1)) if len(ok) > 1 else float("nan"),
+                    "rmse": float(np.sqrt(np.mean((ok - truth) ** 2))) if len(ok) else float("nan"),
+                    "failed": sims - len(ok),
+                }
+            )
+    if not power_rows and not precision_rows:
         raise StageError(
-            f"protocol {protocol.study.id!r} has no test to simulate (VAS items compared "
-            "between conditions, an identification compared between conditions, or a graded "
-            "design)"
+            f"protocol {protocol.study.id!r} has nothing to simulate: no VAS item compared "
+            "between conditions, identification compared between conditions, graded design "
+            "or forced-choice task"
         )
-    return pd.DataFrame(rows, columns=list(POWER_COLUMNS))
+    return ProtocolSimulation(
+        power=pd.DataFrame(power_rows, columns=list(POWER_COLUMNS)),
+        precision=pd.DataFrame(precision_rows, columns=list(PRECISION_COLUMNS)),
+    )

@@ -153,8 +153,9 @@ def test_simulated_power_of_a_protocol_matches_the_formula(tmp_path: Path) -> No
     path.write_text(_TWO_CONDITIONS, encoding="utf-8")
     protocol = load_protocol(path)
     sims = 400
-    table = simulated_power(protocol, n_values=[20], sims=sims, rng=np.random.default_rng(7))
-    (row,) = table.itertuples()
+    result = simulated_power(protocol, n_values=[20], sims=sims, rng=np.random.default_rng(7))
+    assert result.precision.empty  # no forced-choice task
+    (row,) = result.power.itertuples()
     assert (row.test, row.kind, row.n, row.failed) == ("natural/s", "rm_anova", 20, 0)
     formula = power.rm_power(n=20, k=2, f2=4.0 / (9.0 + 100.0 / 4))
     assert 0.3 < formula < 0.8  # a regime where the comparison can fail
@@ -180,7 +181,7 @@ def test_simulated_identification_test_keeps_alpha_with_few_participants() -> No
     )
     protocol = protocol.model_copy(update={"simulation": sim})
     sims = 200
-    table = simulated_power(protocol, n_values=[8], sims=sims, rng=np.random.default_rng(2))
+    table = simulated_power(protocol, n_values=[8], sims=sims, rng=np.random.default_rng(2)).power
     ident = table[table["kind"] == "identification"].iloc[0]
     assert ident["power"] <= 0.05 + 2 * np.sqrt(0.05 * 0.95 / sims)
 
@@ -206,4 +207,31 @@ def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     no_test = no_test.replace("effects: {a: 0, b: 4}", "effects: {a: 0}")
     path.write_text(no_test, encoding="utf-8")
     assert main(["power", "--simulate", str(path), "--sims", "5"]) == 2
-    assert "no test to simulate" in capsys.readouterr().err
+    assert "nothing to simulate" in capsys.readouterr().err
+
+
+def test_simulated_threshold_precision_of_a_forced_choice_protocol(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """gain_2afc: the pooled midpoint of simulated studies centres on the observer's midpoint,
+    and its SD across studies shrinks with more participants (about 1/sqrt(n))."""
+    from facelab.experiment.simulated_power import simulated_power
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    protocol = load_protocol(protocol_path("gain_2afc"))
+    sims = 40
+    result = simulated_power(protocol, n_values=[4, 16], sims=sims, rng=np.random.default_rng(3))
+    assert result.power.empty
+    prec = result.precision.set_index("n")
+    truth = protocol.simulation.observer.midpoint
+    for n in (4, 16):
+        row = prec.loc[n]
+        assert row["failed"] <= 2 and row["truth"] == truth
+        assert abs(row["mean"] - truth) < 3 * row["sd"] / np.sqrt(sims - row["failed"])
+        assert row["rmse"] == pytest.approx(np.hypot(row["sd"], row["mean"] - truth), rel=0.05)
+    assert 1.3 < prec.loc[4, "sd"] / prec.loc[16, "sd"] < 3.2  # sqrt(16 / 4) = 2
+    path = str(protocol_path("gain_2afc"))
+    assert main(["power", "--simulate", path, "--n", "4", "--sims", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "precision of the pooled psychometric midpoint" in out and "stronger midpoint" in out

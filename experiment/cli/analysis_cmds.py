@@ -281,7 +281,8 @@ def _cmd_power(args: argparse.Namespace) -> int:
 
 
 def _simulated_power(args: argparse.Namespace) -> int:
-    """``facelab power --simulate PROTOCOL``: every test's power at each n, by simulation."""
+    """``facelab power --simulate PROTOCOL``: every test's power and every threshold's
+    precision at each n, by simulation."""
     import json
 
     import numpy as np
@@ -295,10 +296,11 @@ def _simulated_power(args: argparse.Namespace) -> int:
     protocol = load_protocol(args.simulate)
     n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
     sims = 200 if args.sims is None else args.sims
-    table = simulated_power(
+    result = simulated_power(
         protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.seed),
         alpha=args.alpha,
     )  # fmt: skip
+    table = result.power
     needed = {}
     for (test, kind), part in table.groupby(["test", "kind"], sort=False):
         enough = part[part["power"] >= args.power]
@@ -308,6 +310,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
         "effects": dict(sim.effects),
         "model": sim.model.model_dump(),
         "identifier": sim.identifier.model_dump(),
+        "observer": sim.observer.model_dump(),
     }
     if args.json:
         print(
@@ -321,28 +324,43 @@ def _simulated_power(args: argparse.Namespace) -> int:
                     "seed": args.seed,
                     "rows": table.to_dict(orient="records"),
                     "n_needed": [{"test": t, "kind": k, "n": n} for (t, k), n in needed.items()],
+                    "precision": result.precision.to_dict(orient="records"),
                 },
                 indent=2,
             )
         )
         return 0
     print(
-        f"power by simulation of {protocol.study.id!r} ({sims} simulated studies per n, alpha "
-        f"{args.alpha:g}); truth = the protocol's simulation section: effects "
-        f"{dict(sim.effects)}"
+        f"simulation of {protocol.study.id!r}: {sims} studies per n; truth = the protocol's "
+        f"simulation section"
     )
     head = "".join(f"{f'n={n}':>8}" for n in n_values)
-    print(f"  {'test':<44}{'kind':<16}{head}  n for {args.power:g}")
-    for (test, kind), part in table.groupby(["test", "kind"], sort=False):
-        cells = "".join(f"{v:8.2f}" for v in part.sort_values("n")["power"])
-        n = needed[(test, kind)]
-        print(f"  {test:<44}{kind:<16}{cells}  {n if n else f'> {n_values[-1]}'}")
-    failed = table[table["failed"] > 0]
-    for r in failed.itertuples():
-        print(f"  note: {r.test} ({r.kind}), n={r.n}: {r.failed} of {r.sims} fits failed")
-    print(
-        f"  Monte Carlo SE of a power p: sqrt(p (1 - p) / {sims}) (at most {0.5 / sims**0.5:.3f})"
-    )
+    if not table.empty:
+        print(f"power (alpha {args.alpha:g}); effects {dict(sim.effects)}")
+        print(f"  {'test':<44}{'kind':<16}{head}  n for {args.power:g}")
+        for (test, kind), part in table.groupby(["test", "kind"], sort=False):
+            cells = "".join(f"{v:8.2f}" for v in part.sort_values("n")["power"])
+            n = needed[(test, kind)]
+            print(f"  {test:<44}{kind:<16}{cells}  {n if n else f'> {n_values[-1]}'}")
+        print(f"  Monte Carlo SE of a power p: sqrt(p (1 - p) / {sims}) "
+              f"(at most {0.5 / sims**0.5:.3f})")  # fmt: skip
+    precision = result.precision
+    if not precision.empty:
+        print(
+            f"precision of the pooled psychometric midpoint (true midpoint "
+            f"{sim.observer.midpoint:g}, slope {sim.observer.slope:g}, participants' SD "
+            f"{sim.observer.midpoint_sd:g}): SD across studies (RMSE)"
+        )
+        print(f"  {'estimate':<60}{head}")
+        for name, part in precision.groupby("estimate", sort=False):
+            part = part.sort_values("n")
+            cells = "".join(f"{r.sd:8.3f}" for r in part.itertuples())
+            rmse = "".join(f"{f'({r.rmse:.3f})':>8}" for r in part.itertuples())
+            print(f"  {name:<60}{cells}\n  {'':<60}{rmse}")
+    for frame in (table, precision):
+        for r in frame[frame["failed"] > 0].itertuples():
+            label = getattr(r, "test", None) or r.estimate
+            print(f"  note: {label}, n={r.n}: {r.failed} of {r.sims} fits failed")
     return 0
 
 
