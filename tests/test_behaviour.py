@@ -493,6 +493,40 @@ def test_analysis_uses_behaviour_counts_as_covariates(rendered: Path) -> None:
     assert pooled["n"] == 12  # scored by the stimulus's answer: 6 participants x 2 clips
 
 
+def test_covariate_model_condition_test_is_the_paired_analysis() -> None:
+    """With the participant x condition intercept, the condition term of the covariate model
+    is the paired t test of participant means (balanced, two conditions, covariates that
+    only mark the condition dropped): same t, df n - 1, same p."""
+    from scipy import stats as sps
+
+    from facelab.analysis.behaviour import covariate_model
+
+    rng = np.random.default_rng(11)
+    rows = []
+    for p in range(10):
+        u = rng.normal(0, 8)
+        for cond, effect in (("gestures_only", 0.0), ("composite", 4.0)):
+            cell = rng.normal(0, 4)
+            for s in range(6):
+                rating = 50 + u + effect + cell + rng.normal(0, 10)
+                rows.append((f"P{p:02d}", cond, f"s{s}", "human", rating))
+    data = pd.DataFrame(rows, columns=["participant", "condition", "stimulus", "item", "rating"])
+    data["stimulus_set"] = "set"
+    counts = (
+        data[["stimulus_set", "stimulus", "condition"]]
+        .drop_duplicates()
+        .assign(n_posture=lambda d: (d["condition"] == "composite") * 3, n_mannerism=0,
+                n_gesture=2, n_blink=5)
+    )  # fmt: skip
+    model = covariate_model(data, counts, conditions=("gestures_only", "composite"))
+    row = model[model["term"] == "C(condition)[T.composite]"].iloc[0]
+    means = data.groupby(["participant", "condition"])["rating"].mean().unstack()
+    paired = sps.ttest_rel(means["composite"], means["gestures_only"])
+    assert row["t"] == pytest.approx(paired.statistic, rel=1e-4)
+    assert row["df"] == 9 and row["p"] == pytest.approx(paired.pvalue, rel=1e-3)
+    assert "n_posture fixed by condition" in row["note"] and "n_gesture constant" in row["note"]
+
+
 # ------------------------------------------------------------------ the command line
 
 
