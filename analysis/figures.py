@@ -26,6 +26,7 @@ from facelab.resources import cjk_font
 __all__ = [
     "cjk_font",
     "confusion_figure",
+    "power_figure",
     "psychometric_figure",
     "rating_figure",
     "staircase_figure",
@@ -306,6 +307,36 @@ def confusion_figure(
         fig.supxlabel("answer" + (f"\n{caption}" if caption else ""), fontsize=8)
         fig.suptitle(title, fontsize=10)
         fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label="share of the row")
+        return fig
+
+
+def power_figure(power: pd.DataFrame, *, target: float, alpha: float, title: str) -> Figure:
+    """Power against the number of participants, one line per test (columns of
+    :data:`facelab.experiment.simulated_power.POWER_COLUMNS`), with +-1.96 Monte Carlo SE
+    bars and the target power as a dashed line."""
+    with plt.rc_context(_rc()):
+        fig, ax = plt.subplots(figsize=(7.0, 4.2), dpi=150, layout="constrained")
+        for (test, kind), part in power.groupby(["test", "kind"], sort=False):
+            part = part.sort_values("n")
+            power, half = part["power"].to_numpy(), 1.96 * part["mc_se"].to_numpy()
+            ax.errorbar(
+                part["n"],
+                power,
+                yerr=[np.minimum(half, power), np.minimum(half, 1 - power)],  # within [0, 1]
+                marker="o",
+                ms=4,
+                capsize=2,
+                lw=1.2,
+                label=f"{test} ({kind})",
+            )
+        ax.axhline(target, color="0.3", ls="--", lw=0.8)
+        ax.axhline(alpha, color="0.6", ls=":", lw=0.8)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("participants")
+        ax.set_ylabel(f"power (p < {alpha:g})")
+        ax.set_title(title, fontsize=10)
+        ax.legend(fontsize=7, frameon=False, loc="lower right")
+        ax.spines[["top", "right"]].set_visible(False)
         return fig
 
 

@@ -343,6 +343,10 @@ _TASK_HEADINGS = {
     "- parameters df; odds ratios against the first condition)",
     "identification_covariates": "Identification with behaviour counts as covariates "
     "(logistic GEE, odds ratios)",
+    "behaviour_counts": "Behaviour: events per clip, per layer and unit, and motion energy "
+    "(from the clips' event logs)",
+    "behaviour_covariates": "Behaviour counts as covariates: rating ~ condition + events per "
+    "layer (random intercepts per participant and participant x condition, REML)",
     "trend_contrast": "Graded design: linear trend contrast of the RM ANOVA (slope per level "
     "unit, own error term)",
     "graded_lmm": "Graded design: mixed model rating ~ level + (1 + level | participant), REML",
@@ -374,6 +378,7 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "staircase_thresholds",
         "identification_summary",
         "identification_by_condition",
+        "identification_condition_model",
         "trend_contrast",
         "graded_lmm",
     ):

@@ -30,7 +30,8 @@ squared error against the simulated observer's midpoint.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,10 +141,12 @@ def simulated_power(
     rng: np.random.Generator,
     alpha: float = 0.05,
     effects: Mapping[str, float] | None = None,
+    progress: Callable[[int, float], None] | None = None,
 ) -> ProtocolSimulation:
     """Power of every test and precision of every estimate of ``protocol`` for each number
     of participants in ``n_values`` (``sims`` simulated studies each, drawn from ``rng``).
-    ``effects`` replaces ``simulation.effects``."""
+    ``effects`` replaces ``simulation.effects``; ``progress(n, seconds)`` is called after
+    each n."""
     if sims < 2:
         raise StageError(f"--sims must be at least 2, got {sims}")
     bad = [n for n in n_values if n < 2]
@@ -154,6 +157,7 @@ def simulated_power(
     truth = protocol.simulation.observer.midpoint
     power_rows, precision_rows = [], []
     for n in n_values:
+        started = time.perf_counter()
         width = max(2, len(str(n)))
         ids = [f"P{i:0{width}d}" for i in range(1, n + 1)]
         p_values: dict[tuple[str, str], list[float]] = {}
@@ -169,6 +173,8 @@ def simulated_power(
                 p_values.setdefault(key, []).append(p)
             for key, value in protocol_estimates(data, protocol).items():
                 estimates.setdefault(key, []).append(value)
+        if progress is not None:
+            progress(n, time.perf_counter() - started)
         for (test, kind), ps in p_values.items():
             arr = np.asarray(ps, dtype=float)
             power = float(np.sum(arr < alpha) / sims)

@@ -195,9 +195,12 @@ def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     rows = {r["n"]: r for r in out["rows"]}
     assert set(rows) == {6, 30} and rows[30]["power"] > rows[6]["power"]
     assert out["assumptions"]["effects"] == {"a": 0.0, "b": 4.0}
-    assert main(args) == 0
+    assert main([*args, "--plot", str(tmp_path / "power.png")]) == 0
+    assert (tmp_path / "power.png").stat().st_size > 10_000
     text = capsys.readouterr().out
     assert "natural/s" in text and "rm_anova" in text and "n for 0.8" in text
+    assert main([*args, "--plot", str(tmp_path / "no" / "p.png")]) == 2
+    assert "does not exist" in capsys.readouterr().err
     assert main(["power", "--simulate", str(path), "--n", "1"]) == 2
     assert "2 or more" in capsys.readouterr().err
     assert main(["power", "--simulate", str(path), "--reported-p", "0.01"]) == 2

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
@@ -284,6 +284,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
     """``facelab power --simulate PROTOCOL``: every test's power and every threshold's
     precision at each n, by simulation."""
     import json
+    import sys
 
     import numpy as np
 
@@ -293,14 +294,33 @@ def _simulated_power(args: argparse.Namespace) -> int:
     if args.pilot or args.reported_p is not None:
         raise FacelabError("--simulate takes the protocol's simulation section as the truth; "
                            "leave out --pilot and --reported-p")  # fmt: skip
+    plot = output_file(args.plot, option="--plot") if args.plot else None
     protocol = load_protocol(args.simulate)
     n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
     sims = 200 if args.sims is None else args.sims
+
+    def progress(n: int, seconds: float) -> None:
+        print(f"  n={n}: {sims} studies simulated and analysed in {seconds:.1f} s",
+              file=sys.stderr, flush=True)  # fmt: skip
+
     result = simulated_power(
         protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.seed),
-        alpha=args.alpha,
+        alpha=args.alpha, progress=progress,
     )  # fmt: skip
     table = result.power
+    if plot is not None and not table.empty:
+        from facelab.analysis import figures
+
+        fig = figures.power_figure(
+            table,
+            target=args.power,
+            alpha=args.alpha,
+            title=f"{protocol.study.id}: power by simulation ({sims} studies per n)",
+        )
+        fig.savefig(plot)  # the format from the suffix: .png, .svg, .pdf
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
     needed = {}
     for (test, kind), part in table.groupby(["test", "kind"], sort=False):
         enough = part[part["power"] >= args.power]
@@ -447,6 +467,9 @@ def register(add: AddCommand) -> None:
         nargs="+",
         metavar="N",
         help="with --simulate: numbers of participants to try (default 8 12 16 24 32)",
+    )
+    p.add_argument(
+        "--plot", metavar="PNG", help="with --simulate: power against n, one line per test"
     )
     p.add_argument(
         "--sims",
