@@ -78,6 +78,8 @@ def test_graded_trend_and_mixed_model_match_r():
     for key in ("slope_se", "sd_intercept", "sd_slope", "sd_residual"):
         assert lmm[key] == pytest.approx(ref["lmm"][key], rel=2e-3)
     assert lmm["corr"] == pytest.approx(ref["lmm"]["corr"], abs=2e-3)
+    assert lmm["df"] == pytest.approx(ref["lmm"]["slope_df"], abs=1e-3)  # lmerTest
+    assert lmm["p"] == pytest.approx(ref["lmm"]["slope_p"], rel=2e-3)
 
 
 def test_confusion_accuracy_and_kappa_against_sklearn():
