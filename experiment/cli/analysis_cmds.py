@@ -106,7 +106,10 @@ def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
     order = tuple(c.id for c in protocol.conditions)
     if not vas.empty:
         present = tuple(c for c in order if c in set(vas["condition"]))
-        tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=present)
+        try:
+            tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=present)
+        except AnalysisError as exc:  # a secondary table: the report goes on without it
+            tasks.notes.append(f"behaviour covariates: {exc}")
     models = []
     for task_id, trials in tasks.identification_trials.items():
         present = tuple(c for c in order if c in set(trials["condition"]))
