@@ -297,6 +297,8 @@ def _simulated_power(args: argparse.Namespace) -> int:
     if args.pilot or args.reported_p is not None:
         raise FacelabError("--simulate takes the protocol's simulation section as the truth; "
                            "leave out --pilot and --reported-p")  # fmt: skip
+    if not 0 < args.power < 1:
+        raise FacelabError(f"--power {args.power:g}: a target power lies strictly between 0 and 1")
     plot = output_file(args.plot, option="--plot") if args.plot else None
     protocol = load_protocol(args.simulate)
     n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
