@@ -173,6 +173,14 @@ def _print_tasks(tasks: object) -> None:
                 f"  {r.item:>12} / {r.stimulus_set:<10} linear trend: slope {r.slope:.3g} "
                 f"per level, F(1,{r.df}) = {r.F:.3f}, p = {r.p:.4f}"
             )
+    lmm = tables.get("graded_lmm")
+    if lmm is not None:
+        for r in lmm.itertuples():
+            print(
+                f"  {r.item:>12} / {r.stimulus_set:<10} mixed model: slope {r.slope:.3g} "
+                f"(SE {r.slope_se:.3g}), t({r.df}) = {r.t:.3f}, p = {r.p:.4f}, slope SD between "
+                f"participants {r.sd_slope:.3g}"
+            )
 
 
 def _cmd_power(args: argparse.Namespace) -> int:
