@@ -16,12 +16,18 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from facelab.experiment.cli import main
 from facelab.experiment.online.browser import SimulatedBrowser, chromium
-from facelab.experiment.online.db import Action, Participant, PlaybackRecord, Response
+from facelab.experiment.online.db import (
+    Action,
+    Participant,
+    PlaybackRecord,
+    ProtocolFile,
+    Response,
+)
 from facelab.experiment.online.export import export_sessions
 from facelab.experiment.online.load import (
     load_test,
@@ -31,7 +37,7 @@ from facelab.experiment.online.load import (
 )
 from facelab.experiment.online.serve import BackgroundServer, free_port, prepare_server
 from facelab.experiment.online.server import create_app
-from facelab.protocol import load_protocol
+from facelab.protocol import load_protocol, protocol_hash
 from facelab.sessionlog import SessionLog
 from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol
 
@@ -489,13 +495,15 @@ def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
         assert r["condition"] == rule.condition
         rule.update(bool(r["correct"]))
 
-    # export: without the protocol no staircase record; with it, the lab runner's record
+    # export: the server kept the protocol it ran, so the export puts it beside the sessions
+    # and writes the lab runner's staircase record from it
     out = tmp_path / "export"
-    export_sessions(server.engine, results=out)
-    assert not list(out.rglob("*_staircase.jsonl"))
     url = f"sqlite:///{tmp_path / 'db.sqlite'}"
     proto = tmp_path / "gain_staircase.yaml"
-    assert main(["export", "--db", url, "--results", str(out), "--protocol", str(proto)]) == 0
+    assert main(["export", "--db", url, "--results", str(out)]) == 0
+    sha = protocol_hash(proto)
+    copy = out / protocol.study.id / f"protocol-{sha[:12]}.yaml"
+    assert copy.read_bytes() == proto.read_bytes()
     stair_file = next(out.rglob("sub-P0002*_staircase.jsonl"))
     steps = [json.loads(line) for line in stair_file.read_text().splitlines()]
     rule = new_staircase(protocol, "main")
@@ -507,14 +515,26 @@ def test_a_staircase_runs_online_as_in_the_lab(tmp_path: Path) -> None:
         assert step["next_condition"] == rule.condition
     assert main(["export", "--db", url, "--results", str(out), "--protocol", str(proto)]) == 0
     assert stair_file.read_text().count("\n") == len(rows)  # again: nothing doubled
-    # a protocol version other than the one the sessions ran: exported, without the record
+    # a --protocol nobody ran is said, and the sessions' own protocol is used
     notes: list[str] = []
     export_sessions(
         server.engine, results=tmp_path / "export2", protocol=protocol,
         protocol_sha256="0" * 64, notes=notes,
     )  # fmt: skip
-    assert any("P0002: ran another version" in n for n in notes)
-    assert not list((tmp_path / "export2").rglob("*_staircase.jsonl"))
+    assert any("no exported session ran this version" in n for n in notes)
+    assert len(list((tmp_path / "export2").rglob("*_staircase.jsonl"))) == 2
+    # a database from before the server kept protocols: said, and --protocol fills in
+    with Session(server.engine) as db:
+        db.execute(delete(ProtocolFile))
+        db.commit()
+    notes = []
+    export_sessions(server.engine, results=tmp_path / "export3", notes=notes)
+    assert any("does not hold protocol" in n for n in notes)
+    assert not list((tmp_path / "export3").rglob("*_staircase.jsonl"))
+    export_sessions(
+        server.engine, results=tmp_path / "export3", protocol=protocol, protocol_sha256=sha
+    )
+    assert len(list((tmp_path / "export3").rglob("*_staircase.jsonl"))) == 2
 
 
 def test_a_quest_plus_staircase_is_served_at_the_levels_the_rule_chooses(tmp_path: Path) -> None:

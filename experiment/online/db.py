@@ -13,7 +13,10 @@ SHA-256). Tables:
                     the client's idempotency key (unique);
 * ``playback``      one row per clip shown (client key unique): the ``_playback.jsonl`` record;
 * ``actions``       one row per action of a simulated participant (``_actions.jsonl``);
-* ``events``        what else happened (joined, resumed, play() refused, completed).
+* ``events``        what else happened (joined, resumed, play() refused, completed);
+* ``protocols``     the bytes of every protocol file the server has served, by SHA-256 (the
+                    hash each participant row names), so ``facelab export`` can put the exact
+                    protocol beside the sessions and replay their staircases.
 
 No IP address is stored anywhere. SQLite runs in WAL mode with ``synchronous=FULL``: a
 response is on disk when the server answers 200, as in the lab runner.
@@ -22,6 +25,7 @@ response is on disk when the server answers 200, as in the lab runner.
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -31,13 +35,15 @@ from sqlalchemy import (
     DateTime,
     ForeignKey,
     Integer,
+    LargeBinary,
     String,
     UniqueConstraint,
     create_engine,
     event,
 )
 from sqlalchemy.engine import Engine
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
 from facelab.errors import SessionError
 
@@ -47,10 +53,12 @@ __all__ = [
     "Event",
     "Participant",
     "PlaybackRecord",
+    "ProtocolFile",
     "Response",
     "Setting",
     "default_url",
     "open_engine",
+    "store_protocol",
     "utcnow",
 ]
 
@@ -136,6 +144,35 @@ class Event(Base):
     kind: Mapped[str] = mapped_column(String(32))
     detail: Mapped[dict[str, Any]] = mapped_column(JSON)
     at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class ProtocolFile(Base):
+    __tablename__ = "protocols"
+    sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
+    study: Mapped[str] = mapped_column(String(64), index=True)
+    name: Mapped[str] = mapped_column(String(255))
+    content: Mapped[bytes] = mapped_column(LargeBinary)
+    stored: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+def store_protocol(engine: Engine, *, protocol_path: Path, study: str) -> str:
+    """Keep the protocol file's bytes under their SHA-256 (once; a second server start with
+    the same file adds nothing). Returns the SHA-256."""
+    content = Path(protocol_path).read_bytes()
+    digest = hashlib.sha256(content).hexdigest()
+    with Session(engine) as db:
+        if db.get(ProtocolFile, digest) is None:
+            db.add(
+                ProtocolFile(
+                    sha256=digest, study=study, name=Path(protocol_path).name[:255],
+                    content=content,
+                )
+            )  # fmt: skip
+            try:
+                db.commit()
+            except IntegrityError:  # another server process stored it first
+                db.rollback()
+    return digest
 
 
 def default_url(results: Path, study: str) -> str:

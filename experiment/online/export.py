@@ -7,13 +7,16 @@ For every participant with at least one stored response::
                                                        source; no recruitment id, no token)
                                      …_playback.jsonl (the browser's frame records)
                                      …_actions.jsonl  (simulated participants only)
-                                     …_staircase.jsonl (with the protocol: staircase blocks)
+                                     …_staircase.jsonl (staircase blocks)
+    <results>/<study>/protocol-<sha256[:12]>.yaml   the protocol file the sessions ran
 
-so ``facelab analyze`` reads online and lab sessions side by side. The database does not hold
-the protocol, so the staircase record - every step of every staircase, as the lab runner
-writes it - is written only when the protocol is given (``facelab export --protocol P``) and
-is the version the session ran (same SHA-256); its steps are replayed from the stored
-answers, exactly as the server chose each level, and marked ``"rebuilt": true``.
+so ``facelab analyze`` reads online and lab sessions side by side. The server keeps the bytes
+of every protocol file it serves (``protocols`` table); the staircase record - every step of
+every staircase, as the lab runner writes it - is replayed under the protocol the session
+ran (same SHA-256) from the stored answers, exactly as the server chose each level, and
+marked ``"rebuilt": true``. ``facelab export --protocol P`` supplies the file when the
+database does not hold it (made before it kept protocols) or when the stored copy does not
+load on its own (it names files beside the original).
 
 Exporting again adds what arrived since (rows are appended through
 :class:`~facelab.sessionlog.SessionLog`, never rewritten); a session folder whose rows
@@ -22,6 +25,8 @@ disagree with the database is an error.
 
 from __future__ import annotations
 
+import hashlib
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,10 +35,17 @@ from sqlalchemy import select
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
-from facelab.errors import SessionError
+from facelab.errors import ProtocolError, SessionError
 from facelab.experiment.adaptive import Staircases
-from facelab.experiment.online.db import Action, Event, Participant, PlaybackRecord, Response
-from facelab.protocol import Protocol
+from facelab.experiment.online.db import (
+    Action,
+    Event,
+    Participant,
+    PlaybackRecord,
+    ProtocolFile,
+    Response,
+)
+from facelab.protocol import Protocol, load_protocol
 from facelab.sessionlog import SessionLog, append_jsonl, session_paths
 
 __all__ = ["export_sessions"]
@@ -75,13 +87,20 @@ def export_sessions(
 ) -> list[Path]:
     """Write or extend the session folders of every participant (of ``study``, or all).
 
-    With ``protocol`` (and its file's ``protocol_sha256``), the sessions of that study that
-    ran that version also get their ``_staircase.jsonl``; a session of another version is
-    exported without it and named in ``notes``."""
+    The protocol file each session ran (kept by the server under its SHA-256) is written to
+    ``<results>/<study>/protocol-<sha256[:12]>.yaml``, and sessions with staircase blocks get
+    their ``_staircase.jsonl`` replayed under it. ``protocol`` (with its file's
+    ``protocol_sha256``) is used for the sessions that ran that version - for databases from
+    before the server kept protocols, or a protocol whose side files (models, libraries)
+    are needed to load it. What could not be done is said in ``notes``."""
     if (protocol is None) != (protocol_sha256 is None):
         raise ValueError("give protocol and protocol_sha256 together")
     if protocol is not None and study is not None and study != protocol.study.id:
         raise SessionError(f"--study {study!r} is not the protocol's study {protocol.study.id!r}")
+    notes = notes if notes is not None else []
+    known: dict[str, Protocol | None] = {}
+    if protocol is not None and protocol_sha256 is not None:
+        known[protocol_sha256] = protocol
     out: list[Path] = []
     with Session(engine) as db:
         query = select(Participant).order_by(Participant.study, Participant.number)
@@ -111,16 +130,56 @@ def export_sessions(
             ).all()
             path = _export_one(p, rows, playback, actions, events, results=results)
             out.append(path)
-            if protocol is not None and p.study == protocol.study.id:
-                if p.protocol_sha256 != protocol_sha256:
-                    if notes is not None:
-                        notes.append(
-                            f"{p.participant}: ran another version of the protocol "
-                            f"(SHA-256 {p.protocol_sha256[:12]}…): no _staircase.jsonl written"
-                        )
-                    continue
-                _write_staircases(protocol, results=results, participant=p)
+            stored = db.get(ProtocolFile, p.protocol_sha256)
+            if stored is not None:
+                copy = _write_protocol_copy(stored, results=results)
+            if p.protocol_sha256 not in known:
+                known[p.protocol_sha256] = (
+                    _load_copy(copy, notes=notes) if stored is not None else None
+                )
+                if stored is None:
+                    notes.append(
+                        f"study {p.study}: the database does not hold protocol "
+                        f"{p.protocol_sha256[:12]}… (a database from before the server kept "
+                        "protocols): pass --protocol with that file for the staircase records"
+                    )
+            run = known[p.protocol_sha256]
+            if run is not None:
+                _write_staircases(run, results=results, participant=p)
+    ran = {p.protocol_sha256 for p in people}
+    if protocol_sha256 is not None and protocol_sha256 not in ran:
+        notes.append(
+            f"--protocol: no exported session ran this version of the file (SHA-256 "
+            f"{protocol_sha256[:12]}…); the sessions' own protocols were used"
+        )
     return out
+
+
+def _write_protocol_copy(stored: ProtocolFile, *, results: Path) -> Path:
+    """``<results>/<study>/protocol-<sha12>.yaml`` with the bytes the sessions ran (written
+    once; a file of that name with other bytes is an error, never overwritten)."""
+    path = Path(results) / stored.study / f"protocol-{stored.sha256[:12]}.yaml"
+    if path.exists():
+        if hashlib.sha256(path.read_bytes()).hexdigest() != stored.sha256:
+            raise SessionError(f"{path}: not the protocol the sessions ran; move it away")
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".yaml.part")
+    tmp.write_bytes(stored.content)
+    os.replace(tmp, path)
+    return path
+
+
+def _load_copy(path: Path, *, notes: list[str]) -> Protocol | None:
+    try:
+        return load_protocol(path)
+    except ProtocolError as exc:
+        first = str(exc).splitlines()[1:2] or [str(exc)]
+        notes.append(
+            f"{path.name} does not load on its own ({first[0].strip()}): pass --protocol with "
+            "the original file for the staircase records"
+        )
+        return None
 
 
 def _write_staircases(protocol: Protocol, *, results: Path, participant: Participant) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from facelab.errors import SessionError
-from facelab.experiment.online.db import default_url, open_engine
+from facelab.experiment.online.db import default_url, open_engine, store_protocol
 from facelab.experiment.online.server import (
     VENDOR_FILES,
     WEB,
@@ -70,6 +70,7 @@ def prepare_server(
         consent=consent,
     )
     engine = open_engine(db_url or default_url(results, protocol.study.id))
+    store_protocol(engine, protocol_path=protocol_path, study=protocol.study.id)
     server = StudyServer(engine, config)
     made = None
     if admin_secret is None:
