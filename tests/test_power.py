@@ -195,6 +195,12 @@ def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     rows = {r["n"]: r for r in out["rows"]}
     assert set(rows) == {6, 30} and rows[30]["power"] > rows[6]["power"]
     assert out["assumptions"]["effects"] == {"a": 0.0, "b": 4.0}
+    assert main([*args, "--effect", "b=0", "--json"]) == 0  # no effect: power near alpha
+    null = json.loads(capsys.readouterr().out)
+    assert null["assumptions"]["effects"] == {"a": 0.0, "b": 0.0}
+    assert {r["n"]: r["power"] for r in null["rows"]}[30] < rows[30]["power"]
+    assert main([*args, "--effect", "c=3"]) == 2
+    assert "no such condition" in capsys.readouterr().err
     assert main([*args, "--plot", str(tmp_path / "power.png")]) == 0
     assert (tmp_path / "power.png").stat().st_size > 10_000
     text = capsys.readouterr().out

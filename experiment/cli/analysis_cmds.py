@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_effects
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
@@ -309,6 +309,15 @@ def _simulated_power(args: argparse.Namespace) -> int:
         raise FacelabError(f"--power {args.power:g}: a target power lies strictly between 0 and 1")
     plot = output_file(args.plot, option="--plot") if args.plot else None
     protocol = load_protocol(args.simulate)
+    effects = dict(protocol.simulation.effects)
+    given = parse_effects(args.effect) or {}
+    unknown = sorted(set(given) - {c.id for c in protocol.conditions})
+    if unknown:
+        raise FacelabError(
+            f"--effect {unknown[0]}: no such condition; conditions: "
+            f"{', '.join(c.id for c in protocol.conditions)}"
+        )
+    effects.update(given)
     n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
     sims = 200 if args.sims is None else args.sims
 
@@ -318,7 +327,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
 
     result = simulated_power(
         protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.seed),
-        alpha=args.alpha, progress=progress,
+        alpha=args.alpha, effects=effects, progress=progress,
     )  # fmt: skip
     table = result.power
     if plot is not None and not table.empty:
@@ -340,7 +349,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
         needed[(test, kind)] = int(enough["n"].min()) if not enough.empty else None
     sim = protocol.simulation
     truth = {
-        "effects": dict(sim.effects),
+        "effects": effects,
         "model": sim.model.model_dump(),
         "identifier": sim.identifier.model_dump(),
         "observer": sim.observer.model_dump(),
@@ -369,7 +378,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
     )
     head = "".join(f"{f'n={n}':>8}" for n in n_values)
     if not table.empty:
-        print(f"power (alpha {args.alpha:g}); effects {dict(sim.effects)}")
+        print(f"power (alpha {args.alpha:g}); VAS effects {effects}")
         print(f"  {'test':<44}{'kind':<16}{head}  n for {args.power:g}")
         for (test, kind), part in table.groupby(["test", "kind"], sort=False):
             cells = "".join(f"{v:8.2f}" for v in part.sort_values("n")["power"])
@@ -483,6 +492,13 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--plot", metavar="PNG", help="with --simulate: power against n, one line per test"
+    )
+    p.add_argument(
+        "--effect",
+        action="append",
+        metavar="COND=POINTS",
+        help="with --simulate: a condition's VAS effect in points, replacing the protocol's "
+        "for that condition (repeatable)",
     )
     p.add_argument(
         "--sims",

@@ -83,3 +83,21 @@ def output_dir(path: str | Path, *, option: str) -> Path:
         raise FacelabError(f"{option} {path}: is a file, not a folder")
     _writable_folder(path, option, str(path))
     return path
+
+
+def parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
+    """``--effect COND=POINTS`` options as ``{condition: points}`` (None when none given)."""
+    if not pairs:
+        return None
+    effects: dict[str, float] = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        try:
+            if not sep or not name:
+                raise ValueError
+            effects[name] = float(value)
+        except ValueError:
+            raise FacelabError(
+                f"--effect {pair!r}: expected CONDITION=POINTS, e.g. standard=15"
+            ) from None
+    return effects

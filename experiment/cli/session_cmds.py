@@ -5,25 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, parse_session, parse_size
-
-
-def _parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
-    if not pairs:
-        return None
-    effects: dict[str, float] = {}
-    for pair in pairs:
-        name, sep, value = pair.partition("=")
-        try:
-            if not sep or not name:
-                raise ValueError
-            effects[name] = float(value)
-        except ValueError:
-            raise FacelabError(
-                f"--effect {pair!r}: expected CONDITION=POINTS, e.g. standard=15"
-            ) from None
-    return effects
+from facelab.experiment.cli.common import (
+    AddCommand,
+    output_dir,
+    parse_effects,
+    parse_session,
+    parse_size,
+)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -69,7 +57,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         results=results,
         participants=args.participants,
         seed=args.seed,
-        effects=_parse_effects(args.effect),
+        effects=parse_effects(args.effect),
     )
     print(
         f"simulated {len(paths)} participants of study {protocol.study.id!r} (seed {args.seed}) "
