@@ -591,3 +591,43 @@ def test_side_by_side_choice_in_chromium(tmp_path: Path) -> None:
         for rec in pair:
             assert rec["presented_frames"] >= 0.8 * rec["frames_expected"] > 0
             assert rec["play_refused"] is None
+
+
+def test_export_says_when_the_stored_protocol_needs_its_side_files(tmp_path: Path) -> None:
+    """A protocol that names a file beside it (an impression model) cannot be loaded from
+    the database's copy alone: the export still writes the sessions and the copy, and says
+    that --protocol is needed (only staircase records depend on it)."""
+    import numpy as np
+
+    from facelab.experiment.online.db import open_engine, store_protocol
+    from facelab.experiment.simulate import simulated_rows
+    from facelab.resources import protocol_path
+
+    path = protocol_path("horii_impression")
+    protocol = load_protocol(path)
+    engine = open_engine(f"sqlite:///{tmp_path / 'db.sqlite'}")
+    sha = store_protocol(engine, protocol_path=path, study=protocol.study.id)
+    assert store_protocol(engine, protocol_path=path, study=protocol.study.id) == sha  # once
+    rows = simulated_rows(protocol, participant="P0001", rng=np.random.default_rng(1))[:3]
+    with Session(engine) as db:
+        p = Participant(
+            study=protocol.study.id, participant="P0001", number=1, session=1,
+            token_sha256="t" * 64, simulated=True, protocol_sha256=sha, design_seed="1",
+            trial_order=[], clips={},
+        )  # fmt: skip
+        db.add(p)
+        db.flush()
+        for i, row in enumerate(rows):
+            db.add(
+                Response(
+                    participant_pk=p.pk, trial_index=row["trial_index"], item=row["item"],
+                    client_key=f"{i:016d}", row={**row, "protocol_sha256": sha},
+                )
+            )  # fmt: skip
+        db.commit()
+    notes: list[str] = []
+    (tsv,) = export_sessions(engine, results=tmp_path / "out", notes=notes)
+    assert len(tsv.read_text().splitlines()) == 1 + len(rows)
+    copy = tmp_path / "out" / protocol.study.id / f"protocol-{sha[:12]}.yaml"
+    assert copy.read_bytes() == path.read_bytes()
+    assert any("does not load on its own" in n and "--protocol" in n for n in notes), notes

@@ -176,8 +176,8 @@ def _load_copy(path: Path, *, notes: list[str]) -> Protocol | None:
     except ProtocolError as exc:
         first = str(exc).splitlines()[1:2] or [str(exc)]
         notes.append(
-            f"{path.name} does not load on its own ({first[0].strip()}): pass --protocol with "
-            "the original file for the staircase records"
+            f"{path.name} does not load on its own ({first[0].strip()}); if the study has "
+            "staircase blocks, pass --protocol with the original file for their records"
         )
         return None
 
