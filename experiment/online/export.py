@@ -46,7 +46,7 @@ from facelab.experiment.online.db import (
     Response,
 )
 from facelab.protocol import Protocol, load_protocol
-from facelab.sessionlog import SessionLog, append_jsonl, session_paths
+from facelab.sessionlog import SessionLog, append_jsonl, fsync_dir, session_paths
 
 __all__ = ["export_sessions"]
 
@@ -164,9 +164,11 @@ def _write_protocol_copy(stored: ProtocolFile, *, results: Path) -> Path:
             raise SessionError(f"{path}: not the protocol the sessions ran; move it away")
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".yaml.part")
-    tmp.write_bytes(stored.content)
-    os.replace(tmp, path)
+    with open(path, "xb") as fh:  # never overwrite
+        fh.write(stored.content)
+        fh.flush()
+        os.fsync(fh.fileno())
+    fsync_dir(path.parent)
     return path
 
 
