@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,6 +134,20 @@ def protocol_estimates(data: pd.DataFrame, protocol: Protocol) -> dict[str, floa
     return out
 
 
+def _one_study(
+    study: tuple[Protocol, list[str], np.random.Generator, Mapping[str, float] | None],
+) -> tuple[dict[tuple[str, str], float], dict[str, float]]:
+    """One simulated study of participants ``ids``, analysed: (tests, estimates)."""
+    protocol, ids, study_rng, effects = study
+    log = [
+        row
+        for pid, child in zip(ids, study_rng.spawn(len(ids)), strict=True)
+        for row in simulated_rows(protocol, participant=pid, rng=child, effects=effects)
+    ]
+    data = frame_from_rows(log)
+    return protocol_tests(data, protocol), protocol_estimates(data, protocol)
+
+
 def simulated_power(
     protocol: Protocol,
     *,
@@ -142,11 +157,13 @@ def simulated_power(
     alpha: float = 0.05,
     effects: Mapping[str, float] | None = None,
     progress: Callable[[int, float], None] | None = None,
+    jobs: int = 1,
 ) -> ProtocolSimulation:
     """Power of every test and precision of every estimate of ``protocol`` for each number
     of participants in ``n_values`` (``sims`` simulated studies each, drawn from ``rng``).
     ``effects`` replaces ``simulation.effects``; ``progress(n, seconds)`` is called after
-    each n."""
+    each n. ``jobs`` > 1 runs the studies in that many processes; every study draws from its
+    own generator spawned from ``rng`` beforehand, so the result does not depend on ``jobs``."""
     if sims < 2:
         raise StageError(f"--sims must be at least 2, got {sims}")
     bad = [n for n in n_values if n < 2]
@@ -154,6 +171,8 @@ def simulated_power(
         raise StageError(f"numbers of participants must be 2 or more, got {list(n_values)}")
     if not 0 < alpha < 1:
         raise StageError(f"alpha must lie strictly between 0 and 1, got {alpha}")
+    if jobs < 1:
+        raise StageError(f"--jobs must be at least 1, got {jobs}")
     truth = protocol.simulation.observer.midpoint
     power_rows, precision_rows = [], []
     for n in n_values:
@@ -162,16 +181,16 @@ def simulated_power(
         ids = [f"P{i:0{width}d}" for i in range(1, n + 1)]
         p_values: dict[tuple[str, str], list[float]] = {}
         estimates: dict[str, list[float]] = {}
-        for study_rng in rng.spawn(sims):
-            log = [
-                row
-                for pid, child in zip(ids, study_rng.spawn(n), strict=True)
-                for row in simulated_rows(protocol, participant=pid, rng=child, effects=effects)
-            ]
-            data = frame_from_rows(log)
-            for key, p in protocol_tests(data, protocol).items():
+        studies = [(protocol, ids, study_rng, effects) for study_rng in rng.spawn(sims)]
+        if jobs > 1:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                outcomes = list(pool.map(_one_study, studies, chunksize=max(1, sims // jobs // 4)))
+        else:
+            outcomes = [_one_study(study) for study in studies]
+        for tests, values in outcomes:  # in study order, whatever the number of jobs
+            for key, p in tests.items():
                 p_values.setdefault(key, []).append(p)
-            for key, value in protocol_estimates(data, protocol).items():
+            for key, value in values.items():
                 estimates.setdefault(key, []).append(value)
         if progress is not None:
             progress(n, time.perf_counter() - started)

@@ -244,3 +244,19 @@ def test_simulated_threshold_precision_of_a_forced_choice_protocol(
     assert main(["power", "--simulate", path, "--n", "4", "--sims", "5"]) == 0
     out = capsys.readouterr().out
     assert "precision of the pooled psychometric midpoint" in out and "stronger midpoint" in out
+
+
+def test_simulated_power_does_not_depend_on_the_number_of_processes(tmp_path: Path) -> None:
+    from facelab.experiment.simulated_power import simulated_power
+    from facelab.protocol import load_protocol
+
+    path = tmp_path / "pow.yaml"
+    path.write_text(_TWO_CONDITIONS, encoding="utf-8")
+    protocol = load_protocol(path)
+    one, two = (
+        simulated_power(
+            protocol, n_values=[6, 10], sims=24, rng=np.random.default_rng(5), jobs=jobs
+        ).power
+        for jobs in (1, 2)
+    )
+    assert one.equals(two) and one["power"].between(0, 1).all()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from facelab.errors import FacelabError
@@ -327,7 +328,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
 
     result = simulated_power(
         protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.seed),
-        alpha=args.alpha, effects=effects, progress=progress,
+        alpha=args.alpha, effects=effects, progress=progress, jobs=args.jobs,
     )  # fmt: skip
     table = result.power
     if plot is not None and not table.empty:
@@ -499,6 +500,14 @@ def register(add: AddCommand) -> None:
         metavar="COND=POINTS",
         help="with --simulate: a condition's VAS effect in points, replacing the protocol's "
         "for that condition (repeatable)",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        metavar="J",
+        help="with --simulate: processes to simulate in (default: one per CPU); the result "
+        "does not depend on it",
     )
     p.add_argument(
         "--sims",
