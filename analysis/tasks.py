@@ -193,7 +193,8 @@ def analyze_tasks(
                 id_matrix.append(long.assign(task=task.id))
                 res.confusion.append((task, matrix))
                 if compares_conditions(scored):
-                    by_cond, cond_model = _identification_by_condition(scored, task, protocol, res)
+                    parts = in_protocol_order(scored, protocol)
+                    by_cond, cond_model = _identification_by_condition(scored, parts, task, res)
                     id_by_condition.append(by_cond)
                     if cond_model is not None:
                         id_models.append(cond_model)
@@ -202,7 +203,7 @@ def analyze_tasks(
                             task,
                             {
                                 c: identification.confusion_matrix(part, labels=labels)
-                                for c, part in in_protocol_order(scored, protocol)
+                                for c, part in parts
                             },
                         )
                     )
@@ -247,28 +248,30 @@ def compares_conditions(scored: pd.DataFrame) -> bool:
 
 
 def in_protocol_order(scored: pd.DataFrame, protocol: Protocol) -> list[tuple[str, pd.DataFrame]]:
+    """``(condition, its rows)`` for the conditions present, in the protocol's order."""
     order = [c.id for c in protocol.conditions]
     present = set(scored["condition"])
     return [(c, scored[scored["condition"] == c]) for c in order if c in present]
 
 
 def _identification_by_condition(
-    scored: pd.DataFrame, task: IdentifyTask, protocol: Protocol, res: TaskResults
+    scored: pd.DataFrame,
+    parts: list[tuple[str, pd.DataFrame]],
+    task: IdentifyTask,
+    res: TaskResults,
 ) -> tuple[pd.DataFrame, pd.DataFrame | None]:
-    """Accuracy and kappa per condition (pooled over participants), and the logistic GEE of
-    a right answer on the condition (:func:`identification.correct_model`; None, with a note,
-    when it cannot be fitted)."""
+    """Accuracy and kappa per condition (``parts``: :func:`in_protocol_order` of ``scored``,
+    pooled over participants), and the logistic GEE of a right answer on the condition
+    (:func:`identification.correct_model`; None, with a note, when it cannot be fitted)."""
     labels = [lb.id for lb in task.labels]
     rows = []
-    for c, part in in_protocol_order(scored, protocol):
+    for c, part in parts:
         summary, _ = identification.identification_summary(part, labels=labels, by=())
         rows.append(summary.assign(task=task.id, condition=c))
     table = pd.concat(rows, ignore_index=True)
     table = table[["task", "condition", *identification.SUMMARY_COLUMNS]]
     try:
-        model = identification.correct_model(
-            scored, conditions=[c for c, _ in in_protocol_order(scored, protocol)]
-        )
+        model = identification.correct_model(scored, conditions=[c for c, _ in parts])
     except AnalysisError as exc:
         res.notes.append(f"task {task.id!r}: {exc}")
         return table, None

@@ -59,6 +59,7 @@ __all__ = [
     "ChoiceModel",
     "RatingModel",
     "SimulatedParticipant",
+    "check_effects",
     "condition_effect",
     "simulate_participant",
     "simulate_study",
@@ -383,6 +384,16 @@ def simulated_rows(
     return memory.rows
 
 
+def check_effects(protocol: Protocol, effects: Mapping[str, float] | None) -> None:
+    """Refuse effects (``--effect COND=POINTS``) of conditions the protocol does not have."""
+    unknown = sorted(set(effects or {}) - {c.id for c in protocol.conditions})
+    if unknown:
+        raise StageError(
+            f"--effect {', '.join(unknown)}: no such condition; conditions: "
+            f"{', '.join(c.id for c in protocol.conditions)}"
+        )
+
+
 def simulate_study(
     protocol: Protocol,
     *,
@@ -396,12 +407,7 @@ def simulate_study(
     """Simulate ``participants`` sessions (P01, P02, …). Checks first that none exists."""
     if participants < 1:
         raise StageError(f"--participants must be at least 1, got {participants}")
-    unknown = sorted(set(effects or {}) - {c.id for c in protocol.conditions})
-    if unknown:
-        raise StageError(
-            f"unknown condition(s) in effects: {', '.join(unknown)}; conditions: "
-            f"{', '.join(c.id for c in protocol.conditions)}"
-        )
+    check_effects(protocol, effects)
     width = max(2, len(str(participants)))
     ids = [f"P{i:0{width}d}" for i in range(1, participants + 1)]
     existing = [

@@ -48,7 +48,7 @@ from facelab.analysis.tasks import (
     score_identification,
 )
 from facelab.errors import AnalysisError, StageError
-from facelab.experiment.simulate import simulated_rows
+from facelab.experiment.simulate import check_effects, simulated_rows
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 
 __all__ = [
@@ -173,6 +173,7 @@ def simulated_power(
         raise StageError(f"alpha must lie strictly between 0 and 1, got {alpha}")
     if jobs < 1:
         raise StageError(f"--jobs must be at least 1, got {jobs}")
+    check_effects(protocol, effects)
     truth = protocol.simulation.observer.midpoint
     power_rows, precision_rows = [], []
     for n in n_values:

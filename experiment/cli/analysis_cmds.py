@@ -104,19 +104,17 @@ def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
         tasks.notes.append(f"behaviour covariates: no behaviour logs in {clips}")
         return
     tasks.tables["behaviour_counts"] = counts
-    order = tuple(c.id for c in protocol.conditions)
+    order = tuple(c.id for c in protocol.conditions)  # the models keep those present
     if not vas.empty:
-        present = tuple(c for c in order if c in set(vas["condition"]))
         try:
-            tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=present)
+            tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=order)
         except AnalysisError as exc:  # a secondary table: the report goes on without it
             tasks.notes.append(f"behaviour covariates: {exc}")
     models = []
     for task_id, trials in tasks.identification_trials.items():
-        present = tuple(c for c in order if c in set(trials["condition"]))
-        if len(present) >= 2 and trials["participant"].nunique() >= 2:
+        if trials["condition"].nunique() >= 2 and trials["participant"].nunique() >= 2:
             try:
-                model = identification_covariates(trials, counts, conditions=present)
+                model = identification_covariates(trials, counts, conditions=order)
             except AnalysisError as exc:
                 tasks.notes.append(f"behaviour covariates of task {task_id!r}: {exc}")
                 continue
@@ -310,15 +308,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
         raise FacelabError(f"--power {args.power:g}: a target power lies strictly between 0 and 1")
     plot = output_file(args.plot, option="--plot") if args.plot else None
     protocol = load_protocol(args.simulate)
-    effects = dict(protocol.simulation.effects)
-    given = parse_effects(args.effect) or {}
-    unknown = sorted(set(given) - {c.id for c in protocol.conditions})
-    if unknown:
-        raise FacelabError(
-            f"--effect {unknown[0]}: no such condition; conditions: "
-            f"{', '.join(c.id for c in protocol.conditions)}"
-        )
-    effects.update(given)
+    effects = {**protocol.simulation.effects, **(parse_effects(args.effect) or {})}
     n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
     sims = 200 if args.sims is None else args.sims
 

@@ -99,6 +99,7 @@ def export_sessions(
         raise SessionError(f"--study {study!r} is not the protocol's study {protocol.study.id!r}")
     notes = notes if notes is not None else []
     known: dict[str, Protocol | None] = {}
+    copied: set[str] = set()
     if protocol is not None and protocol_sha256 is not None:
         known[protocol_sha256] = protocol
     out: list[Path] = []
@@ -128,24 +129,26 @@ def export_sessions(
             events = db.scalars(
                 select(Event).where(Event.participant_pk == p.pk).order_by(Event.pk)
             ).all()
-            path = _export_one(p, rows, playback, actions, events, results=results)
-            out.append(path)
-            stored = db.get(ProtocolFile, p.protocol_sha256)
-            if stored is not None:
-                copy = _write_protocol_copy(stored, results=results)
-            if p.protocol_sha256 not in known:
-                known[p.protocol_sha256] = (
-                    _load_copy(copy, notes=notes) if stored is not None else None
-                )
-                if stored is None:
+            log = _export_one(p, rows, playback, actions, events, results=results)
+            out.append(log.paths.tsv)
+            if p.protocol_sha256 not in copied:  # once per protocol version
+                copied.add(p.protocol_sha256)
+                stored = db.get(ProtocolFile, p.protocol_sha256)
+                if stored is not None:
+                    copy = _write_protocol_copy(stored, results=results)
+                    if p.protocol_sha256 not in known:  # --protocol comes first
+                        known[p.protocol_sha256] = _load_copy(copy, notes=notes)
+                elif p.protocol_sha256 not in known:
+                    known[p.protocol_sha256] = None
                     notes.append(
                         f"study {p.study}: the database does not hold protocol "
                         f"{p.protocol_sha256[:12]}… (a database from before the server kept "
                         "protocols): pass --protocol with that file for the staircase records"
                     )
             run = known[p.protocol_sha256]
-            if run is not None:
-                _write_staircases(run, results=results, participant=p)
+            if run is not None and any(b.design == "staircase" for b in run.blocks):
+                # the steps not yet in the file are added; one that disagrees is an error
+                Staircases(run, logged=log.rows, record=log.paths.staircase)
     ran = {p.protocol_sha256 for p in people}
     if protocol_sha256 is not None and protocol_sha256 not in ran:
         notes.append(
@@ -184,20 +187,6 @@ def _load_copy(path: Path, *, notes: list[str]) -> Protocol | None:
         return None
 
 
-def _write_staircases(protocol: Protocol, *, results: Path, participant: Participant) -> None:
-    """The session's staircase record, replayed from its exported rows (only the steps not
-    yet in the file are added; a file that disagrees with the rows is an error)."""
-    if not any(b.design == "staircase" for b in protocol.blocks):
-        return
-    log = SessionLog.resume(
-        results,
-        study=participant.study,
-        participant=participant.participant,
-        session=participant.session,
-    )
-    Staircases(protocol, logged=log.rows, record=log.paths.staircase)
-
-
 def _export_one(
     p: Participant,
     rows: Sequence[Response],
@@ -206,7 +195,7 @@ def _export_one(
     events: Sequence[Event],
     *,
     results: Path,
-) -> Path:
+) -> SessionLog:
     paths = session_paths(results, study=p.study, participant=p.participant, session=p.session)
     provenance = {
         "study": p.study,
@@ -267,4 +256,4 @@ def _export_one(
     )
     if actions:
         _append_new(paths.actions, [a.record for a in actions])
-    return paths.tsv
+    return log
