@@ -19,6 +19,19 @@ the slope of F at its midpoint (per level unit), lambda, the deviance against th
 model with its degrees of freedom, and percentile confidence intervals from a parametric
 bootstrap (data drawn from the fitted function at the observed levels and counts, refitted).
 
+The search is bounded (logistic: the midpoint within two level ranges of the levels tested,
+beta in [1e-3, 1e3] per level range; Weibull: alpha within [min level / 10, 10 x max level],
+beta in [0.1, 50]). Estimates that end on a bound are reported, not hidden, in ``note``:
+
+* perfect separation - the fitted F is on its floor or its ceiling at every level, the
+  answers jumping from chance to ceiling between two adjacent levels: the slope is unbounded
+  and the midpoint anywhere between those levels, so the midpoint and beta CIs are NaN;
+* beta at its lower bound - no trend over the levels: the midpoint is not determined;
+* the midpoint on its bound - it lies outside the levels tested;
+* a CI limit that more than its tail share of the bootstrap refits put on a bound is
+  censored: the lower midpoint limit becomes ``-inf`` (logistic) or 0 (Weibull), the upper
+  ``inf`` - the data say only that it lies beyond the range searched.
+
 Tables in and out are tidy: counts with columns ``level, n, k`` (trials, "yes" answers) -
 :func:`count_responses` makes them from trial rows - and one row per fit out. The reference
 values in ``tests/reference/psychometric_R.json`` come from R - ``glm`` with psyphy's
@@ -76,6 +89,7 @@ class PsychometricFit:
     lapse_ci_low: float = float("nan")
     lapse_ci_high: float = float("nan")
     n_boot: int = 0
+    note: str = ""  # estimates or CI limits on a search bound (see the module docstring)
 
 
 FIT_COLUMNS: tuple[str, ...] = tuple(PsychometricFit.__dataclass_fields__)
@@ -197,31 +211,101 @@ def fit_psychometric(
         n_levels=len(x),
         converged=bool(best.success),
     )
+    bounds = _bounds(x, sigmoid, lapse_bounds)
+    notes, separated = _bound_notes(x, best.x, sigmoid=sigmoid, bounds=bounds)
+    fit = PsychometricFit(**{**asdict(fit), "note": "; ".join(notes)})
     if n_boot <= 0:
         return fit
     if rng is None:
         raise AnalysisError("a bootstrap needs a seeded numpy Generator (rng=)")
     p_hat = predict(x, sigmoid=sigmoid, alpha=alpha, beta=beta, gamma=gamma, lapse=lapse)
     draws = np.empty((n_boot, 3))
+    alphas = np.empty(n_boot)
     for b in range(n_boot):
         kb = rng.binomial(n.astype(int), p_hat).astype(float)
         res = _fit(x, n, kb, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds, start=best.x)
         a_b, lb_b, l_b = res.x
+        alphas[b] = a_b
         draws[b] = (midpoint(sigmoid, a_b, np.exp(lb_b)), np.exp(lb_b), l_b)
-    tail = (1.0 - ci) / 2.0 * 100.0
-    low, high = np.percentile(draws, [tail, 100.0 - tail], axis=0)
+    tail = (1.0 - ci) / 2.0
+    low, high = np.percentile(draws, [100.0 * tail, 100.0 * (1.0 - tail)], axis=0)
+    mid_low, mid_high = float(low[0]), float(high[0])
+    tol = 1e-6 * max(1.0, bounds[0][1] - bounds[0][0])
+    if np.mean(alphas <= bounds[0][0] + tol) > tail:
+        mid_low = -np.inf if sigmoid == "logistic" else 0.0
+        notes.append(
+            f"midpoint CI: its lower limit lies below the range searched ({bounds[0][0]:g})"
+        )
+    if np.mean(alphas >= bounds[0][1] - tol) > tail:
+        mid_high = np.inf
+        notes.append(
+            f"midpoint CI: its upper limit lies above the range searched ({bounds[0][1]:g})"
+        )
+    beta_low, beta_high = float(low[1]), float(high[1])
+    if separated:
+        mid_low = mid_high = beta_low = beta_high = float("nan")
     return PsychometricFit(
         **{
             **asdict(fit),
-            "midpoint_ci_low": float(low[0]),
-            "midpoint_ci_high": float(high[0]),
-            "beta_ci_low": float(low[1]),
-            "beta_ci_high": float(high[1]),
+            "midpoint_ci_low": mid_low,
+            "midpoint_ci_high": mid_high,
+            "beta_ci_low": beta_low,
+            "beta_ci_high": beta_high,
             "lapse_ci_low": float(low[2]),
             "lapse_ci_high": float(high[2]),
             "n_boot": n_boot,
+            "note": "; ".join(notes),
         }
     )
+
+
+def _bounds(
+    x: np.ndarray, sigmoid: str, lapse_bounds: tuple[float, float]
+) -> list[tuple[float, float]]:
+    """Search bounds of (alpha, log beta, lapse)."""
+    span = float(np.ptp(x)) or 1.0
+    if sigmoid == "logistic":
+        alpha_bounds = (float(x.min()) - 2 * span, float(x.max()) + 2 * span)
+        beta_bounds = (float(np.log(1e-3 / span)), float(np.log(1e3 / span)))
+    else:
+        positive = x[x > 0]
+        alpha_bounds = (float(positive.min()) / 10 if len(positive) else 1e-6, float(x.max()) * 10)
+        beta_bounds = (float(np.log(0.1)), float(np.log(50.0)))
+    return [alpha_bounds, beta_bounds, lapse_bounds]
+
+
+def _at_bound(value: np.ndarray | float, bound: tuple[float, float]) -> tuple[bool, bool]:
+    """Whether ``value`` (or any of an array) sits on the low / high end of ``bound``."""
+    tol = 1e-6 * max(1.0, abs(bound[1] - bound[0]))
+    v = np.asarray(value, dtype=float)
+    return bool(np.any(v <= bound[0] + tol)), bool(np.any(v >= bound[1] - tol))
+
+
+def _bound_notes(
+    x: np.ndarray, params: np.ndarray, *, sigmoid: str, bounds: list[tuple[float, float]]
+) -> tuple[list[str], bool]:
+    """Notes on a point estimate that is not determined; True when the answers separate
+    perfectly (F at every level tested is on its floor or its ceiling, with levels on both:
+    the likelihood keeps rising with the slope, so the optimiser stops wherever the gradient
+    has flattened, at its bound or before)."""
+    alpha, log_beta, _ = params
+    notes = []
+    f = SIGMOIDS[sigmoid](x, alpha, np.exp(log_beta))
+    floor, ceiling = f < 0.01, f > 0.99
+    separated = bool(np.all(floor | ceiling) and floor.any() and ceiling.any())
+    if separated:
+        notes.append(
+            f"perfect separation: the answers jump from chance to ceiling between levels "
+            f"{x[floor].max():g} and {x[ceiling].min():g}, so the midpoint is anywhere there "
+            "and the slope unbounded; midpoint and slope CIs not given"
+        )
+    elif _at_bound(log_beta, bounds[1])[0]:
+        notes.append("slope at its lower bound: no trend over the levels, midpoint undetermined")
+    alpha_low, alpha_high = _at_bound(alpha, bounds[0])
+    if (alpha_low or alpha_high) and not separated:
+        side = "below" if alpha_low else "above"
+        notes.append(f"midpoint on the search bound, {side} the levels tested")
+    return notes, separated
 
 
 def _fit(
@@ -234,15 +318,7 @@ def _fit(
     lapse_bounds: tuple[float, float],
     start: np.ndarray | None = None,
 ) -> optimize.OptimizeResult:
-    span = float(np.ptp(x)) or 1.0
-    if sigmoid == "logistic":
-        alpha_bounds = (float(x.min()) - 2 * span, float(x.max()) + 2 * span)
-        beta_bounds = (np.log(1e-3 / span), np.log(1e3 / span))
-    else:
-        positive = x[x > 0]
-        alpha_bounds = (float(positive.min()) / 10 if len(positive) else 1e-6, float(x.max()) * 10)
-        beta_bounds = (np.log(0.1), np.log(50.0))
-    bounds = [alpha_bounds, beta_bounds, lapse_bounds]
+    bounds = _bounds(x, sigmoid, lapse_bounds)
     starts = [start] if start is not None else _starts(x, sigmoid, lapse_bounds)
     best = None
     for s0 in starts:
@@ -294,9 +370,10 @@ def fit_table(
                     rng=rng,
                 )
             )
-        except AnalysisError:
+        except AnalysisError as exc:
             fit = {c: float("nan") for c in FIT_COLUMNS}
             fit.update(sigmoid=sigmoid, gamma=gamma, converged=False, n_boot=0)
+            fit.update(note=str(exc))
             fit.update(n_trials=int(part["n"].sum()), n_levels=len(part))
         rows.append({**dict(zip(by, key, strict=True)), **fit})
     return pd.DataFrame(rows, columns=[*by, *FIT_COLUMNS])

@@ -47,6 +47,8 @@ def _fmt(value: object) -> str:
 
 
 def _html_table(frame: pd.DataFrame) -> str:
+    if len(frame.columns) == 0:  # e.g. the items of a protocol without VAS items
+        return ""
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
     body = "".join(
         "<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
@@ -56,6 +58,8 @@ def _html_table(frame: pd.DataFrame) -> str:
 
 
 def _md_table(frame: pd.DataFrame) -> str:
+    if len(frame.columns) == 0:
+        return ""
     lines = ["| " + " | ".join(map(str, frame.columns)) + " |", "|" + "---|" * len(frame.columns)]
     lines += [
         "| " + " | ".join(_fmt(v).replace("|", "/") for v in row) + " |"
@@ -373,6 +377,8 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
             "deviance",
             "deviance_df",
         ]
+        if pooled["note"].fillna("").astype(str).ne("").any():
+            cols.append("note")
         out.append(("Psychometric fits (pooled)", pooled[cols]))
     for name in (
         "staircase_thresholds",

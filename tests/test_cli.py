@@ -158,3 +158,22 @@ def test_shipped_protocols_are_listed_and_copied(
     assert "exists" in capsys.readouterr().err
     assert main(["protocols", "--copy", "nope", "--to", str(tmp_path)]) == 2
     assert "no shipped protocol 'nope'" in capsys.readouterr().err
+    # the name may also come first, as the README writes it
+    other = tmp_path / "other"
+    assert main(["protocols", "gain_vas", "--to", str(other)]) == 0
+    assert (other / "gain_vas.yaml").is_file()
+    assert main(["protocols", "gain_vas", "--copy", "kato2021", "--to", str(other)]) == 2
+    assert "disagree" in capsys.readouterr().err
+
+
+def test_clip_progress_draws_nothing_into_logs(capsys: pytest.CaptureFixture[str]) -> None:
+    from facelab.experiment.cli.common import ClipProgress
+
+    progress = ClipProgress(quiet=False)  # stderr is captured here, not a terminal
+    for name in ("a", "b"):
+        tick = progress(name, 3)
+        for _ in range(3):
+            tick()
+    progress.close()
+    captured = capsys.readouterr()
+    assert captured.err == "" and captured.out == ""

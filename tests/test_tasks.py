@@ -218,6 +218,35 @@ def test_fit_recovers_known_observer_within_its_ci():
     assert fit.lapse_ci_low <= truth["lapse"] <= fit.lapse_ci_high
 
 
+def test_fit_reports_perfect_separation_instead_of_a_zero_width_ci():
+    # chance at the two low levels, ceiling from 1.0 on: the likelihood is flat for any
+    # midpoint between 0.75 and 1.0 and grows without end with the slope
+    counts = pd.DataFrame(
+        {"level": [0.25, 0.5, 0.75, 1.0, 1.5], "n": [8] * 5, "k": [4, 4, 4, 8, 8]}
+    )
+    fit = psychometric.fit_psychometric(counts, gamma=0.5, n_boot=40, rng=np.random.default_rng(0))
+    assert "perfect separation" in fit.note and "between levels 0.75 and 1" in fit.note
+    assert 0.75 <= fit.midpoint <= 1.0
+    assert np.isnan(fit.midpoint_ci_low) and np.isnan(fit.midpoint_ci_high)
+    assert np.isnan(fit.beta_ci_low) and np.isnan(fit.beta_ci_high)
+
+
+def test_fit_marks_ci_limits_censored_by_the_search_range():
+    # a shallow, noisy observer: many bootstrap refits put the midpoint far below the levels
+    counts = pd.DataFrame({"level": [0.25, 0.5, 0.75, 1.0], "n": [10] * 4, "k": [7, 6, 8, 9]})
+    fit = psychometric.fit_psychometric(counts, gamma=0.5, n_boot=200, rng=np.random.default_rng(1))
+    assert fit.midpoint_ci_low == -np.inf
+    assert "lower limit lies below the range searched (-1.25)" in fit.note
+    assert np.isfinite(fit.midpoint)
+    # a well-measured observer has finite limits and no note
+    levels = np.linspace(0.0, 1.0, 6)
+    p = psychometric.predict(levels, sigmoid="logistic", alpha=0.5, beta=12.0, gamma=0.5, lapse=0)
+    good = pd.DataFrame({"level": levels, "n": 200, "k": np.round(200 * p).astype(int)})
+    fit = psychometric.fit_psychometric(good, gamma=0.5, n_boot=100, rng=np.random.default_rng(2))
+    assert np.isfinite([fit.midpoint_ci_low, fit.midpoint_ci_high]).all()
+    assert fit.note == ""
+
+
 def test_psychometric_refuses_bad_input():
     from facelab.errors import AnalysisError
 

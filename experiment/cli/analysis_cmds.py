@@ -137,6 +137,8 @@ def _print_tasks(tasks: object) -> None:
                 f"slope {r.beta:.3g}, lapse {r.lapse:.3f}, deviance {r.deviance:.2f} "
                 f"(df {r.deviance_df})"
             )
+        for r in fits[fits["note"].fillna("").astype(str) != ""].itertuples():
+            print(f"  {r.task:>12} {r.participant}: {r.note}")
     stairs = tables.get("staircase_thresholds")
     if stairs is not None:
         for (block, estimate), part in stairs.groupby(["block", "estimate"], sort=False):

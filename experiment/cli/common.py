@@ -101,3 +101,34 @@ def parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
                 f"--effect {pair!r}: expected CONDITION=POINTS, e.g. standard=15"
             ) from None
     return effects
+
+
+class ClipProgress:
+    """Frame progress for clips rendered one after another: one tqdm bar at a time on a
+    terminal (a clip's bar closes when the next clip starts), nothing when ``quiet`` or when
+    stderr is not a terminal (logs and pipes get the per-clip lines instead of escape codes).
+
+    Pass the instance as a build's ``progress`` callback; call :meth:`close` at the end.
+    """
+
+    def __init__(self, *, quiet: bool, prefix: str = "") -> None:
+        import sys
+
+        self._enabled = not quiet and sys.stderr.isatty()
+        self._prefix = prefix
+        self._bar = None
+
+    def __call__(self, name: str, total: int) -> Callable[[], None]:
+        self.close()
+        if not self._enabled:
+            return lambda: None
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=(self._prefix + name)[:40], unit="frame", leave=False)
+        self._bar = bar
+        return lambda: bar.update(1)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

@@ -5,23 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from facelab.experiment.cli.common import AddCommand, output_dir, parse_size
+from facelab.experiment.cli.common import AddCommand, ClipProgress, output_dir, parse_size
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from facelab.experiment.demo import DEFAULT_PROTOCOL, run_demo
 
     size = parse_size(args.size)
-    bars: list[tqdm] = []
-
-    def progress(name: str, total: int):
-        bar = tqdm(
-            total=total, desc=f"render {name[:34]}", unit="frame", leave=False, disable=args.quiet
-        )
-        bars.append(bar)
-        return lambda: bar.update(1)
+    progress = ClipProgress(quiet=args.quiet, prefix="render ")
 
     try:
         run_demo(
@@ -34,8 +25,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             progress=progress,
         )
     finally:
-        for bar in bars:
-            bar.close()
+        progress.close()
     return 0
 
 

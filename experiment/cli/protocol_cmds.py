@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from facelab.errors import FacelabError
 from facelab.experiment.cli.common import AddCommand, output_dir, output_file
 
 
@@ -60,8 +61,13 @@ def _cmd_protocols(args: argparse.Namespace) -> int:
     from facelab.protocol import load_protocol
     from facelab.resources import copy_protocol, shipped_protocols
 
-    if args.copy:
-        written = copy_protocol(args.copy, output_dir(args.to, option="--to"), force=args.force)
+    if args.name and args.copy and args.name != args.copy:
+        raise FacelabError(
+            f"protocols: NAME {args.name!r} and --copy {args.copy!r} disagree; give one"
+        )
+    name = args.name or args.copy
+    if name:
+        written = copy_protocol(name, output_dir(args.to, option="--to"), force=args.force)
         for path in written:
             print(f"wrote {path}")
         print(f"edit {written[0]}, then: facelab validate {written[0]}", file=sys.stderr)
@@ -92,6 +98,9 @@ def register(add: AddCommand) -> None:
         "list the protocols shipped with facelab, or copy one out for editing",
         _cmd_protocols,
     )
-    p.add_argument("--copy", metavar="NAME", help="copy the shipped protocol NAME (and its files)")
+    p.add_argument(
+        "name", nargs="?", metavar="NAME", help="copy the shipped protocol NAME (and its files)"
+    )
+    p.add_argument("--copy", metavar="NAME", help="the same as NAME")
     p.add_argument("--to", default=".", metavar="DIR", help="folder to copy into (default .)")
     p.add_argument("--force", action="store_true", help="replace files that exist")

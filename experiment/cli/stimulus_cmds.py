@@ -6,7 +6,13 @@ import argparse
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size
+from facelab.experiment.cli.common import (
+    AddCommand,
+    ClipProgress,
+    output_dir,
+    output_file,
+    parse_size,
+)
 
 
 def _render_overrides(args: argparse.Namespace, protocol):
@@ -26,8 +32,6 @@ def _render_overrides(args: argparse.Namespace, protocol):
 def _cmd_render(args: argparse.Namespace) -> int:
     import time
 
-    from tqdm import tqdm
-
     from facelab.protocol import load_protocol
     from facelab.stimuli.build import build_clips, contact_sheets, plan
 
@@ -37,29 +41,24 @@ def _cmd_render(args: argparse.Namespace) -> int:
         option="--out",
     )
     settings = _render_overrides(args, protocol)
-    bars: list[tqdm] = []
-
-    def progress(name: str, total: int):
-        bar = tqdm(total=total, desc=name[:40], unit="frame", leave=False, disable=args.quiet)
-        bars.append(bar)
-        return lambda: bar.update(1)
-
+    progress = ClipProgress(quiet=args.quiet)
     t0 = time.perf_counter()
     print(
         f"rendering {len(plan(protocol))} clips of {protocol.study.id!r} at {settings.width}x"
         f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out}"
     )
-    rows = build_clips(
-        protocol,
-        protocol_path=Path(args.protocol),
-        out=out,
-        settings=settings,
-        fps=args.fps,
-        progress=progress,
-        log=(lambda s: None) if args.quiet else print,
-    )
-    for bar in bars:
-        bar.close()
+    try:
+        rows = build_clips(
+            protocol,
+            protocol_path=Path(args.protocol),
+            out=out,
+            settings=settings,
+            fps=args.fps,
+            progress=progress,
+            log=(lambda s: None) if args.quiet else print,
+        )
+    finally:
+        progress.close()
     fresh = sum(r["status"] == "rendered" for r in rows)
     print(
         f"{len(rows)} clips ({fresh} rendered, {len(rows) - fresh} unchanged and reused) listed in "
