@@ -49,9 +49,11 @@ def read_annotations(path: Path | str) -> pd.DataFrame:
     if path.suffix.lower() == ".eaf":
         table = _read_eaf(path)
     else:
+        import csv
+
         try:
             table = pd.read_csv(path, sep=None, engine="python", encoding="utf-8")
-        except (OSError, ValueError, pd.errors.ParserError) as exc:
+        except (OSError, ValueError, pd.errors.ParserError, csv.Error) as exc:
             raise BehaviourError(f"{path}: not readable as a CSV table ({exc})") from None
     return check_annotations(table, source=str(path))
 

@@ -45,6 +45,7 @@ import numpy as np
 from facelab.errors import StageError
 from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
 from facelab.stimuli.zmatrix import load_z
+from facelab.textfiles import read_text
 
 __all__ = [
     "DIRECTION_METHODS",
@@ -105,10 +106,7 @@ def read_arkit_samples(path: Path) -> ExpressionSamples:
     exporter spelling of the ARKit names). A row with expression ``neutral`` gives that
     person's neutral face; without one the rest pose (zeros) is the neutral."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise StageError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    text = read_text(path)
     rows = list(csv.DictReader(text.splitlines()))
     if not rows:
         raise StageError(f"{path}: no rows")
@@ -180,10 +178,7 @@ def samples_from_captures(index: Path, *, window_s: float = 0.1, fps: float = 60
     from facelab.stimuli.measure_z import read_capture
 
     index = Path(index)
-    try:
-        rows = list(csv.DictReader(index.read_text(encoding="utf-8-sig").splitlines()))
-    except OSError as exc:
-        raise StageError(f"{index}: cannot read ({exc.strerror or exc})") from None
+    rows = list(csv.DictReader(read_text(index).splitlines()))
     if not rows or not {"person", "expression", "capture", "time_s"} <= set(rows[0]):
         raise StageError(
             f"{index}: expected columns person, expression, <labels...>, capture, time_s"
@@ -268,10 +263,7 @@ def read_vertex_samples(index: Path) -> ExpressionSamples:
     expression, all with one topology; each person needs a ``neutral`` row (displacements are
     measured from it). ``file`` is relative to the index's folder."""
     index = Path(index)
-    try:
-        text = index.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise StageError(f"{index}: cannot read ({exc.strerror or exc})") from None
+    text = read_text(index)
     rows = list(csv.DictReader(text.splitlines()))
     if not rows or not {"person", "expression", "file"} <= set(rows[0]):
         raise StageError(f"{index}: expected columns person, expression, <labels...>, file")

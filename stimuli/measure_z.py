@@ -30,6 +30,7 @@ import numpy as np
 from facelab.errors import StageError
 from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
 from facelab.stimuli.visemes import VOWELS
+from facelab.textfiles import read_text
 
 __all__ = [
     "Capture",
@@ -117,11 +118,7 @@ def read_capture(path: Path | str, *, fps: float = 60.0) -> Capture:
 def read_onsets(path: Path | str) -> list[dict]:
     """Onsets CSV rows: capture (file name or stem), vowel (a/i/u/e/o), onset_s, [speaker]."""
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
-    except OSError as exc:
-        raise StageError(f"{path}: {exc}") from None
+    rows = list(csv.DictReader(read_text(path).splitlines()))
     out = []
     for n, row in enumerate(rows, start=2):
         try:

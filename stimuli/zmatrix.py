@@ -12,6 +12,7 @@ from facelab.methods import BUILTIN_Z
 from facelab.resources import package_file
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.visemes import VOWELS
+from facelab.textfiles import read_text
 
 __all__ = ["DATA", "load_z"]
 
@@ -22,11 +23,7 @@ def load_z(z: str, *, base_dir: Path = Path(".")) -> np.ndarray:
     """A Z matrix (52, 5): a shipped name (standard, emphasized) or a CSV path with a
     ``blendshape`` column of ARKit names and columns a, i, u, e, o in [0, 1]."""
     path = DATA / f"z_{z}.csv" if z in BUILTIN_Z else base_dir / z
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
-    except OSError as exc:
-        raise StageError(f"cannot read Z matrix {path}: {exc}") from None
+    rows = list(csv.DictReader(read_text(path, what="Z matrix").splitlines()))
     if not rows or set(rows[0]) != {"blendshape", *VOWELS}:
         raise StageError(f"{path}: expected columns blendshape, a, i, u, e, o")
     by_name = {r["blendshape"]: r for r in rows}

@@ -177,3 +177,33 @@ def test_clip_progress_draws_nothing_into_logs(capsys: pytest.CaptureFixture[str
     progress.close()
     captured = capsys.readouterr()
     assert captured.err == "" and captured.out == ""
+
+
+def test_user_tables_that_are_not_utf8_or_empty_get_clear_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(b"person,expression\n\xff\xfe,x\n")
+    empty = tmp_path / "empty.csv"
+    empty.write_bytes(b"")
+    for argv in (
+        ["impression", "fit", str(latin), "--label", "x", "--out", str(tmp_path / "m.json")],
+        ["impression", "samples", str(latin), "--out", str(tmp_path / "s.csv")],
+        ["measure-z", str(latin), "--vowels", "aiueo", "--out", str(tmp_path / "z.csv")],
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "latin.csv" in err and ("UTF-8" in err or "utf-8" in err), err
+    assert main(["behaviour", "fit", str(empty), "--out", str(tmp_path / "l.json")]) == 2
+    assert "empty.csv: not readable as a CSV table" in capsys.readouterr().err
+    assert main(["bench", "render", "--runs", "0"]) == 2
+    assert "--runs 0" in capsys.readouterr().err
+
+
+def test_export_names_a_database_it_cannot_reach(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = "postgresql+psycopg://nobody@127.0.0.1:1/none"
+    assert main(["export", "--db", url, "--results", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "cannot connect" in err and "127.0.0.1" in err and "Traceback" not in err

@@ -148,6 +148,9 @@ def _cmd_measure_z(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import json
 
+    if args.runs < 1:
+        raise FacelabError(f"--runs {args.runs}: expected 1 or more timing runs")
+
     if args.what == "analyze":
         from facelab.experiment.bench import bench_analyze
         from facelab.resources import protocol_path

@@ -222,9 +222,18 @@ def upgrade(engine: Engine) -> None:
 
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS))
+    from sqlalchemy.exc import DBAPIError
+
     try:
-        with engine.begin() as connection:
+        connection = engine.connect()
+    except DBAPIError as exc:  # no server, wrong password, no such database…
+        reason = " ".join(line.strip() for line in str(getattr(exc, "orig", exc)).splitlines())
+        raise SessionError(f"database {engine.url!r}: cannot connect ({reason})") from None
+    try:
+        with connection.begin():
             cfg.attributes["connection"] = connection
             command.upgrade(cfg, "head")
     except Exception as exc:
         raise SessionError(f"database {engine.url!r}: cannot migrate it ({exc})") from None
+    finally:
+        connection.close()
