@@ -207,3 +207,14 @@ def test_export_names_a_database_it_cannot_reach(
     assert main(["export", "--db", url, "--results", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "cannot connect" in err and "127.0.0.1" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("value", ["-1", "2.5", str(2**63)])
+def test_seeds_are_checked_before_anything_runs(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str
+) -> None:
+    argv = ["simulate", str(kato_path), "--participants", "1", "--seed", value]
+    with pytest.raises(SystemExit) as info:
+        main([*argv, "--results", str(tmp_path)])
+    assert info.value.code == 2 and "--seed" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

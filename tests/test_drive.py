@@ -88,7 +88,7 @@ def test_custom_z_files(tmp_path: Path) -> None:
     (tmp_path / "bad.csv").write_text("blendshape,a,i,u,e,o\njawOpen,1,2,3,4,5\n")
     with pytest.raises(StageError, match="missing ARKit rows"):
         load_z("bad.csv", base_dir=tmp_path)
-    with pytest.raises(StageError, match="Z matrix .*none.csv: cannot read"):
+    with pytest.raises(StageError, match=r"Z matrix .*none\.csv: cannot read"):
         load_z("none.csv", base_dir=tmp_path)
 
 

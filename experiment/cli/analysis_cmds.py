@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_effects
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_effects, seed
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
@@ -425,7 +425,7 @@ def register(add: AddCommand) -> None:
         help="parametric-bootstrap resamples for psychometric CIs (default 200; 0: none)",
     )
     p.add_argument(
-        "--seed", type=int, default=1, help="seed of the bootstrap generator (default 1)"
+        "--seed", type=seed, default=1, help="seed of the bootstrap generator (default 1)"
     )
     p.add_argument(
         "--accept-protocol-change",
@@ -508,5 +508,5 @@ def register(add: AddCommand) -> None:
         help="Monte Carlo runs: of the formula check (default 4000), or per n with "
         "--simulate (default 200)",
     )
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=seed, default=1)
     p.add_argument("--json", action="store_true", help="print JSON")

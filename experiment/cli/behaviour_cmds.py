@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size, seed
 
 __all__ = ["register"]
 
@@ -254,7 +254,7 @@ def register(add: AddCommand) -> None:
         help="plan: the protocol of --stimulus (default: the shipped hattori_behaviour)",
     )  # fmt: skip
     p.add_argument("--duration-s", type=float, metavar="S", help="plan/render/synth: seconds")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=seed, default=1)
     p.add_argument(
         "--mode", choices=["gestures_only", "composite"], default="composite",
         help="plan: the layers planned from the emotion",

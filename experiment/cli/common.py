@@ -23,6 +23,17 @@ Handler = Callable[[argparse.Namespace], int]
 AddCommand = Callable[[str, str, Handler], argparse.ArgumentParser]
 
 
+def seed(value: str) -> int:
+    """``--seed S``: an integer 0 <= S < 2**63, as the protocol's ``seed`` (argparse type)."""
+    try:
+        number = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {value!r}") from None
+    if not 0 <= number < 2**63:
+        raise argparse.ArgumentTypeError(f"seeds are whole numbers 0..2**63-1, got {value}")
+    return number
+
+
 def parse_size(text: str | None) -> tuple[int, int] | None:
     """``WIDTHxHEIGHT`` -> (width, height); even numbers >= 64 (H.264 needs even sizes)."""
     if not text:

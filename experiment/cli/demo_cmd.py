@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from facelab.experiment.cli.common import AddCommand, ClipProgress, output_dir, parse_size
+from facelab.experiment.cli.common import AddCommand, ClipProgress, output_dir, parse_size, seed
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -44,7 +44,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("--participants", type=int, default=8, metavar="N")
     p.add_argument(
-        "--seed", type=int, default=2021, metavar="S", help="seed of the simulated ratings"
+        "--seed", type=seed, default=2021, metavar="S", help="seed of the simulated ratings"
     )
     p.add_argument(
         "--size", metavar="WxH", help="override the resolution (e.g. 320x180 for a quick run)"

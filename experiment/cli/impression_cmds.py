@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size, seed
 
 __all__ = ["register"]
 
@@ -198,6 +198,6 @@ def register(add: AddCommand) -> None:
     p.add_argument("--ease", choices=["sigmoid", "linear", "smoothstep"], default="sigmoid")
     p.add_argument("--k-ease", type=float, default=5.0, help="render: sigmoid steepness (eq. 4)")
     p.add_argument("--people", type=int, default=40, help="synth: people")
-    p.add_argument("--seed", type=int, default=1, help="synth: random seed")
+    p.add_argument("--seed", type=seed, default=1, help="synth: random seed")
     p.add_argument("--out", metavar="PATH", help="fit: MODEL.json; render: DIR; synth: SAMPLES.csv")
     p.add_argument("--force", action="store_true", help="overwrite --out (fit, synth)")

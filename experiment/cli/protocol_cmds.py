@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file
+from facelab.experiment.cli.common import AddCommand, output_dir, output_file, seed
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -86,7 +86,7 @@ def register(add: AddCommand) -> None:
     p = add("design", "print a participant's ordered trial list as CSV", _cmd_design)
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--participant", required=True, metavar="ID", help="participant id, e.g. P01")
-    p.add_argument("--seed", type=int, metavar="N", help="study seed instead of the protocol's")
+    p.add_argument("--seed", type=seed, metavar="N", help="study seed instead of the protocol's")
     p.add_argument("--out", metavar="FILE", help="write the CSV to FILE instead of stdout")
     p.add_argument("--force", action="store_true", help="replace FILE if it exists")
 

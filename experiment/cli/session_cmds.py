@@ -11,6 +11,7 @@ from facelab.experiment.cli.common import (
     parse_effects,
     parse_session,
     parse_size,
+    seed,
 )
 
 
@@ -105,7 +106,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--participants", type=int, default=8, metavar="N")
-    p.add_argument("--seed", type=int, required=True, metavar="S", help="seed of the ratings")
+    p.add_argument("--seed", type=seed, required=True, metavar="S", help="seed of the ratings")
     p.add_argument(
         "--effect",
         action="append",
