@@ -240,6 +240,21 @@ def test_all_problems_are_reported_at_once(tmp_path: Path, kato_text: str) -> No
     assert all(i.line for i in info.value.issues)
 
 
+def test_numbers_yaml_reads_as_text_get_a_hint(tmp_path: Path, kato_text: str) -> None:
+    # YAML 1.1 reads 1e9 (no decimal point) and anything quoted as strings
+    text = kato_text.replace("  pad_s: 0.3", "  pad_s: 3e-1").replace("  fps: 30", "  fps: '30'")
+    path = tmp_path / "text_numbers.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    messages = {i.dotted(): i.message for i in info.value.issues}
+    assert (
+        "write it with a decimal point and a signed exponent (3.0e-1)"
+        in messages["rendering.pad_s"]
+    )
+    assert "a number in quotes is text: remove the quotes" in messages["rendering.fps"]
+
+
 def test_missing_file_and_non_mapping(tmp_path: Path) -> None:
     with pytest.raises(ProtocolError, match="file not found"):
         load_protocol(tmp_path / "nope.yaml")
