@@ -93,6 +93,20 @@ def test_power_from_pilot_logs(
     assert out.count("pilot F") == 4 and "mouth_shape/sentences" in out
 
 
+def test_pilot_power_points_forced_choice_studies_to_simulation(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from facelab.resources import protocol_path
+
+    proto = str(protocol_path("gain_2afc"))
+    argv = ["simulate", proto, "--participants", "3", "--seed", "1", "--results", str(tmp_path)]
+    assert main(argv) == 0
+    capsys.readouterr()
+    assert main(["power", "--pilot", str(tmp_path), "--protocol", proto]) == 2
+    err = capsys.readouterr().err
+    assert "no VAS ratings" in err and "facelab power --simulate" in err
+
+
 @pytest.mark.parametrize("p", [0.0, 1.0, 1.5, -0.1])
 def test_reported_p_outside_0_1_is_refused(p: float, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["power", "--reported-p", str(p)]) == 2

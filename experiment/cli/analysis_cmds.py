@@ -210,6 +210,20 @@ def _cmd_power(args: argparse.Namespace) -> int:
                 if not sub.empty:
                     rows.append({"label": f"{item.id}/{sset.id}", **power.f2_from_pilot(sub)})
         assumptions = "effect sizes from pilot data (participant means, bias-corrected)"
+        tasks = ", ".join(t.id for t in protocol.tasks)
+        simulate_hint = (
+            f"for its forced-choice and identification tasks ({tasks}) put the pilot's effects "
+            f"in the protocol's simulation section and run: facelab power --simulate "
+            f"{args.protocol}"
+        )
+        if not rows:
+            raise FacelabError(
+                f"--pilot {args.pilot}: no VAS ratings (study {protocol.study.id!r}); --pilot "
+                "powers the repeated-measures ANOVA of VAS ratings"
+                + (f"; {simulate_hint}" if tasks else "")
+            )
+        if tasks:
+            assumptions += f"; VAS items only - {simulate_hint}"
     elif args.reported_p is not None:
         bad = [p for p in args.reported_p if not 0 < p < 1]
         if bad:
