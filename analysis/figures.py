@@ -221,21 +221,24 @@ def staircase_figure(
         fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=150, layout="constrained")
         ids = list(dict.fromkeys(track["participant"]))
         if len(ids) <= max_lines:
-            for pid in ids:
+            for k, pid in enumerate(ids):
                 one = track[track["participant"] == pid]
-                ax.step(one["step"], one["level"], where="mid", color="0.7", lw=0.8, zorder=1)
+                ax.step(one["step"], one["level"], where="mid", color="0.7", lw=0.8, zorder=1,
+                        label="a participant's levels" if k == 0 else None)  # fmt: skip
                 if len(ids) <= max_markers:
                     right = one[one["correct"] == 1]
                     wrong = one[one["correct"] == 0]
-                    ax.scatter(right["step"], right["level"], s=14, color="0.35", zorder=2)
+                    ax.scatter(right["step"], right["level"], s=14, color="0.35", zorder=2,
+                               label="correct" if k == 0 else None)  # fmt: skip
                     ax.scatter(
                         wrong["step"], wrong["level"], s=14, facecolor="white",
-                        edgecolor="0.35", zorder=2,
+                        edgecolor="0.35", zorder=2, label="wrong" if k == 0 else None,
                     )  # fmt: skip
                     rev = one[one["reversal"]]
                     ax.scatter(
                         rev["step"], rev["level"], s=60, facecolor="none",
                         edgecolor="#c0504d", lw=1.0, zorder=3,
+                        label="reversal" if k == 0 else None,
                     )  # fmt: skip
         else:
             band = track.groupby("step")["level"].quantile([0.1, 0.9]).unstack()
@@ -256,7 +259,8 @@ def staircase_figure(
         ax.set_xlabel("trial of the staircase" + (f"\n{caption}" if caption else ""), fontsize=9)
         ax.set_ylabel(ylabel)
         ax.set_title(title, fontsize=10)
-        ax.legend(fontsize=7, loc="best", frameon=False)
+        # below the figure: inside the axes it lay across the tracks wherever it went
+        fig.legend(fontsize=7, loc="outside lower center", ncol=3, frameon=False)
         ax.spines[["top", "right"]].set_visible(False)
         return fig
 

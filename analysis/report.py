@@ -419,7 +419,7 @@ def _task_figures(
             thresholds,
             title=f"{_text(task.question, language)} (block {block_id})",
             ylabel="level shown",
-            caption=f"rule: {thresholds['rule'].iloc[0]}; red rings: reversals{tag}",
+            caption=f"rule: {thresholds['rule'].iloc[0]}{tag}",
         )
         paths = figures.save(fig, out / f"fig_staircase_{block_id}")
         blocks.append((f"staircase: {block_id}", paths[0]))
