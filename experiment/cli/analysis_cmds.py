@@ -163,9 +163,13 @@ def _print_tasks(tasks: object) -> None:
     model = tables.get("identification_condition_model")
     if model is not None:
         for r in model[model["term"].str.startswith("C(")].itertuples():
+            # C(condition)[T.composite] with note "reference: gestures_only; ..."
+            level = r.term.split("[T.", 1)[-1].rstrip("]")
+            reference = r.note.split(";")[0].removeprefix("reference: ")
             print(
-                f"  {r.task:>12} {r.term} ({r.note.split(';')[0]}): odds ratio "
-                f"{r.odds_ratio:.2f} [{r.or_ci_low:.2f}, {r.or_ci_high:.2f}], p = {r.p:.4f}"
+                f"  {r.task:>12} correct in {level} vs {reference}: odds ratio "
+                f"{r.odds_ratio:.2f} [{r.or_ci_low:.2f}, {r.or_ci_high:.2f}], "
+                f"t({r.df:g}) = {r.t:.2f}, p = {r.p:.4f}"
             )
     trend = tables.get("trend_contrast")
     if trend is not None:
