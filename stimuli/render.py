@@ -63,7 +63,8 @@ class RenderSettings:
     background: tuple[float, float, float] = (0.5, 0.5, 0.5)
     msaa: int = 1  # 4 looks smoother but costs ~2x real time at 720p on a 2-core CPU (llvmpipe)
     target_m: tuple[float, float, float] | None = None
-    zoom: float = 1.0  # divides the automatic distance (contact sheets come closer)
+    zoom: float = 1.0  # divides the automatic distance (contact sheets come closer; from 1.5
+    # on, an avatar without face landmarks is framed on the vertices its shapes move)
 
 
 #: camera distance for the default head, and that head's height from chin to crown (m)
@@ -218,12 +219,33 @@ class Renderer:
                 [(lo[0] + hi[0]) / 2, lo[1] + 0.52 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2]
             )
             head_height = float(hi[1] - lo[1])
+            face = self._face_vertices() if s.zoom >= 1.5 and s.distance_m is None else None
+            if face is not None:  # a close-up without landmarks: frame what the shapes move
+                flo, fhi = face.min(axis=0), face.max(axis=0)
+                centre = np.array([(flo[0] + fhi[0]) / 2, (flo[1] + fhi[1]) / 2, centre[2]])
+                fit = 1.15 * max(fhi[1] - flo[1], (fhi[0] - flo[0]) * s.height / s.width)
+                zoomed = DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M
+                return centre, float(
+                    max(zoomed / s.zoom, fit / (2 * np.tan(np.radians(s.fov_deg) / 2)))
+                )
         distance = (
             s.distance_m
             if s.distance_m is not None
             else DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M / s.zoom
         )
         return centre, float(distance)
+
+    def _face_vertices(self) -> np.ndarray | None:
+        """Rest vertices that the avatar's shapes move (the face: mouth, jaw, lids, brows,
+        cheeks), or None when fewer than 10 move."""
+        a = self.avatar
+        if not a.targets:
+            return None
+        moved = np.zeros(len(a.neutral), bool)
+        scale = float(np.ptp(a.neutral, axis=0).max()) or 1.0
+        for delta in a.targets.values():
+            moved |= np.abs(delta).max(axis=1) > 1e-4 * scale
+        return a.neutral[moved] if moved.sum() >= 10 else None
 
     def _head_vertices(self) -> np.ndarray:
         """Rest vertices of the head: those skinned to the head joint, else a mesh named like

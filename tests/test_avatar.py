@@ -229,3 +229,26 @@ def test_bad_avatar_files(tmp_path: Path, content: bytes, message: str) -> None:
     (tmp_path / "x.obj").write_text("v 0 0 0")
     with pytest.raises(AvatarError, match=r"expected a \.gltf or \.glb"):
         load(tmp_path / "x.obj")
+
+
+@pytest.mark.parametrize("kind", ["rpm", "skinned", "vrm1"])
+def test_close_ups_of_avatars_without_landmarks_frame_the_moving_face(
+    tmp_path: Path, kind: str
+) -> None:
+    """Contact-sheet close-ups (zoom 1.9) of a user's avatar show every vertex its shapes
+    move - the stand-ins' mouths sit low on the head, below a crop around the head's centre."""
+    from facelab.stimuli.render import Renderer, RenderSettings
+    from facelab.stimuli.sample_avatars import write_sample
+
+    avatar = load(write_sample(tmp_path / f"{kind}.glb", kind=kind))
+    assert "upper_lip" not in avatar.landmarks
+    settings = RenderSettings(width=420, height=420, zoom=1.9)
+    renderer = Renderer(avatar, settings)  # framing only: no GL context is opened
+    centre, distance = renderer._face_centre, renderer._distance
+    moved = np.zeros(len(avatar.neutral), bool)
+    for delta in avatar.targets.values():
+        moved |= np.abs(delta).max(axis=1) > 1e-5
+    face = avatar.neutral[moved]
+    half = distance * np.tan(np.radians(settings.fov_deg) / 2)  # visible half-height at centre
+    assert np.abs(face[:, 1] - centre[1]).max() < half
+    assert np.abs(face[:, 0] - centre[0]).max() < half
