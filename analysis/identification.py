@@ -12,7 +12,7 @@ Cohen's kappa is agreement beyond chance between the portrayed and the chosen la
 Whether a condition changes how often the portrayed label is named (e.g. composite vs
 gesture-only behaviour, seed 003) is :func:`correct_model`: a logistic GEE of "answer was
 right" on the condition (and covariates), clustered by participant, with small-sample
-inference (bias-reduced sandwich, t tests) - checked against R's geepack
+inference (Kauermann-Carroll bias-corrected sandwich, t tests) - checked against R's geepack
 (tests/reference/identification.R).
 """
 
@@ -49,6 +49,7 @@ MODEL_COLUMNS = (
     "or_ci_low",
     "or_ci_high",
     "se_robust",
+    "se_md",
     "n_obs",
     "n_participants",
     "correlation",
@@ -159,16 +160,22 @@ def correct_model(
     Inference is made for the small numbers of participants perception studies have: the
     plain sandwich SE (``se_robust``) is biased down with few clusters - simulated with the
     shipped behaviour protocol and no true difference, its Wald z test rejected in 15 % of
-    studies with 4 participants, 10 % with 8 and 8 % with 16 - so ``se`` is the
-    Mancl-DeRouen bias-reduced sandwich and ``t = estimate / se`` is referred to Student's
-    t with ``df = participants - parameters`` (rejection rates 1 %, 2 % and 4 %: valid,
-    conservative with very few participants; ``facelab power --simulate`` measures both
-    for any protocol). ``odds_ratio`` and its 95 % CI are exp(estimate +- t_.975(df) se).
+    studies with 4 participants, 10 % with 8 and 8 % with 16. ``se`` is the Kauermann-Carroll
+    bias-corrected sandwich (each participant's whitened residuals scaled by
+    ``(I - H_i)^-1/2``, H_i the participant's leverage) and ``t = estimate / se`` is referred
+    to Student's t with ``df = participants - parameters``. In 1,000 simulated studies per n
+    with no true difference (accuracy 0.45 in both conditions) it rejected in 2.2 %, 3.3 % and
+    4.5 % at n = 4, 8, 16 - valid, and with more power than the Mancl-DeRouen correction
+    (``se_md``, ``(I - H_i)^-1``: 1.5 %, 2.4 %, 3.7 %; power against 0.35 vs 0.55 at n = 8:
+    0.63 vs 0.58). ``facelab power --simulate`` measures both for any protocol. When every
+    participant answered alike in every condition the SE is zero and the estimate zero:
+    ``t = 0``, ``p = 1``. ``odds_ratio`` and its 95 % CI are exp(estimate +- t_.975(df) se).
 
     Checked: estimates, ``se_robust`` and the correlation match R
     ``geepack::geeglm(..., family = binomial, corstr = "exchangeable")`` to 1e-6
-    (tests/reference/identification.R); ``se`` matches an independent implementation of
-    Mancl & DeRouen (2001), Biometrics 57:126-134, in the tests.
+    (tests/reference/identification.R); ``se_md`` matches an independent implementation of
+    Mancl & DeRouen (2001), Biometrics 57:126-134, and ``se`` one of Kauermann & Carroll
+    (2001), JASA 96:1387-1396, in the tests.
 
     ``trials``: one row per answer with ``correct`` (0/1 or bool), ``condition``, ``subject``
     and the covariate columns. Returns one row per model term (:data:`MODEL_COLUMNS`)."""
@@ -213,10 +220,15 @@ def correct_model(
             ).fit(ddof_scale=0, ctol=1e-10, maxiter=200, cov_type="bias_reduced")
             se_md = np.sqrt(np.diag(fit.cov_robust_bc))
             se_robust = np.sqrt(np.diag(fit.cov_robust))
+            rho = float(np.atleast_1d(fit.cov_struct.dep_params)[0])
+            se_kc = _kauermann_carroll_se(
+                fit.model.exog, fit.model.endog, fit.model.groups,
+                beta=fit.params.to_numpy(), rho=rho,
+            )  # fmt: skip
         except (ValueError, TypeError, np.linalg.LinAlgError) as exc:
             raise AnalysisError(f"the condition model failed ({exc})") from None
     params = fit.params.to_numpy()
-    if not (np.all(np.isfinite(params)) and np.all(np.isfinite(se_md))):
+    if not (np.all(np.isfinite(params)) and np.all(np.isfinite(se_kc))):
         raise AnalysisError(
             f"the condition model did not converge ({formula.replace('_y', correct)})"
         )
@@ -227,12 +239,14 @@ def correct_model(
             f"the condition model has {len(params)} parameters and {n_participants} "
             "participants: it needs more participants than parameters"
         )
-    rho = float(np.atleast_1d(fit.cov_struct.dep_params)[0])
     t_crit = float(sps.t.ppf(0.975, df))
     rows = []
     for i, term in enumerate(fit.params.index):
-        est, se = float(params[i]), float(se_md[i])
-        t = est / se if se > 0 else float("nan")
+        est, se = float(params[i]), float(se_kc[i])
+        tiny = 1e-8 * (1.0 + abs(est))
+        # no variation at all: a zero estimate tests as 0 (not 0/0); otherwise unknown
+        zero_se = 0.0 if abs(est) <= tiny else float("nan")
+        t = est / se if se > tiny else zero_se
         rows.append(
             {
                 "term": term.replace("C(_c)", f"C({condition})"),
@@ -240,11 +254,12 @@ def correct_model(
                 "se": se,
                 "t": t,
                 "df": df,
-                "p": float(2 * sps.t.sf(abs(t), df)) if se > 0 else float("nan"),
+                "p": float(2 * sps.t.sf(abs(t), df)),
                 "odds_ratio": float(np.exp(est)),
                 "or_ci_low": float(np.exp(est - t_crit * se)),
                 "or_ci_high": float(np.exp(est + t_crit * se)),
                 "se_robust": float(se_robust[i]),
+                "se_md": float(se_md[i]),
                 "n_obs": len(data),
                 "n_participants": n_participants,
                 "correlation": rho,
@@ -252,3 +267,35 @@ def correct_model(
             }
         )
     return pd.DataFrame(rows, columns=list(MODEL_COLUMNS))
+
+
+def _kauermann_carroll_se(
+    x: np.ndarray, y: np.ndarray, groups: np.ndarray, *, beta: np.ndarray, rho: float
+) -> np.ndarray:
+    """Kauermann-Carroll bias-corrected sandwich SEs (P,) of a logistic GEE with exchangeable
+    working correlation ``rho`` at ``beta``; ``x`` (N, P), ``y`` (N,), ``groups`` (N,).
+
+    In whitened form per participant i (``W_i = R^-1/2 A_i^-1/2``, A_i = diag(mu (1 - mu))):
+    ``D~_i = W_i A_i X_i``, ``r~_i = W_i (y_i - mu_i)``, ``B = sum D~_i' D~_i``,
+    ``H~_i = D~_i B^-1 D~_i'`` (symmetric), ``U_i = D~_i' (I - H~_i)^-1/2 r~_i`` and
+    ``cov = B^-1 (sum U_i U_i') B^-1``. The exponent -1 instead of -1/2 gives Mancl-DeRouen
+    (statsmodels' ``cov_robust_bc``); 0 the plain sandwich.
+    """
+    whitened = []
+    for g in dict.fromkeys(groups):
+        rows = groups == g
+        xi, yi = x[rows], y[rows]
+        mu = 1.0 / (1.0 + np.exp(-(xi @ beta)))
+        a = mu * (1.0 - mu)
+        m = len(yi)
+        corr = np.full((m, m), rho) + (1.0 - rho) * np.eye(m)
+        w, q = np.linalg.eigh(corr)
+        white = ((q / np.sqrt(w)) @ q.T) / np.sqrt(a)[None, :]
+        whitened.append((white @ (a[:, None] * xi), white @ (yi - mu)))
+    b_inv = np.linalg.inv(sum(d.T @ d for d, _ in whitened))
+    meat = np.zeros_like(b_inv)
+    for d, r in whitened:
+        w, q = np.linalg.eigh(np.eye(len(r)) - d @ b_inv @ d.T)
+        u = d.T @ ((q * np.clip(w, 1e-12, None) ** -0.5) @ q.T @ r)
+        meat += np.outer(u, u)
+    return np.sqrt(np.clip(np.diag(b_inv @ meat @ b_inv), 0.0, None))

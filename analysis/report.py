@@ -343,7 +343,8 @@ _TASK_HEADINGS = {
     "confusion_matrix": "Identification: confusion counts (portrayed x answered)",
     "identification_by_condition": "Identification: accuracy and Cohen's kappa per condition",
     "identification_condition_model": "Identification: logistic GEE of a right answer on the "
-    "condition (exchangeable within participant; bias-reduced SEs, t tests with participants "
+    "condition (exchangeable within participant; Kauermann-Carroll bias-corrected SEs, t tests "
+    "with participants "
     "- parameters df; odds ratios against the first condition)",
     "identification_covariates": "Identification with behaviour counts as covariates "
     "(logistic GEE, odds ratios)",

@@ -98,13 +98,12 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
             continue
         present = [c for c, _ in in_protocol_order(scored, protocol)]
         try:
-            model = identification.correct_model(scored, conditions=present)
+            p_of = identification.correct_model(scored, conditions=present).set_index("term")["p"]
         except AnalysisError:
-            for c in present[1:]:
-                out[(f"{task.id} C(condition)[T.{c}]", "identification")] = float("nan")
-            continue
-        for r in model[model["term"].str.startswith("C(")].itertuples():
-            out[(f"{task.id} {r.term}", "identification")] = float(r.p)
+            p_of = pd.Series(dtype=float)
+        for c in present[1:]:
+            p = p_of.get(f"C(condition)[T.{c}]", float("nan"))
+            out[(f"{task.id}: {c} vs {present[0]}", "identification")] = float(p)
     graded_vas = graded_ratings(data, protocol)
     if not graded_vas.empty:
         trend = graded.trend_contrast(graded_vas, by=("item", "stimulus_set"))

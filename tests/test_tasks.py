@@ -116,18 +116,26 @@ def test_condition_model_matches_geepack():
             assert got.loc[term, "estimate"] == pytest.approx(values["estimate"], rel=1e-6)
             assert got.loc[term, "se_robust"] == pytest.approx(values["se"], rel=1e-6)
         assert got["correlation"].iloc[0] == pytest.approx(ref[key]["correlation"], rel=1e-6)
-        # the bias-reduced SE, by the formula of Mancl & DeRouen (2001) written out here
+        # the bias-corrected SEs, by the formulas of Kauermann & Carroll (2001) and Mancl &
+        # DeRouen (2001) written out here (unwhitened, scipy's matrix power)
         x = np.column_stack(
             [np.ones(len(data))]
             + [(data["condition"] == c).to_numpy(float) for c in order[1:]]
             + [data[c].to_numpy(float) for c in covariates]
         )
-        se = _mancl_derouen_se(
-            x, data["correct"].to_numpy(float), data["participant"].to_numpy(),
-            beta=got["estimate"].to_numpy(), rho=got["correlation"].iloc[0],
-        )  # fmt: skip
-        np.testing.assert_allclose(got["se"].to_numpy(), se, rtol=1e-6)
-        assert (got["se"] > got["se_robust"]).all()  # the correction widens
+        args = (x, data["correct"].to_numpy(float), data["participant"].to_numpy())
+        kw = {"beta": got["estimate"].to_numpy(), "rho": got["correlation"].iloc[0]}
+        np.testing.assert_allclose(
+            got["se"], _bias_corrected_se(*args, **kw, power=-0.5), rtol=1e-6
+        )
+        np.testing.assert_allclose(
+            got["se_md"], _bias_corrected_se(*args, **kw, power=-1), rtol=1e-6
+        )
+        np.testing.assert_allclose(
+            got["se_robust"], _bias_corrected_se(*args, **kw, power=0), rtol=1e-6
+        )
+        # each correction widens, Mancl-DeRouen more
+        assert (got["se_robust"] < got["se"]).all() and (got["se"] < got["se_md"]).all()
         assert (got["df"] == 18 - len(got)).all()
         composite = got.loc["C(condition)[T.composite]"]
         assert composite["odds_ratio"] == pytest.approx(np.exp(composite["estimate"]))
@@ -135,13 +143,21 @@ def test_condition_model_matches_geepack():
         assert got["note"].iloc[0].startswith("reference: none")
 
 
-def _mancl_derouen_se(
-    x: np.ndarray, y: np.ndarray, cluster: np.ndarray, *, beta: np.ndarray, rho: float
+def _bias_corrected_se(
+    x: np.ndarray,
+    y: np.ndarray,
+    cluster: np.ndarray,
+    *,
+    beta: np.ndarray,
+    rho: float,
+    power: float,
 ) -> np.ndarray:
     """SEs of a logistic GEE with exchangeable correlation ``rho`` at ``beta``:
-    B^-1 (sum_i D_i' V_i^-1 (I - H_i)^-1 r_i r_i' (I - H_i)^-T V_i^-1 D_i) B^-1, with
+    B^-1 (sum_i D_i' V_i^-1 (I - H_i)^p r_i r_i' (I - H_i)^p' V_i^-1 D_i) B^-1, with
     D_i = A_i X_i, V_i = A_i^1/2 R A_i^1/2, A_i = diag(mu (1 - mu)), H_i = D_i B^-1 D_i' V_i^-1,
-    B = sum_i D_i' V_i^-1 D_i."""
+    B = sum_i D_i' V_i^-1 D_i; p = -1/2 Kauermann-Carroll, -1 Mancl-DeRouen, 0 plain."""
+    from scipy.linalg import fractional_matrix_power
+
     parts = []
     for c in dict.fromkeys(cluster):
         xi, yi = x[cluster == c], y[cluster == c]
@@ -155,7 +171,7 @@ def _mancl_derouen_se(
     meat = 0
     for d, vi, r in parts:
         h = d @ b_inv @ d.T @ vi
-        u = d.T @ vi @ np.linalg.solve(np.eye(len(r)) - h, r)
+        u = d.T @ vi @ np.real(fractional_matrix_power(np.eye(len(r)) - h, power)) @ r
         meat = meat + np.outer(u, u)
     return np.sqrt(np.diag(b_inv @ meat @ b_inv))
 
@@ -559,3 +575,19 @@ def test_an_identification_staircase_is_analysed(tmp_path):
     assert list(thresholds["trials"]) == [12, 12, 12]
     assert len(res.tables["staircase_tracks"]) == 36 and len(res.staircases) == 1
     assert "identification_summary" in res.tables
+
+
+def test_condition_model_with_identical_answers_in_both_conditions_tests_as_no_difference():
+    # every participant answered alike in both conditions: estimate 0 and SE 0, so t is 0/0;
+    # it is reported as t = 0, p = 1 (not a random p from rounding noise)
+    rows = []
+    for k, right in enumerate([3, 5, 6, 8]):
+        for cond in ("a", "b"):
+            rows += [
+                {"participant": f"P{k}", "condition": cond, "correct": int(i < right)}
+                for i in range(12)
+            ]
+    got = identification.correct_model(pd.DataFrame(rows), conditions=["a", "b"])
+    term = got.set_index("term").loc["C(condition)[T.b]"]
+    assert abs(term["estimate"]) < 1e-8 and term["se"] < 1e-8
+    assert term["t"] == 0.0 and term["p"] == 1.0
