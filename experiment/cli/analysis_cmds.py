@@ -137,8 +137,9 @@ def _print_tasks(tasks: object) -> None:
                 f"slope {r.beta:.3g}, lapse {r.lapse:.3f}, deviance {r.deviance:.2f} "
                 f"(df {r.deviance_df})"
             )
-        for r in fits[fits["note"].fillna("").astype(str) != ""].itertuples():
-            print(f"  {r.task:>12} {r.participant}: {r.note}")
+        noted = fits[fits["note"].fillna("").astype(str) != ""]
+        for (task, note), part in noted.groupby(["task", "note"], sort=False):
+            print(f"  {task:>12} {', '.join(map(str, part['participant']))}: {note}")
     stairs = tables.get("staircase_thresholds")
     if stairs is not None:
         for (block, estimate), part in stairs.groupby(["block", "estimate"], sort=False):
@@ -176,7 +177,7 @@ def _print_tasks(tasks: object) -> None:
         for r in trend.itertuples():
             print(
                 f"  {r.item:>12} / {r.stimulus_set:<10} linear trend: slope {r.slope:.3g} "
-                f"per level, F(1,{r.df}) = {r.F:.3f}, p = {r.p:.4f}"
+                f"per level unit, F(1,{r.df}) = {r.F:.3f}, p = {r.p:.4f}"
             )
     lmm = tables.get("graded_lmm")
     if lmm is not None:
