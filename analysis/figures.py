@@ -185,14 +185,18 @@ def psychometric_figure(
             alpha=0.75,
             zorder=4,
             edgecolor="white",
-            label="pooled proportion (area ~ n)",
+            label=f"pooled proportion (area ~ n, largest {int(counts['n'].max())} trials)",
         )
         ax.axhline(gamma, color="0.5", lw=0.8, ls=":", zorder=0)
         ax.set_ylim(-0.03 if gamma == 0 else gamma - 0.08, 1.03)
         ax.set_xlabel(xlabel + (f"\n{caption}" if caption else ""), fontsize=9)
         ax.set_ylabel(ylabel)
         ax.set_title(title, fontsize=10)
-        ax.legend(fontsize=7, loc="lower right", frameon=False)
+        # below the plot, with a marker of legend size (a data-sized one covered the text)
+        legend = fig.legend(fontsize=7, loc="outside lower center", ncol=3, frameon=False)
+        for handle in legend.legend_handles:
+            if hasattr(handle, "set_sizes"):
+                handle.set_sizes([60.0])
         ax.spines[["top", "right"]].set_visible(False)
         return fig
 
