@@ -12,10 +12,13 @@ __all__ = ["BEHAVIOUR_MODES", "EMOTIONS", "check_emotion", "check_emotion_keys",
 EMOTIONS: tuple[str, ...] = ("anger", "fear", "joy", "sadness", "disgust", "surprise", "neutral")
 
 #: Condition-level behaviour settings (besides a path to a custom library):
-#: ``none`` - no behaviour layer; ``gestures_only`` - the seed's comparison condition:
-#: gestures (and blinks) follow the emotion, postures and mannerisms stay neutral;
-#: ``composite`` - every layer follows the emotion.
-BEHAVIOUR_MODES: tuple[str, ...] = ("none", "gestures_only", "composite")
+#: ``none`` - no behaviour layer; ``gestures_only`` - the seed's comparison condition
+#: ("姿勢、しぐさは変化せずにジェスチャの変化のみ"): gestures and blinks follow the emotion,
+#: postures and mannerisms do not change (none is planned; the head keeps its rest posture);
+#: ``neutral_composite`` - a control with the same kinds of motion as ``composite``: every
+#: layer is planned, postures and mannerisms for a neutral character, gestures and blinks
+#: from the emotion; ``composite`` - every layer follows the emotion.
+BEHAVIOUR_MODES: tuple[str, ...] = ("none", "gestures_only", "neutral_composite", "composite")
 
 
 def check_emotion(values: dict[str, float]) -> dict[str, float]:

@@ -29,6 +29,8 @@ def layers_for(mode: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     if mode == "none":
         return (), ()
     if mode == "gestures_only":  # the seed's comparison: postures and mannerisms unchanged
+        return tuple(layer for layer in LAYERS if layer not in ("posture", "mannerism")), ()
+    if mode == "neutral_composite":  # same kinds of motion, only gestures and blinks emotional
         return LAYERS, ("posture", "mannerism")
     return LAYERS, ()
 

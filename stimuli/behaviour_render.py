@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import BehaviourError
 from facelab.stimuli.behaviour import behaviour_for_clip
 from facelab.stimuli.behaviour_library import ROTATIONS, Library, Unit, default_library
@@ -62,8 +63,8 @@ def render_behaviour_clips(
     from facelab.stimuli.plots import plan_timeline_figure
 
     for m in modes:
-        if m not in ("none", "gestures_only", "composite"):
-            raise BehaviourError(f"mode {m!r}: use none, gestures_only or composite")
+        if m not in BEHAVIOUR_MODES:
+            raise BehaviourError(f"mode {m!r}: use {', '.join(BEHAVIOUR_MODES)}")
     speech = synthesize(text, sample_rate=48_000)
     if speech.duration_s + lead_s > duration_s:
         raise BehaviourError(

@@ -320,18 +320,29 @@ def test_blinks_at_human_rates() -> None:
     assert curve is not None and curve.phase("relax") < 0.5  # fast close, slow reopen
 
 
-def test_gesture_only_condition_is_yoked_with_composite() -> None:
+def test_behaviour_modes_are_yoked_with_composite() -> None:
+    from facelab.stimuli.behaviour import layers_for
+
     lib = default_library()
     emo = EmotionTimeline.constant({"anger": 0.8})
-    comp = plan_behaviour(lib, emotion=emo, duration_s=10, seed=9, cues=_cues())
-    gest = plan_behaviour(
-        lib, emotion=emo, duration_s=10, seed=9, cues=_cues(),
-        neutral_layers=("posture", "mannerism"),
-    )  # fmt: skip
+
+    def plan(mode: str):
+        layers, neutral = layers_for(mode)
+        return plan_behaviour(
+            lib, emotion=emo, duration_s=10, seed=9, cues=_cues(), layers=layers,
+            neutral_layers=neutral,
+        )  # fmt: skip
+
+    comp, gest, control = plan("composite"), plan("gestures_only"), plan("neutral_composite")
     blinks = [(e.start_s, e.end_s) for e in comp.events if e.layer == "blink"]
-    assert blinks == [(e.start_s, e.end_s) for e in gest.events if e.layer == "blink"]
-    postures = {e.unit for e in gest.events if e.layer == "posture"}
-    assert "chin_up" not in postures and "chin_up" in {e.unit for e in comp.events}
+    for other in (gest, control):
+        assert blinks == [(e.start_s, e.end_s) for e in other.events if e.layer == "blink"]
+    # the seed's gesture-only condition: postures and mannerisms do not change at all
+    assert {e.layer for e in gest.events} <= {"gesture", "blink"}
+    assert any(e.layer == "gesture" for e in gest.events)
+    # the control plans them, for a neutral character
+    postures = {e.unit for e in control.events if e.layer == "posture"}
+    assert postures and "chin_up" not in postures and "chin_up" in {e.unit for e in comp.events}
 
 
 def test_bml_export_is_xml_with_sync_points() -> None:

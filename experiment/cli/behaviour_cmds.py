@@ -256,12 +256,14 @@ def register(add: AddCommand) -> None:
     p.add_argument("--duration-s", type=float, metavar="S", help="plan/render/synth: seconds")
     p.add_argument("--seed", type=seed, default=1)
     p.add_argument(
-        "--mode", choices=["gestures_only", "composite"], default="composite",
+        "--mode", choices=["gestures_only", "neutral_composite", "composite"],
+        default="composite",
         help="plan: the layers planned from the emotion",
     )  # fmt: skip
     p.add_argument(
         "--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",
-        help="render: behaviour modes per emotion (none gestures_only composite)",
+        help="render: behaviour modes per emotion (none gestures_only neutral_composite "
+        "composite)",
     )  # fmt: skip
     p.add_argument("--lead-s", type=float, default=0.5, help="plan/render: silence before speech")
     p.add_argument("--bml", metavar="XML", help="plan: also write BML 1.0")
