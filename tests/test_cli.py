@@ -218,3 +218,16 @@ def test_seeds_are_checked_before_anything_runs(
         main([*argv, "--results", str(tmp_path)])
     assert info.value.code == 2 and "--seed" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_a_missing_optional_dependency_names_the_extra(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pygltflib", None)  # import now raises ModuleNotFoundError
+    for name in [m for m in sys.modules if m.startswith("facelab.stimuli")]:
+        monkeypatch.delitem(sys.modules, name)
+    code = main(["avatar", "sample", "--kind", "rpm", "--out", str(tmp_path / "a.glb")])
+    err = capsys.readouterr().err
+    assert code == 3 and "'pygltflib'" in err and "pip install 'facelab[stimuli]'" in err

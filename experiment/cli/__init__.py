@@ -78,6 +78,18 @@ def _raise_terminated(signum: int, _frame: object) -> None:
     raise Terminated(signum)
 
 
+#: top-level import names of the optional dependencies -> the extra that installs them
+_EXTRA_OF = {
+    **dict.fromkeys(["pyopenjtalk", "pygltflib", "soundfile", "sklearn", "pympi"], "stimuli"),
+    **dict.fromkeys(["pyrender", "trimesh", "OpenGL"], "render"),
+    "psychopy": "runner",
+    **dict.fromkeys(
+        ["fastapi", "uvicorn", "sqlalchemy", "alembic", "psycopg", "selenium", "httpx"], "online"
+    ),
+    "pylipsync": "bench",
+}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -100,6 +112,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `facelab design ... | head`
         sys.stderr.close()
         return 0
+    except ModuleNotFoundError as exc:
+        extra = _EXTRA_OF.get((exc.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(
+            f"facelab {args.command}: error: this needs {exc.name!r}, from facelab's "
+            f"{extra!r} extra, which is not installed: pip install 'facelab[{extra}]' (or "
+            "'facelab[all]'; scripts/setup.sh installs everything)",
+            file=sys.stderr,
+        )
+        return 3
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
