@@ -231,12 +231,12 @@ def fit_psychometric(
     low, high = np.percentile(draws, [100.0 * tail, 100.0 * (1.0 - tail)], axis=0)
     mid_low, mid_high = float(low[0]), float(high[0])
     tol = 1e-6 * max(1.0, bounds[0][1] - bounds[0][0])
-    if np.mean(alphas <= bounds[0][0] + tol) > tail:
+    if not separated and np.mean(alphas <= bounds[0][0] + tol) > tail:
         mid_low = -np.inf if sigmoid == "logistic" else 0.0
         notes.append(
             f"midpoint CI: its lower limit lies below the range searched ({bounds[0][0]:g})"
         )
-    if np.mean(alphas >= bounds[0][1] - tol) > tail:
+    if not separated and np.mean(alphas >= bounds[0][1] - tol) > tail:
         mid_high = np.inf
         notes.append(
             f"midpoint CI: its upper limit lies above the range searched ({bounds[0][1]:g})"
