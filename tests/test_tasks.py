@@ -245,6 +245,7 @@ def test_fit_reports_perfect_separation_instead_of_a_zero_width_ci():
     assert 0.75 <= fit.midpoint <= 1.0
     assert np.isnan(fit.midpoint_ci_low) and np.isnan(fit.midpoint_ci_high)
     assert np.isnan(fit.beta_ci_low) and np.isnan(fit.beta_ci_high)
+    assert "range searched" not in fit.note  # no CI, so no note on its limits
 
 
 def test_fit_marks_ci_limits_censored_by_the_search_range():
