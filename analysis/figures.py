@@ -10,7 +10,7 @@ without one, figures fall back to English labels rather than draw empty boxes.
 from __future__ import annotations
 
 import textwrap
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -145,9 +145,12 @@ def psychometric_figure(
     gamma: float,
     caption: str = "",
     max_lines: int = 40,
+    undetermined: Collection[str] = (),
 ) -> Figure:
     """Pooled proportions at each level (area proportional to n) with the pooled fit, and up
-    to ``max_lines`` participants' fitted curves in grey (beyond that, their 10-90 % band).
+    to ``max_lines`` participants' fitted curves in grey (beyond that, their 10-90 % band);
+    the participants in ``undetermined`` (fits the data do not determine, e.g. perfect
+    separation) dashed.
 
     Parameters
     ----------
@@ -162,7 +165,9 @@ def psychometric_figure(
         if len(ids) <= max_lines:
             for pid in ids:
                 one = people[people["participant"] == pid]
-                ax.plot(one["level"], one["p"], color="0.7", lw=0.8, zorder=1)
+                dashed = str(pid) in {str(u) for u in undetermined}
+                ax.plot(one["level"], one["p"], color="0.7", lw=0.8, zorder=1,
+                        ls="--" if dashed else "-")  # fmt: skip
         elif ids:
             band = people.groupby("level")["p"].quantile([0.1, 0.9]).unstack()
             ax.fill_between(

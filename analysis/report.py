@@ -402,7 +402,13 @@ def _task_figures(
 ) -> list[tuple[str, Path]]:
     blocks: list[tuple[str, Path]] = []
     tag = "  SIMULATED DATA" if simulated else ""
+    fits = tasks.tables.get("psychometric_fits")
     for task, counts, curves, gamma in tasks.psychometric:
+        undetermined: list[str] = []
+        if fits is not None:
+            mine = fits[(fits["task"] == task.id) & (fits["participant"] != "pooled")]
+            separated = mine["note"].fillna("").astype(str).str.contains("perfect separation")
+            undetermined = [str(p) for p in mine.loc[separated, "participant"]]
         fig = figures.psychometric_figure(
             counts,
             curves,
@@ -410,8 +416,12 @@ def _task_figures(
             xlabel="level of the comparison",
             ylabel="P(correct)" if task.correct == "comparison" else "P(comparison chosen)",
             gamma=gamma,
-            caption=f"standard: {task.standard}; grey: participants' fits{tag}",
-        )
+            caption=f"standard: {task.standard}; grey: participants' fits"
+            + ("\ndashed: perfect separation (slope and midpoint not determined)"
+               if undetermined else "")
+            + tag,
+            undetermined=undetermined,
+        )  # fmt: skip
         paths = figures.save(fig, out / f"fig_psychometric_{task.id}")
         blocks.append((f"psychometric: {task.id}", paths[0]))
     for task, block_id, track, thresholds in tasks.staircases:
