@@ -73,9 +73,11 @@ def _numeric(data: pd.DataFrame, dv: str) -> pd.Series:
 def screen_covariates(
     data: pd.DataFrame, covariates: Sequence[str], *, condition: str
 ) -> tuple[list[str], list[str]]:
-    """(usable, dropped notes): a covariate is dropped when it is constant, or when it is
-    fixed by the condition (no variation within any condition: collinear with the condition
-    terms, so it adds nothing to a model that has them)."""
+    """(usable, notes): a covariate is dropped when it is constant, or when it is fixed by
+    the condition (no variation within any condition: collinear with the condition terms, so
+    it adds nothing to a model that has them). A covariate kept that is constant within some
+    conditions (e.g. no postures at all in a gesture-only condition) is named too: its slope
+    comes from the other conditions, and the condition effect is read at its value there."""
     used, dropped = [], []
     for c in covariates:
         if data[c].nunique() < 2:
@@ -86,6 +88,10 @@ def screen_covariates(
             dropped.append(f"{c} fixed by condition")
             continue
         used.append(c)
+        per = data.groupby(condition, observed=True)[c]
+        flat = [f"{k} ({v:g})" for k, v in per.first().items() if per.nunique()[k] == 1]
+        if flat:
+            dropped.append(f"{c} constant within {', '.join(flat)}")
     return used, dropped
 
 

@@ -168,3 +168,19 @@ def test_friedman_needs_three_levels() -> None:
         stats.friedman(two, dv="rating", within="condition", subject="participant")
     rm = stats.rm_anova(two, dv="rating", within="condition", subject="participant")
     assert rm.w_mauchly[0] == 1.0 and rm.eps_gg[0] == 1.0  # sphericity is trivial with 2 levels
+
+
+def test_covariates_constant_within_a_condition_are_kept_and_named() -> None:
+    from facelab.analysis.stats import screen_covariates
+
+    data = pd.DataFrame(
+        {
+            "condition": ["a"] * 4 + ["b"] * 4,
+            "n_posture": [0, 0, 0, 0, 1, 2, 2, 3],  # none in the gesture-only condition
+            "n_tag": [0, 0, 0, 0, 1, 1, 1, 1],  # marks the condition only
+            "n_blink": [3, 4, 3, 5, 4, 3, 5, 4],
+        }
+    )
+    used, notes = screen_covariates(data, ["n_posture", "n_tag", "n_blink"], condition="condition")
+    assert used == ["n_posture", "n_blink"]
+    assert notes == ["n_posture constant within a (0)", "n_tag fixed by condition"]
