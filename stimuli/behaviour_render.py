@@ -10,7 +10,6 @@ while listening); for each emotion and behaviour mode the plan is made with the 
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from facelab.stimuli.behaviour_plan import SpeechCues, blend_pose, complete_emot
 from facelab.stimuli.behaviour_realise import BehaviourFrames, apply_to_weights, curve_values
 from facelab.stimuli.clip import encode, frame_weights
 from facelab.stimuli.drive import DriveInput, drive
+from facelab.stimuli.manifest import write_manifest
 from facelab.stimuli.mesh import Avatar
 from facelab.stimuli.render import Renderer, RenderSettings
 from facelab.stimuli.speech import Speech, synthesize
@@ -57,7 +57,8 @@ def render_behaviour_clips(
     base_dir: Path = Path("."),
     log=print,
 ) -> list[dict]:
-    """Render every (emotion, mode) clip; returns the rows of ``out/clips.csv``."""
+    """Render every (emotion, mode) clip; returns their rows of ``out/clips.csv`` (which keeps
+    the rows of other clips rendered earlier into ``out``)."""
     import matplotlib.pyplot as plt
 
     from facelab.stimuli.plots import plan_timeline_figure
@@ -129,10 +130,8 @@ def render_behaviour_clips(
                     }
                 )  # fmt: skip
                 log(f"  rendered {clip_id}: {json.dumps(beh.plan.counts()) if beh else 'none'}")
-    with open(out / "clips.csv", "w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(BEHAVIOUR_CLIP_COLUMNS), lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(rows)
+    for note in write_manifest(out, rows, columns=BEHAVIOUR_CLIP_COLUMNS, merge=True):
+        log(note)
     return rows
 
 

@@ -199,6 +199,7 @@ def bench_render(
                 )
                 walls.append(time.perf_counter() - t0)
                 stages.append(r.times.as_dict())
+            result["msaa_effective"] = r.samples
             wall = statistics.median(walls)
             render_ms = {k: round(statistics.median(s[k] for s in stages), 2) for k in stages[0]}
             per_frame = 1000 * wall / n

@@ -13,7 +13,6 @@ The clip list and each clip's spec hash (checked by ``facelab run``) are in
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 from collections.abc import Callable
@@ -37,6 +36,7 @@ from facelab.stimuli.clip import (
 )
 from facelab.stimuli.clipspec import CLIP_COLUMNS, RENDER_VERSION, ClipJob, clip_spec_hash, plan
 from facelab.stimuli.drive import BlendshapeTrack, DriveInput, drive, vowel_presets
+from facelab.stimuli.manifest import write_manifest
 from facelab.stimuli.prepare import speech_for, tracks_for
 from facelab.stimuli.render import Renderer, RenderSettings
 from facelab.stimuli.speech import Speech
@@ -296,14 +296,7 @@ def build_clips(
     finally:
         if renderer is not None:
             renderer.__exit__(None, None, None)
-    tmp = out / "clips.csv.tmp"
-    with open(tmp, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(
-            fh, fieldnames=list(CLIP_COLUMNS), lineterminator="\n", extrasaction="ignore"
-        )
-        writer.writeheader()
-        writer.writerows(rows)
-    tmp.replace(out / "clips.csv")
+    write_manifest(out, rows, columns=CLIP_COLUMNS)
     return rows
 
 

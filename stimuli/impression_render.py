@@ -9,7 +9,6 @@ name carries the level, ``<expression>__q<level>.mp4``.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from facelab.errors import StageError
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.clip import encode
 from facelab.stimuli.impression import ImpressionModel, envelope
+from facelab.stimuli.manifest import write_manifest
 from facelab.stimuli.mesh import Avatar
 from facelab.stimuli.render import Renderer, RenderSettings
 from facelab.stimuli.speech import Speech
@@ -102,8 +102,10 @@ def render_levels(
     settings: RenderSettings | None = None,
     fps: int = 30,
     timing: Timing = Timing(),
+    log=print,
 ) -> list[dict]:
-    """Render one clip per level into ``out``; write ``clips.csv``, ``contact_<expression>.png``
+    """Render one clip per level into ``out``; write ``clips.csv`` (keeping the rows of other
+    clips rendered earlier into ``out``, e.g. another expression), ``contact_<expression>.png``
     (the peak face at each level and the direction's largest weights) and
     ``channels_<expression>.png`` (a few channels frame by frame through the highest level's
     clip); return the rows."""
@@ -150,10 +152,8 @@ def render_levels(
                     "space": model.space,
                 }
             )
-    with open(out / "clips.csv", "w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(IMPRESSION_CLIP_COLUMNS), extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
+    for note in write_manifest(out, rows, columns=IMPRESSION_CLIP_COLUMNS, merge=True):
+        log(note)
     # the sheet shows the face close up: a second (square, nearer) camera after the first
     # context is closed (pyrender's EGL platform holds one at a time)
     tiles = []

@@ -284,7 +284,8 @@ class Renderer:
             raise StageError(
                 f"rendering.msaa is {s.msaa}, but this OpenGL "
                 f"({GL.glGetString(GL.GL_RENDERER).decode(errors='replace')}) multisamples at "
-                f"most {max_samples} times: set rendering.msaa to 1, 2 or 4"
+                f"most {max_samples} times: set rendering.msaa to "
+                f"{' or '.join(str(v) for v in (1, 2, 4, 8) if v <= max(1, max_samples))}"
             )
         _use_fast_framebuffer(self._renderer._renderer, msaa=s.msaa)
         self._scene = pyrender.Scene(bg_color=[*s.background, 1.0], ambient_light=[1.0, 1.0, 1.0])
@@ -340,6 +341,14 @@ class Renderer:
             inter[:, -1] = 1.0
             groups.append(_Group(used, prim, inter, textured))
         return groups
+
+    @property
+    def samples(self) -> int | None:
+        """Samples per pixel the driver gave (``settings.msaa`` may be rounded up); None
+        before the framebuffer exists."""
+        if self._renderer is None:
+            return None
+        return getattr(self._renderer._renderer, "_facelab_samples", None)
 
     def __exit__(self, *exc: object) -> None:
         if self._renderer is not None:
@@ -504,6 +513,10 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
             GL.glRenderbufferStorageMultisample(GL.GL_RENDERBUFFER, msaa, GL.GL_RGBA8, w, h)
         else:
             GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, w, h)
+        # the driver may round the request up (llvmpipe gives 4 for 2)
+        self._facelab_samples = max(
+            1, int(GL.glGetRenderbufferParameteriv(GL.GL_RENDERBUFFER, GL.GL_RENDERBUFFER_SAMPLES))
+        )
         GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, db)
         if msaa > 1:
             GL.glRenderbufferStorageMultisample(

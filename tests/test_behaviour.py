@@ -563,6 +563,37 @@ def test_cli_fit_plan_bml_figure(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert "happy=1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_cli_render_writes_clips_logs_and_keeps_earlier_emotions(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``behaviour render``: one clip per (emotion, mode) with its event log and timeline; a
+    second render of another emotion into the folder adds to ``clips.csv``."""
+    import csv
+
+    from facelab.stimuli.clip import probe
+
+    out = tmp_path / "clips"
+    base = ["behaviour", "render", "--text", "はい、そうですね。", "--duration-s", "3",
+            "--size", "160x90", "--msaa", "1", "--fps", "15", "--out", str(out)]  # fmt: skip
+    assert main([*base, "--emotion", "joy=0.8", "--modes", "none", "composite"]) == 0
+    assert main([*base, "--emotion", "sadness=1", "--modes", "composite"]) == 0
+    assert "kept 2 clip(s) rendered earlier" in capsys.readouterr().out
+    rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
+    assert [r["clip_id"] for r in rows] == [
+        "joy0.8__none",
+        "joy0.8__composite",
+        "sadness__composite",
+    ]
+    for r in rows:
+        video = next(s for s in probe(out / r["path"])["streams"] if s["codec_type"] == "video")
+        assert int(video["nb_read_frames"]) == 45
+        logged = (out / f"{r['clip_id']}.behaviour.json").is_file()
+        assert logged == (r["mode"] != "none")
+    events = json.loads((out / "sadness__composite.behaviour.json").read_text())
+    assert int(rows[2]["n_blink"]) == sum(1 for e in events["events"] if e["layer"] == "blink")
+
+
 def test_speech_cues_from_openjtalk_words_and_accents() -> None:
     from facelab.stimuli.speech import synthesize
 

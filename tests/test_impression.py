@@ -276,7 +276,9 @@ def test_impression_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 
 @pytest.mark.slow
-def test_impression_render_writes_one_clip_per_level(tmp_path: Path, synth_csv: Path) -> None:
+def test_impression_render_writes_one_clip_per_level(
+    tmp_path: Path, synth_csv: Path, capsys: pytest.CaptureFixture
+) -> None:
     from facelab.stimuli.clip import probe
 
     model = tmp_path / "model.json"
@@ -315,6 +317,17 @@ def test_impression_render_writes_one_clip_per_level(tmp_path: Path, synth_csv: 
         assert int(video["nb_read_frames"]) == round((0.3 + 0.6 + 0.4 + 0.6) * 30) + 1
     assert (out / "contact_open_smile.png").stat().st_size > 10_000
     assert (out / "channels_open_smile.png").is_file()
+    # a second render into the folder keeps the other clips' rows, replaces re-rendered ones
+    # and forgets a clip whose file was deleted
+    (out / "open_smile__q0.mp4").unlink()
+    argv[argv.index("--levels") + 1 : argv.index("--size")] = ["1", "-1"]
+    assert main(argv) == 0
+    said = capsys.readouterr().out
+    assert "kept 1 clip(s) rendered earlier" in said
+    assert "whose file is gone: open_smile__q0" in said
+    rows = list(csv.DictReader((out / "clips.csv").read_text().splitlines()))
+    assert [r["clip_id"] for r in rows] == ["open_smile__q0.5", "open_smile__q1", "open_smile__q-1"]
+    assert all((out / r["path"]).is_file() for r in rows)
 
 
 # --------------------------------------------------------------------------- in protocols

@@ -173,10 +173,19 @@ def test_msaa_beyond_what_opengl_offers_is_a_clear_error() -> None:
 
     settings = RenderSettings(width=64, height=64, msaa=64)
     with (
-        pytest.raises(StageError, match=r"rendering\.msaa is 64.*set rendering\.msaa to 1, 2"),
+        pytest.raises(StageError, match=r"rendering\.msaa is 64.*set rendering\.msaa to 1 or 2"),
         Renderer(default_head(), settings),
     ):
         pass
+
+
+def test_renderer_reports_the_samples_the_driver_gave() -> None:
+    head = default_head()
+    for msaa in (1, 2, 4):
+        with Renderer(head, RenderSettings(width=64, height=64, msaa=msaa)) as r:
+            r.frame(np.zeros(len(head.target_names), np.float32))
+            assert r.samples is not None and r.samples >= msaa
+            assert (r.samples == 1) == (msaa == 1)
 
 
 def test_encode_keeps_each_frame_though_the_caller_reuses_its_buffer(tmp_path: Path) -> None:
