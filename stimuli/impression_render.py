@@ -9,6 +9,8 @@ name carries the level, ``<expression>__q<level>.mp4``.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +29,8 @@ __all__ = ["IMPRESSION_CLIP_COLUMNS", "Timing", "clip_name", "render_levels"]
 
 IMPRESSION_CLIP_COLUMNS = (
     "clip_id", "expression", "q_intended", "q_realised", "clipped_channels", "decision_value",
-    "path", "duration_s", "fps", "width", "height", "sha256", "avatar", "space",
+    "path", "duration_s", "fps", "width", "height", "sha256", "avatar", "space", "label",
+    "model_sha256",
 )  # fmt: skip
 
 
@@ -125,6 +128,9 @@ def render_levels(
     rate = 48_000
     silence = Speech(np.zeros(round(n / fps * rate), np.float32), rate, source="silence")
     rows, peaks = [], []
+    model_hash = hashlib.sha256(
+        json.dumps(model.to_json(), sort_keys=True).encode("utf-8")
+    ).hexdigest()
     with Renderer(avatar, settings) as r:
         for q in levels:
             drawn, weights, info = _frames_for(model, avatar, expression, q, env)
@@ -150,9 +156,14 @@ def render_levels(
                     "sha256": sha256_file(mp4),
                     "avatar": avatar.name,
                     "space": model.space,
+                    "label": model.label,
+                    "model_sha256": model_hash,
                 }
             )
-    for note in write_manifest(out, rows, columns=IMPRESSION_CLIP_COLUMNS, merge=True):
+    notes = write_manifest(
+        out, rows, columns=IMPRESSION_CLIP_COLUMNS, merge=True, provenance="model_sha256"
+    )
+    for note in notes:
         log(note)
     # the sheet shows the face close up: a second (square, nearer) camera after the first
     # context is closed (pyrender's EGL platform holds one at a time)

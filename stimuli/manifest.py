@@ -42,13 +42,20 @@ def _earlier_rows(path: Path, columns: Sequence[str]) -> tuple[list[dict], list[
 
 
 def write_manifest(
-    out: Path, rows: list[dict], *, columns: Sequence[str], merge: bool = False
+    out: Path,
+    rows: list[dict],
+    *,
+    columns: Sequence[str],
+    merge: bool = False,
+    provenance: str | None = None,
 ) -> list[str]:
     """Write ``out/clips.csv`` with ``rows`` (each a dict over ``columns``).
 
     With ``merge``, rows of the manifest already there are kept (before the new rows, in
     their order) when their clip is not among ``rows`` and their ``path`` still exists in
-    ``out``. Returns notes for the user: what was kept, what was dropped and why.
+    ``out``. ``provenance`` names a column (e.g. the model's hash): kept rows whose value
+    differs from the new rows' get a note. Returns notes for the user: what was kept, what
+    was dropped and why.
     """
     path = out / "clips.csv"
     notes: list[str] = []
@@ -66,6 +73,15 @@ def write_manifest(
             kept.append(row)
         if kept:
             notes.append(f"kept {len(kept)} clip(s) rendered earlier into {out} in clips.csv")
+        if provenance and rows:
+            now = {str(r[provenance]) for r in rows}
+            other = [str(r["clip_id"]) for r in kept if r.get(provenance) not in now]
+            if other:
+                notes.append(
+                    f"{len(other)} kept clip(s) have another {provenance} than these "
+                    f"({', '.join(other[:5])}{', ...' if len(other) > 5 else ''}): "
+                    "render into a new folder to keep them apart"
+                )
         if gone:
             notes.append(
                 f"dropped {len(gone)} earlier row(s) whose file is gone: {', '.join(gone)}"

@@ -328,6 +328,10 @@ def test_impression_render_writes_one_clip_per_level(
     rows = list(csv.DictReader((out / "clips.csv").read_text().splitlines()))
     assert [r["clip_id"] for r in rows] == ["open_smile__q0.5", "open_smile__q1", "open_smile__q-1"]
     assert all((out / r["path"]).is_file() for r in rows)
+    assert {r["label"] for r in rows} == {"friendly"} and len(
+        {r["model_sha256"] for r in rows}
+    ) == 1
+    assert "another model_sha256" not in said
 
 
 # --------------------------------------------------------------------------- in protocols

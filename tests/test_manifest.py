@@ -48,3 +48,16 @@ def test_unreadable_manifest_is_moved_aside_and_named(tmp_path: Path) -> None:
     assert [r["clip_id"] for r in _rows(tmp_path)] == ["a"]
     assert (tmp_path / "clips.csv.unreadable").read_bytes() == b"\xff\xfe\x00bad"
     assert any("moved it to clips.csv.unreadable" in n for n in notes)
+
+
+def test_kept_rows_from_another_source_are_named(tmp_path: Path) -> None:
+    cols = ("clip_id", "path", "model")
+    first = [{**_clip(tmp_path, c, 0), "model": "m1"} for c in ("a", "b")]
+    write_manifest(tmp_path, first, columns=cols, merge=True, provenance="model")
+    again = [{**_clip(tmp_path, "c", 0), "model": "m1"}]
+    assert not any("another model" in n for n in write_manifest(
+        tmp_path, again, columns=cols, merge=True, provenance="model"
+    ))  # fmt: skip
+    other = [{**_clip(tmp_path, "d", 0), "model": "m2"}]
+    notes = write_manifest(tmp_path, other, columns=cols, merge=True, provenance="model")
+    assert any("3 kept clip(s) have another model than these (a, b, c)" in n for n in notes)
