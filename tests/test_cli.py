@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import subprocess
@@ -196,8 +197,10 @@ def test_user_tables_that_are_not_utf8_or_empty_get_clear_errors(
         assert "latin.csv" in err and ("UTF-8" in err or "utf-8" in err), err
     assert main(["behaviour", "fit", str(empty), "--out", str(tmp_path / "l.json")]) == 2
     assert "empty.csv: not readable as a CSV table" in capsys.readouterr().err
-    assert main(["bench", "render", "--runs", "0"]) == 2
-    assert "--runs 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["bench", "render", "--runs", "0"])
+    assert info.value.code == 2
+    assert "--runs: expected a whole number >= 1, got 0" in capsys.readouterr().err
 
 
 def test_export_names_a_database_it_cannot_reach(
@@ -218,6 +221,40 @@ def test_seeds_are_checked_before_anything_runs(
         main([*argv, "--results", str(tmp_path)])
     assert info.value.code == 2 and "--seed" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["impression", "render", "m.json", "--levels", "nan"], "--levels: expected a finite"),
+        (["impression", "render", "m.json", "--fps", "0"], "--fps: expected a whole number 1..240"),
+        (["behaviour", "render", "--lead-s", "-3"], "--lead-s: expected a number >= 0, got -3"),
+        (["behaviour", "plan", "--duration-s", "0"], "--duration-s: expected a number > 0"),
+        (["power", "--alpha", "1"], "--alpha: expected a number < 1, got 1"),
+        (["power", "--icc", "x"], "--icc: expected a number, got 'x'"),
+        (["serve", "p.yaml", "--port", "70000"], "--port: expected a whole number 0..65535"),
+        (["simulate", "p.yaml", "--participants", "0"], "--participants: expected a whole"),
+        (["impression", "fit", "s.csv", "--variance", "1.5"], "--variance: expected a number <= 1"),
+    ],
+)
+def test_numeric_options_are_checked_before_anything_runs(
+    argv: list[str], said: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and said in err and "Traceback" not in err
+
+
+def test_option_types_accept_what_they_should() -> None:
+    from facelab.experiment.cli.common import real, whole
+
+    assert whole(lo=1, hi=240)("240") == 240
+    assert real(lo=0, hi=1)("0") == 0.0 and real(lo=0, hi=1)("1") == 1.0
+    assert real(above=0, below=1)("0.5") == 0.5 and real()("-1e9") == -1e9
+    for parse, value in ((whole(lo=1), "1.5"), (real(above=0), "0"), (real(), "inf")):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse(value)
 
 
 def test_a_missing_optional_dependency_names_the_extra(

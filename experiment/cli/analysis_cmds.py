@@ -7,7 +7,15 @@ import os
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_effects, seed
+from facelab.experiment.cli.common import (
+    AddCommand,
+    output_dir,
+    output_file,
+    parse_effects,
+    real,
+    seed,
+    whole,
+)
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
@@ -438,7 +446,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--bootstrap",
-        type=int,
+        type=whole(lo=0),
         default=200,
         metavar="N",
         help="parametric-bootstrap resamples for psychometric CIs (default 200; 0: none)",
@@ -462,7 +470,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--reported-p",
-        type=float,
+        type=real(),
         nargs="+",
         metavar="P",
         help="p-value(s) reported for the paper's pooled one-way ANOVA",
@@ -471,24 +479,30 @@ def register(add: AddCommand) -> None:
     p.add_argument("--protocol", metavar="PROTOCOL", help="the pilot's protocol")
     p.add_argument(
         "--participants",
-        type=int,
+        type=whole(lo=2),
         default=8,
         metavar="N",
         help="participants of the reported study (and n for 'power at n')",
     )
-    p.add_argument("--conditions", type=int, default=3, metavar="K")
+    p.add_argument("--conditions", type=whole(lo=2), default=3, metavar="K")
     p.add_argument(
-        "--reps", type=int, default=2, metavar="R", help="ratings per participant x condition"
+        "--reps",
+        type=whole(lo=1),
+        default=2,
+        metavar="R",
+        help="ratings per participant x condition",
     )
-    p.add_argument("--icc", type=float, default=0.3, help="assumed participant share of variance")
+    p.add_argument(
+        "--icc", type=real(lo=0, below=1), default=0.3, help="assumed participant share of variance"
+    )
     p.add_argument(
         "--interaction-share",
-        type=float,
+        type=real(lo=0, below=1),
         default=0.1,
         help="assumed participant x condition share of variance",
     )
-    p.add_argument("--power", type=float, default=0.8, help="target power")
-    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--power", type=real(above=0, below=1), default=0.8, help="target power")
+    p.add_argument("--alpha", type=real(above=0, below=1), default=0.05)
     p.add_argument(
         "--simulate",
         metavar="PROTOCOL",
@@ -497,7 +511,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--n",
-        type=int,
+        type=whole(lo=1),
         nargs="+",
         metavar="N",
         help="with --simulate: numbers of participants to try (default 8 12 16 24 32)",
@@ -514,7 +528,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--jobs",
-        type=int,
+        type=whole(lo=1),
         default=os.cpu_count() or 1,
         metavar="J",
         help="with --simulate: processes to simulate in (default: one per CPU); the result "
@@ -522,7 +536,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--sims",
-        type=int,
+        type=whole(lo=1),
         metavar="S",
         help="Monte Carlo runs: of the formula check (default 4000), or per n with "
         "--simulate (default 200)",

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_file
+from facelab.experiment.cli.common import AddCommand, output_file, whole
 
 __all__ = ["register"]
 
@@ -63,7 +63,9 @@ def register(add: AddCommand) -> None:
     p.add_argument("file", nargs="?", metavar="FILE", help="inspect: .glb/.gltf/.vrm or 'default'")
     p.add_argument("--json", action="store_true", help="inspect: print JSON")
     p.add_argument("--sheet", metavar="PNG", help="inspect: also write a contact sheet")
-    p.add_argument("--tile", type=int, default=360, help="contact sheet tile size in pixels")
+    p.add_argument(
+        "--tile", type=whole(lo=64, hi=4096), default=360, help="contact sheet tile size in pixels"
+    )
     p.add_argument(
         "--kind",
         choices=["default", "skinned", "rpm", "vrm0", "vrm1"],
@@ -71,6 +73,6 @@ def register(add: AddCommand) -> None:
         help="sample: the default head (skinned glTF) or a stand-in for a Ready Player Me, "
         "VRM 0.x / 1.0 or generic skinned export",
     )
-    p.add_argument("--head-rows", type=int, default=40, help="sample: mesh density")
+    p.add_argument("--head-rows", type=whole(lo=8, hi=400), default=40, help="sample: mesh density")
     p.add_argument("--out", metavar="FILE", help="sample: file to write (.glb, .gltf, .vrm)")
     p.add_argument("--force", action="store_true", help="sample: overwrite --out")

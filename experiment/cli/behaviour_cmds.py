@@ -8,7 +8,15 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size, seed
+from facelab.experiment.cli.common import (
+    AddCommand,
+    output_dir,
+    output_file,
+    parse_size,
+    real,
+    seed,
+    whole,
+)
 
 __all__ = ["register"]
 
@@ -232,7 +240,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("--out", metavar="PATH", help="the file (or, for render, folder) to write")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
     p.add_argument("--library", metavar="FILE", help="a behaviour library (default: shipped)")
-    p.add_argument("--alpha", type=float, default=0.3, help="fit: eq. 2's alpha (0.3)")
+    p.add_argument("--alpha", type=real(lo=0, hi=1), default=0.3, help="fit: eq. 2's alpha (0.3)")
     p.add_argument(
         "--motions", default="default", metavar="FILE",
         help="fit: take channels/curves/triggers of same-named units from this library "
@@ -253,7 +261,9 @@ def register(add: AddCommand) -> None:
         "--protocol", metavar="PROTOCOL",
         help="plan: the protocol of --stimulus (default: the shipped hattori_behaviour)",
     )  # fmt: skip
-    p.add_argument("--duration-s", type=float, metavar="S", help="plan/render/synth: seconds")
+    p.add_argument(
+        "--duration-s", type=real(above=0), metavar="S", help="plan/render/synth: seconds"
+    )
     p.add_argument("--seed", type=seed, default=1)
     p.add_argument(
         "--mode", choices=["gestures_only", "neutral_composite", "composite"],
@@ -265,10 +275,12 @@ def register(add: AddCommand) -> None:
         help="render: behaviour modes per emotion (none gestures_only neutral_composite "
         "composite)",
     )  # fmt: skip
-    p.add_argument("--lead-s", type=float, default=0.5, help="plan/render: silence before speech")
+    p.add_argument(
+        "--lead-s", type=real(lo=0), default=0.5, help="plan/render: silence before speech"
+    )
     p.add_argument("--bml", metavar="XML", help="plan: also write BML 1.0")
     p.add_argument("--figure", metavar="PNG", help="plan: a timeline figure")
     p.add_argument("--size", metavar="WxH", help="render: default 1280x720")
-    p.add_argument("--fps", type=int, default=30)
+    p.add_argument("--fps", type=whole(lo=1, hi=240), default=30)
     p.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
     p.add_argument("--avatar", metavar="FILE", help="render/sheet: an avatar (default head)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -16,6 +17,9 @@ __all__ = [
     "output_file",
     "parse_session",
     "parse_size",
+    "real",
+    "seed",
+    "whole",
 ]
 
 Handler = Callable[[argparse.Namespace], int]
@@ -32,6 +36,53 @@ def seed(value: str) -> int:
     if not 0 <= number < 2**63:
         raise argparse.ArgumentTypeError(f"seeds are whole numbers 0..2**63-1, got {value}")
     return number
+
+
+def whole(*, lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """argparse type: a whole number ``lo <= n [<= hi]``; the message names the range."""
+
+    def parse(value: str) -> int:
+        try:
+            number = int(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {value!r}") from None
+        if number < lo or (hi is not None and number > hi):
+            span = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+            raise argparse.ArgumentTypeError(f"expected a whole number {span}, got {value}")
+        return number
+
+    return parse
+
+
+def real(
+    *, lo: float | None = None, hi: float | None = None, above: float | None = None,
+    below: float | None = None,
+) -> Callable[[str], float]:  # fmt: skip
+    """argparse type: a finite number, ``lo <= x <= hi`` / ``above < x < below`` where given."""
+
+    def parse(value: str) -> float:
+        try:
+            number = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
+        if not math.isfinite(number):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {value}")
+        wrong = []
+        if lo is not None and number < lo:
+            wrong.append(f">= {lo:g}")
+        if hi is not None and number > hi:
+            wrong.append(f"<= {hi:g}")
+        if above is not None and number <= above:
+            wrong.append(f"> {above:g}")
+        if below is not None and number >= below:
+            wrong.append(f"< {below:g}")
+        if wrong:
+            raise argparse.ArgumentTypeError(
+                f"expected a number {' and '.join(wrong)}, got {value}"
+            )
+        return number
+
+    return parse
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:

@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from facelab.experiment.cli.common import AddCommand, ClipProgress, output_dir, parse_size, seed
+from facelab.experiment.cli.common import (
+    AddCommand,
+    ClipProgress,
+    output_dir,
+    parse_size,
+    seed,
+    whole,
+)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -42,12 +49,12 @@ def register(add: AddCommand) -> None:
     p.add_argument(
         "--protocol", metavar="PROTOCOL", help="another protocol instead of kato2021.yaml"
     )
-    p.add_argument("--participants", type=int, default=8, metavar="N")
+    p.add_argument("--participants", type=whole(lo=1), default=8, metavar="N")
     p.add_argument(
         "--seed", type=seed, default=2021, metavar="S", help="seed of the simulated ratings"
     )
     p.add_argument(
         "--size", metavar="WxH", help="override the resolution (e.g. 320x180 for a quick run)"
     )
-    p.add_argument("--fps", type=int, help="override the frame rate")
+    p.add_argument("--fps", type=whole(lo=1, hi=240), help="override the frame rate")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

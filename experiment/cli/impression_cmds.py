@@ -8,7 +8,15 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, parse_size, seed
+from facelab.experiment.cli.common import (
+    AddCommand,
+    output_dir,
+    output_file,
+    parse_size,
+    real,
+    seed,
+    whole,
+)
 
 __all__ = ["register"]
 
@@ -162,18 +170,23 @@ def register(add: AddCommand) -> None:
         help="fit: SAMPLES.csv; render: MODEL.json; samples: an index of captures "
         "(person, expression, labels..., capture, time_s)",
     )
-    p.add_argument("--window", type=float, default=0.1, help="samples: seconds averaged")
-    p.add_argument("--capture-fps", type=float, default=60.0, help="samples: Timecode rate")
+    p.add_argument("--window", type=real(above=0), default=0.1, help="samples: seconds averaged")
+    p.add_argument("--capture-fps", type=real(above=0), default=60.0, help="samples: Timecode rate")
     p.add_argument("--label", metavar="COLUMN", help="fit: the label column")
     p.add_argument(
         "--space", choices=["arkit", "vertices"], default="arkit", help="fit: sample space"
     )
-    p.add_argument("--k", type=int, help="fit: PCA components (default: by --variance)")
+    p.add_argument("--k", type=whole(lo=1), help="fit: PCA components (default: by --variance)")
     p.add_argument(
-        "--variance", type=float, default=0.9, help="fit: variance to keep (default 0.9)"
+        "--variance",
+        type=real(above=0, hi=1),
+        default=0.9,
+        help="fit: variance to keep (default 0.9)",
     )
     p.add_argument("--method", choices=["svm", "mean_diff", "ridge"], default="svm")
-    p.add_argument("--svm-c", type=float, default=0.1, help="fit: SVM C on RMS-scaled scores")
+    p.add_argument(
+        "--svm-c", type=real(above=0), default=0.1, help="fit: SVM C on RMS-scaled scores"
+    )
     p.add_argument("--positive", metavar="CLASS", help="fit: the class the direction points to")
     p.add_argument(
         "--orthogonal-to-speech",
@@ -186,18 +199,20 @@ def register(add: AddCommand) -> None:
         metavar="NAME",
         help="fit: expressions to model (repeat; default all); render: the one to play",
     )
-    p.add_argument("--levels", type=float, nargs="+", metavar="Q", help="render: levels q_c")
+    p.add_argument("--levels", type=real(), nargs="+", metavar="Q", help="render: levels q_c")
     p.add_argument("--size", metavar="WxH", help="render: default 1280x720")
-    p.add_argument("--fps", type=int, default=30)
+    p.add_argument("--fps", type=whole(lo=1, hi=240), default=30)
     p.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
     p.add_argument("--avatar", metavar="FILE", help="render: an avatar file (default head)")
-    p.add_argument("--lead-s", type=float, default=0.3, help="render: neutral lead-in")
-    p.add_argument("--onset-s", type=float, default=0.6)
-    p.add_argument("--hold-s", type=float, default=1.2)
-    p.add_argument("--offset-s", type=float, default=0.6)
+    p.add_argument("--lead-s", type=real(lo=0), default=0.3, help="render: neutral lead-in")
+    p.add_argument("--onset-s", type=real(lo=0), default=0.6)
+    p.add_argument("--hold-s", type=real(lo=0), default=1.2)
+    p.add_argument("--offset-s", type=real(lo=0), default=0.6)
     p.add_argument("--ease", choices=["sigmoid", "linear", "smoothstep"], default="sigmoid")
-    p.add_argument("--k-ease", type=float, default=5.0, help="render: sigmoid steepness (eq. 4)")
-    p.add_argument("--people", type=int, default=40, help="synth: people")
+    p.add_argument(
+        "--k-ease", type=real(above=0), default=5.0, help="render: sigmoid steepness (eq. 4)"
+    )
+    p.add_argument("--people", type=whole(lo=2), default=40, help="synth: people")
     p.add_argument("--seed", type=seed, default=1, help="synth: random seed")
     p.add_argument("--out", metavar="PATH", help="fit: MODEL.json; render: DIR; synth: SAMPLES.csv")
     p.add_argument("--force", action="store_true", help="overwrite --out (fit, synth)")

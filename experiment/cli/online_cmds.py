@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir
+from facelab.experiment.cli.common import AddCommand, output_dir, seed, whole
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -145,7 +145,7 @@ def register(add: AddCommand) -> None:
         "postgresql+psycopg://USER@HOST/DB",
     )
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--port", type=whole(lo=0, hi=65535), default=8000, help="port (default 8000)")
     p.add_argument("--clips", metavar="DIR", help="rendered clips (default results/<study>/clips)")
     p.add_argument("--results", default="results", metavar="DIR", help="results root")
     p.add_argument("--consent", metavar="FILE", help="text shown first, with an 'I agree' button")
@@ -158,13 +158,13 @@ def register(add: AddCommand) -> None:
     p.add_argument("--completion-code", metavar="CODE", help="a code shown on the end screen")
     p.add_argument(
         "--simulate-participants",
-        type=int,
+        type=whole(lo=1),
         metavar="N",
         help="drive N simulated participants through the real pages in headless Chromium, "
         "then exit (the same N ids and tokens on every start: a second start resumes them)",
     )
-    p.add_argument("--sim-seed", type=int, default=1, metavar="S", help="seed of their answers")
-    p.add_argument("--parallel", type=int, default=2, metavar="K", help="browsers at once")
+    p.add_argument("--sim-seed", type=seed, default=1, metavar="S", help="seed of their answers")
+    p.add_argument("--parallel", type=whole(lo=1), default=2, metavar="K", help="browsers at once")
     p.add_argument("--screenshots", metavar="DIR", help="PNGs of the first participant's screens")
 
     p = add(

@@ -12,6 +12,7 @@ from facelab.experiment.cli.common import (
     parse_session,
     parse_size,
     seed,
+    whole,
 )
 
 
@@ -90,7 +91,7 @@ def register(add: AddCommand) -> None:
         help="a scripted participant drives the real window (xdotool clicks; for tests)",
     )
     p.add_argument(
-        "--sim-seed", type=int, default=1, metavar="S", help="seed of the scripted ratings"
+        "--sim-seed", type=seed, default=1, metavar="S", help="seed of the scripted ratings"
     )
     p.add_argument("--clips", metavar="DIR", help="rendered clips (default results/<study>/clips)")
     p.add_argument("--results", default="results", metavar="DIR", help="results root")
@@ -105,7 +106,7 @@ def register(add: AddCommand) -> None:
         _cmd_simulate,
     )
     p.add_argument("protocol", metavar="PROTOCOL")
-    p.add_argument("--participants", type=int, default=8, metavar="N")
+    p.add_argument("--participants", type=whole(lo=1), default=8, metavar="N")
     p.add_argument("--seed", type=seed, required=True, metavar="S", help="seed of the ratings")
     p.add_argument(
         "--effect",

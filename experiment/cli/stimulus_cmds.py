@@ -12,6 +12,8 @@ from facelab.experiment.cli.common import (
     output_dir,
     output_file,
     parse_size,
+    real,
+    whole,
 )
 
 
@@ -214,7 +216,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("--out", metavar="DIR", help="clip folder (default results/<study>/clips)")
     p.add_argument("--contact-sheet", action="store_true", help="also write one PNG per condition")
     p.add_argument("--size", metavar="WxH", help="override the protocol's resolution")
-    p.add_argument("--fps", type=int, help="override the protocol's frame rate")
+    p.add_argument("--fps", type=whole(lo=1, hi=240), help="override the protocol's frame rate")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
     p = add(
@@ -241,8 +243,12 @@ def register(add: AddCommand) -> None:
     p.add_argument(
         "--audio-suffix", default=".wav", help="audio beside each capture (default .wav)"
     )
-    p.add_argument("--window", type=float, default=0.1, help="seconds after onset (default 0.1)")
-    p.add_argument("--fps", type=float, default=60.0, help="Live Link Face timecode frame rate")
+    p.add_argument(
+        "--window", type=real(above=0), default=0.1, help="seconds after onset (default 0.1)"
+    )
+    p.add_argument(
+        "--fps", type=real(above=0), default=60.0, help="Live Link Face timecode frame rate"
+    )
     p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
     p.add_argument("--force", action="store_true")
 
@@ -250,7 +256,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("what", choices=["visemes", "render", "analyze", "online"])
     p.add_argument(
         "--participants",
-        type=int,
+        type=whole(lo=1),
         default=None,
         help="analyze: simulated people (default 1000); online: concurrent clients (200)",
     )
@@ -268,7 +274,7 @@ def register(add: AddCommand) -> None:
         metavar="DIR",
         help="online: where the SQLite database goes",
     )
-    p.add_argument("--runs", type=int, default=5, help="timing runs (median reported)")
+    p.add_argument("--runs", type=whole(lo=1), default=5, help="timing runs (median reported)")
     p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
     p.add_argument(
         "--avatar",
