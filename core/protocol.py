@@ -20,7 +20,7 @@ import yaml
 from pydantic import BaseModel, ValidationError, create_model
 
 from facelab.errors import Issue, ProtocolError
-from facelab.protocol_checks import clean_loc, cross_check, describe
+from facelab.protocol_checks import clean_loc, cross_check, describe, pydantic_message
 from facelab.protocol_model import (
     ID_PATTERN,
     SCHEMA_VERSION,
@@ -182,41 +182,7 @@ def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
         )
     if kind == "string_too_long" and path and path[-1] == "id":
         return Issue(path, "ids have at most 64 characters", locator.line(path))
-    got = f" (got {describe(err['input'])})" if "input" in err else ""
-    message = err["msg"]
-    if message.startswith("Value error, "):
-        message = message[len("Value error, ") :]
-        got = ""
-    elif message.startswith("Input should be"):
-        message = "expected a value that " + message[len("Input ") :].replace("should be", "is", 1)
-    value = err.get("input")
-    if isinstance(value, str) and _looks_numeric(value):
-        if "e" in value.lower() and _yaml_float(value) != value.strip().lower():
-            got += (
-                f"; YAML reads {value} as text: write it with a decimal point and a signed "
-                f"exponent ({_yaml_float(value)}) or in full"
-            )
-        else:
-            got += "; a number in quotes is text: remove the quotes"
-    return Issue(path, message + got, locator.line(path))
-
-
-def _looks_numeric(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return text.strip().lower() not in {"nan", "inf", "-inf", "+inf", "infinity"}
-
-
-def _yaml_float(text: str) -> str:
-    """``1e9`` -> ``1.0e+9``: the spelling YAML 1.1 reads as a number."""
-    mantissa, _, exponent = text.strip().lower().partition("e")
-    if "." not in mantissa:
-        mantissa += ".0"
-    if exponent and exponent[0] not in "+-":
-        exponent = "+" + exponent
-    return f"{mantissa}e{exponent}" if exponent else mantissa
+    return Issue(path, pydantic_message(err), locator.line(path))
 
 
 def _allowed_keys(path: tuple[str | int, ...]) -> list[str]:

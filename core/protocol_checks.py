@@ -55,6 +55,48 @@ def describe(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+def pydantic_message(err: Any) -> str:
+    """A pydantic error as the message users read: "expected a value that is …" with the value
+    given, and a hint for numbers YAML read as text (``1e9``, ``"3"``)."""
+    got = f" (got {describe(err['input'])})" if "input" in err else ""
+    message = err["msg"]
+    if message.startswith("Value error, "):
+        message = message[len("Value error, ") :]
+        got = ""
+    elif message.startswith("Input should be"):
+        message = "expected a value that " + message[len("Input ") :].replace("should be", "is", 1)
+    value = err.get("input")
+    if isinstance(value, float) and value != value:  # .nan compares false with every bound
+        return "expected a number (got .nan)"
+    if isinstance(value, str) and _looks_numeric(value):
+        if "e" in value.lower() and _yaml_float(value) != value.strip().lower():
+            got += (
+                f"; YAML reads {value} as text: write it with a decimal point and a signed "
+                f"exponent ({_yaml_float(value)}) or in full"
+            )
+        else:
+            got += "; a number in quotes is text: remove the quotes"
+    return message + got
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return text.strip().lower() not in {"nan", "inf", "-inf", "+inf", "infinity"}
+
+
+def _yaml_float(text: str) -> str:
+    """``1e9`` -> ``1.0e+9``: the spelling YAML 1.1 reads as a number."""
+    mantissa, _, exponent = text.strip().lower().partition("e")
+    if "." not in mantissa:
+        mantissa += ".0"
+    if exponent and exponent[0] not in "+-":
+        exponent = "+" + exponent
+    return f"{mantissa}e{exponent}" if exponent else mantissa
+
+
 def _duplicates(ids: Iterable[str], path: tuple[str | int, ...], what: str) -> Iterator[Issue]:
     seen: dict[str, int] = {}
     for i, item_id in enumerate(ids):
@@ -132,7 +174,7 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                         f"allowed: {', '.join(spec.params.model_fields) or '(none)'}"
                     )
                 else:
-                    msg = f"{err['msg']} (got {describe(err.get('input'))})"
+                    msg = pydantic_message(err)
                 yield Issue((*where, "params", *loc), msg)
             continue
         z = getattr(params, "z", None)

@@ -255,6 +255,20 @@ def test_numbers_yaml_reads_as_text_get_a_hint(tmp_path: Path, kato_text: str) -
     assert "a number in quotes is text: remove the quotes" in messages["rendering.fps"]
 
 
+def test_nan_is_named_alike_in_sections_and_method_parameters(
+    tmp_path: Path, kato_text: str
+) -> None:
+    # .nan compares false with every bound; the message must not read as a range problem
+    text = kato_text.replace("  pad_s: 0.3", "  pad_s: .nan").replace("gain: 1.0}", "gain: .nan}")
+    path = tmp_path / "nan.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol(path)
+    messages = {i.dotted(): i.message for i in info.value.issues}
+    assert messages["rendering.pad_s"] == "expected a number (got .nan)"
+    assert messages["conditions[1].params.gain"] == "expected a number (got .nan)"
+
+
 def test_missing_file_and_non_mapping(tmp_path: Path) -> None:
     with pytest.raises(ProtocolError, match="file not found"):
         load_protocol(tmp_path / "nope.yaml")
