@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from facelab.errors import FacelabError
+from facelab.protocol_yaml import YamlRefusedError, read_yaml
 
 __all__ = ["cjk_font", "copy_protocol", "package_file", "protocol_path", "shipped_protocols"]
 
@@ -70,9 +71,9 @@ def copy_protocol(name: str, dest: Path, *, force: bool = False) -> list[Path]:
 
 def _companions(protocol: Path) -> list[Path]:
     """Files a shipped protocol names relative to itself (audio, Z matrices, models…)."""
-    try:
-        data = yaml.safe_load(protocol.read_text(encoding="utf-8"))
-    except yaml.YAMLError:
+    try:  # facelab's own reader: it parses what load_protocol parses (PyYAML alone does not)
+        _, data = read_yaml(protocol.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, YamlRefusedError):
         return []
     out: list[Path] = []
 

@@ -167,6 +167,19 @@ def test_shipped_protocols_are_listed_and_copied(
     assert "disagree" in capsys.readouterr().err
 
 
+def test_every_shipped_protocol_copied_out_validates_where_it_lands(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A copy must bring the files the protocol names (e.g. an impression model)."""
+    from facelab.resources import shipped_protocols
+
+    for name in shipped_protocols():
+        dest = tmp_path / name
+        assert main(["protocols", name, "--to", str(dest)]) == 0
+        assert main(["validate", str(dest / f"{name}.yaml")]) == 0, capsys.readouterr().err
+    assert (tmp_path / "horii_impression" / "horii_friendly_model.json").is_file()
+
+
 def test_clip_progress_draws_nothing_into_logs(capsys: pytest.CaptureFixture[str]) -> None:
     from facelab.experiment.cli.common import ClipProgress
 
