@@ -118,7 +118,8 @@ def rating_figure(
             top = y + span * 0.06
         ax.set_ylim(low - span * 0.03, max(high + span * 0.03, top))
         ax.set_yticks(np.linspace(low, high, 6))
-        ax.set_xticks(x, labels=list(labels))
+        width = max(8, 48 // max(1, len(labels)))  # characters per line under each box
+        ax.set_xticks(x, labels=[textwrap.fill(str(lab), width) for lab in labels])
         ax.set_ylabel(ylabel)
         ax.set_title("\n".join(textwrap.wrap(title, 34)) if family else title, fontsize=10)
         ax.spines[["top", "right"]].set_visible(False)

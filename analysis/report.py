@@ -134,10 +134,12 @@ def write_report(
             ]
             if cells.empty:
                 continue
+            seen = set(cells["condition"])  # a set may be shown under some conditions only
+            shown = [(c, lab) for c, lab in zip(cond_ids, cond_labels, strict=True) if c in seen]
             fig = figures.rating_figure(
                 cells,
-                conditions=cond_ids,
-                labels=cond_labels,
+                conditions=[c for c, _ in shown],
+                labels=[lab for _, lab in shown],
                 brackets=bracket_pairs(results, item=item.id, stimulus_set=sset.id),
                 title=f"{_text(item.question, language)} [{sset.id}]",
                 ylabel="VAS (0-100)",

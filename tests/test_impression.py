@@ -337,8 +337,20 @@ def test_impression_render_writes_one_clip_per_level(
 # --------------------------------------------------------------------------- in protocols
 
 
-def test_shipped_impression_protocols_simulate_and_analyse(tmp_path: Path) -> None:
+def test_shipped_impression_protocols_simulate_and_analyse(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from facelab.analysis import figures
     from facelab.resources import protocol_path
+
+    drawn: dict[str, list[str]] = {}
+    real = figures.rating_figure
+
+    def spy(cells: pd.DataFrame, **kw: object) -> object:
+        drawn[str(kw["title"])] = list(kw["conditions"])  # type: ignore[call-overload]
+        return real(cells, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(figures, "rating_figure", spy)
 
     for name, expect in (
         ("horii_impression", ["trend_contrast.csv", "graded_lmm.csv", "rm_anova.csv"]),
@@ -375,6 +387,9 @@ def test_shipped_impression_protocols_simulate_and_analyse(tmp_path: Path) -> No
         )
         for file in expect:
             assert (out / file).exists(), file
+    # each smile's figure shows that smile's three levels, not all six conditions
+    closed = [c for t, c in drawn.items() if t.endswith("[closed]")]
+    assert closed and all(c == ["closed_q0", "closed_q05", "closed_q1"] for c in closed)
     trend = pd.read_csv(tmp_path / "horii_impression" / "analysis" / "trend_contrast.csv")
     # one trend per item and smile (the blocks keep open and closed smiles apart)
     assert set(zip(trend["item"], trend["stimulus_set"], strict=True)) == {
