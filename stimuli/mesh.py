@@ -99,11 +99,12 @@ class Avatar:
             else np.asarray(weights, np.float32)
         )
         active = np.nonzero(w)[0]
-        verts = (
-            self.neutral + (w[active] @ self._stack[active]).reshape(-1, 3)
-            if active.size
-            else self.neutral.copy()
-        )
+        if active.size * 4 > len(w):  # many shapes at once (speech): one product, no copies
+            verts = self.neutral + (w @ self._stack).reshape(-1, 3)
+        elif active.size:
+            verts = self.neutral + (w[active] @ self._stack[active]).reshape(-1, 3)
+        else:
+            verts = self.neutral.copy()
         if pose is None or pose.is_rest():
             return verts
         if self.skeleton is None:
