@@ -17,6 +17,7 @@ from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
 from facelab.methods import BUILTIN_Z, METHODS
 from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
+from facelab.protocol_yaml import read_data
 
 __all__ = ["clean_loc", "cross_check", "describe"]
 
@@ -195,17 +196,13 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
 def _behaviour_library(path: Path, where: tuple) -> Iterator[Issue]:
     """A condition's custom behaviour library: a readable JSON/YAML mapping with units (the
     units themselves are checked when clips are rendered, in facelab.stimuli)."""
-    import json
-
-    import yaml
-
     try:
         text = path.read_text(encoding="utf-8")
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+        data = read_data(text, json_too=path.suffix.lower() == ".json")
     except FileNotFoundError:
         yield Issue(where, f"behaviour library {path} was not found")
         return
-    except (OSError, ValueError, yaml.YAMLError) as exc:
+    except (OSError, ValueError) as exc:
         yield Issue(where, f"{path}: not readable JSON/YAML ({exc})")
         return
     if not isinstance(data, dict) or not isinstance(data.get("units"), list):

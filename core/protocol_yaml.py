@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import json
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -34,6 +35,7 @@ __all__ = [
     "Locator",
     "YamlRefusedError",
     "gc_paused",
+    "read_data",
     "read_yaml",
 ]
 
@@ -135,6 +137,24 @@ def read_yaml(text: str) -> tuple[yaml.Node | None, Any]:
     loader = _Loader(text)
     with gc_paused():
         return _compose(loader, check_expansion=aliases > 0)
+
+
+def read_data(text: str, *, json_too: bool = False) -> Any:
+    """The data of a YAML (or, with ``json_too``, JSON) document read the way protocols are:
+    libyaml's parser where installed (PyYAML's pure-Python one rejects some valid flow
+    mappings, e.g. ``{en: Why?}``) and the same limits on size, depth and aliases. Raises
+    ``ValueError`` (with the reason) for any document it cannot read."""
+    if json_too:
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"not valid JSON: {exc}") from None
+    try:
+        return read_yaml(text)[1]
+    except YamlRefusedError as exc:
+        raise ValueError(str(exc)) from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"not valid YAML: {exc}") from None
 
 
 def _compose(loader: Any, *, check_expansion: bool) -> tuple[yaml.Node | None, Any]:

@@ -29,16 +29,15 @@ shape ``facelab behaviour fit`` writes, plus the motion fields (channels, curve,
 from __future__ import annotations
 
 import itertools
-import json
 import re
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from facelab.emotions import EMOTIONS
 from facelab.errors import BehaviourError
+from facelab.protocol_yaml import read_data
 from facelab.resources import package_file
 from facelab.stimuli.arkit import ARKIT_NAMES
 
@@ -307,8 +306,8 @@ def load_library(path: Path | str) -> Library:
         raise BehaviourError(f"{path}: no such behaviour library")
     try:
         text = path.read_text(encoding="utf-8")
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (OSError, ValueError, yaml.YAMLError) as exc:
+        data = read_data(text, json_too=path.suffix.lower() == ".json")
+    except (OSError, ValueError) as exc:
         raise BehaviourError(f"{path}: not readable as JSON/YAML ({exc})") from None
     if not isinstance(data, dict):
         raise BehaviourError(f"{path}: a library is a mapping with 'units'")

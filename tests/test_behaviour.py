@@ -191,6 +191,23 @@ def test_speech_channels_are_refused(tmp_path: Path) -> None:
         load_library(path)
 
 
+def test_library_yaml_is_read_like_protocols(tmp_path: Path) -> None:
+    """libyaml's parser (PyYAML's own rejects ``{en: Why?}``) and the protocol's limits."""
+    from facelab.protocol_yaml import read_data
+
+    assert read_data("q: {en: How friendly did this face look?}") == {
+        "q": {"en": "How friendly did this face look?"}
+    }
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+        for p, c in zip("abcdefgh", "bcdefghi", strict=True)
+    )
+    path = tmp_path / "bomb.yaml"
+    path.write_text(bomb, encoding="utf-8")
+    with pytest.raises(BehaviourError, match="bomb.yaml: not readable.*alias"):
+        load_library(path)
+
+
 def test_fitted_library_takes_motions_by_name(fitted: tuple[Library, pd.DataFrame]) -> None:
     library, _ = fitted
     motions = default_library()
