@@ -12,8 +12,9 @@ Speed on a CPU-only machine (Mesa llvmpipe) decides the design:
   by a blit (configurable: ``msaa``).
 * **One BLAS thread while rendering**: OpenBLAS's worker threads spin after every product
   (deforming, normals) and took a whole core from llvmpipe's rasterisers - 4x MSAA at 720p30
-  ran at RTF 1.04 with them and 0.72 without (``facelab bench render``). A
-  :class:`Renderer` holds numpy's BLAS to one thread while it is open (threadpoolctl).
+  ran at RTF 1.04 with them and 0.72 without (``facelab bench render``).
+  :meth:`Renderer.frames` holds numpy's BLAS to one thread while a clip is drawn
+  (threadpoolctl).
 
 Frames are ``(height, width, 3)`` uint8 RGB. ``PYOPENGL_PLATFORM`` defaults to ``egl``.
 """
@@ -201,7 +202,6 @@ class Renderer:
         self._face_centre, self._distance = self._framing()
         self._view_dir = np.array([0.0, 0.0, 1.0])
         self._renderer: pyrender.OffscreenRenderer | None = None
-        self._blas: threadpool_limits | None = None  # BLAS held to one thread while open
         self._groups: list[_Group] = []
 
     def _framing(self) -> tuple[np.ndarray, float]:
@@ -294,7 +294,6 @@ class Renderer:
                 f"{' or '.join(str(v) for v in (1, 2, 4, 8) if v <= max(1, max_samples))}"
             )
         _use_fast_framebuffer(self._renderer._renderer, msaa=s.msaa)
-        self._blas = threadpool_limits(limits=1, user_api="blas")
         self._scene = pyrender.Scene(bg_color=[*s.background, 1.0], ambient_light=[1.0, 1.0, 1.0])
         self._groups = self._make_groups()
         self._scene.add(pyrender.Mesh([g.primitive for g in self._groups]))
@@ -358,9 +357,6 @@ class Renderer:
         return getattr(self._renderer._renderer, "_facelab_samples", None)
 
     def __exit__(self, *exc: object) -> None:
-        if self._blas is not None:
-            self._blas.restore_original_limits()
-            self._blas = None
         if self._renderer is not None:
             self._renderer.delete()
             self._renderer = None
@@ -386,13 +382,16 @@ class Renderer:
             zip(weights, poses, strict=True) if poses is not None else ((w, None) for w in weights)
         )
         drawn = False
-        for w, pose in pairs:
-            prepared = self._prepare(w, pose)  # overlaps the previous frame's rasterisation
-            if drawn:
-                yield self._collect()
-            self._upload(*prepared)
-            self._draw()
-            drawn = True
+        # one BLAS thread while the clip is drawn (see the module docstring); the caller's own
+        # numpy work between clips (e.g. analysing the next stimulus) keeps its threads
+        with threadpool_limits(limits=1, user_api="blas"):
+            for w, pose in pairs:
+                prepared = self._prepare(w, pose)  # overlaps the previous frame's rasterisation
+                if drawn:
+                    yield self._collect()
+                self._upload(*prepared)
+                self._draw()
+                drawn = True
         if drawn:
             yield self._collect()
 

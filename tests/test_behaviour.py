@@ -204,7 +204,7 @@ def test_library_yaml_is_read_like_protocols(tmp_path: Path) -> None:
     )
     path = tmp_path / "bomb.yaml"
     path.write_text(bomb, encoding="utf-8")
-    with pytest.raises(BehaviourError, match="bomb.yaml: not readable.*alias"):
+    with pytest.raises(BehaviourError, match=r"bomb\.yaml: not readable.*alias"):
         load_library(path)
 
 
