@@ -19,7 +19,7 @@ from facelab.methods import BUILTIN_Z, METHODS
 from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
 from facelab.protocol_yaml import read_data
 
-__all__ = ["clean_loc", "cross_check", "describe"]
+__all__ = ["clean_loc", "cross_check", "describe", "pydantic_message"]
 
 
 def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
@@ -59,16 +59,16 @@ def describe(value: Any) -> str:
 def pydantic_message(err: Any) -> str:
     """A pydantic error as the message users read: "expected a value that is …" with the value
     given, and a hint for numbers YAML read as text (``1e9``, ``"3"``)."""
-    got = f" (got {describe(err['input'])})" if "input" in err else ""
+    value = err.get("input")
+    if isinstance(value, float) and value != value:  # .nan compares false with every bound
+        return "expected a number (got .nan)"
+    got = f" (got {describe(value)})" if "input" in err else ""
     message = err["msg"]
     if message.startswith("Value error, "):
         message = message[len("Value error, ") :]
         got = ""
     elif message.startswith("Input should be"):
         message = "expected a value that " + message[len("Input ") :].replace("should be", "is", 1)
-    value = err.get("input")
-    if isinstance(value, float) and value != value:  # .nan compares false with every bound
-        return "expected a number (got .nan)"
     if isinstance(value, str) and _looks_numeric(value):
         if "e" in value.lower() and _yaml_float(value) != value.strip().lower():
             got += (

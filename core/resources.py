@@ -11,10 +11,8 @@ import shutil
 from importlib import resources
 from pathlib import Path
 
-import yaml
-
 from facelab.errors import FacelabError
-from facelab.protocol_yaml import YamlRefusedError, read_yaml
+from facelab.protocol_yaml import read_data
 
 __all__ = ["cjk_font", "copy_protocol", "package_file", "protocol_path", "shipped_protocols"]
 
@@ -72,8 +70,8 @@ def copy_protocol(name: str, dest: Path, *, force: bool = False) -> list[Path]:
 def _companions(protocol: Path) -> list[Path]:
     """Files a shipped protocol names relative to itself (audio, Z matrices, models…)."""
     try:  # facelab's own reader: it parses what load_protocol parses (PyYAML alone does not)
-        _, data = read_yaml(protocol.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, YamlRefusedError):
+        data = read_data(protocol.read_text(encoding="utf-8"))
+    except ValueError:
         return []
     out: list[Path] = []
 

@@ -9,7 +9,6 @@ name carries the level, ``<expression>__q<level>.mp4``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -112,7 +111,7 @@ def render_levels(
     (the peak face at each level and the direction's largest weights) and
     ``channels_<expression>.png`` (a few channels frame by frame through the highest level's
     clip); return the rows."""
-    from facelab.hashing import sha256_file
+    from facelab.hashing import sha256_file, sha256_text
     from facelab.stimuli.avatar import default_head
 
     if not levels:
@@ -128,9 +127,8 @@ def render_levels(
     rate = 48_000
     silence = Speech(np.zeros(round(n / fps * rate), np.float32), rate, source="silence")
     rows, peaks = [], []
-    model_hash = hashlib.sha256(
-        json.dumps(model.to_json(), sort_keys=True).encode("utf-8")
-    ).hexdigest()
+    # of the model's content (canonical JSON), so a re-saved file keeps its hash
+    model_hash = sha256_text(json.dumps(model.to_json(), sort_keys=True))
     with Renderer(avatar, settings) as r:
         for q in levels:
             drawn, weights, info = _frames_for(model, avatar, expression, q, env)
