@@ -353,7 +353,8 @@ _TASK_HEADINGS = {
     "behaviour_counts": "Behaviour: events per clip, per layer and unit, and motion energy "
     "(from the clips' event logs)",
     "behaviour_covariates": "Behaviour counts as covariates: rating ~ condition + events per "
-    "layer (random intercepts per participant and participant x condition, REML)",
+    "layer (random intercepts per participant and participant x condition, REML; the counts "
+    "tested between clips: each clip's mean rating ~ condition + counts, df = clips - terms)",
     "trend_contrast": "Graded design: linear trend contrast of the RM ANOVA (slope per level "
     "unit, own error term)",
     "graded_lmm": "Graded design: mixed model rating ~ level + (1 + level | participant), REML",

@@ -69,20 +69,26 @@ def euler_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return ry @ rx @ rz
 
 
+def _rows(idx: np.ndarray) -> np.ndarray | slice:
+    """``idx`` (sorted vertex indices) as a slice when they are one run (a mesh part's
+    vertices usually are): slicing copies nothing and writes in place."""
+    if idx.size and int(idx[-1]) - int(idx[0]) + 1 == idx.size:
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
 @dataclass(frozen=True)
 class _Influence:
-    """The rows (R,) some moved joint influences, split for speed: ``rigid[u]`` are positions
-    in ``rows`` of the rows bound to joint ``used[u]`` alone (weight 1: most vertices of a
-    head), ``blend`` the positions of the others, each with its influences as
-    ``u * B + i`` (B, 4) into the (U * B, 3) array of every used joint's transform of the B
-    blended rows, and their weights (B, 4) float32."""
+    """The vertices some moved joint influences, split for speed: ``rigid[u]`` the vertices
+    bound to joint ``used[u]`` alone (weight 1: most vertices of a head; a slice when they
+    are one run of indices), ``blend`` the others (B,), with ``blend_matrix`` (B, U) float32
+    their weight on each joint in ``used`` (every joint of these vertices, moved or not)."""
 
-    rows: np.ndarray
+    size: int
     used: np.ndarray
-    rigid: tuple[np.ndarray, ...]
+    rigid: tuple[np.ndarray | slice, ...]
     blend: np.ndarray
-    blend_where: np.ndarray
-    blend_weights: np.ndarray
+    blend_matrix: np.ndarray
 
     @classmethod
     def of(cls, skeleton: Skeleton, moved: tuple[int, ...]) -> _Influence:
@@ -97,10 +103,18 @@ class _Influence:
             weights.sum(axis=1), 1.0, atol=1e-6
         )
         owner = local[np.arange(len(rows)), top]
-        rigid = tuple(np.nonzero(alone & (owner == u))[0] for u in range(len(used)))
+        rigid = tuple(_rows(rows[alone & (owner == u)]) for u in range(len(used)))
         blend = np.nonzero(~alone)[0]
-        where = local[blend] * len(blend) + np.arange(len(blend))[:, None]
-        return cls(rows, used, rigid, blend, where, weights[blend])
+        matrix = np.zeros((len(blend), len(used)), np.float32)
+        for k in range(local.shape[1]):
+            np.add.at(matrix, (np.arange(len(blend)), local[blend, k]), weights[blend, k])
+        return cls(
+            int(rows.size),
+            used,
+            rigid,
+            rows[blend],
+            matrix,
+        )
 
 
 @dataclass
@@ -204,9 +218,9 @@ def skin(vertices: np.ndarray, skeleton: Skeleton, pose: HeadPose) -> np.ndarray
     unchanged): ``v' = sum_k w_k (R_jk v + t_jk)`` over each vertex's four influences.
 
     Only the rows that a moved joint influences are touched: rows bound to one joint are
-    moved by that joint's transform (one matmul per joint); for the others each used joint
-    transforms all of them once and each row takes its weighted sum (cheaper than a blended
-    matrix per vertex)."""
+    moved by that joint's transform (one matmul per joint, in place when they are one run of
+    indices); each of the others gets its weighted blend of the joints' 3x4 transforms (one
+    (B, U) x (U, 12) product) applied to it."""
     rotations = skeleton.pose_rotations(pose)
     if not rotations:
         return np.array(vertices, np.float32, copy=True)
@@ -214,22 +228,16 @@ def skin(vertices: np.ndarray, skeleton: Skeleton, pose: HeadPose) -> np.ndarray
     moved = tuple(np.nonzero(~np.all(np.isclose(mats, np.eye(4)), axis=(1, 2)))[0].tolist())
     out = np.array(vertices, np.float32, copy=True)
     inf = skeleton.influence(moved)
-    if inf.rows.size == 0:
+    if inf.size == 0:
         return out
-    v = out[inf.rows]  # (R, 3)
+    v = np.asarray(vertices, np.float32)
     m = mats[inf.used].astype(np.float32)  # (U, 4, 4)
-    posed = np.empty_like(v)
     for u, idx in enumerate(inf.rigid):
-        if idx.size:
-            posed[idx] = v[idx] @ m[u, :3, :3].T + m[u, :3, 3]
+        out[idx] = v[idx] @ m[u, :3, :3].T + m[u, :3, 3]
     if inf.blend.size:
-        vb = v[inf.blend]
-        flat = (vb @ m[:, :3, :3].transpose(0, 2, 1) + m[:, None, :3, 3]).reshape(-1, 3)
-        acc = np.zeros_like(vb)
-        for k in range(inf.blend_where.shape[1]):
-            acc += inf.blend_weights[:, k, None] * np.take(flat, inf.blend_where[:, k], axis=0)
-        posed[inf.blend] = acc
-    out[inf.rows] = posed
+        vb = v[inf.blend]  # (B, 3)
+        blended = (inf.blend_matrix @ m[:, :3, :].reshape(len(m), 12)).reshape(-1, 3, 4)
+        out[inf.blend] = np.einsum("bij,bj->bi", blended[:, :, :3], vb) + blended[:, :, 3]
     return out
 
 

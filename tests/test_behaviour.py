@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from scipy import stats as sps
 
 from facelab.emotions import EMOTIONS
 from facelab.errors import BehaviourError
@@ -553,6 +554,87 @@ def test_covariate_model_condition_test_is_the_paired_analysis() -> None:
     assert row["t"] == pytest.approx(paired.statistic, rel=1e-4)
     assert row["df"] == 9 and row["p"] == pytest.approx(paired.pvalue, rel=1e-3)
     assert "n_posture fixed by condition" in row["note"] and "n_gesture constant" in row["note"]
+
+
+def _clip_study(rng: np.random.Generator, *, n_p: int = 12, n_s: int = 8, clip_sd: float = 6.0):
+    """Ratings of 2 x n_s clips whose n_gesture count has nothing to do with the ratings,
+    but whose clips differ (SD ``clip_sd``) for other reasons."""
+    clips = [
+        (f"s{s}", c, int(rng.poisson(4 if c == "composite" else 2)), rng.normal(0, clip_sd))
+        for c in ("gestures_only", "composite")
+        for s in range(n_s)
+    ]
+    rows = []
+    for p in range(n_p):
+        u, cell = rng.normal(0, 8), {c: rng.normal(0, 4) for c in ("gestures_only", "composite")}
+        for s, c, _k, e in clips:
+            rows.append((f"P{p:02d}", c, s, "human", 50 + u + cell[c] + e + rng.normal(0, 10)))
+    data = pd.DataFrame(rows, columns=["participant", "condition", "stimulus", "item", "rating"])
+    data["stimulus_set"] = "set"
+    counts = pd.DataFrame(
+        [("set", s, c, k, 0, 0, 0) for s, c, k, _e in clips],
+        columns=["stimulus_set", "stimulus", "condition", "n_gesture", "n_posture",
+                 "n_mannerism", "n_blink"],
+    )  # fmt: skip
+    return data, counts
+
+
+def test_covariates_are_tested_between_clips() -> None:
+    """A count that does not matter, on clips that differ for other reasons: the by-clip test
+    rejects at its nominal rate; in a balanced study its estimate is the mixed model's; the
+    covariate rows of covariate_model are the by-clip ones with df = clips - terms."""
+    import statsmodels.formula.api as smf
+
+    from facelab.analysis.behaviour import _with_counts, clip_regression, covariate_model
+
+    rng = np.random.default_rng(5)
+    rejected = []
+    for _ in range(300):
+        data, counts = _clip_study(rng)
+        merged = _with_counts(data, counts, ("n_gesture",))
+        fit = clip_regression(merged, covariates=("n_gesture",))
+        t = fit["estimate"]["n_gesture"] / fit["se"]["n_gesture"]
+        rejected.append(2 * sps.t.sf(abs(t), fit["df"]) < 0.05)
+    assert 0.02 <= np.mean(rejected) <= 0.09
+    assert fit["df"] == 16 - 3 and fit["clips"] == 16
+
+    model = covariate_model(data, counts, conditions=("gestures_only", "composite"))
+    row = model[model["term"] == "n_gesture"].iloc[0]
+    assert row["estimate"] == pytest.approx(fit["estimate"]["n_gesture"], rel=1e-9)
+    assert row["df"] == 13 and row["p"] == pytest.approx(2 * sps.t.sf(abs(t), 13), rel=1e-9)
+    assert "covariates tested between 16 clips" in row["note"]
+    mixed = smf.mixedlm(
+        "rating ~ C(condition) + n_gesture", merged, groups=merged["participant"],
+        vc_formula={"cell": "0 + C(condition)"},
+    ).fit(reml=True)  # fmt: skip
+    assert mixed.fe_params["n_gesture"] == pytest.approx(row["estimate"], rel=1e-4)
+    assert mixed.bse_fe["n_gesture"] < 0.7 * row["se"]  # it took each rating as evidence
+    # the condition term is still the paired analysis of participant means
+    cond = model[model["term"] == "C(condition)[T.composite]"].iloc[0]
+    assert cond["df"] == 11
+
+    # two clips per condition and a covariate: 4 clips for 3 terms leave one df; with one
+    # clip per condition the covariate is fixed by the condition (dropped, as before)
+    few, few_counts = _clip_study(np.random.default_rng(1), n_s=1)
+    few_model = covariate_model(few, few_counts, conditions=("gestures_only", "composite"))
+    assert "n_gesture fixed by condition" in few_model["note"].iloc[0]
+    two, two_counts = _clip_study(np.random.default_rng(2), n_s=2)
+    two_counts.loc[0, "n_gesture"] = 7 if two_counts.loc[1, "n_gesture"] != 7 else 8
+    two_model = covariate_model(two, two_counts, conditions=("gestures_only", "composite"))
+    assert two_model.loc[two_model["term"] == "n_gesture", "df"].iloc[0] == 1
+
+
+def test_covariates_are_not_tested_with_no_more_clips_than_terms() -> None:
+    from facelab.analysis.behaviour import covariate_model
+
+    data, counts = _clip_study(np.random.default_rng(4), n_s=2)
+    counts[["n_posture", "n_blink"]] = np.random.default_rng(0).integers(0, 9, size=(4, 2))
+    model = covariate_model(data, counts, conditions=("gestures_only", "composite"))
+    cov_rows = model[model["term"].isin(["n_gesture", "n_posture", "n_blink"])]
+    note = model["note"].iloc[0]
+    assert "covariates not tested: 4 clips for" in note
+    assert cov_rows["p"].isna().all() and cov_rows["df"].isna().all()
+    assert np.isfinite(model.loc[model["term"] == "C(condition)[T.composite]", "p"]).all()
 
 
 # ------------------------------------------------------------------ the command line

@@ -231,3 +231,38 @@ def test_pipelined_frames_equal_frame_by_frame() -> None:
     )
     assert not np.array_equal(piped[0], piped[4])  # the frames differ: the head moved
     assert len(still) == 2
+
+
+def test_drawing_only_the_heads_rectangle_changes_no_pixel() -> None:
+    """Frames are cleared, drawn and resolved only inside the avatar's screen rectangle (and
+    the previous frame's): bit for bit what drawing the whole frame gives, also when the head
+    swings (its old place must be cleared), moves out of the picture and comes back, with and
+    without multisampling."""
+    from facelab.stimuli.rig import HeadPose
+
+    head = default_head()
+    weights = [head.weight_vector({"jawOpen": 0.15 * (k % 5)}) for k in range(10)]
+    poses = [HeadPose(yaw=(-35.0, 35.0)[k % 2], pitch=8.0 * (k % 3)) for k in range(10)]
+    settings = RenderSettings(width=320, height=240, distance_m=1.0, msaa=4)
+    for s in (settings, RenderSettings(width=320, height=240, distance_m=1.0, msaa=1)):
+        with Renderer(head, s) as boxed:
+            drawn = list(boxed.frames(weights, poses))
+            boxes = [
+                boxed._screen_box(head.deform(w, pose=p))
+                for w, p in zip(weights, poses, strict=True)
+            ]
+            # the head moved away: far to the side, the rectangle is empty; then it returns
+            away = head.deform(weights[0]) + np.array([5.0, 0.0, 0.0], np.float32)
+            assert boxed._screen_box(away)[2] == 0
+            boxed._upload(away, np.zeros_like(away), boxed._screen_box(away))
+            boxed._draw()
+            empty = boxed._collect()
+            back = boxed.frame(weights[0], pose=poses[0])
+        with Renderer(head, s) as whole:
+            whole._screen_box = lambda verts: None  # type: ignore[method-assign]
+            reference = list(whole.frames(weights, poses))
+            reference_back = whole.frame(weights[0], pose=poses[0])
+        assert all(b is not None and b[2] * b[3] < 0.8 * 320 * 240 for b in boxes)
+        assert all(np.array_equal(a, b) for a, b in zip(drawn, reference, strict=True))
+        assert np.all(empty == empty[0, 0])  # nothing of the head left behind
+        assert np.array_equal(back, reference_back)

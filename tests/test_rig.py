@@ -327,3 +327,10 @@ def test_skinning_blends_each_influence_by_its_weight() -> None:
         ]
     )
     np.testing.assert_allclose(skin(verts, sk, pose), expect, atol=2e-6)
+    # the same rows shuffled: rows bound to one joint are no longer one run of indices
+    order = rng.permutation(n)
+    shuffled = Skeleton(
+        names=sk.names, parents=sk.parents, pivots=sk.pivots, joints=joints[order],
+        weights=weights[order], roles=sk.roles,
+    )  # fmt: skip
+    np.testing.assert_allclose(skin(verts[order], shuffled, pose), expect[order], atol=2e-6)
