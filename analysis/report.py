@@ -349,7 +349,8 @@ _TASK_HEADINGS = {
     "with participants "
     "- parameters df; odds ratios against the first condition)",
     "identification_covariates": "Identification with behaviour counts as covariates "
-    "(logistic GEE, odds ratios)",
+    "(logistic GEE, odds ratios; the counts tested between clips, quasi-binomial GLM of each "
+    "clip's answers, df = clips - terms)",
     "behaviour_counts": "Behaviour: events per clip, per layer and unit, and motion energy "
     "(from the clips' event logs)",
     "behaviour_covariates": "Behaviour counts as covariates: rating ~ condition + events per "

@@ -637,6 +637,65 @@ def test_covariates_are_not_tested_with_no_more_clips_than_terms() -> None:
     assert np.isfinite(model.loc[model["term"] == "C(condition)[T.composite]", "p"]).all()
 
 
+def _identification_study(rng: np.random.Generator, *, n_p: int = 12, clip_sd: float = 0.6):
+    """Answers to 2 x 8 clips whose right-answer odds differ from clip to clip (logit SD
+    ``clip_sd``) for reasons other than their n_gesture count."""
+    clips = [
+        (f"s{s}", c, int(rng.poisson(4 if c == "composite" else 2)), rng.normal(0, clip_sd))
+        for c in ("gestures_only", "composite")
+        for s in range(8)
+    ]
+    rows = []
+    for p in range(n_p):
+        u = rng.normal(0, 0.5)
+        for s, c, _k, e in clips:
+            right = rng.random() < 1 / (1 + np.exp(0.2 - u - e))
+            rows.append((f"P{p:02d}", c, s, int(right)))
+    trials = pd.DataFrame(rows, columns=["participant", "condition", "stimulus", "correct"])
+    trials["stimulus_set"] = "set"
+    counts = pd.DataFrame(
+        [("set", s, c, k, 0, 0, 0) for s, c, k, _e in clips],
+        columns=["stimulus_set", "stimulus", "condition", "n_gesture", "n_posture",
+                 "n_mannerism", "n_blink"],
+    )  # fmt: skip
+    return trials, counts
+
+
+def test_identification_covariates_are_tested_between_clips() -> None:
+    """The by-clip quasi-binomial test of a count unrelated to the answers rejects at about
+    its nominal rate when clips differ; the model's covariate row is that test's; condition
+    rows stay the GEE's."""
+    import statsmodels.api as sm
+
+    from facelab.analysis.behaviour import _with_counts, clip_logit, identification_covariates
+    from facelab.analysis.identification import correct_model
+
+    rng = np.random.default_rng(8)
+    rejected = []
+    conditions = ("gestures_only", "composite")
+    for _ in range(300):
+        trials, counts = _identification_study(rng)
+        merged = _with_counts(trials, counts, ("n_gesture",))
+        fit = clip_logit(merged, covariates=("n_gesture",), conditions=conditions)
+        t = fit["estimate"]["n_gesture"] / fit["se"]["n_gesture"]
+        rejected.append(2 * sps.t.sf(abs(t), fit["df"]) < 0.05)
+    assert np.mean(rejected) <= 0.08
+    model = identification_covariates(trials, counts, conditions=conditions)
+    row = model[model["term"] == "n_gesture"].iloc[0]
+    assert row["df"] == 13 and row["t"] == pytest.approx(t, rel=1e-9)
+    assert np.isnan(row["se_robust"]) and "between 16 clips" in row["note"]
+    # the estimate is the binomial GLM's on all answers (aggregating changes no estimate)
+    x = np.column_stack(
+        [np.ones(len(merged)), merged["condition"] == "composite", merged["n_gesture"]]
+    ).astype(float)
+    glm = sm.GLM(merged["correct"].to_numpy(float), x, family=sm.families.Binomial()).fit()
+    assert row["estimate"] == pytest.approx(glm.params[2], rel=1e-6)
+    gee = correct_model(merged, covariates=("n_gesture",), conditions=conditions)
+    cond = model[model["term"] == "C(condition)[T.composite]"].iloc[0]
+    gee_cond = gee[gee["term"] == "C(condition)[T.composite]"].iloc[0]
+    assert cond["p"] == pytest.approx(gee_cond["p"], rel=1e-9) and cond["df"] == 9
+
+
 # ------------------------------------------------------------------ the command line
 
 
