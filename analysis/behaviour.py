@@ -234,13 +234,7 @@ def clip_regression(
         .agg(_y=("_y", "mean"), **{c: (c, "first") for c in covariates})
         .reset_index()
     )
-    present = levels(data[condition])
-    columns = {"Intercept": np.ones(len(clips))}
-    for level in present[1:]:
-        columns[f"C({condition})[T.{level}]"] = (clips[condition] == level).to_numpy(float)
-    for c in covariates:
-        columns[c] = clips[c].to_numpy(float)
-    x = np.column_stack(list(columns.values()))
+    names, x = _clip_design(clips, levels(data[condition]), condition, covariates)
     y = clips["_y"].to_numpy(float)
     beta, *_ = np.linalg.lstsq(x, y, rcond=None)
     df = len(y) - np.linalg.matrix_rank(x)
@@ -249,7 +243,6 @@ def clip_regression(
         se = np.sqrt(np.diag(sigma2 * np.linalg.pinv(x.T @ x)))
     else:
         se = np.full(len(beta), np.nan)
-    names = list(columns)
     return {
         "estimate": dict(zip(names, beta.tolist(), strict=True)),
         "se": dict(zip(names, se.tolist(), strict=True)),
@@ -349,6 +342,19 @@ def identification_covariates(
     return model
 
 
+def _clip_design(
+    clips: pd.DataFrame, present: list, condition: str, covariates: tuple[str, ...]
+) -> tuple[list[str], np.ndarray]:
+    """Term names and the (clips, terms) design matrix: intercept, a dummy per condition
+    after the first of ``present``, the covariates - named as in the mixed model."""
+    columns = {"Intercept": np.ones(len(clips))}
+    for level in present[1:]:
+        columns[f"C({condition})[T.{level}]"] = (clips[condition] == level).to_numpy(float)
+    for c in covariates:
+        columns[c] = clips[c].to_numpy(float)
+    return list(columns), np.column_stack(list(columns.values()))
+
+
 def clip_logit(
     trials: pd.DataFrame,
     *,
@@ -375,13 +381,7 @@ def clip_logit(
         .reset_index()
     )
     present = [c for c in conditions if c in set(clips[condition])]
-    columns = {"Intercept": np.ones(len(clips))}
-    for level in present[1:]:
-        columns[f"C({condition})[T.{level}]"] = (clips[condition] == level).to_numpy(float)
-    for c in covariates:
-        columns[c] = clips[c].to_numpy(float)
-    x = np.column_stack(list(columns.values()))
-    names = list(columns)
+    names, x = _clip_design(clips, present, condition, covariates)
     df = float(len(clips) - np.linalg.matrix_rank(x))
     nan = dict.fromkeys(names, float("nan"))
     endog = np.column_stack([clips["_r"], clips["_n"] - clips["_r"]])

@@ -72,7 +72,7 @@ class RenderSettings:
     fov_deg: float = 30.0
     height_m: float = 0.0
     background: tuple[float, float, float] = (0.5, 0.5, 0.5)
-    msaa: int = 1  # protocols default to 4 (smooth, 0.72x real time at 720p30 on 2 cores)
+    msaa: int = 1  # protocols default to 4 (smooth, 0.71x real time at 720p30 on 2 cores)
     target_m: tuple[float, float, float] | None = None
     zoom: float = 1.0  # divides the automatic distance (contact sheets come closer; from 1.5
     # on, an avatar without face landmarks is framed on the vertices its shapes move)

@@ -556,14 +556,29 @@ def test_covariate_model_condition_test_is_the_paired_analysis() -> None:
     assert "n_posture fixed by condition" in row["note"] and "n_gesture constant" in row["note"]
 
 
-def _clip_study(rng: np.random.Generator, *, n_p: int = 12, n_s: int = 8, clip_sd: float = 6.0):
-    """Ratings of 2 x n_s clips whose n_gesture count has nothing to do with the ratings,
-    but whose clips differ (SD ``clip_sd``) for other reasons."""
-    clips = [
-        (f"s{s}", c, int(rng.poisson(4 if c == "composite" else 2)), rng.normal(0, clip_sd))
+def _null_count_clips(rng: np.random.Generator, *, n_s: int, sd: float) -> list[tuple]:
+    """(stimulus, condition, n_gesture, clip effect) for n_s sentences x 2 conditions: more
+    gestures in composite clips, and a clip effect (SD ``sd``) unrelated to the count."""
+    return [
+        (f"s{s}", c, int(rng.poisson(4 if c == "composite" else 2)), rng.normal(0, sd))
         for c in ("gestures_only", "composite")
         for s in range(n_s)
     ]
+
+
+def _counts_of(clips: list[tuple]) -> pd.DataFrame:
+    """The behaviour-count table of those clips (only n_gesture varies)."""
+    return pd.DataFrame(
+        [("set", s, c, k, 0, 0, 0) for s, c, k, _e in clips],
+        columns=["stimulus_set", "stimulus", "condition", "n_gesture", "n_posture",
+                 "n_mannerism", "n_blink"],
+    )  # fmt: skip
+
+
+def _clip_study(rng: np.random.Generator, *, n_p: int = 12, n_s: int = 8, clip_sd: float = 6.0):
+    """Ratings of 2 x n_s clips whose n_gesture count has nothing to do with the ratings,
+    but whose clips differ (SD ``clip_sd``) for other reasons."""
+    clips = _null_count_clips(rng, n_s=n_s, sd=clip_sd)
     rows = []
     for p in range(n_p):
         u, cell = rng.normal(0, 8), {c: rng.normal(0, 4) for c in ("gestures_only", "composite")}
@@ -571,11 +586,7 @@ def _clip_study(rng: np.random.Generator, *, n_p: int = 12, n_s: int = 8, clip_s
             rows.append((f"P{p:02d}", c, s, "human", 50 + u + cell[c] + e + rng.normal(0, 10)))
     data = pd.DataFrame(rows, columns=["participant", "condition", "stimulus", "item", "rating"])
     data["stimulus_set"] = "set"
-    counts = pd.DataFrame(
-        [("set", s, c, k, 0, 0, 0) for s, c, k, _e in clips],
-        columns=["stimulus_set", "stimulus", "condition", "n_gesture", "n_posture",
-                 "n_mannerism", "n_blink"],
-    )  # fmt: skip
+    counts = _counts_of(clips)
     return data, counts
 
 
@@ -640,11 +651,7 @@ def test_covariates_are_not_tested_with_no_more_clips_than_terms() -> None:
 def _identification_study(rng: np.random.Generator, *, n_p: int = 12, clip_sd: float = 0.6):
     """Answers to 2 x 8 clips whose right-answer odds differ from clip to clip (logit SD
     ``clip_sd``) for reasons other than their n_gesture count."""
-    clips = [
-        (f"s{s}", c, int(rng.poisson(4 if c == "composite" else 2)), rng.normal(0, clip_sd))
-        for c in ("gestures_only", "composite")
-        for s in range(8)
-    ]
+    clips = _null_count_clips(rng, n_s=8, sd=clip_sd)
     rows = []
     for p in range(n_p):
         u = rng.normal(0, 0.5)
@@ -653,11 +660,7 @@ def _identification_study(rng: np.random.Generator, *, n_p: int = 12, clip_sd: f
             rows.append((f"P{p:02d}", c, s, int(right)))
     trials = pd.DataFrame(rows, columns=["participant", "condition", "stimulus", "correct"])
     trials["stimulus_set"] = "set"
-    counts = pd.DataFrame(
-        [("set", s, c, k, 0, 0, 0) for s, c, k, _e in clips],
-        columns=["stimulus_set", "stimulus", "condition", "n_gesture", "n_posture",
-                 "n_mannerism", "n_blink"],
-    )  # fmt: skip
+    counts = _counts_of(clips)
     return trials, counts
 
 
