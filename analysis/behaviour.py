@@ -301,8 +301,9 @@ def identification_covariates(
     used, dropped = screen_covariates(merged, covariates, condition="condition")
     used, collinear = _independent_at_clip_level(merged, used, condition="condition")
     model = correct_model(merged, covariates=tuple(used), conditions=conditions)
+    # correct_model names what it sees in the covariates it gets; these are the ones it did not
     notes = [f"{c} collinear with the terms before it (clip by clip)" for c in collinear]
-    notes += [d for d in dropped if not any(d.startswith(f"{c} ") for c in collinear)]
+    notes += [d for d in dropped if not any(d.startswith(f"{c} ") for c in (*collinear, *used))]
     if not used:
         if notes:
             model["note"] = model["note"] + "; " + "; ".join(notes)

@@ -687,6 +687,13 @@ def test_identification_covariates_are_tested_between_clips() -> None:
     row = model[model["term"] == "n_gesture"].iloc[0]
     assert row["df"] == 13 and row["t"] == pytest.approx(t, rel=1e-9)
     assert np.isnan(row["se_robust"]) and "between 16 clips" in row["note"]
+    parts = row["note"].split("; ")
+    assert len(parts) == len(set(parts)) and "n_blink constant" in parts
+    # postures only in composite clips: named once (by the GEE), not again
+    composite = counts["condition"] == "composite"
+    counts.loc[composite, "n_posture"] = np.arange(composite.sum()) % 3
+    parts = identification_covariates(trials, counts, conditions=conditions)["note"][0].split("; ")
+    assert parts.count("n_posture constant within gestures_only (0)") == 1
     # the estimate is the binomial GLM's on all answers (aggregating changes no estimate)
     x = np.column_stack(
         [np.ones(len(merged)), merged["condition"] == "composite", merged["n_gesture"]]
