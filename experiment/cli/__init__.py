@@ -84,7 +84,7 @@ _EXTRA_OF = {
     **dict.fromkeys(["pyrender", "trimesh", "OpenGL"], "render"),
     "psychopy": "runner",
     **dict.fromkeys(
-        ["fastapi", "uvicorn", "sqlalchemy", "alembic", "psycopg", "selenium", "httpx"], "online"
+        ["fastapi", "uvicorn", "sqlalchemy", "alembic", "psycopg", "selenium", "httpx2"], "online"
     ),
     "pylipsync": "bench",
 }

@@ -42,7 +42,7 @@ PG_BIN = Path("/usr/lib/postgresql/15/bin")
 
 
 def wait_for_server(url: str, *, timeout_s: float = 60.0) -> None:
-    import httpx
+    import httpx2 as httpx
 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -127,7 +127,7 @@ def _answers(study: Any, participant: str, rng: np.random.Generator) -> list[dic
 
 
 async def _drive(url: str, people: list[tuple[str, str]], study: Any, seed: int) -> dict[str, Any]:
-    import httpx
+    import httpx2 as httpx
 
     latencies: list[float] = []
     failures: list[str] = []
