@@ -623,6 +623,11 @@ def test_covariates_are_tested_between_clips() -> None:
     # the condition term is still the paired analysis of participant means
     cond = model[model["term"] == "C(condition)[T.composite]"].iloc[0]
     assert cond["df"] == 11
+    # ... and the same term between clips, for generalising over the sentences
+    by_clip = model[model["term"] == "C(condition)[T.composite] (by clip)"].iloc[0]
+    key = "C(condition)[T.composite]"
+    assert by_clip["df"] == 13 and by_clip["se"] == pytest.approx(fit["se"][key], rel=1e-9)
+    assert by_clip["estimate"] == pytest.approx(cond["estimate"], rel=1e-6)
 
     # two clips per condition and a covariate: 4 clips for 3 terms leave one df; with one
     # clip per condition the covariate is fixed by the condition (dropped, as before)
