@@ -709,6 +709,11 @@ def test_identification_covariates_are_tested_between_clips() -> None:
     cond = model[model["term"] == "C(condition)[T.composite]"].iloc[0]
     gee_cond = gee[gee["term"] == "C(condition)[T.composite]"].iloc[0]
     assert cond["p"] == pytest.approx(gee_cond["p"], rel=1e-9) and cond["df"] == 9
+    over = model[model["term"] == "C(condition)[T.composite] (by clip)"].iloc[0]
+    key = "C(condition)[T.composite]"
+    assert over["df"] == 13 and over["estimate"] == pytest.approx(fit["estimate"][key])
+    assert over["or_ci_low"] < over["odds_ratio"] < over["or_ci_high"]
+    assert list(model["term"]).index(key) + 1 == list(model["term"]).index(f"{key} (by clip)")
 
 
 # ------------------------------------------------------------------ the command line
