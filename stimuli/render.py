@@ -11,9 +11,9 @@ Speed on a CPU-only machine (Mesa llvmpipe) decides the design:
 * **Colour-only read-back** in BGRA (Mesa's fast path), no depth read, and 4x MSAA resolved
   by a blit (configurable: ``msaa``).
 * **Only the avatar's rectangle is cleared, drawn and resolved**: the scissor box is the
-  screen rectangle of the deformed mesh's bounding box (with the previous frame's, so what it
-  left is cleared). Outside it the frame is the background either way - the pictures are the
-  same bit for bit - but llvmpipe clears and resolves four samples per pixel, and a head
+  screen rectangle of the deformed vertices (joined with the previous frame's, so what that
+  one left is cleared). Outside it the frame is the background either way - the pictures are
+  the same bit for bit - but llvmpipe clears and resolves four samples per pixel, and a head
   fills a quarter to a third of a 16:9 frame.
 * **One BLAS thread while rendering**: OpenBLAS's worker threads spin after every product
   (deforming, normals) and took a whole core from llvmpipe's rasterisers - 4x MSAA at 720p30
