@@ -55,25 +55,39 @@ class YamlRefusedError(Exception):
         self.issue = issue
 
 
+def _too_deep(line: int | None) -> YamlRefusedError:
+    return YamlRefusedError(
+        Issue((), f"nested more than {MAX_DEPTH} levels deep; a protocol needs far fewer", line)
+    )
+
+
+def _deep_refused(events: Iterable[yaml.Event]) -> Iterator[yaml.Event]:
+    """``events`` as they come, refused past :data:`MAX_DEPTH` open collections. libyaml
+    (PyYAML >= 6.0.4) stops at 1,000 levels in its scanner, which reads ahead of the events:
+    that error is the same refusal."""
+    depth = 0
+    try:
+        for event in events:
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise _too_deep(event.start_mark.line + 1)
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+            yield event
+    except yaml.MarkedYAMLError as exc:
+        if "nesting depth" not in str(exc.problem):
+            raise
+        mark = exc.problem_mark
+        raise _too_deep(mark.line + 1 if mark is not None else None) from None
+
+
 def _scan(text: str) -> int:
     """Depth and alias limits from the event stream (constant stack, nothing expanded);
     returns the number of aliases."""
-    depth = 0
     aliases = 0
-    for event in yaml.parse(text, Loader=_Loader):
-        if isinstance(event, yaml.CollectionStartEvent):
-            depth += 1
-            if depth > MAX_DEPTH:
-                raise YamlRefusedError(
-                    Issue(
-                        (),
-                        f"nested more than {MAX_DEPTH} levels deep; a protocol needs far fewer",
-                        event.start_mark.line + 1,
-                    )
-                )
-        elif isinstance(event, yaml.CollectionEndEvent):
-            depth -= 1
-        elif isinstance(event, yaml.AliasEvent):
+    for event in _deep_refused(yaml.parse(text, Loader=_Loader)):
+        if isinstance(event, yaml.AliasEvent):
             aliases += 1
             if aliases > MAX_ALIASES:
                 raise YamlRefusedError(
