@@ -223,7 +223,6 @@ class Renderer:
         self._view_dir = np.array([0.0, 0.0, 1.0])
         self._renderer: pyrender.OffscreenRenderer | None = None
         self._groups: list[_Group] = []
-        self._box: _Box | None = None  # the uploaded frame's screen rectangle
 
     def _framing(self) -> tuple[np.ndarray, float]:
         """The point the camera aims at and its distance (see :class:`RenderSettings`)."""
@@ -394,8 +393,9 @@ class Renderer:
     def frame(self, weights: np.ndarray, *, pose: HeadPose | None = None) -> np.ndarray:
         """Render the avatar with target weights (K,) in ``avatar.target_names`` order, its
         head, neck and eyes turned by ``pose`` (needs a skeleton)."""
-        self._upload(*self._prepare(weights, pose))
-        self._draw()
+        verts, lit, box = self._prepare(weights, pose)
+        self._upload(verts, lit)
+        self._draw(box)
         return self._collect()
 
     def frames(
@@ -415,8 +415,9 @@ class Renderer:
                 prepared = self._prepare(w, pose)  # overlaps the previous frame's rasterisation
                 if drawn:
                     yield self._collect()
-                self._upload(*prepared)
-                self._draw()
+                verts, lit, box = prepared
+                self._upload(verts, lit)
+                self._draw(box)
                 drawn = True
         if drawn:
             yield self._collect()
@@ -455,13 +456,12 @@ class Renderer:
         y1 = int(np.clip(np.ceil(y.max()) + 2, 0, s.height))
         return (x0, y0, max(0, x1 - x0), max(0, y1 - y0))
 
-    def _upload(self, verts: np.ndarray, lit: np.ndarray, box: _Box | None = None) -> None:
+    def _upload(self, verts: np.ndarray, lit: np.ndarray) -> None:
         t0 = time.perf_counter()
         assert self._renderer is not None
         if not self._groups[0].primitive._buffers:  # another scene was drawn since
             self._renderer._renderer._facelab_scissor(None)
             self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
-        self._box = box
         for g in self._groups:
             g.interleaved[:, :3] = verts[g.vertices]
             g.interleaved[:, -4:-1] = lit[g.vertices]
@@ -469,12 +469,13 @@ class Renderer:
             GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, g.interleaved.nbytes, g.interleaved)
         self.times.upload += time.perf_counter() - t0
 
-    def _draw(self) -> None:
-        """Issue the frame's drawing and let the rasteriser start (no read-back yet)."""
+    def _draw(self, box: _Box | None) -> None:
+        """Issue the frame's drawing, limited to ``box`` (see :meth:`_screen_box`; None: the
+        whole frame), and let the rasteriser start (no read-back yet)."""
         t0 = time.perf_counter()
         assert self._renderer is not None
         gl = self._renderer._renderer
-        gl._facelab_scissor(self._box)
+        gl._facelab_scissor(box)
         gl._facelab_defer_read = True
         try:
             self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)

@@ -254,8 +254,8 @@ def test_drawing_only_the_heads_rectangle_changes_no_pixel() -> None:
             # the head moved away: far to the side, the rectangle is empty; then it returns
             away = head.deform(weights[0]) + np.array([5.0, 0.0, 0.0], np.float32)
             assert boxed._screen_box(away)[2] == 0
-            boxed._upload(away, np.zeros_like(away), boxed._screen_box(away))
-            boxed._draw()
+            boxed._upload(away, np.zeros_like(away))
+            boxed._draw(boxed._screen_box(away))
             empty = boxed._collect()
             back = boxed.frame(weights[0], pose=poses[0])
         with Renderer(head, s) as whole:
