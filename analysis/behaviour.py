@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
-from facelab.analysis.identification import correct_model
+from facelab.analysis.identification import MODEL_COLUMNS, correct_model
 from facelab.analysis.stats import _require, levels, screen_covariates
 from facelab.errors import AnalysisError
 
@@ -180,13 +180,8 @@ def covariate_model(
         by_clip = clip_regression(
             part, dv=dv, subject=subject, condition=condition, covariates=tuple(used)
         )
-        if used and by_clip["df"] < 1:
-            note += (
-                f"; covariates not tested: {by_clip['clips']} clips for "
-                f"{by_clip['clips'] - int(by_clip['df'])} terms"
-            )
-        elif used:
-            note += f"; covariates tested between {by_clip['clips']} clips"
+        if used:
+            note += "; " + _tested_note(by_clip)
         rows = []  # (term, estimate, se, df)
         for term in fit.fe_params.index:
             is_condition = term.startswith(f"C({condition})")
@@ -271,9 +266,9 @@ def _independent_at_clip_level(
     """(kept, dropped): covariates in order, each kept only when it is not a linear
     combination, clip by clip, of the intercept, the condition terms and the covariates kept
     before it (with few clips several counts can be; the model would be singular)."""
-    clips = data.groupby(["stimulus_set", "stimulus", condition], observed=True).first()
-    dummies = pd.get_dummies(clips.index.get_level_values(condition), drop_first=True)
-    x = np.column_stack([np.ones(len(clips)), dummies.to_numpy(float)])
+    keys = ["stimulus_set", "stimulus", condition]
+    clips = data.groupby(keys, observed=True).first().reset_index()
+    _names, x = _clip_design(clips, levels(clips[condition]), condition, ())
     kept, dropped = [], []
     for c in covariates:
         candidate = np.column_stack([x, clips[c].to_numpy(float)])
@@ -323,47 +318,34 @@ def identification_covariates(
     notes += [d for d in dropped if not any(d.startswith(f"{c} ") for c in (*collinear, *used))]
     order = list(conditions) if conditions is not None else levels(merged["condition"])
     by_clip = clip_logit(merged, covariates=tuple(used), conditions=tuple(order))
-    if used and by_clip["df"] < 1:
+    if used:
         notes.append(
-            f"covariates not tested: {by_clip['clips']} clips for "
-            f"{by_clip['clips'] - int(by_clip['df'])} terms"
-        )
-    elif used:
-        notes.append(
-            f"covariates tested between {by_clip['clips']} clips (quasi-binomial, "
-            f"dispersion {by_clip['dispersion']:.2f})"
+            _tested_note(by_clip, how=f"quasi-binomial, dispersion {by_clip['dispersion']:.2f}")
         )
     if notes:
         model["note"] = model["note"] + "; " + "; ".join(notes)
     for c in used:
         model.loc[model["term"] == c, list(_BY_CLIP_COLUMNS)] = _by_clip_row(by_clip, c)
-    extra = []
-    for term in model["term"]:
-        if term.startswith("C(condition)") and by_clip["df"] >= 1:  # over sentences too
-            row = model[model["term"] == term].iloc[0].to_dict()
-            row.update(zip(_BY_CLIP_COLUMNS, _by_clip_row(by_clip, term), strict=True))
-            row["term"] = f"{term} (by clip)"
-            extra.append(row)
-    if extra:
-        at = int(np.nonzero(model["term"].str.startswith("C(condition)").to_numpy())[0][-1]) + 1
-        model = pd.concat(
-            [model.iloc[:at], pd.DataFrame(extra), model.iloc[at:]], ignore_index=True
-        )
-    return model
+    is_condition = model["term"].str.startswith("C(condition)")
+    if by_clip["df"] < 1 or not is_condition.any():
+        return model
+    extra = model[is_condition].copy()  # the condition over sentences too
+    extra[list(_BY_CLIP_COLUMNS)] = [_by_clip_row(by_clip, t) for t in extra["term"]]
+    extra["term"] = extra["term"] + " (by clip)"
+    at = int(np.nonzero(is_condition.to_numpy())[0][-1]) + 1
+    return pd.concat([model.iloc[:at], extra, model.iloc[at:]], ignore_index=True)
 
 
-_BY_CLIP_COLUMNS = (
-    "estimate",
-    "se",
-    "t",
-    "df",
-    "p",
-    "odds_ratio",
-    "or_ci_low",
-    "or_ci_high",
-    "se_robust",
-    "se_md",
-)
+#: the columns of correct_model's table that a by-clip row fills (estimate ... se_md)
+_BY_CLIP_COLUMNS = MODEL_COLUMNS[MODEL_COLUMNS.index("estimate") : MODEL_COLUMNS.index("se_md") + 1]
+
+
+def _tested_note(by_clip: dict, *, how: str = "") -> str:
+    """The note on whether the clips left degrees of freedom to test the covariates."""
+    if by_clip["df"] < 1:
+        terms = by_clip["clips"] - int(by_clip["df"])
+        return f"covariates not tested: {by_clip['clips']} clips for {terms} terms"
+    return f"covariates tested between {by_clip['clips']} clips" + (f" ({how})" if how else "")
 
 
 def _by_clip_row(by_clip: dict, term: str) -> list[float]:
