@@ -270,7 +270,7 @@ def _stimulus_sets(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     )
 
 
-@_check("blocks", "stimulus_sets", "conditions")
+@_check("blocks", "stimulus_sets", "conditions", "tasks")
 def _blocks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Unique ids; sets and conditions exist; methods that need texts get texts."""
     yield from _duplicates((b.id for b in protocol.blocks), ("blocks",), "block")
@@ -352,7 +352,7 @@ def _staircase_rule(
             )
 
 
-@_check("tasks", "blocks", "conditions", "items")
+@_check("tasks", "blocks", "conditions", "items", "stimulus_sets")
 def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Tasks are used consistently: references exist, graded designs have levels, a
     staircase has a correct answer to adapt on and a start in its grid."""

@@ -12,6 +12,7 @@ import yaml
 from facelab.errors import ProtocolError
 from facelab.experiment.cli import main
 from facelab.protocol import Protocol, load_protocol, schema_json_text
+from facelab.protocol_yaml import read_yaml
 from tests.conftest import ROOT
 
 
@@ -379,3 +380,91 @@ def test_a_large_protocol_validates(tmp_path: Path, kato_text: str) -> None:
     path.write_text(head + marker + head2 + "    stimuli:\n" + stims + stimuli, encoding="utf-8")
     protocol = load_protocol(path)
     assert len(protocol.stimulus_set("sentences").stimuli) == 150_001
+
+
+SHIPPED_YAML = sorted([*ROOT.glob("protocols/*.yaml"), *ROOT.glob("stimuli/data/*.yaml")])
+
+
+@pytest.mark.parametrize("path", SHIPPED_YAML, ids=lambda p: p.name)
+def test_shipped_yaml_reads_the_same_with_pure_python_pyyaml(path: Path) -> None:
+    """facelab reads YAML with libyaml when PyYAML has it; libyaml accepts plain scalars (a
+    question ending in '?' inside {…}) that PyYAML's own parser - and PyYAML without libyaml -
+    refuses. The files users copy out must read the same everywhere."""
+    text = path.read_text(encoding="utf-8")
+    assert yaml.load(text, Loader=yaml.SafeLoader) == read_yaml(text)[1]
+
+
+#: what the Protocol's lookup methods read
+_LOOKUPS = {
+    "condition": {"conditions"},
+    "stimulus_set": {"stimulus_sets"},
+    "task": {"tasks"},
+    "block_task": {"tasks"},
+    "block_conditions": {"tasks", "conditions"},
+}
+
+
+def _sections_read() -> dict[str, tuple[set[str], set[str]]]:
+    """check function -> (sections it declares, sections it reads), from the source of
+    core/protocol_checks.py; helper functions given ``protocol`` count for their callers."""
+    import ast
+
+    tree = ast.parse((ROOT / "core" / "protocol_checks.py").read_text(encoding="utf-8"))
+    fields = set(Protocol.model_fields)
+    funcs = {f.name: f for f in tree.body if isinstance(f, ast.FunctionDef)}
+
+    def direct(fn: ast.FunctionDef) -> tuple[set[str], set[str]]:
+        read: set[str] = set()
+        calls: set[str] = set()
+        for node in ast.walk(fn):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id == "protocol"
+            ):
+                read |= {node.attr} & fields
+                read |= _LOOKUPS.get(node.attr, set())
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id in funcs
+                and any(isinstance(a, ast.Name) and a.id == "protocol" for a in node.args)
+            ):
+                calls.add(node.func.id)
+        return read, calls
+
+    def reads(name: str, seen: frozenset[str] = frozenset()) -> set[str]:
+        read, calls = direct(funcs[name])
+        for c in calls - seen - {name}:
+            read |= reads(c, seen | {name})
+        return read
+
+    out = {}
+    for name, fn in funcs.items():
+        for dec in fn.decorator_list:
+            if isinstance(dec, ast.Call) and getattr(dec.func, "id", "") == "_check":
+                declared = {a.value for a in dec.args if isinstance(a, ast.Constant)}
+                out[name] = (declared, reads(name))
+    return out
+
+
+def test_every_cross_check_declares_the_sections_it_reads() -> None:
+    """A check runs on a partial protocol when other sections failed to validate; reading an
+    undeclared section there was an AttributeError traceback (found by fuzzing the shipped
+    protocols: a broken 'stimulus_sets' with an identify task)."""
+    checks = _sections_read()
+    assert len(checks) >= 10
+    undeclared = {name: sorted(r - d) for name, (d, r) in checks.items() if r - d}
+    assert not undeclared
+
+
+def test_an_identify_task_with_broken_stimulus_sets_is_reported_not_a_traceback(
+    tmp_path: Path,
+) -> None:
+    text = (ROOT / "protocols" / "method_identify.yaml").read_text(encoding="utf-8")
+    data = yaml.safe_load(text)
+    data["stimulus_sets"] = 7
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
+    with pytest.raises(ProtocolError, match="stimulus_sets"):
+        load_protocol(path)
