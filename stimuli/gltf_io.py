@@ -59,6 +59,8 @@ COMPONENT_DTYPES = {
     5125: np.uint32,
     5126: np.float32,
 }
+#: the most values one accessor may hold (a 50k-vertex head with 52 targets reads ~8M)
+MAX_VALUES = 2**27
 TYPE_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
@@ -108,17 +110,28 @@ def buffers_of(doc: pygltflib.GLTF2, path: Path) -> list[bytes]:
 
 
 def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
-    """Accessor ``index`` as an array (count, width); normalised integers become [0, 1]."""
+    """Accessor ``index`` as an array (count, width); normalised integers become [0, 1].
+
+    Raises ValueError when the accessor is malformed: a count beyond :data:`MAX_VALUES`,
+    data reaching outside its buffer view, sparse indices outside the count, or non-finite
+    floats (NaN/inf positions would render as nothing, silently)."""
     acc = doc.accessors[index]
     dtype = np.dtype(COMPONENT_DTYPES[acc.componentType])
     width = TYPE_WIDTH[acc.type]
     count = acc.count
+    if not isinstance(count, int) or count < 0 or count * width > MAX_VALUES:
+        raise ValueError(f"accessor {index}: count {count!r} (at most {MAX_VALUES // width})")
     out = np.zeros((count, width), dtype=dtype)
     if acc.bufferView is not None:
         view = doc.bufferViews[acc.bufferView]
         data = buffers[view.buffer]
         start = (view.byteOffset or 0) + (acc.byteOffset or 0)
         stride = view.byteStride or dtype.itemsize * width
+        end = start + (count - 1) * stride + dtype.itemsize * width if count else start
+        if min(start, stride) < 0 or end > (view.byteOffset or 0) + view.byteLength:
+            raise ValueError(
+                f"accessor {index}: its data reach outside buffer view {acc.bufferView}"
+            )
         out = np.ndarray(
             (count, width), dtype=dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize)
         ).copy()
@@ -138,7 +151,11 @@ def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarr
             count=sparse.count * width,
             offset=(vv.byteOffset or 0) + (sparse.values.byteOffset or 0),
         ).reshape(-1, width)
+        if idx.size and int(idx.max()) >= count:
+            raise ValueError(f"accessor {index}: sparse index {int(idx.max())} >= count {count}")
         out[idx] = vals
+    if dtype.kind == "f" and not np.isfinite(out).all():
+        raise ValueError(f"accessor {index}: holds non-finite values (NaN or infinity)")
     if acc.normalized and dtype.kind in "iu":
         out = out.astype(np.float32) / np.iinfo(dtype).max
     return out
@@ -147,9 +164,11 @@ def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarr
 def node_matrix(node: pygltflib.Node) -> np.ndarray:
     """The node's local transform as a 4x4 matrix (column vectors)."""
     if node.matrix is not None:
-        return np.array(node.matrix, dtype=float).reshape(4, 4).T
-    t = np.array(node.translation if node.translation is not None else [0, 0, 0], float)
-    x, y, z, w = node.rotation if node.rotation is not None else [0, 0, 0, 1]
+        return _numbers(node.matrix, 16, "matrix").reshape(4, 4).T
+    t = _numbers(node.translation if node.translation is not None else [0, 0, 0], 3, "translation")
+    x, y, z, w = _numbers(
+        node.rotation if node.rotation is not None else [0, 0, 0, 1], 4, "rotation"
+    )
     r = np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -157,11 +176,22 @@ def node_matrix(node: pygltflib.Node) -> np.ndarray:
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
     )
-    s = np.array(node.scale if node.scale is not None else [1, 1, 1], float)
+    s = _numbers(node.scale if node.scale is not None else [1, 1, 1], 3, "scale")
     m = np.eye(4)
     m[:3, :3] = r * s
     m[:3, 3] = t
     return m
+
+
+def _numbers(values: Any, count: int, what: str) -> np.ndarray:
+    """``values`` as ``count`` finite floats, or a ValueError saying what they are instead."""
+    try:
+        out = np.array(values, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"'{what}' is {values!r}; expected {count} numbers") from None
+    if out.shape != (count,) or not np.isfinite(out).all():
+        raise ValueError(f"'{what}' is {values!r}; expected {count} finite numbers")
+    return out
 
 
 def _extras(obj: Any) -> dict:
@@ -213,20 +243,19 @@ class _Graph:
         self.world: dict[int, np.ndarray] = {}
         self.order: list[int] = []  # parents before children
         stack = [(r, -1, np.eye(4)) for r in reversed(roots or [])]
-        try:
-            while stack:
-                i, parent, above = stack.pop()
-                if i in self.world:
-                    raise AvatarError(
-                        f"{path}: node {i} is reached twice (a cycle or shared child)"
-                    )
-                self.parent[i] = parent
-                self.world[i] = above @ node_matrix(nodes[i])
-                self.order.append(i)
-                for child in reversed(nodes[i].children or []):
-                    stack.append((child, i, self.world[i]))
-        except (IndexError, TypeError) as exc:
-            raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+        while stack:
+            i, parent, above = stack.pop()
+            if i in self.world:
+                raise AvatarError(f"{path}: node {i} is reached twice (a cycle or shared child)")
+            self.parent[i] = parent
+            try:
+                local = node_matrix(nodes[i])
+            except ValueError as exc:
+                raise ValueError(f"node {i}: {exc}") from None
+            self.world[i] = above @ local
+            self.order.append(i)
+            for child in reversed(nodes[i].children or []):
+                stack.append((child, i, self.world[i]))
 
     def nearest(self, node: int, among: dict[int, int]) -> int | None:
         """The value in ``among`` of ``node`` or its nearest ancestor that is a key there."""
@@ -237,9 +266,24 @@ class _Graph:
         return None
 
 
+#: what reading a malformed file raises (a wrong type, a missing key, an index out of range,
+#: an array of the wrong size) - any of these while reading is the file's fault, not facelab's
+_MALFORMED = (KeyError, IndexError, ValueError, TypeError, AttributeError)
+
+
 def read_gltf(path: Path) -> Avatar:
-    """An :class:`Avatar` from glTF 2.0 / VRM; see the module docstring for what is read."""
+    """An :class:`Avatar` from glTF 2.0 / VRM; see the module docstring for what is read.
+
+    Raises :class:`AvatarError` naming the file and the problem for any malformed content
+    (the glTF JSON, its accessors, node transforms, skins, VRM extensions)."""
     doc, buffers = open_gltf(path)
+    try:
+        return _avatar_of(doc, buffers, path)
+    except _MALFORMED as exc:
+        raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+
+
+def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar:
     graph = _Graph(doc, path)
     nodes = doc.nodes or []
     kind = detect_kind(doc)
@@ -261,124 +305,119 @@ def read_gltf(path: Path) -> Avatar:
     mesh_names: list[str] = []
     parts: dict[str, np.ndarray] = {}
     offset = 0
-    try:
-        for node_index in placed:
-            node = nodes[node_index]
-            mesh = doc.meshes[node.mesh]
-            mesh_names.append(mesh.name or f"mesh_{node.mesh}")
-            names = _extras(mesh).get("targetNames", [])
-            facelab = _extras(mesh).get("facelab", {})
-            skin = doc.skins[node.skin] if node.skin is not None else None
-            if skin is not None:
-                ibm = (
-                    accessor(doc, buffers, skin.inverseBindMatrices)
-                    .astype(np.float64)
-                    .reshape(-1, 4, 4)
-                    .transpose(0, 2, 1)
-                    if skin.inverseBindMatrices is not None
-                    else np.tile(np.eye(4), (len(skin.joints), 1, 1))
-                )
-                rest = np.stack([graph.world[j] @ m for j, m in zip(skin.joints, ibm, strict=True)])
-                to_global = np.array([joint_index[j] for j in skin.joints], np.int64)
-            rigid = graph.nearest(node_index, joint_index)
-            for prim in mesh.primitives:
-                if (prim.mode if prim.mode is not None else 4) != 4:
-                    continue  # points and lines are not surfaces
-                attrs = prim.attributes
-                if attrs.POSITION is None:
-                    raise KeyError("a primitive has no POSITION attribute")
-                pos = accessor(doc, buffers, attrs.POSITION).astype(np.float64)
-                n = len(pos)
-                if skin is not None and attrs.JOINTS_0 is not None and attrs.WEIGHTS_0 is not None:
-                    local_j = accessor(doc, buffers, attrs.JOINTS_0).astype(np.int64)
-                    w = accessor(doc, buffers, attrs.WEIGHTS_0).astype(np.float64)
-                    total = w.sum(axis=1, keepdims=True)
-                    w = np.where(total > 0, w / np.maximum(total, 1e-12), 0.0)
-                    blend = np.einsum("vk,vkij->vij", w, rest[local_j])  # (n, 4, 4)
-                    if np.allclose(
-                        blend, np.eye(4), rtol=0, atol=1e-6
-                    ):  # bound at rest: keep exact
-                        blend = np.broadcast_to(np.eye(4), blend.shape)
-                    lin = blend[:, :3, :3]
-                    pos_w = np.einsum("vij,vj->vi", lin, pos) + blend[:, :3, 3]
-                    joints_v = to_global[local_j]
-                    weights_v = w
-                else:
-                    world = graph.world[node_index]
-                    lin = np.broadcast_to(world[:3, :3], (n, 3, 3))
-                    pos_w = pos @ world[:3, :3].T + world[:3, 3]
-                    joints_v = np.zeros((n, 4), np.int64)
-                    weights_v = np.zeros((n, 4))
-                    if rigid is not None:
-                        joints_v[:, 0] = rigid
-                        weights_v[:, 0] = 1.0
-                idx = (
-                    accessor(doc, buffers, prim.indices).reshape(-1)
-                    if prim.indices is not None
-                    else np.arange(n)
-                ).astype(np.int64)
-                base = [1.0, 1.0, 1.0, 1.0]
-                tex_index, tex_coord = -1, 0
-                if prim.material is not None:
-                    pbr = doc.materials[prim.material].pbrMetallicRoughness
-                    if pbr is not None and pbr.baseColorFactor is not None:
-                        base = list(pbr.baseColorFactor)
-                    info = _get(pbr, "baseColorTexture") if pbr is not None else None
-                    if info is not None and _get(info, "index") is not None:
-                        source = doc.textures[_get(info, "index")].source
-                        tex_coord = _get(info, "texCoord") or 0
-                        if source is not None:
-                            if source not in texture_of_image:
-                                texture_of_image[source] = len(textures)
-                                textures.append(
-                                    _decode_image(
-                                        _image_bytes(doc, buffers, doc.images[source], path),
-                                        f"{path}: image {source}",
-                                    )
+    for node_index in placed:
+        node = nodes[node_index]
+        mesh = doc.meshes[node.mesh]
+        mesh_names.append(mesh.name or f"mesh_{node.mesh}")
+        names = _extras(mesh).get("targetNames", [])
+        facelab = _extras(mesh).get("facelab", {})
+        skin = doc.skins[node.skin] if node.skin is not None else None
+        if skin is not None:
+            ibm = (
+                accessor(doc, buffers, skin.inverseBindMatrices)
+                .astype(np.float64)
+                .reshape(-1, 4, 4)
+                .transpose(0, 2, 1)
+                if skin.inverseBindMatrices is not None
+                else np.tile(np.eye(4), (len(skin.joints), 1, 1))
+            )
+            rest = np.stack([graph.world[j] @ m for j, m in zip(skin.joints, ibm, strict=True)])
+            to_global = np.array([joint_index[j] for j in skin.joints], np.int64)
+        rigid = graph.nearest(node_index, joint_index)
+        for prim in mesh.primitives:
+            if (prim.mode if prim.mode is not None else 4) != 4:
+                continue  # points and lines are not surfaces
+            attrs = prim.attributes
+            if attrs.POSITION is None:
+                raise KeyError("a primitive has no POSITION attribute")
+            pos = accessor(doc, buffers, attrs.POSITION).astype(np.float64)
+            n = len(pos)
+            if skin is not None and attrs.JOINTS_0 is not None and attrs.WEIGHTS_0 is not None:
+                local_j = accessor(doc, buffers, attrs.JOINTS_0).astype(np.int64)
+                w = accessor(doc, buffers, attrs.WEIGHTS_0).astype(np.float64)
+                total = w.sum(axis=1, keepdims=True)
+                w = np.where(total > 0, w / np.maximum(total, 1e-12), 0.0)
+                blend = np.einsum("vk,vkij->vij", w, rest[local_j])  # (n, 4, 4)
+                if np.allclose(blend, np.eye(4), rtol=0, atol=1e-6):  # bound at rest: keep exact
+                    blend = np.broadcast_to(np.eye(4), blend.shape)
+                lin = blend[:, :3, :3]
+                pos_w = np.einsum("vij,vj->vi", lin, pos) + blend[:, :3, 3]
+                joints_v = to_global[local_j]
+                weights_v = w
+            else:
+                world = graph.world[node_index]
+                lin = np.broadcast_to(world[:3, :3], (n, 3, 3))
+                pos_w = pos @ world[:3, :3].T + world[:3, 3]
+                joints_v = np.zeros((n, 4), np.int64)
+                weights_v = np.zeros((n, 4))
+                if rigid is not None:
+                    joints_v[:, 0] = rigid
+                    weights_v[:, 0] = 1.0
+            idx = (
+                accessor(doc, buffers, prim.indices).reshape(-1)
+                if prim.indices is not None
+                else np.arange(n)
+            ).astype(np.int64)
+            base = [1.0, 1.0, 1.0, 1.0]
+            tex_index, tex_coord = -1, 0
+            if prim.material is not None:
+                pbr = doc.materials[prim.material].pbrMetallicRoughness
+                if pbr is not None and pbr.baseColorFactor is not None:
+                    base = list(pbr.baseColorFactor)
+                info = _get(pbr, "baseColorTexture") if pbr is not None else None
+                if info is not None and _get(info, "index") is not None:
+                    source = doc.textures[_get(info, "index")].source
+                    tex_coord = _get(info, "texCoord") or 0
+                    if source is not None:
+                        if source not in texture_of_image:
+                            texture_of_image[source] = len(textures)
+                            textures.append(
+                                _decode_image(
+                                    _image_bytes(doc, buffers, doc.images[source], path),
+                                    f"{path}: image {source}",
                                 )
-                            tex_index = texture_of_image[source]
-                elif attrs.COLOR_0 is None:
-                    base = [0.8, 0.7, 0.65, 1.0]
-                col = np.tile(np.array(base[:3], np.float32), (n, 1))
-                if attrs.COLOR_0 is not None:
-                    col = col * accessor(doc, buffers, attrs.COLOR_0).astype(np.float32)[:, :3]
-                uv_attr = attrs.TEXCOORD_1 if tex_coord == 1 else attrs.TEXCOORD_0
-                uv = (
-                    accessor(doc, buffers, uv_attr).astype(np.float32)
-                    if uv_attr is not None
-                    else np.zeros((n, 2), np.float32)
+                            )
+                        tex_index = texture_of_image[source]
+            elif attrs.COLOR_0 is None:
+                base = [0.8, 0.7, 0.65, 1.0]
+            col = np.tile(np.array(base[:3], np.float32), (n, 1))
+            if attrs.COLOR_0 is not None:
+                col = col * accessor(doc, buffers, attrs.COLOR_0).astype(np.float32)[:, :3]
+            uv_attr = attrs.TEXCOORD_1 if tex_coord == 1 else attrs.TEXCOORD_0
+            uv = (
+                accessor(doc, buffers, uv_attr).astype(np.float32)
+                if uv_attr is not None
+                else np.zeros((n, 2), np.float32)
+            )
+            if tex_index >= 0 and uv_attr is None:
+                tex_index = -1  # a texture without coordinates cannot be mapped
+            targets = {}
+            prim_names = _extras(prim).get("targetNames", names)
+            for k, tgt in enumerate(prim.targets or []):
+                position = _get(tgt, "POSITION")
+                if position is None:
+                    continue
+                delta = np.einsum(
+                    "vij,vj->vi", lin, accessor(doc, buffers, position).astype(np.float64)
                 )
-                if tex_index >= 0 and uv_attr is None:
-                    tex_index = -1  # a texture without coordinates cannot be mapped
-                targets = {}
-                prim_names = _extras(prim).get("targetNames", names)
-                for k, tgt in enumerate(prim.targets or []):
-                    position = _get(tgt, "POSITION")
-                    if position is None:
-                        continue
-                    delta = np.einsum(
-                        "vij,vj->vi", lin, accessor(doc, buffers, position).astype(np.float64)
-                    )
-                    raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
-                    raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
-                    targets[canonical_arkit_name(raw_name) or raw_name] = delta
-                positions.append(pos_w)
-                faces.append(idx.reshape(-1, 3) + offset)
-                colors.append(col)
-                uvs.append(uv)
-                face_tex.append(np.full(len(idx) // 3, tex_index, np.int64))
-                skins_j.append(joints_v)
-                skins_w.append(weights_v)
-                per_target.append((offset, n, targets))
-                part = mesh.name or f"mesh_{node.mesh}"
-                parts[part] = np.concatenate(
-                    [parts.get(part, np.zeros(0, np.int64)), offset + np.arange(n)]
-                )
-                for key, value in facelab.get("landmarks", {}).items():
-                    landmarks[key] = int(value) + offset
-                offset += n
-    except (KeyError, IndexError, ValueError, TypeError, AttributeError) as exc:
-        raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+                raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
+                raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
+                targets[canonical_arkit_name(raw_name) or raw_name] = delta
+            positions.append(pos_w)
+            faces.append(idx.reshape(-1, 3) + offset)
+            colors.append(col)
+            uvs.append(uv)
+            face_tex.append(np.full(len(idx) // 3, tex_index, np.int64))
+            skins_j.append(joints_v)
+            skins_w.append(weights_v)
+            per_target.append((offset, n, targets))
+            part = mesh.name or f"mesh_{node.mesh}"
+            parts[part] = np.concatenate(
+                [parts.get(part, np.zeros(0, np.int64)), offset + np.arange(n)]
+            )
+            for key, value in facelab.get("landmarks", {}).items():
+                landmarks[key] = int(value) + offset
+            offset += n
     if not positions:
         raise AvatarError(f"{path}: no triangle primitives")
     verts = np.vstack(positions)

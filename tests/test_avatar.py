@@ -252,3 +252,128 @@ def test_close_ups_of_avatars_without_landmarks_frame_the_moving_face(
     half = distance * np.tan(np.radians(settings.fov_deg) / 2)  # visible half-height at centre
     assert np.abs(face[:, 1] - centre[1]).max() < half
     assert np.abs(face[:, 0] - centre[0]).max() < half
+
+
+def _glb_parts(path: Path) -> tuple[dict, bytes]:
+    """(JSON chunk, the rest) of a .glb/.vrm file."""
+    import struct
+
+    raw = path.read_bytes()
+    (length,) = struct.unpack("<I", raw[12:16])
+    return json.loads(raw[20 : 20 + length]), raw[20 + length :]
+
+
+def _write_glb(path: Path, doc: dict, rest: bytes) -> Path:
+    import struct
+
+    chunk = json.dumps(doc, allow_nan=True).encode()
+    chunk += b" " * (-len(chunk) % 4)
+    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + rest
+    path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)
+    return path
+
+
+def _position_accessor(doc: dict) -> dict:
+    return doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+
+
+def _trs(node: dict, **trs: list) -> None:
+    """Give ``node`` translation/rotation/scale values instead of a matrix."""
+    node.pop("matrix", None)
+    node.update(trs)
+
+
+def _first_vrm0_bind(doc: dict) -> dict:
+    groups = doc["extensions"]["VRM"]["blendShapeMaster"]["blendShapeGroups"]
+    return next(b for g in groups for b in g.get("binds", []))
+
+
+@pytest.mark.parametrize(
+    ("kind", "mutate", "message"),
+    [
+        ("skinned", lambda d: d["nodes"][0].update(matrix=[1.0] * 15), r"node 0: 'matrix'"),
+        ("skinned", lambda d: _trs(d["nodes"][0], rotation=[0, 0, 1]), r"node 0: 'rotation'"),
+        ("skinned", lambda d: _position_accessor(d).update(count=10**9), r"count 1000000000"),
+        ("skinned", lambda d: _position_accessor(d).update(byteOffset=8), "outside buffer view"),
+        ("rpm", lambda d: _position_accessor(d).update(count=10**9), r"count 1000000000"),
+        ("vrm0", lambda d: _first_vrm0_bind(d).update(index="VEC3"), "malformed glTF"),
+        ("vrm0", lambda d: d["extensions"]["VRM"].update(humanoid=3), "malformed glTF"),
+    ],
+)
+def test_malformed_avatar_content_is_named_not_a_traceback(
+    tmp_path: Path, kind: str, mutate, message: str
+) -> None:
+    """Found by mutating the sample files: bad node transforms, huge or overlong accessors and
+    broken VRM extensions were ValueError/TypeError/MemoryError tracebacks."""
+    from facelab.stimuli.sample_avatars import write_sample
+
+    ext = ".vrm" if kind.startswith("vrm") else ".glb"
+    doc, rest = _glb_parts(write_sample(tmp_path / f"s{ext}", kind=kind, head_rows=8))
+    mutate(doc)
+    bad = _write_glb(tmp_path / f"bad{ext}", doc, rest)
+    with pytest.raises(AvatarError, match=message) as err:
+        load(bad)
+    assert str(bad) in str(err.value)
+
+
+def test_non_finite_positions_are_refused(tmp_path: Path) -> None:
+    """NaN vertices loaded silently and rendered as holes."""
+    from facelab.stimuli.sample_avatars import write_sample
+
+    doc, rest = _glb_parts(write_sample(tmp_path / "s.glb", kind="skinned", head_rows=8))
+    acc = _position_accessor(doc)
+    view = doc["bufferViews"][acc["bufferView"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    data = bytearray(rest[8:])  # the BIN chunk's payload
+    data[start : start + 4] = np.float32(np.nan).tobytes()
+    bad = _write_glb(tmp_path / "nan.glb", doc, rest[:8] + bytes(data))
+    with pytest.raises(AvatarError, match="non-finite"):
+        load(bad)
+
+
+@pytest.mark.slow
+def test_mutated_sample_avatars_load_or_are_refused(tmp_path: Path) -> None:
+    """300 random mutations of the sample files' glTF JSON (deleted keys, values of other
+    types): each one loads into a finite avatar or raises AvatarError - nothing else."""
+    import random
+
+    from facelab.stimuli.sample_avatars import write_sample
+
+    rng = random.Random(20261124)
+    samples = {}
+    for kind in ("skinned", "rpm", "vrm0", "vrm1"):
+        ext = ".vrm" if kind.startswith("vrm") else ".glb"
+        samples[kind] = (ext, *_glb_parts(write_sample(tmp_path / f"s_{kind}{ext}", kind=kind)))
+    values = [None, 0, -1, 10**9, "", "x", [], {}, [1, 2], True, 0.5, float("nan"), 3, "VEC3"]
+
+    def paths(node, pre=()):
+        yield pre
+        if isinstance(node, dict | list):
+            for k, v in node.items() if isinstance(node, dict) else enumerate(node):
+                yield from paths(v, (*pre, k))
+
+    outcomes = {"loaded": 0, "refused": 0}
+    for i in range(300):
+        kind = rng.choice(sorted(samples))
+        ext, doc, rest = samples[kind]
+        doc = json.loads(json.dumps(doc))
+        for _ in range(rng.randint(1, 2)):
+            where = rng.choice([p for p in paths(doc) if p])
+            parent = doc
+            for k in where[:-1]:
+                parent = parent[k]
+            if rng.random() < 0.3:
+                del parent[where[-1]]
+            else:
+                parent[where[-1]] = rng.choice(values)
+        path = _write_glb(tmp_path / f"m{i}{ext}", doc, rest)
+        try:
+            avatar = load(path)
+        except AvatarError:
+            outcomes["refused"] += 1
+            continue
+        outcomes["loaded"] += 1
+        assert np.isfinite(avatar.neutral).all(), (kind, where)
+        assert avatar.faces.max() < len(avatar.neutral), (kind, where)
+        assert all(np.isfinite(t).all() for t in avatar.targets.values()), (kind, where)
+    assert min(outcomes.values()) > 30, outcomes
