@@ -13,6 +13,10 @@ is, what nobody saw, and whether the responses were given by people.
 * **unseen** - conditions and items of the protocol nobody responded to are reported and left
   out, instead of failing deep inside a statistic; conditions or items in the logs that the
   protocol does not have are an error;
+* **design** - every row of a session that ran this protocol sits on the trial its
+  participant's design gives (block, set, stimulus, condition, repetition, forced-choice
+  position, screen); a difference is an error naming the row (the log was edited or comes from
+  elsewhere);
 * **provenance** - ``simulated`` on every row: all simulated, all real, mixed, or unknown
   (old logs without the column and without their session file). Never guessed as real.
 """
@@ -23,7 +27,7 @@ from dataclasses import dataclass, field
 
 import pandas as pd
 
-from facelab.design import block_trials
+from facelab.design import PENDING, block_trials, build_trials
 from facelab.errors import AnalysisError
 from facelab.protocol import Protocol
 
@@ -81,6 +85,91 @@ def expected_responses(protocol: Protocol) -> int:
         block_trials(protocol, block) * (1 if block.task else len(protocol.items))
         for block in protocol.blocks
     )
+
+
+#: the columns of a log row that come from the participant's trial list
+_TRIAL_FIELDS = (
+    ("block", "block"),
+    ("set_index", "set_index"),
+    ("stimulus_set", "stimulus_set"),
+    ("stimulus", "stimulus"),
+    ("condition", "condition"),
+    ("repetition", "repetition"),
+    ("comparison", "standard"),
+    ("position", "position"),
+)
+
+
+def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame) -> None:
+    """Every response sits on the trial the design gave its participant: the trial list is
+    a pure function of the protocol and the participant id, so a row whose trial index,
+    block, stimulus, condition, repetition or forced-choice position differs from it was
+    edited or comes from elsewhere - refused, naming the first difference. Sessions that
+    ran another version of the protocol (or record none) are not checked; a staircase
+    trial's condition is the staircase's choice, not the design's."""
+    checked = {
+        (r.participant, r.session) for r in sessions.itertuples() if r.protocol_matches is True
+    }
+    # the screen that gave each response: a block's task, or the VAS items
+    screen_of = {b.id: (b.task and protocol.task(b.task).type) or "vas" for b in protocol.blocks}
+    expected = data["block"].map(screen_of)
+    mine = pd.MultiIndex.from_frame(data[["participant", "session"]].astype(object)).isin(
+        list(checked)
+    )
+    wrong = mine & expected.notna() & (data["screen"].fillna("vas") != expected)
+    if wrong.any():
+        row = data[wrong].iloc[0]
+        raise AnalysisError(
+            f"{row['source']}: participant {row['participant']} trial {row['trial_index']} "
+            f"item {row['item']!r}: screen is {row['screen']!r} but block {row['block']!r} "
+            f"shows {screen_of[row['block']]!r}; the log was edited or belongs to another protocol"
+        )
+    logged = data[mine].drop_duplicates(
+        ["participant", "session", "trial_index", *(c for c, _ in _TRIAL_FIELDS)]
+    )
+    if logged.empty:
+        return
+    planned = pd.DataFrame(
+        [
+            {"participant": pid, "trial_index": t.trial_index}
+            | {f"{c}_plan": getattr(t, a) for c, a in _TRIAL_FIELDS}
+            for pid in logged["participant"].unique()
+            for t in build_trials(protocol, participant=str(pid))
+        ]
+    )
+    both = logged.merge(planned, on=["participant", "trial_index"], how="left", indicator=True)
+    where = (
+        both["source"]
+        + ": participant "
+        + both["participant"].astype(str)
+        + " session "
+        + both["session"].astype(str)
+        + " trial "
+        + both["trial_index"].astype(str)
+    )
+    off = both["_merge"] != "both"
+    if off.any():
+        i = off.idxmax()
+        n = int((planned["participant"] == both.at[i, "participant"]).sum())
+        raise AnalysisError(f"{where[i]}: the design of {both.at[i, 'participant']} has {n} trials")
+    for column, _ in _TRIAL_FIELDS:
+        have, plan = both[column].astype(object), both[f"{column}_plan"].astype(object)
+        same = (have == plan) | (have.isna() & plan.isna())
+        if column == "condition":
+            same |= plan == PENDING
+        if not same.all():
+            i = (~same).idxmax()
+            raise AnalysisError(
+                f"{where[i]}: {column} is {_plain(have[i])!r} but the participant's design has "
+                f"{_plain(plan[i])!r} there; the log was edited or belongs to another protocol"
+            )
+
+
+def _plain(value: object) -> object:
+    """A cell as the log wrote it (numpy scalars as Python values, NaN as None)."""
+    if value is None or (isinstance(value, float) and pd.isna(value)):
+        return None
+    return value.item() if hasattr(value, "item") else value
 
 
 def check_data(
@@ -143,6 +232,7 @@ def check_data(
                 "--accept-protocol-change if the change does not touch what participants saw"
             )
         notes.append(message + "; analysed anyway (--accept-protocol-change).")
+    _check_design(data, protocol, sessions)
     unknown_hash = [
         f"{r.participant}/{r.session}" for r in sessions.itertuples() if r.protocol_matches is None
     ]

@@ -8,6 +8,7 @@ one study only, no rating given twice, ratings inside the scale, no missing rati
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pandas as pd
@@ -43,6 +44,7 @@ def _read_rows(path: Path) -> list[dict]:
             "with --resume to repair it, then analyse"
         )
     source = str(path)
+    _check_identity(rows, path)
     for row in rows:
         row["source"] = source
     # provenance: on every row since facelab 0.2; older logs take it from the session file
@@ -59,6 +61,49 @@ def _read_rows(path: Path) -> list[dict]:
                 if row["protocol_sha256"] is None and meta.get("protocol_sha256"):
                     row["protocol_sha256"] = meta["protocol_sha256"]
     return rows
+
+
+#: what names a response: every row has these (the others may be n/a)
+IDENTITY_COLUMNS = (
+    "study",
+    "participant",
+    "session",
+    "trial_index",
+    "block",
+    "stimulus_set",
+    "stimulus",
+    "condition",
+    "item",
+)
+_LOG_NAME = re.compile(
+    r"^sub-(?P<participant>[A-Za-z0-9]+)_ses-(?P<session>\d+)_task-(?P<study>.+)_beh\.tsv$"
+)
+
+
+def _check_identity(rows: list[dict], path: Path) -> None:
+    """Every row names its response, and the participant, session and study the file's name
+    says (sub-<ID>_ses-<N>_task-<study>_beh.tsv): a row edited by hand or pasted from another
+    participant's log is an error, not a response analysed under the wrong name."""
+    named = _LOG_NAME.match(path.name)
+    expected = (
+        {
+            "participant": named["participant"],
+            "session": int(named["session"]),
+            "study": named["study"],
+        }
+        if named
+        else {}
+    )
+    for line, row in enumerate(rows, start=2):
+        for column in IDENTITY_COLUMNS:
+            if row.get(column) is None:
+                raise AnalysisError(f"{path}:{line}: column {column!r} is empty (n/a)")
+        for column, value in expected.items():
+            if row[column] != value:
+                raise AnalysisError(
+                    f"{path}:{line}: {column} is {row[column]!r}, but the file's name says "
+                    f"{value!r}; was the log edited or copied from another session?"
+                )
 
 
 def frame_from_rows(rows: list[dict]) -> pd.DataFrame:

@@ -185,8 +185,25 @@ def test_load_errors(simulated: Path, tmp_path: Path) -> None:
     fields = lines[1].split("\t")
     fields[0] = "other"
     tsv.write_text("".join([lines[0], "\t".join(fields), *lines[2:]]))
+    with pytest.raises(AnalysisError, match=r"_beh.tsv:2: study is 'other', but the file's name"):
+        load_results(root)
+    fields = lines[2].split("\t")
+    fields[1] = "P02"  # a row pasted from another participant's log
+    tsv.write_text("".join([lines[0], lines[1], "\t".join(fields), *lines[3:]]))
+    with pytest.raises(AnalysisError, match=r"_beh.tsv:3: participant is 'P02', but"):
+        load_results(root)
+    fields[1] = "n/a"  # found by fuzzing: a statsmodels MissingDataError traceback
+    tsv.write_text("".join([lines[0], lines[1], "\t".join(fields), *lines[3:]]))
+    with pytest.raises(AnalysisError, match=r"_beh.tsv:3: column 'participant' is empty"):
+        load_results(root)
+    tsv.write_text("".join(lines))
+    other = root / "sub-Q01" / "ses-1"
+    other.mkdir(parents=True)
+    moved = [line.replace("kato2021\tP01\t", "other\tQ01\t", 1) for line in lines]
+    (other / "sub-Q01_ses-1_task-other_beh.tsv").write_text("".join(moved))
     with pytest.raises(AnalysisError, match="more than one study"):
         load_results(root)
+    shutil.rmtree(root / "sub-Q01")
     tsv.write_text("".join([lines[0].replace("rating\t", "score\t"), *lines[1:]]))
     with pytest.raises(AnalysisError, match="unexpected header"):
         load_results(root)
@@ -196,6 +213,39 @@ def test_load_errors(simulated: Path, tmp_path: Path) -> None:
         load_results(empty)
     with pytest.raises(AnalysisError, match="results folder not found"):
         load_results(tmp_path / "nope")
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "message"),
+    [
+        (8, "other_condition", "condition is 'other_condition' but the participant's design has"),
+        (4, "sentences", "block is 'sentences' but the participant's design has 'vowels'"),
+        (6, "", "stimulus_set is '' but"),
+        (3, "101", "trial 101: the design of P01 has 18 trials"),
+        (9, "-1", "repetition is -1 but"),
+        (17, "  ", "screen is '  ' but block 'vowels' shows 'vas'"),
+    ],
+)
+def test_a_row_off_the_participants_design_is_refused(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys, column: int, value: str, message: str
+) -> None:
+    """Found by fuzzing the logs: a row edited to another condition, block, set or trial
+    index was analysed (or silently dropped) as if the participant had seen it. The design
+    is a pure function of the protocol and the participant id, so analyze checks each row
+    against it."""
+    root = _copy(simulated, tmp_path)
+    tsv = _first_tsv(root)
+    lines = tsv.read_text().splitlines(keepends=True)
+    fields = lines[1].split("\t")
+    if column == 8:  # another condition of the protocol, not the one of this trial
+        value = next(c for c in ("baseline", "standard", "emphasized") if c != fields[8])
+        message = message.replace("other_condition", value)
+    fields[column] = value
+    tsv.write_text("".join([lines[0], "\t".join(fields), *lines[2:]]))
+    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert "participant P01 " in err
 
 
 def test_incomplete_participant_is_reported_and_left_out_of_the_rm_analysis(
