@@ -36,7 +36,7 @@ from facelab.experiment.online.load import (
     wait_for_server,
 )
 from facelab.experiment.online.serve import BackgroundServer, free_port, prepare_server
-from facelab.experiment.online.server import create_app
+from facelab.experiment.online.server import MAX_BODY_BYTES, create_app
 from facelab.protocol import load_protocol, protocol_hash
 from facelab.sessionlog import SessionLog
 from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol
@@ -146,6 +146,34 @@ def test_tokens_origin_and_every_field_are_checked(study: Path, tmp_path: Path) 
     assert r.status_code == 401
     r = client.get("/api/admin/progress", headers={"X-Facelab-Admin": "experimenter-secret-123"})
     assert r.status_code == 200 and r.json()["participants"][0]["participant"] == "P0001"
+
+
+def test_oversized_bodies_are_refused_before_parsing(study: Path, tmp_path: Path) -> None:
+    """A public server parsed any body whole (a 100 MB JSON event was read into memory
+    before the 4000-character detail check); bodies over MAX_BODY_BYTES get 413, declared
+    or chunked, and nothing is stored."""
+    server = _server(study, tmp_path / "db.sqlite")
+    client = TestClient(create_app(server))
+    _, token = server.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token, "Content-Type": "application/json"}
+    huge = json.dumps({"kind": "error", "detail": {"x": "y" * (MAX_BODY_BYTES + 10)}}).encode()
+    r = client.post("/api/event", content=huge, headers=ok)
+    assert r.status_code == 413 and "larger than" in r.json()["error"]
+    assert r.headers["X-Content-Type-Options"] == "nosniff"
+
+    def chunks():
+        for _ in range(5):
+            yield b"x" * (MAX_BODY_BYTES // 4)
+
+    r = client.post("/api/response", content=chunks(), headers=ok)
+    assert r.status_code == 413
+    for name in ("a" * 300, "..%2f..%2fpyproject.toml", ".hidden", "run.js%00"):
+        assert client.get(f"/static/{name}").status_code == 404  # 300 chars: was an OSError
+    assert client.get("/static/run.js").status_code == 200
+    good = _answer(1, "naturalness", 40.0, "cccccccccccc0001")
+    r = client.post("/api/response", content=json.dumps(good).encode(), headers=ok)
+    assert r.status_code == 200, r.text  # a body within the limit still reaches the app
+    assert [row["rating"] for row in _rows(server, "P0001")] == [40.0]
 
 
 def test_replays_are_harmless_conflicts_refused_completion_waits(

@@ -555,9 +555,16 @@ _HEADERS = [
 ]
 
 
+#: the largest request body accepted (a playback record of a 30 s clip is ~20 KB; the field
+#: limits allow ~2 MB): anything larger is refused with 413 before it is parsed
+MAX_BODY_BYTES = 4 * 2**20
+
+
 class _SecurityHeaders:
-    """Pure ASGI middleware: cross-origin POSTs refused, security headers on every response
-    (cheaper than Starlette's BaseHTTPMiddleware under load)."""
+    """Pure ASGI middleware: cross-origin POSTs refused, request bodies over
+    :data:`MAX_BODY_BYTES` refused (by Content-Length, or counted as a chunked body arrives),
+    security headers on every response (cheaper than Starlette's BaseHTTPMiddleware under
+    load)."""
 
     def __init__(self, app: FastAPI):
         self.app = app
@@ -582,7 +589,49 @@ class _SecurityHeaders:
                 message["headers"] = list(message.get("headers", [])) + extra
             await send(message)
 
+        declared = headers.get(b"content-length", b"0")
+        body = None
+        if declared.isdigit() and int(declared) <= MAX_BODY_BYTES:
+            body = b""
+            if scope["method"] in ("POST", "PUT", "PATCH"):
+                body = await _read_body(receive)
+        if body is None:
+            refusal = JSONResponse(
+                {"error": f"request body larger than {MAX_BODY_BYTES} bytes"}, status_code=413
+            )
+            await refusal(scope, receive, send_with_headers)
+            return
+        if scope["method"] in ("POST", "PUT", "PATCH"):
+            receive = _replay(body, receive)
         await self.app(scope, receive, send_with_headers)
+
+
+async def _read_body(receive: Any) -> bytes | None:
+    """A request's whole body (chunked or not), or None once it passes MAX_BODY_BYTES."""
+    body = bytearray()
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            return bytes(body)  # the client went away; the app will see it
+        body += message.get("body", b"")
+        if len(body) > MAX_BODY_BYTES:
+            return None
+        if not message.get("more_body", False):
+            return bytes(body)
+
+
+def _replay(body: bytes, receive: Any) -> Any:
+    """An ASGI receive that gives ``body`` first, then whatever the client sends next."""
+    sent = False
+
+    async def replay() -> Any:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
 
 
 def create_app(server: StudyServer) -> Any:
@@ -641,12 +690,15 @@ def create_app(server: StudyServer) -> Any:
     def admin() -> HTMLResponse:
         return page("admin.html")
 
+    # the page assets, listed once: a request names one of them or gets 404 (the name never
+    # reaches the file system, so no path trick or over-long name can)
+    assets = {p.name: p for p in (WEB / "static").iterdir() if p.is_file()}
+
     @app.get("/static/{name}")
     def static(name: str) -> FileResponse:
-        path = WEB / "static" / name
-        if "/" in name or name.startswith(".") or not path.is_file():
+        if name not in assets:
             raise RefusedError(404, "not found")
-        return FileResponse(path)
+        return FileResponse(assets[name])
 
     @app.get("/vendor/{name}")
     def vendor(name: str) -> FileResponse:
