@@ -468,3 +468,54 @@ def test_an_identify_task_with_broken_stimulus_sets_is_reported_not_a_traceback(
     path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
     with pytest.raises(ProtocolError, match="stimulus_sets"):
         load_protocol(path)
+
+
+@pytest.mark.slow
+def test_mutated_shipped_protocols_load_or_are_refused(tmp_path: Path) -> None:
+    """300 random mutations of the shipped protocols (deleted keys and list entries, values
+    of other types): each one loads - and designs a participant and plans its clips - or
+    raises ProtocolError; nothing else (this found the undeclared sections of two checks)."""
+    import random
+    import shutil
+
+    from facelab.design import build_trials
+    from facelab.stimuli.clipspec import plan
+
+    rng = random.Random(20261124)
+    sources = sorted(ROOT.glob("protocols/*.yaml"))
+    values = [None, 0, -1, 1e9, "", "x", [], {}, [1, "a"], {"a": 1}, True, 0.5, "a__b", 10**30]
+
+    def paths(node, pre=()):
+        yield pre
+        if isinstance(node, dict | list):
+            for k, v in node.items() if isinstance(node, dict) else enumerate(node):
+                yield from paths(v, (*pre, k))
+
+    work = tmp_path / "protocols"
+    shutil.copytree(ROOT / "protocols", work)
+    outcomes = {"loaded": 0, "refused": 0}
+    for _ in range(300):
+        source = rng.choice(sources)
+        data = yaml.load(source.read_text(encoding="utf-8"), Loader=yaml.SafeLoader)
+        for _ in range(rng.randint(1, 2)):
+            where = rng.choice([p for p in paths(data) if p])
+            parent = data
+            for k in where[:-1]:
+                parent = parent[k]
+            if rng.random() < 0.3:
+                del parent[where[-1]]
+            else:
+                parent[where[-1]] = rng.choice(values)
+        path = work / source.name
+        path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
+        try:
+            protocol = load_protocol(path)
+        except ProtocolError:
+            outcomes["refused"] += 1
+            continue
+        finally:
+            shutil.copy(source, path)
+        outcomes["loaded"] += 1
+        build_trials(protocol, participant="P01")
+        plan(protocol)
+    assert min(outcomes.values()) >= 20, outcomes  # both paths exercised
