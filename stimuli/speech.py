@@ -40,6 +40,9 @@ __all__ = [
 
 DICTIONARY_DIR = Path("/var/lib/mecab/dic/open-jtalk/naist-jdic")
 TTS_SAMPLE_RATE = 48_000  # mei_normal's native rate
+#: The lowest sample rate of a recording (and of the analyser's input): below it the second
+#: formant of /i/ and /e/ (2-3 kHz) is lost, and resampling up cannot bring it back.
+MIN_SAMPLE_RATE = 8_000
 SILENT_RMS_DBFS = -60.0  # below this the whole file counts as silent
 CLIPPED_FRACTION = 0.001  # more than 0.1 % of samples at full scale counts as clipped
 
@@ -233,6 +236,11 @@ def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
         data, rate = sf.read(str(path), dtype="float32", always_2d=True)
     except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
         raise SpeechError(f"{path}: not a readable WAV/FLAC file ({exc})") from None
+    if rate < MIN_SAMPLE_RATE:
+        raise SpeechError(
+            f"{path}: recorded at {rate} Hz; facelab needs at least {MIN_SAMPLE_RATE} Hz (the "
+            "vowels' second formant lies at 2-3 kHz); record again at 16 kHz or more"
+        )
     mono = data.mean(axis=1)
     check_audio(mono, sample_rate=rate, source=str(path))
     return Speech(

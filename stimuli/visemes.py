@@ -53,6 +53,7 @@ from scipy.fft import dct, rfft
 from facelab.errors import VisemeError
 from facelab.resources import package_file
 from facelab.stimuli.arkit import OCULUS_VISEMES
+from facelab.stimuli.speech import MIN_SAMPLE_RATE, resample
 
 __all__ = [
     "VISEMES",
@@ -568,8 +569,6 @@ class StreamingAnalyzer:
         return np.clip(out, 0.0, 1.0)
 
 
-#: The lowest sample rate the offline functions accept (resampled inside).
-MIN_SAMPLE_RATE = 8_000
 _ANALYSIS_RATE = 16_000  # what other rates are resampled to
 
 
@@ -589,8 +588,6 @@ def analysis_input(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray
         )
     if sample_rate >= _ANALYSIS_RATE and sample_rate % 100 == 0:
         return samples, sample_rate
-    from facelab.stimuli.speech import resample
-
     out = resample(samples.astype(np.float32), rate_in=sample_rate, rate_out=_ANALYSIS_RATE)
     return out, _ANALYSIS_RATE
 

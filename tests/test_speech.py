@@ -94,8 +94,18 @@ def test_recordings_are_mixed_to_mono_and_resampled(tmp_path: Path) -> None:
         (lambda p: p.write_bytes(b"RIFF\x00\x00\x00\x00WAVEjunkjunk"), "not a readable"),
         (lambda p: p.write_text("hello"), "not a readable"),
         (lambda p: sf.write(p, _tone(48_000, seconds=0.01), 48_000), "shorter than 50 ms"),
+        (lambda p: sf.write(p, _tone(4_000), 4_000), "recorded at 4000 Hz; facelab needs at least"),
     ],
-    ids=["empty", "zeros", "very quiet", "clipped", "corrupt header", "text file", "too short"],
+    ids=[
+        "empty",
+        "zeros",
+        "very quiet",
+        "clipped",
+        "corrupt header",
+        "text file",
+        "too short",
+        "4 kHz (was upsampled silently)",
+    ],
 )
 def test_bad_audio_gives_a_clear_error(tmp_path: Path, make, message: str) -> None:
     path = tmp_path / "bad.wav"
