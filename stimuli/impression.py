@@ -496,7 +496,9 @@ class ImpressionModel:
     def from_json(cls, data: dict, *, where: str = "model") -> ImpressionModel:
         if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
             raise StageError(f"{where}: not a facelab impression model ({MODEL_FORMAT})")
-        space = data["space"]
+        space = data.get("space")
+        if space not in ("arkit", "vertices"):
+            raise StageError(f"{where}: 'space' is {space!r}; expected 'arkit' or 'vertices'")
         channels = ARKIT_NAMES if space == "arkit" else ()
 
         def vec(v: dict | list) -> np.ndarray:
@@ -520,17 +522,54 @@ class ImpressionModel:
                     int(p["n"]),
                     data["cv"][e],
                 )
-            return cls(
+            model = cls(
                 space, channels, data["label"], data["method"], data.get("positive"),
                 data["k_rule"], bool(data["orthogonal_to_speech"]), data["data_sha256"],
                 data.get("source", ""), models, vec(data["neutral_mean"]),
                 None if data.get("faces") is None else np.asarray(data["faces"], np.int64),
                 data.get("svm_c"),
             )  # fmt: skip
-        except (KeyError, TypeError, ValueError) as exc:
+            model.check()
+            return model
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise StageError(
                 f"{where}: malformed impression model ({type(exc).__name__}: {exc})"
             ) from None
+
+    def check(self) -> None:
+        """Raise ValueError unless every array has its documented shape (D the sample
+        dimension, K the PCA axes of each expression) and finite values, δ is positive and
+        the direction a unit vector - a hand-edited model would otherwise render NaN faces
+        or fail deep inside numpy."""
+        d = len(self.neutral_mean)
+        if self.space == "arkit" and d != len(ARKIT_NAMES):
+            raise ValueError(f"neutral_mean has {d} values; expected {len(ARKIT_NAMES)}")
+        arrays: list[tuple[str, np.ndarray, tuple[int, ...]]] = [
+            ("neutral_mean", self.neutral_mean, (d,))
+        ]
+        for e, m in self.expressions.items():
+            k = len(m.basis)
+            arrays += [
+                (f"{e}: mean", m.mean, (d,)),
+                (f"{e}: basis", m.basis, (k, d)),
+                (f"{e}: explained", m.explained, (k,)),
+                (f"{e}: w", m.w, (k,)),
+                (f"{e}: direction", m.direction, (d,)),
+                (f"{e}: coef", m.coef, (k,)),
+                (f"{e}: delta", np.asarray(m.delta), ()),
+                (f"{e}: intercept", np.asarray(m.intercept), ()),
+            ]
+        for name, array, shape in arrays:
+            array = np.asarray(array)
+            if array.shape != shape or array.dtype.kind not in "fiu":
+                raise ValueError(f"{name} has shape {array.shape}; expected {shape}")
+            if not np.isfinite(array).all():
+                raise ValueError(f"{name} holds non-finite values")
+        for e, m in self.expressions.items():
+            if m.delta <= 0:
+                raise ValueError(f"{e}: delta is {m.delta}; expected > 0")
+            if abs(float(np.linalg.norm(m.direction)) - 1.0) > 1e-4:
+                raise ValueError(f"{e}: direction is not a unit vector")
 
     @classmethod
     def load_cached(cls, path: Path) -> ImpressionModel:
@@ -691,6 +730,8 @@ def fit_impression(
             direction = direction / n
         proj = (s - mean) @ direction
         delta = float(np.std(proj, ddof=1))
+        if not delta > 0:
+            raise StageError(f"expression {expr!r}: the samples do not vary along the direction")
         cv = _cross_validate(s, y, persons, method=method, k=len(basis), svm_c=svm_c)
         cv["variance_explained"] = round(float(share.sum()), 4)
         models[expr] = ExpressionModel(
