@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +28,22 @@ def load_z(z: str, *, base_dir: Path = Path(".")) -> np.ndarray:
     if not rows or set(rows[0]) != {"blendshape", *VOWELS}:
         raise StageError(f"{path}: expected columns blendshape, a, i, u, e, o")
     by_name = {r["blendshape"]: r for r in rows}
+    twice = sorted(n for n, k in Counter(r["blendshape"] for r in rows).items() if k > 1)
+    if twice:
+        raise StageError(f"{path}: rows given twice: {', '.join(twice[:5])}")
     missing = [n for n in ARKIT_NAMES if n not in by_name]
     unknown = [n for n in by_name if n not in ARKIT_NAMES]
     if missing or unknown:
         raise StageError(f"{path}: missing ARKit rows {missing[:5]} / unknown rows {unknown[:5]}")
     try:
         z_mat = np.array([[float(by_name[n][v]) for v in VOWELS] for n in ARKIT_NAMES])
-    except ValueError as exc:
-        raise StageError(f"{path}: non-numeric value ({exc})") from None
-    if np.any(z_mat < 0) or np.any(z_mat > 1):
-        raise StageError(f"{path}: values must lie in [0, 1]")
+    except (TypeError, ValueError) as exc:  # TypeError: a row with too few cells
+        raise StageError(f"{path}: non-numeric or missing value ({exc})") from None
+    outside = ~((z_mat >= 0) & (z_mat <= 1))  # NaN is outside too
+    if outside.any():
+        r, c = np.argwhere(outside)[0]
+        raise StageError(
+            f"{path}: row {ARKIT_NAMES[r]}, column {VOWELS[c]}: {z_mat[r, c]:g} is outside "
+            "[0, 1] (every value must lie in [0, 1])"
+        )
     return z_mat

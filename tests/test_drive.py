@@ -90,6 +90,17 @@ def test_custom_z_files(tmp_path: Path) -> None:
         load_z("bad.csv", base_dir=tmp_path)
     with pytest.raises(StageError, match=r"Z matrix .*none\.csv: cannot read"):
         load_z("none.csv", base_dir=tmp_path)
+    good = (tmp_path / "z.csv").read_text().splitlines()
+    row = next(i for i, line in enumerate(good) if line.startswith("jawOpen,"))
+    cases = {  # each was accepted (NaN, a repeated row) or a TypeError traceback (short row)
+        "nan": ("jawOpen,nan,0.5,0.5,0.5,0.5", "row jawOpen, column a: nan is outside"),
+        "short": ("jawOpen,0.5", "non-numeric or missing value"),
+        "twice": (good[row] + "\n" + good[row], "rows given twice: jawOpen"),
+    }
+    for name, (line, message) in cases.items():
+        (tmp_path / f"{name}.csv").write_text("\n".join([*good[:row], line, *good[row + 1 :]]))
+        with pytest.raises(StageError, match=message):
+            load_z(f"{name}.csv", base_dir=tmp_path)
 
 
 @pytest.mark.parametrize(
