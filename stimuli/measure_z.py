@@ -61,6 +61,10 @@ class MeasuredZ:
     spread: dict[str, dict]  # per vowel: repetitions, speakers, sd of the main rows
 
 
+#: how far outside [0, 1] a capture's coefficient may lie (and be clipped) before it is an error
+COEFF_SLACK = 0.01
+
+
 def _parse_timecode(text: str, fps: float, where: str) -> float:
     m = _TIMECODE.match(text.strip())
     if not m:
@@ -110,9 +114,25 @@ def read_capture(path: Path | str, *, fps: float = 60.0) -> Capture:
     except (ValueError, IndexError) as exc:
         raise StageError(f"{path}: non-numeric or missing coefficient ({exc})") from None
     t = np.asarray(times, dtype=float)
-    if len(t) < 2 or np.any(np.diff(t) <= 0):
+    if len(t) < 2 or not np.all(np.diff(t) > 0):  # NaN fails too
         raise StageError(f"{path}: times must increase from row to row")
+    # ARKit coefficients lie in [0, 1]; trackers' rounding a hair outside is clipped
+    outside = ~((coeffs >= -COEFF_SLACK) & (coeffs <= 1 + COEFF_SLACK))  # NaN is outside too
+    if outside.any():
+        r, c = np.argwhere(outside)[0]
+        raise StageError(
+            f"{path}:{r + 2}: {ARKIT_NAMES[c]} is {coeffs[r, c]:g}; ARKit coefficients lie in "
+            "[0, 1]"
+        )
+    coeffs = np.clip(coeffs, 0.0, 1.0)
     return Capture(path=path, times=t - t[0], coeffs=coeffs)
+
+
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"onset_s {text!r} is not a time >= 0")
+    return value
 
 
 def read_onsets(path: Path | str) -> list[dict]:
@@ -129,7 +149,7 @@ def read_onsets(path: Path | str) -> list[dict]:
                 {
                     "capture": Path(row["capture"].strip()).stem,
                     "vowel": vowel,
-                    "onset_s": float(row["onset_s"]),
+                    "onset_s": _seconds(row["onset_s"]),
                     "speaker": (row.get("speaker") or "").strip() or None,
                 }
             )

@@ -126,6 +126,23 @@ def test_capture_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     (tmp_path / "notime.csv").write_text(text)
     with pytest.raises(StageError, match="no time column"):
         read_capture(tmp_path / "notime.csv")
+    coeffs = np.zeros((10, 52))
+    coeffs[3, 5] = np.nan  # was accepted, and wrote a Z with NaN in it
+    _write_generic(tmp_path / "nan.csv", np.arange(10) / FPS, coeffs)
+    with pytest.raises(StageError, match=r"nan\.csv:5: .* is nan; ARKit coefficients lie in"):
+        read_capture(tmp_path / "nan.csv")
+    coeffs[3, 5] = 1.5
+    _write_generic(tmp_path / "big.csv", np.arange(10) / FPS, coeffs)
+    with pytest.raises(StageError, match=r"big\.csv:5: .* is 1\.5"):
+        read_capture(tmp_path / "big.csv")
+    times = np.arange(10) / FPS
+    times[4] = np.nan
+    _write_generic(tmp_path / "nantime.csv", times, np.zeros((10, 52)))
+    with pytest.raises(StageError, match="times must increase"):
+        read_capture(tmp_path / "nantime.csv")
+    (tmp_path / "on.csv").write_text("capture,vowel,onset_s\nok,a,nan\n")
+    with pytest.raises(StageError, match=r"on\.csv:2: .*onset_s 'nan' is not a time"):
+        read_onsets(tmp_path / "on.csv")
     (tmp_path / "on.csv").write_text("capture,vowel,onset_s\nok,x,0.1\n")
     with pytest.raises(StageError, match="vowel 'x' is not one of"):
         read_onsets(tmp_path / "on.csv")
