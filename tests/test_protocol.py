@@ -14,6 +14,7 @@ from facelab.experiment.cli import main
 from facelab.protocol import Protocol, load_protocol, schema_json_text
 from facelab.protocol_yaml import read_yaml
 from tests.conftest import ROOT
+from tests.mutation import mutated
 
 
 def test_kato_protocol_matches_the_paper(kato_path: Path) -> None:
@@ -485,27 +486,13 @@ def test_mutated_shipped_protocols_load_or_are_refused(tmp_path: Path) -> None:
     sources = sorted(ROOT.glob("protocols/*.yaml"))
     values = [None, 0, -1, 1e9, "", "x", [], {}, [1, "a"], {"a": 1}, True, 0.5, "a__b", 10**30]
 
-    def paths(node, pre=()):
-        yield pre
-        if isinstance(node, dict | list):
-            for k, v in node.items() if isinstance(node, dict) else enumerate(node):
-                yield from paths(v, (*pre, k))
-
     work = tmp_path / "protocols"
     shutil.copytree(ROOT / "protocols", work)
     outcomes = {"loaded": 0, "refused": 0}
     for _ in range(300):
         source = rng.choice(sources)
         data = yaml.load(source.read_text(encoding="utf-8"), Loader=yaml.SafeLoader)
-        for _ in range(rng.randint(1, 2)):
-            where = rng.choice([p for p in paths(data) if p])
-            parent = data
-            for k in where[:-1]:
-                parent = parent[k]
-            if rng.random() < 0.3:
-                del parent[where[-1]]
-            else:
-                parent[where[-1]] = rng.choice(values)
+        data = mutated(data, rng=rng, values=values)
         path = work / source.name
         path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
         try:
