@@ -98,7 +98,8 @@ def complete_emotion(values: Mapping[str, float]) -> np.ndarray:
 @dataclass(frozen=True)
 class EmotionTimeline:
     """The character's emotion over time: keys (time s, {emotion: value}), linearly
-    interpolated, held before the first and after the last key."""
+    interpolated, held before the first and after the last key; two keys at one time make a
+    step (in the order given)."""
 
     keys: tuple[tuple[float, tuple[tuple[str, float], ...]], ...]
 
@@ -109,9 +110,13 @@ class EmotionTimeline:
 
     @classmethod
     def from_keys(cls, keys: Iterable[tuple[float, Mapping[str, float]]]) -> EmotionTimeline:
-        rows = sorted((float(t), tuple(sorted(v.items()))) for t, v in keys)
+        # sorted by time only (stable): keys given at one time keep their order, a step
+        rows = sorted(((float(t), tuple(sorted(v.items()))) for t, v in keys), key=lambda r: r[0])
         if not rows:
             raise BehaviourError("an emotion timeline needs at least one key")
+        bad = [t for t, _ in rows if not np.isfinite(t)]
+        if bad:
+            raise BehaviourError(f"emotion timeline: time {bad[0]} s is not a finite number")
         for _, v in rows:
             complete_emotion(dict(v))
         return cls(tuple(rows))

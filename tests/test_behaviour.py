@@ -865,3 +865,17 @@ def test_covariate_model_keeps_alpha_when_conditions_do_not_differ() -> None:
         model = covariate_model(vas, counts, conditions=("gestures_only", "composite"))
         rejected += int(model.loc[model["term"].str.startswith("C("), "p"].iloc[0] < 0.05)
     assert rejected / sims <= 0.05 + 2 * np.sqrt(0.05 * 0.95 / sims)
+
+
+def test_emotion_timeline_keys_steps_and_bad_times() -> None:
+    """Two keys at one time make a step in the order given (they were ordered by their
+    values); a NaN or infinite time was accepted."""
+    tl = EmotionTimeline.from_keys(
+        [(4.0, {"fear": 1.0}), (2.0, {"sadness": 1.0}), (2.0, {"joy": 1.0}), (0.0, {"joy": 0.0})]
+    )
+    joy, sadness = EMOTIONS.index("joy"), EMOTIONS.index("sadness")
+    assert tl.at(1.999)[sadness] == pytest.approx(0.9995, abs=1e-3)  # towards the first key
+    assert tl.at(2.001)[joy] == pytest.approx(0.9995, abs=1e-3)  # on from the second
+    for t in (float("nan"), float("inf")):
+        with pytest.raises(BehaviourError, match="not a finite number"):
+            EmotionTimeline.from_keys([(0.0, {"joy": 1.0}), (t, {"fear": 1.0})])
