@@ -8,13 +8,12 @@ one study only, no rating given twice, ratings inside the scale, no missing rati
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pandas as pd
 
 from facelab.errors import AnalysisError, StageError
-from facelab.sessionlog import LOG_COLUMNS, parse_log_text
+from facelab.sessionlog import LOG_COLUMNS, log_identity, parse_log_text
 
 __all__ = ["find_logs", "frame_from_rows", "load_log", "load_results", "session_summary"]
 
@@ -75,25 +74,13 @@ IDENTITY_COLUMNS = (
     "condition",
     "item",
 )
-_LOG_NAME = re.compile(
-    r"^sub-(?P<participant>[A-Za-z0-9]+)_ses-(?P<session>\d+)_task-(?P<study>.+)_beh\.tsv$"
-)
 
 
 def _check_identity(rows: list[dict], path: Path) -> None:
     """Every row names its response, and the participant, session and study the file's name
     says (sub-<ID>_ses-<N>_task-<study>_beh.tsv): a row edited by hand or pasted from another
     participant's log is an error, not a response analysed under the wrong name."""
-    named = _LOG_NAME.match(path.name)
-    expected = (
-        {
-            "participant": named["participant"],
-            "session": int(named["session"]),
-            "study": named["study"],
-        }
-        if named
-        else {}
-    )
+    expected = log_identity(path) or {}
     for line, row in enumerate(rows, start=2):
         for column in IDENTITY_COLUMNS:
             if row.get(column) is None:

@@ -42,6 +42,7 @@ import io
 import json
 import math
 import os
+import re
 import signal
 import socket
 from collections.abc import Iterable, Iterator, Mapping
@@ -62,6 +63,7 @@ __all__ = [
     "SessionPaths",
     "append_jsonl",
     "fsync_dir",
+    "log_identity",
     "parse_log_text",
     "response_row",
     "rows_to_tsv",
@@ -178,6 +180,25 @@ class SessionPaths:
     actions: Path
     staircase: Path
     lock: Path
+
+
+#: a response log's file name, as :func:`session_paths` makes it
+_TSV_NAME = re.compile(
+    r"^sub-(?P<participant>[A-Za-z0-9]+)_ses-(?P<session>\d+)_task-(?P<study>.+)_beh\.tsv$"
+)
+
+
+def log_identity(path: Path | str) -> dict[str, Any] | None:
+    """``{"participant", "session", "study"}`` a response log's file name says (the inverse of
+    :func:`session_paths`), or None for a name it does not make."""
+    named = _TSV_NAME.match(Path(path).name)
+    if named is None:
+        return None
+    return {
+        "participant": named["participant"],
+        "session": int(named["session"]),
+        "study": named["study"],
+    }
 
 
 def session_paths(

@@ -189,3 +189,12 @@ def test_rows_to_tsv_parses_back(tmp_path: Path) -> None:
     rows = [_row(1, "a", 1.5), _row(1, "b", 99.25)]
     parsed, cut = parse_log_text(rows_to_tsv(rows), source="x")
     assert cut is None and [r["rating"] for r in parsed] == [1.5, 99.25]
+
+
+def test_log_identity_reads_back_what_session_paths_names(tmp_path) -> None:
+    from facelab.sessionlog import log_identity, session_paths
+
+    paths = session_paths(tmp_path, study="my_study-2", participant="P07", session=12)
+    assert log_identity(paths.tsv) == {"participant": "P07", "session": 12, "study": "my_study-2"}
+    assert log_identity(paths.playback) is None
+    assert log_identity(tmp_path / "notes.tsv") is None

@@ -590,19 +590,17 @@ class _SecurityHeaders:
             await send(message)
 
         declared = headers.get(b"content-length", b"0")
-        body = None
-        if declared.isdigit() and int(declared) <= MAX_BODY_BYTES:
-            body = b""
-            if scope["method"] in ("POST", "PUT", "PATCH"):
-                body = await _read_body(receive)
-        if body is None:
+        too_large = not declared.isdigit() or int(declared) > MAX_BODY_BYTES
+        if not too_large and scope["method"] in ("POST", "PUT", "PATCH"):
+            body = await _read_body(receive)
+            too_large = body is None
+            receive = receive if body is None else _replay(body, receive)
+        if too_large:
             refusal = JSONResponse(
                 {"error": f"request body larger than {MAX_BODY_BYTES} bytes"}, status_code=413
             )
             await refusal(scope, receive, send_with_headers)
             return
-        if scope["method"] in ("POST", "PUT", "PATCH"):
-            receive = _replay(body, receive)
         await self.app(scope, receive, send_with_headers)
 
 
