@@ -19,7 +19,6 @@ number of events held fixed.
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
@@ -29,7 +28,8 @@ from scipy import stats as sps
 
 from facelab.analysis.identification import MODEL_COLUMNS, correct_model
 from facelab.analysis.stats import _require, levels, screen_covariates
-from facelab.errors import AnalysisError
+from facelab.errors import AnalysisError, FormatError
+from facelab.formats import behaviour_log_path, read_behaviour_log, read_manifest
 
 __all__ = [
     "COVARIATE_COLUMNS",
@@ -60,20 +60,22 @@ def clip_behaviour(clips_dir: Path) -> pd.DataFrame:
     """One row per clip of ``clips_dir/clips.csv`` that has a behaviour log: ``clip_id,
     stimulus_set, stimulus, condition, mode``, the layer counts, ``unit_*`` counts and
     ``energy_face_per_s, energy_rotation_deg_per_s``. Empty when no clip has a log."""
-    manifest = Path(clips_dir) / "clips.csv"
-    if not manifest.is_file():
-        raise AnalysisError(f"{manifest}: no clip manifest (render the clips first)")
-    clips = pd.read_csv(manifest, dtype=str)
+    try:
+        clips = pd.DataFrame(
+            read_manifest(clips_dir, need=("clip_id", "stimulus_set", "stimulus", "condition"))
+        )
+    except FormatError as exc:
+        raise AnalysisError(str(exc)) from None
     rows = []
     for clip in clips.itertuples(index=False):
-        path = Path(clips_dir) / f"{clip.clip_id}.behaviour.json"
+        path = behaviour_log_path(clips_dir, clip.clip_id)
         if not path.is_file():
             continue
         try:
-            log = json.loads(path.read_text(encoding="utf-8"))
-            events = log["events"]
-        except (OSError, ValueError, KeyError) as exc:
-            raise AnalysisError(f"{path}: not a behaviour log ({exc})") from None
+            log = read_behaviour_log(path)
+        except FormatError as exc:
+            raise AnalysisError(str(exc)) from None
+        events = log["events"]
         row = {
             "clip_id": clip.clip_id,
             "stimulus_set": clip.stimulus_set,

@@ -26,6 +26,7 @@ __all__ = [
     "AvatarError",
     "BehaviourError",
     "FacelabError",
+    "FormatError",
     "Issue",
     "ProtocolError",
     "SessionAbortedError",
@@ -64,6 +65,11 @@ class VisemeError(StageError):
 
 class SessionError(StageError):
     """A participant session cannot start or continue as asked (clips, lock, log)."""
+
+
+class FormatError(StageError):
+    """A file one stage wrote for another (clip manifest, behaviour log, model header) that
+    cannot be read."""
 
 
 class AnalysisError(FacelabError):

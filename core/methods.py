@@ -1,19 +1,23 @@
 """The registry of animation methods a protocol condition can name.
 
-Each entry declares the method's parameters as a typed model (unknown keys are errors) and
-what the method needs from an avatar. A new method is one parameter model plus one entry in
-:data:`METHODS`; its drive function is registered beside it in ``facelab.stimuli.drive``.
-
-This module is pure data: it imports nothing heavy, so the protocol loader can validate
-conditions without the audio or rendering stacks.
+Each :class:`MethodSpec` is the protocol half of a method: its parameters as a typed model
+(unknown keys are errors), a summary, whether it needs the stimulus text, and the checks of
+the files its parameters name. The stimulus half (drive, targets, playability) is the method's
+``facelab.stimuli.methods.Method``, whose ``register`` puts the spec here too: a plugin method
+is one object registered once. The built-in specs are declared here so that protocols validate
+without the audio or rendering stacks.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from facelab.formats import impression_header_problems
 
 __all__ = [
     "BUILTIN_Z",
@@ -23,6 +27,7 @@ __all__ = [
     "TextVisemesParams",
     "VisemeBaselineParams",
     "VowelBlendParams",
+    "register_spec",
 ]
 
 #: Z matrices shipped with facelab (52 ARKit rows x 5 vowel columns), by name.
@@ -83,14 +88,60 @@ class ImpressionParams(_Params):
     )  # fmt: skip
 
 
+#: A problem found by a method's protocol check: (key path under the condition, message).
+Problem = tuple[tuple[str | int, ...], str]
+
+
+def _z_problems(z: str, base_dir: Path, where: tuple[str | int, ...]) -> Iterator[Problem]:
+    """A Z parameter names a shipped matrix or an existing CSV file."""
+    if z in BUILTIN_Z:
+        return
+    z_path = base_dir / z
+    if z_path.suffix.lower() != ".csv" or not z_path.is_file():
+        yield (
+            where,
+            f"expected one of {', '.join(BUILTIN_Z)} or an existing .csv file "
+            f"(52 rows x 5 vowels); {z_path} was not found",
+        )
+
+
+def _vowel_blend_checks(params: VowelBlendParams, base_dir: Path) -> Iterator[Problem]:
+    yield from _z_problems(params.z, base_dir, ("params", "z"))
+
+
+def _impression_checks(params: ImpressionParams, base_dir: Path) -> Iterator[Problem]:
+    for key, message in impression_header_problems(
+        base_dir / params.model, expression=params.expression, space="arkit"
+    ):
+        yield ("params", key), message
+    if params.speech is not None:
+        yield from _z_problems(params.speech.z, base_dir, ("params", "speech", "z"))
+
+
 @dataclass(frozen=True)
 class MethodSpec:
-    """What the protocol layer needs to know about one animation method."""
+    """What the protocol layer needs to know about one animation method.
+
+    checks : ``(params, base_dir) -> (key path, message)…`` for the files the parameters name
+        (paths relative to the protocol's folder); the key path is under the condition.
+    """
 
     name: str
     params: type[_Params]
     summary: str
     needs_text: bool = False  # True when the method needs the stimulus text (phoneme timing)
+    checks: Callable[[Any, Path], Iterator[Problem]] | None = None
+
+    def parse(self, params: Mapping[str, Any] | BaseModel | None) -> Any:
+        """The typed parameters (a model instance passes through)."""
+        if isinstance(params, self.params):
+            return params
+        return self.params.model_validate(dict(params or {}))
+
+    def problems(self, params: Any, base_dir: Path) -> Iterator[Problem]:
+        """The method's own protocol checks on validated ``params``."""
+        if self.checks is not None:
+            yield from self.checks(params, base_dir)
 
 
 METHODS: dict[str, MethodSpec] = {
@@ -105,6 +156,7 @@ METHODS: dict[str, MethodSpec] = {
             "vowel_blend",
             VowelBlendParams,
             "Y = G*Z*X: 5 vowel intensities through a 52x5 Z matrix to the ARKit targets",
+            checks=_vowel_blend_checks,
         ),
         MethodSpec(
             "text_visemes",
@@ -117,6 +169,14 @@ METHODS: dict[str, MethodSpec] = {
             ImpressionParams,
             "seed 001: an expression moved along a learned impression direction to level q, "
             "eased from neutral and back (optionally with vowel-driven speech on top)",
+            checks=_impression_checks,
         ),
     )
 }
+
+
+def register_spec(spec: MethodSpec) -> None:
+    """Add a plugin method's protocol spec (``facelab.stimuli.methods.register`` calls this)."""
+    if METHODS.get(spec.name, spec) is not spec:
+        raise ValueError(f"method {spec.name!r} is registered already")
+    METHODS[spec.name] = spec

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
-from facelab.methods import BUILTIN_Z, METHODS
+from facelab.methods import METHODS
 from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
 from facelab.protocol_yaml import read_data
 
@@ -165,7 +165,7 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             )
             continue
         try:
-            params = spec.params.model_validate(cond.params)
+            params = spec.parse(cond.params)
         except ValidationError as exc:
             for err in exc.errors():
                 loc = clean_loc(err["loc"])
@@ -178,17 +178,8 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     msg = pydantic_message(err)
                 yield Issue((*where, "params", *loc), msg)
             continue
-        z = getattr(params, "z", None)
-        if z is not None and z not in BUILTIN_Z:
-            z_path = base_dir / z
-            if z_path.suffix.lower() != ".csv" or not z_path.is_file():
-                yield Issue(
-                    (*where, "params", "z"),
-                    f"expected one of {', '.join(BUILTIN_Z)} or an existing .csv file "
-                    f"(52 rows x 5 vowels); {z_path} was not found",
-                )
-        if cond.method == "impression":
-            yield from _impression_model(params, base_dir, where)
+        for key_path, message in spec.problems(params, base_dir):
+            yield Issue((*where, *key_path), message)
         if cond.behaviour not in BEHAVIOUR_MODES:
             yield from _behaviour_library(base_dir / cond.behaviour, (*where, "behaviour"))
 
@@ -207,37 +198,6 @@ def _behaviour_library(path: Path, where: tuple) -> Iterator[Issue]:
         return
     if not isinstance(data, dict) or not isinstance(data.get("units"), list):
         yield Issue(where, f"{path}: a behaviour library is a mapping with a list 'units'")
-
-
-def _impression_model(params: Any, base_dir: Path, where: tuple) -> Iterator[Issue]:
-    """The model file of an ``impression`` condition: readable, ARKit space, has the
-    expression (read as JSON here; the model itself lives in facelab.stimuli)."""
-    import json
-
-    path = base_dir / params.model
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        yield Issue((*where, "params", "model"), f"{path} was not found")
-        return
-    except (OSError, ValueError) as exc:
-        yield Issue((*where, "params", "model"), f"{path}: not readable JSON ({exc})")
-        return
-    if not isinstance(data, dict) or data.get("format") != "facelab-impression-1":
-        yield Issue((*where, "params", "model"), f"{path}: not a facelab impression model")
-        return
-    if data.get("space") != "arkit":
-        yield Issue(
-            (*where, "params", "model"),
-            f"{path}: a {data.get('space')}-space model; conditions need an ARKit-space model "
-            "(render vertex-space models with facelab impression render)",
-        )
-    expressions = sorted(data.get("directions") or {})
-    if params.expression not in expressions:
-        yield Issue(
-            (*where, "params", "expression"),
-            f"the model has no expression {params.expression!r}; it has {', '.join(expressions)}",
-        )
 
 
 @_check("stimulus_sets", "conditions")

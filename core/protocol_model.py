@@ -15,6 +15,7 @@ is :func:`json_schema`; ``protocols/schema/protocol.schema.json`` is generated f
 from __future__ import annotations
 
 import json
+from functools import cached_property
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
@@ -94,7 +95,8 @@ class Condition(_Model):
     label: Localized
     method: str = Field(description=f"One of: {', '.join(METHODS)}.")
     params: dict[str, Any] = Field(
-        default_factory=dict, description="Parameters of the method; see facelab.methods."
+        default_factory=dict,
+        description="Parameters of the method; see facelab.methods.",
     )
     level: float | None = Field(
         None,
@@ -115,6 +117,15 @@ class Condition(_Model):
         "the clip, linearly interpolated, held before the first and after the last key); "
         "omitted: the stimulus's emotion, else neutral.",
     )
+
+    @cached_property
+    def settings(self) -> Any:
+        """The method's typed parameters (its registered parameter model), validated once.
+
+        Raises ``pydantic.ValidationError`` for parameters the method does not accept and
+        ``KeyError`` for an unregistered method; a loaded protocol has neither (its checks
+        report both with the file's line)."""
+        return METHODS[self.method].parse(self.params)
 
     @model_validator(mode="after")
     def _behaviour(self) -> Condition:

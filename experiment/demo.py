@@ -43,7 +43,7 @@ def run_demo(
     from facelab.analysis.report import write_report
     from facelab.analysis.study import analyze_study
     from facelab.experiment.simulate import simulate_study
-    from facelab.stimuli.build import build_clips, contact_sheets, settings_for
+    from facelab.stimuli.render.build import build_clips, contact_sheets, settings_for
 
     t0 = time.perf_counter()
     protocol = load_protocol(protocol_path)

@@ -5,18 +5,18 @@ Every failure is a :class:`~facelab.errors.StageError` saying what is wrong and 
 
 from __future__ import annotations
 
-import csv
 import os
 import shutil
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from facelab.errors import SessionError, StageError
+from facelab.errors import FormatError, SessionError, StageError
 from facelab.experiment.timeline import ClipKey
+from facelab.formats import CLIP_COLUMNS, read_manifest
 from facelab.hashing import sha256_file
 from facelab.protocol import Protocol
-from facelab.stimuli.clipspec import clip_spec_hash, plan
+from facelab.stimuli.render.clipspec import clip_spec_hash, plan
 
 __all__ = [
     "ClipRef",
@@ -55,13 +55,13 @@ def check_clips(
             f"no clip manifest at {manifest}; render the clips first: facelab render "
             f"PROTOCOL --out {clips_dir}"
         )
-    with open(manifest, newline="", encoding="utf-8") as fh:
-        rows = list(csv.DictReader(fh))
-    if rows and "spec_sha256" not in rows[0]:
+    try:
+        rows = read_manifest(clips_dir, need=CLIP_COLUMNS)
+    except FormatError as exc:
         raise SessionError(
-            f"{manifest} was written by an older facelab (no spec_sha256 column), so the clips "
-            "cannot be checked against the protocol; render again with this protocol"
-        )
+            f"{exc}: without every column (spec_sha256 among them) the clips cannot be checked "
+            "against the protocol"
+        ) from None
     by_key = {(r["stimulus_set"], r["stimulus"], r["condition"]): r for r in rows}
     needed = set(needed)
     missing = sorted(needed - set(by_key))

@@ -28,12 +28,13 @@ def render(out: Path) -> None:
     from PIL import Image
 
     from facelab.stimuli.avatar import default_head
-    from facelab.stimuli.clip import frame_weights
-    from facelab.stimuli.drive import DriveInput, drive
-    from facelab.stimuli.inspect import sheet_poses
-    from facelab.stimuli.render import Renderer, RenderSettings
-    from facelab.stimuli.speech import synthesize
-    from facelab.stimuli.visemes import VOWELS, analyze
+    from facelab.stimuli.methods import DriveInput, drive
+    from facelab.stimuli.render.clip import frame_weights
+    from facelab.stimuli.render.inspect import sheet_poses
+    from facelab.stimuli.render.renderer import Renderer, RenderSettings
+    from facelab.stimuli.speech.analyser import analyze
+    from facelab.stimuli.speech.track import VOWELS
+    from facelab.stimuli.speech.tts import synthesize
 
     out.mkdir(parents=True, exist_ok=True)
     head = default_head()

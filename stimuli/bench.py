@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from facelab.stimuli.speech import synthesize
-from facelab.stimuli.viseme_training import (
+from facelab.stimuli.speech.analyser import StreamingAnalyzer, analyze, default_model
+from facelab.stimuli.speech.training import (
     ESPEAK_HELDOUT,
     FAR_VARIANTS,
     HELDOUT_VARIANTS,
@@ -23,7 +23,7 @@ from facelab.stimuli.viseme_training import (
     evaluate,
     per_voice,
 )
-from facelab.stimuli.visemes import StreamingAnalyzer, analyze, default_model
+from facelab.stimuli.speech.tts import synthesize
 
 __all__ = ["bench_visemes"]
 
@@ -111,7 +111,7 @@ def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
 def _bench_avatar(kind: str, tmp: Path):
     """The default head, or a skinned Ready-Player-Me-style sample with ~50k vertices."""
     from facelab.stimuli.avatar import default_head, load
-    from facelab.stimuli.sample_avatars import write_sample
+    from facelab.stimuli.avatar.samples import write_sample
 
     if kind == "default":
         return default_head()
@@ -132,9 +132,9 @@ def bench_render(
     built-in head) or ``skinned50k`` (a Ready-Player-Me-style sample, ~50k vertices, several
     meshes, a texture). The head turns slowly throughout (yaw 10° · sin(2πt / 4 s)), so the
     per-frame deform time includes skinning."""
-    from facelab.stimuli.clip import av_offset_ms, encode, frame_weights, padded_audio, probe
-    from facelab.stimuli.drive import DriveInput, drive
-    from facelab.stimuli.render import NaiveRenderer, Renderer, RenderSettings
+    from facelab.stimuli.methods import DriveInput, drive
+    from facelab.stimuli.render.clip import av_offset_ms, encode, frame_weights, padded_audio, probe
+    from facelab.stimuli.render.renderer import NaiveRenderer, Renderer, RenderSettings
 
     text = (
         "今日は朝から穏やかな天気で、駅までの道を歩いていると、川沿いの桜が咲き始めているのが"
@@ -145,18 +145,18 @@ def bench_render(
     if quick:
         seconds = 4.0
     keep = min(len(speech.samples), int(seconds * speech.sample_rate))
-    from facelab.stimuli.speech import Speech
+    from facelab.stimuli.speech.audio import Speech
 
     speech = Speech(speech.samples[:keep], speech.sample_rate)
     track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
     bs = drive("vowel_blend", DriveInput(track=track), {"z": "standard", "gain": 1.0})
-    from facelab.stimuli.rig import HeadPose
+    from facelab.stimuli.avatar.rig import HeadPose
 
     tmp_dir = tempfile.TemporaryDirectory(prefix="facelab-bench-")
     kind = avatar
     avatar = _bench_avatar(kind, Path(tmp_dir.name))
     if kind != "default":
-        from facelab.stimuli.targets import with_viseme_mixes
+        from facelab.stimuli.avatar.targets import with_viseme_mixes
 
         avatar = with_viseme_mixes(avatar)
     audio = padded_audio(speech, pad_s=0.0)

@@ -36,7 +36,7 @@ ALLOWED = {
 #: heavy or display-bound libraries and the only modules that may import them
 CONFINED = {
     "psychopy": {"facelab.experiment.runner", "facelab.experiment.window"},
-    "pyrender": {"facelab.stimuli.render"},
+    "pyrender": {"facelab.stimuli.render.renderer"},
 }
 
 
@@ -190,6 +190,49 @@ def test_layers_point_down_only() -> None:
                 problems.append(
                     f"{path.relative_to(ROOT)}:{line}: {mine} imports {name} ({theirs})"
                 )
+    assert not problems, "\n".join(problems)
+
+
+#: the stimulus layer's own order, lowest first: a sub-package (or top-level module) may import
+#: its own level and the levels below it. Speech and avatars know nothing of each other; the
+#: face-capture data (Z matrices) sit on speech; impression and behaviour models on those;
+#: animation methods on all of them; rendering (clips, sheets, inspection) on top; the
+#: benchmarks above everything.
+STIMULI_LEVELS = {
+    "arkit": 0,
+    "speech": 1,
+    "avatar": 1,
+    "capture": 2,
+    "impression": 3,
+    "behaviour": 3,
+    "methods": 4,
+    "render": 5,
+    "visemes": 5,  # the contract path re-exporting the speech analyser
+    "bench": 6,
+}
+
+
+def _stimuli_part(module: str) -> str | None:
+    pieces = module.split(".")
+    return pieces[2] if len(pieces) > 2 and pieces[:2] == ["facelab", "stimuli"] else None
+
+
+def test_stimuli_subpackages_are_layered() -> None:
+    """DESIGN.md's sub-packages by job, and the order between them (STIMULI_LEVELS)."""
+    problems = []  # a level's parts do not import each other either
+    parts = {_stimuli_part(m) for m in MODULES} - {None}
+    assert parts == set(STIMULI_LEVELS), f"unlevelled stimuli parts: {parts ^ set(STIMULI_LEVELS)}"
+    for module, path in MODULES.items():
+        mine = _stimuli_part(module)
+        if mine is None:
+            continue
+        for name, line in _imports(path):
+            target = name if name in MODULES else name.rsplit(".", 1)[0]
+            theirs = _stimuli_part(target)
+            if theirs is not None and STIMULI_LEVELS[theirs] > STIMULI_LEVELS[mine]:
+                problems.append(f"{path.relative_to(ROOT)}:{line}: {mine} imports {name}")
+            if {mine, theirs} in ({"impression", "behaviour"}, {"speech", "avatar"}):
+                problems.append(f"{path.relative_to(ROOT)}:{line}: {mine} imports {name}")
     assert not problems, "\n".join(problems)
 
 

@@ -15,14 +15,14 @@ from facelab.stimuli.avatar import (
     LANDMARKS,
     Avatar,
     AvatarError,
-    check_targets,
     default_head,
     lip_metrics,
     load,
     save,
     with_viseme_mixes,
 )
-from facelab.stimuli.drive import load_z
+from facelab.stimuli.capture.zmatrix import load_z
+from facelab.stimuli.methods import check_playable
 from tests.mutation import mutated
 
 
@@ -182,9 +182,9 @@ def test_missing_targets_are_listed(head: Avatar) -> None:
     with pytest.raises(
         AvatarError, match=r"lacks \d+ target\(s\) that method 'vowel_blend' needs: .*mouthPucker"
     ):
-        check_targets(few, "vowel_blend", {"z": "standard"})
+        check_playable(few, "vowel_blend", {"z": "standard"}, base_dir=Path("."))
     with pytest.raises(AvatarError, match="viseme_PP"):
-        check_targets(few, "viseme_baseline")
+        check_playable(few, "viseme_baseline", {}, base_dir=Path("."))
     arkit_only = Avatar(
         head.neutral,
         head.faces,
@@ -193,7 +193,7 @@ def test_missing_targets_are_listed(head: Avatar) -> None:
         head.colors,
         "arkit",
     )
-    check_targets(arkit_only, "viseme_baseline")  # visemes can be built from ARKit mixes
+    check_playable(arkit_only, "viseme_baseline", {}, base_dir=Path("."))  # visemes can be built from ARKit mixes
     built = with_viseme_mixes(arkit_only)
     np.testing.assert_allclose(built.targets["viseme_aa"], head.targets["viseme_aa"], atol=1e-6)
 
@@ -238,8 +238,8 @@ def test_close_ups_of_avatars_without_landmarks_frame_the_moving_face(
 ) -> None:
     """Contact-sheet close-ups (zoom 1.9) of a user's avatar show every vertex its shapes
     move - the stand-ins' mouths sit low on the head, below a crop around the head's centre."""
-    from facelab.stimuli.render import Renderer, RenderSettings
-    from facelab.stimuli.sample_avatars import write_sample
+    from facelab.stimuli.avatar.samples import write_sample
+    from facelab.stimuli.render.renderer import Renderer, RenderSettings
 
     avatar = load(write_sample(tmp_path / f"{kind}.glb", kind=kind))
     assert "upper_lip" not in avatar.landmarks
@@ -306,7 +306,7 @@ def test_malformed_avatar_content_is_named_not_a_traceback(
 ) -> None:
     """Found by mutating the sample files: bad node transforms, huge or overlong accessors and
     broken VRM extensions were ValueError/TypeError/MemoryError tracebacks."""
-    from facelab.stimuli.sample_avatars import write_sample
+    from facelab.stimuli.avatar.samples import write_sample
 
     ext = ".vrm" if kind.startswith("vrm") else ".glb"
     doc, rest = _glb_parts(write_sample(tmp_path / f"s{ext}", kind=kind, head_rows=8))
@@ -319,7 +319,7 @@ def test_malformed_avatar_content_is_named_not_a_traceback(
 
 def test_non_finite_positions_are_refused(tmp_path: Path) -> None:
     """NaN vertices loaded silently and rendered as holes."""
-    from facelab.stimuli.sample_avatars import write_sample
+    from facelab.stimuli.avatar.samples import write_sample
 
     doc, rest = _glb_parts(write_sample(tmp_path / "s.glb", kind="skinned", head_rows=8))
     acc = _position_accessor(doc)
@@ -338,7 +338,7 @@ def test_mutated_sample_avatars_load_or_are_refused(tmp_path: Path) -> None:
     types): each one loads into a finite avatar or raises AvatarError - nothing else."""
     import random
 
-    from facelab.stimuli.sample_avatars import write_sample
+    from facelab.stimuli.avatar.samples import write_sample
 
     rng = random.Random(20261124)
     samples = {}

@@ -19,15 +19,15 @@ from facelab.errors import BehaviourError
 from facelab.experiment.cli import main
 from facelab.protocol import ProtocolError, load_protocol
 from facelab.stimuli.avatar import default_head
-from facelab.stimuli.behaviour_fit import check_annotations, fit_library, read_annotations
-from facelab.stimuli.behaviour_library import (
+from facelab.stimuli.behaviour.fit import check_annotations, fit_library, read_annotations
+from facelab.stimuli.behaviour.library import (
     LAYERS,
     Library,
     default_library,
     is_speech_channel,
     load_library,
 )
-from facelab.stimuli.behaviour_plan import (
+from facelab.stimuli.behaviour.plan import (
     EmotionTimeline,
     Plan,
     SpeechCues,
@@ -36,7 +36,7 @@ from facelab.stimuli.behaviour_plan import (
     parse_emotion,
     plan_behaviour,
 )
-from facelab.stimuli.behaviour_realise import apply_to_weights, curve_values, realise
+from facelab.stimuli.behaviour.realise import apply_to_weights, curve_values, realise
 
 # ------------------------------------------------------------------ the annotation table
 
@@ -339,7 +339,7 @@ def test_blinks_at_human_rates() -> None:
 
 
 def test_behaviour_modes_are_yoked_with_composite() -> None:
-    from facelab.stimuli.behaviour import layers_for
+    from facelab.stimuli.behaviour.clip import layers_for
 
     lib = default_library()
     emo = EmotionTimeline.constant({"anger": 0.8})
@@ -482,7 +482,7 @@ def test_clips_carry_event_logs_and_yoked_seeds(rendered: Path) -> None:
     assert log["mode"] == "composite" and log["events"]
     assert meta["behaviour"]["counts"] == log["counts"]
     assert not (clips / "s__joy_a__none.behaviour.json").exists()
-    from facelab.stimuli.clip import decode_frames
+    from facelab.stimuli.render.clip import decode_frames
 
     a = decode_frames(clips / "s__joy_a__none.mp4", width=160, height=120)
     b = decode_frames(clips / "s__joy_a__comp.mp4", width=160, height=120)
@@ -749,7 +749,7 @@ def test_cli_render_writes_clips_logs_and_keeps_earlier_emotions(
     second render of another emotion into the folder adds to ``clips.csv``."""
     import csv
 
-    from facelab.stimuli.clip import probe
+    from facelab.stimuli.render.clip import probe
 
     out = tmp_path / "clips"
     base = ["behaviour", "render", "--text", "はい、そうですね。", "--duration-s", "3",
@@ -773,7 +773,7 @@ def test_cli_render_writes_clips_logs_and_keeps_earlier_emotions(
 
 
 def test_speech_cues_from_openjtalk_words_and_accents() -> None:
-    from facelab.stimuli.speech import synthesize
+    from facelab.stimuli.speech.tts import synthesize
 
     speech = synthesize("いいえ、私はそう思いません。")
     words = [w for w in speech.words if w.morae]
@@ -803,7 +803,7 @@ def test_the_better_suited_gesture_wins_a_shared_trigger() -> None:
 def test_emotion_timelines_in_protocols(tmp_path: Path) -> None:
     """A condition may give the emotion as a timeline of keys; the plan follows it (the
     posture of the first half is sadness's, of the second joy's) and bad keys are named."""
-    from facelab.stimuli.behaviour import emotion_timeline
+    from facelab.stimuli.behaviour.clip import emotion_timeline
 
     keys = "[{time_s: 0, sadness: 1.0}, {time_s: 29, sadness: 1.0}, {time_s: 31, joy: 1.0}]"
     p = load_protocol(_protocol(tmp_path, behaviour=f"composite, emotion: {keys}"))

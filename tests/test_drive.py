@@ -10,10 +10,11 @@ import pytest
 from facelab.errors import StageError
 from facelab.methods import METHODS
 from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS, canonical_arkit_name
-from facelab.stimuli.drive import DRIVERS, DriveInput, drive, load_z
-from facelab.stimuli.measure_z import write_z
-from facelab.stimuli.speech import Phone
-from facelab.stimuli.visemes import VISEMES, VOWEL_VISEMES, VisemeTrack
+from facelab.stimuli.capture.measure_z import write_z
+from facelab.stimuli.capture.zmatrix import load_z
+from facelab.stimuli.methods import REGISTRY, DriveInput, drive
+from facelab.stimuli.speech.audio import Phone
+from facelab.stimuli.speech.track import VISEMES, VOWEL_VISEMES, VisemeTrack
 
 
 def _track_one_hot() -> VisemeTrack:
@@ -74,7 +75,7 @@ def test_viseme_baseline_and_text_visemes() -> None:
 
 
 def test_registry_is_complete_and_params_validated() -> None:
-    assert set(DRIVERS) == set(METHODS)
+    assert set(REGISTRY) == set(METHODS)
     with pytest.raises(StageError, match="unknown method"):
         drive("nope", DriveInput(_track_one_hot()), {})
     with pytest.raises(ValueError, match="gain"):

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from facelab.errors import SpeechError
-from facelab.stimuli.espeak import EspeakVoice, espeak_synthesize, kana_of
-from facelab.stimuli.viseme_training import ESPEAK_HELDOUT, ESPEAK_TRAIN
+from facelab.stimuli.speech.espeak import EspeakVoice, espeak_synthesize, kana_of
+from facelab.stimuli.speech.training import ESPEAK_HELDOUT, ESPEAK_TRAIN
 
 
 def _level_db(samples: np.ndarray, rate: int, a: float, b: float) -> float:
@@ -44,7 +44,7 @@ def test_consonants_map_to_openjtalk_names() -> None:
     speech = espeak_synthesize("しゃしんをとったら、ちいさいふねがみえた。")
     names = {p.phoneme for p in speech.phones}
     assert {"sh", "ch", "ts", "f", "N", "y", "t", "r"} & names >= {"sh", "ch", "f", "N"}
-    from facelab.stimuli.visemes import phoneme_viseme
+    from facelab.stimuli.speech.track import phoneme_viseme
 
     for name in names:
         phoneme_viseme(name)  # every name is one the rest of facelab knows

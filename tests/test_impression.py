@@ -14,7 +14,7 @@ import pytest
 from facelab.errors import StageError
 from facelab.experiment.cli import main
 from facelab.stimuli.arkit import ARKIT_NAMES
-from facelab.stimuli.impression import (
+from facelab.stimuli.impression.model import (
     ImpressionModel,
     ease,
     envelope,
@@ -23,7 +23,7 @@ from facelab.stimuli.impression import (
     read_vertex_samples,
     speech_basis,
 )
-from facelab.stimuli.impression_synth import (
+from facelab.stimuli.impression.synth import (
     TRUE_DIRECTION,
     simulate_validation,
     synthetic_samples,
@@ -126,7 +126,7 @@ def test_orthogonal_to_speech_leaves_the_vowel_shapes_alone(samples) -> None:
     d = model.expressions["open_smile"].direction
     basis = speech_basis()
     assert np.abs(basis @ d).max() < 1e-9
-    from facelab.stimuli.drive import load_z
+    from facelab.stimuli.capture.zmatrix import load_z
 
     assert np.abs(load_z("standard").T @ d).max() < 1e-9  # every vowel column
 
@@ -308,7 +308,7 @@ def test_impression_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 def test_impression_render_writes_one_clip_per_level(
     tmp_path: Path, synth_csv: Path, capsys: pytest.CaptureFixture
 ) -> None:
-    from facelab.stimuli.clip import probe
+    from facelab.stimuli.render.clip import probe
 
     model = tmp_path / "model.json"
     assert (
@@ -469,8 +469,8 @@ def test_impression_conditions_are_checked(
 
 def test_impression_method_on_a_speech_track_adds_the_expression(samples, tmp_path: Path) -> None:
     from facelab.methods import ImpressionParams, VowelBlendParams
-    from facelab.stimuli.drive import DriveInput, impression, vowel_blend
-    from facelab.stimuli.visemes import VISEMES, VisemeTrack
+    from facelab.stimuli.methods import DriveInput, drive
+    from facelab.stimuli.speech.track import VISEMES, VisemeTrack
 
     model = fit_impression(samples, label="friendly", expressions=["open_smile"])
     (tmp_path / "m.json").write_text(json.dumps(model.to_json()))
@@ -479,13 +479,15 @@ def test_impression_method_on_a_speech_track_adds_the_expression(samples, tmp_pa
     weights[:, VISEMES.index("aa")] = 0.5 * (np.sin(times * 9) > 0)
     track = VisemeTrack(times, weights, VISEMES)
     inp = DriveInput(track=track, base_dir=tmp_path)
-    silent = impression(inp, ImpressionParams(model="m.json", expression="open_smile", q=1.0))
+    silent = drive(
+        "impression", inp, ImpressionParams(model="m.json", expression="open_smile", q=1.0)
+    )
     t_peak = int(np.argmin(np.abs(times - 1.5)))
     assert silent.notes["q_intended"] == 1.0 and silent.weights[0].max() == 0.0
     assert silent.weights[t_peak].max() > 0.3  # held in the middle (hold fills the stimulus)
-    both = impression(inp, ImpressionParams(model="m.json", expression="open_smile", q=1.0,
+    both = drive("impression", inp, ImpressionParams(model="m.json", expression="open_smile", q=1.0,
                                             speech=VowelBlendParams(z="standard")))  # fmt: skip
-    speech = vowel_blend(inp, VowelBlendParams(z="standard"))
+    speech = drive("vowel_blend", inp, VowelBlendParams(z="standard"))
     jaw = both.names.index("jawOpen")
     expected = np.clip(silent.column("jawOpen") + speech.column("jawOpen"), 0, 1)
     np.testing.assert_allclose(both.weights[:, jaw], expected, atol=1e-9)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from facelab.stimuli.manifest import write_manifest
+from facelab.formats import write_manifest
 
 COLUMNS = ("clip_id", "path", "level")
 

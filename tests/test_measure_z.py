@@ -12,9 +12,9 @@ import pytest
 from facelab.errors import StageError
 from facelab.experiment.cli import main
 from facelab.stimuli.arkit import ARKIT_NAMES
-from facelab.stimuli.drive import load_z
-from facelab.stimuli.measure_z import measure_z, read_capture, read_onsets
-from facelab.stimuli.visemes import VOWELS
+from facelab.stimuli.capture.measure_z import measure_z, read_capture, read_onsets
+from facelab.stimuli.capture.zmatrix import load_z
+from facelab.stimuli.speech.track import VOWELS
 
 FPS = 60.0
 

@@ -480,7 +480,7 @@ def test_mutated_shipped_protocols_load_or_are_refused(tmp_path: Path) -> None:
     import shutil
 
     from facelab.design import build_trials
-    from facelab.stimuli.clipspec import plan
+    from facelab.stimuli.render.clipspec import plan
 
     rng = random.Random(20261124)
     sources = sorted(ROOT.glob("protocols/*.yaml"))

@@ -11,7 +11,8 @@ import pytest
 
 from facelab.experiment.cli import main
 from facelab.stimuli.avatar import default_head
-from facelab.stimuli.clip import (
+from facelab.stimuli.methods import DriveInput, drive
+from facelab.stimuli.render.clip import (
     av_offset_ms,
     decode_audio,
     decode_frames,
@@ -20,10 +21,9 @@ from facelab.stimuli.clip import (
     padded_audio,
     probe,
 )
-from facelab.stimuli.drive import DriveInput, drive
-from facelab.stimuli.render import Renderer, RenderSettings
-from facelab.stimuli.speech import synthesize
-from facelab.stimuli.visemes import analyze
+from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.speech.analyser import analyze
+from facelab.stimuli.speech.tts import synthesize
 
 pytestmark = pytest.mark.slow
 SMALL = RenderSettings(width=320, height=240, distance_m=0.5)
@@ -192,7 +192,7 @@ def test_encode_keeps_each_frame_though_the_caller_reuses_its_buffer(tmp_path: P
     """Frames wait in a queue for the writer thread: a producer that fills one buffer again
     and again must still get every frame as it was when yielded."""
     from facelab.errors import StageError
-    from facelab.stimuli.speech import Speech
+    from facelab.stimuli.speech.audio import Speech
 
     n, fps = 24, 24
     audio = Speech(np.zeros(48000, np.float32), 48000)
@@ -217,7 +217,7 @@ def test_encode_keeps_each_frame_though_the_caller_reuses_its_buffer(tmp_path: P
 def test_pipelined_frames_equal_frame_by_frame() -> None:
     """Renderer.frames (CPU work of frame k + 1 during the rasterisation of frame k) draws
     exactly what frame() draws, pose by pose."""
-    from facelab.stimuli.rig import HeadPose
+    from facelab.stimuli.avatar.rig import HeadPose
 
     head = default_head()
     weights = [head.weight_vector({"jawOpen": 0.1 * k, "eyeBlinkLeft": 0.2 * k}) for k in range(5)]
@@ -238,7 +238,7 @@ def test_drawing_only_the_heads_rectangle_changes_no_pixel() -> None:
     the previous frame's): bit for bit what drawing the whole frame gives, also when the head
     swings (its old place must be cleared), moves out of the picture and comes back, with and
     without multisampling."""
-    from facelab.stimuli.rig import HeadPose
+    from facelab.stimuli.avatar.rig import HeadPose
 
     head = default_head()
     weights = [head.weight_vector({"jawOpen": 0.15 * (k % 5)}) for k in range(10)]

@@ -1,6 +1,6 @@
 """Avatars users bring (skinned glTF, Ready Player Me, VRM 0.x / 1.0) and the rig API.
 
-The files are written by :mod:`facelab.stimuli.sample_avatars` the way those exporters write
+The files are written by :mod:`facelab.stimuli.avatar.samples` the way those exporters write
 them (skins with rest rotations and inverse bind matrices, several meshes sharing target
 names, a texture, VRM extensions, VRM 0.x facing -z), then read back by ``avatar.load``.
 """
@@ -17,8 +17,8 @@ import pytest
 from facelab.errors import AvatarError
 from facelab.experiment.cli import main
 from facelab.stimuli.avatar import default_head, load, save
-from facelab.stimuli.rig import HeadPose, euler_matrix, gaze_weights, match_roles, skin
-from facelab.stimuli.sample_avatars import (
+from facelab.stimuli.avatar.rig import HeadPose, euler_matrix, gaze_weights, match_roles, skin
+from facelab.stimuli.avatar.samples import (
     HAIR_RGB,
     HEAD_CENTRE,
     HEAD_JOINT_Y,
@@ -209,7 +209,7 @@ def test_broken_skin_is_reported_not_a_traceback(samples, tmp_path: Path) -> Non
 
 @pytest.mark.slow
 def test_render_frames_the_head_of_a_full_body_avatar_with_its_texture(samples) -> None:
-    from facelab.stimuli.render import Renderer, RenderSettings
+    from facelab.stimuli.render.renderer import Renderer, RenderSettings
 
     a = load(samples["rpm"])
     with Renderer(a, RenderSettings(width=320, height=320)) as r:
@@ -286,7 +286,7 @@ def test_bench_render_runs_on_a_skinned_50k_vertex_avatar() -> None:
 
 @pytest.mark.slow
 def test_framing_without_a_skeleton_uses_the_head_mesh(samples) -> None:
-    from facelab.stimuli.render import Renderer, RenderSettings
+    from facelab.stimuli.render.renderer import Renderer, RenderSettings
 
     a = load(samples["rpm"]).replace(skeleton=None)
     with Renderer(a, RenderSettings(width=320, height=320)) as r:
@@ -297,7 +297,7 @@ def test_framing_without_a_skeleton_uses_the_head_mesh(samples) -> None:
 def test_skinning_blends_each_influence_by_its_weight() -> None:
     """Rows with several influences (as exporters write them) are the weighted sum of each
     joint's transform of the vertex, the formula written out per vertex."""
-    from facelab.stimuli.rig import Skeleton
+    from facelab.stimuli.avatar.rig import Skeleton
 
     rng = np.random.default_rng(3)
     n = 200

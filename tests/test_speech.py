@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from facelab.stimuli.speech import SpeechError, load_audio, parse_trace, synthesize
+from facelab.stimuli.speech.audio import SpeechError, load_audio
+from facelab.stimuli.speech.tts import parse_trace, synthesize
 
 
 def test_tts_gives_audio_and_exact_phoneme_timeline() -> None:

@@ -5,20 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facelab.stimuli.speech import Phone, synthesize
-from facelab.stimuli.visemes import (
-    VISEMES,
-    VOWELS,
-    StreamingAnalyzer,
-    VisemeError,
-    VisemeTrack,
-    analyze,
-    calibrate,
-    default_model,
-    from_phonemes,
-    isolate_vowels,
-    vowel_segments,
-)
+from facelab.stimuli.speech.analyser import StreamingAnalyzer, VisemeError, analyze, default_model
+from facelab.stimuli.speech.audio import Phone
+from facelab.stimuli.speech.track import VISEMES, VOWELS, VisemeTrack, from_phonemes
+from facelab.stimuli.speech.tts import synthesize
+from facelab.stimuli.speech.vowels import calibrate, isolate_vowels, vowel_segments
 
 RATE = 48_000
 
@@ -116,7 +107,7 @@ def test_text_track_follows_the_phonemes() -> None:
 
 
 def test_text_and_audio_tracks_agree_in_time() -> None:
-    from facelab.stimuli.viseme_training import _vowel_energy_lag
+    from facelab.stimuli.speech.training import _vowel_energy_lag
 
     speech = synthesize("秋になると、山の木々が赤や黄色に色づき始める。", pitch_halftones=-2)
     track = analyze(speech.samples, sample_rate=RATE).compensated()
@@ -195,7 +186,7 @@ def test_bench_visemes_runs_and_reports_every_figure() -> None:
 
 @pytest.mark.parametrize("rate", [8_000, 11_025, 22_050, 44_100])
 def test_common_rates_are_resampled_inside(rate: int) -> None:
-    from facelab.stimuli.speech import resample
+    from facelab.stimuli.speech.audio import resample
 
     speech = synthesize("あおいうえ、いえあおう。")
     ref = analyze(speech.samples, sample_rate=RATE).compensated()
@@ -213,7 +204,7 @@ def test_common_rates_are_resampled_inside(rate: int) -> None:
 
 
 def test_held_out_voices_and_sentences_are_not_trained_on() -> None:
-    from facelab.stimuli.viseme_training import HELDOUT_VARIANTS, TRAIN_VARIANTS, corpus
+    from facelab.stimuli.speech.training import HELDOUT_VARIANTS, TRAIN_VARIANTS, corpus
 
     assert not set(HELDOUT_VARIANTS) & set(TRAIN_VARIANTS)
     train, held = corpus()
@@ -232,7 +223,7 @@ ALIGN_TEXTS = (
 def test_align_times_the_text_on_an_unseen_voice_setting(
     speed: float, pitch: float, alpha: float
 ) -> None:
-    from facelab.stimuli.visemes import align, align_phones
+    from facelab.stimuli.speech.align import align, align_phones
 
     hits, onsets = [], []
     for text in ALIGN_TEXTS:
@@ -254,7 +245,7 @@ def test_align_times_the_text_on_an_unseen_voice_setting(
 
 
 def test_align_reports_text_and_audio_that_disagree() -> None:
-    from facelab.stimuli.visemes import align_phones
+    from facelab.stimuli.speech.align import align_phones
 
     a, b = ALIGN_TEXTS
     rec = synthesize(a + b, pitch_halftones=-4, alpha=0.5)
@@ -269,8 +260,8 @@ def test_align_reports_text_and_audio_that_disagree() -> None:
 
 def test_a_recording_with_a_transcript_is_aligned(tmp_path) -> None:
     from facelab.protocol import Stimulus
-    from facelab.stimuli.prepare import speech_for, tracks_for
-    from facelab.stimuli.speech import write_wav
+    from facelab.stimuli.render.prepare import speech_for, tracks_for
+    from facelab.stimuli.speech.audio import write_wav
 
     text = ALIGN_TEXTS[0]
     rec = synthesize(text, pitch_halftones=-5, alpha=0.5, sample_rate=22_050)
@@ -304,8 +295,8 @@ def _vowel_frame_hits(track: VisemeTrack, phones) -> list[bool]:
 def test_audio_only_analyser_hears_voices_it_was_not_trained_on(voice) -> None:
     """No calibration, no warp search: mei settings beyond the training grid and eSpeak NG
     voices kept out of training (another synthesizer: formant synthesis)."""
-    from facelab.stimuli.espeak import EspeakVoice
-    from facelab.stimuli.viseme_training import ESPEAK_TRAIN, TRAIN_VARIANTS, Variant, speak
+    from facelab.stimuli.speech.espeak import EspeakVoice
+    from facelab.stimuli.speech.training import ESPEAK_TRAIN, TRAIN_VARIANTS, Variant, speak
 
     kind, setting = voice
     v = EspeakVoice(setting) if kind == "espeak" else Variant(*setting)
@@ -320,7 +311,7 @@ def test_audio_only_analyser_hears_voices_it_was_not_trained_on(voice) -> None:
 
 
 def test_warp_search_is_an_option() -> None:
-    from facelab.stimuli.visemes import WARP_GRID, choose_warp
+    from facelab.stimuli.speech.analyser import WARP_GRID, choose_warp
 
     speech = synthesize(ALIGN_TEXTS[0], pitch_halftones=-6, alpha=0.61)
     warp = choose_warp(speech.samples, sample_rate=RATE)
@@ -335,9 +326,9 @@ def test_warp_search_is_an_option() -> None:
 def test_align_times_the_text_on_another_synthesizers_voice() -> None:
     """eSpeak NG (never the alignment's reference) speaking the text: the transcript's
     vowels land on eSpeak's own vowel timing."""
-    from facelab.stimuli.espeak import EspeakVoice, espeak_synthesize
-    from facelab.stimuli.viseme_training import vowel_onset_errors
-    from facelab.stimuli.visemes import align, align_phones
+    from facelab.stimuli.speech.align import align, align_phones
+    from facelab.stimuli.speech.espeak import EspeakVoice, espeak_synthesize
+    from facelab.stimuli.speech.training import vowel_onset_errors
 
     hits, onsets = [], []
     for text in ALIGN_TEXTS:

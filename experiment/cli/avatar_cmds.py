@@ -19,7 +19,7 @@ def _load(spec: str):
 
 
 def _cmd_avatar(args: argparse.Namespace) -> int:
-    from facelab.stimuli.inspect import avatar_report, format_report, write_sheet
+    from facelab.stimuli.render.inspect import avatar_report, format_report, write_sheet
 
     if args.action == "inspect":
         if not args.file:
@@ -38,7 +38,7 @@ def _cmd_avatar(args: argparse.Namespace) -> int:
         return 0
     # sample
     from facelab.stimuli.avatar import default_head, save
-    from facelab.stimuli.sample_avatars import KINDS, write_sample
+    from facelab.stimuli.avatar.samples import KINDS, write_sample
 
     if not args.out:
         raise FacelabError("facelab avatar sample: --out FILE is required")

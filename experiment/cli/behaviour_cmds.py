@@ -22,13 +22,13 @@ __all__ = ["register"]
 
 
 def _library(path: str | None):
-    from facelab.stimuli.behaviour_library import default_library, load_library
+    from facelab.stimuli.behaviour.library import default_library, load_library
 
     return default_library() if path in (None, "default") else load_library(Path(path))
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from facelab.stimuli.behaviour_fit import fit_library, format_report, read_annotations
+    from facelab.stimuli.behaviour.fit import fit_library, format_report, read_annotations
 
     if not args.input or not args.out:
         raise FacelabError("facelab behaviour fit ANNOTATIONS --out LIBRARY.json")
@@ -61,19 +61,19 @@ def _fit(args: argparse.Namespace) -> int:
 
 
 def _cues(args: argparse.Namespace, pad_s: float):
-    from facelab.stimuli.behaviour_plan import SpeechCues
+    from facelab.stimuli.behaviour.plan import SpeechCues
 
     if args.text and args.stimulus:
         raise FacelabError("give --text or --stimulus, not both")
     if args.text:
-        from facelab.stimuli.speech import synthesize
+        from facelab.stimuli.speech.tts import synthesize
 
         speech = synthesize(args.text)
         return speech, SpeechCues.from_speech(speech, offset_s=pad_s)
     if args.stimulus:
         from facelab.protocol import load_protocol
         from facelab.resources import protocol_path
-        from facelab.stimuli.prepare import find_stimulus, speech_for
+        from facelab.stimuli.render.prepare import find_stimulus, speech_for
 
         # without --protocol: the shipped seed-003 protocol's stimuli
         path = Path(args.protocol) if args.protocol else protocol_path("hattori_behaviour")
@@ -89,7 +89,7 @@ def _cues(args: argparse.Namespace, pad_s: float):
 def _timeline(path: Path):
     """``[{"time_s": 0, "joy": 0.8}, {"time_s": 5, "sadness": 0.6}, …]`` -> a timeline
     (the shape a protocol's ``emotion:`` timeline has)."""
-    from facelab.stimuli.behaviour import emotion_timeline
+    from facelab.stimuli.behaviour.clip import emotion_timeline
 
     try:
         keys = json.loads(path.read_text(encoding="utf-8"))
@@ -104,8 +104,8 @@ def _timeline(path: Path):
 
 
 def _plan(args: argparse.Namespace) -> int:
-    from facelab.stimuli.behaviour import layers_for
-    from facelab.stimuli.behaviour_plan import EmotionTimeline, parse_emotion, plan_behaviour
+    from facelab.stimuli.behaviour.clip import layers_for
+    from facelab.stimuli.behaviour.plan import EmotionTimeline, parse_emotion, plan_behaviour
 
     if not (args.emotion or args.emotion_timeline) or not args.out or args.duration_s is None:
         raise FacelabError(
@@ -141,7 +141,7 @@ def _plan(args: argparse.Namespace) -> int:
     if args.figure:
         import matplotlib.pyplot as plt
 
-        from facelab.stimuli.plots import plan_timeline_figure
+        from facelab.stimuli.render.plots import plan_timeline_figure
 
         fig_path = output_file(args.figure, option="--figure")
         fig = plan_timeline_figure(
@@ -161,9 +161,9 @@ def _plan(args: argparse.Namespace) -> int:
 
 def _render(args: argparse.Namespace) -> int:
     from facelab.stimuli.avatar import default_head, load
-    from facelab.stimuli.behaviour_plan import parse_emotion
-    from facelab.stimuli.behaviour_render import render_behaviour_clips
-    from facelab.stimuli.render import RenderSettings
+    from facelab.stimuli.behaviour.plan import parse_emotion
+    from facelab.stimuli.render.behaviour_clips import render_behaviour_clips
+    from facelab.stimuli.render.renderer import RenderSettings
 
     if not args.text or not args.out or not args.emotion:
         raise FacelabError(
@@ -191,7 +191,7 @@ def _render(args: argparse.Namespace) -> int:
 
 def _sheet(args: argparse.Namespace) -> int:
     from facelab.stimuli.avatar import default_head, load
-    from facelab.stimuli.behaviour_render import unit_sheet
+    from facelab.stimuli.render.behaviour_clips import unit_sheet
 
     if not args.out:
         raise FacelabError("facelab behaviour sheet --out SHEET.png")
@@ -203,7 +203,7 @@ def _sheet(args: argparse.Namespace) -> int:
 
 
 def _synth(args: argparse.Namespace) -> int:
-    from facelab.stimuli.behaviour_synth import synthetic_annotations
+    from facelab.stimuli.behaviour.synth import synthetic_annotations
 
     if not args.out:
         raise FacelabError("facelab behaviour synth --out ANNOTATIONS.csv")

@@ -22,7 +22,11 @@ __all__ = ["register"]
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from facelab.stimuli.impression import fit_impression, read_arkit_samples, read_vertex_samples
+    from facelab.stimuli.impression.model import (
+        fit_impression,
+        read_arkit_samples,
+        read_vertex_samples,
+    )
 
     if not args.label:
         raise FacelabError("facelab impression fit: --label COLUMN is required")
@@ -61,9 +65,9 @@ def _fit(args: argparse.Namespace) -> int:
 
 def _render(args: argparse.Namespace) -> int:
     from facelab.stimuli.avatar import load
-    from facelab.stimuli.impression import ImpressionModel
-    from facelab.stimuli.impression_render import Timing, render_levels
-    from facelab.stimuli.render import RenderSettings
+    from facelab.stimuli.impression.model import ImpressionModel
+    from facelab.stimuli.render.impression_clips import Timing, render_levels
+    from facelab.stimuli.render.renderer import RenderSettings
 
     if not args.expression or len(args.expression) != 1:
         raise FacelabError("facelab impression render: give one --expression NAME")
@@ -102,7 +106,7 @@ def _synth(args: argparse.Namespace) -> int:
     import numpy as np
 
     from facelab.stimuli.arkit import ARKIT_NAMES
-    from facelab.stimuli.impression_synth import TRUE_DIRECTION, synthetic_samples
+    from facelab.stimuli.impression.synth import TRUE_DIRECTION, synthetic_samples
 
     if not args.out:
         raise FacelabError("facelab impression synth: --out SAMPLES.csv is required")
@@ -114,7 +118,7 @@ def _synth(args: argparse.Namespace) -> int:
         json.dumps(
             {
                 "synthetic": True,
-                "note": "SYNTHETIC database from facelab.stimuli.impression_synth - not people",
+                "note": "SYNTHETIC database from facelab.stimuli.impression.synth - not people",
                 "seed": args.seed,
                 "people": args.people,
                 "label": "friendly (high/low), friendly_rating (0-100)",
@@ -135,7 +139,7 @@ def _synth(args: argparse.Namespace) -> int:
 def _samples(args: argparse.Namespace) -> int:
     import csv
 
-    from facelab.stimuli.impression import samples_from_captures
+    from facelab.stimuli.impression.model import samples_from_captures
 
     if not args.input or not args.out:
         raise FacelabError("facelab impression samples INDEX.csv --out SAMPLES.csv")

@@ -18,7 +18,7 @@ from facelab.experiment.cli.common import (
 
 
 def _render_overrides(args: argparse.Namespace, protocol):
-    from facelab.stimuli.build import settings_for
+    from facelab.stimuli.render.build import settings_for
 
     settings = settings_for(protocol)
     size = parse_size(args.size)
@@ -35,7 +35,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     import time
 
     from facelab.protocol import load_protocol
-    from facelab.stimuli.build import build_clips, contact_sheets, plan
+    from facelab.stimuli.render.build import build_clips, contact_sheets, plan
 
     protocol = load_protocol(args.protocol)
     out = output_dir(
@@ -78,9 +78,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
     import numpy as np
 
     from facelab.protocol import load_protocol
-    from facelab.stimuli.plots import vowel_track_figure
-    from facelab.stimuli.prepare import find_stimulus, speech_for, tracks_for
-    from facelab.stimuli.visemes import VISEMES
+    from facelab.stimuli.render.plots import vowel_track_figure
+    from facelab.stimuli.render.prepare import find_stimulus, speech_for, tracks_for
+    from facelab.stimuli.speech.track import VISEMES
 
     protocol = load_protocol(args.protocol)
     for option, value in (("--csv", args.csv), ("--plot", args.plot)):
@@ -118,7 +118,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
 def _cmd_measure_z(args: argparse.Namespace) -> int:
     import json
 
-    from facelab.stimuli.measure_z import (
+    from facelab.stimuli.capture.measure_z import (
         detect_onsets,
         measure_z,
         read_capture,

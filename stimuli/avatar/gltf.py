@@ -1,0 +1,599 @@
+"""glTF 2.0 files for avatars: the container through ``pygltflib``, the arrays with numpy.
+
+``pygltflib`` parses and writes the container - ``.gltf`` JSON and ``.glb`` binary chunks,
+data-URI and external buffers, and every object's ``extras`` and ``extensions`` (VRM keeps
+its expressions there). It does not turn accessors into arrays, so :func:`accessor` does
+that here, with numpy: strides, sparse accessors and normalised integers, per the glTF 2.0
+specification §3.6.
+
+Reading: every triangle primitive of every mesh reachable from the default scene is merged
+into one avatar in the **rest world frame**:
+
+* unskinned meshes are placed with their node's world transform; if an ancestor node is a
+  joint, the mesh is bound rigidly to that joint (a hat or glasses follow the head);
+* skinned meshes (``JOINTS_0``/``WEIGHTS_0`` with a ``skin``) are placed by their rest skinning
+  matrices Σ w·(joint world · inverse bind) - the node's own transform is ignored, as glTF
+  2.0 §3.7.3 requires - and keep their joints and weights (:class:`~facelab.stimuli.avatar.rig.
+  Skeleton`: every skin's joints plus VRM humanoid bones, parents first; rig roles from the
+  VRM humanoid or by joint name, see :func:`~facelab.stimuli.avatar.rig.match_roles`);
+* POSITION morph targets are merged by name across meshes (``mesh.extras.targetNames`` or the
+  primitive's, as Blender, Ready Player Me and most exporters write them), so one ARKit name
+  drives the head, teeth and tongue meshes together; names are normalised to ARKit camelCase
+  / ``viseme_*`` (``_L``/``Left``, any case); a target a primitive lacks is zero there;
+* colours: the material's base colour × COLOR_0; a base-colour texture (PNG/JPEG, embedded,
+  data URI or beside the file) with its TEXCOORD set is kept for the renderer (alpha is
+  ignored: alpha-masked cards such as eyelashes draw opaque);
+* each mesh's vertices are listed in ``avatar.parts`` under the mesh name; VRM files are
+  handled by :mod:`facelab.stimuli.avatar.vrm` (presets, humanoid bones, VRM 0.x facing −z).
+
+Landmarks, if the file was written by facelab, come from ``extras.facelab.landmarks``.
+
+Writing: one mesh, one primitive (POSITION, COLOR_0, indices, one POSITION target per
+blendshape, ``targetNames`` in ``mesh.extras``), and, for an avatar with a skeleton, its
+joints as nodes with a skin (JOINTS_0, WEIGHTS_0, inverse bind matrices) - as ``.glb`` or
+``.gltf`` with an embedded base64 buffer. Textures are not written.
+"""
+
+from __future__ import annotations
+
+import base64
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pygltflib
+
+from facelab.errors import AvatarError
+from facelab.stimuli.arkit import canonical_arkit_name
+from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.avatar.rig import Skeleton, match_roles
+from facelab.stimuli.avatar.vrm import apply_vrm, detect_kind, humanoid_nodes
+
+__all__ = ["accessor", "buffers_of", "open_gltf", "read_gltf", "write_gltf"]
+
+COMPONENT_DTYPES = {
+    5120: np.int8,
+    5121: np.uint8,
+    5122: np.int16,
+    5123: np.uint16,
+    5125: np.uint32,
+    5126: np.float32,
+}
+#: the most values one accessor may hold (a 50k-vertex head with 52 targets reads ~8M)
+MAX_VALUES = 2**27
+TYPE_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def open_gltf(path: Path) -> tuple[pygltflib.GLTF2, list[bytes]]:
+    """The parsed document and the bytes of each of its buffers."""
+    suffix = path.suffix.lower()
+    if suffix not in (".gltf", ".glb", ".vrm"):
+        raise AvatarError(f"{path}: expected a .gltf or .glb file (or .vrm)")
+    if not path.is_file():
+        raise AvatarError(f"{path}: file not found")
+    try:
+        raw = path.read_bytes()
+        if suffix in (".glb", ".vrm"):
+            if raw[:4] != b"glTF":
+                raise AvatarError(f"{path}: not a glTF 2.0 binary (.glb) file")
+            doc = pygltflib.GLTF2.load_from_bytes(raw)
+        else:
+            doc = pygltflib.GLTF2.from_json(raw.decode("utf-8"))
+    except AvatarError:
+        raise
+    except Exception as exc:  # the JSON decoder and dataclass mapping raise many kinds
+        raise AvatarError(f"{path}: not a valid glTF file ({type(exc).__name__}: {exc})") from None
+    version = str(getattr(doc.asset, "version", "") or "")
+    if version.split(".")[0] != "2":
+        raise AvatarError(f"{path}: glTF version {version!r}; expected 2.x")
+    return doc, buffers_of(doc, path)
+
+
+def buffers_of(doc: pygltflib.GLTF2, path: Path) -> list[bytes]:
+    """Bytes of every buffer: the GLB binary chunk, a data URI, or a file beside ``path``."""
+    out = []
+    for i, buf in enumerate(doc.buffers or []):
+        uri = buf.uri
+        if uri is None:
+            out.append(doc.binary_blob() or b"")
+        elif uri.startswith("data:"):
+            try:
+                out.append(base64.b64decode(uri.split(",", 1)[1]))
+            except (IndexError, ValueError) as exc:
+                raise AvatarError(f"{path}: buffer {i} has a broken data URI ({exc})") from None
+        else:
+            ext = path.parent / uri
+            if not ext.is_file():
+                raise AvatarError(f"{path}: buffer {i} refers to {uri}, which is missing")
+            out.append(ext.read_bytes())
+    return out
+
+
+def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
+    """Accessor ``index`` as an array (count, width); normalised integers become [0, 1].
+
+    Raises ValueError when the accessor is malformed: a count beyond :data:`MAX_VALUES`,
+    data reaching outside its buffer view, sparse indices outside the count, or non-finite
+    floats (NaN/inf positions would render as nothing, silently)."""
+    acc = doc.accessors[index]
+    dtype = np.dtype(COMPONENT_DTYPES[acc.componentType])
+    width = TYPE_WIDTH[acc.type]
+    count = acc.count
+    if not isinstance(count, int) or count < 0 or count * width > MAX_VALUES:
+        raise ValueError(f"accessor {index}: count {count!r} (at most {MAX_VALUES // width})")
+    out = np.zeros((count, width), dtype=dtype)
+    if acc.bufferView is not None:
+        view = doc.bufferViews[acc.bufferView]
+        data = buffers[view.buffer]
+        start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+        stride = view.byteStride or dtype.itemsize * width
+        end = start + (count - 1) * stride + dtype.itemsize * width if count else start
+        if min(start, stride) < 0 or end > (view.byteOffset or 0) + view.byteLength:
+            raise ValueError(
+                f"accessor {index}: its data reach outside buffer view {acc.bufferView}"
+            )
+        out = np.ndarray(
+            (count, width), dtype=dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize)
+        ).copy()
+    sparse = acc.sparse
+    if sparse is not None and sparse.count:
+        iv = doc.bufferViews[sparse.indices.bufferView]
+        idx = np.frombuffer(
+            buffers[iv.buffer],
+            dtype=COMPONENT_DTYPES[sparse.indices.componentType],
+            count=sparse.count,
+            offset=(iv.byteOffset or 0) + (sparse.indices.byteOffset or 0),
+        )
+        vv = doc.bufferViews[sparse.values.bufferView]
+        vals = np.frombuffer(
+            buffers[vv.buffer],
+            dtype=dtype,
+            count=sparse.count * width,
+            offset=(vv.byteOffset or 0) + (sparse.values.byteOffset or 0),
+        ).reshape(-1, width)
+        if idx.size and int(idx.max()) >= count:
+            raise ValueError(f"accessor {index}: sparse index {int(idx.max())} >= count {count}")
+        out[idx] = vals
+    if dtype.kind == "f" and not np.isfinite(out).all():
+        raise ValueError(f"accessor {index}: holds non-finite values (NaN or infinity)")
+    if acc.normalized and dtype.kind in "iu":
+        out = out.astype(np.float32) / np.iinfo(dtype).max
+    return out
+
+
+def node_matrix(node: pygltflib.Node) -> np.ndarray:
+    """The node's local transform as a 4x4 matrix (column vectors)."""
+    if node.matrix is not None:
+        return _numbers(node.matrix, 16, "matrix").reshape(4, 4).T
+    t = _numbers(node.translation if node.translation is not None else [0, 0, 0], 3, "translation")
+    x, y, z, w = _numbers(
+        node.rotation if node.rotation is not None else [0, 0, 0, 1], 4, "rotation"
+    )
+    r = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    s = _numbers(node.scale if node.scale is not None else [1, 1, 1], 3, "scale")
+    m = np.eye(4)
+    m[:3, :3] = r * s
+    m[:3, 3] = t
+    return m
+
+
+def _numbers(values: Any, count: int, what: str) -> np.ndarray:
+    """``values`` as ``count`` finite floats, or a ValueError saying what they are instead."""
+    try:
+        out = np.array(values, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"'{what}' is {values!r}; expected {count} numbers") from None
+    if out.shape != (count,) or not np.isfinite(out).all():
+        raise ValueError(f"'{what}' is {values!r}; expected {count} finite numbers")
+    return out
+
+
+def _extras(obj: Any) -> dict:
+    extras = getattr(obj, "extras", None)
+    return extras if isinstance(extras, dict) else {}
+
+
+def _get(obj: Any, key: str) -> Any:
+    """An attribute of a pygltflib object or a key of a plain dict (extensions are dicts)."""
+    return obj.get(key) if isinstance(obj, dict) else getattr(obj, key, None)
+
+
+def _image_bytes(doc: pygltflib.GLTF2, buffers: list[bytes], image: Any, path: Path) -> bytes:
+    view = _get(image, "bufferView")
+    if view is not None:
+        bv = doc.bufferViews[view]
+        start = bv.byteOffset or 0
+        return buffers[bv.buffer][start : start + bv.byteLength]
+    uri = _get(image, "uri") or ""
+    if uri.startswith("data:"):
+        return base64.b64decode(uri.split(",", 1)[1])
+    ext = path.parent / uri
+    if not ext.is_file():
+        raise AvatarError(f"{path}: image {uri!r} is missing")
+    return ext.read_bytes()
+
+
+def _decode_image(data: bytes, what: str) -> np.ndarray:
+    """(H, W, 4) uint8 RGBA from PNG/JPEG bytes."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            return np.asarray(img.convert("RGBA"), np.uint8).copy()
+    except (UnidentifiedImageError, OSError) as exc:
+        raise AvatarError(f"{what}: cannot decode the image ({exc})") from None
+
+
+class _Graph:
+    """Node hierarchy of the default scene: parent and rest world matrix of every node."""
+
+    def __init__(self, doc: pygltflib.GLTF2, path: Path):
+        nodes = doc.nodes or []
+        scenes = doc.scenes or []
+        roots = scenes[doc.scene or 0].nodes if scenes else list(range(len(nodes)))
+        self.parent: dict[int, int] = {}
+        self.world: dict[int, np.ndarray] = {}
+        self.order: list[int] = []  # parents before children
+        stack = [(r, -1, np.eye(4)) for r in reversed(roots or [])]
+        while stack:
+            i, parent, above = stack.pop()
+            if i in self.world:
+                raise AvatarError(f"{path}: node {i} is reached twice (a cycle or shared child)")
+            self.parent[i] = parent
+            try:
+                local = node_matrix(nodes[i])
+            except ValueError as exc:
+                raise ValueError(f"node {i}: {exc}") from None
+            self.world[i] = above @ local
+            self.order.append(i)
+            for child in reversed(nodes[i].children or []):
+                stack.append((child, i, self.world[i]))
+
+    def nearest(self, node: int, among: dict[int, int]) -> int | None:
+        """The value in ``among`` of ``node`` or its nearest ancestor that is a key there."""
+        while node >= 0:
+            if node in among:
+                return among[node]
+            node = self.parent.get(node, -1)
+        return None
+
+
+#: what reading a malformed file raises (a wrong type, a missing key, an index out of range,
+#: an array of the wrong size) - any of these while reading is the file's fault, not facelab's
+_MALFORMED = (KeyError, IndexError, ValueError, TypeError, AttributeError)
+
+
+def read_gltf(path: Path) -> Avatar:
+    """An :class:`Avatar` from glTF 2.0 / VRM; see the module docstring for what is read.
+
+    Raises :class:`AvatarError` naming the file and the problem for any malformed content
+    (the glTF JSON, its accessors, node transforms, skins, VRM extensions)."""
+    doc, buffers = open_gltf(path)
+    try:
+        return _avatar_of(doc, buffers, path)
+    except _MALFORMED as exc:
+        raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+
+
+def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar:
+    graph = _Graph(doc, path)
+    nodes = doc.nodes or []
+    kind = detect_kind(doc)
+    # the joints: every skin's joints plus the humanoid head/neck/eye nodes, parents first
+    joint_nodes = {j for sk in doc.skins or [] for j in (sk.joints or [])}
+    roles_by_node = humanoid_nodes(doc) if kind.startswith("vrm") else {}
+    joint_nodes |= set(roles_by_node.values())
+    joint_nodes &= set(graph.world)
+    ordered = [n for n in graph.order if n in joint_nodes]
+    joint_index = {n: i for i, n in enumerate(ordered)}
+    placed = [i for i in graph.order if nodes[i].mesh is not None]
+    if not placed:
+        raise AvatarError(f"{path}: no mesh in the scene")
+    positions, faces, colors, uvs, face_tex, skins_j, skins_w, per_target = ([] for _ in range(8))
+    raw_targets: dict[tuple[int, int], list[tuple[int, np.ndarray]]] = {}
+    textures: list[np.ndarray] = []
+    texture_of_image: dict[int, int] = {}
+    landmarks: dict[str, int] = {}
+    mesh_names: list[str] = []
+    parts: dict[str, np.ndarray] = {}
+    offset = 0
+    for node_index in placed:
+        node = nodes[node_index]
+        mesh = doc.meshes[node.mesh]
+        mesh_names.append(mesh.name or f"mesh_{node.mesh}")
+        names = _extras(mesh).get("targetNames", [])
+        facelab = _extras(mesh).get("facelab", {})
+        skin = doc.skins[node.skin] if node.skin is not None else None
+        if skin is not None:
+            ibm = (
+                accessor(doc, buffers, skin.inverseBindMatrices)
+                .astype(np.float64)
+                .reshape(-1, 4, 4)
+                .transpose(0, 2, 1)
+                if skin.inverseBindMatrices is not None
+                else np.tile(np.eye(4), (len(skin.joints), 1, 1))
+            )
+            rest = np.stack([graph.world[j] @ m for j, m in zip(skin.joints, ibm, strict=True)])
+            to_global = np.array([joint_index[j] for j in skin.joints], np.int64)
+        rigid = graph.nearest(node_index, joint_index)
+        for prim in mesh.primitives:
+            if (prim.mode if prim.mode is not None else 4) != 4:
+                continue  # points and lines are not surfaces
+            attrs = prim.attributes
+            if attrs.POSITION is None:
+                raise KeyError("a primitive has no POSITION attribute")
+            pos = accessor(doc, buffers, attrs.POSITION).astype(np.float64)
+            n = len(pos)
+            if skin is not None and attrs.JOINTS_0 is not None and attrs.WEIGHTS_0 is not None:
+                local_j = accessor(doc, buffers, attrs.JOINTS_0).astype(np.int64)
+                w = accessor(doc, buffers, attrs.WEIGHTS_0).astype(np.float64)
+                total = w.sum(axis=1, keepdims=True)
+                w = np.where(total > 0, w / np.maximum(total, 1e-12), 0.0)
+                blend = np.einsum("vk,vkij->vij", w, rest[local_j])  # (n, 4, 4)
+                if np.allclose(blend, np.eye(4), rtol=0, atol=1e-6):  # bound at rest: keep exact
+                    blend = np.broadcast_to(np.eye(4), blend.shape)
+                lin = blend[:, :3, :3]
+                pos_w = np.einsum("vij,vj->vi", lin, pos) + blend[:, :3, 3]
+                joints_v = to_global[local_j]
+                weights_v = w
+            else:
+                world = graph.world[node_index]
+                lin = np.broadcast_to(world[:3, :3], (n, 3, 3))
+                pos_w = pos @ world[:3, :3].T + world[:3, 3]
+                joints_v = np.zeros((n, 4), np.int64)
+                weights_v = np.zeros((n, 4))
+                if rigid is not None:
+                    joints_v[:, 0] = rigid
+                    weights_v[:, 0] = 1.0
+            idx = (
+                accessor(doc, buffers, prim.indices).reshape(-1)
+                if prim.indices is not None
+                else np.arange(n)
+            ).astype(np.int64)
+            base = [1.0, 1.0, 1.0, 1.0]
+            tex_index, tex_coord = -1, 0
+            if prim.material is not None:
+                pbr = doc.materials[prim.material].pbrMetallicRoughness
+                if pbr is not None and pbr.baseColorFactor is not None:
+                    base = list(pbr.baseColorFactor)
+                info = _get(pbr, "baseColorTexture") if pbr is not None else None
+                if info is not None and _get(info, "index") is not None:
+                    source = doc.textures[_get(info, "index")].source
+                    tex_coord = _get(info, "texCoord") or 0
+                    if source is not None:
+                        if source not in texture_of_image:
+                            texture_of_image[source] = len(textures)
+                            textures.append(
+                                _decode_image(
+                                    _image_bytes(doc, buffers, doc.images[source], path),
+                                    f"{path}: image {source}",
+                                )
+                            )
+                        tex_index = texture_of_image[source]
+            elif attrs.COLOR_0 is None:
+                base = [0.8, 0.7, 0.65, 1.0]
+            col = np.tile(np.array(base[:3], np.float32), (n, 1))
+            if attrs.COLOR_0 is not None:
+                col = col * accessor(doc, buffers, attrs.COLOR_0).astype(np.float32)[:, :3]
+            uv_attr = attrs.TEXCOORD_1 if tex_coord == 1 else attrs.TEXCOORD_0
+            uv = (
+                accessor(doc, buffers, uv_attr).astype(np.float32)
+                if uv_attr is not None
+                else np.zeros((n, 2), np.float32)
+            )
+            if tex_index >= 0 and uv_attr is None:
+                tex_index = -1  # a texture without coordinates cannot be mapped
+            targets = {}
+            prim_names = _extras(prim).get("targetNames", names)
+            for k, tgt in enumerate(prim.targets or []):
+                position = _get(tgt, "POSITION")
+                if position is None:
+                    continue
+                delta = np.einsum(
+                    "vij,vj->vi", lin, accessor(doc, buffers, position).astype(np.float64)
+                )
+                raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
+                raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
+                targets[canonical_arkit_name(raw_name) or raw_name] = delta
+            positions.append(pos_w)
+            faces.append(idx.reshape(-1, 3) + offset)
+            colors.append(col)
+            uvs.append(uv)
+            face_tex.append(np.full(len(idx) // 3, tex_index, np.int64))
+            skins_j.append(joints_v)
+            skins_w.append(weights_v)
+            per_target.append((offset, n, targets))
+            part = mesh.name or f"mesh_{node.mesh}"
+            parts[part] = np.concatenate(
+                [parts.get(part, np.zeros(0, np.int64)), offset + np.arange(n)]
+            )
+            for key, value in facelab.get("landmarks", {}).items():
+                landmarks[key] = int(value) + offset
+            offset += n
+    if not positions:
+        raise AvatarError(f"{path}: no triangle primitives")
+    verts = np.vstack(positions)
+    all_names = sorted({name for _, _, t in per_target for name in t})
+    merged = {name: np.zeros_like(verts) for name in all_names}
+    for start, n, t in per_target:
+        for name, delta in t.items():
+            merged[name][start : start + n] = delta
+    skeleton = None
+    if ordered:
+        above = [graph.nearest(graph.parent[n], joint_index) for n in ordered]
+        parents = np.array([-1 if p is None else p for p in above], np.int64)
+        names_j = tuple(nodes[n].name or f"joint_{n}" for n in ordered)
+        roles = {r: joint_index[n] for r, n in roles_by_node.items() if n in joint_index}
+        for role, j in match_roles(names_j).items():
+            roles.setdefault(role, j)
+        skeleton = Skeleton(
+            names_j,
+            parents,
+            np.array([graph.world[n][:3, 3] for n in ordered]),
+            np.vstack(skins_j),
+            np.vstack(skins_w),
+            roles,
+        )
+    face_texture = np.concatenate(face_tex)
+    avatar = Avatar(
+        verts,
+        np.vstack(faces),
+        {k: v.astype(np.float32) for k, v in merged.items()},
+        landmarks,
+        np.vstack(colors),
+        name=path.stem,
+        parts=parts,
+        skeleton=skeleton,
+        uv=np.vstack(uvs) if textures else None,
+        textures=tuple(t[:, :, :3].copy() for t in textures),
+        face_texture=face_texture if textures else None,
+        source={"kind": kind, "file": path.name, "meshes": mesh_names},
+    )
+    return apply_vrm(avatar, doc, raw_targets) if kind.startswith("vrm") else avatar
+
+
+class _BufferBuilder:
+    """Packs arrays into one buffer with 4-byte alignment, making views and accessors."""
+
+    def __init__(self) -> None:
+        self.blobs: list[bytes] = []
+        self.size = 0
+        self.views: list[pygltflib.BufferView] = []
+        self.accessors: list[pygltflib.Accessor] = []
+
+    def add(
+        self, array: np.ndarray, kind: str, component: int, target: int | None, minmax: bool
+    ) -> int:
+        data = np.ascontiguousarray(array).tobytes()
+        pad = (-self.size) % 4
+        if pad:
+            self.blobs.append(b"\x00" * pad)
+            self.size += pad
+        self.views.append(
+            pygltflib.BufferView(
+                buffer=0, byteOffset=self.size, byteLength=len(data), target=target
+            )
+        )
+        self.blobs.append(data)
+        self.size += len(data)
+        self.accessors.append(
+            pygltflib.Accessor(
+                bufferView=len(self.views) - 1,
+                componentType=component,
+                count=len(array),
+                type=kind,
+                min=array.min(axis=0).tolist() if minmax else None,
+                max=array.max(axis=0).tolist() if minmax else None,
+            )
+        )
+        return len(self.accessors) - 1
+
+    def add_bytes(self, data: bytes) -> int:
+        """A 4-byte aligned buffer view of raw bytes (an image); returns the view index."""
+        pad = (-self.size) % 4
+        if pad:
+            self.blobs.append(b"\x00" * pad)
+            self.size += pad
+        self.views.append(
+            pygltflib.BufferView(buffer=0, byteOffset=self.size, byteLength=len(data))
+        )
+        self.blobs.append(data)
+        self.size += len(data)
+        return len(self.views) - 1
+
+    def buffer(self) -> bytes:
+        data = b"".join(self.blobs)
+        return data + b"\x00" * ((-len(data)) % 4)
+
+
+def write_gltf(avatar: Avatar, path: Path) -> None:
+    suffix = path.suffix.lower()
+    if suffix not in (".glb", ".gltf"):
+        raise AvatarError(f"{path}: expected a .glb or .gltf file name")
+    b = _BufferBuilder()
+    pos = b.add(avatar.neutral.astype(np.float32), "VEC3", 5126, 34962, True)
+    colors = avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
+    col = b.add(np.asarray(colors, np.float32), "VEC3", 5126, 34962, False)
+    idx = b.add(avatar.faces.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False)
+    names = list(avatar.target_names)
+    targets = [
+        {"POSITION": b.add(avatar.targets[n].astype(np.float32), "VEC3", 5126, 34962, True)}
+        for n in names
+    ]
+    attributes = pygltflib.Attributes(POSITION=pos, COLOR_0=col)
+    nodes = [pygltflib.Node(mesh=0, name=avatar.name)]
+    skins = []
+    sk = avatar.skeleton
+    if sk is not None:
+        # joints as nodes 1..J (rest rotation identity, translated to their pivots); the
+        # inverse bind matrix of a joint is then a translation by minus its pivot
+        attributes.JOINTS_0 = b.add(sk.joints.astype(np.uint16), "VEC4", 5123, 34962, False)
+        attributes.WEIGHTS_0 = b.add(sk.weights.astype(np.float32), "VEC4", 5126, 34962, False)
+        ibm = np.tile(np.eye(4, dtype=np.float32), (len(sk.names), 1, 1))
+        ibm[:, :3, 3] = -sk.pivots
+        ibm_acc = b.add(ibm.transpose(0, 2, 1).reshape(-1, 16), "MAT4", 5126, None, False)
+        for j, name in enumerate(sk.names):
+            parent = sk.parents[j]
+            offset = sk.pivots[j] - (sk.pivots[parent] if parent >= 0 else 0.0)
+            children = [int(c) + 1 for c in np.nonzero(sk.parents == j)[0]]
+            nodes.append(
+                pygltflib.Node(name=name, translation=offset.tolist(), children=children or None)
+            )
+        nodes[0].skin = 0
+        roots = [j + 1 for j in range(len(sk.names)) if sk.parents[j] < 0]
+        skins = [
+            pygltflib.Skin(joints=list(range(1, len(sk.names) + 1)), inverseBindMatrices=ibm_acc)
+        ]
+    else:
+        roots = []
+    buffer = b.buffer()
+    doc = pygltflib.GLTF2(
+        asset=pygltflib.Asset(version="2.0", generator="facelab"),
+        scene=0,
+        scenes=[pygltflib.Scene(nodes=[0, *roots])],
+        nodes=nodes,
+        skins=skins,
+        meshes=[
+            pygltflib.Mesh(
+                name=avatar.name,
+                primitives=[
+                    pygltflib.Primitive(
+                        attributes=attributes,
+                        indices=idx,
+                        mode=4,
+                        targets=targets,
+                        material=0,
+                    )
+                ],
+                weights=[0.0] * len(names),
+                extras={"targetNames": names, "facelab": {"landmarks": avatar.landmarks}},
+            )
+        ],
+        materials=[
+            pygltflib.Material(
+                pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+                    baseColorFactor=[1, 1, 1, 1], metallicFactor=0.0, roughnessFactor=0.8
+                ),
+                doubleSided=True,
+            )
+        ],
+        accessors=b.accessors,
+        bufferViews=b.views,
+        buffers=[pygltflib.Buffer(byteLength=len(buffer))],
+    )
+    if suffix == ".gltf":
+        doc.buffers[0].uri = (
+            "data:application/octet-stream;base64," + base64.b64encode(buffer).decode()
+        )
+        path.write_text(doc.gltf_to_json(), encoding="utf-8")
+        return
+    doc.set_binary_blob(buffer)
+    path.write_bytes(b"".join(doc.save_to_bytes()))

@@ -1,0 +1,382 @@
+"""Small avatar files in the formats users bring, written by code (tests and benchmarks).
+
+:func:`write_sample` writes a stand-in for what Ready Player Me, VRoid (VRM 0.x / 1.0) and
+generic skinned exporters produce, built the way those files are built - not with facelab's
+own writer: a humanoid skeleton (Hips, Spine, Neck, Head, LeftEye, RightEye) with rest
+rotations and inverse bind matrices, a full-body scale (the head 1.6 m up, a torso below it),
+several meshes (head, teeth, two eyes, torso; a rigid hat parented to the head joint in the
+generic file) each skinned to the skeleton, morph targets repeated by name on every mesh they
+move (``jawOpen`` on the head and the teeth), a base-colour texture on the head (hair above,
+skin below) and vertex colours on the teeth. Per kind:
+
+* ``skinned`` - ARKit names on the meshes, Mixamo-style joint names (``mixamorig:Neck``);
+* ``rpm`` - Ready Player Me names: meshes ``Wolf3D_Head``, ``Wolf3D_Teeth``, ``EyeLeft``,
+  ``EyeRight``; all 52 ARKit targets and the 15 ``viseme_*`` targets;
+* ``vrm0`` - VRoid's raw names (``Fcl_MTH_A`` …) with ``extensions.VRM`` blend-shape groups
+  (presets a i u e o blink joy) and humanoid bones; facing −z, as VRM 0.x models do;
+* ``vrm1`` - the same in ``extensions.VRMC_vrm`` (presets aa ih ou ee oh blinkLeft
+  blinkRight happy); facing +z.
+
+The geometry is simple (an ellipsoid head with a mouth region): these files test loading,
+names, skinning and framing, not looks. ``head_rows`` sets the mesh density (about
+``2 * head_rows**2`` head vertices; 160 gives ~51k vertices in all).
+"""
+
+from __future__ import annotations
+
+import base64
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+
+from facelab.errors import AvatarError
+from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.avatar.gltf import _BufferBuilder
+
+__all__ = ["HEAD_JOINT_Y", "KINDS", "write_sample"]
+
+KINDS = ("skinned", "rpm", "vrm0", "vrm1")
+HEAD_JOINT_Y = 1.58
+HEAD_CENTRE = np.array([0.0, 1.67, 0.0])
+HEAD_RADII = np.array([0.075, 0.11, 0.09])
+MOUTH_Y = 1.615
+EYE_X, EYE_Y, EYE_R = 0.031, 1.69, 0.011
+
+# joint: (parent, world position, rest rotation about z in degrees - non-trivial on purpose)
+_JOINTS = {
+    "Hips": (None, (0.0, 1.0, 0.0), 0.0),
+    "Spine": ("Hips", (0.0, 1.3, 0.0), 0.0),
+    "Neck": ("Spine", (0.0, 1.5, -0.01), 15.0),
+    "Head": ("Neck", (0.0, HEAD_JOINT_Y, 0.0), -25.0),
+    "LeftEye": ("Head", (EYE_X, EYE_Y, 0.07), 0.0),
+    "RightEye": ("Head", (-EYE_X, EYE_Y, 0.07), 0.0),
+}
+_VRM0_RAW = {"a": "Fcl_MTH_A", "i": "Fcl_MTH_I", "u": "Fcl_MTH_U", "e": "Fcl_MTH_E",
+             "o": "Fcl_MTH_O", "blink": "Fcl_EYE_Close", "joy": "Fcl_ALL_Joy"}  # fmt: skip
+_VRM1_PRESETS = {"aa": "a", "ih": "i", "ou": "u", "ee": "e", "oh": "o",
+                 "blinkLeft": "blink_l", "blinkRight": "blink_r", "happy": "joy"}  # fmt: skip
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    m = np.eye(4)
+    m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    return m
+
+
+def _world_matrices() -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for name, (_, pos, rot) in _JOINTS.items():
+        m = _rot_z(rot)
+        m[:3, 3] = pos
+        out[name] = m
+    return out
+
+
+def _ellipsoid(centre: np.ndarray, radii: np.ndarray, rows: int, cols: int):
+    phi = np.linspace(-np.pi / 2 + 1e-3, np.pi / 2 - 1e-3, rows)
+    theta = np.linspace(-np.pi, np.pi, cols, endpoint=False)
+    p, t = np.meshgrid(phi, theta, indexing="ij")
+    unit = np.stack([np.cos(p) * np.sin(t), np.sin(p), np.cos(p) * np.cos(t)], -1).reshape(-1, 3)
+    r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols), indexing="ij")
+    a, b = r * cols + c, r * cols + (c + 1) % cols
+    d, e = a + cols, b + cols
+    faces = np.concatenate(
+        [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([b, e, d], -1).reshape(-1, 3)]
+    )
+    uv = np.stack([(t.ravel() + np.pi) / (2 * np.pi), 0.5 - p.ravel() / np.pi], -1)
+    return centre + unit * radii, faces, uv
+
+
+def _bump(v: np.ndarray, centre: tuple[float, float, float], sigma: float) -> np.ndarray:
+    return np.exp(-0.5 * np.sum((v - np.asarray(centre)) ** 2, axis=1) / sigma**2)
+
+
+def _head_targets(v: np.ndarray) -> dict[str, np.ndarray]:
+    """Semantic displacement fields (m) for the shapes the tests look at; the rest small."""
+    front = (v[:, 2] > 0.02).astype(float)
+    below = (v[:, 1] < MOUTH_Y).astype(float) * front
+    mouth = _bump(v, (0.0, MOUTH_Y, 0.09), 0.02)
+    t: dict[str, np.ndarray] = {}
+    t["jawOpen"] = np.outer(below * _bump(v, (0.0, 1.59, 0.07), 0.04), [0.0, -0.012, -0.002])
+    for side, sgn in (("Left", 1.0), ("Right", -1.0)):
+        corner = _bump(v, (sgn * 0.022, MOUTH_Y, 0.085), 0.01)
+        t[f"mouthSmile{side}"] = np.outer(corner, [sgn * 0.004, 0.006, -0.002])
+        lid = _bump(v, (sgn * EYE_X, EYE_Y + 0.008, 0.08), 0.008) * front
+        t[f"eyeBlink{side}"] = np.outer(lid, [0.0, -0.009, 0.0])
+    t["mouthFunnel"] = np.outer(mouth, [0.0, 0.0, 0.006])
+    t["mouthPucker"] = np.outer(mouth, [0.0, 0.0, 0.008])
+    t["mouthStretchLeft"] = np.outer(_bump(v, (0.022, MOUTH_Y, 0.085), 0.01), [0.006, 0, 0])
+    t["mouthStretchRight"] = np.outer(_bump(v, (-0.022, MOUTH_Y, 0.085), 0.01), [-0.006, 0, 0])
+    rng = np.random.default_rng(0)
+    for name in ARKIT_NAMES:
+        if name not in t:
+            centre = (rng.uniform(-0.04, 0.04), rng.uniform(1.6, 1.72), 0.08)
+            t[name] = np.outer(_bump(v, centre, 0.012) * front, rng.normal(0, 0.002, 3))
+    vowels = {"aa": 1.0, "E": 0.5, "ih": 0.3, "oh": 0.6, "ou": 0.2}
+    for name in VISEME_TARGETS:
+        key = name.removeprefix("viseme_")
+        if key in vowels:
+            t[name] = t["jawOpen"] * vowels[key] + (
+                t["mouthPucker"] * 0.8 if key in ("oh", "ou") else 0.0
+            )
+        else:
+            t[name] = (
+                t["jawOpen"] * 0.1 + t["mouthStretchLeft"] * 0.2 + t["mouthStretchRight"] * 0.2
+            )
+    return t
+
+
+def _png(rgb_top: tuple[int, int, int], rgb_bottom: tuple[int, int, int], size: int = 32) -> bytes:
+    """A PNG (no Pillow needed): the top half one colour, the bottom half another."""
+    rows = []
+    for y in range(size):
+        colour = rgb_top if y < size // 2 else rgb_bottom
+        rows.append(b"\x00" + bytes(colour) * size)
+    raw = zlib.compress(b"".join(rows))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return len(data).to_bytes(4, "big") + body + zlib.crc32(body).to_bytes(4, "big")
+
+    header = size.to_bytes(4, "big") * 2 + bytes([8, 2, 0, 0, 0])
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", raw) + chunk(b"IEND", b"")
+
+
+#: texture colours: hair above, skin below (sRGB 0-255)
+HAIR_RGB, SKIN_RGB = (70, 40, 25), (225, 180, 150)
+
+
+def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
+    """Write a sample avatar of ``kind`` (see the module docstring) to ``path`` (.glb, .gltf or
+    .vrm); return the path."""
+    if kind not in KINDS:
+        raise AvatarError(f"unknown sample kind {kind!r}; expected one of {', '.join(KINDS)}")
+    path = Path(path)
+    worlds = _world_matrices()
+    joint_names = list(_JOINTS)
+    b = _BufferBuilder()
+    # --- geometry (world rest pose, facing +z) ---------------------------------------------
+    hv, hf, huv = _ellipsoid(HEAD_CENTRE, HEAD_RADII, head_rows, 2 * head_rows)
+    head_w = np.clip((hv[:, 1] - 1.54) / 0.06, 0, 1)
+    head_j = np.tile([joint_names.index("Head"), joint_names.index("Neck"), 0, 0], (len(hv), 1))
+    head_wt = np.stack([head_w, 1 - head_w, 0 * head_w, 0 * head_w], -1)
+    tv, tf, _ = _ellipsoid(np.array([0.0, MOUTH_Y, 0.07]), np.array([0.02, 0.006, 0.008]), 6, 12)
+    teeth_j = np.tile([joint_names.index("Head"), 0, 0, 0], (len(tv), 1))
+    teeth_wt = np.tile([1.0, 0, 0, 0], (len(tv), 1))
+    eyes = {}
+    for side, sgn in (("Left", 1), ("Right", -1)):
+        ev, ef, _ = _ellipsoid(np.array([sgn * EYE_X, EYE_Y, 0.07]), np.full(3, EYE_R), 8, 16)
+        eyes[side] = (ev, ef, joint_names.index(f"{side}Eye"))
+    bv, bf, _ = _ellipsoid(np.array([0.0, 1.25, 0.0]), np.array([0.18, 0.3, 0.1]), 10, 20)
+    head_t = _head_targets(hv)
+    teeth_t = {"jawOpen": np.outer((tv[:, 1] < MOUTH_Y).astype(float), [0.0, -0.010, 0.0])}
+    names = list(ARKIT_NAMES) + (list(VISEME_TARGETS) if kind == "rpm" else [])
+    if kind == "vrm0":
+        raw = {v: k for k, v in _VRM0_RAW.items()}  # raw name -> preset
+        src = {"a": "viseme_aa", "i": "viseme_ih", "u": "viseme_ou", "e": "viseme_E",
+               "o": "viseme_oh", "blink": None, "joy": "mouthSmileLeft"}  # fmt: skip
+        vis = {n: head_t["jawOpen"] * w for n, w in
+               (("viseme_aa", 1.0), ("viseme_ih", 0.3), ("viseme_ou", 0.2), ("viseme_E", 0.5),
+                ("viseme_oh", 0.6))}  # fmt: skip
+        blink = head_t["eyeBlinkLeft"] + head_t["eyeBlinkRight"]
+        head_t = {
+            raw_name: (blink if src[p] is None else vis.get(src[p], head_t.get(src[p])))
+            for raw_name, p in raw.items()
+        }
+        teeth_t = {"Fcl_MTH_A": teeth_t["jawOpen"]}
+        names = list(head_t)
+    elif kind == "vrm1":
+        base = {"aa": 1.0, "ih": 0.3, "ou": 0.2, "ee": 0.5, "oh": 0.6}
+        new = {f"mouth_{k}": head_t["jawOpen"] * w for k, w in base.items()}
+        new["blink_L"] = head_t["eyeBlinkLeft"]
+        new["blink_R"] = head_t["eyeBlinkRight"]
+        new["happy"] = head_t["mouthSmileLeft"] + head_t["mouthSmileRight"]
+        head_t = new
+        teeth_t = {"mouth_aa": teeth_t["jawOpen"]}
+        names = list(head_t)
+    flip = np.array([-1.0, 1.0, -1.0]) if kind == "vrm0" else np.ones(3)
+    turn = np.diag([*flip, 1.0])
+    worlds = {k: turn @ m @ turn for k, m in worlds.items()} if kind == "vrm0" else worlds
+
+    def add_mesh(name, v, f, joints, weights, targets, *, uv=None, material, color=None):
+        v = v * flip
+        attrs = pygltflib.Attributes(
+            POSITION=b.add(v.astype(np.float32), "VEC3", 5126, 34962, True),
+            JOINTS_0=b.add(joints.astype(np.uint16), "VEC4", 5123, 34962, False),
+            WEIGHTS_0=b.add(weights.astype(np.float32), "VEC4", 5126, 34962, False),
+        )
+        if uv is not None:
+            attrs.TEXCOORD_0 = b.add(uv.astype(np.float32), "VEC2", 5126, 34962, False)
+        if color is not None:
+            attrs.COLOR_0 = b.add(color.astype(np.float32), "VEC4", 5126, 34962, False)
+        tnames = [n for n in names if n in targets]
+        prim_targets = [
+            {"POSITION": b.add((targets[n] * flip).astype(np.float32), "VEC3", 5126, 34962, True)}
+            for n in tnames
+        ]
+        meshes.append(
+            pygltflib.Mesh(
+                name=name,
+                primitives=[
+                    pygltflib.Primitive(
+                        attributes=attrs,
+                        indices=b.add(
+                            f.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False
+                        ),
+                        targets=prim_targets or None,
+                        material=material,
+                    )
+                ],
+                weights=[0.0] * len(tnames) if tnames else None,
+                extras={"targetNames": tnames} if tnames else None,
+            )
+        )
+        return len(meshes) - 1, tnames
+
+    meshes: list[pygltflib.Mesh] = []
+    rpm = kind == "rpm"
+    head_mesh, head_names = add_mesh(
+        "Wolf3D_Head" if rpm else ("Face" if kind.startswith("vrm") else "head"),
+        hv, hf, head_j, head_wt, head_t, uv=huv, material=0,
+    )  # fmt: skip
+    teeth_colour = np.tile([0.9, 0.88, 0.8, 1.0], (len(tv), 1))
+    teeth_mesh, teeth_names = add_mesh(
+        "Wolf3D_Teeth" if rpm else "teeth", tv, tf, teeth_j, teeth_wt, teeth_t,
+        material=1, color=teeth_colour,
+    )  # fmt: skip
+    eye_meshes = {}
+    for side, (ev, ef, j) in eyes.items():
+        eye_meshes[side], _ = add_mesh(
+            f"Eye{side}" if rpm else f"eye_{side.lower()}",
+            ev, ef, np.tile([j, 0, 0, 0], (len(ev), 1)), np.tile([1.0, 0, 0, 0], (len(ev), 1)),
+            {}, material=2,
+        )  # fmt: skip
+    torso_j = np.tile([joint_names.index("Spine"), 0, 0, 0], (len(bv), 1))
+    torso_mesh, _ = add_mesh(
+        "Wolf3D_Outfit_Top" if rpm else "torso", bv, bf, torso_j,
+        np.tile([1.0, 0, 0, 0], (len(bv), 1)), {}, material=3,
+    )  # fmt: skip
+    # --- nodes ------------------------------------------------------------------------------
+    prefix = "mixamorig:" if kind == "skinned" else ("J_Bip_C_" if kind.startswith("vrm") else "")
+    nodes: list[pygltflib.Node] = []
+    node_of: dict[str, int] = {}
+    for name, (parent, _, _) in _JOINTS.items():
+        local = worlds[name] if parent is None else np.linalg.inv(worlds[parent]) @ worlds[name]
+        node_of[name] = len(nodes)
+        nodes.append(
+            pygltflib.Node(name=prefix + name, matrix=local.T.reshape(-1).tolist(), children=[])
+        )
+        if parent is not None:
+            nodes[node_of[parent]].children.append(node_of[name])
+    ibm = np.stack([np.linalg.inv(worlds[n]) for n in joint_names]).astype(np.float32)
+    ibm_acc = b.add(ibm.transpose(0, 2, 1).reshape(-1, 16), "MAT4", 5126, None, False)
+    skin = pygltflib.Skin(joints=[node_of[n] for n in joint_names], inverseBindMatrices=ibm_acc)
+    mesh_nodes = []
+    for m in (head_mesh, teeth_mesh, eye_meshes["Left"], eye_meshes["Right"], torso_mesh):
+        mesh_nodes.append(len(nodes))
+        # a skinned mesh node's own transform must be ignored (glTF 2.0 §3.7.3): give it one
+        nodes.append(pygltflib.Node(name=meshes[m].name, mesh=m, skin=0, translation=[5.0, 0, 0]))
+    if kind == "skinned":  # a rigid (unskinned) hat, child of the head joint
+        cv, cf, _ = _ellipsoid(np.array([0.0, 0.0, 0.0]), np.array([0.08, 0.03, 0.095]), 8, 16)
+        hat_mesh = len(meshes)
+        attrs = pygltflib.Attributes(
+            POSITION=b.add(cv.astype(np.float32), "VEC3", 5126, 34962, True)
+        )
+        meshes.append(pygltflib.Mesh(name="hat", primitives=[pygltflib.Primitive(
+            attributes=attrs,
+            indices=b.add(cf.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False),
+            material=3)]))  # fmt: skip
+        hat_world = np.eye(4)
+        hat_world[:3, 3] = HEAD_CENTRE + np.array([0.0, 0.10, 0.0])
+        local = np.linalg.inv(worlds["Head"]) @ hat_world
+        nodes.append(pygltflib.Node(name="hat", mesh=hat_mesh, matrix=local.T.reshape(-1).tolist()))
+        nodes[node_of["Head"]].children.append(len(nodes) - 1)
+    # --- texture, materials ------------------------------------------------------------------
+    image_view = b.add_bytes(_png(HAIR_RGB, SKIN_RGB))
+
+    def material(rgba, texture=False):
+        pbr = pygltflib.PbrMetallicRoughness(baseColorFactor=rgba, metallicFactor=0.0)
+        if texture:
+            pbr.baseColorTexture = pygltflib.TextureInfo(index=0)
+        return pygltflib.Material(pbrMetallicRoughness=pbr)
+
+    materials = [
+        material([1, 1, 1, 1], texture=True),
+        material([1, 1, 1, 1]),
+        material([0.95, 0.95, 0.95, 1]),
+        material([0.2, 0.25, 0.4, 1]),
+    ]
+    buffer = b.buffer()
+    doc = pygltflib.GLTF2(
+        asset=pygltflib.Asset(
+            version="2.0",
+            generator={
+                "rpm": "Ready Player Me (facelab sample)",
+                "vrm0": "VRoid (facelab sample)",
+                "vrm1": "VRoid (facelab sample)",
+            }.get(kind, "Blender (facelab sample)"),
+        ),
+        scene=0,
+        scenes=[pygltflib.Scene(nodes=[node_of["Hips"], *mesh_nodes])],
+        nodes=nodes,
+        meshes=meshes,
+        skins=[skin],
+        materials=materials,
+        textures=[pygltflib.Texture(source=0)],
+        images=[pygltflib.Image(bufferView=image_view, mimeType="image/png")],
+        accessors=b.accessors,
+        bufferViews=b.views,
+        buffers=[pygltflib.Buffer(byteLength=len(buffer))],
+    )
+    if kind == "vrm0":
+        groups = []
+        for raw_name, preset in {v: k for k, v in _VRM0_RAW.items()}.items():
+            binds = [{"mesh": head_mesh, "index": head_names.index(raw_name), "weight": 100}]
+            if raw_name in teeth_names:
+                binds.append(
+                    {"mesh": teeth_mesh, "index": teeth_names.index(raw_name), "weight": 100}
+                )
+            groups.append({"name": preset.upper(), "presetName": preset, "binds": binds})
+        bones = [
+            {"bone": b, "node": node_of[n]}
+            for b, n in (("neck", "Neck"), ("head", "Head"), ("leftEye", "LeftEye"),
+                         ("rightEye", "RightEye"))
+        ]  # fmt: skip
+        doc.extensions = {"VRM": {"specVersion": "0.0", "humanoid": {"humanBones": bones},
+                                  "blendShapeMaster": {"blendShapeGroups": groups}}}  # fmt: skip
+        doc.extensionsUsed = ["VRM"]
+    elif kind == "vrm1":
+        head_node = mesh_nodes[0]
+        teeth_node = mesh_nodes[1]
+        preset = {}
+        for vrm_name in _VRM1_PRESETS:
+            raw_name = {"aa": "mouth_aa", "ih": "mouth_ih", "ou": "mouth_ou", "ee": "mouth_ee",
+                        "oh": "mouth_oh", "blinkLeft": "blink_L", "blinkRight": "blink_R",
+                        "happy": "happy"}[vrm_name]  # fmt: skip
+            binds = [{"node": head_node, "index": head_names.index(raw_name), "weight": 1.0}]
+            if raw_name in teeth_names:
+                binds.append(
+                    {"node": teeth_node, "index": teeth_names.index(raw_name), "weight": 1.0}
+                )
+            preset[vrm_name] = {"morphTargetBinds": binds}
+        bones = {
+            "neck": {"node": node_of["Neck"]},
+            "head": {"node": node_of["Head"]},
+            "leftEye": {"node": node_of["LeftEye"]},
+            "rightEye": {"node": node_of["RightEye"]},
+        }
+        doc.extensions = {"VRMC_vrm": {"specVersion": "1.0", "humanoid": {"humanBones": bones},
+                                       "expressions": {"preset": preset}}}  # fmt: skip
+        doc.extensionsUsed = ["VRMC_vrm"]
+    if path.suffix.lower() == ".gltf":
+        doc.buffers[0].uri = (
+            "data:application/octet-stream;base64," + base64.b64encode(buffer).decode()
+        )
+        path.write_text(doc.gltf_to_json(), encoding="utf-8")
+    else:
+        doc.set_binary_blob(buffer)
+        path.write_bytes(b"".join(doc.save_to_bytes()))
+    return path

@@ -1,0 +1,129 @@
+"""The registry of animation methods: one :class:`Method` object per method, registered once.
+
+A method has two halves because the layers do: the protocol half is its
+:class:`facelab.methods.MethodSpec` (name, typed parameter model, summary, protocol checks),
+which the protocol loader uses without this layer; the stimulus half is the :class:`Method`
+here (how it drives a track, the targets it needs, how it plays on an avatar). A method is
+added by defining one :class:`Method` subclass with its ``spec`` and calling :func:`register`
+once: that puts the spec into the protocol registry too. Nothing else dispatches on a method's
+name: rendering, ``avatar inspect``, target checks and protocol checks ask the registry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from facelab.errors import AvatarError, StageError
+from facelab.methods import METHODS, MethodSpec, register_spec
+from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
+
+__all__ = ["REGISTRY", "Method", "Playback", "drive", "get", "register"]
+
+
+@dataclass(frozen=True)
+class Playback:
+    """How a method plays on one avatar.
+
+    playable : whether clips can be made; ``problem`` says why not (an avatar error message).
+    how : one line for ``facelab avatar inspect``.
+    stand_in : what plays in place of the method's own targets (recorded in clip metadata),
+        e.g. a VRM's vowel presets for the ARKit Z matrix; None when the method plays as is.
+    """
+
+    playable: bool
+    how: str
+    stand_in: str | None = None
+    problem: str | None = None
+
+
+class Method:
+    """One animation method. Subclasses set ``spec`` and define :meth:`drive`; the defaults of
+    the other hooks fit a method that drives a fixed set of targets."""
+
+    spec: MethodSpec
+    #: drives ``viseme_*`` targets, which an avatar without them gets from ARKit mixes
+    uses_visemes: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def drive(self, inp: DriveInput, params: object) -> BlendshapeTrack:
+        """The blendshape track (T, K) of one clip from its viseme track."""
+        raise NotImplementedError
+
+    def targets(self, params: object, *, base_dir: Path = Path(".")) -> set[str]:
+        """The avatar targets the method drives (an empty set: known only from a file read
+        when the clip is built)."""
+        return set()
+
+    def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
+        """Whether and how the method plays on ``avatar``."""
+        missing = sorted(self.targets(params, base_dir=base_dir) - set(avatar.targets))
+        if missing:
+            return Playback(
+                False,
+                f"no: lacks {_first(missing)}",
+                problem=f"avatar {avatar.name!r} lacks {len(missing)} target(s) that method "
+                f"{self.name!r} needs: {', '.join(missing)}",
+            )
+        return Playback(True, "yes")
+
+    def examples(self) -> tuple[object, ...]:
+        """Parameter sets ``facelab avatar inspect`` reports on (default: the defaults; a
+        method with required parameters returns none and is described without them)."""
+        try:
+            return (self.spec.parse({}),)
+        except ValueError:
+            return ()
+
+    def drive_on(self, avatar: Avatar, inp: DriveInput, params: object) -> BlendshapeTrack:
+        """The track for this avatar (a method with a stand-in overrides this)."""
+        return self.drive(inp, params)
+
+
+def _first(names: list[str], n: int = 6) -> str:
+    return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
+
+
+REGISTRY: dict[str, Method] = {}
+
+
+def register(method: Method) -> Method:
+    """Add ``method`` (and its protocol spec) to the registries; a name is registered once."""
+    name = method.spec.name
+    if name in REGISTRY:
+        raise ValueError(f"method {name!r} is registered already")
+    if METHODS.get(name, method.spec) is not method.spec:
+        raise ValueError(f"method {name!r}: another protocol spec has this name")
+    register_spec(method.spec)
+    REGISTRY[name] = method
+    return method
+
+
+def get(name: str) -> Method:
+    """The registered method called ``name``."""
+    try:
+        return REGISTRY[name]
+    except KeyError:
+        raise StageError(
+            f"unknown method {name!r}; registered: {', '.join(REGISTRY)}"
+        ) from None
+
+
+def drive(name: str, inp: DriveInput, params: object) -> BlendshapeTrack:
+    """Run a registered method; ``params`` is its typed model or a dict as written in a
+    protocol (validated here)."""
+    method = get(name)
+    return method.drive(inp, method.spec.parse(params))
+
+
+def check_playable(avatar: Avatar, name: str, params: object, *, base_dir: Path) -> Playback:
+    """:meth:`Method.playback`, raising the avatar error when the method cannot play."""
+    method = get(name)
+    playback = method.playback(avatar, method.spec.parse(params), base_dir=base_dir)
+    if not playback.playable:
+        raise AvatarError(playback.problem or f"method {name!r} cannot play on this avatar")
+    return playback

@@ -1,0 +1,46 @@
+"""Animation methods: viseme track (+ phoneme timing) -> blendshape track.
+
+Each method is one function ``(DriveInput, params) -> BlendshapeTrack`` registered in
+:data:`DRIVERS` under the name a protocol condition uses (``facelab.methods.METHODS`` holds
+their parameter models). The vowel-driven method is
+
+    Y (T, 52) = clip(G * X (T, 5) @ Z.T (5, 52), 0, 1)
+
+with X the vowel intensities a, i, u, e, o per frame and Z (52, 5) a shipped or measured
+matrix (column j: the ARKit coefficients of vowel j).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from facelab.stimuli.speech.audio import Phone
+from facelab.stimuli.speech.track import VisemeTrack
+
+__all__ = ["BlendshapeTrack", "DriveInput"]
+
+
+@dataclass(frozen=True)
+class BlendshapeTrack:
+    """times (T,) s; weights (T, K) in [0, 1]; names (K,) ARKit camelCase and/or viseme_*."""
+
+    times: np.ndarray
+    weights: np.ndarray
+    names: tuple[str, ...]
+    notes: dict = field(default_factory=dict, compare=False)  # facts for the clip's JSON
+
+    def column(self, name: str) -> np.ndarray:
+        return self.weights[:, self.names.index(name)]
+
+
+@dataclass(frozen=True)
+class DriveInput:
+    """What a method may use: the audio-analysed track (latency already removed), the phoneme
+    timeline for TTS stimuli, and the folder custom files are relative to."""
+
+    track: VisemeTrack
+    phones: tuple[Phone, ...] = ()
+    base_dir: Path = Path(".")

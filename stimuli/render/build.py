@@ -1,0 +1,421 @@
+"""``facelab render``: every (stimulus, condition) clip a protocol needs, cached by content.
+
+For each stimulus set a block (or the practice trial) uses, each stimulus is synthesised or
+loaded once and analysed once; each condition's method turns the analysed track (vowel-isolated
+where the stimulus asks for it) into a blendshape track, which is rendered to
+``<out>/<set>__<stimulus>__<condition>.mp4``. A clip is re-rendered only when the hash of its
+inputs - audio, blendshape track, avatar, method and parameters, renderer settings - changes;
+the hash is kept in a JSON file beside the clip. ``clips.csv`` lists every clip (DESIGN.md).
+
+The clip list and each clip's spec hash (checked by ``facelab run``) are in
+:mod:`facelab.stimuli.render.clipspec`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from facelab.errors import StageError
+from facelab.formats import behaviour_log_path, write_manifest
+from facelab.protocol import Condition, Protocol
+from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
+from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, clip_seed
+from facelab.stimuli.methods import DriveInput, check_playable, get
+from facelab.stimuli.methods.types import BlendshapeTrack
+from facelab.stimuli.render.clip import (
+    ClipInfo,
+    encode,
+    frame_weights,
+    padded_audio,
+    sha256_file,
+    weights_at,
+)
+from facelab.stimuli.render.clipspec import (
+    CLIP_COLUMNS,
+    RENDER_VERSION,
+    ClipJob,
+    clip_spec_hash,
+    plan,
+)
+from facelab.stimuli.render.prepare import speech_for, tracks_for
+from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.speech.audio import Speech
+from facelab.stimuli.speech.track import VOWELS, VisemeTrack
+from facelab.stimuli.speech.vowels import vowel_segments
+
+__all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
+
+
+def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:
+    """The protocol's avatar, checked to play every condition's method; with ``viseme_*``
+    shapes from ARKit mixes when a method drives visemes the avatar lacks."""
+    spec = protocol.rendering.avatar
+    avatar = default_head() if spec == "default" else load(base_dir / spec)
+    for cond in protocol.conditions:
+        check_playable(avatar, cond.method, cond.settings, base_dir=base_dir)
+    needs_visemes = any(get(c.method).uses_visemes for c in protocol.conditions)
+    return with_viseme_mixes(avatar) if needs_visemes else avatar
+
+
+def settings_for(protocol: Protocol) -> RenderSettings:
+    r = protocol.rendering
+    return RenderSettings(
+        width=r.width,
+        height=r.height,
+        distance_m=r.camera.distance_m,
+        target_m=tuple(r.camera.target_m) if r.camera.target_m is not None else None,
+        fov_deg=r.camera.fov_deg,
+        height_m=r.camera.height_m,
+        background=tuple(r.background),
+        msaa=r.msaa,
+    )
+
+
+def _track_hash(track: BlendshapeTrack) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(track.times, np.float64).tobytes())
+    h.update(np.ascontiguousarray(track.weights, np.float64).tobytes())
+    h.update("|".join(track.names).encode())
+    return h.hexdigest()
+
+
+def stand_in(avatar: Avatar, cond: Condition, *, base_dir: Path) -> str | None:
+    """What plays in place of the condition's method on this avatar, if anything (for clip
+    metadata)."""
+    method = get(cond.method)
+    return method.playback(avatar, cond.settings, base_dir=base_dir).stand_in
+
+
+def _blendshapes(
+    protocol: Protocol,
+    job: ClipJob,
+    speech: Speech,
+    tracks: tuple[VisemeTrack, VisemeTrack | None],
+    base_dir: Path,
+    avatar: Avatar,
+) -> BlendshapeTrack:
+    cond = protocol.condition(job.condition)
+    analysed, isolated = tracks
+    viseme_track = (
+        isolated
+        if (isolated is not None and job.condition in job.stimulus.vowel_isolation)
+        else analysed
+    )
+    inp = DriveInput(track=viseme_track, phones=speech.phones, base_dir=base_dir)
+    return get(cond.method).drive_on(avatar, inp, cond.settings)
+
+
+def _behaviour(
+    protocol: Protocol,
+    job: ClipJob,
+    speech: Speech,
+    base_dir: Path,
+    avatar: Avatar,
+    fps: int,
+    weights: np.ndarray,
+) -> ClipBehaviour | None:
+    cond = protocol.condition(job.condition)
+    return behaviour_for_clip(
+        setting=cond.behaviour,
+        emotion=cond.emotion if cond.emotion is not None else job.stimulus.emotion,
+        base_dir=base_dir,
+        seed=clip_seed(protocol.rendering.behaviour_seed, job.stimulus_set, job.stimulus.id),
+        speech=speech,
+        pad_s=protocol.rendering.pad_s,
+        fps=fps,
+        n_frames=len(weights),
+        weights=weights,
+        avatar=avatar,
+    )
+
+
+def _plan_hash(behaviour: ClipBehaviour) -> str:
+    text = json.dumps(behaviour.plan.to_json(), sort_keys=True, ensure_ascii=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
+def build_clips(
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    out: Path,
+    settings: RenderSettings | None = None,
+    fps: int | None = None,
+    progress: Callable[[str, int], Callable[[], None]] | None = None,
+    log: Callable[[str], None] = print,
+) -> list[dict]:
+    """Render (or reuse) every clip; write ``out/clips.csv``; return its rows."""
+    base_dir = protocol_path.parent
+    settings = settings or settings_for(protocol)
+    fps = fps or protocol.rendering.fps
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    avatar_hash = avatar.content_hash()
+    out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    cache: dict[str, tuple[Speech, tuple[VisemeTrack, VisemeTrack | None]]] = {}
+    renderer: Renderer | None = None
+    try:
+        for job in plan(protocol):
+            key_stim = f"{job.stimulus_set}/{job.stimulus.id}"
+            if key_stim not in cache:
+                speech = speech_for(
+                    job.stimulus,
+                    base_dir=base_dir,
+                    sample_rate=protocol.rendering.audio_sample_rate,
+                )
+                cache[key_stim] = (speech, tracks_for(job.stimulus, speech))
+            speech, tracks = cache[key_stim]
+            bs = _blendshapes(protocol, job, speech, tracks, base_dir, avatar)
+            cond = protocol.condition(job.condition)
+            audio = padded_audio(speech, pad_s=protocol.rendering.pad_s)
+            n_frames = round(audio.duration_s * fps)
+            weights = frame_weights(
+                bs, avatar, fps=fps, n_frames=n_frames, pad_s=protocol.rendering.pad_s
+            )
+            behaviour = _behaviour(protocol, job, speech, base_dir, avatar, fps, weights)
+            key = hashlib.sha256(
+                json.dumps(
+                    {
+                        "version": RENDER_VERSION,
+                        "audio": hashlib.sha256(audio.samples.tobytes()).hexdigest(),
+                        "sample_rate": audio.sample_rate,
+                        "track": _track_hash(bs),
+                        "avatar": avatar_hash,
+                        "method": cond.method,
+                        "params": cond.params,
+                        "settings": settings.__dict__,
+                        "fps": fps,
+                        "pad_s": protocol.rendering.pad_s,
+                        **({"behaviour": _plan_hash(behaviour)} if behaviour is not None else {}),
+                    },
+                    sort_keys=True,
+                    default=str,
+                ).encode()
+            ).hexdigest()
+            spec = clip_spec_hash(protocol, job, base_dir=base_dir)
+            mp4 = out / f"{job.clip_id}.mp4"
+            meta = out / f"{job.clip_id}.json"
+            info: ClipInfo | None = None
+            status = "rendered"
+            if mp4.exists() and meta.exists():
+                saved = json.loads(meta.read_text())
+                if (
+                    saved.get("input_hash") == key
+                    and saved.get("spec_sha256") == spec
+                    and saved.get("sha256") == sha256_file(mp4)
+                ):
+                    info = ClipInfo(
+                        mp4,
+                        saved["duration_s"],
+                        fps,
+                        settings.width,
+                        settings.height,
+                        saved["frames"],
+                        saved["sha256"],
+                    )
+                    status = "unchanged"
+                    log(f"  unchanged {job.clip_id} (reused)")
+            if info is None:
+                if renderer is None:
+                    renderer = Renderer(avatar, settings).__enter__()
+                tick = progress(job.clip_id, n_frames) if progress else None
+                frames = (
+                    renderer.frames(weights)
+                    if behaviour is None
+                    else renderer.frames(behaviour.weights, behaviour.poses)
+                )
+                info = encode(
+                    frames,
+                    audio=audio,
+                    out=mp4,
+                    fps=fps,
+                    width=settings.width,
+                    height=settings.height,
+                    n_frames=n_frames,
+                    on_frame=tick,
+                )
+                meta.write_text(
+                    json.dumps(
+                        {
+                            "input_hash": key,
+                            "spec_sha256": spec,
+                            "sha256": info.sha256,
+                            "frames": n_frames,
+                            "duration_s": info.duration_s,
+                            "method": cond.method,
+                            "params": cond.params,
+                            "track_source": (
+                                "phonemes of the transcript aligned to the recording"
+                                if job.stimulus.transcript
+                                else "silence"
+                                if job.stimulus.silence_s is not None
+                                else "audio analysis"
+                            ),
+                            "avatar": avatar.name,
+                            "avatar_kind": avatar.source.get("kind", "unknown"),
+                            "stand_in": stand_in(avatar, cond, base_dir=base_dir),
+                            **({"track_notes": bs.notes} if bs.notes else {}),
+                            **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
+                        },
+                        indent=2,
+                    )
+                    + "\n"
+                )
+                if behaviour is not None:
+                    _write_json(behaviour_log_path(out, job.clip_id), behaviour.log())
+                note = stand_in(avatar, cond, base_dir=base_dir)
+                log(f"  rendered {job.clip_id} ({n_frames} frames)" + (f"; {note}" if note else ""))
+            rows.append(
+                {
+                    "clip_id": job.clip_id,
+                    "stimulus_set": job.stimulus_set,
+                    "stimulus": job.stimulus.id,
+                    "condition": job.condition,
+                    "path": mp4.name,
+                    "duration_s": round(info.duration_s, 6),
+                    "fps": fps,
+                    "width": settings.width,
+                    "height": settings.height,
+                    "sha256": info.sha256,
+                    "spec_sha256": spec,
+                    "status": status,
+                }
+            )
+    finally:
+        if renderer is not None:
+            renderer.__exit__(None, None, None)
+    write_manifest(out, rows, columns=CLIP_COLUMNS)
+    return rows
+
+
+def contact_sheets(
+    protocol: Protocol, *, protocol_path: Path, out: Path, settings: RenderSettings | None = None
+) -> list[Path]:
+    """One PNG per condition: the face at the centre of each vowel of the vowel stimulus; a
+    protocol without a vowel stimulus gets one PNG of every condition at its strongest frame
+    (``contact_conditions.png``)."""
+    from PIL import Image, ImageDraw
+
+    base_dir = protocol_path.parent
+    stim_set, stim = next(
+        ((s.id, st) for s in protocol.stimulus_sets for st in s.stimuli if st.expected_vowels),
+        (None, None),
+    )
+    settings = settings or settings_for(protocol)
+    if stim is None:
+        return [_peak_sheet(protocol, base_dir=base_dir, out=out, settings=settings)]
+    closer = 0.36 / 0.65
+    settings = replace(
+        settings,
+        width=640,
+        height=640,
+        distance_m=None if settings.distance_m is None else settings.distance_m * closer,
+        zoom=1 / closer,
+    )
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
+    analysed, isolated = tracks_for(stim, speech)
+    segments = vowel_segments(analysed, widen=True)
+    if len(segments) != len(stim.expected_vowels or ""):
+        raise StageError(
+            f"{stim_set}/{stim.id}: found {len(segments)} vowel segments, expected "
+            f"{len(stim.expected_vowels or '')}"
+        )
+    font = _font(28)
+    paths = []
+    out.mkdir(parents=True, exist_ok=True)
+    with Renderer(avatar, settings) as renderer:
+        for cond in protocol.conditions:
+            job = ClipJob("", stim_set, stim, cond.id)
+            bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir, avatar)
+            tiles = []
+            for (a, b), vowel in zip(segments, stim.expected_vowels or "", strict=True):
+                x = analysed.vowels()[a:b, VOWELS.index(vowel)]
+                centre = analysed.times[a + int(np.argmax(x))]  # the vowel's peak
+                w = weights_at(bs, avatar, t=float(centre))
+                img = Image.fromarray(renderer.frame(w)).crop((80, 150, 560, 630))
+                ImageDraw.Draw(img).text(
+                    (16, 10), f"{vowel}  t={centre:.2f}s", fill=(255, 255, 255), font=font
+                )
+                tiles.append(img)
+            sheet = Image.new(
+                "RGB", (sum(t.width for t in tiles), tiles[0].height + 56), (40, 40, 40)
+            )
+            for i, t in enumerate(tiles):
+                sheet.paste(t, (i * t.width, 56))
+            label = cond.label.get("en") or next(iter(cond.label.values()))
+            ImageDraw.Draw(sheet).text(
+                (16, 12),
+                f"{cond.id}: {label} ({cond.method} {cond.params})",
+                fill=(255, 255, 255),
+                font=font,
+            )
+            path = out / f"contact_{cond.id}.png"
+            sheet.save(path)
+            paths.append(path)
+    return paths
+
+
+def _peak_sheet(protocol: Protocol, *, base_dir: Path, out: Path, settings: RenderSettings) -> Path:
+    """Every condition on the first stimulus its blocks show, at the frame where its
+    blendshape weights sum highest, side by side."""
+    from PIL import Image, ImageDraw
+
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    tile_settings = replace(
+        settings, width=400, height=400, distance_m=None, zoom=1.9, target_m=settings.target_m
+    )
+    jobs = {job.condition: job for job in plan(protocol)}
+    font = _font(20)
+    tiles = []
+    with Renderer(avatar, tile_settings) as renderer:
+        for cond in protocol.conditions:
+            job = jobs.get(cond.id)
+            if job is None:
+                continue
+            speech = speech_for(
+                job.stimulus, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate
+            )
+            bs = _blendshapes(
+                protocol, job, speech, tracks_for(job.stimulus, speech), base_dir, avatar
+            )
+            peak = float(bs.times[int(np.argmax(bs.weights.sum(axis=1)))])
+            img = Image.fromarray(renderer.frame(weights_at(bs, avatar, t=peak)))
+            ImageDraw.Draw(img).text(
+                (10, 8), f"{cond.id}  t={peak:.2f}s", fill=(255, 255, 255), font=font
+            )
+            tiles.append(img)
+    if not tiles:
+        raise StageError("no condition is shown by any block: nothing to draw")
+    sheet = Image.new("RGB", (sum(t.width for t in tiles), tiles[0].height), (40, 40, 40))
+    for i, t in enumerate(tiles):
+        sheet.paste(t, (i * t.width, 0))
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "contact_conditions.png"
+    sheet.save(path)
+    return path
+
+
+def _font(size: int):
+    import matplotlib
+    from PIL import ImageFont
+
+    for name in (
+        Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSans.ttf",
+        Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc"),
+    ):
+        if name.exists():
+            return ImageFont.truetype(str(name), size)
+    return ImageFont.load_default()

@@ -1,0 +1,321 @@
+"""Clips: blendshape track + audio -> mp4 (H.264 + AAC), picture and sound aligned.
+
+Timing contract: the clip is ``pad_s`` of neutral face and silence, the speech, and ``pad_s``
+again. Frame k is shown from t = k / fps and shows the face at speech time t - pad_s (weights
+linearly interpolated); frames outside the speech - and always the first and last - are the
+neutral face. The clip has round(duration * fps) frames; the audio is the speech padded with
+exact silence, so picture and sound start together at t = 0 and end within one frame.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import shutil
+import subprocess
+import tempfile
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from facelab.errors import StageError
+from facelab.hashing import sha256_file
+from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.methods.types import BlendshapeTrack
+from facelab.stimuli.speech.audio import Speech, write_wav
+
+__all__ = ["ClipInfo", "encode", "frame_weights", "padded_audio", "sha256_file", "weights_at"]
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    path: Path
+    duration_s: float
+    fps: int
+    width: int
+    height: int
+    frames: int
+    sha256: str
+
+
+def padded_audio(speech: Speech, *, pad_s: float) -> Speech:
+    """The speech with ``pad_s`` of digital silence before and after."""
+    pad = np.zeros(round(pad_s * speech.sample_rate), dtype=np.float32)
+    return Speech(
+        np.concatenate([pad, speech.samples, pad]), speech.sample_rate, speech.phones, speech.source
+    )
+
+
+def frame_weights(
+    track: BlendshapeTrack, avatar: Avatar, *, fps: int, n_frames: int, pad_s: float
+) -> np.ndarray:
+    """(n_frames, K) weights in ``avatar.target_names`` order for frames k / fps."""
+    index = {n: i for i, n in enumerate(avatar.target_names)}
+    missing = [n for n in track.names if n not in index]
+    if missing:
+        raise StageError(
+            f"avatar {avatar.name!r} lacks targets the track drives: {', '.join(missing[:8])}"
+        )
+    t = np.arange(n_frames) / fps - pad_s
+    inside = (t >= track.times[0]) & (t <= track.times[-1])
+    out = np.zeros((n_frames, len(index)), np.float32)
+    for j, name in enumerate(track.names):
+        col = np.interp(t, track.times, track.weights[:, j], left=0.0, right=0.0)
+        out[:, index[name]] = np.where(inside, col, 0.0)
+    out[0] = 0.0
+    out[-1] = 0.0
+    return out
+
+
+def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarray:
+    """(K,) weights in ``avatar.target_names`` order at speech time ``t`` (interpolated)."""
+    index = {n: i for i, n in enumerate(avatar.target_names)}
+    out = np.zeros(len(index), np.float32)
+    for j, name in enumerate(track.names):
+        out[index[name]] = np.interp(t, track.times, track.weights[:, j])
+    return out
+
+
+def _ffmpeg() -> str:
+    exe = shutil.which("ffmpeg")
+    if exe is None:
+        raise StageError(
+            "ffmpeg is not installed: apt-get install ffmpeg (scripts/setup.sh does this)"
+        )
+    return exe
+
+
+class _PipeWriter:
+    """Writes frames to ffmpeg's stdin from a second thread, so the next frame is rendered
+    while this one is written (and ffmpeg encodes on the other core). At most ``depth``
+    frames wait; the pipe write releases the GIL."""
+
+    def __init__(self, pipe: IO[bytes], *, depth: int = 3):
+        self._pipe = pipe
+        self._queue: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=depth)
+        self._broken = threading.Event()
+        self._error: BaseException | None = None  # anything but a closed pipe
+        self.written = 0
+        self._thread = threading.Thread(target=self._run, name="facelab-ffmpeg-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (frame := self._queue.get()) is not None:
+            if self._broken.is_set():
+                continue  # drain what the renderer already queued
+            try:
+                self._pipe.write(memoryview(frame).cast("B"))
+                self.written += 1
+            except (BrokenPipeError, ValueError, OSError):
+                self._broken.set()  # ffmpeg stopped reading
+            except Exception as exc:  # keep draining, or put() would wait for ever
+                self._error = exc
+                self._broken.set()
+
+    def put(self, frame: np.ndarray) -> bool:
+        """Queue a frame (waits while ``depth`` frames are queued); False once the pipe broke."""
+        if self._broken.is_set():
+            return False
+        self._queue.put(frame)
+        return True
+
+    def close(self) -> int:
+        """Write what is queued, close the pipe; returns the frames written."""
+        self._queue.put(None)
+        self._thread.join()
+        with contextlib.suppress(BrokenPipeError, OSError):
+            self._pipe.close()
+        if self._error is not None:
+            raise self._error
+        return self.written
+
+
+def encode(
+    frames: Iterable[np.ndarray],
+    *,
+    audio: Speech,
+    out: Path,
+    fps: int,
+    width: int,
+    height: int,
+    n_frames: int,
+    crf: int = 18,
+    preset: str = "veryfast",
+    on_frame: Callable[[], None] | None = None,
+) -> ClipInfo:
+    """Pipe RGB frames and the audio into ffmpeg (libx264 yuv420p + AAC); atomic write."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="facelab-clip-", dir=out.parent) as tmp:
+        wav = Path(tmp) / "audio.wav"
+        write_wav(wav, audio)
+        part = Path(tmp) / out.name
+        duration = n_frames / fps
+        cmd = [
+            _ffmpeg(),
+            "-hide_banner",
+            "-loglevel",
+            "error",
+            "-y",
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "rgb24",
+            "-s",
+            f"{width}x{height}",
+            "-framerate",
+            str(fps),
+            "-i",
+            "-",
+            "-i",
+            str(wav),
+            "-map",
+            "0:v",
+            "-map",
+            "1:a",
+            "-c:v",
+            "libx264",
+            "-preset",
+            preset,
+            "-crf",
+            str(crf),
+            "-pix_fmt",
+            "yuv420p",
+            "-r",
+            str(fps),
+            "-fps_mode",
+            "cfr",
+            "-c:a",
+            "aac",
+            "-b:a",
+            "192k",
+            "-ar",
+            str(audio.sample_rate),
+            "-t",
+            f"{duration:.6f}",
+            "-movflags",
+            "+faststart",
+            str(part),
+        ]
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdin is not None
+        writer = _PipeWriter(proc.stdin)
+        try:
+            for frame in frames:
+                if frame.shape != (height, width, 3):
+                    raise StageError(
+                        f"frame of shape {frame.shape}, expected ({height}, {width}, 3)"
+                    )
+                # a copy: the frame waits in the queue while the caller may reuse its buffer
+                if not writer.put(np.array(frame, dtype=np.uint8, order="C", copy=True)):
+                    break  # ffmpeg stopped reading: its exit code and message say why
+                if on_frame:
+                    on_frame()
+        finally:
+            written = writer.close()
+            err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+            code = proc.wait()
+        if code != 0 or written != n_frames:
+            raise StageError(
+                f"ffmpeg failed for {out.name} (exit {code}, {written}/{n_frames} frames): "
+                f"{err.strip()[-400:]}"
+            )
+        part.replace(out)
+    return ClipInfo(out, duration, fps, width, height, n_frames, sha256_file(out))
+
+
+def probe(path: Path) -> dict:
+    """Stream facts of a clip from ffprobe: codecs, frames, durations, sample rate."""
+    exe = shutil.which("ffprobe")
+    if exe is None:
+        raise StageError("ffprobe is not installed (Debian ffmpeg)")
+    import json
+
+    out = subprocess.run(
+        [
+            exe,
+            "-v",
+            "error",
+            "-count_frames",
+            "-show_streams",
+            "-show_format",
+            "-of",
+            "json",
+            str(path),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if out.returncode != 0:
+        raise StageError(f"{path}: ffprobe failed: {out.stderr.strip()}")
+    return json.loads(out.stdout)
+
+
+def _decode(path: Path, output_args: list[str], what: str) -> bytes:
+    """Raw bytes ffmpeg writes to stdout for ``path`` with ``output_args``."""
+    out = subprocess.run(
+        [_ffmpeg(), "-v", "error", "-i", str(path), *output_args, "-"],
+        capture_output=True,
+        check=False,
+    )
+    if out.returncode != 0:
+        raise StageError(
+            f"{path}: cannot decode {what}: {out.stderr.decode(errors='replace')[-300:]}"
+        )
+    return out.stdout
+
+
+def decode_audio(path: Path, *, sample_rate: int) -> np.ndarray:
+    """The clip's audio as mono float32 at ``sample_rate``."""
+    raw = _decode(path, ["-f", "f32le", "-ac", "1", "-ar", str(sample_rate)], "audio")
+    return np.frombuffer(raw, dtype=np.float32)
+
+
+def decode_frames(path: Path, *, width: int, height: int) -> np.ndarray:
+    """All frames as (N, height, width, 3) uint8 (scaled by ffmpeg if needed)."""
+    raw = _decode(path, ["-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}"], "video")
+    return np.frombuffer(raw, dtype=np.uint8).reshape(-1, height, width, 3)
+
+
+def av_offset_ms(path: Path, *, fps: int, max_lag_frames: int = 8) -> dict[str, float]:
+    """Audio/picture offset measured from the clip file itself.
+
+    Picture: darkness of the mouth region per frame (the mouth region is where frames vary
+    most). Sound: RMS of the decoded audio in 40 ms windows centred on the frame times.
+    The offset is the lag maximising their cross-correlation (parabolic interpolation);
+    positive = the picture is late relative to the sound.
+    """
+    frames = decode_frames(path, width=320, height=180).astype(np.float32)
+    luma = frames @ np.array([0.299, 0.587, 0.114], np.float32)
+    var = luma.std(axis=0)
+    roi = var >= np.percentile(var, 99.5)
+    mouth = (255.0 - luma[:, roi]).mean(axis=1)
+    rate = 16_000
+    audio = decode_audio(path, sample_rate=rate)
+    # RMS in a 40 ms window centred on each frame time k / fps (as the frames are)
+    half = int(0.020 * rate)
+    power = np.concatenate([[0.0], np.cumsum(audio.astype(np.float64) ** 2)])
+    n = min(len(mouth), int(len(audio) / rate * fps))
+    centres = (np.arange(n) * rate / fps).astype(int)
+    lo, hi = np.clip(centres - half, 0, len(audio)), np.clip(centres + half, 0, len(audio))
+    env = np.sqrt((power[hi] - power[lo]) / np.maximum(hi - lo, 1))
+    a, b = mouth[:n] - mouth[:n].mean(), env - env.mean()
+    lags = np.arange(-max_lag_frames, max_lag_frames + 1)
+    corr = np.array(
+        [np.dot(a[max(0, k) : n + min(0, k)], b[max(0, -k) : n - max(0, k)]) for k in lags]
+    )
+    i = int(np.argmax(corr))
+    frac = 0.0
+    if 0 < i < len(lags) - 1:
+        den = corr[i - 1] - 2 * corr[i] + corr[i + 1]
+        frac = 0.5 * (corr[i - 1] - corr[i + 1]) / den if den else 0.0
+    peak = float(corr[i] / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+    return {
+        "offset_ms": float((lags[i] + frac) * 1000 / fps),
+        "frame_ms": 1000 / fps,
+        "correlation": peak,
+    }

@@ -1,0 +1,148 @@
+"""Speech audio: the :class:`Speech` and :class:`Phone` types, recorded audio files, resampling.
+
+Recorded WAV/FLAC of any common rate and channel count is mixed to mono (mean of channels)
+and resampled explicitly (polyphase, ``scipy.signal.resample_poly``) to the rate asked for.
+Empty, silent, clipped or unreadable audio raises :class:`SpeechError` naming the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+
+from facelab.errors import SpeechError
+from facelab.stimuli.speech.prosody import (
+    AccentPhrase,
+    Word,
+)
+
+__all__ = [
+    "MIN_SAMPLE_RATE",
+    "Phone",
+    "Speech",
+    "SpeechError",
+    "check_audio",
+    "load_audio",
+    "resample",
+    "write_wav",
+]
+
+#: The lowest sample rate of a recording (and of the analyser's input): below it the second
+#: formant of /i/ and /e/ (2-3 kHz) is lost, and resampling up cannot bring it back.
+MIN_SAMPLE_RATE = 8_000
+SILENT_RMS_DBFS = -60.0  # below this the whole file counts as silent
+CLIPPED_FRACTION = 0.001  # more than 0.1 % of samples at full scale counts as clipped
+
+
+@dataclass(frozen=True)
+class Phone:
+    """One OpenJTalk phoneme: ``a i u e o`` (``A I U E O`` devoiced), consonants, ``N``,
+    ``cl`` (geminate), ``pau`` and ``sil``. Times in seconds from the start of the audio."""
+
+    phoneme: str
+    start: float
+    end: float
+
+
+@dataclass(frozen=True)
+class Speech:
+    """A mono waveform and, for TTS, its phoneme timeline.
+
+    samples : float32, shape (n,), in [-1, 1]; sample_rate in Hz.
+    phones : tuple of :class:`Phone` (empty for recorded audio).
+    words, accents : the front end's timed words and accent phrases
+        (:mod:`facelab.stimuli.speech.prosody`; empty for recorded audio).
+    """
+
+    samples: np.ndarray
+    sample_rate: int
+    phones: tuple[Phone, ...] = ()
+    source: str = ""
+    words: tuple[Word, ...] = ()
+    accents: tuple[AccentPhrase, ...] = ()
+
+    @property
+    def duration_s(self) -> float:
+        return len(self.samples) / self.sample_rate
+
+
+def _read_wav_pcm16(path: Path) -> tuple[np.ndarray, int]:
+    import wave
+
+    with wave.open(str(path), "rb") as fh:
+        rate, width, channels, n = (
+            fh.getframerate(),
+            fh.getsampwidth(),
+            fh.getnchannels(),
+            fh.getnframes(),
+        )
+        raw = fh.readframes(n)
+    if width != 2:
+        raise SpeechError(f"{path}: expected 16-bit PCM from OpenJTalk, got {8 * width}-bit")
+    data = np.frombuffer(raw, dtype="<i2").astype(np.float32) / 32768.0
+    return data.reshape(-1, channels).mean(axis=1), rate
+
+
+def resample(samples: np.ndarray, *, rate_in: int, rate_out: int) -> np.ndarray:
+    """Polyphase resampling with scipy's default Kaiser-windowed anti-alias filter."""
+    if rate_in == rate_out:
+        return samples.astype(np.float32, copy=False)
+    ratio = Fraction(rate_out, rate_in)
+    out = signal.resample_poly(samples.astype(np.float64), ratio.numerator, ratio.denominator)
+    return out.astype(np.float32)
+
+
+def check_audio(samples: np.ndarray, *, sample_rate: int, source: str) -> None:
+    """Raise :class:`SpeechError` for empty, silent, clipped or non-finite audio."""
+    if samples.size == 0:
+        raise SpeechError(f"{source}: the audio is empty")
+    if samples.size < sample_rate * 0.05:
+        raise SpeechError(f"{source}: the audio is shorter than 50 ms")
+    if not np.all(np.isfinite(samples)):
+        raise SpeechError(f"{source}: the audio contains NaN or infinite samples")
+    rms = float(np.sqrt(np.mean(np.square(samples, dtype=np.float64))))
+    if rms == 0 or 20 * np.log10(rms) < SILENT_RMS_DBFS:
+        level = "-inf" if rms == 0 else f"{20 * np.log10(rms):.1f}"
+        raise SpeechError(f"{source}: the audio is silent (RMS {level} dBFS < {SILENT_RMS_DBFS:g})")
+    clipped = float(np.mean(np.abs(samples) >= 0.999))
+    if clipped > CLIPPED_FRACTION:
+        raise SpeechError(
+            f"{source}: the audio is clipped ({100 * clipped:.2f} % of samples at "
+            "full scale); record again at a lower level"
+        )
+
+
+def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
+    """A recorded WAV/FLAC file as mono float32 at ``sample_rate`` Hz, checked."""
+    import soundfile as sf
+
+    path = Path(path)
+    if not path.is_file():
+        raise SpeechError(f"{path}: audio file not found")
+    try:
+        data, rate = sf.read(str(path), dtype="float32", always_2d=True)
+    except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
+        raise SpeechError(f"{path}: not a readable WAV/FLAC file ({exc})") from None
+    if rate < MIN_SAMPLE_RATE:
+        raise SpeechError(
+            f"{path}: recorded at {rate} Hz; facelab needs at least {MIN_SAMPLE_RATE} Hz (the "
+            "vowels' second formant lies at 2-3 kHz); record again at 16 kHz or more"
+        )
+    mono = data.mean(axis=1)
+    check_audio(mono, sample_rate=rate, source=str(path))
+    return Speech(
+        samples=resample(mono, rate_in=rate, rate_out=sample_rate),
+        sample_rate=sample_rate,
+        source=str(path),
+    )
+
+
+def write_wav(path: Path, speech: Speech) -> None:
+    """16-bit PCM WAV (used for clips and caches)."""
+    import soundfile as sf
+
+    sf.write(str(path), np.clip(speech.samples, -1, 1), speech.sample_rate, subtype="PCM_16")
