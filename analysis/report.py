@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from facelab.analysis import figures
+import facelab.analysis.figures as figures
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import session_summary
 from facelab.analysis.study import METHODS, StudyResults, bracket_pairs

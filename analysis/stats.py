@@ -107,21 +107,25 @@ def _pairs(names: Sequence) -> list[tuple[int, int]]:
     return [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
 
 
+#: p_adjust's method names (R's p.adjust) -> statsmodels' multipletests names
+_ADJUST = {"bonferroni": "bonferroni", "holm": "holm"}
+
+
 def p_adjust(p: Sequence[float], *, method: str = "holm") -> np.ndarray:
-    """Adjusted p-values as R's ``p.adjust``: ``none``, ``bonferroni`` or ``holm``."""
+    """Adjusted p-values as R's ``p.adjust``: ``none``, ``bonferroni`` or ``holm``
+    (statsmodels' ``multipletests``)."""
+    from statsmodels.stats.multitest import multipletests
+
     p = np.asarray(p, dtype=float)
-    m = p.size
     if method == "none":
         return p.copy()
-    if method == "bonferroni":
-        return np.minimum(p * m, 1.0)
-    if method == "holm":
-        order = np.argsort(p, kind="stable")
-        adj = np.minimum(1.0, np.maximum.accumulate((m - np.arange(m)) * p[order]))
-        out = np.empty(m)
-        out[order] = adj
-        return out
-    raise AnalysisError(f"unknown p-value adjustment {method!r}; expected none, bonferroni or holm")
+    if method not in _ADJUST:
+        raise AnalysisError(
+            f"unknown p-value adjustment {method!r}; expected none, bonferroni or holm"
+        )
+    if p.size == 0:
+        return p.copy()
+    return multipletests(p, method=_ADJUST[method])[1]
 
 
 # --------------------------------------------------------------------------- between subjects

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from facelab.analysis import stats
+import facelab.analysis.stats as stats
 from facelab.errors import AnalysisError
 from facelab.protocol import Protocol
 

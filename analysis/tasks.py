@@ -25,7 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from facelab.analysis import graded, identification, psychometric
+import facelab.analysis.graded as graded
+import facelab.analysis.identification as identification
+import facelab.analysis.psychometric as psychometric
 from facelab.errors import AnalysisError
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 from facelab.staircase import new_staircase

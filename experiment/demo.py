@@ -5,8 +5,10 @@
 3. simulate 8 participants with effects in the paper's direction, written through the same
    session log as real sessions, into a new ``<out>/run-<UTC time>/results`` (never over an
    earlier run);
-4. analyse them - the sound repeated-measures analysis and the paper's procedure - into
-   ``<out>/run-<UTC time>/analysis`` with figures, ``report.html`` and ``report.md``.
+4. analyse them with the one analysis pipeline (``facelab.analysis.run``, as ``facelab
+   analyze`` does): for VAS studies the sound repeated-measures analysis and the paper's
+   procedure, for task protocols their psychometric, staircase or identification analyses -
+   into ``<out>/run-<UTC time>/analysis`` with figures, ``report.html`` and ``report.md``.
 
 The simulated data are labelled as simulated in every session file and in the report.
 """
@@ -19,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-from facelab.protocol import load_protocol, protocol_hash
+from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 
 __all__ = ["DEFAULT_PROTOCOL", "run_demo"]
@@ -38,10 +40,8 @@ def run_demo(
     progress: Callable[[str, int], Callable[[], None]] | None = None,
     say: Callable[[str], None] = print,
 ) -> dict[str, Path | float | int]:
-    from facelab.analysis.integrity import check_data
-    from facelab.analysis.load import load_results
-    from facelab.analysis.report import write_report
-    from facelab.analysis.study import analyze_study
+    from facelab.analysis import run
+    from facelab.experiment.cli.analysis_cmds import print_layout
     from facelab.experiment.simulate import simulate_study
     from facelab.stimuli.render.build import build_clips, contact_sheets, settings_for
 
@@ -90,38 +90,21 @@ def run_demo(
     )
 
     t = time.perf_counter()
-    data = load_results(results, study=protocol.study.id)
-    check = check_data(data, protocol, protocol_sha256=protocol_hash(protocol_path))
-    analysis = analyze_study(data, protocol, method="rm")
-    files = write_report(
-        check=check,
-        results=analysis,
-        data=data,
-        protocol=protocol,
-        out=run_dir / "analysis",
-        protocol_path=protocol_path,
-    )
+    done = run(results, protocol, protocol_path=protocol_path, out=run_dir / "analysis")
     say(
-        f"[4/4] analysed {len(data)} ratings (repeated-measures and the paper's procedure) in "
-        f"{time.perf_counter() - t:.1f} s -> {files.html}"
+        f"[4/4] analysed {len(done.data)} responses in {time.perf_counter() - t:.1f} s -> "
+        f"{done.files.html}"
     )
-    for row in analysis.layout.itertuples():
-        reported = (
-            ""
-            if row.reported_anova_p != row.reported_anova_p
-            else f" (paper: p = {row.reported_anova_p:.4f})"
-        )
-        say(
-            f"      {row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}: "
-            f"F({row.df1:g},{row.df2:g}) = {row.f:6.2f}, p = {row.anova_p:.4f}{reported}"
-        )
+    for note in done.notes:
+        say(f"      note: {note}")
+    print_layout(done.results, say=lambda s: say("    " + s))
     total = time.perf_counter() - t0
-    say(f"done in {total:.1f} s. Report: {files.html}")
+    say(f"done in {total:.1f} s. Report: {done.files.html}")
     return {
         "clips": clips,
         "results": results,
         "analysis": run_dir / "analysis",
-        "report": files.html,
+        "report": done.files.html,
         "seconds": total,
-        "ratings": len(data),
+        "ratings": len(done.data),
     }

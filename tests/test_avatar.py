@@ -193,7 +193,8 @@ def test_missing_targets_are_listed(head: Avatar) -> None:
         head.colors,
         "arkit",
     )
-    check_playable(arkit_only, "viseme_baseline", {}, base_dir=Path("."))  # visemes can be built from ARKit mixes
+    # visemes can be built from ARKit mixes
+    check_playable(arkit_only, "viseme_baseline", {}, base_dir=Path("."))
     built = with_viseme_mixes(arkit_only)
     np.testing.assert_allclose(built.targets["viseme_aa"], head.targets["viseme_aa"], atol=1e-6)
 

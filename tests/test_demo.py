@@ -60,3 +60,28 @@ def test_demo_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "(0 rendered, 6 reused)" in capsys.readouterr().out
     assert {p: p.read_bytes() for p in run.rglob("*.tsv")} == before
     assert len(list(out.glob("run-*"))) == 2
+
+
+SHIPPED = sorted(p.stem for p in (Path(__file__).parents[1] / "protocols").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_demo_runs_every_shipped_protocol(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`facelab demo --protocol` goes through the one analysis pipeline for every kind of
+    study (VAS, 2AFC, staircases, QUEST+, identification, impression, behaviour): the same
+    report `facelab analyze` writes, with every response of the simulated sessions in it."""
+    from facelab.resources import protocol_path
+
+    out = tmp_path / name
+    argv = ["demo", "--protocol", str(protocol_path(name)), "--out", str(out), "--participants",
+            "3", "--size", "96x64", "--fps", "10", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    run = next(out.glob("run-*"))
+    data = load_results(run / "results")
+    assert data["participant"].nunique() == 3
+    assert f"[4/4] analysed {len(data)} responses" in printed
+    report = (run / "analysis" / "report.html").read_text(encoding="utf-8")
+    assert "SIMULATED DATA" in report and "data:image/png;base64," in report

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from facelab.errors import FacelabError
@@ -19,53 +20,26 @@ from facelab.experiment.cli.common import (
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
-    from facelab.analysis.integrity import check_data
-    from facelab.analysis.load import load_results
-    from facelab.analysis.report import write_report
-    from facelab.analysis.study import analyze_study
-    from facelab.protocol import load_protocol, protocol_hash
+    from facelab.analysis import run
+    from facelab.analysis.pipeline import study_root
+    from facelab.protocol import load_protocol
 
     protocol = load_protocol(args.protocol)
     results_dir = Path(args.results)
-    data = load_results(results_dir, study=protocol.study.id)
-    if args.exclude:
-        unknown = sorted(set(args.exclude) - set(data["participant"]))
-        if unknown:
-            raise FacelabError(
-                f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
-            )
-        data = data[~data["participant"].isin(args.exclude)].reset_index(drop=True)
-    check = check_data(
-        data,
+    out = args.out or study_root(results_dir, protocol) / "analysis"
+    done = run(
+        results_dir,
         protocol,
-        protocol_sha256=protocol_hash(args.protocol),
-        accept_protocol_change=args.accept_protocol_change,
-    )
-    import numpy as np
-
-    from facelab.analysis.tasks import analyze_tasks
-
-    vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
-    results = analyze_study(vas, protocol, method=args.method) if not vas.empty else None
-    tasks = analyze_tasks(
-        data, protocol, rng=np.random.default_rng(args.seed), n_boot=args.bootstrap
-    )
-    _behaviour_tables(args, protocol, results_dir, vas, tasks)
-    if args.out:
-        out = output_dir(args.out, option="--out")
-    elif results_dir.name == protocol.study.id:
-        out = results_dir / "analysis"
-    else:
-        out = results_dir / protocol.study.id / "analysis"
-    files = write_report(
-        results=results,
-        data=data,
-        protocol=protocol,
-        out=output_dir(out, option="--out"),
         protocol_path=Path(args.protocol),
-        check=check,
-        tasks=tasks,
+        out=output_dir(out, option="--out"),
+        method=args.method,
+        exclude=args.exclude or (),
+        accept_protocol_change=args.accept_protocol_change,
+        clips=Path(args.clips) if args.clips else None,
+        boot_seed=args.seed,
+        n_boot=args.bootstrap,
     )
+    data, check = done.data, done.check
     kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
     print(
         f"analysed {len(data)} {kind.get(check.provenance, '')}responses from "
@@ -73,65 +47,27 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     )
     if check.provenance == "unknown":
         print("  provenance unknown: some sessions do not say whether they were simulated")
-    for note in (*check.notes, *(results.notes if results else ()), *tasks.notes):
+    for note in done.notes:
         print(f"  note: {note}")
-    for row in results.layout.itertuples() if results is not None else ():
-        print(
-            f"  {row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}: "
-            f"F({row.df1:g},{row.df2:g}) = {row.f:7.3f}, p = {row.anova_p:.4f}; "
-            f"pairs p<.05: {row.pairs_p_lt_05}"
-        )
-    _print_tasks(tasks)
-    print(f"report: {files.html}\ntables and figures: {files.folder}")
+    print_layout(done.results)
+    _print_tasks(done.tasks)
+    print(f"report: {done.files.html}\ntables and figures: {done.files.folder}")
     return 0
 
 
-def _behaviour_tables(args, protocol, results_dir: Path, vas, tasks) -> None:
-    """Behaviour counts per clip and the covariate model, for protocols with a behaviour layer
-    (seed 003); the clip logs come from --clips (default: the study's clips folder)."""
-    if all(c.behaviour == "none" for c in protocol.conditions):
-        return
-    import pandas as pd
-
-    from facelab.analysis.behaviour import (
-        clip_behaviour,
-        covariate_model,
-        identification_covariates,
-    )
-    from facelab.errors import AnalysisError
-
-    root = results_dir if results_dir.name == protocol.study.id else results_dir / protocol.study.id
-    clips = Path(args.clips) if args.clips else root / "clips"
-    if not (clips / "clips.csv").is_file():
-        tasks.notes.append(
-            f"behaviour covariates: no clips in {clips} (render them there, or pass --clips)"
+def print_layout(results: object, say: Callable[[str], None] = print) -> None:
+    """The VAS tests, one line per item, stimulus set and procedure."""
+    for row in results.layout.itertuples() if results is not None else ():
+        reported = (
+            ""
+            if row.reported_anova_p != row.reported_anova_p  # NaN: the paper reports none
+            else f" (paper: p = {row.reported_anova_p:.4f})"
         )
-        return
-    counts = clip_behaviour(clips)
-    if counts.empty:
-        tasks.notes.append(f"behaviour covariates: no behaviour logs in {clips}")
-        return
-    tasks.tables["behaviour_counts"] = counts
-    order = tuple(c.id for c in protocol.conditions)  # the models keep those present
-    if not vas.empty:
-        try:
-            tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=order)
-        except AnalysisError as exc:  # a secondary table: the report goes on without it
-            tasks.notes.append(f"behaviour covariates: {exc}")
-    models = []
-    for task_id, trials in tasks.identification_trials.items():
-        if trials["condition"].nunique() >= 2 and trials["participant"].nunique() >= 2:
-            try:
-                model = identification_covariates(trials, counts, conditions=order)
-            except AnalysisError as exc:
-                tasks.notes.append(f"behaviour covariates of task {task_id!r}: {exc}")
-                continue
-            models.append(model.assign(task=task_id))
-    if models:
-        frame = pd.concat(models, ignore_index=True)
-        tasks.tables["identification_covariates"] = frame[
-            ["task", *[c for c in frame.columns if c != "task"]]
-        ]
+        say(
+            f"  {row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}: "
+            f"F({row.df1:g},{row.df2:g}) = {row.f:7.3f}, p = {row.anova_p:.4f}; "
+            f"pairs p<.05: {row.pairs_p_lt_05}{reported}"
+        )
 
 
 def _print_tasks(tasks: object) -> None:

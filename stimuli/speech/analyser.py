@@ -16,7 +16,7 @@ Speaker independence comes from the training data, not from a per-speaker step: 
 synthesizers with exact phoneme times (OpenJTalk's statistical mei voice in 14 settings of
 speed, pitch and all-pass constant, and eSpeak NG's formant voices in 29 variants at random
 rates and pitches), every utterance also entered at a random mel-filter warp of 0.8..1.25
-(vocal-tract-length augmentation) - see ``stimuli/viseme_training.py``. The network sees one
+(vocal-tract-length augmentation) - see ``stimuli/speech/training.py``. The network sees one
 frame and its causal context, so the streaming analyser is speaker-independent from its first
 frame. :func:`choose_warp` (vocal-tract-length normalisation chosen per utterance) remains
 as an option (``warp="auto"``); on the shipped model it helps some voices and hurts others,

@@ -1,0 +1,161 @@
+"""The analysis pipeline, once: session logs -> checks -> every analysis the protocol calls for
+-> tables, figures and a report. ``facelab analyze``, ``facelab demo`` and the benchmarks run
+this one function (``facelab.analysis.run``), so what they report cannot drift apart.
+
+Steps: load every session of the study (:mod:`.load`); drop excluded participants; check the
+data against the protocol (:mod:`.integrity`: provenance, protocol hash, each row where the
+design put it); the VAS analysis per item and stimulus set (:mod:`.study`, repeated-measures
+or the paper's procedure) when there are VAS ratings; the task analyses (:mod:`.tasks`:
+psychometric fits, staircases, identification, graded designs); the behaviour covariates for
+protocols with a behaviour layer (:mod:`.behaviour`, from the clips' event logs); the report
+(:mod:`.report`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from facelab.analysis.integrity import DataCheck, check_data
+from facelab.analysis.load import load_results
+from facelab.analysis.report import ReportFiles, write_report
+from facelab.analysis.study import StudyResults, analyze_study
+from facelab.analysis.tasks import TaskResults, analyze_tasks
+from facelab.errors import AnalysisError
+from facelab.formats import MANIFEST_NAME
+from facelab.protocol import Protocol, protocol_hash
+
+__all__ = ["AnalysisRun", "run", "study_root"]
+
+
+@dataclass(frozen=True)
+class AnalysisRun:
+    """What one run of the pipeline produced.
+
+    data : every response analysed (one row per rating or answer; tidy, DESIGN.md's columns).
+    check : the data check (provenance, notes, incomplete participants).
+    results : the VAS analysis (None when the study has no VAS ratings).
+    tasks : the task and graded-design analyses, and the behaviour tables.
+    files : the report's files.
+    """
+
+    data: pd.DataFrame
+    check: DataCheck
+    results: StudyResults | None
+    tasks: TaskResults
+    files: ReportFiles
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """Every note of the check and the analyses, in that order."""
+        return (
+            *self.check.notes,
+            *(self.results.notes if self.results is not None else ()),
+            *self.tasks.notes,
+        )
+
+
+def study_root(results: Path, protocol: Protocol) -> Path:
+    """The study's folder: ``results`` itself when it is named after the study, else
+    ``results/<study id>``."""
+    return results if results.name == protocol.study.id else results / protocol.study.id
+
+
+def run(
+    results: Path,
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    out: Path,
+    method: str = "rm",
+    exclude: Sequence[str] = (),
+    accept_protocol_change: bool = False,
+    clips: Path | None = None,
+    boot_seed: int = 1,
+    n_boot: int = 200,
+) -> AnalysisRun:
+    """Analyse the study's sessions under ``results`` into ``out`` (created; files in it are
+    replaced).
+
+    method : the primary VAS procedure, ``rm`` (repeated measures) or ``paper``.
+    exclude : participant ids left out (each must be in the logs).
+    clips : the rendered clips with behaviour logs (default ``<study>/clips``).
+    boot_seed, n_boot : the bootstrap of the psychometric intervals (seeded Generator).
+    """
+    data = load_results(results, study=protocol.study.id)
+    if exclude:
+        unknown = sorted(set(exclude) - set(data["participant"]))
+        if unknown:
+            raise AnalysisError(
+                f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
+            )
+        data = data[~data["participant"].isin(list(exclude))].reset_index(drop=True)
+    check = check_data(
+        data,
+        protocol,
+        protocol_sha256=protocol_hash(protocol_path),
+        accept_protocol_change=accept_protocol_change,
+    )
+    vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
+    study = analyze_study(vas, protocol, method=method) if not vas.empty else None
+    tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
+    _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
+    files = write_report(
+        results=study,
+        data=data,
+        protocol=protocol,
+        out=out,
+        protocol_path=protocol_path,
+        check=check,
+        tasks=tasks,
+    )
+    return AnalysisRun(data=data, check=check, results=study, tasks=tasks, files=files)
+
+
+def _behaviour_tables(
+    protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks: TaskResults
+) -> None:
+    """Behaviour counts per clip and the covariate models, for protocols with a behaviour
+    layer (seed 003), into ``tasks.tables``; what cannot be made becomes a note."""
+    if all(c.behaviour == "none" for c in protocol.conditions):
+        return
+    from facelab.analysis.behaviour import (
+        clip_behaviour,
+        covariate_model,
+        identification_covariates,
+    )
+
+    if not (clips / MANIFEST_NAME).is_file():
+        tasks.notes.append(
+            f"behaviour covariates: no clips in {clips} (render them there, or pass --clips)"
+        )
+        return
+    counts = clip_behaviour(clips)
+    if counts.empty:
+        tasks.notes.append(f"behaviour covariates: no behaviour logs in {clips}")
+        return
+    tasks.tables["behaviour_counts"] = counts
+    order = tuple(c.id for c in protocol.conditions)  # the models keep those present
+    if not vas.empty:
+        try:
+            tasks.tables["behaviour_covariates"] = covariate_model(vas, counts, conditions=order)
+        except AnalysisError as exc:  # a secondary table: the report goes on without it
+            tasks.notes.append(f"behaviour covariates: {exc}")
+    models = []
+    for task_id, trials in tasks.identification_trials.items():
+        if trials["condition"].nunique() >= 2 and trials["participant"].nunique() >= 2:
+            try:
+                model = identification_covariates(trials, counts, conditions=order)
+            except AnalysisError as exc:
+                tasks.notes.append(f"behaviour covariates of task {task_id!r}: {exc}")
+                continue
+            models.append(model.assign(task=task_id))
+    if models:
+        frame = pd.concat(models, ignore_index=True)
+        tasks.tables["identification_covariates"] = frame[
+            ["task", *[c for c in frame.columns if c != "task"]]
+        ]
