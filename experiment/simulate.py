@@ -233,7 +233,7 @@ class SimulatedParticipant:
             answers.append(VasAnswer(item.id, rating, round(rt, 3), self._stamp()))
         return answers
 
-    def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
+    def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
         if screen.trial is None or screen.practice or self.chooser is None:
             return [ChoiceAnswer(1, 1.0, self._stamp())]
         choice = self.chooser.choose(screen)

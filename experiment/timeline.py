@@ -13,8 +13,13 @@ Each screen is a small frozen class with its parameters, the responses it collec
 * :mod:`facelab.experiment.simulate` answers each screen with a simulated responder;
 * an online session presents it in a browser (later).
 
-A new screen type is one class here, one presenter in the window, and one answer in the
-simulated responder; it then inherits logging, resume and simulation.
+A screen kind is one class registered once (:func:`screen_kind`) that owns everything about
+it: its parameters, the responses it collects, its JSON for the browser (:meth:`Screen.browser`,
+matched by one jsPsych plugin with typed parameters in ``online/web/static/plugins.js``), a
+posted answer checked and turned into a log row (:meth:`ResponseScreen.answer`,
+:meth:`ResponseScreen.row`), and how a presenter shows it (:meth:`Screen.present`: by default
+the presenter's method named after the kind, so the lab window and the simulated participant
+look screens up by ``kind``). It then inherits logging, resume and simulation.
 
 Resume (:func:`remaining`): a response screen whose responses are all logged is skipped; a
 trial with any response missing shows its clip again (the participant must see what they
@@ -24,17 +29,21 @@ practice trial are not repeated; a "continuing" screen is shown instead.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 from facelab.design import PENDING, Trial
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol, VasItem
 from facelab.sessionlog import SessionContext, response_row
 
 __all__ = [
+    "SCREEN_KINDS",
     "UI_TEXT",
     "AdaptiveTrial",
+    "AnswerError",
+    "BrowserContext",
     "ChoiceAnswer",
     "ChoiceScreen",
     "ClipKey",
@@ -53,12 +62,15 @@ __all__ = [
     "compile_timeline",
     "localized",
     "needed_clips",
+    "number",
     "remaining",
+    "screen_kind",
     "trial_screens",
 ]
 
 #: (stimulus set, stimulus, condition): one rendered clip.
 ClipKey = tuple[str, str, str]
+S = TypeVar("S", bound="Screen")
 
 #: Texts of the session screens by language (the protocol's own texts replace some).
 UI_TEXT: dict[str, dict[str, str]] = {
@@ -109,6 +121,47 @@ def ui(lang: str) -> dict[str, str]:
 # --------------------------------------------------------------------------- screens
 
 
+class AnswerError(ValueError):
+    """An answer (posted by a browser) that does not fit its screen; the message names the
+    field."""
+
+
+def number(payload: Mapping[str, Any], key: str, *, lo: float, hi: float) -> float:
+    """``payload[key]`` as a finite number in [lo, hi], else :class:`AnswerError`."""
+    value = payload.get(key)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise AnswerError(f"{key}: expected a number, got {value!r}")
+    if not lo <= float(value) <= hi:
+        raise AnswerError(f"{key}: {value} is outside {lo}..{hi}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class BrowserContext:
+    """What a screen's browser JSON may use: the session's language and texts, the clips as
+    the browser fetches them, and the trials whose clip was already shown (a resume)."""
+
+    lang: str
+    clip_json: Callable[[ClipKey], dict[str, Any]]
+    shown_before: frozenset[int] = frozenset()
+
+    @property
+    def texts(self) -> dict[str, str]:
+        return ui(self.lang)
+
+
+#: kind -> screen class; every kind is registered once (:func:`screen_kind`)
+SCREEN_KINDS: dict[str, type[Screen]] = {}
+
+
+def screen_kind(cls: type[S]) -> type[S]:
+    """Class decorator: register a screen class under its ``kind``."""
+    if cls.kind in SCREEN_KINDS and SCREEN_KINDS[cls.kind] is not cls:
+        raise ValueError(f"screen kind {cls.kind!r} is registered already")
+    SCREEN_KINDS[cls.kind] = cls
+    return cls
+
+
 @dataclass(frozen=True)
 class Screen:
     """A screen of the timeline. ``trial`` is None for screens outside the trials."""
@@ -119,12 +172,26 @@ class Screen:
         """The responses this screen collects (none for passive screens)."""
         return ()
 
+    def present(self, presenter: Any) -> Any:
+        """Show the screen with ``presenter`` (the lab window, a simulated participant): its
+        method named after the kind. A kind whose presenters lack such a method overrides
+        this."""
+        method = getattr(presenter, self.kind, None)
+        if method is None:
+            raise TypeError(f"{type(presenter).__name__} cannot present screen kind {self.kind!r}")
+        return method(self)
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        """The screen as JSON for its jsPsych plugin: ``kind`` and the plugin's parameters."""
+        raise TypeError(f"screen kind {self.kind!r} has no browser form")
+
     @property
     def trial_index(self) -> int | None:
         trial = getattr(self, "trial", None)
         return None if trial is None else trial.trial_index
 
 
+@screen_kind
 @dataclass(frozen=True)
 class TextScreen(Screen):
     """A text the participant reads and dismisses with the space bar."""
@@ -133,7 +200,11 @@ class TextScreen(Screen):
     role: str  # welcome | instructions | practice | resume | break | end
     text: str
 
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return {"kind": self.kind, "role": self.role, "text": self.text}
 
+
+@screen_kind
 @dataclass(frozen=True)
 class ClipScreen(Screen):
     """One rendered clip, with sound. Produces a :class:`Playback` record."""
@@ -149,7 +220,24 @@ class ClipScreen(Screen):
         """The clips this screen shows."""
         return (self.clip,)
 
+    def _shown(self, ctx: BrowserContext) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "trial_index": self.trial_index,
+            "practice": self.practice,
+            "replay": self.trial_index in ctx.shown_before,
+        }
 
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return self._shown(ctx) | {
+            **ctx.clip_json(self.clip),
+            "interval": self.interval,
+            "announce": ctx.texts["interval"].format(n=self.interval) if self.interval else "",
+            "gap_s": self.gap_s,
+        }
+
+
+@screen_kind
 @dataclass(frozen=True)
 class ClipPairScreen(ClipScreen):
     """Two clips at once, side by side (a side-by-side forced choice): ``clip`` on the left,
@@ -162,6 +250,12 @@ class ClipPairScreen(ClipScreen):
 
     def clips(self) -> tuple[ClipKey, ...]:
         return (self.clip, self.right)
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return self._shown(ctx) | {
+            "clips": [ctx.clip_json(c) for c in self.clips()],
+            "sound": self.sound,
+        }
 
 
 @dataclass(frozen=True)
@@ -217,11 +311,38 @@ class ResponseScreen(Screen):
     practice: bool = False
     level: float | None = None  # the trial's condition on a graded dimension
 
+    def answer(self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str) -> Any:
+        """The answer to ``item`` a browser posted (its kind's fields checked), as the
+        presenters give it; :class:`AnswerError` naming the field when it does not fit."""
+        raise AnswerError(f"screen {self.kind} takes no posted answers")
+
+    def row(
+        self, item: str, answer: Any, *, context: SessionContext, playback: Playback | None
+    ) -> dict[str, Any]:
+        """The log row of one answer to ``item``."""
+        raise NotImplementedError(f"{type(self).__name__} does not define row()")
+
+    def posted(self, answer: Any) -> dict[str, Any]:
+        """The answer-specific fields a browser posts for ``answer`` (the inverse of
+        :meth:`answer`): what simulated browser participants send."""
+        raise NotImplementedError(f"{type(self).__name__} does not define posted()")
+
+    def answer_item(self, answer: Any) -> str:
+        """The item an answer is to (the task's one item, or the answer's own)."""
+        return str(getattr(answer, "item", None) or self.response_keys()[0][1])
+
     def rows(
         self, answers: Sequence[Any], *, context: SessionContext, playback: Playback | None
     ) -> list[dict[str, Any]]:
-        """The log rows of ``answers`` (every response screen class defines it)."""
-        raise NotImplementedError(f"{type(self).__name__} does not define rows()")
+        """The log rows of a screen's answers, in the order of its items (none for the
+        practice trial)."""
+        if not self.response_keys():
+            return []
+        by_item = {self.answer_item(a): a for a in answers}
+        return [
+            self.row(item, by_item[item], context=context, playback=playback)
+            for _, item in self.response_keys()
+        ]
 
     def _row(
         self, *, context: SessionContext, playback: Playback | None, item: str, **answer: Any
@@ -250,6 +371,7 @@ class VasAnswer:
     rating_start: float | None = None
 
 
+@screen_kind
 @dataclass(frozen=True)
 class VasScreen(ResponseScreen):
     """One VAS item (``items_layout: sequential``) or several on one screen (``together``)."""
@@ -262,24 +384,47 @@ class VasScreen(ResponseScreen):
             return ()
         return tuple((self.trial.trial_index, item.id) for item in self.items)
 
-    def rows(
-        self, answers: Sequence[VasAnswer], *, context: SessionContext, playback: Playback | None
-    ) -> list[dict[str, Any]]:
-        if self.practice or self.trial is None:
-            return []
-        by_item = {a.item: a for a in answers}
-        return [
-            self._row(
-                context=context,
-                playback=playback,
-                item=item.id,
-                rating=by_item[item.id].rating,
-                rating_start=by_item[item.id].rating_start,
-                rt_s=by_item[item.id].rt_s,
-                timestamp=by_item[item.id].timestamp,
-            )
-            for item in self.items
-        ]
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> VasAnswer:
+        (vas_item,) = [it for it in self.items if it.id == item]
+        lo, hi = sorted(vas_item.range)
+        rating = number(posted, "rating", lo=lo, hi=hi)
+        return VasAnswer(item=item, rating=rating, rt_s=rt_s, timestamp=timestamp)
+
+    def posted(self, answer: VasAnswer) -> dict[str, Any]:
+        return {"rating": answer.rating}
+
+    def row(
+        self, item: str, answer: VasAnswer, *, context: SessionContext, playback: Playback | None
+    ) -> dict[str, Any]:
+        return self._row(
+            context=context,
+            playback=playback,
+            item=item,
+            rating=answer.rating,
+            rating_start=answer.rating_start,
+            rt_s=answer.rt_s,
+            timestamp=answer.timestamp,
+        )
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "trial_index": self.trial_index,
+            "practice": self.practice,
+            "confirm": ctx.texts["confirm"],
+            "items": [
+                {
+                    "id": it.id,
+                    "question": localized(it.question, ctx.lang),
+                    "left": localized(it.left_anchor, ctx.lang),
+                    "right": localized(it.right_anchor, ctx.lang),
+                    "range": list(it.range),
+                }
+                for it in self.items
+            ],
+        }
 
 
 @dataclass(frozen=True)
@@ -293,6 +438,16 @@ class TaskScreen(ResponseScreen):
             return ()
         return ((self.trial.trial_index, self.task.id),)
 
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        assert self.task is not None
+        return {
+            "kind": self.kind,
+            "trial_index": self.trial_index,
+            "practice": self.practice,
+            "item": self.task.id,
+            "question": localized(self.task.question, ctx.lang),
+        }
+
 
 @dataclass(frozen=True)
 class ChoiceAnswer:
@@ -303,6 +458,7 @@ class ChoiceAnswer:
     timestamp: str
 
 
+@screen_kind
 @dataclass(frozen=True)
 class ChoiceScreen(TaskScreen):
     """Which of the two clips? The comparison was in interval (or on side) ``trial.position``;
@@ -318,25 +474,34 @@ class ChoiceScreen(TaskScreen):
             return [texts["left"], texts["right"]]
         return [texts["interval"].format(n=n) for n in (1, 2)]
 
-    def rows(
-        self, answers: Sequence[ChoiceAnswer], *, context: SessionContext, playback: Playback | None
-    ) -> list[dict[str, Any]]:
-        if not self.response_keys():
-            return []
-        (answer,) = answers
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return super().browser(ctx) | {"options": self.options(ctx.lang)}
+
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> ChoiceAnswer:
+        choice = posted.get("choice")
+        if choice not in (1, 2) or isinstance(choice, bool):
+            raise AnswerError(f"choice: expected 1 or 2, got {choice!r}")
+        return ChoiceAnswer(choice=int(choice), rt_s=rt_s, timestamp=timestamp)
+
+    def posted(self, answer: ChoiceAnswer) -> dict[str, Any]:
+        return {"choice": answer.choice}
+
+    def row(
+        self, item: str, answer: ChoiceAnswer, *, context: SessionContext, playback: Playback | None
+    ) -> dict[str, Any]:
         assert self.trial is not None and self.task is not None
         chose_comparison = answer.choice == self.trial.position
-        return [
-            self._row(
-                context=context,
-                playback=playback,
-                item=self.task.id,
-                rt_s=answer.rt_s,
-                timestamp=answer.timestamp,
-                response=self.trial.condition if chose_comparison else self.trial.standard,
-                correct=int(chose_comparison) if self.task.correct == "comparison" else None,
-            )
-        ]
+        return self._row(
+            context=context,
+            playback=playback,
+            item=item,
+            rt_s=answer.rt_s,
+            timestamp=answer.timestamp,
+            response=self.trial.condition if chose_comparison else self.trial.standard,
+            correct=int(chose_comparison) if self.task.correct == "comparison" else None,
+        )
 
 
 @dataclass(frozen=True)
@@ -348,6 +513,7 @@ class IdentifyAnswer:
     timestamp: str
 
 
+@screen_kind
 @dataclass(frozen=True)
 class IdentifyScreen(TaskScreen):
     """Which label fits the clip? Correct when the task names the condition's label."""
@@ -355,31 +521,46 @@ class IdentifyScreen(TaskScreen):
     kind: ClassVar[str] = "identify"
     task: IdentifyTask | None = None
 
-    def rows(
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        assert self.task is not None
+        labels = [{"id": lb.id, "text": localized(lb.text, ctx.lang)} for lb in self.task.labels]
+        return super().browser(ctx) | {"labels": labels}
+
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> IdentifyAnswer:
+        assert self.task is not None
+        label = posted.get("label")
+        ids = [lb.id for lb in self.task.labels]
+        if label not in ids:
+            raise AnswerError(f"label: expected one of {ids}, got {label!r}")
+        return IdentifyAnswer(label=str(label), rt_s=rt_s, timestamp=timestamp)
+
+    def posted(self, answer: IdentifyAnswer) -> dict[str, Any]:
+        return {"label": answer.label}
+
+    def row(
         self,
-        answers: Sequence[IdentifyAnswer],
+        item: str,
+        answer: IdentifyAnswer,
         *,
         context: SessionContext,
         playback: Playback | None,
-    ) -> list[dict[str, Any]]:
-        if not self.response_keys():
-            return []
-        (answer,) = answers
+    ) -> dict[str, Any]:
         assert self.trial is not None and self.task is not None
         target = self.task.target(condition=self.trial.condition, stimulus=self.trial.stimulus)
-        return [
-            self._row(
-                context=context,
-                playback=playback,
-                item=self.task.id,
-                rt_s=answer.rt_s,
-                timestamp=answer.timestamp,
-                response=answer.label,
-                correct=None if target is None else int(answer.label == target),
-            )
-        ]
+        return self._row(
+            context=context,
+            playback=playback,
+            item=item,
+            rt_s=answer.rt_s,
+            timestamp=answer.timestamp,
+            response=answer.label,
+            correct=None if target is None else int(answer.label == target),
+        )
 
 
+@screen_kind
 @dataclass(frozen=True)
 class AdaptiveTrial(ResponseScreen):
     """A staircase trial before its level is known: the walker asks the block's staircase for
@@ -392,6 +573,12 @@ class AdaptiveTrial(ResponseScreen):
         assert self.trial is not None and self.protocol is not None
         block = next(b for b in self.protocol.blocks if b.id == self.trial.block)
         return ((self.trial.trial_index, str(block.task)),)
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        """A placeholder: the browser asks for the trial's screens once the answers before it
+        are stored (the staircase rule runs on the server)."""
+        assert self.trial is not None
+        return {"kind": self.kind, "trial_index": self.trial_index, "block": self.trial.block}
 
     def expand(self, condition: str) -> list[Screen]:
         """The screens of this trial at ``condition``."""

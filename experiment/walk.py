@@ -1,7 +1,8 @@
 """Walking a timeline: each screen to its presenter, each response to the log at once.
 
-A presenter is any object with one method per screen kind (:data:`PRESENTERS`): the PsychoPy
-window (:mod:`facelab.experiment.window`) or a simulated participant
+A presenter is any object with one method per screen kind, named after the kind (each screen
+finds its own: :meth:`~facelab.experiment.timeline.Screen.present`): the PsychoPy window
+(:mod:`facelab.experiment.window`) or a simulated participant
 (:mod:`facelab.experiment.simulate`). The walker is the only place that turns answers into
 log rows, so every presenter writes the same rows the same way: appended and fsync'd as the
 screen that collected them ends, before the next screen appears.
@@ -31,27 +32,18 @@ from facelab.experiment.timeline import (
 )
 from facelab.sessionlog import SessionContext, SessionLog, append_jsonl
 
-__all__ = ["PRESENTERS", "Presenter", "walk"]
+__all__ = ["Presenter", "walk"]
 
 
 class Presenter(Protocol):
+    """The built-in kinds' methods (a new kind adds its own, or overrides ``Screen.present``)."""
+
     def text(self, screen: TextScreen) -> None: ...
     def clip(self, screen: ClipScreen) -> Playback: ...
     def clip_pair(self, screen: ClipPairScreen) -> PairPlayback: ...
     def vas(self, screen: VasScreen) -> list[VasAnswer]: ...
-    def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]: ...
+    def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]: ...
     def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]: ...
-
-
-#: screen class -> the presenter method that shows it (a new screen type adds one line)
-PRESENTERS: dict[type[Screen], str] = {
-    TextScreen: "text",
-    ClipScreen: "clip",
-    ClipPairScreen: "clip_pair",
-    VasScreen: "vas",
-    ChoiceScreen: "choice",
-    IdentifyScreen: "identify",
-}
 
 
 def walk(
@@ -87,10 +79,7 @@ def walk(
             adaptive.add(screen.trial_index)
             continue
         index += 1
-        method = PRESENTERS.get(type(screen))
-        if method is None:
-            raise TypeError(f"no presenter for screen type {type(screen).__name__}")
-        result = getattr(presenter, method)(screen)
+        result = screen.present(presenter)
         if isinstance(screen, ClipScreen):
             # one playback record per clip (a side-by-side pair has two, with their own frames)
             shown = (result.left, result.right) if isinstance(result, PairPlayback) else (result,)

@@ -403,7 +403,7 @@ class Window:
                         return i, time.perf_counter() - onset
             was_down = down
 
-    def choice(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
+    def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
         """Which of the two clips? Keys 1/2 or a click on a button."""
         assert screen.task is not None
         scripted = None

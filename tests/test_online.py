@@ -20,6 +20,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from facelab.experiment.cli import main
+from facelab.experiment.online.app import create_app
 from facelab.experiment.online.browser import SimulatedBrowser, chromium
 from facelab.experiment.online.db import (
     Action,
@@ -35,8 +36,8 @@ from facelab.experiment.online.load import (
     start_server,
     wait_for_server,
 )
+from facelab.experiment.online.middleware import MAX_BODY_BYTES
 from facelab.experiment.online.serve import BackgroundServer, free_port, prepare_server
-from facelab.experiment.online.server import MAX_BODY_BYTES, create_app
 from facelab.protocol import load_protocol, protocol_hash
 from facelab.sessionlog import SessionLog
 from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol

@@ -68,7 +68,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     import uvicorn
 
-    from facelab.experiment.online.server import create_app
+    from facelab.experiment.online.app import create_app
 
     with socket.socket() as probe:  # as uvicorn binds: TIME_WAIT after a restart is fine
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)

@@ -30,11 +30,9 @@ from facelab.design import participant_seed
 from facelab.errors import SessionError
 from facelab.experiment.online.db import Action, Participant
 from facelab.experiment.online.server import StudyServer
-from facelab.experiment.simulate import ChoiceModel, RatingModel
+from facelab.experiment.simulate import ChoiceModel, RatingModel, SimulatedParticipant
 from facelab.experiment.timeline import (
     AdaptiveTrial,
-    ChoiceScreen,
-    IdentifyScreen,
     ResponseScreen,
 )
 
@@ -152,6 +150,7 @@ class SimulatedBrowser:
         )
         rater = RatingModel(self.server.study.protocol, rng=rng)
         chooser = ChoiceModel(self.server.study.protocol, rng=rng)
+        sim = SimulatedParticipant(rater, chooser)
         study = self.server.study
         screens = {
             (s.trial_index, s.kind): s
@@ -247,11 +246,9 @@ class SimulatedBrowser:
                     if screen is None:  # the practice trial: any answer
                         options = d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]")
                         value = options[int(rng.integers(len(options)))].get_attribute("data-value")
-                    elif isinstance(screen, ChoiceScreen):
-                        value = chooser.choose(screen)
-                    else:
-                        assert isinstance(screen, IdentifyScreen)
-                        value = chooser.identify(screen)
+                    else:  # the simulated participant's answer, as the page posts it
+                        (answer,) = screen.present(sim)
+                        (value,) = screen.posted(answer).values()
                     if screen is not None:
                         self._record(
                             p, trial_index=trial, item=state.get("item") or "", value=value

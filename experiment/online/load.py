@@ -33,7 +33,6 @@ from sqlalchemy.orm import Session
 from facelab.errors import SessionError
 from facelab.experiment.online.db import Participant, Response
 from facelab.experiment.online.serve import free_port, prepare_server
-from facelab.experiment.timeline import ChoiceScreen, IdentifyScreen, VasScreen
 from facelab.protocol import load_protocol
 
 __all__ = ["load_test", "postgres_cluster", "start_server", "wait_for_server"]
@@ -106,23 +105,23 @@ def postgres_cluster() -> Iterator[str]:
 
 
 def _answers(study: Any, participant: str, rng: np.random.Generator) -> list[dict[str, Any]]:
-    """Every planned answer of one participant, in timeline order, as the browser posts it."""
+    """Every planned answer of one participant, in timeline order, as the browser posts it
+    (a simulated participant answers each response screen; the screen gives the posted form)."""
+    from facelab.experiment.simulate import ChoiceModel, RatingModel, SimulatedParticipant
+
+    protocol = study.protocol
+    sim = SimulatedParticipant(
+        RatingModel(protocol, rng=rng),
+        ChoiceModel(protocol, rng=rng) if protocol.tasks else None,
+    )
     out = []
     for s in study.screens(participant):
         if not s.response_keys():
             continue
         base = {"trial_index": s.trial_index, "rt_s": 1.0, "clip_onset": 1.0,
                 "clip_frames_dropped": 0}  # fmt: skip
-        if isinstance(s, VasScreen):
-            for it in s.items:
-                lo, hi = it.range
-                out.append({**base, "item": it.id, "rating": round(float(rng.uniform(lo, hi)), 2)})
-        elif isinstance(s, ChoiceScreen):
-            assert s.task is not None
-            out.append({**base, "item": s.task.id, "choice": int(rng.integers(1, 3))})
-        elif isinstance(s, IdentifyScreen):
-            assert s.task is not None
-            out.append({**base, "item": s.task.id, "label": s.task.labels[0].id})
+        for answer in s.present(sim):
+            out.append({**base, "item": s.answer_item(answer), **s.posted(answer)})
     return out
 
 

@@ -13,13 +13,13 @@ from pathlib import Path
 from typing import Any
 
 from facelab.errors import SessionError
+from facelab.experiment.online.app import create_app
 from facelab.experiment.online.db import default_url, open_engine, store_protocol
 from facelab.experiment.online.server import (
     VENDOR_FILES,
     WEB,
     ServeConfig,
     StudyServer,
-    create_app,
 )
 from facelab.experiment.online.study import OnlineStudy
 from facelab.experiment.preflight import check_clips

@@ -41,21 +41,17 @@ import hmac
 import secrets
 import threading
 import time
-from collections import defaultdict, deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 from sqlalchemy import func, select
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from facelab.design import participant_seed, trial_order
+from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
 from facelab.experiment.online.db import (
     Event,
     Participant,
@@ -64,10 +60,11 @@ from facelab.experiment.online.db import (
     Setting,
     utcnow,
 )
+from facelab.experiment.online.limits import Clock, RateLimiter, TokenCache
 from facelab.experiment.online.study import AnswerError, OnlineStudy
 from facelab.experiment.timeline import Playback, needed_clips
 
-__all__ = ["ServeConfig", "StudyServer", "create_app", "token_sha256"]
+__all__ = ["RefusedError", "ServeConfig", "StudyServer", "token_sha256"]
 
 WEB = Path(__file__).resolve().parent / "web"
 VENDOR_FILES = {
@@ -80,65 +77,15 @@ VENDOR_FILES = {
         "@jspsych/plugin-html-button-response/dist/index.browser.min.js"
     ),
 }
-CSP = (
-    "default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
-    "img-src 'self' data:; media-src 'self' blob:; connect-src 'self'; font-src 'self' data:; "
-    "base-uri 'none'; "
-    "form-action 'none'; frame-ancestors 'none'"
-)
 TOKEN_HEADER = "X-Facelab-Token"
 ADMIN_HEADER = "X-Facelab-Admin"
 TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
 RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
 
-Key = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
-ItemId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
-Iso = Annotated[str, StringConstraints(max_length=40)]
 
 
 def token_sha256(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)
-
-
-class AnswerIn(_Strict):
-    """One answer from the browser (every field checked; unknown fields refused)."""
-
-    client_key: Key
-    trial_index: int = Field(ge=1, le=100_000)
-    item: ItemId
-    rt_s: float = Field(ge=0, le=86_400)
-    rating: float | None = Field(None, ge=-1e6, le=1e6)
-    choice: int | None = Field(None, ge=1, le=2)
-    label: ItemId | None = None
-    timestamp: Iso
-    clip_onset: float | None = Field(None, ge=0, le=1e7)
-    clip_frames_dropped: int | None = Field(None, ge=0, le=1_000_000)
-
-
-class PlaybackIn(_Strict):
-    """How one clip was shown, as ``requestVideoFrameCallback`` saw it."""
-
-    client_key: Key
-    trial_index: int | None = Field(None, ge=1, le=100_000)
-    clip: Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{64}\.mp4$")]
-    replay: bool
-    onset: float | None = Field(None, ge=0, le=1e7)
-    frames_expected: int = Field(ge=0, le=1_000_000)
-    dropped: int = Field(ge=0, le=1_000_000)
-    flip_times: list[float] = Field(max_length=100_000)
-    frames_shown: list[int] = Field(max_length=100_000)
-    presented_frames: int = Field(ge=0, le=1_000_000)
-    media_time_end: float | None = Field(None, ge=0, le=1e6)
-    play_refused: str | None = Field(None, max_length=200)
-
-
-class EventIn(_Strict):
-    kind: Literal["browser", "play_refused", "fullscreen_exit", "resumed", "error"]
-    detail: dict[str, Any] = Field(default_factory=dict)
 
 
 @dataclass
@@ -155,25 +102,6 @@ class ServeConfig:
     joins_per_min: int = 30  # new participants per minute per client address
 
 
-class _RateLimiter:
-    """Sliding-window counters held in memory only (keys are tokens' hashes or addresses)."""
-
-    def __init__(self) -> None:
-        self._hits: dict[str, deque[float]] = defaultdict(deque)
-        self._lock = threading.Lock()
-
-    def allow(self, key: str, *, limit: int, window_s: float) -> bool:
-        now = time.monotonic()
-        with self._lock:
-            hits = self._hits[key]
-            while hits and now - hits[0] > window_s:
-                hits.popleft()
-            if len(hits) >= limit:
-                return False
-            hits.append(now)
-            return True
-
-
 class RefusedError(Exception):
     """An HTTP error with a message for the participant's browser (and the tests)."""
 
@@ -186,11 +114,14 @@ class RefusedError(Exception):
 class StudyServer:
     """The study's state on top of the database; every method is one short transaction."""
 
-    def __init__(self, engine: Engine, config: ServeConfig):
+    def __init__(self, engine: Engine, config: ServeConfig, *, clock: Clock = time.monotonic):
         self.engine = engine
         self.config = config
         self.study = config.study
-        self.limiter = _RateLimiter()
+        self.token_limiter = RateLimiter(
+            limit=int(config.rate_per_s * 4), window_s=4.0, clock=clock
+        )  # per token: a burst of 4 s worth
+        self.join_limiter = RateLimiter(limit=config.joins_per_min, window_s=60.0, clock=clock)
         self._join_lock = threading.Lock()
         # SQLite has one writer: queue writers here instead of in its busy handler (which
         # sleeps up to 100 ms per retry); PostgreSQL takes concurrent writers itself.
@@ -199,7 +130,7 @@ class StudyServer:
             if engine.url.get_backend_name() == "sqlite"
             else contextlib.nullcontext()
         )
-        self._by_token: dict[str, tuple[float, Participant]] = {}  # digest -> (when, row)
+        self._by_token: TokenCache[Participant] = TokenCache(ttl_s=TOKEN_CACHE_S, clock=clock)
         self.hmac_key = bytes.fromhex(self._setting("hmac_key", lambda: secrets.token_hex(32)))
 
     # -- settings and secrets
@@ -254,7 +185,7 @@ class StudyServer:
                     )
                 ).first()
             if existing is not None:
-                self._by_token = {k: v for k, v in self._by_token.items() if v[1].pk != existing.pk}
+                self._by_token.drop(lambda p: p.pk != existing.pk)
                 existing.token_sha256 = token_sha256(token)
                 db.add(Event(participant_pk=existing.pk, kind="rejoined", detail={}))
                 db.commit()
@@ -304,11 +235,11 @@ class StudyServer:
         if not token or len(token) > 128:
             raise RefusedError(401, f"missing or malformed {TOKEN_HEADER} header")
         digest = token_sha256(token)
-        if not self.limiter.allow(digest, limit=int(self.config.rate_per_s * 4), window_s=4.0):
+        if not self.token_limiter.allow(digest):
             raise RefusedError(429, "too many requests; slow down")
         cached = self._by_token.get(digest)
-        if cached is not None and time.monotonic() - cached[0] < TOKEN_CACHE_S:
-            return cached[1]
+        if cached is not None:
+            return cached
         with Session(self.engine, expire_on_commit=False) as db:
             p = db.scalars(
                 select(Participant).where(
@@ -323,7 +254,7 @@ class StudyServer:
                 "the study's protocol changed since this participant started; the experimenter "
                 "must serve the original protocol to continue this session",
             )
-        self._by_token[digest] = (time.monotonic(), p)
+        self._by_token.put(digest, p)
         return p
 
     def answered(self, p: Participant) -> set[tuple[int, str]]:
@@ -544,208 +475,3 @@ def _same(a: Any, b: Any) -> bool:
     if isinstance(a, int | float) and isinstance(b, int | float):
         return abs(float(a) - float(b)) < 1e-9
     return a == b
-
-
-_HEADERS = [
-    (b"content-security-policy", CSP.encode()),
-    (b"x-content-type-options", b"nosniff"),
-    (b"referrer-policy", b"no-referrer"),
-    (b"x-frame-options", b"DENY"),
-    (b"cross-origin-opener-policy", b"same-origin"),
-]
-
-
-#: the largest request body accepted (a playback record of a 30 s clip is ~20 KB; the field
-#: limits allow ~2 MB): anything larger is refused with 413 before it is parsed
-MAX_BODY_BYTES = 4 * 2**20
-
-
-class _SecurityHeaders:
-    """Pure ASGI middleware: cross-origin POSTs refused, request bodies over
-    :data:`MAX_BODY_BYTES` refused (by Content-Length, or counted as a chunked body arrives),
-    security headers on every response (cheaper than Starlette's BaseHTTPMiddleware under
-    load)."""
-
-    def __init__(self, app: FastAPI):
-        self.app = app
-        self.state = app.state
-
-    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        headers = dict(scope.get("headers") or [])
-        origin = headers.get(b"origin")
-        cross = origin is not None and origin.split(b"://", 1)[-1] != headers.get(b"host", b"")
-        if scope["method"] == "POST" and cross:
-            refusal = JSONResponse({"error": "cross-origin request refused"}, status_code=403)
-            await refusal(scope, receive, send)
-            return
-        api = scope["path"].startswith("/api/")
-
-        async def send_with_headers(message: Any) -> None:
-            if message["type"] == "http.response.start":
-                extra = _HEADERS + ([(b"cache-control", b"no-store")] if api else [])
-                message["headers"] = list(message.get("headers", [])) + extra
-            await send(message)
-
-        declared = headers.get(b"content-length", b"0")
-        too_large = not declared.isdigit() or int(declared) > MAX_BODY_BYTES
-        if not too_large and scope["method"] in ("POST", "PUT", "PATCH"):
-            body = await _read_body(receive)
-            too_large = body is None
-            receive = receive if body is None else _replay(body, receive)
-        if too_large:
-            refusal = JSONResponse(
-                {"error": f"request body larger than {MAX_BODY_BYTES} bytes"}, status_code=413
-            )
-            await refusal(scope, receive, send_with_headers)
-            return
-        await self.app(scope, receive, send_with_headers)
-
-
-async def _read_body(receive: Any) -> bytes | None:
-    """A request's whole body (chunked or not), or None once it passes MAX_BODY_BYTES."""
-    body = bytearray()
-    while True:
-        message = await receive()
-        if message["type"] != "http.request":
-            return bytes(body)  # the client went away; the app will see it
-        body += message.get("body", b"")
-        if len(body) > MAX_BODY_BYTES:
-            return None
-        if not message.get("more_body", False):
-            return bytes(body)
-
-
-def _replay(body: bytes, receive: Any) -> Any:
-    """An ASGI receive that gives ``body`` first, then whatever the client sends next."""
-    sent = False
-
-    async def replay() -> Any:
-        nonlocal sent
-        if not sent:
-            sent = True
-            return {"type": "http.request", "body": body, "more_body": False}
-        return await receive()
-
-    return replay
-
-
-def create_app(server: StudyServer) -> Any:
-    """The FastAPI application of ``server`` (wrapped in the security-header middleware)."""
-    app = FastAPI(title="facelab serve", docs_url=None, redoc_url=None, openapi_url=None)
-    config = server.config
-
-    @app.exception_handler(RefusedError)
-    async def refused(_request: Request, exc: RefusedError) -> JSONResponse:
-        return JSONResponse({"error": exc.message}, status_code=exc.status)
-
-    @app.exception_handler(RequestValidationError)
-    async def invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = [
-            f"{'.'.join(str(x) for x in e.get('loc', ())[1:]) or 'body'}: {e.get('msg')}"
-            for e in exc.errors()
-        ]
-        return JSONResponse({"error": "; ".join(problems)}, status_code=422)
-
-    def page(name: str) -> HTMLResponse:
-        return HTMLResponse((WEB / name).read_text(encoding="utf-8"))
-
-    @app.get("/join")
-    def join(request: Request) -> RedirectResponse:
-        address = request.client.host if request.client else "?"
-        if not server.limiter.allow("join:" + address, limit=config.joins_per_min, window_s=60.0):
-            raise RefusedError(
-                429, "too many new sessions from this address; try again in a minute"
-            )
-        recruitment, source = None, None
-        for param, name in RECRUITMENT_PARAMS.items():
-            value = request.query_params.get(param)
-            if value:
-                if len(value) > 128:
-                    raise RefusedError(422, f"{param}: at most 128 characters")
-                recruitment, source = value, name
-                break
-        _p, token = server.join(recruitment=recruitment, source=source)
-        return RedirectResponse(f"/run#t={token}", status_code=303)
-
-    @app.get("/")
-    def index() -> HTMLResponse:
-        return page("join.html")
-
-    @app.get("/favicon.ico")
-    def favicon() -> Any:
-        from fastapi.responses import Response as Empty
-
-        return Empty(status_code=204)
-
-    @app.get("/run")
-    def run() -> HTMLResponse:
-        return page("run.html")
-
-    @app.get("/admin")
-    def admin() -> HTMLResponse:
-        return page("admin.html")
-
-    # the page assets, listed once: a request names one of them or gets 404 (the name never
-    # reaches the file system, so no path trick or over-long name can)
-    assets = {p.name: p for p in (WEB / "static").iterdir() if p.is_file()}
-
-    @app.get("/static/{name}")
-    def static(name: str) -> FileResponse:
-        if name not in assets:
-            raise RefusedError(404, "not found")
-        return FileResponse(assets[name])
-
-    @app.get("/vendor/{name}")
-    def vendor(name: str) -> FileResponse:
-        rel = VENDOR_FILES.get(name)
-        if rel is None or not (config.vendor / rel).is_file():
-            raise RefusedError(404, "not found")
-        return FileResponse(config.vendor / rel)
-
-    @app.get("/clips/{name}")
-    def clip(name: str) -> FileResponse:
-        path = config.clip_paths.get(name)
-        if path is None:
-            raise RefusedError(404, "not found")
-        return FileResponse(path, media_type="video/mp4")
-
-    @app.get("/api/session")
-    def session(request: Request) -> dict[str, Any]:
-        p = server.participant(request.headers.get(TOKEN_HEADER))
-        return server.session_state(p)
-
-    @app.get("/api/adaptive/{trial_index}")
-    def adaptive(request: Request, trial_index: int) -> dict[str, Any]:
-        p = server.participant(request.headers.get(TOKEN_HEADER))
-        return server.adaptive(p, trial_index)
-
-    @app.post("/api/response")
-    def response(request: Request, answer: AnswerIn) -> dict[str, Any]:
-        p = server.participant(request.headers.get(TOKEN_HEADER))
-        return server.store_answer(p, answer)
-
-    @app.post("/api/playback")
-    def playback(request: Request, record: PlaybackIn) -> dict[str, Any]:
-        p = server.participant(request.headers.get(TOKEN_HEADER))
-        return server.store_playback(p, record)
-
-    @app.post("/api/event")
-    def event(request: Request, ev: EventIn) -> dict[str, Any]:
-        p = server.participant(request.headers.get(TOKEN_HEADER))
-        server.store_event(p, ev)
-        return {"stored": True}
-
-    @app.get("/api/complete")
-    def complete(request: Request) -> dict[str, Any]:
-        p = server.participant(request.headers.get(TOKEN_HEADER))
-        return server.completion(p)
-
-    @app.get("/api/admin/progress")
-    def progress(request: Request) -> dict[str, Any]:
-        server.check_admin(request.headers.get(ADMIN_HEADER))
-        return {"study": server.study.study, "participants": server.progress()}
-
-    return _SecurityHeaders(app)

@@ -16,7 +16,6 @@ one of the task's); anything else is an :class:`AnswerError` naming the field.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,42 +25,22 @@ from facelab.errors import SessionError
 from facelab.experiment.adaptive import Staircases
 from facelab.experiment.timeline import (
     AdaptiveTrial,
-    ChoiceAnswer,
-    ChoiceScreen,
+    AnswerError,
+    BrowserContext,
     ClipKey,
-    ClipPairScreen,
-    ClipScreen,
-    IdentifyAnswer,
-    IdentifyScreen,
     Playback,
     ResponseScreen,
     Screen,
     TextScreen,
-    VasAnswer,
-    VasScreen,
     compile_timeline,
-    localized,
     needed_clips,
+    number,
     remaining,
-    ui,
 )
-from facelab.protocol import IdentifyTask, Protocol
+from facelab.protocol import Protocol
 from facelab.sessionlog import SessionContext
 
 __all__ = ["AnswerError", "OnlineStudy"]
-
-
-class AnswerError(ValueError):
-    """A submitted answer does not fit the screen it claims to answer (HTTP 422)."""
-
-
-def _number(payload: Mapping[str, Any], key: str, *, lo: float, hi: float) -> float:
-    value = payload.get(key)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise AnswerError(f"{key}: expected a number, got {value!r}")
-    if not lo <= float(value) <= hi:
-        raise AnswerError(f"{key}: {value} is outside {lo}..{hi}")
-    return float(value)
 
 
 @dataclass
@@ -122,12 +101,6 @@ class OnlineStudy:
         for s in todo:
             if isinstance(s, TextScreen) and s.role == "welcome":
                 continue  # online: the consent/instructions page greets the participant
-            if isinstance(s, AdaptiveTrial):
-                assert s.trial is not None
-                out.append(
-                    {"kind": "adaptive", "trial_index": s.trial_index, "block": s.trial.block}
-                )
-                continue
             out.append(self._screen_json(s, shown_before))
         return out, sorted(self.clips[k].sha256 + ".mp4" for k in needed_clips(todo))
 
@@ -197,58 +170,12 @@ class OnlineStudy:
         }
 
     def _screen_json(self, s: Screen, shown_before: set[int]) -> dict[str, Any]:
-        lang = self.protocol.presentation.language
-        texts = ui(lang)
-        if isinstance(s, TextScreen):
-            return {"kind": "text", "role": s.role, "text": s.text}
-        if isinstance(s, ClipScreen):
-            shown = {
-                "kind": s.kind,
-                "trial_index": s.trial_index,
-                "practice": s.practice,
-                "replay": s.trial_index in shown_before,
-            }
-            if isinstance(s, ClipPairScreen):
-                return shown | {"clips": [self._clip_json(c) for c in s.clips()], "sound": s.sound}
-            return shown | {
-                **self._clip_json(s.clip),
-                "interval": s.interval,
-                "announce": texts["interval"].format(n=s.interval) if s.interval else "",
-                "gap_s": s.gap_s,
-            }
-        if isinstance(s, VasScreen):
-            return {
-                "kind": "vas",
-                "trial_index": s.trial_index,
-                "practice": s.practice,
-                "confirm": texts["confirm"],
-                "items": [
-                    {
-                        "id": it.id,
-                        "question": localized(it.question, lang),
-                        "left": localized(it.left_anchor, lang),
-                        "right": localized(it.right_anchor, lang),
-                        "range": list(it.range),
-                    }
-                    for it in s.items
-                ],
-            }
-        if isinstance(s, ChoiceScreen | IdentifyScreen):
-            assert s.task is not None
-            asked = {
-                "kind": "choice_2afc" if isinstance(s, ChoiceScreen) else "identify",
-                "trial_index": s.trial_index,
-                "practice": s.practice,
-                "item": s.task.id,
-                "question": localized(s.task.question, lang),
-            }
-            if isinstance(s, ChoiceScreen):
-                return asked | {"options": s.options(lang)}
-            assert isinstance(s.task, IdentifyTask)
-            return asked | {
-                "labels": [{"id": lb.id, "text": localized(lb.text, lang)} for lb in s.task.labels]
-            }
-        raise TypeError(f"no browser form for screen {type(s).__name__}")  # pragma: no cover
+        ctx = BrowserContext(
+            lang=self.protocol.presentation.language,
+            clip_json=self._clip_json,
+            shown_before=frozenset(shown_before),
+        )
+        return s.browser(ctx)
 
     # -- from the browser
 
@@ -288,7 +215,7 @@ class OnlineStudy:
                 for x in expanded
                 if isinstance(x, ResponseScreen) and (trial_index, item) in x.response_keys()
             )
-        rt = _number(answer, "rt_s", lo=0.0, hi=24 * 3600.0)
+        rt = number(answer, "rt_s", lo=0.0, hi=24 * 3600.0)
         context = SessionContext(
             study=self.study,
             participant=participant,
@@ -296,38 +223,5 @@ class OnlineStudy:
             simulated=simulated,
             protocol_sha256=self.protocol_sha256,
         )
-        if isinstance(screen, VasScreen):
-            (vas_item,) = [it for it in screen.items if it.id == item]
-            lo, hi = sorted(vas_item.range)
-            rating = _number(answer, "rating", lo=lo, hi=hi)
-            others = [
-                VasAnswer(item=it.id, rating=lo, rt_s=0.0, timestamp=timestamp)
-                for it in screen.items
-                if it.id != item
-            ]
-            mine = VasAnswer(item=item, rating=rating, rt_s=rt, timestamp=timestamp)
-            rows = screen.rows([mine, *others], context=context, playback=playback)
-            return next(r for r in rows if r["item"] == item)
-        if isinstance(screen, ChoiceScreen):
-            choice = answer.get("choice")
-            if choice not in (1, 2) or isinstance(choice, bool):
-                raise AnswerError(f"choice: expected 1 or 2, got {choice!r}")
-            (row,) = screen.rows(
-                [ChoiceAnswer(choice=choice, rt_s=rt, timestamp=timestamp)],
-                context=context,
-                playback=playback,
-            )
-            return row
-        if isinstance(screen, IdentifyScreen):
-            assert screen.task is not None
-            label = answer.get("label")
-            ids = [lb.id for lb in screen.task.labels]
-            if label not in ids:
-                raise AnswerError(f"label: expected one of {ids}, got {label!r}")
-            (row,) = screen.rows(
-                [IdentifyAnswer(label=label, rt_s=rt, timestamp=timestamp)],
-                context=context,
-                playback=playback,
-            )
-            return row
-        raise AnswerError(f"trial_index {trial_index}: screen {screen.kind} takes no answers")
+        given = screen.answer(item, answer, rt_s=rt, timestamp=timestamp)
+        return screen.row(item, given, context=context, playback=playback)

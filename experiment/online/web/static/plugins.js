@@ -20,10 +20,20 @@ function facelabBox(cls, kind, screen) {
   return box;
 }
 function facelabSleep(ms) { return new Promise((res) => setTimeout(res, ms)); }
-function facelabInfo(name) {
-  return { name, version: "1.0.0",
-           parameters: { screen: { type: jsPsychModule.ParameterType.OBJECT, default: undefined } },
-           data: {} };
+// A plugin's jsPsych info: one typed parameter per field of its screen's JSON, exactly the
+// fields facelab.experiment.timeline's Screen.browser() sends for the kind (a contract test,
+// tests/test_screen_kinds.py, reads these and compares them with the Python JSON).
+const FacelabFields = {
+  screen: { kind: "STRING", trial_index: "INT", practice: "BOOL" },
+  clip: { replay: "BOOL", clip: "STRING", fps: "FLOAT", frames: "INT", interval: "INT", announce: "STRING", gap_s: "FLOAT" },
+  task: { item: "STRING", question: "STRING" },
+};
+function facelabInfo(name, fields) {
+  const parameters = {};
+  for (const [key, type] of Object.entries(fields)) {
+    parameters[key] = { type: jsPsychModule.ParameterType[type], default: null };
+  }
+  return { name, version: "1.0.0", parameters, data: {} };
 }
 function facelabAnswer(screen, item, fields, started) {
   const pb = FacelabSession.playback[screen.trial_index] || null;
@@ -48,7 +58,7 @@ class FacelabPlugin {
   constructor(jsPsych) { this.jsPsych = jsPsych; }
   trial(el, trial) {
     el.textContent = "";
-    this.run(el, trial.screen).then((data) => { el.textContent = ""; this.jsPsych.finishTrial(data || {}); });
+    this.run(el, trial).then((data) => { el.textContent = ""; this.jsPsych.finishTrial(data || {}); });
   }
 }
 
@@ -63,7 +73,7 @@ class FacelabText extends FacelabPlugin {
     return { role: s.role };
   }
 }
-FacelabText.info = facelabInfo("facelab-text");
+FacelabText.info = facelabInfo("facelab-text", { kind: "STRING", role: "STRING", text: "STRING" });
 
 // One <video> of a clip screen, with the frames requestVideoFrameCallback reports.
 function facelabVideo(clip, muted) {
@@ -130,7 +140,7 @@ class FacelabClip extends FacelabPlugin {
     return { clip: s.clip, dropped };
   }
 }
-FacelabClip.info = facelabInfo("facelab-clip");
+FacelabClip.info = facelabInfo("facelab-clip", { ...FacelabFields.screen, ...FacelabFields.clip });
 
 // Two clips at once, left and right; only the clip on side s.sound has its sound.
 class FacelabClipPair extends FacelabPlugin {
@@ -150,7 +160,7 @@ class FacelabClipPair extends FacelabPlugin {
     return { clips: s.clips.map((c) => c.clip), dropped: FacelabSession.playback[s.trial_index].dropped };
   }
 }
-FacelabClipPair.info = facelabInfo("facelab-clip-pair");
+FacelabClipPair.info = facelabInfo("facelab-clip-pair", { ...FacelabFields.screen, replay: "BOOL", clips: "COMPLEX", sound: "INT" });
 
 class FacelabVas extends FacelabPlugin {
   async run(el, s) {
@@ -191,7 +201,7 @@ class FacelabVas extends FacelabPlugin {
     return { ratings: values };
   }
 }
-FacelabVas.info = facelabInfo("facelab-vas");
+FacelabVas.info = facelabInfo("facelab-vas", { ...FacelabFields.screen, confirm: "STRING", items: "COMPLEX" });
 
 class FacelabChoice extends FacelabPlugin {
   async buttons(el, s, kind, options) {
@@ -221,7 +231,7 @@ class FacelabChoice extends FacelabPlugin {
     return { choice: value };
   }
 }
-FacelabChoice.info = facelabInfo("facelab-choice");
+FacelabChoice.info = facelabInfo("facelab-choice", { ...FacelabFields.screen, ...FacelabFields.task, options: "COMPLEX" });
 
 class FacelabIdentify extends FacelabChoice {
   async run(el, s) {
@@ -231,7 +241,7 @@ class FacelabIdentify extends FacelabChoice {
     return { label: value };
   }
 }
-FacelabIdentify.info = facelabInfo("facelab-identify");
+FacelabIdentify.info = facelabInfo("facelab-identify", { ...FacelabFields.screen, ...FacelabFields.task, labels: "COMPLEX" });
 
 // A staircase trial: once every answer before it is stored, the server says which level it
 // shows (the rule runs there, as in the lab); its screens then run like any others.
@@ -257,7 +267,7 @@ class FacelabAdaptive extends FacelabPlugin {
     return { adaptive: s.trial_index, screens: shown };
   }
 }
-FacelabAdaptive.info = facelabInfo("facelab-adaptive");
+FacelabAdaptive.info = facelabInfo("facelab-adaptive", { kind: "STRING", trial_index: "INT", block: "STRING" });
 
 // The end: the text, then the completion code once the server has every response.
 // This screen never finishes: it stays as the session's last page.
@@ -288,7 +298,7 @@ class FacelabComplete extends FacelabPlugin {
     }
   }
 }
-FacelabComplete.info = facelabInfo("facelab-complete");
+FacelabComplete.info = facelabInfo("facelab-complete", { kind: "STRING", role: "STRING", text: "STRING" });
 
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
 const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,

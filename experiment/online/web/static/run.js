@@ -61,7 +61,7 @@ const FACELAB_UI = {
   }
   for (const s of state.timeline) {
     const type = s.kind === "text" && s.role === "end" ? FacelabComplete : FacelabPlugins[s.kind];
-    timeline.push({ type, screen: s });
+    timeline.push(Object.assign({ type }, s));  // the screen's fields are the plugin's parameters
   }
   document.addEventListener("fullscreenchange", () => {
     if (!document.fullscreenElement && !document.querySelector("[data-facelab=complete]")) {

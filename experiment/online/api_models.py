@@ -1,0 +1,56 @@
+"""What the browser may send: every request body as a strict model (every field checked,
+unknown fields refused)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+
+__all__ = ["AnswerIn", "EventIn", "PlaybackIn"]
+
+Key = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
+ItemId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
+Iso = Annotated[str, StringConstraints(max_length=40)]
+
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+class AnswerIn(_Strict):
+    """One answer from the browser (every field checked; unknown fields refused)."""
+
+    client_key: Key
+    trial_index: int = Field(ge=1, le=100_000)
+    item: ItemId
+    rt_s: float = Field(ge=0, le=86_400)
+    rating: float | None = Field(None, ge=-1e6, le=1e6)
+    choice: int | None = Field(None, ge=1, le=2)
+    label: ItemId | None = None
+    timestamp: Iso
+    clip_onset: float | None = Field(None, ge=0, le=1e7)
+    clip_frames_dropped: int | None = Field(None, ge=0, le=1_000_000)
+
+
+class PlaybackIn(_Strict):
+    """How one clip was shown, as ``requestVideoFrameCallback`` saw it."""
+
+    client_key: Key
+    trial_index: int | None = Field(None, ge=1, le=100_000)
+    clip: Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{64}\.mp4$")]
+    replay: bool
+    onset: float | None = Field(None, ge=0, le=1e7)
+    frames_expected: int = Field(ge=0, le=1_000_000)
+    dropped: int = Field(ge=0, le=1_000_000)
+    flip_times: list[float] = Field(max_length=100_000)
+    frames_shown: list[int] = Field(max_length=100_000)
+    presented_frames: int = Field(ge=0, le=1_000_000)
+    media_time_end: float | None = Field(None, ge=0, le=1e6)
+    play_refused: str | None = Field(None, max_length=200)
+
+
+class EventIn(_Strict):
+    kind: Literal["browser", "play_refused", "fullscreen_exit", "resumed", "error"]
+    detail: dict[str, Any] = Field(default_factory=dict)

@@ -1,0 +1,143 @@
+"""The HTTP routes of ``facelab serve`` over a ``StudyServer`` (the table of routes and what
+each does is in :mod:`facelab.experiment.online.server`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
+
+from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
+from facelab.experiment.online.middleware import SecurityHeaders
+from facelab.experiment.online.server import (
+    ADMIN_HEADER,
+    RECRUITMENT_PARAMS,
+    TOKEN_HEADER,
+    VENDOR_FILES,
+    WEB,
+    RefusedError,
+    StudyServer,
+)
+
+__all__ = ["create_app"]
+
+
+def create_app(server: StudyServer) -> Any:
+    """The FastAPI application of ``server`` (wrapped in the security-header middleware)."""
+    app = FastAPI(title="facelab serve", docs_url=None, redoc_url=None, openapi_url=None)
+    config = server.config
+
+    @app.exception_handler(RefusedError)
+    async def refused(_request: Request, exc: RefusedError) -> JSONResponse:
+        return JSONResponse({"error": exc.message}, status_code=exc.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = [
+            f"{'.'.join(str(x) for x in e.get('loc', ())[1:]) or 'body'}: {e.get('msg')}"
+            for e in exc.errors()
+        ]
+        return JSONResponse({"error": "; ".join(problems)}, status_code=422)
+
+    def page(name: str) -> HTMLResponse:
+        return HTMLResponse((WEB / name).read_text(encoding="utf-8"))
+
+    @app.get("/join")
+    def join(request: Request) -> RedirectResponse:
+        address = request.client.host if request.client else "?"
+        if not server.join_limiter.allow(address):
+            raise RefusedError(
+                429, "too many new sessions from this address; try again in a minute"
+            )
+        recruitment, source = None, None
+        for param, name in RECRUITMENT_PARAMS.items():
+            value = request.query_params.get(param)
+            if value:
+                if len(value) > 128:
+                    raise RefusedError(422, f"{param}: at most 128 characters")
+                recruitment, source = value, name
+                break
+        _p, token = server.join(recruitment=recruitment, source=source)
+        return RedirectResponse(f"/run#t={token}", status_code=303)
+
+    @app.get("/")
+    def index() -> HTMLResponse:
+        return page("join.html")
+
+    @app.get("/favicon.ico")
+    def favicon() -> Any:
+        from fastapi.responses import Response as Empty
+
+        return Empty(status_code=204)
+
+    @app.get("/run")
+    def run() -> HTMLResponse:
+        return page("run.html")
+
+    @app.get("/admin")
+    def admin() -> HTMLResponse:
+        return page("admin.html")
+
+    # the page assets, listed once: a request names one of them or gets 404 (the name never
+    # reaches the file system, so no path trick or over-long name can)
+    assets = {p.name: p for p in (WEB / "static").iterdir() if p.is_file()}
+
+    @app.get("/static/{name}")
+    def static(name: str) -> FileResponse:
+        if name not in assets:
+            raise RefusedError(404, "not found")
+        return FileResponse(assets[name])
+
+    @app.get("/vendor/{name}")
+    def vendor(name: str) -> FileResponse:
+        rel = VENDOR_FILES.get(name)
+        if rel is None or not (config.vendor / rel).is_file():
+            raise RefusedError(404, "not found")
+        return FileResponse(config.vendor / rel)
+
+    @app.get("/clips/{name}")
+    def clip(name: str) -> FileResponse:
+        path = config.clip_paths.get(name)
+        if path is None:
+            raise RefusedError(404, "not found")
+        return FileResponse(path, media_type="video/mp4")
+
+    @app.get("/api/session")
+    def session(request: Request) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.session_state(p)
+
+    @app.get("/api/adaptive/{trial_index}")
+    def adaptive(request: Request, trial_index: int) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.adaptive(p, trial_index)
+
+    @app.post("/api/response")
+    def response(request: Request, answer: AnswerIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.store_answer(p, answer)
+
+    @app.post("/api/playback")
+    def playback(request: Request, record: PlaybackIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.store_playback(p, record)
+
+    @app.post("/api/event")
+    def event(request: Request, ev: EventIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        server.store_event(p, ev)
+        return {"stored": True}
+
+    @app.get("/api/complete")
+    def complete(request: Request) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        return server.completion(p)
+
+    @app.get("/api/admin/progress")
+    def progress(request: Request) -> dict[str, Any]:
+        server.check_admin(request.headers.get(ADMIN_HEADER))
+        return {"study": server.study.study, "participants": server.progress()}
+
+    return SecurityHeaders(app)

@@ -1,0 +1,106 @@
+"""The server's ASGI middleware: cross-origin POSTs refused, request bodies over
+:data:`MAX_BODY_BYTES` refused before parsing (declared or chunked), and the security headers
+(a strict Content-Security-Policy, ``nosniff``, ``no-referrer``, no framing) on every response.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.responses import JSONResponse
+
+__all__ = ["CSP", "MAX_BODY_BYTES", "SecurityHeaders"]
+
+CSP = (
+    "default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; media-src 'self' blob:; connect-src 'self'; font-src 'self' data:; "
+    "base-uri 'none'; "
+    "form-action 'none'; frame-ancestors 'none'"
+)
+
+
+_HEADERS = [
+    (b"content-security-policy", CSP.encode()),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"x-frame-options", b"DENY"),
+    (b"cross-origin-opener-policy", b"same-origin"),
+]
+
+
+#: the largest request body accepted (a playback record of a 30 s clip is ~20 KB; the field
+#: limits allow ~2 MB): anything larger is refused with 413 before it is parsed
+MAX_BODY_BYTES = 4 * 2**20
+
+
+class SecurityHeaders:
+    """Pure ASGI middleware: cross-origin POSTs refused, request bodies over
+    :data:`MAX_BODY_BYTES` refused (by Content-Length, or counted as a chunked body arrives),
+    security headers on every response (cheaper than Starlette's BaseHTTPMiddleware under
+    load)."""
+
+    def __init__(self, app: FastAPI):
+        self.app = app
+        self.state = app.state
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers") or [])
+        origin = headers.get(b"origin")
+        cross = origin is not None and origin.split(b"://", 1)[-1] != headers.get(b"host", b"")
+        if scope["method"] == "POST" and cross:
+            refusal = JSONResponse({"error": "cross-origin request refused"}, status_code=403)
+            await refusal(scope, receive, send)
+            return
+        api = scope["path"].startswith("/api/")
+
+        async def send_with_headers(message: Any) -> None:
+            if message["type"] == "http.response.start":
+                extra = _HEADERS + ([(b"cache-control", b"no-store")] if api else [])
+                message["headers"] = list(message.get("headers", [])) + extra
+            await send(message)
+
+        declared = headers.get(b"content-length", b"0")
+        too_large = not declared.isdigit() or int(declared) > MAX_BODY_BYTES
+        if not too_large and scope["method"] in ("POST", "PUT", "PATCH"):
+            body = await _read_body(receive)
+            too_large = body is None
+            receive = receive if body is None else _replay(body, receive)
+        if too_large:
+            refusal = JSONResponse(
+                {"error": f"request body larger than {MAX_BODY_BYTES} bytes"}, status_code=413
+            )
+            await refusal(scope, receive, send_with_headers)
+            return
+        await self.app(scope, receive, send_with_headers)
+
+
+async def _read_body(receive: Any) -> bytes | None:
+    """A request's whole body (chunked or not), or None once it passes MAX_BODY_BYTES."""
+    body = bytearray()
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            return bytes(body)  # the client went away; the app will see it
+        body += message.get("body", b"")
+        if len(body) > MAX_BODY_BYTES:
+            return None
+        if not message.get("more_body", False):
+            return bytes(body)
+
+
+def _replay(body: bytes, receive: Any) -> Any:
+    """An ASGI receive that gives ``body`` first, then whatever the client sends next."""
+    sent = False
+
+    async def replay() -> Any:
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
