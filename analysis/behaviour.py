@@ -27,7 +27,7 @@ import pandas as pd
 from scipy import stats as sps
 
 from facelab.analysis.identification import MODEL_COLUMNS, correct_model
-from facelab.analysis.stats import _require, levels, screen_covariates
+from facelab.analysis.stats import levels, require, screen_covariates
 from facelab.errors import AnalysisError, FormatError
 from facelab.formats import behaviour_log_path, read_behaviour_log, read_manifest
 
@@ -145,7 +145,7 @@ def covariate_model(
     :func:`clip_behaviour`. Ratings of clips without a log get zero counts (no behaviour).
     The reference condition is the first of ``conditions`` (default: order of first
     appearance); ``note`` names it and any covariate dropped."""
-    _require(data, (dv, item, subject, condition, "stimulus_set", "stimulus"))
+    require(data, (dv, item, subject, condition, "stimulus_set", "stimulus"))
     import statsmodels.formula.api as smf
 
     merged = _with_counts(data, counts, covariates)
@@ -309,7 +309,7 @@ def identification_covariates(
     ``trials``: scored identification answers (``correct`` 0/1, ``participant``,
     ``stimulus_set, stimulus, condition``); ``counts``: from :func:`clip_behaviour`. Answers
     to clips without a log get zero counts."""
-    _require(trials, ("correct", "participant", "stimulus_set", "stimulus", "condition"))
+    require(trials, ("correct", "participant", "stimulus_set", "stimulus", "condition"))
     merged = _with_counts(trials, counts, covariates)
     merged = merged.dropna(subset=["correct"])
     used, dropped = screen_covariates(merged, covariates, condition="condition")

@@ -26,12 +26,12 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
-from facelab.analysis.stats import _require
+from facelab.analysis.stats import require
 from facelab.errors import AnalysisError
 
 __all__ = ["LMM_COLUMNS", "TREND_COLUMNS", "graded_lmm", "trend_contrast"]
 
-TREND_COLUMNS = ("n", "levels", "slope", "se", "ci_low", "ci_high", "t", "df", "F", "p")
+TREND_COLUMNS = ("n", "levels", "slope", "se", "ci_low", "ci_high", "t", "df", "f", "p")
 LMM_COLUMNS = (
     "n_participants",
     "n_obs",
@@ -49,26 +49,41 @@ LMM_COLUMNS = (
 )
 
 
+def _subject(subject: str, participant: str | None) -> str:
+    """``subject=`` is the name (as everywhere in facelab.analysis); ``participant=`` was the
+    old one and still works for one release."""
+    if participant is None:
+        return subject
+    warnings.warn(
+        "participant= is deprecated; use subject= (as the other analysis functions do)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return participant
+
+
 def trend_contrast(
     ratings: pd.DataFrame,
     *,
     dv: str = "rating",
     level: str = "level",
-    participant: str = "participant",
+    subject: str = "participant",
     by: Sequence[str] = (),
     ci: float = 0.95,
+    participant: str | None = None,
 ) -> pd.DataFrame:
     """The linear trend contrast per group of ``by`` (see the module docstring).
 
     ``ratings``: one row per rating (or per cell mean). Participants missing a level are left
     out of that group's contrast (a contrast needs every level).
     """
-    _require(ratings, (dv, level, participant, *by))
+    subject = _subject(subject, participant)
+    require(ratings, (dv, level, subject, *by))
     rows = []
     groups = list(ratings.groupby(list(by), sort=True)) if by else [((), ratings)]
     for key, part in groups:
         key = key if isinstance(key, tuple) else (key,)
-        cells = part.groupby([participant, level])[dv].mean().unstack(level).dropna()
+        cells = part.groupby([subject, level])[dv].mean().unstack(level).dropna()
         x = cells.columns.to_numpy(dtype=float)
         if len(x) < 2:
             raise AnalysisError(f"a trend needs two or more levels; group {key} has {len(x)}")
@@ -91,7 +106,7 @@ def trend_contrast(
                 "ci_high": mean + q * se,
                 "t": t,
                 "df": n - 1,
-                "F": t**2,
+                "f": t**2,
                 "p": float(2 * sps.t.sf(abs(t), n - 1)),
             }
         )
@@ -103,8 +118,9 @@ def graded_lmm(
     *,
     dv: str = "rating",
     level: str = "level",
-    participant: str = "participant",
+    subject: str = "participant",
     by: Sequence[str] = (),
+    participant: str | None = None,
 ) -> pd.DataFrame:
     """``dv ~ level + (1 + level | participant)`` by REML, one row per group of ``by``.
 
@@ -114,7 +130,8 @@ def graded_lmm(
     would be anti-conservative with few participants."""
     import statsmodels.formula.api as smf  # heavy; only needed here
 
-    _require(ratings, (dv, level, participant, *by))
+    subject = _subject(subject, participant)
+    require(ratings, (dv, level, subject, *by))
     rows = []
     groups = list(ratings.groupby(list(by), sort=True)) if by else [((), ratings)]
     for key, part in groups:
@@ -123,7 +140,7 @@ def graded_lmm(
             {
                 "y": part[dv].astype(float).to_numpy(),
                 "x": part[level].astype(float).to_numpy(),
-                "g": part[participant].astype(str).to_numpy(),
+                "g": part[subject].astype(str).to_numpy(),
             }
         )
         if data["g"].nunique() < 3:

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats as sps
 
-from facelab.analysis.stats import _require, levels, screen_covariates
+from facelab.analysis.stats import levels, require, screen_covariates
 from facelab.errors import AnalysisError
 
 __all__ = [
@@ -65,7 +65,7 @@ def confusion_matrix(
     response: str = "response",
 ) -> pd.DataFrame:
     """Counts: index = portrayed label, columns = chosen label, both in ``labels`` order."""
-    _require(trials, (target, response))
+    require(trials, (target, response))
     unknown = sorted(set(trials[target]).union(trials[response]) - set(labels))
     if unknown:
         raise AnalysisError(f"labels {unknown} are not among the task's labels {list(labels)}")
@@ -103,7 +103,7 @@ def identification_summary(
     ``recall``: ``[*by, label, n, recall, precision]`` - recall = correct / portrayed;
     precision = correct / chosen (NaN when the label was never chosen).
     """
-    _require(trials, (*by, target, response))
+    require(trials, (*by, target, response))
     groups = list(trials.groupby(list(by), sort=True)) if by else []
     summary, recall = [], []
     for key, part in [*groups, (("pooled",) * len(by), trials)]:
@@ -179,7 +179,7 @@ def correct_model(
 
     ``trials``: one row per answer with ``correct`` (0/1 or bool), ``condition``, ``subject``
     and the covariate columns. Returns one row per model term (:data:`MODEL_COLUMNS`)."""
-    _require(trials, (correct, condition, subject, *covariates))
+    require(trials, (correct, condition, subject, *covariates))
     data = trials.dropna(subset=[correct]).copy()
     y = data[correct].astype(float)
     if not set(y.unique()) <= {0.0, 1.0}:

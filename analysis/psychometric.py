@@ -58,7 +58,6 @@ __all__ = [
     "PsychometricFit",
     "count_responses",
     "fit_psychometric",
-    "fit_table",
     "predict",
 ]
 
@@ -334,46 +333,3 @@ def _fit(
             best = res
     assert best is not None
     return best
-
-
-def fit_table(
-    trials: pd.DataFrame,
-    *,
-    by: Sequence[str] = ("participant",),
-    x: str = "level",
-    y: str = "correct",
-    sigmoid: str = "logistic",
-    gamma: float,
-    lapse_bounds: tuple[float, float] = (0.0, 0.1),
-    n_boot: int = 200,
-    rng: np.random.Generator,
-) -> pd.DataFrame:
-    """One fit per group of ``by`` and one pooled over all (``by`` columns ``"pooled"``).
-
-    Returns ``[*by, *FIT_COLUMNS]``; a group whose fit is impossible (answers at one level only)
-    gets a row with NaN estimates and ``converged = False``.
-    """
-    counts = count_responses(trials, x=x, y=y, by=by)
-    rows = []
-    groups = list(counts.groupby(list(by), sort=True)) if by else []
-    pooled = counts.groupby("level", as_index=False)[["n", "k"]].sum()
-    for key, part in [*groups, (("pooled",) * len(by), pooled)]:
-        key = key if isinstance(key, tuple) else (key,)
-        try:
-            fit = asdict(
-                fit_psychometric(
-                    part,
-                    sigmoid=sigmoid,
-                    gamma=gamma,
-                    lapse_bounds=lapse_bounds,
-                    n_boot=n_boot,
-                    rng=rng,
-                )
-            )
-        except AnalysisError as exc:
-            fit = {c: float("nan") for c in FIT_COLUMNS}
-            fit.update(sigmoid=sigmoid, gamma=gamma, converged=False, n_boot=0)
-            fit.update(note=str(exc))
-            fit.update(n_trials=int(part["n"].sum()), n_levels=len(part))
-        rows.append({**dict(zip(by, key, strict=True)), **fit})
-    return pd.DataFrame(rows, columns=[*by, *FIT_COLUMNS])

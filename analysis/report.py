@@ -49,12 +49,7 @@ def _fmt(value: object) -> str:
 def _html_table(frame: pd.DataFrame) -> str:
     if len(frame.columns) == 0:  # e.g. the items of a protocol without VAS items
         return ""
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in frame.columns)
-    body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
-        for row in frame.itertuples(index=False)
-    )
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return frame.astype(object).map(_fmt).to_html(index=False, border=0, escape=True)
 
 
 def _md_table(frame: pd.DataFrame) -> str:
@@ -373,11 +368,11 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         cols = [
             "task",
             "gamma",
-            "n_trials",
+            "n",
             "midpoint",
             "midpoint_ci_low",
             "midpoint_ci_high",
-            "beta",
+            "slope",
             "lapse",
             "deviance",
             "deviance_df",

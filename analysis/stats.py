@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
+from dataclasses import asdict
 
 import numpy as np
 import pandas as pd
@@ -40,6 +41,7 @@ __all__ = [
     "p_adjust",
     "pairwise_paired",
     "psychometric",
+    "require",
     "rm_anova",
     "rm_sums_of_squares",
     "tukey_hsd",
@@ -49,7 +51,7 @@ __all__ = [
 # --------------------------------------------------------------------------- helpers
 
 
-def _require(data: pd.DataFrame, columns: Sequence[str]) -> None:
+def require(data: pd.DataFrame, columns: Sequence[str]) -> None:
     if not isinstance(data, pd.DataFrame):
         raise AnalysisError(f"expected a pandas DataFrame, got {type(data).__name__}")
     missing = [c for c in columns if c not in data.columns]
@@ -132,7 +134,7 @@ def p_adjust(p: Sequence[float], *, method: str = "holm") -> np.ndarray:
 
 
 def _groups(data: pd.DataFrame, dv: str, between: str) -> tuple[list, list[np.ndarray]]:
-    _require(data, [dv, between])
+    require(data, [dv, between])
     values = _numeric(data, dv)
     names = levels(data[between])
     if len(names) < 2:
@@ -204,7 +206,7 @@ def cell_means(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.
 
     Raises if any participant lacks a level: a missing cell is an error, never dropped.
     """
-    _require(data, [dv, within, subject])
+    require(data, [dv, within, subject])
     values = _numeric(data, dv)
     names = levels(data[within])
     if len(names) < 2:
@@ -403,7 +405,7 @@ def lmm_anova(
     1,000 participants); otherwise - or with ``closed_form=False`` - statsmodels MixedLM is
     fitted. Returns ``df1, df2, f, p``.
     """
-    _require(data, [dv, within, subject])
+    require(data, [dv, within, subject])
     names = levels(data[within])
     frame = pd.DataFrame(
         {
@@ -462,19 +464,50 @@ def lmm_anova(
 # --------------------------------------------------------------------------- psychometric
 
 
+#: the columns of :func:`psychometric`: DESIGN.md's contract first, then the fuller fit
+PSYCHOMETRIC_COLUMNS: tuple[str, ...] = (
+    "subject",
+    "n",
+    "midpoint",
+    "slope",
+    "lapse",
+    "deviance",
+    "midpoint_ci_low",
+    "midpoint_ci_high",
+    "slope_ci_low",
+    "slope_ci_high",
+    "lapse_ci_low",
+    "lapse_ci_high",
+    "sigmoid",
+    "gamma",
+    "alpha",
+    "slope_at_midpoint",
+    "deviance_df",
+    "log_likelihood",
+    "n_levels",
+    "converged",
+    "n_boot",
+    "note",
+)
+_FIT_RENAMES = {"beta": "slope", "beta_ci_low": "slope_ci_low", "beta_ci_high": "slope_ci_high",
+                "n_trials": "n"}  # fmt: skip
+
+
 def psychometric(
     data: pd.DataFrame,
     *,
     level: str,
     correct: str,
     subject: str | None = None,
+    pooled: bool = False,
     gamma: float = 0.5,
     sigmoid: str = "logistic",
     lapse_bounds: tuple[float, float] = (0.0, 0.1),
     n_boot: int = 200,
     rng: np.random.Generator | None = None,
 ) -> pd.DataFrame:
-    """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x), by maximum likelihood.
+    """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x), by maximum likelihood: the
+    one psychometric API of facelab (:mod:`facelab.analysis.psychometric` is its engine).
 
     Parameters
     ----------
@@ -482,18 +515,22 @@ def psychometric(
         proportion correct and an ``n`` column (trials at that level).
     level, correct : column names.
     subject : a column to fit each subject separately; None fits all rows pooled.
-    gamma : the guess rate (0.5 for 2AFC).
+    pooled : with ``subject``, also the fit of all rows pooled (subject ``"pooled"``).
+    gamma : the guess rate (0.5 for 2AFC, 0 for a preference).
     sigmoid : ``logistic`` (F = 1 / (1 + exp(-slope * (x - midpoint)))) or ``weibull``.
+    lapse_bounds : bounds of the free lapse rate; ``(0, 0)`` fixes it at 0.
     n_boot, rng : parametric-bootstrap resamples for the CIs and their generator (default
         ``numpy.random.default_rng(0)``, so repeated calls agree).
 
-    Returns one row per subject (or one pooled row, subject ``"pooled"``): ``subject, n,
-    midpoint, slope, lapse, deviance, midpoint_ci_low, midpoint_ci_high`` (see
-    :mod:`facelab.analysis.psychometric` for the fuller table).
+    Returns one row per subject (then the pooled row, subject ``"pooled"``), columns
+    :data:`PSYCHOMETRIC_COLUMNS`: ``subject, n, midpoint, slope, lapse, deviance,
+    midpoint_ci_low, midpoint_ci_high`` (DESIGN.md), then the slope and lapse intervals and
+    the fit's details. A subject whose fit is impossible (answers at one level only) gets NaN
+    estimates, ``converged`` False and the reason in ``note``.
     """
-    from facelab.analysis.psychometric import fit_psychometric
+    from facelab.analysis.psychometric import FIT_COLUMNS, fit_psychometric
 
-    _require(data, [level, correct, *([subject] if subject else [])])
+    require(data, [level, correct, *([subject] if subject else [])])
     rng = np.random.default_rng(0) if rng is None else rng
     frame = data.copy()
     if "n" in frame.columns:  # per level: proportion and count
@@ -506,7 +543,9 @@ def psychometric(
                 f"column {correct!r} must be 0/1 per trial (or proportions with an 'n' column)"
             )
         frame["_n"], frame["_k"] = 1.0, values
-    groups = frame.groupby(subject, sort=True) if subject else [("pooled", frame)]
+    groups = list(frame.groupby(subject, sort=True)) if subject else []
+    if not subject or pooled:
+        groups.append(("pooled", frame))
     rows = []
     for key, part in groups:
         counts = (
@@ -516,19 +555,17 @@ def psychometric(
             .reset_index()
             .rename(columns={level: "level"})
         )
-        fit = fit_psychometric(
-            counts, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds, n_boot=n_boot, rng=rng
-        )
-        rows.append(
-            {
-                "subject": key,
-                "n": fit.n_trials,
-                "midpoint": fit.midpoint,
-                "slope": fit.beta,
-                "lapse": fit.lapse,
-                "deviance": fit.deviance,
-                "midpoint_ci_low": fit.midpoint_ci_low,
-                "midpoint_ci_high": fit.midpoint_ci_high,
-            }
-        )
-    return pd.DataFrame(rows)
+        try:
+            fit = asdict(
+                fit_psychometric(
+                    counts, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds,
+                    n_boot=n_boot, rng=rng,
+                )
+            )  # fmt: skip
+        except AnalysisError as exc:
+            fit = dict.fromkeys(FIT_COLUMNS, float("nan"))
+            fit.update(sigmoid=sigmoid, gamma=gamma, converged=False, n_boot=0, note=str(exc))
+            fit.update(n_trials=int(counts["n"].sum()), n_levels=len(counts))
+        fit = {_FIT_RENAMES.get(k, k): v for k, v in fit.items()}
+        rows.append({"subject": key, **fit})
+    return pd.DataFrame(rows, columns=list(PSYCHOMETRIC_COLUMNS))

@@ -28,6 +28,7 @@ import pandas as pd
 import facelab.analysis.graded as graded
 import facelab.analysis.identification as identification
 import facelab.analysis.psychometric as psychometric
+import facelab.analysis.stats as stats
 from facelab.errors import AnalysisError
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 from facelab.staircase import new_staircase
@@ -86,7 +87,7 @@ def _curves(fits: pd.DataFrame, levels: np.ndarray) -> pd.DataFrame:
             grid,
             sigmoid=fit.sigmoid,
             alpha=fit.alpha,
-            beta=fit.beta,
+            beta=fit.slope,
             gamma=fit.gamma,
             lapse=fit.lapse,
         )
@@ -171,9 +172,10 @@ def analyze_tasks(
         if isinstance(task, ChoiceTask):
             y, gamma = choice_outcome(rows, task)
             trials = rows.assign(y=y.to_numpy())
-            fits = psychometric.fit_table(
-                trials, by=("participant",), x="level", y="y", gamma=gamma, n_boot=n_boot, rng=rng
-            )
+            fits = stats.psychometric(
+                trials, level="level", correct="y", subject="participant", pooled=True,
+                gamma=gamma, n_boot=n_boot, rng=rng,
+            ).rename(columns={"subject": "participant"})  # fmt: skip
             psy_tables.append(fits.assign(task=task.id, gamma=gamma))
             counts = psychometric.count_responses(trials, x="level", y="y")
             curves = _curves(fits, counts["level"].to_numpy(dtype=float))

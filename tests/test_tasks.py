@@ -207,7 +207,7 @@ def test_stats_psychometric_contract_per_trial_and_per_level_agree():
     ]
     a = stats.psychometric(pd.DataFrame(rows), level="level", correct="correct", n_boot=20)
     b = stats.psychometric(per_level, level="level", correct="correct", n_boot=20)
-    assert list(a.columns) == [
+    assert list(a.columns[:8]) == [  # DESIGN.md's contract, then the fuller fit
         "subject",
         "n",
         "midpoint",
@@ -217,8 +217,35 @@ def test_stats_psychometric_contract_per_trial_and_per_level_agree():
         "midpoint_ci_low",
         "midpoint_ci_high",
     ]
+    assert list(a.columns) == list(stats.PSYCHOMETRIC_COLUMNS)
     pd.testing.assert_frame_equal(a, b)
     assert a.loc[0, "midpoint_ci_low"] < a.loc[0, "midpoint"] < a.loc[0, "midpoint_ci_high"]
+
+
+def test_psychometric_fits_each_subject_and_the_pool_with_one_call():
+    rng = np.random.default_rng(11)
+    levels = np.repeat([0.1, 0.2, 0.3, 0.4, 0.5], 40)
+    frames = []
+    for subject, mid in (("s1", 0.25), ("s2", 0.35)):
+        p = psychometric.predict(levels, sigmoid="logistic", alpha=mid, beta=20.0, gamma=0.5,
+                                 lapse=0.0)  # fmt: skip
+        frames.append(pd.DataFrame({"who": subject, "x": levels, "ok": rng.random(200) < p}))
+    data = pd.concat(frames).astype({"ok": int})
+    fits = stats.psychometric(data, level="x", correct="ok", subject="who", pooled=True, n_boot=0)
+    assert list(fits["subject"]) == ["s1", "s2", "pooled"]
+    assert fits["midpoint"].iloc[0] < fits["midpoint"].iloc[2] < fits["midpoint"].iloc[1]
+    one_level = data[data["x"] == 0.3]
+    failed = stats.psychometric(one_level, level="x", correct="ok", n_boot=0).iloc[0]
+    assert not failed["converged"] and "two or more levels" in failed["note"]
+
+
+def test_graded_functions_take_subject_and_still_the_old_participant_name():
+    data = pd.read_csv(REF / "graded.csv").rename(columns={"participant": "who"})
+    new = graded.trend_contrast(data, subject="who")
+    with pytest.warns(DeprecationWarning, match="use subject="):
+        old = graded.trend_contrast(data, participant="who")
+    pd.testing.assert_frame_equal(new, old)
+    assert "f" in new.columns and "F" not in new.columns
 
 
 def test_fit_recovers_known_observer_within_its_ci():
@@ -438,7 +465,7 @@ def test_simulated_observers_are_recovered(tmp_path):
             pooled = fits[fits["participant"] == "pooled"].iloc[0]
             truth = protocol.simulation.observer
             assert pooled["midpoint_ci_low"] <= truth.midpoint <= pooled["midpoint_ci_high"]
-            assert pooled["beta_ci_low"] <= truth.slope <= pooled["beta_ci_high"]
+            assert pooled["slope_ci_low"] <= truth.slope <= pooled["slope_ci_high"]
         else:
             summary = res.tables["identification_summary"]
             pooled = summary[summary["participant"] == "pooled"].iloc[0]

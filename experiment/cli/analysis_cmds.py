@@ -78,7 +78,7 @@ def _print_tasks(tasks: object) -> None:
             print(
                 f"  {r.task:>12} psychometric (pooled, gamma {r.gamma:g}): midpoint "
                 f"{r.midpoint:.3f} [{r.midpoint_ci_low:.3f}, {r.midpoint_ci_high:.3f}], "
-                f"slope {r.beta:.3g}, lapse {r.lapse:.3f}, deviance {r.deviance:.2f} "
+                f"slope {r.slope:.3g}, lapse {r.lapse:.3f}, deviance {r.deviance:.2f} "
                 f"(df {r.deviance_df})"
             )
         noted = fits[fits["note"].fillna("").astype(str) != ""]
@@ -121,7 +121,7 @@ def _print_tasks(tasks: object) -> None:
         for r in trend.itertuples():
             print(
                 f"  {r.item:>12} / {r.stimulus_set:<10} linear trend: slope {r.slope:.3g} "
-                f"per level unit, F(1,{r.df}) = {r.F:.3f}, p = {r.p:.4f}"
+                f"per level unit, F(1,{r.df}) = {r.f:.3f}, p = {r.p:.4f}"
             )
     lmm = tables.get("graded_lmm")
     if lmm is not None:

@@ -25,7 +25,7 @@ names, skinning and framing, not looks. ``head_rows`` sets the mesh density (abo
 from __future__ import annotations
 
 import base64
-import zlib
+import io
 from pathlib import Path
 
 import numpy as np
@@ -130,19 +130,14 @@ def _head_targets(v: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def _png(rgb_top: tuple[int, int, int], rgb_bottom: tuple[int, int, int], size: int = 32) -> bytes:
-    """A PNG (no Pillow needed): the top half one colour, the bottom half another."""
-    rows = []
-    for y in range(size):
-        colour = rgb_top if y < size // 2 else rgb_bottom
-        rows.append(b"\x00" + bytes(colour) * size)
-    raw = zlib.compress(b"".join(rows))
+    """A PNG texture: the top half one colour, the bottom half another."""
+    from PIL import Image
 
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        body = kind + data
-        return len(data).to_bytes(4, "big") + body + zlib.crc32(body).to_bytes(4, "big")
-
-    header = size.to_bytes(4, "big") * 2 + bytes([8, 2, 0, 0, 0])
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", raw) + chunk(b"IEND", b"")
+    image = Image.new("RGB", (size, size), rgb_top)
+    image.paste(rgb_bottom, (0, size // 2, size, size))
+    out = io.BytesIO()
+    image.save(out, format="PNG")
+    return out.getvalue()
 
 
 #: texture colours: hair above, skin below (sRGB 0-255)
