@@ -41,9 +41,8 @@ def bench_analyze(*, protocol: Path, participants: int = 1000, runs: int = 3) ->
                 [
                     exe,
                     "analyze",
-                    str(results),
-                    "--protocol",
                     str(protocol),
+                    str(results),
                     "--out",
                     str(Path(tmp) / f"analysis{i}"),
                 ],

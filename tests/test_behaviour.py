@@ -499,11 +499,12 @@ def test_analysis_uses_behaviour_counts_as_covariates(rendered: Path) -> None:
     proto = rendered / "p.yaml"
     res = rendered / "results"
     assert (
-        main(["simulate", str(proto), "--participants", "6", "--seed", "1", "--results", str(res)])
+        main(["simulate", str(proto), "--participants", "6", "--sim-seed", "1",
+              "--results", str(res)])
         == 0
     )
     assert (
-        main(["analyze", str(res), "--protocol", str(proto), "--clips", str(rendered / "clips")])
+        main(["analyze", str(proto), str(res), "--force", "--clips", str(rendered / "clips")])
         == 0
     )
     folder = res / "beh" / "analysis"

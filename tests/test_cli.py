@@ -85,8 +85,8 @@ def test_console_script_gives_no_traceback(tmp_path: Path) -> None:
         ),
         (["design", "{kato}", "--participant", "P01", "--out", "{tmp}"], "is a folder"),
         (["schema", "--out", "{tmp}/no/such/s.json"], "does not exist"),
-        (["simulate", "{kato}", "--seed", "1", "--results", "{tmp}/file.txt"], "is a file"),
-        (["analyze", "{tmp}", "--protocol", "{kato}", "--out", "{tmp}/file.txt"], "is a file"),
+        (["simulate", "{kato}", "--sim-seed", "1", "--results", "{tmp}/file.txt"], "is a file"),
+        (["analyze", "{kato}", "{tmp}", "--force", "--out", "{tmp}/file.txt"], "is a file"),
     ],
 )
 def test_output_path_mistakes_are_clear_errors(
@@ -104,7 +104,7 @@ def test_output_path_mistakes_are_clear_errors(
                 [
                     "simulate",
                     str(kato_path),
-                    "--seed",
+                    "--sim-seed",
                     "1",
                     "--participants",
                     "2",
@@ -229,10 +229,10 @@ def test_export_names_a_database_it_cannot_reach(
 def test_seeds_are_checked_before_anything_runs(
     kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str
 ) -> None:
-    argv = ["simulate", str(kato_path), "--participants", "1", "--seed", value]
+    argv = ["simulate", str(kato_path), "--participants", "1", "--sim-seed", value]
     with pytest.raises(SystemExit) as info:
         main([*argv, "--results", str(tmp_path)])
-    assert info.value.code == 2 and "--seed" in capsys.readouterr().err
+    assert info.value.code == 2 and "--sim-seed" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 
 

@@ -75,7 +75,7 @@ def test_demo_runs_every_shipped_protocol(
     from facelab.resources import protocol_path
 
     out = tmp_path / name
-    argv = ["demo", "--protocol", str(protocol_path(name)), "--out", str(out), "--participants",
+    argv = ["demo", str(protocol_path(name)), "--out", str(out), "--participants",
             "3", "--size", "96x64", "--fps", "10", "--quiet"]  # fmt: skip
     assert main(argv) == 0
     printed = capsys.readouterr().out

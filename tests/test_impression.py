@@ -393,7 +393,7 @@ def test_shipped_impression_protocols_simulate_and_analyse(
             str(path),
             "--participants",
             "8",
-            "--seed",
+            "--sim-seed",
             "2",
             "--results",
             str(results),
@@ -403,9 +403,9 @@ def test_shipped_impression_protocols_simulate_and_analyse(
             main(
                 [
                     "analyze",
-                    str(results),
-                    "--protocol",
                     str(path),
+                    str(results),
+                    "--force",
                     "--out",
                     str(out),
                     "--bootstrap",

@@ -322,7 +322,7 @@ def test_simulated_participants_in_chromium_then_export_and_analyze(
     assert next((out / "kato2021" / "sub-P0002").rglob("*_actions.jsonl")).stat().st_size > 0
     report = tmp_path / "report"
     code = main(
-        ["analyze", str(out), "--protocol", str(study / "short.yaml"), "--out", str(report),
+        ["analyze", str(study / "short.yaml"), str(out), "--force", "--out", str(report),
          "--bootstrap", "0"]
     )  # fmt: skip
     assert code == 0

@@ -46,7 +46,7 @@ def test_reported_p_conversion_states_its_assumptions(capsys: pytest.CaptureFixt
                 "power",
                 "--reported-p",
                 "0.0053",
-                "--participants",
+                "--reported-n",
                 "8",
                 "--reps",
                 "2",
@@ -76,7 +76,7 @@ def test_power_from_pilot_logs(
                 str(kato_path),
                 "--participants",
                 "8",
-                "--seed",
+                "--sim-seed",
                 "5",
                 "--results",
                 str(tmp_path),
@@ -86,7 +86,7 @@ def test_power_from_pilot_logs(
     )
     capsys.readouterr()
     assert (
-        main(["power", "--pilot", str(tmp_path), "--protocol", str(kato_path), "--sims", "500"])
+        main(["power", str(kato_path), "--pilot", str(tmp_path), "--sims", "500"])
         == 0
     )
     out = capsys.readouterr().out
@@ -99,12 +99,12 @@ def test_pilot_power_points_forced_choice_studies_to_simulation(
     from facelab.resources import protocol_path
 
     proto = str(protocol_path("gain_2afc"))
-    argv = ["simulate", proto, "--participants", "3", "--seed", "1", "--results", str(tmp_path)]
+    argv = ["simulate", proto, "--participants", "3", "--sim-seed", "1", "--results", str(tmp_path)]
     assert main(argv) == 0
     capsys.readouterr()
-    assert main(["power", "--pilot", str(tmp_path), "--protocol", proto]) == 2
+    assert main(["power", proto, "--pilot", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert "no VAS ratings" in err and "facelab power --simulate" in err
+    assert "no VAS ratings" in err and "--simulate" in err and "facelab power " in err
 
 
 @pytest.mark.parametrize("p", [0.0, 1.0, 1.5, -0.1])
@@ -203,7 +203,7 @@ def test_simulated_identification_test_keeps_alpha_with_few_participants() -> No
 def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "pow.yaml"
     path.write_text(_TWO_CONDITIONS, encoding="utf-8")
-    args = ["power", "--simulate", str(path), "--n", "6", "30", "--sims", "60"]
+    args = ["power", str(path), "--simulate", "--n", "6", "30", "--sims", "60"]
     assert main([*args, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     rows = {r["n"]: r for r in out["rows"]}
@@ -221,15 +221,15 @@ def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert "natural/s" in text and "rm_anova" in text and "n for 0.8" in text
     assert main([*args, "--plot", str(tmp_path / "no" / "p.png")]) == 2
     assert "does not exist" in capsys.readouterr().err
-    assert main(["power", "--simulate", str(path), "--n", "1"]) == 2
+    assert main(["power", str(path), "--simulate", "--n", "1"]) == 2
     assert "2 or more" in capsys.readouterr().err
-    assert main(["power", "--simulate", str(path), "--reported-p", "0.01"]) == 2
+    assert main(["power", str(path), "--simulate", "--reported-p", "0.01"]) == 2
     assert "leave out --pilot and --reported-p" in capsys.readouterr().err
     no_test = _TWO_CONDITIONS.replace("  - {id: b, label: {en: b}, method: vowel_blend, "
                                       "params: {z: emphasized}}\n", "")  # fmt: skip
     no_test = no_test.replace("effects: {a: 0, b: 4}", "effects: {a: 0}")
     path.write_text(no_test, encoding="utf-8")
-    assert main(["power", "--simulate", str(path), "--sims", "5"]) == 2
+    assert main(["power", str(path), "--simulate", "--sims", "5"]) == 2
     assert "nothing to simulate" in capsys.readouterr().err
 
 
@@ -255,7 +255,7 @@ def test_simulated_threshold_precision_of_a_forced_choice_protocol(
         assert row["rmse"] == pytest.approx(np.hypot(row["sd"], row["mean"] - truth), rel=0.05)
     assert 1.3 < prec.loc[4, "sd"] / prec.loc[16, "sd"] < 3.2  # sqrt(16 / 4) = 2
     path = str(protocol_path("gain_2afc"))
-    assert main(["power", "--simulate", path, "--n", "4", "--sims", "5"]) == 0
+    assert main(["power", path, "--simulate", "--n", "4", "--sims", "5"]) == 0
     out = capsys.readouterr().out
     assert "precision of the pooled psychometric midpoint" in out and "stronger midpoint" in out
 

@@ -19,7 +19,8 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("sim")
     kato = Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml"
     assert (
-        main(["simulate", str(kato), "--participants", "8", "--seed", "3", "--results", str(root)])
+        main(["simulate", str(kato), "--participants", "8", "--sim-seed", "3",
+              "--results", str(root)])
         == 0
     )
     return root
@@ -41,7 +42,7 @@ def test_simulation_writes_complete_deterministic_sessions(
                 str(kato_path),
                 "--participants",
                 "8",
-                "--seed",
+                "--sim-seed",
                 "3",
                 "--results",
                 str(again),
@@ -61,7 +62,7 @@ def test_simulated_effects_follow_the_model(tmp_path: Path, kato_path: Path) -> 
                 str(kato_path),
                 "--participants",
                 "40",
-                "--seed",
+                "--sim-seed",
                 "9",
                 "--results",
                 str(tmp_path),
@@ -82,7 +83,7 @@ def test_simulate_refuses_to_overwrite(
     simulated: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     before = {p: p.read_bytes() for p in simulated.rglob("*.tsv")}
-    assert main(["simulate", str(kato_path), "--seed", "4", "--results", str(simulated)]) == 2
+    assert main(["simulate", str(kato_path), "--sim-seed", "4", "--results", str(simulated)]) == 2
     assert "already exist" in capsys.readouterr().err
     assert {p: p.read_bytes() for p in simulated.rglob("*.tsv")} == before
     assert (
@@ -90,7 +91,7 @@ def test_simulate_refuses_to_overwrite(
             [
                 "simulate",
                 str(kato_path),
-                "--seed",
+                "--sim-seed",
                 "4",
                 "--results",
                 str(simulated),
@@ -106,7 +107,7 @@ def test_analyze_writes_tables_figures_and_report(
     simulated: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = simulated / "kato2021" / "analysis"
-    assert main(["analyze", str(simulated), "--protocol", str(kato_path)]) == 0
+    assert main(["analyze", str(kato_path), str(simulated), "--force"]) == 0
     printed = capsys.readouterr().out
     assert "288 SIMULATED responses from 8 participants" in printed
     for name in (
@@ -242,7 +243,7 @@ def test_a_row_off_the_participants_design_is_refused(
         message = message.replace("other_condition", value)
     fields[column] = value
     tsv.write_text("".join([lines[0], "\t".join(fields), *lines[2:]]))
-    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 2
+    assert main(["analyze", str(kato_path), str(root), "--force"]) == 2
     err = capsys.readouterr().err
     assert message in err, err
     assert "participant P01 " in err
@@ -256,7 +257,7 @@ def test_incomplete_participant_is_reported_and_left_out_of_the_rm_analysis(
     lines = tsv.read_text().splitlines(keepends=True)
     keep = [line for line in lines if "\tsentences\tpassage\tbaseline\t" not in line]
     tsv.write_text("".join(keep))
-    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    assert main(["analyze", str(kato_path), str(root), "--force"]) == 0
     out = capsys.readouterr().out
     assert "incomplete session(s): P05/1 (32 of 36)" in out
     assert "sentences: participant(s) P05 lack a condition; left out" in out
@@ -265,7 +266,7 @@ def test_incomplete_participant_is_reported_and_left_out_of_the_rm_analysis(
     assert set(rm.n_participants) == {7} and set(rm.df2) == {12}
     report = (root / "kato2021" / "analysis" / "report.md").read_text()
     assert "## Data checks" in report and "P05/1 (32 of 36)" in report
-    assert main(["analyze", str(root), "--protocol", str(kato_path), "--exclude", "P05"]) == 0
+    assert main(["analyze", str(kato_path), str(root), "--force", "--exclude", "P05"]) == 0
     assert "from 7 participants" in capsys.readouterr().out
 
 
@@ -277,7 +278,7 @@ def test_simulated_is_on_every_row_even_without_the_session_file(
         sidecar.unlink()
     data = load_results(root, study="kato2021")
     assert data["simulated"].eq(True).all()
-    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    assert main(["analyze", str(kato_path), str(root), "--force"]) == 0
     assert "SIMULATED responses" in capsys.readouterr().out
     report = (root / "kato2021" / "analysis" / "report.md").read_text()
     assert "SIMULATED DATA" in report
@@ -289,7 +290,7 @@ def test_mixed_data_are_labelled_mixed(
     root = _copy(simulated, tmp_path)
     tsv = sorted(root.rglob("sub-P03*_beh.tsv"))[0]
     tsv.write_text(tsv.read_text().replace("\ttrue\t", "\tfalse\t"))  # as if a person rated
-    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    assert main(["analyze", str(kato_path), str(root), "--force"]) == 0
     out = capsys.readouterr().out
     assert "MIXED (simulated and real) responses" in out and "7 of 8 sessions" in out
     assert "MIXED DATA" in (root / "kato2021" / "analysis" / "report.md").read_text()
@@ -304,11 +305,11 @@ def test_analyze_checks_the_protocol_the_sessions_ran(
         kato_path.read_text(encoding="utf-8").replace("アバターの口の形", "アバターの目の形"),
         encoding="utf-8",
     )
-    assert main(["analyze", str(root), "--protocol", str(changed)]) == 2
+    assert main(["analyze", str(changed), str(root), "--force"]) == 2
     err = capsys.readouterr().err
     assert "8 session(s) ran a different version of the protocol file" in err
     assert "--accept-protocol-change" in err
-    code = main(["analyze", str(root), "--protocol", str(changed), "--accept-protocol-change"])
+    code = main(["analyze", str(changed), str(root), "--force", "--accept-protocol-change"])
     assert code == 0
     assert "analysed anyway" in capsys.readouterr().out
 
@@ -320,7 +321,7 @@ def test_a_condition_nobody_saw_is_reported_not_a_crash(
     for tsv in root.rglob("*_beh.tsv"):
         lines = tsv.read_text().splitlines(keepends=True)
         tsv.write_text("".join(x for x in lines if "\temphasized\t" not in x))
-    assert main(["analyze", str(root), "--protocol", str(kato_path)]) == 0
+    assert main(["analyze", str(kato_path), str(root), "--force"]) == 0
     out = capsys.readouterr().out
     assert "no responses for condition(s) emphasized: left out of every analysis" in out
     assert "F(1,7)" in out  # two conditions: df 1 and 7

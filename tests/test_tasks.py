@@ -521,7 +521,8 @@ def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
     results = tmp_path / "results"
     assert (
         main(
-            ["simulate", str(path), "--participants", "6", "--seed", "1", "--results", str(results)]
+            ["simulate", str(path), "--participants", "6", "--sim-seed", "1",
+             "--results", str(results)]
         )
         == 0
     )
@@ -530,9 +531,9 @@ def test_example_protocol_simulates_and_analyses(tmp_path, name, capsys):
         main(
             [
                 "analyze",
-                str(results),
-                "--protocol",
                 str(path),
+                str(results),
+                "--force",
                 "--out",
                 str(out),
                 "--bootstrap",

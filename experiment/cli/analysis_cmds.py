@@ -4,15 +4,20 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    deprecated,
+    force_option,
     output_dir,
     output_file,
     parse_effects,
+    protocol_argument,
+    protocol_of,
     real,
     seed,
     whole,
@@ -24,19 +29,23 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     from facelab.analysis.pipeline import study_root
     from facelab.protocol import load_protocol
 
-    protocol = load_protocol(args.protocol)
-    results_dir = Path(args.results)
-    out = args.out or study_root(results_dir, protocol) / "analysis"
+    protocol_file, results_dir = _analyze_paths(args)
+    protocol = load_protocol(protocol_file)
+    out = Path(args.out) if args.out else study_root(results_dir, protocol) / "analysis"
+    if (out / "report.html").exists() and not args.force:
+        raise FacelabError(
+            f"{out} holds an analysis already; pass --force to replace it, or --out DIR"
+        )
     done = run(
         results_dir,
         protocol,
-        protocol_path=Path(args.protocol),
+        protocol_path=protocol_file,
         out=output_dir(out, option="--out"),
         method=args.method,
         exclude=args.exclude or (),
         accept_protocol_change=args.accept_protocol_change,
         clips=Path(args.clips) if args.clips else None,
-        boot_seed=args.seed,
+        boot_seed=args.boot_seed,
         n_boot=args.bootstrap,
     )
     data, check = done.data, done.check
@@ -53,6 +62,20 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     _print_tasks(done.tasks)
     print(f"report: {done.files.html}\ntables and figures: {done.files.folder}")
     return 0
+
+
+def _analyze_paths(args: argparse.Namespace) -> tuple[Path, Path]:
+    """``analyze PROTOCOL RESULTS``; the old ``analyze RESULTS --protocol PROTOCOL`` too."""
+    first, second = args.protocol, args.results
+    if args.old_protocol:
+        if second is not None:
+            raise FacelabError(
+                "give PROTOCOL RESULTS (or, the old spelling, RESULTS --protocol PROTOCOL)"
+            )
+        return Path(args.old_protocol), Path(first)
+    if second is None:
+        raise FacelabError("give the protocol and the results: facelab analyze PROTOCOL RESULTS")
+    return Path(first), Path(second)
 
 
 def print_layout(results: object, say: Callable[[str], None] = print) -> None:
@@ -140,7 +163,7 @@ def _cmd_power(args: argparse.Namespace) -> int:
 
     from facelab.analysis import power
 
-    if args.simulate:
+    if args.simulate is not None:
         return _simulated_power(args)
     args.sims = 4000 if args.sims is None else args.sims
     rows: list[dict[str, object]] = []
@@ -149,9 +172,10 @@ def _cmd_power(args: argparse.Namespace) -> int:
         from facelab.analysis.load import load_results
         from facelab.protocol import load_protocol
 
-        if not args.protocol:
-            raise FacelabError("--pilot needs --protocol (for the study id and conditions)")
-        protocol = load_protocol(args.protocol)
+        protocol_file = protocol_of(args)
+        if not protocol_file:
+            raise FacelabError("--pilot needs the PROTOCOL (for the study id and conditions)")
+        protocol = load_protocol(protocol_file)
         data = load_results(args.pilot, study=protocol.study.id)
         for item in protocol.items:
             for sset in protocol.stimulus_sets:
@@ -162,8 +186,8 @@ def _cmd_power(args: argparse.Namespace) -> int:
         tasks = ", ".join(t.id for t in protocol.tasks)
         simulate_hint = (
             f"for its forced-choice and identification tasks ({tasks}) put the pilot's effects "
-            f"in the protocol's simulation section and run: facelab power --simulate "
-            f"{args.protocol}"
+            f"in the protocol's simulation section and run: facelab power {protocol_file} "
+            "--simulate"
         )
         if not rows:
             raise FacelabError(
@@ -180,7 +204,7 @@ def _cmd_power(args: argparse.Namespace) -> int:
         for p in args.reported_p:
             est = power.f2_from_reported_p(
                 p=p,
-                participants=args.participants,
+                participants=args.reported_n,
                 conditions=args.conditions,
                 reps=args.reps,
                 icc=args.icc,
@@ -189,14 +213,14 @@ def _cmd_power(args: argparse.Namespace) -> int:
             rows.append({"label": f"reported p={p:g}", "k": args.conditions, **est})
         assumptions = (
             "from the paper procedure's p (pooled one-way ANOVA, "
-            f"{args.participants} participants x "
+            f"{args.reported_n} participants x "
             f"{args.conditions} conditions x {args.reps} ratings); assumed variance split: "
             f"participant {args.icc:g}, participant x condition {args.interaction_share:g}, "
             f"rating noise {1 - args.icc - args.interaction_share:g}"
         )
     else:
         raise FacelabError("give --reported-p P [P ...] (with the design) or --pilot RESULTS")
-    rng = np.random.default_rng(args.seed)
+    rng = np.random.default_rng(args.sim_seed)
     for row in rows:
         k = int(row.get("k", args.conditions))
         n_needed = power.participants_needed(
@@ -204,7 +228,7 @@ def _cmd_power(args: argparse.Namespace) -> int:
         )
         row["k"] = k
         row["power_at_n"] = power.rm_power(
-            n=args.participants, k=k, f2=float(row["f2_rm"]), alpha=args.alpha
+            n=args.reported_n, k=k, f2=float(row["f2_rm"]), alpha=args.alpha
         )
         row["n_needed"] = n_needed
         row["simulated_power_at_needed"] = (
@@ -221,7 +245,7 @@ def _cmd_power(args: argparse.Namespace) -> int:
                     "assumptions": assumptions,
                     "alpha": args.alpha,
                     "target_power": args.power,
-                    "n": args.participants,
+                    "n": args.reported_n,
                     "rows": rows,
                 },
                 indent=2,
@@ -249,17 +273,16 @@ def _cmd_power(args: argparse.Namespace) -> int:
         sim_text = f" (simulated: {sim:.3f} over {args.sims} runs)" if sim is not None else ""
         print(
             f"  {row['label']}: f2_rm {float(row['f2_rm']):.3f}{extra}; power with "
-            f"n={args.participants}: {float(row['power_at_n']):.3f}; n for "
+            f"n={args.reported_n}: {float(row['power_at_n']):.3f}; n for "
             f"{args.power:g} power: {need}{sim_text}"
         )
     return 0
 
 
 def _simulated_power(args: argparse.Namespace) -> int:
-    """``facelab power --simulate PROTOCOL``: every test's power and every threshold's
+    """``facelab power PROTOCOL --simulate``: every test's power and every threshold's
     precision at each n, by simulation."""
     import json
-    import sys
 
     import numpy as np
 
@@ -271,8 +294,17 @@ def _simulated_power(args: argparse.Namespace) -> int:
                            "leave out --pilot and --reported-p")  # fmt: skip
     if not 0 < args.power < 1:
         raise FacelabError(f"--power {args.power:g}: a target power lies strictly between 0 and 1")
-    plot = output_file(args.plot, option="--plot") if args.plot else None
-    protocol = load_protocol(args.simulate)
+    plot = output_file(args.plot, option="--plot", force=args.force) if args.plot else None
+    protocol_file = args.simulate if isinstance(args.simulate, str) else protocol_of(args)
+    if isinstance(args.simulate, str):
+        print(
+            "facelab power: --simulate PROTOCOL is deprecated; use facelab power PROTOCOL "
+            "--simulate (the old spelling works for this release)",
+            file=sys.stderr,
+        )
+    if not protocol_file:
+        raise FacelabError("--simulate needs the PROTOCOL: facelab power PROTOCOL --simulate")
+    protocol = load_protocol(protocol_file)
     effects = {**protocol.simulation.effects, **(parse_effects(args.effect) or {})}
     n_values = sorted(set(args.n or (8, 12, 16, 24, 32)))
     sims = 200 if args.sims is None else args.sims
@@ -282,7 +314,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
               file=sys.stderr, flush=True)  # fmt: skip
 
     result = simulated_power(
-        protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.seed),
+        protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.sim_seed),
         alpha=args.alpha, effects=effects, progress=progress, jobs=args.jobs,
     )  # fmt: skip
     table = result.power
@@ -314,12 +346,12 @@ def _simulated_power(args: argparse.Namespace) -> int:
         print(
             json.dumps(
                 {
-                    "protocol": str(args.simulate),
+                    "protocol": str(protocol_file),
                     "assumptions": truth,
                     "alpha": args.alpha,
                     "target_power": args.power,
                     "sims": sims,
-                    "seed": args.seed,
+                    "seed": args.sim_seed,
                     "rows": table.to_dict(orient="records"),
                     "n_needed": [{"test": t, "kind": k, "n": n} for (t, k), n in needed.items()],
                     "precision": result.precision.to_dict(orient="records"),
@@ -365,8 +397,11 @@ def _simulated_power(args: argparse.Namespace) -> int:
 def register(add: AddCommand) -> None:
     """Add this family's subcommands."""
     p = add("analyze", "analyse session logs into tables, figures and a report", _cmd_analyze)
-    p.add_argument("results", metavar="RESULTS", help="results root or the study's folder")
-    p.add_argument("--protocol", required=True, metavar="PROTOCOL")
+    p.add_argument("protocol", metavar="PROTOCOL", help="the study's protocol YAML")
+    p.add_argument(
+        "results", nargs="?", metavar="RESULTS", help="results root or the study's folder"
+    )
+    deprecated(p, "--protocol", new="facelab analyze PROTOCOL RESULTS", dest="old_protocol")
     p.add_argument(
         "--method",
         choices=["rm", "paper"],
@@ -388,8 +423,9 @@ def register(add: AddCommand) -> None:
         help="parametric-bootstrap resamples for psychometric CIs (default 200; 0: none)",
     )
     p.add_argument(
-        "--seed", type=seed, default=1, help="seed of the bootstrap generator (default 1)"
+        "--boot-seed", type=seed, default=1, help="seed of the bootstrap generator (default 1)"
     )
+    deprecated(p, "--seed", new="--boot-seed", dest="boot_seed", type=seed)
     p.add_argument(
         "--accept-protocol-change",
         action="store_true",
@@ -398,6 +434,7 @@ def register(add: AddCommand) -> None:
     p.add_argument(
         "--out", metavar="DIR", help="output folder (default <results>/<study>/analysis)"
     )
+    force_option(p)
 
     p = add(
         "power",
@@ -411,15 +448,16 @@ def register(add: AddCommand) -> None:
         metavar="P",
         help="p-value(s) reported for the paper's pooled one-way ANOVA",
     )
+    protocol_argument(p, optional=True)
     p.add_argument("--pilot", metavar="RESULTS", help="pilot session logs instead of a p-value")
-    p.add_argument("--protocol", metavar="PROTOCOL", help="the pilot's protocol")
     p.add_argument(
-        "--participants",
+        "--reported-n",
         type=whole(lo=2),
         default=8,
         metavar="N",
         help="participants of the reported study (and n for 'power at n')",
     )
+    deprecated(p, "--participants", new="--reported-n", dest="reported_n", type=whole(lo=2))
     p.add_argument("--conditions", type=whole(lo=2), default=3, metavar="K")
     p.add_argument(
         "--reps",
@@ -441,9 +479,13 @@ def register(add: AddCommand) -> None:
     p.add_argument("--alpha", type=real(above=0, below=1), default=0.05)
     p.add_argument(
         "--simulate",
+        nargs="?",
+        const=True,
+        default=None,
         metavar="PROTOCOL",
         help="power of every test of PROTOCOL by simulating whole studies in memory, with its "
-        "simulation section as the truth (any design: VAS, identification, graded)",
+        "simulation section as the truth (any design: VAS, identification, graded); "
+        "--simulate PROTOCOL is the old spelling",
     )
     p.add_argument(
         "--n",
@@ -477,5 +519,7 @@ def register(add: AddCommand) -> None:
         help="Monte Carlo runs: of the formula check (default 4000), or per n with "
         "--simulate (default 200)",
     )
-    p.add_argument("--seed", type=seed, default=1)
+    p.add_argument("--sim-seed", type=seed, default=1, help="seed of the Monte Carlo runs")
+    deprecated(p, "--seed", new="--sim-seed", dest="sim_seed", type=seed)
+    force_option(p)
     p.add_argument("--json", action="store_true", help="print JSON")

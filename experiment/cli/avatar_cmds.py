@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_file, whole
+from facelab.experiment.cli.common import AddCommand, force_option, output_file, verbs, whole
 
 __all__ = ["register"]
 
@@ -26,7 +26,7 @@ def _cmd_avatar(args: argparse.Namespace) -> int:
             raise FacelabError(
                 "facelab avatar inspect FILE: give a .glb/.gltf/.vrm file or 'default'"
             )
-        sheet = output_file(args.sheet, option="--sheet") if args.sheet else None
+        sheet = output_file(args.sheet, option="--sheet", force=args.force) if args.sheet else None
         avatar = _load(args.file)
         report = avatar_report(avatar)
         print(
@@ -59,20 +59,22 @@ def register(add: AddCommand) -> None:
         "or write a sample avatar file",
         _cmd_avatar,
     )
-    p.add_argument("action", choices=["inspect", "sample"])
-    p.add_argument("file", nargs="?", metavar="FILE", help="inspect: .glb/.gltf/.vrm or 'default'")
-    p.add_argument("--json", action="store_true", help="inspect: print JSON")
-    p.add_argument("--sheet", metavar="PNG", help="inspect: also write a contact sheet")
-    p.add_argument(
-        "--tile", type=whole(lo=64, hi=4096), default=360, help="contact sheet tile size in pixels"
-    )
-    p.add_argument(
+    verb = verbs(p)
+    v = verb("inspect", "what an avatar file offers and how each animation method plays on it")
+    v.add_argument("file", metavar="FILE", help=".glb/.gltf/.vrm or 'default'")
+    v.add_argument("--json", action="store_true", help="print JSON")
+    v.add_argument("--sheet", metavar="PNG", help="also write a contact sheet")
+    v.add_argument("--tile", type=whole(lo=64, hi=4096), default=360,
+                   help="contact sheet tile size in pixels")  # fmt: skip
+    force_option(v)
+    v = verb("sample", "write the default head or a small stand-in avatar")
+    v.add_argument(
         "--kind",
         choices=["default", "skinned", "rpm", "vrm0", "vrm1"],
         default="default",
-        help="sample: the default head (skinned glTF) or a stand-in for a Ready Player Me, "
+        help="the default head (skinned glTF) or a stand-in for a Ready Player Me, "
         "VRM 0.x / 1.0 or generic skinned export",
     )
-    p.add_argument("--head-rows", type=whole(lo=8, hi=400), default=40, help="sample: mesh density")
-    p.add_argument("--out", metavar="FILE", help="sample: file to write (.glb, .gltf, .vrm)")
-    p.add_argument("--force", action="store_true", help="sample: overwrite --out")
+    v.add_argument("--head-rows", type=whole(lo=8, hi=400), default=40, help="mesh density")
+    v.add_argument("--out", required=True, metavar="FILE", help="file to write (.glb, .gltf, .vrm)")
+    force_option(v)

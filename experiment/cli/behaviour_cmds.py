@@ -10,11 +10,13 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    force_option,
     output_dir,
     output_file,
     parse_size,
     real,
     seed,
+    verbs,
     whole,
 )
 
@@ -135,7 +137,7 @@ def _plan(args: argparse.Namespace) -> int:
     print(f"{len(plan.events)} events over {args.duration_s:g} s -> {out}")
     print("  " + ", ".join(f"{k} {v}" for k, v in plan.counts().items()))
     if args.bml:
-        bml = output_file(args.bml, option="--bml")
+        bml = output_file(args.bml, option="--bml", force=args.force)
         bml.write_text(plan.to_bml(library), encoding="utf-8")
         print(f"  BML 1.0 -> {bml}")
     if args.figure:
@@ -143,7 +145,7 @@ def _plan(args: argparse.Namespace) -> int:
 
         from facelab.stimuli.render.plots import plan_timeline_figure
 
-        fig_path = output_file(args.figure, option="--figure")
+        fig_path = output_file(args.figure, option="--figure", force=args.force)
         fig = plan_timeline_figure(
             plan,
             cues=cues,
@@ -195,7 +197,7 @@ def _sheet(args: argparse.Namespace) -> int:
 
     if not args.out:
         raise FacelabError("facelab behaviour sheet --out SHEET.png")
-    out = output_file(args.out, option="--out")
+    out = output_file(args.out, option="--out", force=args.force)
     avatar = load(Path(args.avatar)) if args.avatar else default_head()
     unit_sheet(out=out, avatar=avatar, library=_library(args.library))
     print(f"contact sheet of the library's units -> {out}")
@@ -225,62 +227,84 @@ def _cmd_behaviour(args: argparse.Namespace) -> int:
 
 
 def register(add: AddCommand) -> None:
-    """Add this family's subcommands."""
+    """Add this family's subcommands: one verb each, with its own options."""
     p = add(
         "behaviour",
         "emotional non-verbal behaviour (seed 003): fit a unit library from annotations, plan "
         "a clip's behaviour (JSON, BML, timeline), render demonstration clips, draw the units",
         _cmd_behaviour,
     )
-    p.add_argument("action", choices=["fit", "plan", "render", "sheet", "synth"])
-    p.add_argument(
-        "input", nargs="?", metavar="ANNOTATIONS",
-        help="fit: a table emotion,layer,behaviour,start_s,end_s (CSV) or an ELAN .eaf",
+    verb = verbs(p)
+
+    def library(v: argparse.ArgumentParser) -> None:
+        v.add_argument("--library", metavar="FILE", help="a behaviour library (default: shipped)")
+
+    def emotions(v: argparse.ArgumentParser, repeat: str) -> None:
+        v.add_argument("--emotion", action="append", metavar="E",
+                       help=f"e.g. joy=0.8 or joy=0.5,surprise=0.3{repeat}")  # fmt: skip
+
+    v = verb("fit", "a unit library from an annotation table (eqs. 2-4)")
+    v.add_argument(
+        "input", metavar="ANNOTATIONS",
+        help="a table emotion,layer,behaviour,start_s,end_s (CSV) or an ELAN .eaf",
     )  # fmt: skip
-    p.add_argument("--out", metavar="PATH", help="the file (or, for render, folder) to write")
-    p.add_argument("--force", action="store_true", help="replace an existing --out file")
-    p.add_argument("--library", metavar="FILE", help="a behaviour library (default: shipped)")
-    p.add_argument("--alpha", type=real(lo=0, hi=1), default=0.3, help="fit: eq. 2's alpha (0.3)")
-    p.add_argument(
-        "--motions", default="default", metavar="FILE",
-        help="fit: take channels/curves/triggers of same-named units from this library "
-        "(default: the shipped one; 'none' to skip)",
-    )  # fmt: skip
-    p.add_argument("--report", metavar="MD", help="fit: report path (default LIBRARY.report.md)")
-    p.add_argument(
-        "--emotion", action="append", metavar="E",
-        help="plan/render: e.g. joy=0.8 or joy=0.5,surprise=0.3 (render: repeat per clip)",
-    )  # fmt: skip
-    p.add_argument(
+    v.add_argument("--out", required=True, metavar="LIBRARY.json")
+    v.add_argument("--alpha", type=real(lo=0, hi=1), default=0.3, help="eq. 2's alpha (0.3)")
+    v.add_argument("--motions", default="default", metavar="FILE",
+                   help="take channels/curves/triggers of same-named units from this library "
+                   "(default: the shipped one; 'none' to skip)")  # fmt: skip
+    v.add_argument("--report", metavar="MD", help="report path (default LIBRARY.report.md)")
+    force_option(v)
+
+    v = verb("plan", "a behaviour plan: events with scores, as JSON, BML 1.0 and a timeline")
+    library(v)
+    emotions(v, "")
+    v.add_argument(
         "--emotion-timeline", metavar="JSON",
-        help='plan: emotion keys over time, [{"time_s": 0, "joy": 0.8}, …] (linear between)',
+        help='emotion keys over time, [{"time_s": 0, "joy": 0.8}, …] (linear between)',
     )  # fmt: skip
-    p.add_argument("--text", metavar="TEXT", help="plan/render: Japanese text (OpenJTalk)")
-    p.add_argument("--stimulus", metavar="SET/ID", help="plan: a stimulus of --protocol")
-    p.add_argument(
+    v.add_argument("--text", metavar="TEXT", help="Japanese text (OpenJTalk)")
+    v.add_argument("--stimulus", metavar="SET/ID", help="a stimulus of --protocol")
+    v.add_argument(
         "--protocol", metavar="PROTOCOL",
-        help="plan: the protocol of --stimulus (default: the shipped hattori_behaviour)",
+        help="the protocol of --stimulus (default: the shipped hattori_behaviour)",
     )  # fmt: skip
-    p.add_argument(
-        "--duration-s", type=real(above=0), metavar="S", help="plan/render/synth: seconds"
-    )
-    p.add_argument("--seed", type=seed, default=1)
-    p.add_argument(
-        "--mode", choices=["gestures_only", "neutral_composite", "composite"],
-        default="composite",
-        help="plan: the layers planned from the emotion",
-    )  # fmt: skip
-    p.add_argument(
-        "--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",
-        help="render: behaviour modes per emotion (none gestures_only neutral_composite "
-        "composite)",
-    )  # fmt: skip
-    p.add_argument(
-        "--lead-s", type=real(lo=0), default=0.5, help="plan/render: silence before speech"
-    )
-    p.add_argument("--bml", metavar="XML", help="plan: also write BML 1.0")
-    p.add_argument("--figure", metavar="PNG", help="plan: a timeline figure")
-    p.add_argument("--size", metavar="WxH", help="render: default 1280x720")
-    p.add_argument("--fps", type=whole(lo=1, hi=240), default=30)
-    p.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
-    p.add_argument("--avatar", metavar="FILE", help="render/sheet: an avatar (default head)")
+    v.add_argument("--duration-s", type=real(above=0), metavar="S", help="seconds")
+    v.add_argument("--seed", type=seed, default=1, help="seed of the plan")
+    v.add_argument("--mode", choices=["gestures_only", "neutral_composite", "composite"],
+                   default="composite", help="the layers planned from the emotion")  # fmt: skip
+    v.add_argument("--lead-s", type=real(lo=0), default=0.5, help="silence before speech")
+    v.add_argument("--out", required=True, metavar="PLAN.json")
+    v.add_argument("--bml", metavar="XML", help="also write BML 1.0")
+    v.add_argument("--figure", metavar="PNG", help="a timeline figure")
+    force_option(v)
+
+    v = verb("render", "demonstration clips with event logs and timelines")
+    library(v)
+    emotions(v, " (repeat: one clip per emotion and mode)")
+    v.add_argument("--text", required=True, metavar="TEXT", help="Japanese text (OpenJTalk)")
+    v.add_argument("--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",
+                   help="behaviour modes per emotion (none gestures_only neutral_composite "
+                   "composite)")  # fmt: skip
+    v.add_argument("--duration-s", type=real(above=0), metavar="S", help="seconds (default 30)")
+    v.add_argument("--seed", type=seed, default=1, help="seed of the plans")
+    v.add_argument("--lead-s", type=real(lo=0), default=0.5, help="silence before speech")
+    v.add_argument("--size", metavar="WxH", help="default 1280x720")
+    v.add_argument("--fps", type=whole(lo=1, hi=240), default=30)
+    v.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
+    v.add_argument("--avatar", metavar="FILE", help="an avatar (default head)")
+    v.add_argument("--out", required=True, metavar="DIR",
+                   help="clip folder (clips of other emotions already there are kept)")  # fmt: skip
+
+    v = verb("sheet", "every unit of a library drawn on the head")
+    library(v)
+    v.add_argument("--avatar", metavar="FILE", help="an avatar (default head)")
+    v.add_argument("--out", required=True, metavar="PNG")
+    force_option(v)
+
+    v = verb("synth", "a SYNTHETIC annotation table planned from a library")
+    library(v)
+    v.add_argument("--duration-s", type=real(above=0), metavar="S", help="seconds")
+    v.add_argument("--seed", type=seed, default=1, help="seed of the table")
+    v.add_argument("--out", required=True, metavar="ANNOTATIONS.csv")
+    force_option(v)

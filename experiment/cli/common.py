@@ -13,18 +13,88 @@ from facelab.errors import FacelabError
 __all__ = [
     "AddCommand",
     "Handler",
+    "deprecated",
+    "force_option",
     "output_dir",
     "output_file",
     "parse_session",
     "parse_size",
+    "protocol_argument",
+    "protocol_of",
     "real",
     "seed",
+    "verbs",
     "whole",
 ]
 
 Handler = Callable[[argparse.Namespace], int]
 #: ``add(name, help, handler) -> parser``: what each family's ``register`` receives.
 AddCommand = Callable[[str, str, Handler], argparse.ArgumentParser]
+
+
+def verbs(parser: argparse.ArgumentParser) -> Callable[[str, str], argparse.ArgumentParser]:
+    """Nested sub-commands (``facelab impression fit …``): ``verb(name, help)`` returns the
+    verb's own parser, so an option of one verb is an error on another. The verb is
+    ``args.action``."""
+    sub = parser.add_subparsers(dest="action", metavar="VERB", required=True)
+
+    def verb(name: str, help_text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help_text, description=help_text)
+
+    return verb
+
+
+def force_option(parser: argparse.ArgumentParser) -> None:
+    """The one overwrite rule: an output file (or analysis folder) that exists is replaced
+    only with ``--force``."""
+    parser.add_argument(
+        "--force", action="store_true", help="replace output files that already exist"
+    )
+
+
+class _Deprecated(argparse.Action):
+    """An old spelling of an option: stores into the new one's ``dest`` and says so once."""
+
+    def __init__(self, option_strings: list[str], dest: str, *, new: str, **kw: object):
+        self.new = new
+        super().__init__(option_strings, dest, **kw)  # type: ignore[arg-type]
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[no-untyped-def]
+        import sys
+
+        print(
+            f"facelab {parser.prog.split(maxsplit=1)[-1]}: {option_string} is deprecated; use "
+            f"{self.new} (the old spelling works for this release)",
+            file=sys.stderr,
+        )
+        setattr(namespace, self.dest, values)
+
+
+def deprecated(
+    parser: argparse.ArgumentParser, old: str, *, new: str, dest: str, **kw: object
+) -> None:
+    """Accept ``old`` for one release as a spelling of ``new`` (which stores into ``dest``),
+    with a deprecation message on stderr; hidden from ``--help``."""
+    parser.add_argument(old, action=_Deprecated, new=new, dest=dest, help=argparse.SUPPRESS, **kw)
+
+
+def protocol_argument(parser: argparse.ArgumentParser, *, optional: bool = False) -> None:
+    """The protocol as the command's first positional (one grammar for every command that
+    works on one protocol); ``--protocol P``, the old spelling, still works for one release.
+    Read it with :func:`protocol_of`."""
+    parser.add_argument(
+        "protocol", nargs="?" if optional else None, metavar="PROTOCOL", help="protocol YAML"
+    )
+    deprecated(parser, "--protocol", new="the PROTOCOL positional", dest="old_protocol")
+
+
+def protocol_of(args: argparse.Namespace) -> str | None:
+    """The protocol named by the positional or the deprecated ``--protocol``."""
+    given = getattr(args, "protocol", None)
+    old = getattr(args, "old_protocol", None)
+    if given and old and given != old:
+        raise FacelabError(f"two protocols given: {given} and --protocol {old}; give one")
+    return given or old
 
 
 def seed(value: str) -> int:
@@ -121,11 +191,10 @@ def _writable_folder(folder: Path, option: str, what: str) -> None:
         raise FacelabError(f"{option} {what}: cannot write in {probe} (permission denied)")
 
 
-def output_file(path: str | Path, *, option: str, force: bool = True) -> Path:
-    """A file the command will write: its folder must exist and be writable.
-
-    ``force=False`` also refuses an existing file. Raises a clear error (exit 2) instead of a
-    traceback half-way through the command.
+def output_file(path: str | Path, *, option: str, force: bool) -> Path:
+    """A file the command will write: its folder must exist and be writable, and an existing
+    file is refused unless ``force`` (the one overwrite rule, ``--force``). Raises a clear error
+    (exit 2) instead of a traceback half-way through the command.
     """
     path = Path(path)
     if path.is_dir():

@@ -8,8 +8,11 @@ from pathlib import Path
 from facelab.experiment.cli.common import (
     AddCommand,
     ClipProgress,
+    deprecated,
     output_dir,
     parse_size,
+    protocol_argument,
+    protocol_of,
     seed,
     whole,
 )
@@ -24,9 +27,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     try:
         run_demo(
             out=output_dir(args.out, option="--out"),
-            protocol_path=Path(args.protocol) if args.protocol else DEFAULT_PROTOCOL,
+            protocol_path=Path(protocol_of(args) or DEFAULT_PROTOCOL),
             participants=args.participants,
-            seed=args.seed,
+            seed=args.sim_seed,
             size=size,
             fps=args.fps,
             progress=progress,
@@ -46,13 +49,12 @@ def register(add: AddCommand) -> None:
     p.add_argument(
         "--out", default="results/demo", metavar="DIR", help="output folder (default results/demo)"
     )
-    p.add_argument(
-        "--protocol", metavar="PROTOCOL", help="another protocol instead of kato2021.yaml"
-    )
+    protocol_argument(p, optional=True)  # default: the shipped kato2021
     p.add_argument("--participants", type=whole(lo=1), default=8, metavar="N")
     p.add_argument(
-        "--seed", type=seed, default=2021, metavar="S", help="seed of the simulated ratings"
+        "--sim-seed", type=seed, default=2021, metavar="S", help="seed of the simulated ratings"
     )
+    deprecated(p, "--seed", new="--sim-seed", dest="sim_seed", type=seed)
     p.add_argument(
         "--size", metavar="WxH", help="override the resolution (e.g. 320x180 for a quick run)"
     )

@@ -10,11 +10,13 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    force_option,
     output_dir,
     output_file,
     parse_size,
     real,
     seed,
+    verbs,
     whole,
 )
 
@@ -159,64 +161,62 @@ def _cmd_impression(args: argparse.Namespace) -> int:
 
 
 def register(add: AddCommand) -> None:
-    """Add this family's subcommands."""
+    """Add this family's subcommands: one verb each, with its own options."""
     p = add(
         "impression",
         "impression stimuli (seed 001): fit a direction from labelled expression samples, "
         "render clips at levels along it, or write a synthetic database",
         _cmd_impression,
     )
-    p.add_argument("action", choices=["fit", "render", "synth", "samples"])
-    p.add_argument(
-        "input",
-        nargs="?",
-        metavar="FILE",
-        help="fit: SAMPLES.csv; render: MODEL.json; samples: an index of captures "
-        "(person, expression, labels..., capture, time_s)",
-    )
-    p.add_argument("--window", type=real(above=0), default=0.1, help="samples: seconds averaged")
-    p.add_argument("--capture-fps", type=real(above=0), default=60.0, help="samples: Timecode rate")
-    p.add_argument("--label", metavar="COLUMN", help="fit: the label column")
-    p.add_argument(
-        "--space", choices=["arkit", "vertices"], default="arkit", help="fit: sample space"
-    )
-    p.add_argument("--k", type=whole(lo=1), help="fit: PCA components (default: by --variance)")
-    p.add_argument(
-        "--variance",
-        type=real(above=0, hi=1),
-        default=0.9,
-        help="fit: variance to keep (default 0.9)",
-    )
-    p.add_argument("--method", choices=["svm", "mean_diff", "ridge"], default="svm")
-    p.add_argument(
-        "--svm-c", type=real(above=0), default=0.1, help="fit: SVM C on RMS-scaled scores"
-    )
-    p.add_argument("--positive", metavar="CLASS", help="fit: the class the direction points to")
-    p.add_argument(
-        "--orthogonal-to-speech",
-        action="store_true",
-        help="fit: keep the direction clear of the speech methods' mouth shapes",
-    )
-    p.add_argument(
-        "--expression",
-        action="append",
-        metavar="NAME",
-        help="fit: expressions to model (repeat; default all); render: the one to play",
-    )
-    p.add_argument("--levels", type=real(), nargs="+", metavar="Q", help="render: levels q_c")
-    p.add_argument("--size", metavar="WxH", help="render: default 1280x720")
-    p.add_argument("--fps", type=whole(lo=1, hi=240), default=30)
-    p.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
-    p.add_argument("--avatar", metavar="FILE", help="render: an avatar file (default head)")
-    p.add_argument("--lead-s", type=real(lo=0), default=0.3, help="render: neutral lead-in")
-    p.add_argument("--onset-s", type=real(lo=0), default=0.6)
-    p.add_argument("--hold-s", type=real(lo=0), default=1.2)
-    p.add_argument("--offset-s", type=real(lo=0), default=0.6)
-    p.add_argument("--ease", choices=["sigmoid", "linear", "smoothstep"], default="sigmoid")
-    p.add_argument(
-        "--k-ease", type=real(above=0), default=5.0, help="render: sigmoid steepness (eq. 4)"
-    )
-    p.add_argument("--people", type=whole(lo=2), default=40, help="synth: people")
-    p.add_argument("--seed", type=seed, default=1, help="synth: random seed")
-    p.add_argument("--out", metavar="PATH", help="fit: MODEL.json; render: DIR; synth: SAMPLES.csv")
-    p.add_argument("--force", action="store_true", help="overwrite --out (fit, synth)")
+    verb = verbs(p)
+    v = verb("fit", "fit an impression model from labelled expression samples")
+    v.add_argument("input", metavar="SAMPLES.csv", help="person, expression, labels…, 52 ARKit")
+    v.add_argument("--label", required=True, metavar="COLUMN", help="the label column")
+    v.add_argument("--space", choices=["arkit", "vertices"], default="arkit", help="sample space")
+    v.add_argument("--k", type=whole(lo=1), help="PCA components (default: by --variance)")
+    v.add_argument("--variance", type=real(above=0, hi=1), default=0.9,
+                   help="variance to keep (default 0.9)")  # fmt: skip
+    v.add_argument("--method", choices=["svm", "mean_diff", "ridge"], default="svm")
+    v.add_argument("--svm-c", type=real(above=0), default=0.1, help="SVM C on RMS-scaled scores")
+    v.add_argument("--positive", metavar="CLASS", help="the class the direction points to")
+    v.add_argument("--orthogonal-to-speech", action="store_true",
+                   help="keep the direction clear of the speech methods' mouth shapes")  # fmt: skip
+    v.add_argument("--expression", action="append", metavar="NAME",
+                   help="expressions to model (repeat; default all)")  # fmt: skip
+    v.add_argument("--out", required=True, metavar="MODEL.json")
+    force_option(v)
+
+    v = verb("render", "one clip per level of an impression model, clips.csv, a contact sheet")
+    v.add_argument("input", metavar="MODEL.json")
+    v.add_argument("--expression", action="append", required=True, metavar="NAME",
+                   help="the expression to play")  # fmt: skip
+    v.add_argument("--levels", type=real(), nargs="+", required=True, metavar="Q",
+                   help="levels q_c")  # fmt: skip
+    v.add_argument("--size", metavar="WxH", help="default 1280x720")
+    v.add_argument("--fps", type=whole(lo=1, hi=240), default=30)
+    v.add_argument("--msaa", type=int, choices=[1, 2, 4, 8], default=4)
+    v.add_argument("--avatar", metavar="FILE", help="an avatar file (default head)")
+    v.add_argument("--lead-s", type=real(lo=0), default=0.3, help="neutral lead-in")
+    v.add_argument("--onset-s", type=real(lo=0), default=0.6)
+    v.add_argument("--hold-s", type=real(lo=0), default=1.2)
+    v.add_argument("--offset-s", type=real(lo=0), default=0.6)
+    v.add_argument("--ease", choices=["sigmoid", "linear", "smoothstep"], default="sigmoid")
+    v.add_argument("--k-ease", type=real(above=0), default=5.0, help="sigmoid steepness (eq. 4)")
+    v.add_argument("--out", required=True, metavar="DIR",
+                   help="clip folder (clips of other levels already there are kept)")  # fmt: skip
+
+    v = verb("synth", "a SYNTHETIC expression database with a known direction")
+    v.add_argument("--people", type=whole(lo=2), default=40, help="people")
+    v.add_argument("--seed", type=seed, default=1, help="seed of the database")
+    v.add_argument("--out", required=True, metavar="SAMPLES.csv")
+    force_option(v)
+
+    v = verb("samples", "face captures (Live Link Face) reduced to one row per person and "
+             "expression")  # fmt: skip
+    v.add_argument("input", metavar="INDEX.csv",
+                   help="person, expression, labels..., capture, time_s")  # fmt: skip
+    v.add_argument("--window", type=real(above=0), default=0.1, help="seconds averaged")
+    v.add_argument("--capture-fps", type=real(above=0), default=60.0,
+                   help="the captures' Timecode frame rate")  # fmt: skip
+    v.add_argument("--out", required=True, metavar="SAMPLES.csv")
+    force_option(v)

@@ -50,7 +50,7 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 
     text = schema_json_text()
     if args.out:
-        output_file(args.out, option="--out").write_text(text, encoding="utf-8")
+        output_file(args.out, option="--out", force=args.force).write_text(text, encoding="utf-8")
         print(f"wrote {args.out}", file=sys.stderr)
     else:
         sys.stdout.write(text)
@@ -92,6 +92,7 @@ def register(add: AddCommand) -> None:
 
     p = add("schema", "print the protocol JSON Schema (as in protocols/schema/)", _cmd_schema)
     p.add_argument("--out", metavar="FILE", help="write to FILE instead of stdout")
+    p.add_argument("--force", action="store_true", help="replace FILE if it exists")
 
     p = add(
         "protocols",

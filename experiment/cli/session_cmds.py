@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    deprecated,
     output_dir,
     parse_effects,
     parse_session,
@@ -51,6 +53,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from facelab.experiment.simulate import simulate_study
     from facelab.protocol import load_protocol
 
+    if args.sim_seed is None:
+        raise FacelabError("facelab simulate needs --sim-seed S (the seed of the answers)")
     protocol = load_protocol(args.protocol)
     results = output_dir(args.results, option="--results")
     paths = simulate_study(
@@ -58,12 +62,12 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         protocol_path=Path(args.protocol),
         results=results,
         participants=args.participants,
-        seed=args.seed,
+        seed=args.sim_seed,
         effects=parse_effects(args.effect),
     )
     print(
-        f"simulated {len(paths)} participants of study {protocol.study.id!r} (seed {args.seed}) "
-        f"into {results / protocol.study.id}"
+        f"simulated {len(paths)} participants of study {protocol.study.id!r} "
+        f"(seed {args.sim_seed}) into {results / protocol.study.id}"
     )
     for p in paths:
         print(f"  {p.tsv}")
@@ -107,7 +111,8 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--participants", type=whole(lo=1), default=8, metavar="N")
-    p.add_argument("--seed", type=seed, required=True, metavar="S", help="seed of the ratings")
+    p.add_argument("--sim-seed", type=seed, metavar="S", help="seed of the answers (required)")
+    deprecated(p, "--seed", new="--sim-seed", dest="sim_seed", type=seed)
     p.add_argument(
         "--effect",
         action="append",

@@ -9,10 +9,15 @@ from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
     ClipProgress,
+    deprecated,
+    force_option,
     output_dir,
     output_file,
     parse_size,
+    protocol_argument,
+    protocol_of,
     real,
+    verbs,
     whole,
 )
 
@@ -85,7 +90,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     protocol = load_protocol(args.protocol)
     for option, value in (("--csv", args.csv), ("--plot", args.plot)):
         if value:
-            output_file(value, option=option)
+            output_file(value, option=option, force=args.force)
     set_id, stim = find_stimulus(protocol, args.stimulus)
     speech = speech_for(
         stim, base_dir=Path(args.protocol).parent, sample_rate=protocol.rendering.audio_sample_rate
@@ -126,7 +131,7 @@ def _cmd_measure_z(args: argparse.Namespace) -> int:
         write_z,
     )
 
-    captures = [read_capture(p, fps=args.fps) for p in args.captures]
+    captures = [read_capture(p, fps=args.capture_fps) for p in args.captures]
     if args.onsets:
         onsets = read_onsets(args.onsets)
     elif args.vowels:
@@ -153,30 +158,30 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.runs < 1:
         raise FacelabError(f"--runs {args.runs}: expected 1 or more timing runs")
 
-    if args.what == "analyze":
+    if args.action == "analyze":
         from facelab.experiment.bench import bench_analyze
         from facelab.resources import protocol_path
 
-        proto = Path(args.protocol) if args.protocol else protocol_path("kato2021")
+        given = protocol_of(args)
+        proto = Path(given) if given else protocol_path("kato2021")
         print(
             json.dumps(
                 bench_analyze(
-                    protocol=proto, participants=args.participants or 1000, runs=args.runs
+                    protocol=proto, participants=args.participants, runs=args.runs
                 ),
                 indent=2,
             )
         )
         return 0
-    if args.what == "online":
-        args.participants = args.participants or 200
+    if args.action == "online":
         from facelab.experiment.online.load import load_test, postgres_cluster
 
-        if not args.protocol or not args.clips:
-            raise FacelabError("bench online needs --protocol and --clips (rendered clips)")
+        if not protocol_of(args):
+            raise FacelabError("bench online needs the PROTOCOL and --clips (rendered clips)")
         results = output_dir(args.results, option="--results")
         figures = []
         for database in ("sqlite", "postgresql") if args.db == "both" else (args.db,):
-            kw = dict(protocol_path=Path(args.protocol), clips=Path(args.clips),
+            kw = dict(protocol_path=Path(protocol_of(args)), clips=Path(args.clips),
                       participants=args.participants, results=results)  # fmt: skip
             if database == "postgresql":
                 with postgres_cluster() as url:
@@ -186,7 +191,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 figures.append(load_test(db_url=url, **kw))
         print(json.dumps(figures, indent=2))
         return 0
-    if args.what == "visemes":
+    if args.action == "visemes":
         from facelab.stimuli.bench import bench_visemes
 
         print(json.dumps(bench_visemes(runs=args.runs, quick=args.quick), indent=2))
@@ -226,6 +231,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("--stimulus", required=True, metavar="SET/ID")
     p.add_argument("--plot", metavar="PNG")
     p.add_argument("--csv", metavar="FILE")
+    force_option(p)
 
     p = add(
         "measure-z",
@@ -247,38 +253,41 @@ def register(add: AddCommand) -> None:
         "--window", type=real(above=0), default=0.1, help="seconds after onset (default 0.1)"
     )
     p.add_argument(
-        "--fps", type=real(above=0), default=60.0, help="Live Link Face timecode frame rate"
-    )
+        "--capture-fps", type=real(above=0), default=60.0,
+        help="the captures' Timecode frame rate (Live Link Face; default 60)",
+    )  # fmt: skip
+    deprecated(p, "--fps", new="--capture-fps", dest="capture_fps", type=real(above=0))
     p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
-    p.add_argument("--force", action="store_true")
+    force_option(p)
 
     p = add("bench", "benchmarks that print JSON (visemes, render, analyze, online)", _cmd_bench)
-    p.add_argument("what", choices=["visemes", "render", "analyze", "online"])
-    p.add_argument(
-        "--participants",
-        type=whole(lo=1),
-        default=None,
-        help="analyze: simulated people (default 1000); online: concurrent clients (200)",
-    )
-    p.add_argument("--protocol", metavar="PROTOCOL", help="analyze (default kato2021), online")
-    p.add_argument("--clips", metavar="DIR", help="online: the protocol's rendered clips")
-    p.add_argument(
-        "--db",
-        choices=["sqlite", "postgresql", "both"],
-        default="both",
-        help="online: database(s) to load (PostgreSQL: a temporary server)",
-    )
-    p.add_argument(
-        "--results",
-        default="results/bench",
-        metavar="DIR",
-        help="online: where the SQLite database goes",
-    )
-    p.add_argument("--runs", type=whole(lo=1), default=5, help="timing runs (median reported)")
-    p.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
-    p.add_argument(
-        "--avatar",
-        choices=["all", "default", "skinned50k"],
-        default="all",
-        help="render: the default head, a skinned ~50k-vertex sample, or both (default)",
-    )
+    verb = verbs(p)
+
+    def runs(v: argparse.ArgumentParser) -> None:
+        v.add_argument("--runs", type=whole(lo=1), default=5, help="timing runs (median reported)")
+
+    v = verb("visemes", "the analyser's accuracy, speed and latency per voice")
+    runs(v)
+    v.add_argument("--quick", action="store_true", help="fewer sentences (a smoke run)")
+    v = verb("render", "render real-time factor, stage timing, A/V offset")
+    runs(v)
+    v.add_argument("--quick", action="store_true", help="a shorter clip (a smoke run)")
+    v.add_argument(
+        "--avatar", choices=["all", "default", "skinned50k"], default="all",
+        help="the default head, a skinned ~50k-vertex sample, or both (default)",
+    )  # fmt: skip
+    v = verb("analyze", "facelab analyze on N simulated participants")
+    protocol_argument(v, optional=True)
+    runs(v)
+    v.add_argument("--participants", type=whole(lo=1), default=1000,
+                   help="simulated participants (default 1000)")  # fmt: skip
+    v = verb("online", "load test of facelab serve")
+    protocol_argument(v, optional=True)
+    runs(v)
+    v.add_argument("--clips", required=True, metavar="DIR", help="the protocol's rendered clips")
+    v.add_argument("--participants", type=whole(lo=1), default=200,
+                   help="concurrent clients (default 200)")  # fmt: skip
+    v.add_argument("--db", choices=["sqlite", "postgresql", "both"], default="both",
+                   help="database(s) to load (PostgreSQL: a temporary server)")  # fmt: skip
+    v.add_argument("--results", default="results/bench", metavar="DIR",
+                   help="where the SQLite database goes")  # fmt: skip
