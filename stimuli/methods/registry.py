@@ -72,12 +72,12 @@ class Method:
         return Playback(True, "yes")
 
     def examples(self) -> tuple[object, ...]:
-        """Parameter sets ``facelab avatar inspect`` reports on (default: the defaults; a
-        method with required parameters returns none and is described without them)."""
+        """Parameter sets ``facelab avatar inspect`` reports on: the defaults, or None for a
+        method with required parameters (its :meth:`playback` then describes what it needs)."""
         try:
             return (self.spec.parse({}),)
         except ValueError:
-            return ()
+            return (None,)
 
     def drive_on(self, avatar: Avatar, inp: DriveInput, params: object) -> BlendshapeTrack:
         """The track for this avatar (a method with a stand-in overrides this)."""

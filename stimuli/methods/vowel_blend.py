@@ -73,7 +73,7 @@ class VowelBlend(Method):
             )
         playback = super().playback(avatar, params, base_dir=base_dir)
         if playback.playable:
-            return Playback(True, f"yes (the ARKit targets of Z {params.z})")
+            return Playback(True, "yes (the ARKit targets its Z uses)")
         return playback
 
     def drive_on(
