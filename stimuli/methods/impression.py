@@ -47,6 +47,12 @@ class Impression(Method):
         names = tuple(ARKIT_NAMES[j] for j in moving)  # may lack the others
         return BlendshapeTrack(times, faces[:, moving], names, notes)
 
+    def input_files(self, params: ImpressionParams) -> dict[str, str]:  # type: ignore[override]
+        files = {"model": params.model}
+        if params.speech is not None:
+            files.update(VowelBlend().input_files(params.speech))
+        return files
+
     def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
         n = len(set(avatar.targets) & set(ARKIT_NAMES))
         return Playback(True, f"needs the ARKit targets its model moves (this avatar has {n}/52)")

@@ -71,6 +71,11 @@ class Method:
             )
         return Playback(True, "yes")
 
+    def input_files(self, params: object) -> dict[str, str]:
+        """The files the parameters name (relative to the protocol's folder), by role: their
+        bytes are part of each clip's input hash, so a changed file re-renders its clips."""
+        return {}
+
     def examples(self) -> tuple[object, ...]:
         """Parameter sets ``facelab avatar inspect`` reports on: the defaults, or None for a
         method with required parameters (its :meth:`playback` then describes what it needs)."""

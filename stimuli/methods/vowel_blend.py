@@ -49,6 +49,9 @@ class VowelBlend(Method):
         z = load_z(params.z, base_dir=base_dir)
         return {n for n, row in zip(ARKIT_NAMES, z, strict=True) if np.any(row > 0)}
 
+    def input_files(self, params: VowelBlendParams) -> dict[str, str]:  # type: ignore[override]
+        return {"z": params.z} if params.z.lower().endswith(".csv") else {}
+
     def examples(self) -> tuple[VowelBlendParams, ...]:
         """Both shipped Z matrices."""
         return tuple(VowelBlendParams(z=z) for z in BUILTIN_Z)

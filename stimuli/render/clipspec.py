@@ -22,6 +22,7 @@ from pathlib import Path
 from facelab.formats import CLIP_COLUMNS
 from facelab.hashing import sha256_file
 from facelab.protocol import Protocol, Stimulus
+from facelab.stimuli.methods import get
 
 __all__ = ["CLIP_COLUMNS", "RENDER_VERSION", "ClipJob", "clip_spec_hash", "plan"]
 
@@ -67,12 +68,8 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
     files = {}
     if stim.audio is not None:
         files["audio"] = _file_sha256(base_dir / stim.audio)
-    z = cond.params.get("z")
-    if isinstance(z, str) and z.lower().endswith(".csv"):
-        files["z"] = _file_sha256(base_dir / z)
-    model = cond.params.get("model")
-    if isinstance(model, str):
-        files["model"] = _file_sha256(base_dir / model)
+    for role, name in get(cond.method).input_files(cond.settings).items():
+        files[role] = _file_sha256(base_dir / name)  # a Z matrix, an impression model, …
     if r.avatar != "default":
         files["avatar"] = _file_sha256(base_dir / r.avatar)
     if cond.behaviour.lower().endswith((".json", ".yaml", ".yml")):
