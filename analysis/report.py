@@ -12,6 +12,7 @@ import datetime as dt
 import html
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -63,6 +64,13 @@ def _md_table(frame: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def _f_df(row: Any) -> str:
+    """``F (df1, df2)``, or "not estimable" for a test a pilot's data cannot give."""
+    if row.f != row.f:  # NaN
+        return "not estimable"
+    return f"{row.f:.3f} ({row.df1:g}, {row.df2:g})"
+
+
 def _headline(results: StudyResults) -> pd.DataFrame:
     lay = results.layout
     rows = []
@@ -74,10 +82,10 @@ def _headline(results: StudyResults) -> pd.DataFrame:
                 "item": item,
                 "stimulus set": sset,
                 "n": int(rm.n_participants),
-                "facelab RM: F (df)": f"{rm.f:.3f} ({rm.df1:g}, {rm.df2:g})",
+                "facelab RM: F (df)": _f_df(rm),
                 "facelab RM: p (GG)": rm.anova_p,
                 "facelab RM: pairs (Holm)": rm.pairs_p_lt_05,
-                "paper procedure: F (df)": f"{pa.f:.3f} ({pa.df1:g}, {pa.df2:g})",
+                "paper procedure: F (df)": _f_df(pa),
                 "paper procedure: p": pa.anova_p,
                 "paper procedure: pairs (Tukey)": pa.pairs_p_lt_05,
                 "paper reported: p": rm.reported_anova_p,

@@ -90,12 +90,32 @@ def _layout_row(
     }
 
 
+def _not_estimable(common: dict, *, procedure: str, reason: str) -> dict:
+    """A paper-layout row whose test cannot be computed (a pilot of one participant)."""
+    nan = float("nan")
+    return {
+        "item": common["item"],
+        "stimulus_set": common["stimulus_set"],
+        "procedure": procedure,
+        "n_participants": common["n_participants"],
+        "df1": nan,
+        "df2": nan,
+        "f": nan,
+        "anova_p": nan,
+        "pairs_p_lt_05": reason,
+        "reported_anova_p": common["reported_anova_p"],
+        "reported_pairs": common["reported_pairs"],
+    }
+
+
 def bracket_pairs(results: StudyResults, *, item: str, stimulus_set: str) -> pd.DataFrame:
     """Pairs with the corrected p-values of the primary method (``a, b, p``) for figures."""
     if results.method == "paper":
         table, col = results.paper_tukey, "p_adj"
     else:
         table, col = results.pairwise, "p_adj"
+    if table.empty:  # no test was estimable (a pilot): no brackets
+        return pd.DataFrame(columns=["a", "b", "p"])
     sel = table[(table["item"] == item) & (table["stimulus_set"] == stimulus_set)]
     return sel[["a", "b", col]].rename(columns={col: "p"}).reset_index(drop=True)
 
@@ -140,24 +160,40 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                     "left out of the repeated-measures analysis (kept in the pooled procedure)."
                 )
             rm_sub = sub[~sub["participant"].isin(partial)]
-            if rm_sub["participant"].nunique() < 2:
-                notes.append(
-                    f"{where}: fewer than 2 participants rated every condition; not analysed."
-                )
-                continue
+            n_rm = int(rm_sub["participant"].nunique())
             kw = {"dv": "rating", "within": "condition", "subject": "participant"}
+            estimable = n_rm >= 2
+            if estimable:
+                try:
+                    wide = stats.cell_means(rm_sub, **kw)
+                    rm = stats.rm_anova(rm_sub, **kw)
+                    pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
+                    fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
+                    lmm = stats.lmm_anova(rm_sub, **kw)
+                except AnalysisError as exc:
+                    raise AnalysisError(f"{item.id} / {sset.id}: {exc}") from None
+                cells = wide.reset_index().melt(
+                    id_vars="s", var_name="condition", value_name="mean"
+                ).rename(columns={"s": "participant"})
+            else:  # a pilot: descriptive cells, the inferential rows not estimable
+                reason = (
+                    f"not estimable: {n_rm} participant(s) rated every condition; the "
+                    "repeated-measures analysis needs 2 or more"
+                )
+                notes.append(f"{where}: {reason} (descriptive tables and figures only).")
+                rm = pw = fr = lmm = pd.DataFrame()
+                cells = (
+                    sub.groupby(["participant", "condition"], observed=True)["rating"]
+                    .mean()
+                    .rename("mean")
+                    .reset_index()
+                )
             try:
-                wide = stats.cell_means(rm_sub, **kw)
-                rm = stats.rm_anova(rm_sub, **kw)
-                pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
-                fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
-                lmm = stats.lmm_anova(rm_sub, **kw)
+                pa = stats.one_way_anova(sub, dv="rating", between="condition")
+                tk = stats.tukey_hsd(sub, dv="rating", between="condition")
             except AnalysisError as exc:
-                raise AnalysisError(f"{item.id} / {sset.id}: {exc}") from None
-            pa = stats.one_way_anova(sub, dv="rating", between="condition")
-            tk = stats.tukey_hsd(sub, dv="rating", between="condition")
-            cells = wide.reset_index().melt(id_vars="s", var_name="condition", value_name="mean")
-            cells = cells.rename(columns={"s": "participant"})
+                notes.append(f"{where}: the paper's procedure is not estimable ({exc}).")
+                pa = tk = pd.DataFrame()
             for key, frame in (
                 ("cells", cells),
                 ("rm", rm),
@@ -173,20 +209,24 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             common = {
                 "item": item.id,
                 "stimulus_set": sset.id,
-                "n_participants": len(wide),
+                "n_participants": n_rm,
                 "reported_anova_p": rep.anova_p if rep else float("nan"),
                 "reported_pairs": rep_pairs,
             }
-            out["layout"].append(
-                pd.DataFrame(
-                    [
-                        _layout_row(common, procedure="rm", anova=rm, p=rm.p_gg[0], pairs=pw),
-                        _layout_row(common, procedure="paper", anova=pa, p=pa.p[0], pairs=tk),
-                    ]
-                )
-            )
-    if not out["rm"]:
-        raise AnalysisError("no ratings match the protocol's items and stimulus sets")
+            rows = [
+                _layout_row(common, procedure="rm", anova=rm, p=rm.p_gg[0], pairs=pw)
+                if estimable
+                else _not_estimable(common, procedure="rm", reason=reason),
+                _layout_row(common, procedure="paper", anova=pa, p=pa.p[0], pairs=tk)
+                if not pa.empty
+                else _not_estimable(common, procedure="paper", reason="not estimable"),
+            ]
+            out["layout"].append(pd.DataFrame(rows))
+    if not out["layout"]:
+        raise AnalysisError(
+            "no VAS ratings match the protocol's items and stimulus sets (the logs hold "
+            f"items {', '.join(map(str, sorted(set(data['item'])))) or 'none'})"
+        )
 
     def cat(key: str) -> pd.DataFrame:
         frames = [f for f in out[key] if not f.empty]

@@ -325,3 +325,32 @@ def test_a_condition_nobody_saw_is_reported_not_a_crash(
     out = capsys.readouterr().out
     assert "no responses for condition(s) emphasized: left out of every analysis" in out
     assert "F(1,7)" in out  # two conditions: df 1 and 7
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_a_pilot_of_one_or_two_participants_is_analysed(
+    n: int, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 34.1: descriptive tables and figures for any n; an inferential row that the data
+    cannot give is marked not estimable with the reason, not an error that blames the data."""
+    argv = ["simulate", str(kato_path), "--participants", str(n), "--sim-seed", "1"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0
+    out = tmp_path / "analysis"
+    assert main(["analyze", str(kato_path), str(tmp_path), "--out", str(out)]) == 0
+    layout = pd.read_csv(out / "paper_layout.csv")
+    assert len(layout) == 8  # 2 items x 2 sets x (rm, paper)
+    rm = layout[layout["procedure"] == "rm"]
+    if n == 1:
+        assert rm["f"].isna().all()
+        assert rm["pairs_p_lt_05"].str.startswith("not estimable: 1 participant").all()
+        assert "not estimable" in capsys.readouterr().out
+    else:
+        assert rm["f"].notna().all() and (rm["n_participants"] == 2).all()
+    paper = layout[layout["procedure"] == "paper"]
+    assert paper["f"].notna().all()  # the pooled procedure needs repeated ratings only
+    cells = pd.read_csv(out / "cell_means.csv")
+    assert len(cells) == 2 * 2 * 3 * n and cells["mean"].notna().all()
+    report = (out / "report.html").read_text(encoding="utf-8")
+    assert report.count("data:image/png;base64,") == 4
+    if n == 1:
+        assert "not estimable" in report and "nan (nan" not in report

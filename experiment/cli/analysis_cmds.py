@@ -81,6 +81,10 @@ def _analyze_paths(args: argparse.Namespace) -> tuple[Path, Path]:
 def print_layout(results: object, say: Callable[[str], None] = print) -> None:
     """The VAS tests, one line per item, stimulus set and procedure."""
     for row in results.layout.itertuples() if results is not None else ():
+        if row.f != row.f:  # NaN: the test is not estimable; the reason is in the pairs column
+            where = f"{row.item:>12} / {row.stimulus_set:<10} {row.procedure:>5}"
+            say(f"  {where}: {row.pairs_p_lt_05}")
+            continue
         reported = (
             ""
             if row.reported_anova_p != row.reported_anova_p  # NaN: the paper reports none
@@ -177,6 +181,15 @@ def _cmd_power(args: argparse.Namespace) -> int:
             raise FacelabError("--pilot needs the PROTOCOL (for the study id and conditions)")
         protocol = load_protocol(protocol_file)
         data = load_results(args.pilot, study=protocol.study.id)
+        n_pilot = data["participant"].nunique()
+        if n_pilot < 2:
+            raise FacelabError(
+                f"--pilot {args.pilot}: {n_pilot} participant; the repeated-measures effect "
+                "size needs the participant x condition variation of 2 or more people (one "
+                "person's condition differences include their own interaction). Put the "
+                "effects you expect in the protocol's simulation section and run: facelab "
+                f"power {protocol_file} --simulate"
+            )
         for item in protocol.items:
             for sset in protocol.stimulus_sets:
                 sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
