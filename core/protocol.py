@@ -12,6 +12,7 @@ The pieces: the typed models (:mod:`facelab.protocol_model`), YAML with line num
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from functools import cache
 from pathlib import Path
 from typing import Any, get_args, get_origin
@@ -97,6 +98,15 @@ def load_protocol(path: Path | str) -> Protocol:
 
     with gc_paused():
         return _validate(path, root, data)
+
+
+def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
+    """A :class:`ProtocolError` for problems found after loading (e.g. in the files the
+    protocol names), each given the line of its key in ``path``."""
+    path = Path(path)
+    root, _ = read_yaml(path.read_text(encoding="utf-8"))
+    locator = Locator(root)
+    return ProtocolError(path, [Issue(i.path, i.message, locator.line(i.path)) for i in issues])
 
 
 def _validate(path: Path, root: Any, data: dict[str, Any]) -> Protocol:

@@ -10,11 +10,22 @@ from facelab.experiment.cli.common import AddCommand, output_dir, output_file, s
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from facelab.design import count_trials
-    from facelab.protocol import load_protocol
+    from pathlib import Path
 
+    from facelab.design import count_trials
+    from facelab.protocol import load_protocol, refuse
+
+    try:
+        from facelab.stimuli.render.inputs import input_problems
+    except ImportError:  # the core alone: the files the protocol names are not read
+        input_problems = None
+        print("note: files named by the protocols are not checked (needs facelab[stimuli])")
     for path in args.protocols:
         protocol = load_protocol(path)
+        if input_problems is not None:
+            issues = input_problems(protocol, base_dir=Path(path).parent)
+            if issues:
+                raise refuse(path, issues)
         n_trials = count_trials(protocol)
         print(
             f"ok: {path}: study {protocol.study.id!r}, {len(protocol.conditions)} conditions, "

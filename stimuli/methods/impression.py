@@ -3,11 +3,12 @@ level q, eased from neutral and back, optionally with vowel-driven speech on top
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from facelab.errors import StageError
+from facelab.errors import FacelabError, StageError
 from facelab.methods import METHODS, ImpressionParams
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.avatar.mesh import Avatar
@@ -52,6 +53,24 @@ class Impression(Method):
         if params.speech is not None:
             files.update(VowelBlend().input_files(params.speech))
         return files
+
+    def input_problems(  # type: ignore[override]
+        self, params: ImpressionParams, *, base_dir: Path
+    ) -> Iterator[tuple[tuple[str, ...], str]]:
+        try:
+            model = ImpressionModel.load(base_dir / params.model)
+        except FacelabError as exc:
+            yield ("params", "model"), str(exc)
+        else:
+            if params.expression not in model.expressions:
+                yield ("params", "expression"), (
+                    f"the model has no expression {params.expression!r}; it has "
+                    f"{', '.join(model.expressions)}"
+                )
+        if params.speech is not None:
+            yield from VowelBlend().input_problems(
+                params.speech, base_dir=base_dir, where=("params", "speech")
+            )
 
     def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
         n = len(set(avatar.targets) & set(ARKIT_NAMES))

@@ -11,6 +11,7 @@ name: rendering, ``avatar inspect``, target checks and protocol checks ask the r
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,6 +76,14 @@ class Method:
         """The files the parameters name (relative to the protocol's folder), by role: their
         bytes are part of each clip's input hash, so a changed file re-renders its clips."""
         return {}
+
+    def input_problems(
+        self, params: object, *, base_dir: Path
+    ) -> Iterator[tuple[tuple[str, ...], str]]:
+        """Read the files the parameters name as rendering will: ``(key path under the
+        condition, message)`` for each that cannot be used (``facelab validate`` reports them
+        with the protocol's line, so "valid" means "will render")."""
+        return iter(())
 
     def examples(self) -> tuple[object, ...]:
         """Parameter sets ``facelab avatar inspect`` reports on: the defaults, or None for a

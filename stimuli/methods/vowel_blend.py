@@ -9,10 +9,12 @@ uses, the five vowel presets (aa ih ou ee oh) stand in: Y = clip(G * X).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from facelab.errors import FacelabError
 from facelab.methods import BUILTIN_Z, METHODS, VowelBlendParams
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.avatar.mesh import Avatar
@@ -51,6 +53,14 @@ class VowelBlend(Method):
 
     def input_files(self, params: VowelBlendParams) -> dict[str, str]:  # type: ignore[override]
         return {"z": params.z} if params.z.lower().endswith(".csv") else {}
+
+    def input_problems(  # type: ignore[override]
+        self, params: VowelBlendParams, *, base_dir: Path, where: tuple[str, ...] = ("params",)
+    ) -> Iterator[tuple[tuple[str, ...], str]]:
+        try:
+            load_z(params.z, base_dir=base_dir)
+        except FacelabError as exc:
+            yield (*where, "z"), str(exc)
 
     def examples(self) -> tuple[VowelBlendParams, ...]:
         """Both shipped Z matrices."""

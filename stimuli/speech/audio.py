@@ -123,10 +123,16 @@ def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
     path = Path(path)
     if not path.is_file():
         raise SpeechError(f"{path}: audio file not found")
+    size = path.stat().st_size
+    if size == 0:
+        raise SpeechError(f"{path}: the audio file is empty (0 bytes)")
     try:
         data, rate = sf.read(str(path), dtype="float32", always_2d=True)
-    except (sf.LibsndfileError, RuntimeError, TypeError, ValueError) as exc:
-        raise SpeechError(f"{path}: not a readable WAV/FLAC file ({exc})") from None
+    except (sf.LibsndfileError, RuntimeError, TypeError, ValueError):
+        raise SpeechError(
+            f"{path}: not a readable WAV/FLAC/OGG file ({size} bytes; the format is not "
+            "recognised or the file is truncated or damaged)"
+        ) from None
     if rate < MIN_SAMPLE_RATE:
         raise SpeechError(
             f"{path}: recorded at {rate} Hz; facelab needs at least {MIN_SAMPLE_RATE} Hz (the "

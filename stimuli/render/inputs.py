@@ -1,0 +1,55 @@
+"""Every file a protocol names, read as ``facelab render`` reads it: the methods' files (Z
+matrices, impression models), recorded audio at the protocol's rate, the avatar (loaded and
+checked to play every condition's method) and custom behaviour libraries. ``facelab validate``
+reports what this finds with the protocol's lines, so "valid" means "will render"."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from facelab.errors import FacelabError, Issue
+from facelab.protocol import Protocol
+from facelab.stimuli.avatar import default_head, load
+from facelab.stimuli.behaviour.library import load_library
+from facelab.stimuli.methods import check_playable, get
+from facelab.stimuli.speech.audio import load_audio
+
+__all__ = ["input_problems"]
+
+
+def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
+    """The problems of the files ``protocol`` names (paths relative to ``base_dir``), each at
+    the key that names the file; empty when every file will render."""
+    issues: list[Issue] = []
+    for i, cond in enumerate(protocol.conditions):
+        method = get(cond.method)
+        for key_path, message in method.input_problems(cond.settings, base_dir=base_dir):
+            issues.append(Issue(("conditions", i, *key_path), message))
+        if cond.behaviour.lower().endswith((".json", ".yaml", ".yml")):
+            try:
+                load_library(base_dir / cond.behaviour)
+            except FacelabError as exc:
+                issues.append(Issue(("conditions", i, "behaviour"), str(exc)))
+    rate = protocol.rendering.audio_sample_rate
+    for si, sset in enumerate(protocol.stimulus_sets):
+        for ti, stim in enumerate(sset.stimuli):
+            if stim.audio is None:
+                continue
+            try:
+                load_audio(base_dir / stim.audio, sample_rate=rate)
+            except FacelabError as exc:
+                issues.append(Issue(("stimulus_sets", si, "stimuli", ti, "audio"), str(exc)))
+    spec = protocol.rendering.avatar
+    try:
+        avatar = default_head() if spec == "default" else load(base_dir / spec)
+    except FacelabError as exc:
+        issues.append(Issue(("rendering", "avatar"), str(exc)))
+        return issues
+    for i, cond in enumerate(protocol.conditions):
+        if any(issue.path[:2] == ("conditions", i) for issue in issues):
+            continue  # its files did not load: whether it plays cannot be told
+        try:
+            check_playable(avatar, cond.method, cond.settings, base_dir=base_dir)
+        except FacelabError as exc:
+            issues.append(Issue(("rendering", "avatar"), f"condition {cond.id!r}: {exc}"))
+    return issues

@@ -1,0 +1,65 @@
+"""`facelab validate` reads every file a protocol names as `facelab render` will (issue 34.4):
+a Z matrix, recorded audio, the avatar - so "valid" means "will render". Each refusal names
+the protocol's line and key, and the file and its problem, in words."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from facelab.experiment.cli import main
+from facelab.resources import package_file
+
+
+def _protocol(tmp_path: Path, kato_path: Path, **swap: str) -> Path:
+    text = kato_path.read_text(encoding="utf-8")
+    for old, new in swap.values():
+        assert old in text
+        text = text.replace(old, new, 1)
+    path = tmp_path / "study.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _z_without_a_row(tmp_path: Path) -> None:
+    rows = package_file("facelab.stimuli", "data", "z_standard.csv").read_text().splitlines()
+    (tmp_path / "z51.csv").write_text("\n".join(rows[:-1]) + "\n", encoding="utf-8")
+
+
+CASES = {
+    "z with 51 rows": (
+        {"z": ("params: {z: standard, gain: 1.0}", "params: {z: z51.csv, gain: 1.0}")},
+        r"study\.yaml:28: conditions\[1\]\.params\.z: .*z51\.csv: missing ARKit rows",
+    ),
+    "empty wav": (
+        {"audio": ("text: あ。い。う。え。お。", "audio: empty.wav")},
+        r"study\.yaml:41: stimulus_sets\[0\]\.stimuli\[0\]\.audio: .*empty\.wav",
+    ),
+    "jpeg renamed glb": (
+        {"avatar": ("avatar: default", "avatar: photo.glb")},
+        r"study\.yaml:106: rendering\.avatar: .*photo\.glb",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_validate_refuses_what_render_would_refuse(
+    case: str, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    swap, expected = CASES[case]
+    _z_without_a_row(tmp_path)
+    (tmp_path / "empty.wav").write_bytes(b"")
+    (tmp_path / "photo.glb").write_bytes(b"\xff\xd8\xff\xe0\x00\x10JFIF\x00" + bytes(500))
+    path = _protocol(tmp_path, kato_path, **swap)
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert re.search(expected, err), err
+    assert "Traceback" not in err and "Error:" not in err  # no exception class names
+
+
+def test_validate_passes_the_shipped_protocols(capsys: pytest.CaptureFixture[str]) -> None:
+    shipped = sorted((Path(__file__).parents[1] / "protocols").glob("*.yaml"))
+    assert main(["validate", *map(str, shipped)]) == 0
+    assert capsys.readouterr().out.count("ok: ") == len(shipped)
