@@ -22,6 +22,7 @@ import pandas as pd
 
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import load_results
+from facelab.analysis.presentation import exclude_dropped, presentation_quality
 from facelab.analysis.report import ReportFiles, write_report
 from facelab.analysis.study import StudyResults, analyze_study
 from facelab.analysis.tasks import TaskResults, analyze_tasks
@@ -77,6 +78,7 @@ def run(
     clips: Path | None = None,
     boot_seed: int = 1,
     n_boot: int = 200,
+    max_dropped_frames: int | None = None,
 ) -> AnalysisRun:
     """Analyse the study's sessions under ``results`` into ``out`` (created; files in it are
     replaced).
@@ -85,6 +87,9 @@ def run(
     exclude : participant ids left out (each must be in the logs).
     clips : the rendered clips with behaviour logs (default ``<study>/clips``).
     boot_seed, n_boot : the bootstrap of the psychometric intervals (seeded Generator).
+    max_dropped_frames : leave out responses to trials whose clip dropped more frames (the
+        report says how many, per condition); None keeps every response. Either way the
+        dropped frames per condition are tabled (``presentation_quality``).
     """
     data = load_results(results, study=protocol.study.id)
     if exclude:
@@ -94,8 +99,11 @@ def run(
                 f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
             )
         data = data[~data["participant"].isin(list(exclude))].reset_index(drop=True)
+    excluded, dropped_note = data.iloc[:0], None
+    if max_dropped_frames is not None:
+        data, excluded, dropped_note = exclude_dropped(data, max_dropped=max_dropped_frames)
     check = check_data(
-        data,
+        pd.concat([data, excluded], ignore_index=True) if not excluded.empty else data,
         protocol,
         protocol_sha256=protocol_hash(protocol_path),
         accept_protocol_change=accept_protocol_change,
@@ -104,6 +112,9 @@ def run(
     study = analyze_study(vas, protocol, method=method) if not vas.empty else None
     tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
+    tasks.tables["presentation_quality"] = presentation_quality(data, excluded=excluded)
+    if dropped_note:
+        tasks.notes.append(dropped_note)
     files = write_report(
         results=study,
         data=data,

@@ -338,6 +338,8 @@ def write_report(
 
 
 _TASK_HEADINGS = {
+    "presentation_quality": "Presentation: frames the clips dropped, per condition (the "
+    "session logs' clip_frames_dropped; trials over --max-dropped-frames excluded)",
     "psychometric_fits": "Psychometric fits, P = gamma + (1 - gamma - lambda) F(level), "
     "per participant and pooled (ML; 95 % parametric-bootstrap CIs)",
     "staircase_tracks": "Staircases: every step (level shown, answer, reversal, running estimate)",
@@ -395,6 +397,7 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "identification_condition_model",
         "trend_contrast",
         "graded_lmm",
+        "presentation_quality",
     ):
         if name in tasks.tables:
             frame = tasks.tables[name]

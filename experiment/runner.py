@@ -32,6 +32,7 @@ from facelab.experiment.preflight import (
     check_display,
     compare_with_session,
 )
+from facelab.experiment.presentation import DroppedFrames
 from facelab.experiment.scripted import ScriptedParticipant
 from facelab.experiment.simulate import ChoiceModel, RatingModel
 from facelab.experiment.timeline import (
@@ -62,6 +63,7 @@ class RunOptions:
     size: tuple[int, int] = (1280, 800)
     verify_hashes: bool = True
     accept_changed_clips: bool = False
+    warn_dropped_frames: int = 3  # a clip that drops more frames is named at once
 
 
 def _versions() -> dict[str, str]:
@@ -190,7 +192,10 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
             protocol_sha256=digest,
         )
 
+        drops = DroppedFrames(warn_over=options.warn_dropped_frames)
+
         def saved_line(row: dict[str, Any]) -> None:
+            drops.row(row)
             value = row["rating"] if row["rating"] is not None else row["response"]
             print(
                 f"trial {row['trial_index']}/{len(trials)} {row['condition']} {row['item']} = "
@@ -232,10 +237,14 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                 on_row=saved_line,
                 staircases=Staircases(protocol, logged=log.rows, record=paths.staircase),
             )
-        log.update_provenance(finished=dt.datetime.now(dt.UTC).isoformat())
+        drops.end_block()
+        log.update_provenance(
+            finished=dt.datetime.now(dt.UTC).isoformat(), dropped_frames=drops.summary()
+        )
         return {
             "log": str(log.paths.tsv),
             "ratings": len(log.rows),
             "trials_run": ran,
             "complete": len(log.rows) == n_responses,
+            "dropped": drops.summary(),
         }

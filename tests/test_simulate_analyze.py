@@ -354,3 +354,48 @@ def test_a_pilot_of_one_or_two_participants_is_analysed(
     assert report.count("data:image/png;base64,") == 4
     if n == 1:
         assert "not estimable" in report and "nan (nan" not in report
+
+
+def test_dropped_frames_are_tabled_and_trials_over_a_threshold_excluded(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 34.3: the analysis reads clip_frames_dropped - per condition always, and with
+    --max-dropped-frames leaves out the responses of trials over it, saying so."""
+    argv = ["simulate", str(kato_path), "--participants", "3", "--sim-seed", "2"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0
+    tsv = next(tmp_path.rglob("sub-P01/ses-1/*_beh.tsv"))
+    lines = tsv.read_text(encoding="utf-8").splitlines()
+    head = lines[0].split("\t")
+    col, trial = head.index("clip_frames_dropped"), head.index("trial_index")
+    drops = {"1": "23", "2": "3", "5": "9"}  # frames dropped by trial (both items of a trial)
+    edited = [lines[0]]
+    for line in lines[1:]:
+        cells = line.split("\t")
+        cells[col] = drops.get(cells[trial], cells[col])
+        edited.append("\t".join(cells))
+    tsv.write_text("\n".join(edited) + "\n", encoding="utf-8")
+    conditions = {ln.split("\t")[trial]: ln.split("\t")[head.index("condition")]
+                  for ln in lines[1:]}  # fmt: skip
+
+    out = tmp_path / "all"
+    assert main(["analyze", str(kato_path), str(tmp_path), "--out", str(out)]) == 0
+    quality = pd.read_csv(out / "presentation_quality.csv")
+    assert quality["frames_dropped"].sum() == 23 + 3 + 9
+    assert quality["trials_with_drops"].sum() == 3 and quality["excluded_trials"].sum() == 0
+    assert quality["max_dropped"].max() == 23
+
+    out = tmp_path / "cut"
+    capsys.readouterr()
+    argv = ["analyze", str(kato_path), str(tmp_path), "--out", str(out), "--max-dropped-frames"]
+    assert main([*argv, "5"]) == 0
+    printed = capsys.readouterr().out
+    assert "excluded 4 responses of 2 trials whose clip dropped more than 5 frames" in printed
+    quality = pd.read_csv(out / "presentation_quality.csv").set_index(["stimulus_set", "condition"])
+    assert quality["excluded_trials"].sum() == 2
+    for t in ("1", "5"):
+        assert quality.xs(conditions[t], level="condition")["excluded_trials"].sum() >= 1
+    ratings = pd.read_csv(out / "ratings.csv")
+    p01 = ratings[ratings["participant"] == "P01"]
+    assert not set(p01["trial_index"].astype(str)) & {"1", "5"} and len(ratings) == 3 * 36 - 4
+    report = (out / "report.html").read_text(encoding="utf-8")
+    assert "--max-dropped-frames" in report and "frames the clips dropped" in report

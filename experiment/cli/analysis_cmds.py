@@ -47,6 +47,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         clips=Path(args.clips) if args.clips else None,
         boot_seed=args.boot_seed,
         n_boot=args.bootstrap,
+        max_dropped_frames=args.max_dropped_frames,
     )
     data, check = done.data, done.check
     kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
@@ -446,6 +447,13 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--out", metavar="DIR", help="output folder (default <results>/<study>/analysis)"
+    )
+    p.add_argument(
+        "--max-dropped-frames",
+        type=whole(lo=0),
+        metavar="N",
+        help="leave out responses to trials whose clip dropped more than N frames (the report "
+        "says how many per condition; default: keep all, and table the drops)",
     )
     force_option(p)
 

@@ -39,12 +39,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
         screenshots=Path(args.screenshots) if args.screenshots else None,
         size=size,
         accept_changed_clips=args.accept_changed_clips,
+        warn_dropped_frames=args.warn_dropped_frames,
     )
     summary = run_session(protocol, protocol_path=Path(args.protocol), options=options)
     state = "complete" if summary["complete"] else "incomplete"
+    drops = summary.get("dropped")
+    dropped = (
+        f"; clips dropped {drops['frames_dropped']} frames in {drops['trials_with_drops']} of "
+        f"{drops['trials']} trials (at most {drops['max_dropped']})"
+        if drops
+        else ""
+    )
     print(
         f"session {state}: {summary['ratings']} ratings in {summary['log']} "
-        f"({summary['trials_run']} trials this run)"
+        f"({summary['trials_run']} trials this run{dropped})"
     )
     return 0
 
@@ -88,6 +96,11 @@ def register(add: AddCommand) -> None:
         "with (recorded in the session file)",
     )
     p.add_argument("--windowed", action="store_true", help="a window instead of full screen")
+    p.add_argument(
+        "--warn-dropped-frames", type=whole(lo=0), default=3, metavar="N",
+        help="name a clip that drops more than N frames at once (default 3); each block and "
+        "the session end with a count",
+    )  # fmt: skip
     p.add_argument("--size", metavar="WxH", help="window size with --windowed (default 1280x800)")
     p.add_argument(
         "--simulate",
