@@ -22,6 +22,7 @@ All values were checked against R (tests/reference/stats_reference.R).
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import asdict
@@ -547,7 +548,10 @@ def psychometric(
     if not subject or pooled:
         groups.append(("pooled", frame))
     rows = []
-    for key, part in groups:
+    from tqdm import tqdm  # a bar on a terminal only: the bootstrap is the slow step
+
+    quiet = n_boot == 0 or len(groups) < 2 or not sys.stderr.isatty()
+    for key, part in tqdm(groups, desc="psychometric fits", leave=False, disable=quiet):
         counts = (
             part.groupby(level, sort=True)[["_n", "_k"]]
             .sum()

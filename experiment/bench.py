@@ -53,6 +53,7 @@ def bench_analyze(*, protocol: Path, participants: int = 1000, runs: int = 3) ->
             times.append(time.perf_counter() - t0)
             if done.returncode != 0:
                 raise RuntimeError(f"facelab analyze failed: {done.stderr[-800:]}")
+        forced_choice = _forced_choice_analysis(Path(tmp), exe)
         data = load_results(results, study=proto.study.id)
         first = sorted(data["participant"].unique())[:50]
         sub = data[
@@ -75,4 +76,30 @@ def bench_analyze(*, protocol: Path, participants: int = 1000, runs: int = 3) ->
         "lmm_f_closed_form_50": closed,
         "lmm_f_mixedlm_fit_50": fitted,
         "lmm_f_relative_difference": abs(closed - fitted) / fitted,
+        "forced_choice": forced_choice,
     }
+
+
+def _forced_choice_analysis(tmp: Path, exe: str) -> dict[str, Any]:
+    """``facelab analyze`` of the shipped 2AFC protocol (8 simulated participants x 60
+    trials) with its default intervals (parametric bootstrap, 200 resamples per fit)."""
+    from facelab.experiment.simulate import simulate_study
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    path = protocol_path("gain_2afc")
+    results = tmp / "fc"
+    simulate_study(load_protocol(path), protocol_path=path, results=results, participants=8,
+                   seed=1)  # fmt: skip
+    t0 = time.perf_counter()
+    done = subprocess.run(
+        [exe, "analyze", str(path), str(results), "--out", str(tmp / "fc-analysis")],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    seconds = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"facelab analyze failed: {done.stderr[-800:]}")
+    return {"protocol": "gain_2afc", "participants": 8, "trials_each": 60,
+            "bootstrap": 200, "analyze_s": round(seconds, 2), "target_s": 10.0}  # fmt: skip
