@@ -77,9 +77,15 @@ def load_protocol(path: Path | str) -> Protocol:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ProtocolError(path, [Issue((), "file not found")]) from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
         raise ProtocolError(
-            path, [Issue((), f"cannot read the file as UTF-8 text: {exc}")]
+            path,
+            [Issue((), f"not UTF-8 text (byte {exc.start} is not; a binary file renamed "
+                   "to .yaml?): a protocol is a YAML text file")],
+        ) from None
+    except OSError as exc:
+        raise ProtocolError(
+            path, [Issue((), f"cannot read the file ({exc.strerror or 'unreadable'})")]
         ) from None
 
     try:

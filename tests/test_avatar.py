@@ -202,7 +202,7 @@ def test_missing_targets_are_listed(head: Avatar) -> None:
 @pytest.mark.parametrize(
     ("content", "message"),
     [
-        (b"not json", "not a valid glTF"),
+        (b"not json", "is not valid JSON"),
         (json.dumps({"asset": {"version": "1.0"}}).encode(), "expected 2.x"),
         (
             json.dumps(

@@ -95,7 +95,7 @@ def test_custom_z_files(tmp_path: Path) -> None:
     row = next(i for i, line in enumerate(good) if line.startswith("jawOpen,"))
     cases = {  # each was accepted (NaN, a repeated row) or a TypeError traceback (short row)
         "nan": ("jawOpen,nan,0.5,0.5,0.5,0.5", "row jawOpen, column a: nan is outside"),
-        "short": ("jawOpen,0.5", "non-numeric or missing value"),
+        "short": ("jawOpen,0.5", r"line \d+ \(jawOpen\), column i: missing is not a number"),
         "twice": (good[row] + "\n" + good[row], "rows given twice: jawOpen"),
     }
     for name, (line, message) in cases.items():

@@ -37,6 +37,8 @@ joints as nodes with a skin (JOINTS_0, WEIGHTS_0, inverse bind matrices) - as ``
 from __future__ import annotations
 
 import base64
+import json
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -71,22 +73,88 @@ def open_gltf(path: Path) -> tuple[pygltflib.GLTF2, list[bytes]]:
         raise AvatarError(f"{path}: expected a .gltf or .glb file (or .vrm)")
     if not path.is_file():
         raise AvatarError(f"{path}: file not found")
+    raw = path.read_bytes()
+    text = _glb_json(raw, path) if suffix in (".glb", ".vrm") else _gltf_json(raw, path)
     try:
-        raw = path.read_bytes()
-        if suffix in (".glb", ".vrm"):
-            if raw[:4] != b"glTF":
-                raise AvatarError(f"{path}: not a glTF 2.0 binary (.glb) file")
-            doc = pygltflib.GLTF2.load_from_bytes(raw)
-        else:
-            doc = pygltflib.GLTF2.from_json(raw.decode("utf-8"))
-    except AvatarError:
-        raise
-    except Exception as exc:  # the JSON decoder and dataclass mapping raise many kinds
-        raise AvatarError(f"{path}: not a valid glTF file ({type(exc).__name__}: {exc})") from None
+        json.loads(text)
+    except ValueError as exc:
+        raise AvatarError(
+            f"{path}: its glTF JSON is not valid JSON (at character {getattr(exc, 'pos', '?')} "
+            f"of {len(text)}; a truncated or damaged file?)"
+        ) from None
+    try:
+        doc = (
+            pygltflib.GLTF2.load_from_bytes(raw)
+            if suffix in (".glb", ".vrm")
+            else pygltflib.GLTF2.from_json(text)
+        )
+    except Exception:  # the dataclass mapping raises many kinds
+        raise AvatarError(
+            f"{path}: its JSON is not a glTF 2.0 document (expected the glTF top-level "
+            "objects: asset, nodes, meshes, accessors, bufferViews, buffers)"
+        ) from None
     version = str(getattr(doc.asset, "version", "") or "")
     if version.split(".")[0] != "2":
         raise AvatarError(f"{path}: glTF version {version!r}; expected 2.x")
     return doc, buffers_of(doc, path)
+
+
+#: the first bytes of files people rename by mistake
+_MAGIC = {
+    b"\xff\xd8\xff": "a JPEG image",
+    b"\x89PNG": "a PNG image",
+    b"PK\x03\x04": "a ZIP archive (e.g. an .fbx/.vroid export bundle)",
+    b"Kayd": "an FBX file",
+    b"glTF": "a binary glTF (name it .glb)",
+}
+
+
+def _looks_like(raw: bytes) -> str:
+    return next((what for magic, what in _MAGIC.items() if raw.startswith(magic)), "")
+
+
+def _glb_json(raw: bytes, path: Path) -> str:
+    """The JSON chunk of a binary glTF, after checking its 12-byte header and chunk header."""
+    if raw[:4] != b"glTF":
+        seen = _looks_like(raw)
+        raise AvatarError(
+            f"{path}: not a glTF 2.0 binary (.glb) file"
+            + (f"; it is {seen}" if seen and "glTF" not in seen else "")
+        )
+    if len(raw) < 20:
+        raise AvatarError(f"{path}: truncated: {len(raw)} bytes, shorter than a .glb header")
+    version, length = struct.unpack_from("<II", raw, 4)
+    if version != 2:
+        raise AvatarError(f"{path}: binary glTF version {version}; expected 2")
+    if length > len(raw):
+        raise AvatarError(
+            f"{path}: truncated: its header says {length} bytes, the file has {len(raw)}"
+        )
+    chunk_length, chunk_type = struct.unpack_from("<II", raw, 12)
+    if chunk_type != 0x4E4F534A:  # "JSON"
+        raise AvatarError(f"{path}: damaged: the first chunk of a .glb must be its JSON")
+    if 20 + chunk_length > len(raw):
+        raise AvatarError(
+            f"{path}: truncated: its JSON chunk needs {chunk_length} bytes, the file ends "
+            f"{len(raw) - 20} bytes in"
+        )
+    try:
+        return raw[20 : 20 + chunk_length].decode("utf-8")
+    except UnicodeDecodeError:
+        raise AvatarError(f"{path}: damaged: its JSON chunk is not UTF-8 text") from None
+
+
+def _gltf_json(raw: bytes, path: Path) -> str:
+    """The text of a .gltf file (JSON), or a refusal that says what the file is instead."""
+    seen = _looks_like(raw)
+    if seen:
+        raise AvatarError(f"{path}: not a glTF JSON (.gltf) file; it is {seen}")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise AvatarError(
+            f"{path}: not a glTF JSON (.gltf) file: it is not UTF-8 text (a binary file?)"
+        ) from None
 
 
 def buffers_of(doc: pygltflib.GLTF2, path: Path) -> list[bytes]:
@@ -120,7 +188,7 @@ def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarr
     width = TYPE_WIDTH[acc.type]
     count = acc.count
     if not isinstance(count, int) or count < 0 or count * width > MAX_VALUES:
-        raise ValueError(f"accessor {index}: count {count!r} (at most {MAX_VALUES // width})")
+        raise _MalformedError(f"accessor {index}: count {count!r} (at most {MAX_VALUES // width})")
     out = np.zeros((count, width), dtype=dtype)
     if acc.bufferView is not None:
         view = doc.bufferViews[acc.bufferView]
@@ -129,7 +197,7 @@ def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarr
         stride = view.byteStride or dtype.itemsize * width
         end = start + (count - 1) * stride + dtype.itemsize * width if count else start
         if min(start, stride) < 0 or end > (view.byteOffset or 0) + view.byteLength:
-            raise ValueError(
+            raise _MalformedError(
                 f"accessor {index}: its data reach outside buffer view {acc.bufferView}"
             )
         out = np.ndarray(
@@ -152,10 +220,12 @@ def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarr
             offset=(vv.byteOffset or 0) + (sparse.values.byteOffset or 0),
         ).reshape(-1, width)
         if idx.size and int(idx.max()) >= count:
-            raise ValueError(f"accessor {index}: sparse index {int(idx.max())} >= count {count}")
+            raise _MalformedError(
+                f"accessor {index}: sparse index {int(idx.max())} >= count {count}"
+            )
         out[idx] = vals
     if dtype.kind == "f" and not np.isfinite(out).all():
-        raise ValueError(f"accessor {index}: holds non-finite values (NaN or infinity)")
+        raise _MalformedError(f"accessor {index}: holds non-finite values (NaN or infinity)")
     if acc.normalized and dtype.kind in "iu":
         out = out.astype(np.float32) / np.iinfo(dtype).max
     return out
@@ -188,9 +258,9 @@ def _numbers(values: Any, count: int, what: str) -> np.ndarray:
     try:
         out = np.array(values, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"'{what}' is {values!r}; expected {count} numbers") from None
+        raise _MalformedError(f"'{what}' is {values!r}; expected {count} numbers") from None
     if out.shape != (count,) or not np.isfinite(out).all():
-        raise ValueError(f"'{what}' is {values!r}; expected {count} finite numbers")
+        raise _MalformedError(f"'{what}' is {values!r}; expected {count} finite numbers")
     return out
 
 
@@ -251,7 +321,7 @@ class _Graph:
             try:
                 local = node_matrix(nodes[i])
             except ValueError as exc:
-                raise ValueError(f"node {i}: {exc}") from None
+                raise _MalformedError(f"node {i}: {exc}") from None
             self.world[i] = above @ local
             self.order.append(i)
             for child in reversed(nodes[i].children or []):
@@ -271,6 +341,10 @@ class _Graph:
 _MALFORMED = (KeyError, IndexError, ValueError, TypeError, AttributeError)
 
 
+class _MalformedError(ValueError):
+    """A problem of the file that facelab's reader found and put in words."""
+
+
 def read_gltf(path: Path) -> Avatar:
     """An :class:`Avatar` from glTF 2.0 / VRM; see the module docstring for what is read.
 
@@ -279,8 +353,14 @@ def read_gltf(path: Path) -> Avatar:
     doc, buffers = open_gltf(path)
     try:
         return _avatar_of(doc, buffers, path)
-    except _MALFORMED as exc:
-        raise AvatarError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+    except _MalformedError as exc:
+        raise AvatarError(f"{path}: malformed glTF: {exc}") from None
+    except _MALFORMED:
+        raise AvatarError(
+            f"{path}: malformed glTF: an accessor, buffer view, node, skin or VRM extension "
+            "refers to data that is not there or has the wrong shape (a damaged or truncated "
+            "file, or one that needs an extension facelab does not read)"
+        ) from None
 
 
 def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar:
@@ -329,7 +409,7 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                 continue  # points and lines are not surfaces
             attrs = prim.attributes
             if attrs.POSITION is None:
-                raise KeyError("a primitive has no POSITION attribute")
+                raise _MalformedError("a primitive has no POSITION attribute")
             pos = accessor(doc, buffers, attrs.POSITION).astype(np.float64)
             n = len(pos)
             if skin is not None and attrs.JOINTS_0 is not None and attrs.WEIGHTS_0 is not None:

@@ -53,8 +53,17 @@ def read_annotations(path: Path | str) -> pd.DataFrame:
 
         try:
             table = pd.read_csv(path, sep=None, engine="python", encoding="utf-8")
-        except (OSError, ValueError, pd.errors.ParserError, csv.Error) as exc:
-            raise BehaviourError(f"{path}: not readable as a CSV table ({exc})") from None
+        except UnicodeDecodeError:
+            raise BehaviourError(
+                f"{path}: not a text table (not UTF-8; a binary file renamed?)"
+            ) from None
+        except (OSError, ValueError, pd.errors.ParserError, csv.Error):
+            raise BehaviourError(
+                f"{path}: not readable as a CSV/TSV table (expected a header row emotion, "
+                "layer, behaviour, start_s, end_s and one annotation per line)"
+            ) from None
+        # where each row stands in the file, for the messages (the header is line 1)
+        table["_where"] = [f"line {i + 2}" for i in range(len(table))]
     return check_annotations(table, source=str(path))
 
 
@@ -86,15 +95,17 @@ def _read_eaf(path: Path) -> pd.DataFrame:
                     f"{path}: {layer} annotation {value!r} at {a / 1000:.3f} s lies outside every "
                     "'emotion' annotation"
                 )
-            rows.append((emo, layer, value.strip(), a / 1000, b / 1000))
+            where = f"tier {layer} at {a / 1000:.3f} s"
+            rows.append((emo, layer, value.strip(), a / 1000, b / 1000, where))
     if not rows:
         raise BehaviourError(f"{path}: no tier named {', '.join(LAYERS)} has annotations")
-    return pd.DataFrame(rows, columns=list(ANNOTATION_COLUMNS))
+    return pd.DataFrame(rows, columns=[*ANNOTATION_COLUMNS, "_where"])
 
 
 def check_annotations(table: pd.DataFrame, *, source: str = "annotations") -> pd.DataFrame:
-    """Columns, emotions, layers and times checked; errors name the row (1-based, after the
-    header)."""
+    """Columns, emotions, layers and times checked; errors name where the annotation stands:
+    the ``_where`` column when the reader gave one (a CSV's line, an ELAN tier and time), else
+    the row (1-based, after the header)."""
     missing = [c for c in ANNOTATION_COLUMNS if c not in table.columns]
     if missing:
         raise BehaviourError(
@@ -107,24 +118,36 @@ def check_annotations(table: pd.DataFrame, *, source: str = "annotations") -> pd
     out["emotion"] = out["emotion"].astype(str).str.strip().str.lower()
     out["layer"] = out["layer"].astype(str).str.strip().str.lower()
     out["behaviour"] = out["behaviour"].astype(str).str.strip()
+    raw = {col: out[col].tolist() for col in ("start_s", "end_s")}
     for col in ("start_s", "end_s"):
         out[col] = pd.to_numeric(out[col], errors="coerce")
-    for i, row in enumerate(out.itertuples(index=False), start=1):
+    wheres = (
+        out.pop("_where").tolist()
+        if "_where" in out.columns
+        else [f"row {i}" for i in range(1, len(out) + 1)]
+    )
+    for n, (i, row) in enumerate(zip(wheres, out.itertuples(index=False), strict=True)):
         if row.emotion not in EMOTIONS:
             raise BehaviourError(
-                f"{source}: row {i}: emotion {row.emotion!r} is not one of {', '.join(EMOTIONS)}"
+                f"{source}: {i}: emotion {row.emotion!r} is not one of {', '.join(EMOTIONS)}"
             )
         if row.layer not in LAYERS:
             raise BehaviourError(
-                f"{source}: row {i}: layer {row.layer!r} is not one of {', '.join(LAYERS)}"
+                f"{source}: {i}: layer {row.layer!r} is not one of {', '.join(LAYERS)}"
             )
-        if not np.isfinite(row.start_s) or not np.isfinite(row.end_s) or row.end_s <= row.start_s:
+        for col in ("start_s", "end_s"):
+            if not np.isfinite(getattr(row, col)):
+                value = raw[col][n]
+                raise BehaviourError(
+                    f"{source}: {i}: {col} {value!r} is not a number (expected seconds)"
+                )
+        if row.end_s <= row.start_s:
             raise BehaviourError(
-                f"{source}: row {i}: start_s {row.start_s} and end_s {row.end_s} need "
+                f"{source}: {i}: start_s {row.start_s} and end_s {row.end_s} need "
                 "end_s > start_s (seconds)"
             )
         if not row.behaviour or row.behaviour == "nan":
-            raise BehaviourError(f"{source}: row {i}: empty behaviour")
+            raise BehaviourError(f"{source}: {i}: empty behaviour")
     if "take" not in out.columns:
         out["take"] = "1"
     out["take"] = out["take"].astype(str)

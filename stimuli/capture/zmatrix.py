@@ -35,10 +35,19 @@ def load_z(z: str, *, base_dir: Path = Path(".")) -> np.ndarray:
     unknown = [n for n in by_name if n not in ARKIT_NAMES]
     if missing or unknown:
         raise StageError(f"{path}: missing ARKit rows {missing[:5]} / unknown rows {unknown[:5]}")
-    try:
-        z_mat = np.array([[float(by_name[n][v]) for v in VOWELS] for n in ARKIT_NAMES])
-    except (TypeError, ValueError) as exc:  # TypeError: a row with too few cells
-        raise StageError(f"{path}: non-numeric or missing value ({exc})") from None
+    line = {r["blendshape"]: i for i, r in enumerate(rows, start=2)}  # the header is line 1
+    for name in ARKIT_NAMES:
+        for v in VOWELS:
+            cell = by_name[name][v]
+            try:
+                float(cell)
+            except (TypeError, ValueError):  # TypeError: a row with too few cells
+                shown = "missing" if cell is None or not str(cell).strip() else repr(cell)
+                raise StageError(
+                    f"{path}: line {line[name]} ({name}), column {v}: {shown} is not a number "
+                    "(expected a coefficient in [0, 1])"
+                ) from None
+    z_mat = np.array([[float(by_name[n][v]) for v in VOWELS] for n in ARKIT_NAMES])
     outside = ~((z_mat >= 0) & (z_mat <= 1))  # NaN is outside too
     if outside.any():
         r, c = np.argwhere(outside)[0]

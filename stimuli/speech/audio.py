@@ -116,6 +116,29 @@ def check_audio(samples: np.ndarray, *, sample_rate: int, source: str) -> None:
         )
 
 
+def _check_wav_length(path: Path) -> None:
+    """A WAV whose data chunk is shorter than its header declares was cut off (a copy that
+    did not finish): refused rather than read as a shorter recording."""
+    with open(path, "rb") as fh:
+        head = fh.read(12)
+        if head[:4] != b"RIFF" or head[8:12] != b"WAVE":
+            return  # not a WAV: the decoder says what it is
+        size = path.stat().st_size
+        offset = 12
+        while offset + 8 <= size:
+            fh.seek(offset)
+            chunk, length = fh.read(4), int.from_bytes(fh.read(4), "little")
+            if chunk == b"data":
+                have = size - offset - 8
+                if length > have and length != 0xFFFFFFFF:  # 0xFFFFFFFF: a stream
+                    raise SpeechError(
+                        f"{path}: truncated: its header declares {length} bytes of audio, the "
+                        f"file holds {have} (a copy that did not finish?)"
+                    )
+                return
+            offset += 8 + length + (length & 1)
+
+
 def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
     """A recorded WAV/FLAC file as mono float32 at ``sample_rate`` Hz, checked."""
     import soundfile as sf
@@ -126,6 +149,7 @@ def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
     size = path.stat().st_size
     if size == 0:
         raise SpeechError(f"{path}: the audio file is empty (0 bytes)")
+    _check_wav_length(path)
     try:
         data, rate = sf.read(str(path), dtype="float32", always_2d=True)
     except (sf.LibsndfileError, RuntimeError, TypeError, ValueError):
