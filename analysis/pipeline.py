@@ -22,6 +22,7 @@ import pandas as pd
 
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import load_results
+from facelab.analysis.pilot import pilot_items, pilot_sessions
 from facelab.analysis.presentation import exclude_dropped, presentation_quality
 from facelab.analysis.report import ReportFiles, write_report
 from facelab.analysis.study import StudyResults, analyze_study
@@ -113,6 +114,11 @@ def run(
     tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(data, excluded=excluded)
+    tasks.tables["pilot_sessions"] = pilot_sessions(data, check)
+    items, item_notes = pilot_items(vas)
+    if not items.empty:
+        tasks.tables["pilot_items"] = items
+    tasks.notes.extend(item_notes)
     if dropped_note:
         tasks.notes.append(dropped_note)
     files = write_report(

@@ -338,6 +338,10 @@ def write_report(
 
 
 _TASK_HEADINGS = {
+    "pilot_sessions": "Sessions: responses of those expected, minutes, median response time, "
+    "dropped frames",
+    "pilot_items": "Items: the distribution of each item's ratings (an item everyone answers "
+    "the same is named in the data checks)",
     "presentation_quality": "Presentation: frames the clips dropped, per condition (the "
     "session logs' clip_frames_dropped; trials over --max-dropped-frames excluded)",
     "psychometric_fits": "Psychometric fits, P = gamma + (1 - gamma - lambda) F(level), "
@@ -398,6 +402,8 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "trend_contrast",
         "graded_lmm",
         "presentation_quality",
+        "pilot_sessions",
+        "pilot_items",
     ):
         if name in tasks.tables:
             frame = tasks.tables[name]

@@ -163,6 +163,10 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             n_rm = int(rm_sub["participant"].nunique())
             kw = {"dv": "rating", "within": "condition", "subject": "participant"}
             estimable = n_rm >= 2
+            reason = (
+                f"not estimable: {n_rm} participant(s) rated every condition; the "
+                "repeated-measures analysis needs 2 or more"
+            )
             if estimable:
                 try:
                     wide = stats.cell_means(rm_sub, **kw)
@@ -170,16 +174,13 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                     pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
                     fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
                     lmm = stats.lmm_anova(rm_sub, **kw)
-                except AnalysisError as exc:
-                    raise AnalysisError(f"{item.id} / {sset.id}: {exc}") from None
-                cells = wide.reset_index().melt(
-                    id_vars="s", var_name="condition", value_name="mean"
-                ).rename(columns={"s": "participant"})
-            else:  # a pilot: descriptive cells, the inferential rows not estimable
-                reason = (
-                    f"not estimable: {n_rm} participant(s) rated every condition; the "
-                    "repeated-measures analysis needs 2 or more"
-                )
+                except AnalysisError as exc:  # e.g. ratings without any variation
+                    estimable, reason = False, f"not estimable: {exc}"
+                else:
+                    cells = wide.reset_index().melt(
+                        id_vars="s", var_name="condition", value_name="mean"
+                    ).rename(columns={"s": "participant"})
+            if not estimable:  # a pilot: descriptive cells, the inferential rows not estimable
                 notes.append(f"{where}: {reason} (descriptive tables and figures only).")
                 rm = pw = fr = lmm = pd.DataFrame()
                 cells = (

@@ -399,3 +399,31 @@ def test_dropped_frames_are_tabled_and_trials_over_a_threshold_excluded(
     assert not set(p01["trial_index"].astype(str)) & {"1", "5"} and len(ratings) == 3 * 36 - 4
     report = (out / "report.html").read_text(encoding="utf-8")
     assert "--max-dropped-frames" in report and "frames the clips dropped" in report
+
+
+def test_the_pilot_summary_names_sessions_and_an_item_everyone_answers_alike(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["simulate", str(kato_path), "--participants", "2", "--sim-seed", "5"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0
+    for tsv in tmp_path.rglob("*_beh.tsv"):
+        lines = tsv.read_text(encoding="utf-8").splitlines()
+        head = lines[0].split("\t")
+        item, rating = head.index("item"), head.index("rating")
+        out = [lines[0]]
+        for line in lines[1:]:
+            cells = line.split("\t")
+            if cells[item] == "naturalness":
+                cells[rating] = "50.0"
+            out.append("\t".join(cells))
+        tsv.write_text("\n".join(out) + "\n", encoding="utf-8")
+    dest = tmp_path / "analysis"
+    assert main(["analyze", str(kato_path), str(tmp_path), "--out", str(dest)]) == 0
+    assert "naturalness / sentences: every one of 12 ratings is 50" in capsys.readouterr().out
+    sessions = pd.read_csv(dest / "pilot_sessions.csv")
+    assert list(sessions["participant"]) == ["P01", "P02"]
+    assert (sessions["responses"] == sessions["expected"]).all()
+    assert (sessions["minutes"] > 0).all() and (sessions["median_rt_s"] > 0).all()
+    items = pd.read_csv(dest / "pilot_items.csv").set_index(["item", "stimulus_set"])
+    assert items.loc[("naturalness", "vowels"), "all_the_same"]
+    assert not items.loc[("mouth_shape", "vowels"), "all_the_same"]
