@@ -26,6 +26,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import asdict
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -488,6 +489,7 @@ PSYCHOMETRIC_COLUMNS: tuple[str, ...] = (
     "n_levels",
     "converged",
     "n_boot",
+    "estimate",
     "note",
 )
 _FIT_RENAMES = {"beta": "slope", "beta_ci_low": "slope_ci_low", "beta_ci_high": "slope_ci_high",
@@ -506,9 +508,11 @@ def psychometric(
     lapse_bounds: tuple[float, float] = (0.0, 0.1),
     n_boot: int = 200,
     rng: np.random.Generator | None = None,
+    per_subject: Literal["ml", "posterior"] = "ml",
 ) -> pd.DataFrame:
-    """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x), by maximum likelihood: the
-    one psychometric API of facelab (:mod:`facelab.analysis.psychometric` is its engine).
+    """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x): the one psychometric API
+    of facelab (its engines: :mod:`facelab.analysis.psychometric`, maximum likelihood, and
+    :mod:`facelab.analysis.bayes_psychometric`, the posterior).
 
     Parameters
     ----------
@@ -522,6 +526,11 @@ def psychometric(
     lapse_bounds : bounds of the free lapse rate; ``(0, 0)`` fixes it at 0.
     n_boot, rng : parametric-bootstrap resamples for the CIs and their generator (default
         ``numpy.random.default_rng(0)``, so repeated calls agree).
+    per_subject : how each subject's row is estimated: ``ml`` (maximum likelihood with the
+        bootstrap intervals, as the pooled row always is) or ``posterior`` (logistic only:
+        marginal posterior medians and 95 % credible intervals under psignifit's default
+        priors - for one person's few trials, where the ML slope runs away; see
+        :mod:`facelab.analysis.bayes_psychometric`). ``estimate`` says which a row is.
 
     Returns one row per subject (then the pooled row, subject ``"pooled"``), columns
     :data:`PSYCHOMETRIC_COLUMNS`: ``subject, n, midpoint, slope, lapse, deviance,
@@ -559,17 +568,55 @@ def psychometric(
             .reset_index()
             .rename(columns={level: "level"})
         )
+        posterior = per_subject == "posterior" and key != "pooled" and sigmoid == "logistic"
         try:
-            fit = asdict(
-                fit_psychometric(
-                    counts, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds,
-                    n_boot=n_boot, rng=rng,
-                )
-            )  # fmt: skip
+            if posterior:
+                fit = _posterior_row(counts, gamma=gamma)
+            else:
+                fit = asdict(
+                    fit_psychometric(
+                        counts, sigmoid=sigmoid, gamma=gamma, lapse_bounds=lapse_bounds,
+                        n_boot=n_boot, rng=rng,
+                    )
+                )  # fmt: skip
+                fit["estimate"] = "ml"
         except AnalysisError as exc:
             fit = dict.fromkeys(FIT_COLUMNS, float("nan"))
             fit.update(sigmoid=sigmoid, gamma=gamma, converged=False, n_boot=0, note=str(exc))
             fit.update(n_trials=int(counts["n"].sum()), n_levels=len(counts))
+            fit.update(estimate="posterior" if posterior else "ml")
         fit = {_FIT_RENAMES.get(k, k): v for k, v in fit.items()}
         rows.append({"subject": key, **fit})
     return pd.DataFrame(rows, columns=list(PSYCHOMETRIC_COLUMNS))
+
+
+def _posterior_row(counts: pd.DataFrame, *, gamma: float) -> dict[str, Any]:
+    """One subject's posterior fit in the engine's column names (no deviance: no ML fit)."""
+    from facelab.analysis.bayes_psychometric import posterior_fit
+    from facelab.psychometric_function import slope_at_midpoint
+
+    post = posterior_fit(counts, gamma=gamma)
+    return {
+        "sigmoid": "logistic",
+        "gamma": gamma,
+        "alpha": post.midpoint,
+        "beta": post.slope,
+        "lapse": post.lapse,
+        "midpoint": post.midpoint,
+        "slope_at_midpoint": float(slope_at_midpoint("logistic", post.midpoint, post.slope)),
+        "deviance": float("nan"),
+        "deviance_df": len(counts) - 3,
+        "log_likelihood": float("nan"),
+        "n_trials": post.n_trials,
+        "n_levels": post.n_levels,
+        "converged": True,
+        "midpoint_ci_low": post.midpoint_ci_low,
+        "midpoint_ci_high": post.midpoint_ci_high,
+        "beta_ci_low": post.slope_ci_low,
+        "beta_ci_high": post.slope_ci_high,
+        "lapse_ci_low": post.lapse_ci_low,
+        "lapse_ci_high": post.lapse_ci_high,
+        "n_boot": 0,
+        "estimate": "posterior",
+        "note": "posterior medians, 95 % credible intervals (psignifit's default priors)",
+    }

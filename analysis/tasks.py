@@ -172,9 +172,9 @@ def analyze_tasks(
         if isinstance(task, ChoiceTask):
             y, gamma = choice_outcome(rows, task)
             trials = rows.assign(y=y.to_numpy())
-            fits = stats.psychometric(
+            fits = stats.psychometric(  # a participant's few trials: the posterior
                 trials, level="level", correct="y", subject="participant", pooled=True,
-                gamma=gamma, n_boot=n_boot, rng=rng,
+                gamma=gamma, n_boot=n_boot, rng=rng, per_subject="posterior",
             ).rename(columns={"subject": "participant"})  # fmt: skip
             psy_tables.append(fits.assign(task=task.id, gamma=gamma))
             counts = psychometric.count_responses(trials, x="level", y="y")
