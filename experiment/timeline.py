@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from facelab.design import PENDING, Trial
@@ -167,6 +168,10 @@ class Screen:
     """A screen of the timeline. ``trial`` is None for screens outside the trials."""
 
     kind: ClassVar[str] = "screen"
+    #: the jsPsych plugin of a kind added to facelab: a JS file that defines it and sets
+    #: ``FacelabPlugins[kind]`` (served at /plugins/<kind>.js and loaded by the session page
+    #: when a timeline shows the kind); None for the built-in kinds, which are in plugins.js
+    plugin_js: ClassVar[Path | None] = None
 
     def response_keys(self) -> tuple[tuple[int, str], ...]:
         """The responses this screen collects (none for passive screens)."""

@@ -343,6 +343,7 @@ def test_a_tab_closed_mid_trial_resumes_at_the_first_unanswered_screen(
             assert len(_rows(server, "P0001")) == 3
             again = SimulatedBrowser(server, bg.url, 1, driver=driver)
             assert again.run() == "complete"
+            assert "再開" in again.texts["resume"]  # the resume screen says so, in Japanese
         finally:
             driver.quit()
     _check_session(server, "P0001")

@@ -164,18 +164,19 @@ class ConfidenceScreen(ResponseScreen):
         return ((self.trial.trial_index, "confidence"),)
 
     def browser(self, ctx: BrowserContext) -> dict[str, Any]:
-        return {"kind": self.kind, "trial_index": self.trial_index, "levels": [1, 2, 3]}
+        return {"kind": self.kind, "trial_index": self.trial_index, "item": "confidence",
+                "levels": [1, 2, 3]}  # fmt: skip
 
     def answer(
         self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
     ) -> ConfidenceAnswer:
-        level = posted.get("level")
+        level = posted.get("value")  # a kind added to facelab posts its answer as "value"
         if level not in (1, 2, 3) or isinstance(level, bool):
-            raise AnswerError(f"level: expected 1, 2 or 3, got {level!r}")
-        return ConfidenceAnswer(level, rt_s, timestamp)
+            raise AnswerError(f"value: expected 1, 2 or 3, got {level!r}")
+        return ConfidenceAnswer(int(level), rt_s, timestamp)
 
     def posted(self, answer: ConfidenceAnswer) -> dict[str, Any]:
-        return {"level": answer.level}
+        return {"value": answer.level}
 
     def row(
         self, item: str, answer: ConfidenceAnswer, *, context: SessionContext, playback: Any
@@ -198,12 +199,12 @@ class FacelabConfidence extends FacelabChoice {
   async run(el, s) {
     const { value, started } = await this.buttons(el, s, "toy_confidence",
       s.levels.map((n) => ({ text: String(n), value: n })));
-    FacelabOutbox.send("/api/response", facelabAnswer(s, "confidence", { level: value }, started));
+    FacelabOutbox.send("/api/response", facelabAnswer(s, "confidence", { value }, started));
     return { level: value };
   }
 }
 FacelabConfidence.info = facelabInfo("facelab-confidence",
-  { kind: "STRING", trial_index: "INT", levels: "COMPLEX" });
+  { kind: "STRING", trial_index: "INT", item: "STRING", levels: "COMPLEX" });
 FacelabPlugins.toy_confidence = FacelabConfidence;
 """
 
@@ -221,9 +222,13 @@ def _with_confidence(screens: list[Screen]) -> list[Screen]:
 
 
 @pytest.fixture
-def toy_kind() -> Iterator[type[Screen]]:
+def toy_kind(tmp_path: Path) -> Iterator[type[Screen]]:
+    plugin = tmp_path / "toy_confidence.js"
+    plugin.write_text(TOY_PLUGIN, encoding="utf-8")
+    ConfidenceScreen.plugin_js = plugin  # place 2: the kind names its plugin file
     yield screen_kind(ConfidenceScreen)
     del SCREEN_KINDS[ConfidenceScreen.kind]
+    ConfidenceScreen.plugin_js = None
 
 
 def test_a_toy_screen_kind_runs_in_the_lab_walk_online_and_meets_its_plugin(
@@ -259,14 +264,61 @@ def test_a_toy_screen_kind_runs_in_the_lab_walk_online_and_meets_its_plugin(
     served = [s for s in timeline if s["kind"] == "toy_confidence"]
     assert len(served) == len(trials)
     first = trials[0].trial_index
-    posted = {"trial_index": first, "item": "confidence", "rt_s": 0.5, "level": 3}
+    posted = {"trial_index": first, "item": "confidence", "rt_s": 0.5, "value": 3}
     row = study.row(participant="P01", session=1, simulated=True, answer=posted,
                     playback=None, timestamp="2026-11-25T00:00:00+00:00")  # fmt: skip
     assert (row["item"], row["response"], row["screen"]) == ("confidence", "3", "toy_confidence")
-    with pytest.raises(AnswerError, match="level: expected 1, 2 or 3"):
-        study.row(participant="P01", session=1, simulated=True, answer={**posted, "level": 7},
+    with pytest.raises(AnswerError, match="value: expected 1, 2 or 3"):
+        study.row(participant="P01", session=1, simulated=True, answer={**posted, "value": 7},
                   playback=None, timestamp="2026-11-25T00:00:00+00:00")  # fmt: skip
 
     # the contract with its jsPsych plugin
     info = plugin_parameters(TOY_PLUGIN)
     assert all(not _meets(info, s) for s in served)
+
+
+@pytest.mark.slow
+def test_a_toy_screen_kind_is_answered_in_chromium(toy_kind: type[Screen], tmp_path: Path) -> None:
+    """The browser part: the session page loads the kind's plugin, a simulated participant in
+    headless Chromium clicks its buttons, and every answer is stored as the lab would log it."""
+    import re
+
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from facelab.experiment.cli import main
+    from facelab.experiment.online.browser import SimulatedBrowser
+    from facelab.experiment.online.db import Action, Participant, Response
+    from facelab.experiment.online.serve import BackgroundServer, prepare_server
+
+    text = protocol_path("kato2021").read_text(encoding="utf-8")
+    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
+    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
+    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
+    text = text.replace("    sets: 2\n", "    sets: 1\n")
+    path = tmp_path / "short.yaml"
+    path.write_text(text, encoding="utf-8")
+    argv = ["render", str(path), "--out", str(tmp_path / "clips"), "--size", "160x90"]
+    assert main([*argv, "--fps", "10", "--quiet"]) == 0
+    server, _ = prepare_server(
+        load_protocol(path), protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    # place 3: the timeline it appears in (the first participant's, after each trial's VAS)
+    server.study._screens["P0001/1"] = _with_confidence(server.study.screens("P0001"))
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        browser = SimulatedBrowser(server, bg.url, 1, screenshots=shots)
+        assert browser.run(timeout_s=300) == "complete"
+    assert (shots / "toy_confidence.png").stat().st_size > 1000  # the page drew its buttons
+    with Session(server.engine) as db:
+        p = db.scalars(select(Participant).where(Participant.participant == "P0001")).one()
+        rows = [r.row for r in db.scalars(select(Response).where(Response.participant_pk == p.pk))]
+        clicked = {(a.record["trial_index"], a.record["item"]): a.record["value"]
+                   for a in db.scalars(select(Action))}  # fmt: skip
+    confidence = [r for r in rows if r["item"] == "confidence"]
+    trials = {r["trial_index"] for r in rows if r["item"] != "confidence"}
+    assert {r["trial_index"] for r in confidence} == trials and len(confidence) == len(trials)
+    assert {r["screen"] for r in confidence} == {"toy_confidence"}
+    for r in confidence:  # the button clicked is the answer stored
+        assert r["response"] == str(clicked[(r["trial_index"], "confidence")])

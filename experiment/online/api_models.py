@@ -29,6 +29,12 @@ class AnswerIn(_Strict):
     rating: float | None = Field(None, ge=-1e6, le=1e6)
     choice: int | None = Field(None, ge=1, le=2)
     label: ItemId | None = None
+    # the answer of a screen kind added to facelab (its Screen.answer reads and checks it)
+    value: (
+        Annotated[float, Field(ge=-1e6, le=1e6)]
+        | Annotated[str, StringConstraints(max_length=64)]
+        | None
+    ) = None
     timestamp: Iso
     clip_onset: float | None = Field(None, ge=0, le=1e7)
     clip_frames_dropped: int | None = Field(None, ge=0, le=1_000_000)

@@ -19,6 +19,7 @@ from facelab.experiment.online.server import (
     WEB,
     RefusedError,
     StudyServer,
+    _own_plugin,
 )
 
 __all__ = ["create_app"]
@@ -83,6 +84,14 @@ def create_app(server: StudyServer) -> Any:
     # the page assets, listed once: a request names one of them or gets 404 (the name never
     # reaches the file system, so no path trick or over-long name can)
     assets = {p.name: p for p in (WEB / "static").iterdir() if p.is_file()}
+
+    @app.get("/plugins/{name}")
+    def plugin(name: str) -> FileResponse:
+        """The jsPsych plugin of a screen kind added to facelab (``Screen.plugin_js``)."""
+        path = _own_plugin(name.removesuffix(".js")) if name.endswith(".js") else None
+        if path is None or not path.is_file():
+            raise RefusedError(404, "no such plugin")
+        return FileResponse(path, media_type="text/javascript")
 
     @app.get("/static/{name}")
     def static(name: str) -> FileResponse:

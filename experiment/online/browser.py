@@ -106,6 +106,7 @@ class SimulatedBrowser:
     driver: Any = None
     given: int = 0
     shots: set[str] = field(default_factory=set)
+    texts: dict[str, str] = field(default_factory=dict)  # role -> the text screen's words
 
     def participant(self) -> tuple[Participant, str]:
         token = simulated_token(self.server, self.k)
@@ -216,6 +217,8 @@ class SimulatedBrowser:
                     d.find_element(By.ID, "jspsych-fullscreen-btn").click()
                 elif kind == "text":
                     self._shot(f"text-{state.get('role')}")
+                    shown = d.find_element(By.CSS_SELECTOR, "#app [data-facelab=text]").text
+                    self.texts[str(state.get("role"))] = shown
                     d.find_element(By.CSS_SELECTOR, "[data-facelab=next]").click()
                 elif kind == "vas":
                     trial = state["trial"]  # None on the practice trial (never logged)
@@ -240,7 +243,9 @@ class SimulatedBrowser:
                     self._shot("vas")
                     d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
                     self.given += screen is not None  # practice answers are not counted
-                elif kind in ("choice_2afc", "identify"):
+                elif d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]"):
+                    # a screen answered by one of its option buttons: 2AFC, identification
+                    # and any kind added to facelab that draws them
                     trial = state["trial"]
                     screen = screen_for(trial, kind)
                     if screen is None:  # the practice trial: any answer

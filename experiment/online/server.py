@@ -62,7 +62,7 @@ from facelab.experiment.online.db import (
 )
 from facelab.experiment.online.limits import Clock, RateLimiter, TokenCache
 from facelab.experiment.online.study import AnswerError, OnlineStudy
-from facelab.experiment.timeline import Playback, needed_clips
+from facelab.experiment.timeline import SCREEN_KINDS, Playback, needed_clips
 
 __all__ = ["RefusedError", "ServeConfig", "StudyServer", "token_sha256"]
 
@@ -82,6 +82,13 @@ ADMIN_HEADER = "X-Facelab-Admin"
 TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
 RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
 
+
+
+def _own_plugin(kind: str) -> Path | None:
+    """The jsPsych plugin file a screen kind added to facelab brings (None for the built-in
+    kinds, whose plugins are in web/static/plugins.js)."""
+    cls = SCREEN_KINDS.get(kind)
+    return None if cls is None else cls.plugin_js
 
 
 def token_sha256(token: str) -> str:
@@ -296,6 +303,9 @@ class StudyServer:
             "answered": len(answered & planned),
             "clips": clips,
             "timeline": timeline,
+            "plugins": sorted(
+                {f"/plugins/{s['kind']}.js" for s in timeline if _own_plugin(s["kind"])}
+            ),
         }
 
     def store_answer(self, p: Participant, answer: AnswerIn) -> dict[str, Any]:

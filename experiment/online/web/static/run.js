@@ -32,11 +32,17 @@ const FACELAB_UI = {
   const status = facelabEl("div", "facelab-status"); document.body.appendChild(status);
   FacelabOutbox.onChange((n) => { status.textContent = n ? `${n} …` : ""; });
 
+  for (const src of state.plugins || []) {  // the plugins of screen kinds added to facelab
+    await new Promise((res, rej) => {
+      const s = document.createElement("script"); s.src = src; s.onload = res; s.onerror = rej;
+      document.head.appendChild(s);
+    });
+  }
   app.textContent = "";
   const jsPsych = initJsPsych({ display_element: "app" });
   const timeline = [];
   if (state.resumed) {
-    timeline.push({ type: FacelabText, screen: { role: "resume", text: ui.resume } });
+    timeline.push({ type: FacelabText, kind: "text", role: "resume", text: ui.resume });
   } else if (state.consent) {
     timeline.push({ type: jsPsychHtmlButtonResponse, stimulus: "", choices: [ui.agree],
       on_load: () => {
