@@ -209,7 +209,7 @@ def test_user_tables_that_are_not_utf8_or_empty_get_clear_errors(
         err = capsys.readouterr().err
         assert "latin.csv" in err and ("UTF-8" in err or "utf-8" in err), err
     assert main(["behaviour", "fit", str(empty), "--out", str(tmp_path / "l.json")]) == 2
-    assert "empty.csv: not readable as a CSV table" in capsys.readouterr().err
+    assert "empty.csv: not readable as a CSV/TSV table" in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:
         main(["bench", "render", "--runs", "0"])
     assert info.value.code == 2
