@@ -7,6 +7,7 @@ from __future__ import annotations
 import pandas as pd
 
 from facelab.analysis.integrity import DataCheck
+from facelab.analysis.presentation import trials_shown
 
 __all__ = ["pilot_items", "pilot_sessions"]
 
@@ -17,10 +18,11 @@ def pilot_sessions(data: pd.DataFrame, check: DataCheck) -> pd.DataFrame:
     frames dropped."""
     rows = []
     expected = check.sessions.set_index(["participant", "session"])["expected"]
+    shown = trials_shown(data)
     for (pid, ses), g in data.groupby(["participant", "session"], sort=True):
         stamps = pd.to_datetime(g["timestamp"], errors="coerce", utc=True).dropna()
-        trials = g.drop_duplicates("trial_index")
-        dropped = pd.to_numeric(trials["clip_frames_dropped"], errors="coerce").fillna(0)
+        mine = shown[(shown["participant"] == pid) & (shown["session"] == ses)]
+        dropped = mine["dropped"].fillna(0)
         rows.append(
             {
                 "participant": pid,

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-__all__ = ["QUALITY_COLUMNS", "exclude_dropped", "presentation_quality"]
+__all__ = ["QUALITY_COLUMNS", "exclude_dropped", "presentation_quality", "trials_shown"]
 
 QUALITY_COLUMNS = (
     "stimulus_set",
@@ -20,7 +20,7 @@ QUALITY_COLUMNS = (
 _TRIAL = ["participant", "session", "trial_index"]
 
 
-def _trials(data: pd.DataFrame) -> pd.DataFrame:
+def trials_shown(data: pd.DataFrame) -> pd.DataFrame:
     """One row per shown trial (its responses share the clip): the keys, the stimulus set,
     the condition and the frames dropped (NaN when the log has no playback record)."""
     if data.empty:
@@ -39,10 +39,9 @@ def presentation_quality(
     dropped in all and at most in one trial, and trials excluded (``excluded``: responses
     left out by :func:`exclude_dropped`)."""
     both = data if excluded is None or excluded.empty else pd.concat([data, excluded])
-    trials = _trials(both)
-    out_keys = (
-        set(map(tuple, _trials(excluded)[_TRIAL].to_numpy())) if excluded is not None else set()
-    )
+    trials = trials_shown(both)
+    gone = trials_shown(excluded) if excluded is not None else None
+    out_keys = set() if gone is None else set(map(tuple, gone[_TRIAL].to_numpy()))
     trials["excluded"] = [tuple(k) in out_keys for k in trials[_TRIAL].to_numpy()]
     rows = []
     for (sset, cond), part in trials.groupby(["stimulus_set", "condition"], sort=True):
@@ -72,7 +71,7 @@ def exclude_dropped(
     kept, excluded = data[~over].reset_index(drop=True), data[over].reset_index(drop=True)
     if excluded.empty:
         return kept, excluded, None
-    per = _trials(excluded).groupby("condition").size()
+    per = trials_shown(excluded).groupby("condition").size()
     listed = ", ".join(f"{c}: {n}" for c, n in per.items())
     note = (
         f"excluded {len(excluded)} responses of {int(per.sum())} trials whose clip dropped more "

@@ -76,7 +76,7 @@ def open_gltf(path: Path) -> tuple[pygltflib.GLTF2, list[bytes]]:
     raw = path.read_bytes()
     text = _glb_json(raw, path) if suffix in (".glb", ".vrm") else _gltf_json(raw, path)
     try:
-        json.loads(text)
+        json.loads(text)  # parsed again by pygltflib: its own reading maps attributes too
     except ValueError as exc:
         raise AvatarError(
             f"{path}: its glTF JSON is not valid JSON (at character {getattr(exc, 'pos', '?')} "

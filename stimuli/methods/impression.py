@@ -57,16 +57,10 @@ class Impression(Method):
     def input_problems(  # type: ignore[override]
         self, params: ImpressionParams, *, base_dir: Path
     ) -> Iterator[tuple[tuple[str, ...], str]]:
-        try:
-            model = ImpressionModel.load(base_dir / params.model)
+        try:  # the whole model, as rendering loads it (its header and expression are
+            ImpressionModel.load(base_dir / params.model)  # checked with the protocol)
         except FacelabError as exc:
             yield ("params", "model"), str(exc)
-        else:
-            if params.expression not in model.expressions:
-                yield ("params", "expression"), (
-                    f"the model has no expression {params.expression!r}; it has "
-                    f"{', '.join(model.expressions)}"
-                )
         if params.speech is not None:
             yield from VowelBlend().input_problems(
                 params.speech, base_dir=base_dir, where=("params", "speech")
