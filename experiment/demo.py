@@ -20,9 +20,13 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
+
+if TYPE_CHECKING:
+    from facelab.experiment.cli.common import GridProgress
 
 __all__ = ["DEFAULT_PROTOCOL", "run_demo"]
 
@@ -37,13 +41,13 @@ def run_demo(
     seed: int = 2021,
     size: tuple[int, int] | None = None,
     fps: int | None = None,
-    progress: Callable[[str, int], Callable[[], None]] | None = None,
+    progress: GridProgress | None = None,
     say: Callable[[str], None] = print,
 ) -> dict[str, Path | float | int]:
     from facelab.analysis import run
     from facelab.experiment.cli.analysis_cmds import print_layout
     from facelab.experiment.simulate import simulate_study
-    from facelab.stimuli.render.build import build_clips, contact_sheets, settings_for
+    from facelab.stimuli.render.build import build_clips, contact_sheets, plan, settings_for
 
     t0 = time.perf_counter()
     protocol = load_protocol(protocol_path)
@@ -54,6 +58,8 @@ def run_demo(
         settings = replace(settings, width=size[0], height=size[1])
     clips = out / "clips"
     t = time.perf_counter()
+    if progress is not None:
+        progress.start(len(plan(protocol)))
     rows = build_clips(
         protocol,
         protocol_path=protocol_path,

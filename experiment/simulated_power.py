@@ -49,6 +49,7 @@ from facelab.analysis.tasks import (
 )
 from facelab.errors import AnalysisError, StageError
 from facelab.experiment.simulate import check_effects, simulated_rows
+from facelab.grid import Cluster, GridTask, run_grid
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 
 __all__ = [
@@ -147,6 +148,24 @@ def _one_study(
     return protocol_tests(data, protocol), protocol_estimates(data, protocol)
 
 
+def _study_chunk(studies: list) -> list:
+    return [_one_study(study) for study in studies]
+
+
+def _on_cluster(studies: list, cluster: Cluster) -> list:
+    """The studies' outcomes, in study order, computed on ``cluster`` (chunks of studies: one
+    study is milliseconds, less than a task's round trip)."""
+    size = max(1, len(studies) // 64)
+    chunks = [studies[i : i + size] for i in range(0, len(studies), size)]
+    report = run_grid(
+        [GridTask(f"studies-{i:05d}", _study_chunk, (chunk,)) for i, chunk in enumerate(chunks)],
+        cluster=cluster,
+    )
+    if report.failed:
+        raise StageError("; ".join(f"{k}: {why}" for k, why in sorted(report.failed.items())))
+    return [o for i in range(len(chunks)) for o in report.results[f"studies-{i:05d}"]]
+
+
 def simulated_power(
     protocol: Protocol,
     *,
@@ -157,12 +176,15 @@ def simulated_power(
     effects: Mapping[str, float] | None = None,
     progress: Callable[[int, float], None] | None = None,
     jobs: int = 1,
+    cluster: Cluster | None = None,
 ) -> ProtocolSimulation:
     """Power of every test and precision of every estimate of ``protocol`` for each number
     of participants in ``n_values`` (``sims`` simulated studies each, drawn from ``rng``).
     ``effects`` replaces ``simulation.effects``; ``progress(n, seconds)`` is called after
     each n. ``jobs`` > 1 runs the studies in that many processes; every study draws from its
-    own generator spawned from ``rng`` beforehand, so the result does not depend on ``jobs``."""
+    own generator spawned from ``rng`` beforehand, so the result does not depend on ``jobs``.
+    A Dask ``cluster`` (``--workers``/``--scheduler``) takes the place of ``jobs``: the
+    studies go to it in chunks, with the same result."""
     if sims < 2:
         raise StageError(f"--sims must be at least 2, got {sims}")
     bad = [n for n in n_values if n < 2]
@@ -182,7 +204,9 @@ def simulated_power(
         p_values: dict[tuple[str, str], list[float]] = {}
         estimates: dict[str, list[float]] = {}
         studies = [(protocol, ids, study_rng, effects) for study_rng in rng.spawn(sims)]
-        if jobs > 1:
+        if cluster is not None and not cluster.serial:
+            outcomes = _on_cluster(studies, cluster)
+        elif jobs > 1:
             with ProcessPoolExecutor(max_workers=jobs) as pool:
                 outcomes = list(pool.map(_one_study, studies, chunksize=max(1, sims // jobs // 4)))
         else:

@@ -37,6 +37,9 @@ ALLOWED = {
 CONFINED = {
     "psychopy": {"facelab.experiment.runner", "facelab.experiment.window"},
     "pyrender": {"facelab.stimuli.render.renderer"},
+    "dask": {"facelab.grid"},
+    "distributed": {"facelab.grid"},
+    "dask_jobqueue": set(),  # the README's SLURM recipe: the user's script, never facelab
 }
 
 

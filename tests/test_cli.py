@@ -181,13 +181,12 @@ def test_every_shipped_protocol_copied_out_validates_where_it_lands(
 
 
 def test_clip_progress_draws_nothing_into_logs(capsys: pytest.CaptureFixture[str]) -> None:
-    from facelab.experiment.cli.common import ClipProgress
+    from facelab.experiment.cli.common import GridProgress
 
-    progress = ClipProgress(quiet=False)  # stderr is captured here, not a terminal
-    for name in ("a", "b"):
-        tick = progress(name, 3)
-        for _ in range(3):
-            tick()
+    progress = GridProgress(quiet=False)  # stderr is captured here, not a terminal
+    progress.start(2)
+    progress("a", "done", 1, 0, 0)
+    progress("b", "failed", 1, 1, 0)
     progress.close()
     captured = capsys.readouterr()
     assert captured.err == "" and captured.out == ""

@@ -11,6 +11,8 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    cluster_of,
+    cluster_options,
     deprecated,
     force_option,
     output_dir,
@@ -330,6 +332,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
     result = simulated_power(
         protocol, n_values=n_values, sims=sims, rng=np.random.default_rng(args.sim_seed),
         alpha=args.alpha, effects=effects, progress=progress, jobs=args.jobs,
+        cluster=cluster_of(args),
     )  # fmt: skip
     table = result.power
     if plot is not None and not table.empty:
@@ -533,6 +536,7 @@ def register(add: AddCommand) -> None:
         help="with --simulate: processes to simulate in (default: one per CPU); the result "
         "does not depend on it",
     )
+    cluster_options(p, what="simulated studies (with --simulate; instead of --jobs)")
     p.add_argument(
         "--sims",
         type=whole(lo=1),

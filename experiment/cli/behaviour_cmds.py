@@ -10,6 +10,9 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    GridProgress,
+    cluster_of,
+    cluster_options,
     force_option,
     output_dir,
     output_file,
@@ -174,19 +177,26 @@ def _render(args: argparse.Namespace) -> int:
     out = output_dir(args.out, option="--out")
     size = parse_size(args.size) or (1280, 720)
     avatar = load(Path(args.avatar)) if args.avatar else default_head()
-    rows = render_behaviour_clips(
-        text=args.text,
-        emotions=[parse_emotion(e) for e in args.emotion],
-        modes=args.modes,
-        duration_s=args.duration_s or 30.0,
-        seed=args.seed,
-        out=out,
-        avatar=avatar,
-        settings=RenderSettings(width=size[0], height=size[1], msaa=args.msaa),
-        fps=args.fps,
-        lead_s=args.lead_s,
-        library=args.library or "default",
-    )
+    progress = GridProgress(quiet=False, prefix="render")
+    progress.start(len(args.emotion) * len(args.modes))
+    try:
+        rows = render_behaviour_clips(
+            text=args.text,
+            emotions=[parse_emotion(e) for e in args.emotion],
+            modes=args.modes,
+            duration_s=args.duration_s or 30.0,
+            seed=args.seed,
+            out=out,
+            avatar=avatar,
+            settings=RenderSettings(width=size[0], height=size[1], msaa=args.msaa),
+            fps=args.fps,
+            lead_s=args.lead_s,
+            library=args.library or "default",
+            cluster=cluster_of(args),
+            progress=progress,
+        )
+    finally:
+        progress.close()
     print(f"wrote {len(rows)} clips with event logs and timelines, and clips.csv into {out}")
     return 0
 
@@ -295,6 +305,7 @@ def register(add: AddCommand) -> None:
     v.add_argument("--avatar", metavar="FILE", help="an avatar (default head)")
     v.add_argument("--out", required=True, metavar="DIR",
                    help="clip folder (clips of other emotions already there are kept)")  # fmt: skip
+    cluster_options(v)
 
     v = verb("sheet", "every unit of a library drawn on the head")
     library(v)

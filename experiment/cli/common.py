@@ -12,7 +12,10 @@ from facelab.errors import FacelabError
 
 __all__ = [
     "AddCommand",
+    "GridProgress",
     "Handler",
+    "cluster_of",
+    "cluster_options",
     "deprecated",
     "force_option",
     "output_dir",
@@ -234,32 +237,62 @@ def parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
     return effects
 
 
-class ClipProgress:
-    """Frame progress for clips rendered one after another: one tqdm bar at a time on a
-    terminal (a clip's bar closes when the next clip starts), nothing when ``quiet`` or when
-    stderr is not a terminal (logs and pipes get the per-clip lines instead of escape codes).
+class GridProgress:
+    """One bar over a grid of clips or simulations: done / failed / retried and the ETA, on a
+    terminal; nothing when ``quiet`` or when stderr is not a terminal (logs and pipes get the
+    per-clip lines and the closing summary instead of escape codes).
 
-    Pass the instance as a build's ``progress`` callback; call :meth:`close` at the end.
-    """
+    Call :meth:`start` with the number of tasks, pass the instance as a grid's ``progress``
+    callback, and call :meth:`close` at the end."""
 
-    def __init__(self, *, quiet: bool, prefix: str = "") -> None:
+    def __init__(self, *, quiet: bool, prefix: str = "", unit: str = "clip") -> None:
         import sys
 
         self._enabled = not quiet and sys.stderr.isatty()
         self._prefix = prefix
+        self._unit = unit
         self._bar = None
 
-    def __call__(self, name: str, total: int) -> Callable[[], None]:
+    def start(self, total: int) -> None:
         self.close()
-        if not self._enabled:
-            return lambda: None
-        from tqdm import tqdm
+        if self._enabled:
+            from tqdm import tqdm
 
-        bar = tqdm(total=total, desc=(self._prefix + name)[:40], unit="frame", leave=False)
-        self._bar = bar
-        return lambda: bar.update(1)
+            self._bar = tqdm(total=total, desc=self._prefix or None, unit=self._unit)
+
+    def __call__(self, key: str, event: str, done: int, failed: int, retried: int) -> None:
+        if self._bar is not None:
+            self._bar.update(1)
+            self._bar.set_postfix_str(f"{event} {key[:32]}; failed {failed}", refresh=False)
 
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+
+def cluster_options(parser: argparse.ArgumentParser, *, what: str = "clips") -> None:
+    """``--workers N`` / ``--scheduler ADDRESS``: where a grid's tasks run (default here)."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--workers",
+        type=whole(lo=1, hi=512),
+        metavar="N",
+        help=f"render/simulate the {what} on a local Dask cluster of N single-thread worker "
+        "processes (default: serially in this process)",
+    )
+    group.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help=f"send the {what} to a running Dask scheduler, e.g. tcp://host:8786 (its workers "
+        "started with `dask worker ADDRESS`; see the README's cluster section)",
+    )
+
+
+def cluster_of(args: argparse.Namespace):
+    """The :class:`facelab.grid.Cluster` the options ask for."""
+    from facelab.grid import Cluster
+
+    return Cluster(
+        workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None)
+    )

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from facelab.experiment.cli.common import (
     AddCommand,
-    ClipProgress,
+    GridProgress,
     deprecated,
     output_dir,
     parse_size,
@@ -22,7 +22,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from facelab.experiment.demo import DEFAULT_PROTOCOL, run_demo
 
     size = parse_size(args.size)
-    progress = ClipProgress(quiet=args.quiet, prefix="render ")
+    progress = GridProgress(quiet=args.quiet, prefix="render")
 
     try:
         run_demo(

@@ -10,6 +10,9 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    GridProgress,
+    cluster_of,
+    cluster_options,
     force_option,
     output_dir,
     output_file,
@@ -85,16 +88,23 @@ def _render(args: argparse.Namespace) -> int:
         lead_s=args.lead_s, onset_s=args.onset_s, hold_s=args.hold_s, offset_s=args.offset_s,
         ease=args.ease, k=args.k_ease,
     )  # fmt: skip
-    rows = render_levels(
-        model,
-        expression=args.expression[0],
-        levels=args.levels,
-        out=out,
-        avatar=avatar,
-        settings=RenderSettings(width=size[0], height=size[1], msaa=args.msaa),
-        fps=args.fps,
-        timing=timing,
-    )
+    progress = GridProgress(quiet=False, prefix="render")
+    progress.start(len(args.levels))
+    try:
+        rows = render_levels(
+            model,
+            expression=args.expression[0],
+            levels=args.levels,
+            out=out,
+            avatar=avatar,
+            settings=RenderSettings(width=size[0], height=size[1], msaa=args.msaa),
+            fps=args.fps,
+            timing=timing,
+            cluster=cluster_of(args),
+            progress=progress,
+        )
+    finally:
+        progress.close()
     for r in rows:
         print(
             f"{r['path']}: q {r['q_intended']:g} -> realised {r['q_realised']:.3f}, "
@@ -204,6 +214,7 @@ def register(add: AddCommand) -> None:
     v.add_argument("--k-ease", type=real(above=0), default=5.0, help="sigmoid steepness (eq. 4)")
     v.add_argument("--out", required=True, metavar="DIR",
                    help="clip folder (clips of other levels already there are kept)")  # fmt: skip
+    cluster_options(v)
 
     v = verb("synth", "a SYNTHETIC expression database with a known direction")
     v.add_argument("--people", type=whole(lo=2), default=40, help="people")

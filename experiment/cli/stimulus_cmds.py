@@ -8,7 +8,9 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
-    ClipProgress,
+    GridProgress,
+    cluster_of,
+    cluster_options,
     deprecated,
     force_option,
     output_dir,
@@ -48,12 +50,16 @@ def _cmd_render(args: argparse.Namespace) -> int:
         option="--out",
     )
     settings = _render_overrides(args, protocol)
-    progress = ClipProgress(quiet=args.quiet)
+    cluster = cluster_of(args)
+    progress = GridProgress(quiet=args.quiet, prefix="render")
     t0 = time.perf_counter()
+    n = len(plan(protocol))
     print(
-        f"rendering {len(plan(protocol))} clips of {protocol.study.id!r} at {settings.width}x"
-        f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out}"
+        f"rendering {n} clips of {protocol.study.id!r} at {settings.width}x"
+        f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out} "
+        f"({cluster.describe()})"
     )
+    progress.start(n)
     try:
         rows = build_clips(
             protocol,
@@ -61,6 +67,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
             out=out,
             settings=settings,
             fps=args.fps,
+            cluster=cluster,
             progress=progress,
             log=(lambda s: None) if args.quiet else print,
         )
@@ -223,6 +230,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("--size", metavar="WxH", help="override the protocol's resolution")
     p.add_argument("--fps", type=whole(lo=1, hi=240), help="override the protocol's frame rate")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    cluster_options(p)
 
     p = add(
         "track", "analyse one stimulus's speech: viseme track as CSV and a vowel plot", _cmd_track

@@ -11,6 +11,7 @@ while listening); for each emotion and behaviour mode the plan is made with the 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,14 +19,25 @@ import numpy as np
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import BehaviourError
 from facelab.formats import write_manifest
+from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
 from facelab.stimuli.avatar.mesh import Avatar
-from facelab.stimuli.behaviour.clip import behaviour_for_clip
+from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip
 from facelab.stimuli.behaviour.library import ROTATIONS, Library, Unit, default_library
 from facelab.stimuli.behaviour.plan import SpeechCues, blend_pose, complete_emotion
 from facelab.stimuli.behaviour.realise import BehaviourFrames, apply_to_weights, curve_values
 from facelab.stimuli.methods import DriveInput, drive
-from facelab.stimuli.render.clip import encode, frame_weights
+from facelab.stimuli.render.clip import frame_weights
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.task import (
+    ClipFrames,
+    RenderedClip,
+    audio_sha256,
+    close_renderer,
+    finish_grid,
+    render_clip,
+    shared_avatar,
+    write_clip,
+)
 from facelab.stimuli.speech.analyser import analyze
 from facelab.stimuli.speech.audio import Speech
 from facelab.stimuli.speech.tts import synthesize
@@ -39,7 +51,9 @@ BEHAVIOUR_CLIP_COLUMNS = (
 
 
 def _write_json(path: Path, data: dict) -> None:
-    path.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    tmp.replace(path)
 
 
 def render_behaviour_clips(
@@ -56,6 +70,8 @@ def render_behaviour_clips(
     lead_s: float = 0.5,
     library: str = "default",
     base_dir: Path = Path("."),
+    cluster: Cluster = SERIAL,
+    progress: Progress | None = None,
     log=print,
 ) -> list[dict]:
     """Render every (emotion, mode) clip; returns their rows of ``out/clips.csv`` (which keeps
@@ -90,7 +106,12 @@ def render_behaviour_clips(
     setting_for = {
         m: (library if (library != "default" and m == "composite") else m) for m in modes
     }
-    with Renderer(avatar, settings) as renderer:
+    framing = shared_avatar(avatar)
+    audio_hash = audio_sha256(audio)
+    rows: dict[str, dict] = {}
+    plans: dict[str, ClipBehaviour | None] = {}
+
+    def tasks() -> Iterator[GridTask]:
         for emo in emotions:
             complete_emotion(emo)
             name = "+".join(f"{k}{v:g}" if v != 1 else k for k, v in emo.items())
@@ -101,36 +122,45 @@ def render_behaviour_clips(
                     speech=speech, pad_s=lead_s, fps=fps, n_frames=n_frames,
                     weights=speech_weights, avatar=avatar,
                 )  # fmt: skip
-                if beh is None:
-                    frames = renderer.frames(speech_weights)
-                else:
-                    frames = renderer.frames(beh.weights, beh.poses)
-                mp4 = out / f"{clip_id}.mp4"
-                info = encode(
-                    frames, audio=audio, out=mp4, fps=fps, width=settings.width,
-                    height=settings.height, n_frames=n_frames,
-                )  # fmt: skip
+                plans[clip_id] = beh
                 counts = beh.plan.layer_counts() if beh else {}
-                if beh is not None:
-                    _write_json(out / f"{clip_id}.behaviour.json", beh.log())
-                    fig = plan_timeline_figure(
-                        beh.plan, cues=cues, phones=speech.phones, offset_s=lead_s,
-                        title=f"{clip_id}",
-                    )  # fmt: skip
-                    fig.savefig(out / f"{clip_id}.timeline.png")
-                    plt.close(fig)
-                rows.append(
-                    {
-                        "clip_id": clip_id, "emotion": name, "mode": mode, "path": mp4.name,
-                        "duration_s": round(info.duration_s, 6), "fps": fps,
-                        "width": settings.width, "height": settings.height,
-                        "sha256": info.sha256,
-                        **{f"n_{k}": counts.get(k, 0) for k in
-                           ("posture", "mannerism", "gesture", "blink")},
-                        "blinks_per_min": round(counts.get("blink", 0) / duration_s * 60, 2),
-                    }
+                rows[clip_id] = {
+                    "clip_id": clip_id, "emotion": name, "mode": mode, "path": f"{clip_id}.mp4",
+                    "duration_s": None, "fps": fps,
+                    "width": settings.width, "height": settings.height,
+                    "sha256": None,
+                    **{f"n_{k}": counts.get(k, 0) for k in
+                       ("posture", "mannerism", "gesture", "blink")},
+                    "blinks_per_min": round(counts.get("blink", 0) / duration_s * 60, 2),
+                }  # fmt: skip
+                frames = ClipFrames(
+                    clip_id=clip_id,
+                    weights=speech_weights if beh is None else beh.weights,
+                    poses=None if beh is None else tuple(beh.poses),
+                    audio=audio, audio_sha256=audio_hash, fps=fps, settings=settings,
+                    framing_sha256=framing.sha256, drawn_sha256=framing.sha256,
                 )  # fmt: skip
-                log(f"  rendered {clip_id}: {json.dumps(beh.plan.counts()) if beh else 'none'}")
+                yield GridTask(clip_id, render_clip, (frames, framing, framing))
+
+    def finished(clip_id: str, rendered: RenderedClip) -> None:
+        info = write_clip(rendered, out=out / rows[clip_id]["path"])
+        rows[clip_id].update(duration_s=round(info.duration_s, 6), sha256=info.sha256)
+        beh = plans[clip_id]
+        if beh is not None:
+            _write_json(out / f"{clip_id}.behaviour.json", beh.log())
+            fig = plan_timeline_figure(
+                beh.plan, cues=cues, phones=speech.phones, offset_s=lead_s, title=f"{clip_id}",
+            )  # fmt: skip
+            fig.savefig(out / f"{clip_id}.timeline.png")
+            plt.close(fig)
+        log(f"  rendered {clip_id}: {json.dumps(beh.plan.counts()) if beh else 'none'}")
+
+    try:
+        report = run_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
+    finally:
+        close_renderer()
+    finish_grid(report, rows=list(rows.values()), out=out, log=log)
+    rows = list(rows.values())
     for note in write_manifest(out, rows, columns=BEHAVIOUR_CLIP_COLUMNS, merge=True):
         log(note)
     return rows

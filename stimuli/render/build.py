@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,19 +24,13 @@ import numpy as np
 
 from facelab.errors import StageError
 from facelab.formats import behaviour_log_path, write_manifest
+from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
 from facelab.protocol import Condition, Protocol
 from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, clip_seed
 from facelab.stimuli.methods import DriveInput, check_playable, get
 from facelab.stimuli.methods.types import BlendshapeTrack
-from facelab.stimuli.render.clip import (
-    ClipInfo,
-    encode,
-    frame_weights,
-    padded_audio,
-    sha256_file,
-    weights_at,
-)
+from facelab.stimuli.render.clip import frame_weights, padded_audio, sha256_file, weights_at
 from facelab.stimuli.render.clipspec import (
     CLIP_COLUMNS,
     RENDER_VERSION,
@@ -45,6 +40,16 @@ from facelab.stimuli.render.clipspec import (
 )
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.task import (
+    ClipFrames,
+    RenderedClip,
+    audio_sha256,
+    close_renderer,
+    finish_grid,
+    render_clip,
+    shared_avatar,
+    write_clip,
+)
 from facelab.stimuli.speech.audio import Speech
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack
 from facelab.stimuli.speech.vowels import vowel_segments
@@ -140,9 +145,10 @@ def _plan_hash(behaviour: ClipBehaviour) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+def _write_json(path: Path, data: dict, *, indent: int = 1, ascii_only: bool = False) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    text = json.dumps(data, indent=indent, ensure_ascii=ascii_only)
+    tmp.write_text(text + "\n", encoding="utf-8")
     tmp.replace(path)
 
 
@@ -153,20 +159,29 @@ def build_clips(
     out: Path,
     settings: RenderSettings | None = None,
     fps: int | None = None,
-    progress: Callable[[str, int], Callable[[], None]] | None = None,
+    cluster: Cluster = SERIAL,
+    progress: Progress | None = None,
     log: Callable[[str], None] = print,
 ) -> list[dict]:
-    """Render (or reuse) every clip; write ``out/clips.csv``; return its rows."""
+    """Render (or reuse) every clip - here, or on the Dask ``cluster`` - and write
+    ``out/clips.csv``; return its rows. Every method is driven here; workers get each clip's
+    frame weights, poses and audio (:mod:`facelab.stimuli.render.task`). Clips that fail are
+    listed in one StageError after the others are written (no ``clips.csv`` then);
+    ``progress(clip_id, event, done, failed, retried)`` is called per clip (event ``reused``
+    for a clip whose file already matches)."""
     base_dir = protocol_path.parent
     settings = settings or settings_for(protocol)
     fps = fps or protocol.rendering.fps
     avatar = load_avatar(protocol, base_dir=base_dir)
-    avatar_hash = avatar.content_hash()
+    avatar_ref = shared_avatar(avatar)
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
+    waiting: dict[str, tuple[dict, dict, ClipBehaviour | None]] = {}
     cache: dict[str, tuple[Speech, tuple[VisemeTrack, VisemeTrack | None]]] = {}
-    renderer: Renderer | None = None
-    try:
+    reused = 0
+
+    def tasks() -> Iterator[GridTask]:
+        nonlocal reused
         for job in plan(protocol):
             key_stim = f"{job.stimulus_set}/{job.stimulus.id}"
             if key_stim not in cache:
@@ -192,7 +207,7 @@ def build_clips(
                         "audio": hashlib.sha256(audio.samples.tobytes()).hexdigest(),
                         "sample_rate": audio.sample_rate,
                         "track": _track_hash(bs),
-                        "avatar": avatar_hash,
+                        "avatar": avatar_ref.sha256,
                         "method": cond.method,
                         "params": cond.params,
                         "settings": settings.__dict__,
@@ -207,8 +222,21 @@ def build_clips(
             spec = clip_spec_hash(protocol, job, base_dir=base_dir)
             mp4 = out / f"{job.clip_id}.mp4"
             meta = out / f"{job.clip_id}.json"
-            info: ClipInfo | None = None
-            status = "rendered"
+            row = {
+                "clip_id": job.clip_id,
+                "stimulus_set": job.stimulus_set,
+                "stimulus": job.stimulus.id,
+                "condition": job.condition,
+                "path": mp4.name,
+                "duration_s": None,
+                "fps": fps,
+                "width": settings.width,
+                "height": settings.height,
+                "sha256": None,
+                "spec_sha256": spec,
+                "status": "rendered",
+            }
+            rows.append(row)
             if mp4.exists() and meta.exists():
                 saved = json.loads(meta.read_text())
                 if (
@@ -216,86 +244,76 @@ def build_clips(
                     and saved.get("spec_sha256") == spec
                     and saved.get("sha256") == sha256_file(mp4)
                 ):
-                    info = ClipInfo(
-                        mp4,
-                        saved["duration_s"],
-                        fps,
-                        settings.width,
-                        settings.height,
-                        saved["frames"],
-                        saved["sha256"],
+                    row.update(
+                        duration_s=round(saved["duration_s"], 6),
+                        sha256=saved["sha256"],
+                        status="unchanged",
                     )
-                    status = "unchanged"
+                    reused += 1
                     log(f"  unchanged {job.clip_id} (reused)")
-            if info is None:
-                if renderer is None:
-                    renderer = Renderer(avatar, settings).__enter__()
-                tick = progress(job.clip_id, n_frames) if progress else None
-                frames = (
-                    renderer.frames(weights)
-                    if behaviour is None
-                    else renderer.frames(behaviour.weights, behaviour.poses)
-                )
-                info = encode(
-                    frames,
-                    audio=audio,
-                    out=mp4,
-                    fps=fps,
-                    width=settings.width,
-                    height=settings.height,
-                    n_frames=n_frames,
-                    on_frame=tick,
-                )
-                meta.write_text(
-                    json.dumps(
-                        {
-                            "input_hash": key,
-                            "spec_sha256": spec,
-                            "sha256": info.sha256,
-                            "frames": n_frames,
-                            "duration_s": info.duration_s,
-                            "method": cond.method,
-                            "params": cond.params,
-                            "track_source": (
-                                "phonemes of the transcript aligned to the recording"
-                                if job.stimulus.transcript
-                                else "silence"
-                                if job.stimulus.silence_s is not None
-                                else "audio analysis"
-                            ),
-                            "avatar": avatar.name,
-                            "avatar_kind": avatar.source.get("kind", "unknown"),
-                            "stand_in": stand_in(avatar, cond, base_dir=base_dir),
-                            **({"track_notes": bs.notes} if bs.notes else {}),
-                            **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
-                        },
-                        indent=2,
-                    )
-                    + "\n"
-                )
-                if behaviour is not None:
-                    _write_json(behaviour_log_path(out, job.clip_id), behaviour.log())
-                note = stand_in(avatar, cond, base_dir=base_dir)
-                log(f"  rendered {job.clip_id} ({n_frames} frames)" + (f"; {note}" if note else ""))
-            rows.append(
-                {
-                    "clip_id": job.clip_id,
-                    "stimulus_set": job.stimulus_set,
-                    "stimulus": job.stimulus.id,
-                    "condition": job.condition,
-                    "path": mp4.name,
-                    "duration_s": round(info.duration_s, 6),
-                    "fps": fps,
-                    "width": settings.width,
-                    "height": settings.height,
-                    "sha256": info.sha256,
-                    "spec_sha256": spec,
-                    "status": status,
-                }
+                    if progress is not None:
+                        progress(job.clip_id, "reused", reused, 0, 0)
+                    continue
+            note = stand_in(avatar, cond, base_dir=base_dir)
+            about = {
+                "input_hash": key,
+                "spec_sha256": spec,
+                "method": cond.method,
+                "params": cond.params,
+                "track_source": (
+                    "phonemes of the transcript aligned to the recording"
+                    if job.stimulus.transcript
+                    else "silence"
+                    if job.stimulus.silence_s is not None
+                    else "audio analysis"
+                ),
+                "avatar": avatar.name,
+                "avatar_kind": avatar.source.get("kind", "unknown"),
+                "stand_in": note,
+                **({"track_notes": bs.notes} if bs.notes else {}),
+                **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
+            }
+            waiting[job.clip_id] = (row, about, behaviour)
+            frames = ClipFrames(
+                clip_id=job.clip_id,
+                weights=weights if behaviour is None else behaviour.weights,
+                poses=None if behaviour is None else tuple(behaviour.poses),
+                audio=audio,
+                audio_sha256=audio_sha256(audio),
+                fps=fps,
+                settings=settings,
+                framing_sha256=avatar_ref.sha256,
+                drawn_sha256=avatar_ref.sha256,
             )
+            yield GridTask(job.clip_id, render_clip, (frames, avatar_ref, avatar_ref))
+
+    def finished(clip_id: str, rendered: RenderedClip) -> None:
+        row, about, behaviour = waiting.pop(clip_id)
+        info = write_clip(rendered, out=out / row["path"])
+        row.update(duration_s=round(info.duration_s, 6), sha256=info.sha256)
+        _write_json(
+            out / f"{clip_id}.json",
+            {
+                "input_hash": about["input_hash"],
+                "spec_sha256": about["spec_sha256"],
+                "sha256": info.sha256,
+                "frames": info.frames,
+                "duration_s": info.duration_s,
+                **{k: v for k, v in about.items() if k not in ("input_hash", "spec_sha256")},
+            },
+            indent=2,
+            ascii_only=True,
+        )
+        if behaviour is not None:
+            _write_json(behaviour_log_path(out, clip_id), behaviour.log())
+        note = about["stand_in"]
+        log(f"  rendered {clip_id} ({info.frames} frames)" + (f"; {note}" if note else ""))
+
+    try:
+        report = run_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
     finally:
-        if renderer is not None:
-            renderer.__exit__(None, None, None)
+        close_renderer()
+    finish_grid(report, rows=rows, out=out, log=log)
     write_manifest(out, rows, columns=CLIP_COLUMNS)
     return rows
 

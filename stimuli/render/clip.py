@@ -80,6 +80,13 @@ def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarra
     return out
 
 
+#: x264's thread count, fixed: its output depends on it, and left to itself it follows the
+#: CPUs this process may use - so a worker pinned to one core, or a machine with another
+#: number of cores, would write different bytes for the same clip. 3 is what x264 chose on
+#: the 2-core machine the shipped hashes were made on.
+X264_THREADS = 3
+
+
 def _ffmpeg() -> str:
     exe = shutil.which("ffmpeg")
     if exe is None:
@@ -196,6 +203,8 @@ def encode(
             str(audio.sample_rate),
             "-t",
             f"{duration:.6f}",
+            "-threads",
+            str(X264_THREADS),
             "-movflags",
             "+faststart",
             str(part),

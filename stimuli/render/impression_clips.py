@@ -17,11 +17,21 @@ import numpy as np
 
 from facelab.errors import StageError
 from facelab.formats import write_manifest
+from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.impression.model import ImpressionModel, envelope
-from facelab.stimuli.render.clip import encode
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.task import (
+    ClipFrames,
+    RenderedClip,
+    audio_sha256,
+    close_renderer,
+    finish_grid,
+    render_clip,
+    shared_avatar,
+    write_clip,
+)
 from facelab.stimuli.speech.audio import Speech
 
 __all__ = ["IMPRESSION_CLIP_COLUMNS", "Timing", "clip_name", "render_levels"]
@@ -104,6 +114,8 @@ def render_levels(
     settings: RenderSettings | None = None,
     fps: int = 30,
     timing: Timing = Timing(),
+    cluster: Cluster = SERIAL,
+    progress: Progress | None = None,
     log=print,
 ) -> list[dict]:
     """Render one clip per level into ``out``; write ``clips.csv`` (keeping the rows of other
@@ -111,11 +123,14 @@ def render_levels(
     (the peak face at each level and the direction's largest weights) and
     ``channels_<expression>.png`` (a few channels frame by frame through the highest level's
     clip); return the rows."""
-    from facelab.hashing import sha256_file, sha256_text
+    from facelab.hashing import sha256_text
     from facelab.stimuli.avatar import default_head
 
     if not levels:
         raise StageError("give at least one level")
+    twice = sorted({clip_name(expression, q) for q in levels if levels.count(q) > 1})
+    if twice:
+        raise StageError(f"levels given twice: {', '.join(twice)} (each level is one clip)")
     model.model(expression)
     out.mkdir(parents=True, exist_ok=True)
     settings = settings or RenderSettings(width=1280, height=720)
@@ -126,38 +141,49 @@ def render_levels(
     n = len(env)
     rate = 48_000
     silence = Speech(np.zeros(round(n / fps * rate), np.float32), rate, source="silence")
-    rows, peaks = [], []
+    audio_hash = audio_sha256(silence)
+    framing = shared_avatar(avatar)
     # of the model's content (canonical JSON), so a re-saved file keeps its hash
     model_hash = sha256_text(json.dumps(model.to_json(), sort_keys=True))
-    with Renderer(avatar, settings) as r:
-        for q in levels:
-            drawn, weights, info = _frames_for(model, avatar, expression, q, env)
-            if drawn is not avatar:
-                r.avatar = drawn  # same vertices and faces; only the target stack differs
-            name = clip_name(expression, q)
-            mp4 = out / f"{name}.mp4"
-            clip = encode(
-                r.frames(weights),
-                audio=silence, out=mp4, fps=fps, width=settings.width, height=settings.height,
-                n_frames=n,
-            )  # fmt: skip
-            peaks.append((drawn, weights[int(np.argmax(env))]))
-            rows.append(
-                {
-                    "clip_id": name,
-                    **info,
-                    "path": mp4.name,
-                    "duration_s": round(clip.duration_s, 6),
-                    "fps": fps,
-                    "width": settings.width,
-                    "height": settings.height,
-                    "sha256": sha256_file(mp4),
-                    "avatar": avatar.name,
-                    "space": model.space,
-                    "label": model.label,
-                    "model_sha256": model_hash,
-                }
-            )
+    rows: dict[str, dict] = {}
+    peaks: dict[str, tuple[Avatar, np.ndarray]] = {}
+    tasks = []
+    for q in levels:  # every level's frames are made here (cheap); workers draw and encode
+        drawn, weights, info = _frames_for(model, avatar, expression, q, env)
+        name = clip_name(expression, q)
+        drawn_ref = framing if drawn is avatar else shared_avatar(drawn)
+        frames = ClipFrames(
+            clip_id=name, weights=weights, poses=None, audio=silence, audio_sha256=audio_hash,
+            fps=fps, settings=settings, framing_sha256=framing.sha256,
+            drawn_sha256=drawn_ref.sha256,
+        )  # fmt: skip
+        tasks.append(GridTask(name, render_clip, (frames, framing, drawn_ref)))
+        peaks[name] = (drawn, weights[int(np.argmax(env))])
+        rows[name] = {
+            "clip_id": name,
+            **info,
+            "path": f"{name}.mp4",
+            "duration_s": None,
+            "fps": fps,
+            "width": settings.width,
+            "height": settings.height,
+            "sha256": None,
+            "avatar": avatar.name,
+            "space": model.space,
+            "label": model.label,
+            "model_sha256": model_hash,
+        }
+
+    def finished(name: str, rendered: RenderedClip) -> None:
+        clip = write_clip(rendered, out=out / rows[name]["path"])
+        rows[name].update(duration_s=round(clip.duration_s, 6), sha256=clip.sha256)
+
+    try:
+        report = run_grid(tasks, cluster=cluster, on_result=finished, progress=progress)
+    finally:
+        close_renderer()
+    finish_grid(report, rows=list(rows.values()), out=out, log=log)
+    rows = list(rows.values())
     notes = write_manifest(
         out, rows, columns=IMPRESSION_CLIP_COLUMNS, merge=True, provenance="model_sha256"
     )
@@ -167,7 +193,7 @@ def render_levels(
     # context is closed (pyrender's EGL platform holds one at a time)
     tiles = []
     with Renderer(avatar, RenderSettings(width=420, height=420, msaa=4, zoom=1.9)) as r:
-        for drawn, w in peaks:
+        for drawn, w in peaks.values():
             r.avatar = drawn
             tiles.append(r.frame(w))
     _contact_sheet(model, expression, rows, tiles, out / f"contact_{expression}.png")

@@ -1,0 +1,299 @@
+"""Grids of independent tasks, run here one after another or on a Dask cluster.
+
+A stimulus grid (every clip of a protocol, every level of an impression model, every emotion
+x mode of a behaviour set) and a simulation-based power analysis are lists of independent
+tasks. :func:`run_grid` runs such a list
+
+- **serially** in this process (the default: no cluster, nothing to install), or
+- on **Dask** (``dask.distributed``): a local cluster of ``workers`` processes with one thread
+  each (``--workers N``), or a running scheduler (``--scheduler tcp://host:8786``) whose
+  workers were started elsewhere (``dask worker``, ``dask-jobqueue`` on SLURM/PBS/SGE).
+
+Tasks must be pure: the same arguments give the same result, so the scheduler may run a task
+twice or re-run it after a worker died. Large inputs shared by many tasks (an avatar, an audio
+track) are wrapped in :class:`Shared`: sent to the cluster once, named by their content hash,
+and the task checks that hash before use (:func:`check_shared`). Results come back to this
+process, which alone writes files - so a killed worker never leaves a partial output.
+
+A task that raises is reported as failed (not retried: facelab's errors are deterministic);
+a task whose worker died is re-run by the scheduler and reported as retried
+(:class:`GridReport`). ``dask`` is imported only here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from facelab.errors import FacelabError, StageError
+
+__all__ = [
+    "SERIAL",
+    "Cluster",
+    "GridReport",
+    "GridTask",
+    "Progress",
+    "Shared",
+    "check_shared",
+    "run_grid",
+]
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """Where a grid runs: serially (both ``None``), on ``workers`` local processes, or on the
+    Dask scheduler at ``scheduler`` (``tcp://host:8786``). ``pin_cores`` pins local worker i
+    to CPU i (benchmarks: one worker = one single-core machine)."""
+
+    workers: int | None = None
+    scheduler: str | None = None
+    pin_cores: bool = False
+
+    def __post_init__(self) -> None:
+        if self.workers is not None and self.scheduler is not None:
+            raise StageError("give --workers N or --scheduler ADDRESS, not both")
+        if self.workers is not None and self.workers < 1:
+            raise StageError(f"--workers must be at least 1, got {self.workers}")
+        if self.scheduler is not None and "://" not in self.scheduler:
+            raise StageError(
+                f"--scheduler {self.scheduler!r}: expected an address such as tcp://host:8786"
+            )
+
+    @property
+    def serial(self) -> bool:
+        return self.workers is None and self.scheduler is None
+
+    def describe(self) -> str:
+        if self.scheduler is not None:
+            return f"Dask scheduler {self.scheduler}"
+        if self.workers is not None:
+            return f"local Dask cluster of {self.workers} single-thread worker processes"
+        return "serially in this process"
+
+
+SERIAL = Cluster()
+
+
+@dataclass(frozen=True)
+class Shared:
+    """A large input many tasks use, sent to the cluster once and checked by ``sha256``."""
+
+    sha256: str
+    value: Any = field(repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class GridTask:
+    """One independent task: ``fn(*args)`` (``fn`` importable by workers, ``args`` picklable;
+    :class:`Shared` arguments are replaced by their value)."""
+
+    key: str
+    fn: Callable[..., Any]
+    args: tuple = ()
+
+
+@dataclass
+class GridReport:
+    """What happened to a grid: results by key, failures (key -> reason), re-run keys."""
+
+    where: str
+    results: dict[str, Any] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+    retried: list[str] = field(default_factory=list)
+    wall_s: float = 0.0
+    start_s: float = 0.0  # starting (or connecting to) the cluster
+
+    def summary(self) -> str:
+        n = len(self.results) + len(self.failed)
+        text = (
+            f"{len(self.results)}/{n} done, {len(self.failed)} failed, "
+            f"{len(self.retried)} retried, {self.wall_s:.1f} s ({self.where})"
+        )
+        if self.retried:
+            text += "; re-run after a worker was lost: " + ", ".join(sorted(self.retried))
+        return text
+
+
+def check_shared(value: Any, *, sha256: str, content_hash: Callable[[Any], str], what: str) -> Any:
+    """``value`` if its content hash is ``sha256``; else a StageError (a worker was given the
+    wrong or a corrupted input)."""
+    got = content_hash(value)
+    if got != sha256:
+        raise StageError(f"{what} arrived with content hash {got[:12]}, expected {sha256[:12]}")
+    return value
+
+
+Progress = Callable[[str, str, int, int, int], None]
+"""``progress(key, event, done, failed, retried)``; event is ``done``, ``failed`` or (from a
+render command, for a clip whose file already matches) ``reused``."""
+
+
+def run_grid(
+    tasks: Iterable[GridTask],
+    *,
+    cluster: Cluster,
+    on_result: Callable[[str, Any], None] | None = None,
+    progress: Progress | None = None,
+    window: int | None = None,
+) -> GridReport:
+    """Run every task; ``on_result(key, result)`` is called in this process as each finishes
+    (in completion order). ``tasks`` may be a generator: on a cluster at most ``window``
+    tasks (default 4 per worker) are made and in flight at a time, so a large grid's inputs
+    are never all in memory. Keys must be unique."""
+    started = time.perf_counter()
+    report = GridReport(where=cluster.describe())
+    unique = _unique(tasks)
+    if cluster.serial:
+        _run_serial(unique, report, on_result, progress)
+    else:
+        _run_dask(unique, cluster, report, on_result, progress, window)
+    report.wall_s = time.perf_counter() - started
+    return report
+
+
+def _unique(tasks: Iterable[GridTask]) -> Iterator[GridTask]:
+    seen: set[str] = set()
+    for task in tasks:
+        if task.key in seen:
+            raise StageError(f"two grid tasks have the key {task.key!r}")
+        seen.add(task.key)
+        yield task
+
+
+def _value(arg: Any) -> Any:
+    return arg.value if isinstance(arg, Shared) else arg
+
+
+def _record(report, key, outcome, on_result, progress) -> None:
+    ok, value = outcome
+    if ok:
+        report.results[key] = value
+        if on_result is not None:
+            on_result(key, value)
+    else:
+        report.failed[key] = value
+    if progress is not None:
+        progress(
+            key, "done" if ok else "failed", len(report.results), len(report.failed),
+            len(report.retried),
+        )  # fmt: skip
+
+
+def _run_serial(tasks, report, on_result, progress) -> None:
+    for task in tasks:
+        try:
+            outcome = (True, task.fn(*(_value(a) for a in task.args)))
+        except FacelabError as exc:
+            outcome = (False, str(exc))
+        _record(report, task.key, outcome, on_result, progress)
+
+
+# --- Dask (imported here only) ---------------------------------------------------------------
+
+
+def _pin_worker(dask_worker) -> int:  # runs on each worker
+    """Pin this worker process to one CPU, chosen by its name (0, 1, ...)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    cpu = cpus[int(dask_worker.name) % len(cpus)]
+    os.sched_setaffinity(0, {cpu})
+    return cpu
+
+
+def _attempts(dask_scheduler, keys: list[str]) -> dict[str, int]:  # runs on the scheduler
+    """How many times each task was sent to a worker (more than once: a worker was lost)."""
+    out = {}
+    for key in keys:
+        out[key] = sum(1 for t in dask_scheduler.story(key) if t[0] == key and t[2] == "processing")
+    return out
+
+
+@contextlib.contextmanager
+def _client(cluster: Cluster) -> Iterator[Any]:
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise StageError(
+            "--workers/--scheduler need Dask: pip install 'facelab[cluster]' "
+            "(scripts/setup.sh installs it)"
+        ) from exc
+    if cluster.scheduler is not None:
+        try:
+            client = Client(cluster.scheduler, timeout="20s")
+        except (OSError, TimeoutError) as exc:
+            raise StageError(
+                f"cannot reach the Dask scheduler at {cluster.scheduler} (is `dask scheduler` "
+                "running there and the port open?)"
+            ) from exc
+        with client:
+            yield client
+        return
+    with (
+        LocalCluster(
+            n_workers=cluster.workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=50,  # CRITICAL only: a lost worker is reported by the grid itself
+        ) as local,
+        Client(local) as client,
+    ):
+        if cluster.pin_cores:
+            client.run(_pin_worker)
+        yield client
+
+
+def _run_dask(tasks, cluster, report, on_result, progress, window) -> None:
+    from distributed import as_completed
+
+    t0 = time.perf_counter()
+    with _client(cluster) as client:
+        report.start_s = time.perf_counter() - t0
+        if not client.scheduler_info().get("workers"):
+            client.wait_for_workers(1, timeout=120)
+        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        window = window or 4 * n_workers
+        sent: dict[str, Any] = {}  # every shared input once, by content
+        token = os.urandom(4).hex()  # a re-run of the same grid never meets old results
+        keys: dict[str, str] = {}  # Dask key -> task key
+
+        def submit(task: GridTask):
+            args = []
+            for a in task.args:
+                if isinstance(a, Shared):
+                    if a.sha256 not in sent:
+                        sent[a.sha256] = client.scatter(a.value, hash=False, broadcast=True)
+                    a = sent[a.sha256]
+                args.append(a)
+            fut = client.submit(
+                task.fn, *args, key=f"facelab-{token}-{task.key}", pure=False, retries=0
+            )
+            keys[fut.key] = task.key
+            return fut
+
+        pending = iter(tasks)
+        queue = as_completed([submit(t) for t in itertools.islice(pending, window)])
+        for fut in queue:
+            key = keys[fut.key]
+            if fut.status == "finished":
+                outcome = (True, fut.result())
+            else:
+                exc = fut.exception()
+                if not isinstance(exc, FacelabError) and type(exc).__name__ != "KilledWorker":
+                    raise exc  # a bug: keep its traceback
+                outcome = (False, str(exc) if isinstance(exc, FacelabError) else _lost(exc))
+            fut.release()
+            _record(report, key, outcome, on_result, progress)
+            nxt = next(pending, None)
+            if nxt is not None:
+                queue.add(submit(nxt))
+        attempts = client.run_on_scheduler(_attempts, keys=list(keys))
+        report.retried = sorted(keys[k] for k, n in attempts.items() if n > 1)
+
+
+def _lost(exc: BaseException | None) -> str:
+    return "its worker was lost every time the task ran (the scheduler gave up after 3 tries)"

@@ -1,0 +1,199 @@
+"""One clip as a self-contained task: its frame weights, poses and audio in, mp4 bytes out.
+
+The render commands drive every method in the calling process (a method never runs twice)
+and hand each clip to :func:`render_clip` through :func:`facelab.grid.run_grid` - in this
+process or on a Dask worker. What travels is content: the (n_frames, K) weights, the head
+poses, the padded audio and the avatar, each checked against its SHA-256 before use. The
+task encodes into its own scratch folder and returns the file's bytes; only the calling
+process writes into the clip folder (:func:`write_clip`, a temporary name renamed into place),
+so a worker lost mid-clip leaves nothing behind and a task run twice writes the same bytes.
+
+Each worker process keeps one renderer open between its tasks (one EGL context per process).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facelab.errors import StageError
+from facelab.grid import SERIAL, GridReport, Shared, check_shared
+from facelab.hashing import sha256_file
+from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.avatar.rig import HeadPose
+from facelab.stimuli.render.clip import ClipInfo, encode
+from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.speech.audio import Speech
+
+__all__ = [
+    "ClipFrames",
+    "RenderedClip",
+    "audio_sha256",
+    "close_renderer",
+    "finish_grid",
+    "render_clip",
+    "shared_avatar",
+    "write_clip",
+]
+
+
+@dataclass(frozen=True)
+class ClipFrames:
+    """Everything a worker needs for one clip besides the avatar(s).
+
+    ``weights`` (n_frames, K) float32 in the drawn avatar's ``target_names`` order;
+    ``poses`` one head pose per frame or None; ``audio`` the clip's whole (padded) sound.
+    The renderer is framed on the ``framing`` avatar and draws the ``drawn`` one (the same
+    avatar except where an impression model swaps the target stack)."""
+
+    clip_id: str
+    weights: np.ndarray
+    poses: tuple[HeadPose, ...] | None
+    audio: Speech
+    audio_sha256: str
+    fps: int
+    settings: RenderSettings
+    framing_sha256: str
+    drawn_sha256: str
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.weights)
+
+
+@dataclass(frozen=True)
+class RenderedClip:
+    """A rendered clip's bytes, their SHA-256, and the seconds spent in the task."""
+
+    clip_id: str
+    data: bytes
+    sha256: str
+    frames: int
+    fps: int
+    width: int
+    height: int
+    duration_s: float
+    seconds: float
+    pid: int
+
+
+def audio_sha256(audio: Speech) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(audio.samples, np.float32).tobytes())
+    h.update(str(audio.sample_rate).encode())
+    return h.hexdigest()
+
+
+def shared_avatar(avatar: Avatar) -> Shared:
+    return Shared(avatar.content_hash(), avatar)
+
+
+_open: dict[str, object] = {}  # this process's one open renderer and what it was opened for
+_checked: dict[int, str] = {}  # id of an avatar object already hash-checked -> its hash
+
+
+def _checked_avatar(avatar: Avatar, sha256: str, what: str) -> Avatar:
+    if _checked.get(id(avatar)) != sha256:
+        check_shared(avatar, sha256=sha256, content_hash=Avatar.content_hash, what=what)
+        _checked[id(avatar)] = sha256
+    return avatar
+
+
+def _renderer(framing: Avatar, framing_sha: str, settings: RenderSettings) -> Renderer:
+    key = f"{framing_sha}|{settings!r}"
+    if _open.get("key") != key:
+        close_renderer()
+        _open["renderer"] = Renderer(framing, settings).__enter__()
+        _open["key"] = key
+    return _open["renderer"]  # type: ignore[return-value]
+
+
+def close_renderer() -> None:
+    """Close this process's open renderer (before another GL context is opened here)."""
+    renderer = _open.pop("renderer", None)
+    _open.pop("key", None)
+    if renderer is not None:
+        renderer.__exit__(None, None, None)
+
+
+def render_clip(job: ClipFrames, framing: Avatar, drawn: Avatar) -> RenderedClip:
+    """Render and encode one clip; its bytes (runs in a worker or in this process)."""
+    started = time.perf_counter()
+    _checked_avatar(framing, job.framing_sha256, f"the avatar of {job.clip_id}")
+    _checked_avatar(drawn, job.drawn_sha256, f"the drawn avatar of {job.clip_id}")
+    check_shared(
+        job.audio, sha256=job.audio_sha256, content_hash=audio_sha256,
+        what=f"the audio of {job.clip_id}",
+    )  # fmt: skip
+    if job.weights.shape != (job.n_frames, len(drawn.target_names)):
+        raise StageError(
+            f"{job.clip_id}: weights of shape {job.weights.shape}, expected "
+            f"({job.n_frames}, {len(drawn.target_names)})"
+        )
+    renderer = _renderer(framing, job.framing_sha256, job.settings)
+    renderer.avatar = drawn  # same vertices and faces as the framing avatar
+    try:
+        frames = (
+            renderer.frames(job.weights)
+            if job.poses is None
+            else renderer.frames(job.weights, job.poses)
+        )
+        with tempfile.TemporaryDirectory(prefix="facelab-task-") as scratch:
+            info = encode(
+                frames, audio=job.audio, out=Path(scratch) / f"{job.clip_id}.mp4", fps=job.fps,
+                width=job.settings.width, height=job.settings.height, n_frames=job.n_frames,
+            )  # fmt: skip
+            data = info.path.read_bytes()
+    finally:
+        renderer.avatar = framing
+    return RenderedClip(
+        job.clip_id, data, info.sha256, job.n_frames, job.fps, job.settings.width,
+        job.settings.height, info.duration_s, time.perf_counter() - started, os.getpid(),
+    )  # fmt: skip
+
+
+def finish_grid(report: GridReport, *, rows: list[dict], out: Path, log) -> None:
+    """After a render grid: name the clips that failed (one StageError, after the others were
+    written) and those a lost worker made the scheduler re-run; check that every row's file
+    exists and has the row's hash."""
+    if report.where != SERIAL.describe() or report.retried or report.failed:
+        log(f"  grid: {report.summary()}")
+    if report.failed:
+        lines = [f"  {key}: {why}" for key, why in sorted(report.failed.items())]
+        raise StageError(
+            f"{len(report.failed)} of {len(report.failed) + len(report.results)} clips failed "
+            f"(the other clips are written and will be reused):\n" + "\n".join(lines)
+        )
+    wrong = [
+        r["clip_id"] for r in rows
+        if r["sha256"] is None or not (out / r["path"]).is_file()
+        or sha256_file(out / r["path"]) != r["sha256"]
+    ]  # fmt: skip
+    if wrong:
+        raise StageError(f"clips missing or not matching their hash: {', '.join(wrong)}")
+
+
+def write_clip(rendered: RenderedClip, *, out: Path) -> ClipInfo:
+    """Write a rendered clip to ``out`` under a temporary name and rename it into place;
+    the written file's SHA-256 is checked against the task's."""
+    if hashlib.sha256(rendered.data).hexdigest() != rendered.sha256:
+        raise StageError(f"{rendered.clip_id}: the clip's bytes do not match their hash")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    part = out.with_name(f".{out.name}.{os.getpid()}.{os.urandom(4).hex()}.part")
+    try:
+        with open(part, "wb") as f:
+            f.write(rendered.data)
+            f.flush()
+            os.fsync(f.fileno())
+        part.replace(out)
+    finally:
+        part.unlink(missing_ok=True)
+    if sha256_file(out) != rendered.sha256:
+        raise StageError(f"{out}: written clip does not match its hash")
+    r = rendered
+    return ClipInfo(out, r.duration_s, r.fps, r.width, r.height, r.frames, r.sha256)

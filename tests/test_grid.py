@@ -1,0 +1,189 @@
+"""Grids of independent tasks (facelab.grid): serial and on Dask, render grids byte-identical
+either way, a worker SIGKILLed mid-clip costs a retry and nothing else."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facelab.errors import StageError
+from facelab.grid import Cluster, GridTask, Shared, check_shared, run_grid
+
+ROOT = Path(__file__).resolve().parents[1]
+KATO = ROOT / "protocols" / "kato2021.yaml"
+FACELAB = str(Path(sys.executable).parent / "facelab")
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def refuse_odd(x: int) -> int:
+    if x % 2:
+        raise StageError(f"{x} is odd")
+    return x
+
+
+def crash(x: int) -> int:
+    raise RuntimeError("a bug")
+
+
+def total(values: np.ndarray, scale: int) -> float:
+    return float(values.sum() * scale)
+
+
+def test_serial_grid_runs_every_task_and_reports_refusals() -> None:
+    seen = []
+    events = []
+    report = run_grid(
+        (GridTask(f"t{i}", refuse_odd, (i,)) for i in range(5)),
+        cluster=Cluster(),
+        on_result=lambda k, v: seen.append((k, v)),
+        progress=lambda k, e, d, f, r: events.append((k, e, d, f)),
+    )
+    assert report.results == {"t0": 0, "t2": 2, "t4": 4}
+    assert report.failed == {"t1": "1 is odd", "t3": "3 is odd"}
+    assert seen == [("t0", 0), ("t2", 2), ("t4", 4)]
+    assert events[-1] == ("t4", "done", 3, 2) and len(events) == 5
+    assert report.retried == [] and "3/5 done, 2 failed" in report.summary()
+
+
+def test_a_bug_in_a_task_keeps_its_traceback() -> None:
+    with pytest.raises(RuntimeError, match="a bug"):
+        run_grid([GridTask("x", crash, (1,))], cluster=Cluster())
+
+
+def test_keys_are_unique_and_clusters_are_checked() -> None:
+    with pytest.raises(StageError, match="two grid tasks have the key 'a'"):
+        run_grid([GridTask("a", square, (1,)), GridTask("a", square, (2,))], cluster=Cluster())
+    with pytest.raises(StageError, match="not both"):
+        Cluster(workers=2, scheduler="tcp://h:8786")
+    with pytest.raises(StageError, match="tcp://host:8786"):
+        Cluster(scheduler="h:8786")
+    with pytest.raises(StageError, match="at least 1"):
+        Cluster(workers=0)
+
+
+def test_shared_inputs_are_checked_by_content() -> None:
+    digest = lambda v: str(int(v.sum()))  # noqa: E731
+    assert check_shared(np.ones(3), sha256="3", content_hash=digest, what="x") is not None
+    with pytest.raises(StageError, match="the avatar arrived with content hash 4"):
+        check_shared(np.ones(4), sha256="3", content_hash=digest, what="the avatar")
+
+
+def test_a_clip_whose_bytes_do_not_match_is_not_written(tmp_path: Path) -> None:
+    from facelab.stimuli.render.task import RenderedClip, write_clip
+
+    good = RenderedClip("c", b"abc", __import__("hashlib").sha256(b"abc").hexdigest(),
+                        1, 30, 2, 2, 1 / 30, 0.0, 1)  # fmt: skip
+    info = write_clip(good, out=tmp_path / "c.mp4")
+    assert (tmp_path / "c.mp4").read_bytes() == b"abc" and info.sha256 == good.sha256
+    bad = RenderedClip("d", b"abd", good.sha256, 1, 30, 2, 2, 1 / 30, 0.0, 1)
+    with pytest.raises(StageError, match="do not match their hash"):
+        write_clip(bad, out=tmp_path / "d.mp4")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.mp4"]  # no temporary left
+
+
+def test_a_worker_refuses_audio_that_is_not_what_was_sent() -> None:
+    from facelab.stimuli.avatar import default_head
+    from facelab.stimuli.render.renderer import RenderSettings
+    from facelab.stimuli.render.task import ClipFrames, render_clip
+    from facelab.stimuli.speech.audio import Speech
+
+    head = default_head()
+    job = ClipFrames(
+        clip_id="c", weights=np.zeros((3, len(head.target_names)), np.float32), poses=None,
+        audio=Speech(np.zeros(4800, np.float32), 48_000), audio_sha256="0" * 64, fps=30,
+        settings=RenderSettings(width=64, height=64), framing_sha256=head.content_hash(),
+        drawn_sha256=head.content_hash(),
+    )  # fmt: skip
+    with pytest.raises(StageError, match="the audio of c arrived with content hash"):
+        render_clip(job, head, head)
+
+
+# --- on a local Dask cluster ------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_dask_grid_gives_the_serial_results_and_refusals() -> None:
+    data = Shared("ones", np.ones(1000))
+    tasks = [GridTask(f"s{i}", total, (data, i)) for i in range(6)]
+    tasks += [GridTask("odd", refuse_odd, (3,))]
+    serial = run_grid(tasks, cluster=Cluster())
+    dask = run_grid(tasks, cluster=Cluster(workers=2), window=3)
+    assert dask.results == serial.results and dask.failed == {"odd": "3 is odd"}
+    assert dask.retried == [] and "local Dask cluster of 2" in dask.where
+
+
+def _clips(folder: Path) -> dict[str, str]:
+    with open(folder / "clips.csv", newline="", encoding="utf-8") as f:
+        return {r["clip_id"]: r["sha256"] for r in csv.DictReader(f)}
+
+
+def _render(out: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [FACELAB, "render", str(KATO), "--size",
+         "160x90", "--out", str(out), *extra],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+
+
+@pytest.mark.slow
+def test_render_on_two_workers_matches_serial_and_survives_a_killed_worker(
+    tmp_path: Path,
+) -> None:
+    import psutil  # installed with dask.distributed
+
+    serial = _render(tmp_path / "serial", "--quiet")
+    assert serial.returncode == 0, serial.stderr
+    proc = subprocess.Popen(
+        [FACELAB, "render", str(KATO), "--size",
+         "160x90", "--out", str(tmp_path / "dask"), "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    killed = None
+    deadline = time.monotonic() + 240
+    while killed is None and proc.poll() is None and time.monotonic() < deadline:
+        # a worker is mid-clip while its ffmpeg runs: kill the worker, not the command
+        for child in psutil.Process(proc.pid).children(recursive=True):
+            try:
+                if child.name() == "ffmpeg" and child.parent().pid != proc.pid:
+                    killed = child.parent().pid
+                    os.kill(killed, signal.SIGKILL)
+                    break
+            except psutil.NoSuchProcess:
+                continue
+        time.sleep(0.05)
+    out, err = proc.communicate(timeout=300)
+    assert killed is not None, "no worker was seen rendering"
+    assert proc.returncode == 0, err
+    assert "re-run after a worker was lost" in out and "1 retried" in out, out
+    assert _clips(tmp_path / "dask") == _clips(tmp_path / "serial")
+    leftovers = [p.name for p in (tmp_path / "dask").iterdir() if p.name.startswith(".")]
+    assert leftovers == []
+    again = _render(tmp_path / "dask", "--workers", "2")
+    assert again.returncode == 0 and "6 unchanged and reused" in again.stdout, again.stdout
+
+
+@pytest.mark.slow
+def test_power_simulation_on_workers_matches_the_serial_one() -> None:
+    from facelab.experiment.simulated_power import simulated_power
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(KATO)
+    runs = [
+        simulated_power(
+            protocol, n_values=[8], sims=12, rng=np.random.default_rng(5), jobs=1, cluster=c
+        )
+        for c in (Cluster(), Cluster(workers=2))
+    ]
+    assert runs[0].power.equals(runs[1].power)
+    assert runs[0].precision.equals(runs[1].precision)
