@@ -23,6 +23,7 @@ a task whose worker died is re-run by the scheduler and reported as retried
 from __future__ import annotations
 
 import contextlib
+import importlib
 import itertools
 import os
 import time
@@ -53,6 +54,7 @@ class Cluster:
     workers: int | None = None
     scheduler: str | None = None
     pin_cores: bool = False
+    connect_timeout_s: float = 20.0
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.scheduler is not None:
@@ -200,7 +202,9 @@ def _pin_worker(dask_worker) -> int:  # runs on each worker
     """Pin this worker process to one CPU, chosen by its name (0, 1, ...)."""
     cpus = sorted(os.sched_getaffinity(0))
     cpu = cpus[int(dask_worker.name) % len(cpus)]
-    os.sched_setaffinity(0, {cpu})
+    for tid in os.listdir("/proc/self/task"):  # every thread: affinity is per thread on Linux
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setaffinity(int(tid), {cpu})
     return cpu
 
 
@@ -223,7 +227,7 @@ def _client(cluster: Cluster) -> Iterator[Any]:
         ) from exc
     if cluster.scheduler is not None:
         try:
-            client = Client(cluster.scheduler, timeout="20s")
+            client = Client(cluster.scheduler, timeout=f"{cluster.connect_timeout_s}s")
         except (OSError, TimeoutError) as exc:
             raise StageError(
                 f"cannot reach the Dask scheduler at {cluster.scheduler} (is `dask scheduler` "
@@ -232,7 +236,15 @@ def _client(cluster: Cluster) -> Iterator[Any]:
         with client:
             yield client
         return
+    import dask
+
+    # Dask starts workers with MALLOC_TRIM_THRESHOLD_=65536, which makes glibc hand memory
+    # back to the system after every large free: rendering (a few MB of arrays per frame) was
+    # 20 % slower per clip with it (facelab bench render-grid). BLAS stays single-threaded.
+    environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
+    environ.pop("MALLOC_TRIM_THRESHOLD_", None)
     with (
+        dask.config.set({"distributed.nanny.pre-spawn-environ": environ}),
         LocalCluster(
             n_workers=cluster.workers,
             threads_per_worker=1,
@@ -276,7 +288,13 @@ def _run_dask(tasks, cluster, report, on_result, progress, window) -> None:
             return fut
 
         pending = iter(tasks)
-        queue = as_completed([submit(t) for t in itertools.islice(pending, window)])
+        first = list(itertools.islice(pending, window))
+        # workers import the tasks' modules now (pyrender, OpenGL: about a second), so the
+        # cost shows as the cluster's start, once per worker, not inside the first tasks
+        for module in sorted({t.fn.__module__ for t in first}):
+            client.run(importlib.import_module, module)
+        report.start_s = time.perf_counter() - t0
+        queue = as_completed([submit(t) for t in first])
         for fut in queue:
             key = keys[fut.key]
             if fut.status == "finished":

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facelab.errors import StageError
 from facelab.stimuli.speech.analyser import StreamingAnalyzer, analyze, default_model
 from facelab.stimuli.speech.training import (
     ESPEAK_HELDOUT,
@@ -25,7 +26,7 @@ from facelab.stimuli.speech.training import (
 )
 from facelab.stimuli.speech.tts import synthesize
 
-__all__ = ["bench_visemes"]
+__all__ = ["bench_render", "bench_render_grid", "bench_visemes"]
 
 
 def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
@@ -285,4 +286,137 @@ def bench_render(
         "speedup vs naive": ">= 1.5",
         "|av offset|": "< one frame",
     }
+    return result
+
+
+def _noop(payload: bytes) -> int:
+    return len(payload)
+
+
+def _grid_clip(i: int, *, avatar, avatar_sha256: str, fps: int, n_frames: int, settings, rate: int):
+    """Clip ``i`` of the fixed benchmark grid: the jaw and lips open and close at a rate
+    and phase of its own (deterministic), in silence."""
+    from facelab.stimuli.render.task import ClipFrames, audio_sha256
+    from facelab.stimuli.speech.audio import Speech
+
+    names = list(avatar.target_names)
+    t = np.arange(n_frames) / fps
+    weights = np.zeros((n_frames, len(names)), np.float32)
+    for k, (name, hz) in enumerate(
+        (("jawOpen", 1.5), ("mouthFunnel", 0.9), ("mouthSmileLeft", 0.6))
+    ):
+        if name in names:
+            phase = 2 * np.pi * ((i * (k + 3)) % 24) / 24
+            weights[:, names.index(name)] = 0.5 - 0.5 * np.cos(2 * np.pi * hz * t + phase)
+    weights[0] = weights[-1] = 0.0
+    audio = Speech(np.zeros(round(n_frames / fps * rate), np.float32), rate, source="silence")
+    return ClipFrames(
+        clip_id=f"grid{i:03d}", weights=weights, poses=None, audio=audio,
+        audio_sha256=audio_sha256(audio), fps=fps, settings=settings,
+        framing_sha256=avatar_sha256, drawn_sha256=avatar_sha256,
+    )  # fmt: skip
+
+
+def bench_render_grid(
+    *,
+    clips: int = 24,
+    seconds: float = 4.0,
+    size: tuple[int, int] = (320, 180),
+    fps: int = 30,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    pin_cores: bool = False,
+    serial_baseline: bool = True,
+) -> dict:
+    """A fixed grid of ``clips`` short clips on the default head (``seconds`` each, silent)
+    rendered through the same tasks as ``facelab render``: wall time, clips/s, seconds inside
+    the tasks, the per-task overhead, retries, and a hash over the grid's clip hashes (equal
+    across runs that wrote the same bytes). With ``workers``/``scheduler`` the grid also runs
+    serially first (``serial_baseline``) and the speed-up is reported; ``pin_cores`` pins the
+    serial run to one CPU and local worker i to CPU i, so each worker stands for a
+    single-core machine."""
+    import hashlib
+
+    from facelab.grid import Cluster, GridTask, run_grid
+    from facelab.stimuli.avatar import default_head
+    from facelab.stimuli.render.renderer import RenderSettings
+    from facelab.stimuli.render.task import close_renderer, render_clip, shared_avatar, write_clip
+
+    avatar = default_head()
+    ref = shared_avatar(avatar)
+    settings = RenderSettings(width=size[0], height=size[1], msaa=4)
+    n_frames = round(seconds * fps)
+
+    def clip(i: int):
+        return _grid_clip(
+            i, avatar=avatar, avatar_sha256=ref.sha256, fps=fps, n_frames=n_frames,
+            settings=settings, rate=48_000,
+        )  # fmt: skip
+
+    def run(cluster: Cluster, folder: Path) -> dict:
+        tasks = (GridTask(f"grid{i:03d}", render_clip, (clip(i), ref, ref)) for i in range(clips))
+        inside: list[float] = []
+
+        def done(key, rendered) -> None:
+            inside.append(rendered.seconds)
+            write_clip(rendered, out=folder / f"{key}.mp4")
+
+        cpu0 = time.process_time()
+        try:
+            report = run_grid(tasks, cluster=cluster, on_result=done)
+        finally:
+            close_renderer()
+        client_cpu = time.process_time() - cpu0
+        if report.failed:
+            raise StageError(f"benchmark clips failed: {report.failed}")
+        hashes = [report.results[k].sha256 for k in sorted(report.results)]
+        n_workers = 1 if cluster.serial else (cluster.workers or 0)
+        busy = report.wall_s - report.start_s
+        out = {
+            "where": report.where,
+            "wall_s": round(report.wall_s, 3),
+            "cluster_start_s": round(report.start_s, 3),
+            "clips_per_s": round(clips / busy, 3),
+            "task_s_median": round(statistics.median(inside), 4),
+            "task_s_total": round(sum(inside), 3),
+            "retries": len(report.retried),
+            # CPU seconds of this process (all threads, not its children): the client and,
+            # on a local cluster, the scheduler; serially, the rendering itself
+            "this_process_cpu_s": round(client_cpu, 3),
+            "grid_sha256": hashlib.sha256("".join(hashes).encode()).hexdigest(),
+        }
+        if n_workers:
+            # worker time not spent inside a task (scheduling, transfers, the tail), per task
+            out["overhead_s_per_task"] = round(max(0.0, busy * n_workers - sum(inside)) / clips, 4)
+        if not cluster.serial:
+            noop = run_grid(
+                [GridTask(f"noop{i:03d}", _noop, (b"x" * 4096,)) for i in range(clips)],
+                cluster=cluster,
+            )
+            out["noop_task_s"] = round((noop.wall_s - noop.start_s) / clips, 4)
+        return out
+
+    result: dict = {
+        "grid": {"clips": clips, "seconds_each": seconds, "size": f"{size[0]}x{size[1]}",
+                 "fps": fps, "msaa": 4, "avatar": "default head"},
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "pinned": pin_cores,
+    }  # fmt: skip
+    with tempfile.TemporaryDirectory(prefix="facelab-bench-grid-") as tmp:
+        cluster = Cluster(workers=workers, scheduler=scheduler, pin_cores=pin_cores)
+        if cluster.serial or serial_baseline:
+            before = os.sched_getaffinity(0)
+            if pin_cores:
+                os.sched_setaffinity(0, {min(before)})
+            try:
+                result["serial"] = run(Cluster(), Path(tmp) / "serial")
+            finally:
+                os.sched_setaffinity(0, before)
+        if not cluster.serial:
+            result["cluster"] = run(cluster, Path(tmp) / "cluster")
+            if "serial" in result:
+                s, c = result["serial"], result["cluster"]
+                result["speedup"] = round(s["wall_s"] / (c["wall_s"] - c["cluster_start_s"]), 3)
+                result["speedup_with_start"] = round(s["wall_s"] / c["wall_s"], 3)
+                result["identical_to_serial"] = s["grid_sha256"] == c["grid_sha256"]
     return result

@@ -162,7 +162,7 @@ def _cmd_measure_z(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import json
 
-    if args.runs < 1:
+    if getattr(args, "runs", 1) < 1:
         raise FacelabError(f"--runs {args.runs}: expected 1 or more timing runs")
 
     if args.action == "analyze":
@@ -196,6 +196,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             else:
                 url = f"sqlite:///{(results / 'bench-online.sqlite').resolve()}"
                 figures.append(load_test(db_url=url, **kw))
+        print(json.dumps(figures, indent=2))
+        return 0
+    if args.action == "render-grid":
+        from facelab.stimuli.bench import bench_render_grid
+
+        size = parse_size(args.size) or (320, 180)
+        figures = bench_render_grid(
+            clips=args.clips, seconds=args.seconds, size=size, workers=args.workers,
+            scheduler=args.scheduler, pin_cores=args.pin_cores,
+            serial_baseline=not args.no_serial,
+        )  # fmt: skip
         print(json.dumps(figures, indent=2))
         return 0
     if args.action == "visemes":
@@ -268,7 +279,11 @@ def register(add: AddCommand) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="Z matrix CSV to write")
     force_option(p)
 
-    p = add("bench", "benchmarks that print JSON (visemes, render, analyze, online)", _cmd_bench)
+    p = add(
+        "bench",
+        "benchmarks that print JSON (visemes, render, render-grid, analyze, online)",
+        _cmd_bench,
+    )
     verb = verbs(p)
 
     def runs(v: argparse.ArgumentParser) -> None:
@@ -284,6 +299,16 @@ def register(add: AddCommand) -> None:
         "--avatar", choices=["all", "default", "skinned50k"], default="all",
         help="the default head, a skinned ~50k-vertex sample, or both (default)",
     )  # fmt: skip
+    v = verb("render-grid", "a fixed grid of short clips, serially and on Dask workers")
+    v.add_argument("--clips", type=whole(lo=1), default=24, help="clips in the grid (24)")
+    v.add_argument("--seconds", type=real(above=0), default=4.0, help="seconds per clip (4)")
+    v.add_argument("--size", metavar="WxH", help="default 320x180")
+    cluster_options(v, what="grid")
+    v.add_argument("--pin-cores", action="store_true",
+                   help="pin the serial run to one CPU and local worker i to CPU i (each "
+                   "worker stands for a single-core machine)")  # fmt: skip
+    v.add_argument("--no-serial", action="store_true",
+                   help="with --workers/--scheduler: skip the serial baseline run")  # fmt: skip
     v = verb("analyze", "facelab analyze on N simulated participants")
     protocol_argument(v, optional=True)
     runs(v)
