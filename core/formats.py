@@ -4,6 +4,8 @@
   layer, read by sessions, the online server and the analysis (:func:`read_manifest`,
   :func:`write_manifest`);
 * the behaviour event log ``<clip_id>.behaviour.json`` beside a clip (:func:`read_behaviour_log`);
+* a clip's animation track ``<clip_id>.track.bin`` (:func:`encode_track`, :func:`read_track`):
+  the exact per-frame values a clip was drawn with, for the offline renderer and the browser;
 * the impression model file's header (:data:`IMPRESSION_FORMAT`,
   :func:`impression_header_problems`), checked by the protocol loader without reading the model.
 
@@ -19,9 +21,13 @@ from __future__ import annotations
 
 import csv
 import json
+import struct
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from facelab.errors import FormatError, StageError
 
@@ -30,10 +36,18 @@ __all__ = [
     "CLIP_COLUMNS",
     "IMPRESSION_FORMAT",
     "MANIFEST_NAME",
+    "POSE_CHANNELS",
+    "TRACK_COLUMNS",
+    "TRACK_FORMAT",
+    "Track",
     "behaviour_log_path",
+    "decode_track",
+    "encode_track",
     "impression_header_problems",
     "read_behaviour_log",
     "read_manifest",
+    "read_track",
+    "track_path",
     "write_manifest",
 ]
 
@@ -52,6 +66,16 @@ CLIP_COLUMNS = (
     "sha256",
     "spec_sha256",
 )
+#: columns ``facelab render`` adds after :data:`CLIP_COLUMNS`: each clip's animation track file
+#: and its SHA-256 (not required of manifests written before tracks existed)
+TRACK_COLUMNS = ("track_file", "track_sha256")
+#: the suffix of a clip's animation track, beside the clip
+TRACK_SUFFIX = ".track.bin"
+#: the animation track's magic bytes and format id (see :func:`encode_track`)
+TRACK_MAGIC = b"FLTRACK1"
+TRACK_FORMAT = "facelab-track-1"
+#: the head-pose channels of a track, in this order after the blendshape channels
+POSE_CHANNELS = ("head_yaw", "head_pitch", "head_roll", "eye_yaw", "eye_pitch", "neck_share")
 #: the suffix of a clip's behaviour event log, beside the clip
 BEHAVIOUR_LOG_SUFFIX = ".behaviour.json"
 #: the format id in an impression model file (``facelab impression fit``)
@@ -79,6 +103,114 @@ def read_manifest(clips_dir: Path, *, need: Sequence[str] = ()) -> list[dict[str
             "render the clips again"
         )
     return rows
+
+
+@dataclass(frozen=True)
+class Track:
+    """A decoded animation track: its JSON ``header`` and ``values`` (n_frames, n_channels)
+    float32, column j being channel ``header["channels"][j]["name"]``."""
+
+    header: dict[str, Any]
+    values: np.ndarray
+
+    @property
+    def names(self) -> list[str]:
+        return [c["name"] for c in self.header["channels"]]
+
+    def channel(self, name: str) -> np.ndarray:
+        return self.values[:, self.names.index(name)]
+
+
+def track_path(clips_dir: Path, clip_id: str) -> Path:
+    """Where the animation track of clip ``clip_id`` lives."""
+    return Path(clips_dir) / f"{clip_id}{TRACK_SUFFIX}"
+
+
+def encode_track(
+    *,
+    clip_id: str,
+    fps: int,
+    blendshapes: Sequence[str],
+    weights: np.ndarray,
+    poses: np.ndarray | None,
+    sample_rate: int,
+    speech_start_s: float,
+    avatar_sha256: str,
+) -> bytes:
+    """One clip's animation track, the exact per-frame values the renderer draws.
+
+    Layout (little-endian): 8 magic bytes ``FLTRACK1``; a uint32, the byte length H of the
+    JSON header; the header (UTF-8, padded with spaces so that 12 + H is a multiple of 4);
+    then float32 values, frame after frame, ``n_channels`` per frame. Frame k is shown from
+    t = k / fps seconds after the clip (and its audio) starts. Channels: the blendshapes the
+    clip moves (``kind: blendshape``, weights 0-1, by target name) and, for a clip with head
+    motion, :data:`POSE_CHANNELS` (``kind: pose``; degrees, ``neck_share`` a fraction).
+    ``weights`` (n_frames, len(blendshapes)); ``poses`` (n_frames, 6) or None."""
+    weights = np.asarray(weights, np.float32)
+    n = len(weights)
+    if weights.ndim != 2 or weights.shape[1] != len(blendshapes):
+        raise FormatError(f"track {clip_id}: weights of shape {weights.shape} for "
+                          f"{len(blendshapes)} blendshapes")  # fmt: skip
+    channels = [{"name": b, "kind": "blendshape"} for b in blendshapes]
+    columns = [weights]
+    if poses is not None:
+        poses = np.asarray(poses, np.float32)
+        if poses.shape != (n, len(POSE_CHANNELS)):
+            raise FormatError(f"track {clip_id}: poses of shape {poses.shape}, expected "
+                              f"({n}, {len(POSE_CHANNELS)})")  # fmt: skip
+        channels += [
+            {"name": c, "kind": "pose", "unit": "fraction" if c == "neck_share" else "deg"}
+            for c in POSE_CHANNELS
+        ]
+        columns.append(poses)
+    header = {
+        "format": TRACK_FORMAT,
+        "clip_id": clip_id,
+        "fps": fps,
+        "n_frames": n,
+        "frame_time": "frame k is shown from k / fps s after the clip starts",
+        "channels": channels,
+        "audio": {
+            "sample_rate": sample_rate,
+            "clip_start_sample": 0,
+            "speech_start_s": speech_start_s,
+            "speech_start_sample": round(speech_start_s * sample_rate),
+        },
+        "avatar_sha256": avatar_sha256,
+    }
+    text = json.dumps(header, ensure_ascii=False, sort_keys=True).encode("utf-8")
+    text += b" " * (-(12 + len(text)) % 4)
+    values = np.concatenate(columns, axis=1) if columns else np.zeros((n, 0), np.float32)
+    body = np.ascontiguousarray(values, dtype="<f4").tobytes()
+    return TRACK_MAGIC + struct.pack("<I", len(text)) + text + body
+
+
+def decode_track(data: bytes, *, source: str = "track") -> Track:
+    """A track from :func:`encode_track`'s bytes; FormatError naming ``source`` otherwise."""
+    if len(data) < 12 or data[:8] != TRACK_MAGIC:
+        raise FormatError(f"{source}: not a facelab animation track (no {TRACK_MAGIC.decode()})")
+    (length,) = struct.unpack("<I", data[8:12])
+    try:
+        header = json.loads(data[12 : 12 + length].decode("utf-8"))
+        n, c = int(header["n_frames"]), len(header["channels"])
+    except (UnicodeDecodeError, ValueError, KeyError, TypeError):
+        raise FormatError(f"{source}: the track's header is not readable") from None
+    body = data[12 + length :]
+    if header.get("format") != TRACK_FORMAT or len(body) != 4 * n * c:
+        raise FormatError(
+            f"{source}: expected {TRACK_FORMAT} with {n} frames x {c} channels "
+            f"({4 * n * c} bytes of values), found {len(body)} bytes"
+        )
+    return Track(header, np.frombuffer(body, dtype="<f4").reshape(n, c).astype(np.float32))
+
+
+def read_track(path: Path) -> Track:
+    """The animation track in ``path`` (FormatError naming the file)."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        raise FormatError(f"{path}: cannot read the animation track") from None
+    return decode_track(data, source=str(path))
 
 
 def behaviour_log_path(clips_dir: Path, clip_id: str) -> Path:

@@ -130,7 +130,8 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
     assert main(argv) == 0
     rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
     assert [r["condition"] for r in rows] == ["baseline", "standard", "emphasized"]
-    # DESIGN.md's columns first, then the hash of the clip's declared inputs (stale-clip check)
+    # DESIGN.md's columns first, then the hash of the clip's declared inputs (stale-clip check),
+    # then the animation track and its hash
     assert list(rows[0]) == [
         "clip_id",
         "stimulus_set",
@@ -143,6 +144,8 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
         "height",
         "sha256",
         "spec_sha256",
+        "track_file",
+        "track_sha256",
     ]
     from facelab.hashing import sha256_file
 

@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from facelab.errors import StageError
-from facelab.formats import behaviour_log_path, write_manifest
+from facelab.formats import (
+    TRACK_COLUMNS,
+    TRACK_FORMAT,
+    behaviour_log_path,
+    track_path,
+    write_manifest,
+)
 from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
 from facelab.protocol import Condition, Protocol
 from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
@@ -44,11 +50,13 @@ from facelab.stimuli.render.task import (
     ClipFrames,
     RenderedClip,
     audio_sha256,
+    clip_track,
     close_renderer,
     finish_grid,
     render_clip,
     shared_avatar,
     write_clip,
+    write_track,
 )
 from facelab.stimuli.speech.audio import Speech
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack
@@ -178,6 +186,7 @@ def build_clips(
     rows: list[dict] = []
     waiting: dict[str, tuple[dict, dict, ClipBehaviour | None]] = {}
     cache: dict[str, tuple[Speech, tuple[VisemeTrack, VisemeTrack | None]]] = {}
+    pending_tracks: dict[str, bytes] = {}
     reused = 0
 
     def tasks() -> Iterator[GridTask]:
@@ -213,6 +222,7 @@ def build_clips(
                         "settings": settings.__dict__,
                         "fps": fps,
                         "pad_s": protocol.rendering.pad_s,
+                        "track_format": TRACK_FORMAT,  # drawn from the track's float32 values
                         **({"behaviour": _plan_hash(behaviour)} if behaviour is not None else {}),
                     },
                     sort_keys=True,
@@ -222,6 +232,13 @@ def build_clips(
             spec = clip_spec_hash(protocol, job, base_dir=base_dir)
             mp4 = out / f"{job.clip_id}.mp4"
             meta = out / f"{job.clip_id}.json"
+            track, drawn, poses = clip_track(
+                clip_id=job.clip_id, avatar=avatar, avatar_sha256=avatar_ref.sha256,
+                weights=weights if behaviour is None else behaviour.weights,
+                poses=None if behaviour is None else behaviour.poses, fps=fps,
+                sample_rate=audio.sample_rate, speech_start_s=protocol.rendering.pad_s,
+            )  # fmt: skip
+            track_file = track_path(out, job.clip_id)
             row = {
                 "clip_id": job.clip_id,
                 "stimulus_set": job.stimulus_set,
@@ -235,6 +252,8 @@ def build_clips(
                 "sha256": None,
                 "spec_sha256": spec,
                 "status": "rendered",
+                "track_file": track_file.name,
+                "track_sha256": hashlib.sha256(track).hexdigest(),
             }
             rows.append(row)
             if mp4.exists() and meta.exists():
@@ -244,6 +263,8 @@ def build_clips(
                     and saved.get("spec_sha256") == spec
                     and saved.get("sha256") == sha256_file(mp4)
                 ):
+                    if not track_file.is_file() or sha256_file(track_file) != row["track_sha256"]:
+                        write_track(track, out=track_file)  # the clip was drawn from these
                     row.update(
                         duration_s=round(saved["duration_s"], 6),
                         sha256=saved["sha256"],
@@ -274,10 +295,11 @@ def build_clips(
                 **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
             }
             waiting[job.clip_id] = (row, about, behaviour)
+            pending_tracks[job.clip_id] = track
             frames = ClipFrames(
                 clip_id=job.clip_id,
-                weights=weights if behaviour is None else behaviour.weights,
-                poses=None if behaviour is None else tuple(behaviour.poses),
+                weights=drawn,
+                poses=poses,
                 audio=audio,
                 audio_sha256=audio_sha256(audio),
                 fps=fps,
@@ -289,6 +311,7 @@ def build_clips(
 
     def finished(clip_id: str, rendered: RenderedClip) -> None:
         row, about, behaviour = waiting.pop(clip_id)
+        write_track(pending_tracks.pop(clip_id), out=out / row["track_file"])
         info = write_clip(rendered, out=out / row["path"])
         row.update(duration_s=round(info.duration_s, 6), sha256=info.sha256)
         _write_json(
@@ -297,6 +320,7 @@ def build_clips(
                 "input_hash": about["input_hash"],
                 "spec_sha256": about["spec_sha256"],
                 "sha256": info.sha256,
+                "track_sha256": row["track_sha256"],
                 "frames": info.frames,
                 "duration_s": info.duration_s,
                 **{k: v for k, v in about.items() if k not in ("input_hash", "spec_sha256")},
@@ -314,7 +338,7 @@ def build_clips(
     finally:
         close_renderer()
     finish_grid(report, rows=rows, out=out, log=log)
-    write_manifest(out, rows, columns=CLIP_COLUMNS)
+    write_manifest(out, rows, columns=(*CLIP_COLUMNS, *TRACK_COLUMNS))
     return rows
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from facelab.errors import StageError
+from facelab.formats import POSE_CHANNELS, Track, decode_track, encode_track
 from facelab.grid import SERIAL, GridReport, Shared, check_shared
 from facelab.hashing import sha256_file
 from facelab.stimuli.avatar.mesh import Avatar
@@ -35,11 +36,14 @@ __all__ = [
     "ClipFrames",
     "RenderedClip",
     "audio_sha256",
+    "clip_track",
     "close_renderer",
     "finish_grid",
     "render_clip",
     "shared_avatar",
+    "track_frames",
     "write_clip",
+    "write_track",
 ]
 
 
@@ -81,6 +85,67 @@ class RenderedClip:
     duration_s: float
     seconds: float
     pid: int
+
+
+def clip_track(
+    *,
+    clip_id: str,
+    avatar: Avatar,
+    avatar_sha256: str,
+    weights: np.ndarray,
+    poses: list[HeadPose | None] | None,
+    fps: int,
+    sample_rate: int,
+    speech_start_s: float,
+) -> tuple[bytes, np.ndarray, tuple[HeadPose, ...] | None]:
+    """A clip's animation track (:func:`facelab.formats.encode_track`) and the weights
+    (n_frames, K) and poses read back from it - what the renderer then draws, so the offline
+    clip and a browser playing the track show the same values. The track keeps the targets the
+    clip moves; ``poses`` None or all at rest: no pose channels."""
+    weights = np.asarray(weights, np.float32)
+    names = list(avatar.target_names)
+    active = [j for j in range(len(names)) if np.any(weights[:, j] != 0)]
+    pose_rows = None
+    if poses is not None and any(p is not None and not p.is_rest() for p in poses):
+        rest = HeadPose()
+        pose_rows = np.array(
+            [
+                [q.yaw, q.pitch, q.roll, q.eye_yaw, q.eye_pitch, q.neck_share]
+                for q in (p if p is not None else rest for p in poses)
+            ],
+            np.float32,
+        )
+    data = encode_track(
+        clip_id=clip_id, fps=fps, blendshapes=[names[j] for j in active],
+        weights=weights[:, active], poses=pose_rows, sample_rate=sample_rate,
+        speech_start_s=speech_start_s, avatar_sha256=avatar_sha256,
+    )  # fmt: skip
+    return (data, *track_frames(decode_track(data), avatar))
+
+
+def track_frames(track: Track, avatar: Avatar) -> tuple[np.ndarray, tuple[HeadPose, ...] | None]:
+    """The (n_frames, K) weights in ``avatar.target_names`` order and the head poses (None
+    without pose channels) of a track."""
+    index = {n: i for i, n in enumerate(avatar.target_names)}
+    weights = np.zeros((track.header["n_frames"], len(index)), np.float32)
+    poses = None
+    for j, ch in enumerate(track.header["channels"]):
+        if ch["kind"] == "blendshape":
+            if ch["name"] not in index:
+                raise StageError(f"the track drives {ch['name']!r}, which the avatar lacks")
+            weights[:, index[ch["name"]]] = track.values[:, j]
+    if "head_yaw" in track.names:
+        cols = track.values[:, [track.names.index(c) for c in POSE_CHANNELS]].astype(float)
+        poses = tuple(HeadPose(*map(float, row)) for row in cols)
+    return weights, poses
+
+
+def write_track(data: bytes, *, out: Path) -> str:
+    """Write a track atomically; its SHA-256."""
+    part = out.with_name(f".{out.name}.{os.getpid()}.part")
+    part.write_bytes(data)
+    part.replace(out)
+    return hashlib.sha256(data).hexdigest()
 
 
 def audio_sha256(audio: Speech) -> str:
@@ -169,10 +234,13 @@ def finish_grid(report: GridReport, *, rows: list[dict], out: Path, log) -> None
             f"{len(report.failed)} of {len(report.failed) + len(report.results)} clips failed "
             f"(the other clips are written and will be reused):\n" + "\n".join(lines)
         )
+    def matches(name: str, digest: str | None) -> bool:
+        return digest is not None and (out / name).is_file() and sha256_file(out / name) == digest
+
     wrong = [
         r["clip_id"] for r in rows
-        if r["sha256"] is None or not (out / r["path"]).is_file()
-        or sha256_file(out / r["path"]) != r["sha256"]
+        if not matches(r["path"], r["sha256"])
+        or ("track_file" in r and not matches(r["track_file"], r["track_sha256"]))
     ]  # fmt: skip
     if wrong:
         raise StageError(f"clips missing or not matching their hash: {', '.join(wrong)}")
