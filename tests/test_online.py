@@ -149,6 +149,42 @@ def test_tokens_origin_and_every_field_are_checked(study: Path, tmp_path: Path) 
     assert r.status_code == 200 and r.json()["participants"][0]["participant"] == "P0001"
 
 
+def test_impossible_times_and_non_finite_numbers_are_422_not_500(
+    study: Path, tmp_path: Path
+) -> None:
+    """Year 1 or 9999 timestamps were a 500 (OverflowError); NaN in an answer, a playback
+    record or event data was stored on SQLite and a 500 on PostgreSQL."""
+    server = _server(study, tmp_path / "db.sqlite")
+    client = TestClient(create_app(server))
+    p, token = server.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token, "Content-Type": "application/json"}
+    key = sorted(server.study.planned(p.participant))[0]
+    for n, stamp in enumerate(["0001-01-01T00:00:00Z", "9999-12-31T23:59:59+14:00", "junk"]):
+        r = client.post(
+            "/api/response",
+            headers=ok,
+            json={**_answer(*key, 50.0, f"eeeeeeeeeeee000{n}"), "timestamp": stamp},
+        )
+        assert r.status_code == 422 and "between the years 2000 and 2200" in r.json()["error"]
+    body = json.dumps(_answer(*key, 50.0, "eeeeeeeeeeee0009")).replace("50.0", "NaN")
+    r = client.post("/api/response", content=body, headers=ok)
+    assert r.status_code == 422 and "rating" in r.json()["error"]
+    clip = next(c for c in p.clips.values()) + ".mp4"
+    playback = {
+        "client_key": "ffffffffffff0001", "trial_index": 1, "clip": clip, "replay": False,
+        "onset": 1.0, "frames_expected": 3, "dropped": 0, "flip_times": [0.0, 0.033, 0.066],
+        "frames_shown": [0, 1, 2], "presented_frames": 3, "media_time_end": 0.1,
+    }  # fmt: skip
+    r = client.post("/api/playback", headers=ok,
+                    content=json.dumps(playback).replace("0.033", "Infinity"))  # fmt: skip
+    assert r.status_code == 422
+    r = client.post("/api/event", headers=ok, content='{"kind": "error", "detail": {"x": NaN}}')
+    assert r.status_code == 422 and "finite" in r.json()["error"]
+    assert _rows(server, p.participant) == []
+    r = client.post("/api/playback", headers=ok, json=playback)
+    assert r.status_code == 200  # the same record with finite numbers is stored
+
+
 def test_oversized_bodies_are_refused_before_parsing(study: Path, tmp_path: Path) -> None:
     """A public server parsed any body whole (a 100 MB JSON event was read into memory
     before the 4000-character detail check); bodies over MAX_BODY_BYTES get 413, declared
@@ -197,7 +233,9 @@ def test_replays_are_harmless_conflicts_refused_completion_waits(
         json={**first, "client_key": "cccccccccccc0000", "rating": 10.0},
         headers=ok,
     )
-    assert r.status_code == 409 and "55.5" in r.json()["error"]
+    # refused, and the stored answer is not revealed (a token holder must not learn it)
+    assert r.status_code == 409 and "already has a different response" in r.json()["error"]
+    assert "55.5" not in r.json()["error"] and "10.0" not in r.json()["error"]
     assert [row["rating"] for row in _rows(server, p.participant)] == [55.5]
     assert client.get("/api/complete", headers=ok).status_code == 409
     for n, key in enumerate(keys[1:], start=1):

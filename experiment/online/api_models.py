@@ -16,7 +16,9 @@ Iso = Annotated[str, StringConstraints(max_length=40)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)
+    # NaN and infinity are refused everywhere: PostgreSQL's JSON cannot hold them (a 500),
+    # and SQLite stored them as numbers no analysis can use
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 class AnswerIn(_Strict):

@@ -38,6 +38,7 @@ import contextlib
 import datetime as dt
 import hashlib
 import hmac
+import math
 import secrets
 import threading
 import time
@@ -312,11 +313,15 @@ class StudyServer:
         values = answer.model_dump()
         try:
             when = dt.datetime.fromisoformat(answer.timestamp.replace("Z", "+00:00"))
-        except ValueError:
+            if not 2000 <= when.year <= 2200:
+                raise ValueError("out of range")
+            stamp = when.astimezone(dt.UTC).isoformat(timespec="milliseconds")
+        except (ValueError, OverflowError):
             raise RefusedError(
-                422, f"timestamp: expected ISO 8601, got {answer.timestamp!r}"
+                422,
+                f"timestamp: expected an ISO 8601 time between the years 2000 and 2200, got "
+                f"{answer.timestamp!r}",
             ) from None
-        stamp = when.astimezone(dt.UTC).isoformat(timespec="milliseconds")
         playback = (
             None
             if answer.clip_onset is None
@@ -380,10 +385,11 @@ class StudyServer:
         new_value, old_value = self._value(row), self._value(old.row)
         if old.client_key == answer.client_key or _same(old_value, new_value):
             return {"stored": True, "replay": True, "complete": self._maybe_complete(p)}
+        # the stored value is never shown: whoever holds a token must not learn an earlier answer
         raise RefusedError(
             409,
             f"trial {answer.trial_index} item {answer.item!r} already has a different "
-            f"response ({old_value!r}); it is kept, the new one ({new_value!r}) is refused",
+            "response; it is kept and this one is refused",
         )
 
     def _maybe_complete(self, p: Participant) -> bool:
@@ -428,6 +434,8 @@ class StudyServer:
     def store_event(self, p: Participant, ev: EventIn) -> None:
         if len(repr(ev.detail)) > 4000:
             raise RefusedError(422, "detail: too large (at most 4000 characters)")
+        if not _finite(ev.detail):
+            raise RefusedError(422, "detail: numbers must be finite (no NaN or Infinity)")
         with self._writes, Session(self.engine) as db:
             if ev.kind == "browser":
                 fresh = db.get(Participant, p.pk)
@@ -479,6 +487,17 @@ class StudyServer:
                 }
             )
         return out
+
+
+def _finite(value: Any) -> bool:
+    """No NaN or infinity anywhere in a JSON value."""
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, dict):
+        return all(_finite(v) for v in value.values())
+    if isinstance(value, list):
+        return all(_finite(v) for v in value)
+    return True
 
 
 def _same(a: Any, b: Any) -> bool:
