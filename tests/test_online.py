@@ -149,6 +149,25 @@ def test_tokens_origin_and_every_field_are_checked(study: Path, tmp_path: Path) 
     assert r.status_code == 200 and r.json()["participants"][0]["participant"] == "P0001"
 
 
+def test_limited_joins_get_a_page_in_the_study_language_and_clips_carry_no_dates(
+    study: Path, tmp_path: Path
+) -> None:
+    server = _server(study, tmp_path / "db.sqlite")
+    server.join_limiter.limit = 2
+    client = TestClient(create_app(server))
+    codes = [client.post("/join", follow_redirects=False).status_code for _ in range(3)]
+    assert codes == [303, 303, 429]
+    r = client.post("/join", follow_redirects=False)
+    assert r.headers["content-type"].startswith("text/html") and "1分ほど待って" in r.text
+    assert r.headers["Retry-After"] == "60" and "{" not in r.text  # a page, not raw JSON
+    assert len(server.progress()) == 2  # the refused ones created nobody
+    name = next(iter(server.config.clip_paths))
+    clip = client.get(f"/clips/{name}")
+    assert clip.status_code == 200 and clip.content[4:8] == b"ftyp"
+    # a file date (or an ETag made from it) would order clips by rendering, i.e. by condition
+    assert "last-modified" not in clip.headers and "etag" not in clip.headers
+
+
 def test_impossible_times_and_non_finite_numbers_are_422_not_500(
     study: Path, tmp_path: Path
 ) -> None:
@@ -257,16 +276,22 @@ def test_join_assigns_ids_hashes_recruitment_ids_and_rejoin_resumes(
     server = _server(study, db)
     client = TestClient(create_app(server))
     pid = "5f1e2d3c4b5a69788796a5b4"
-    r = client.get(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+    # looking at the link (a preview, a crawler) creates nobody and takes no slot
+    for _ in range(3):
+        page = client.get(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+        assert page.status_code == 200 and "実験を始める" in page.text
+        assert f'action="/join?PROLIFIC_PID={pid}"' in page.text and 'method="post"' in page.text
+    assert server.progress() == []
+    r = client.post(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
     assert r.status_code == 303
     token = re.fullmatch(r"/run#t=([A-Za-z0-9_-]+)", r.headers["location"]).group(1)
     assert len(token) >= 43  # >= 256 bits, URL-safe base64
-    r2 = client.get("/join", follow_redirects=False)
+    r2 = client.post("/join", follow_redirects=False)
     token2 = r2.headers["location"].split("=", 1)[1]
     names = [client.get("/api/session", headers={"X-Facelab-Token": t}).json()["participant"]
              for t in (token, token2)]  # fmt: skip
     assert names == ["P0001", "P0002"]  # numbered by the server: Latin squares work
-    r3 = client.get(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+    r3 = client.post(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
     token3 = r3.headers["location"].split("=", 1)[1]
     time.sleep(5.1)  # the token cache's lifetime
     assert (

@@ -3,6 +3,7 @@ each does is in :mod:`facelab.experiment.online.server`)."""
 
 from __future__ import annotations
 
+import html
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -22,7 +23,23 @@ from facelab.experiment.online.server import (
     _own_plugin,
 )
 
-__all__ = ["create_app"]
+__all__ = ["JOIN_WORDS", "create_app"]
+
+#: the recruitment link's page and its refusal, in the study's language (English otherwise)
+JOIN_WORDS = {
+    "ja": {
+        "title": "実験への参加",
+        "intro": "募集サイトのリンクから来られた方は、下のボタンで実験を始めてください。",
+        "start": "実験を始める",
+        "busy": "ただいま参加の受付が混み合っています。1分ほど待ってから、もう一度お試しください。",
+    },
+    "en": {
+        "title": "Study",
+        "intro": "If you came through your recruitment platform's link, start the study below.",
+        "start": "Start the session",
+        "busy": "Many people are joining right now. Please wait a minute and try again.",
+    },
+}
 
 
 def create_app(server: StudyServer) -> Any:
@@ -45,21 +62,49 @@ def create_app(server: StudyServer) -> Any:
     def page(name: str) -> HTMLResponse:
         return HTMLResponse((WEB / name).read_text(encoding="utf-8"))
 
-    @app.get("/join")
-    def join(request: Request) -> RedirectResponse:
-        address = request.client.host if request.client else "?"
-        if not server.join_limiter.allow(address):
-            raise RefusedError(
-                429, "too many new sessions from this address; try again in a minute"
-            )
-        recruitment, source = None, None
+    lang = server.study.protocol.presentation.language
+    words = JOIN_WORDS.get(lang, JOIN_WORDS["en"])
+
+    def recruitment_of(request: Request) -> tuple[str | None, str | None]:
         for param, name in RECRUITMENT_PARAMS.items():
             value = request.query_params.get(param)
             if value:
                 if len(value) > 128:
                     raise RefusedError(422, f"{param}: at most 128 characters")
-                recruitment, source = value, name
-                break
+                return value, name
+        return None, None
+
+    @app.get("/join")
+    def join_page(request: Request) -> HTMLResponse:
+        """The recruitment link's page: nothing is created by looking at it (link previews,
+        crawlers); the participant's button posts to the same address."""
+        recruitment_of(request)  # an over-long id is refused now, not after the click
+        action = "/join" + (f"?{request.url.query}" if request.url.query else "")
+        return HTMLResponse(
+            f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
+            f'<meta name="robots" content="noindex"><title>{words["title"]}</title>'
+            '<link rel="stylesheet" href="/static/facelab.css"></head><body>'
+            f'<main class="facelab-page"><h1>{words["title"]}</h1><p>{words["intro"]}</p>'
+            f'<form method="post" action="{html.escape(action, quote=True)}">'
+            f'<button type="submit" data-facelab="join">{words["start"]}</button></form>'
+            "</main></body></html>",
+            headers={"Cache-Control": "no-store"},
+        )
+
+    @app.post("/join", response_model=None)
+    def join(request: Request) -> RedirectResponse | HTMLResponse:
+        """A new participant (or the returning one): only this deliberate POST creates one
+        and takes a Latin-square slot."""
+        address = request.client.host if request.client else "?"
+        if not server.join_limiter.allow(address):
+            return HTMLResponse(
+                f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
+                f"<title>{words['title']}</title></head><body><main><p>{words['busy']}</p>"
+                "</main></body></html>",
+                status_code=429,
+                headers={"Retry-After": "60"},
+            )
+        recruitment, source = recruitment_of(request)
         _p, token = server.join(recruitment=recruitment, source=source)
         return RedirectResponse(f"/run#t={token}", status_code=303)
 
@@ -111,7 +156,13 @@ def create_app(server: StudyServer) -> Any:
         path = config.clip_paths.get(name)
         if path is None:
             raise RefusedError(404, "not found")
-        return FileResponse(path, media_type="video/mp4")
+        response = FileResponse(path, media_type="video/mp4", stat_result=path.stat())
+        # a file's time (and an ETag made from it) would order the clips as they were rendered
+        # and so reveal their conditions: neither is sent
+        for header in ("last-modified", "etag"):
+            if header in response.headers:
+                del response.headers[header]
+        return response
 
     @app.get("/api/session")
     def session(request: Request) -> dict[str, Any]:

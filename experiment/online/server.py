@@ -4,7 +4,9 @@ Pages and routes (all same-origin; no cookies; the participant's token travels i
 ``X-Facelab-Token`` header, never in a cookie, so there is nothing for CSRF to ride on):
 
 ========================  ===================================================================
-``GET /join``             a new participant (or the returning one, by recruitment id): the
+``GET /join``             the recruitment link's page, in the study's language: creates
+                          nothing (link previews and crawlers fetch it); its button posts to
+``POST /join``            a new participant (or the returning one, by recruitment id): the
                           server assigns the id (``P0001`` …, so Latin squares work) and a
                           random 256-bit token, and redirects to ``/run#t=TOKEN`` (the
                           fragment never reaches a server log or a Referer). Prolific's
