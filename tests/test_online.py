@@ -168,6 +168,34 @@ def test_limited_joins_get_a_page_in_the_study_language_and_clips_carry_no_dates
     assert "last-modified" not in clip.headers and "etag" not in clip.headers
 
 
+def test_join_limit_counts_forwarded_addresses_only_from_the_configured_proxy(
+    study: Path, tmp_path: Path
+) -> None:
+    """uvicorn used to trust X-Forwarded-For from 127.0.0.1 always (a client behind the
+    README's proxy chose its address; without a proxy everyone shared one limit)."""
+    import httpx
+
+    def joins(url: str, addresses: list[str]) -> list[int]:
+        with httpx.Client(base_url=url, follow_redirects=False) as http:
+            return [
+                http.post("/join", headers={"X-Forwarded-For": a}).status_code for a in addresses
+            ]
+
+    behind = _server(study, tmp_path / "proxied.sqlite")
+    with BackgroundServer(behind, forwarded_allow_ips="127.0.0.1") as bg:
+        launch = joins(bg.url, [f"10.{i // 250}.{i % 250}.7" for i in range(300)])
+        assert launch == [303] * 300  # a launch: 300 people, 300 addresses, nobody limited
+        flood = joins(bg.url, ["198.51.100.9"] * 35)
+        assert flood == [303] * 30 + [429] * 5  # one address still cannot flood
+    assert len(behind.progress()) == 330
+
+    direct = _server(study, tmp_path / "direct.sqlite")
+    with BackgroundServer(direct) as bg:  # no proxy configured: the header is ignored
+        spoofed = joins(bg.url, [f"203.0.113.{i}" for i in range(35)])
+    assert spoofed == [303] * 30 + [429] * 5
+    assert len(direct.progress()) == 30
+
+
 def test_impossible_times_and_non_finite_numbers_are_422_not_500(
     study: Path, tmp_path: Path
 ) -> None:

@@ -69,6 +69,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from facelab.experiment.online.app import create_app
+    from facelab.experiment.online.serve import proxy_options
 
     with socket.socket() as probe:  # as uvicorn binds: TIME_WAIT after a restart is fine
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -86,6 +87,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         "{{%PROLIFIC_PID%}})"
     )
     print(f"  experimenter page:   {base}/admin")
+    if args.forwarded_allow_ips:
+        print(f"  client addresses:    from X-Forwarded-For set by {args.forwarded_allow_ips}")
+    else:
+        print(
+            "  client addresses:    the connection's (behind a reverse proxy, give "
+            "--forwarded-allow-ips PROXY so the join limit counts participants, not the proxy)"
+        )
     if made:
         print(
             f"  experimenter secret: {made}   (new for this run; set FACELAB_ADMIN_SECRET "
@@ -97,8 +105,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         host=args.host,
         port=args.port,
         log_level="warning",
-        proxy_headers=True,
-        forwarded_allow_ips="127.0.0.1",
+        **proxy_options(args.forwarded_allow_ips),
     )
     return 0
 
@@ -146,6 +153,11 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=whole(lo=0, hi=65535), default=8000, help="port (default 8000)")
+    p.add_argument(
+        "--forwarded-allow-ips", metavar="IPS",
+        help="the reverse proxies (comma-separated addresses) whose X-Forwarded-For is trusted "
+        "for the client's address; default none: the header is ignored",
+    )  # fmt: skip
     p.add_argument("--clips", metavar="DIR", help="rendered clips (default results/<study>/clips)")
     p.add_argument("--results", default="results", metavar="DIR", help="results root")
     p.add_argument("--consent", metavar="FILE", help="text shown first, with an 'I agree' button")

@@ -86,6 +86,16 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(s.getsockname()[1])
 
 
+def proxy_options(forwarded_allow_ips: str | None) -> dict[str, Any]:
+    """uvicorn's options for ``--forwarded-allow-ips``: a client's address is taken from
+    ``X-Forwarded-For`` only on connections from those proxies (comma-separated addresses);
+    without it the header is ignored, whoever sends it - a client cannot choose the address
+    the join limit counts."""
+    if not forwarded_allow_ips:
+        return {"proxy_headers": False}
+    return {"proxy_headers": True, "forwarded_allow_ips": forwarded_allow_ips}
+
+
 @dataclass
 class BackgroundServer:
     """uvicorn serving ``server`` in a thread (for simulated participants and tests)."""
@@ -93,6 +103,7 @@ class BackgroundServer:
     server: StudyServer
     host: str = "127.0.0.1"
     port: int = 0
+    forwarded_allow_ips: str | None = None
 
     def __enter__(self) -> BackgroundServer:
         import uvicorn
@@ -100,8 +111,9 @@ class BackgroundServer:
         if self.port == 0:
             self.port = free_port(self.host)
         config = uvicorn.Config(
-            create_app(self.server), host=self.host, port=self.port, log_level="warning"
-        )
+            create_app(self.server), host=self.host, port=self.port, log_level="warning",
+            **proxy_options(self.forwarded_allow_ips),
+        )  # fmt: skip
         self._uv = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._uv.run, daemon=True)
         self._thread.start()
