@@ -149,6 +149,42 @@ def test_tokens_origin_and_every_field_are_checked(study: Path, tmp_path: Path) 
     assert r.status_code == 200 and r.json()["participants"][0]["participant"] == "P0001"
 
 
+def test_rejoin_through_the_link_in_chromium_keeps_the_session_and_refuses_a_stranger(
+    study: Path, tmp_path: Path
+) -> None:
+    """The real join page in headless Chromium: the participant's browser returns through
+    the Prolific link and gets its own session (same token); another browser with the same
+    PID is turned away while the session is live."""
+    from selenium.webdriver.common.by import By
+
+    server = _server(study, tmp_path / "db.sqlite")
+    link = "/join?PROLIFIC_PID=60a1b2c3d4e5f60718293a4b"
+    with BackgroundServer(server) as bg:
+        owner, stranger = chromium(), chromium()
+        try:
+            tokens = []
+            for _ in range(2):
+                owner.get(bg.url + link)
+                owner.find_element(By.CSS_SELECTOR, "[data-facelab=join]").click()
+                deadline = time.monotonic() + 20
+                while time.monotonic() < deadline and not (
+                    "/run" in owner.current_url
+                    and owner.execute_script("return localStorage.getItem('facelab.token')")
+                ):
+                    time.sleep(0.1)
+                tokens.append(owner.execute_script("return localStorage.getItem('facelab.token')"))
+            assert tokens[0] and tokens[0] == tokens[1]  # the same session, the same token
+            stranger.get(bg.url + link)
+            stranger.find_element(By.CSS_SELECTOR, "[data-facelab=join]").click()
+            time.sleep(1.0)
+            assert "#t=" not in stranger.current_url
+            assert "別のブラウザー" in stranger.find_element(By.TAG_NAME, "body").text
+        finally:
+            owner.quit()
+            stranger.quit()
+    assert [p["participant"] for p in server.progress()] == ["P0001"]
+
+
 def test_limited_joins_get_a_page_in_the_study_language_and_clips_carry_no_dates(
     study: Path, tmp_path: Path
 ) -> None:
@@ -319,7 +355,20 @@ def test_join_assigns_ids_hashes_recruitment_ids_and_rejoin_resumes(
     names = [client.get("/api/session", headers={"X-Facelab-Token": t}).json()["participant"]
              for t in (token, token2)]  # fmt: skip
     assert names == ["P0001", "P0002"]  # numbered by the server: Latin squares work
+    # knowing the PID is not enough: the live session stays with its browser
+    grab = client.post(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+    assert (
+        grab.status_code == 409 and "別のブラウザー" in grab.text and "location" not in grab.headers
+    )
+    assert client.get("/api/session", headers={"X-Facelab-Token": token}).status_code == 200
+    # the same browser (the join page sends the token it holds) gets the session back as it was
+    back = client.post(f"/join?PROLIFIC_PID={pid}", data={"previous_token": token},
+                       follow_redirects=False)  # fmt: skip
+    assert back.status_code == 303 and back.headers["location"] == f"/run#t={token}"
+    # a new browser after the session has been idle long enough gets it with a fresh token
+    server.config.rejoin_idle_s = 0.0
     r3 = client.post(f"/join?PROLIFIC_PID={pid}", follow_redirects=False)
+    assert r3.status_code == 303
     token3 = r3.headers["location"].split("=", 1)[1]
     time.sleep(5.1)  # the token cache's lifetime
     assert (

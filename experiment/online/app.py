@@ -4,9 +4,12 @@ each does is in :mod:`facelab.experiment.online.server`)."""
 from __future__ import annotations
 
 import html
+import re
+import urllib.parse
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 
@@ -18,6 +21,7 @@ from facelab.experiment.online.server import (
     TOKEN_HEADER,
     VENDOR_FILES,
     WEB,
+    InUseError,
     RefusedError,
     StudyServer,
     _own_plugin,
@@ -32,12 +36,17 @@ JOIN_WORDS = {
         "intro": "募集サイトのリンクから来られた方は、下のボタンで実験を始めてください。",
         "start": "実験を始める",
         "busy": "ただいま参加の受付が混み合っています。1分ほど待ってから、もう一度お試しください。",
+        "in_use": "このリンクの実験は、別のブラウザーの画面で進行中です。その画面に戻って続けて"
+        "ください。その画面を閉じてしまった場合は、{minutes}分後にこのリンクから続きを行えます。",
     },
     "en": {
         "title": "Study",
         "intro": "If you came through your recruitment platform's link, start the study below.",
         "start": "Start the session",
         "busy": "Many people are joining right now. Please wait a minute and try again.",
+        "in_use": "This study is in progress in another browser window. Please return to that "
+        "window to continue. If you closed it, you can continue here through this link in "
+        "{minutes} minutes.",
     },
 }
 
@@ -82,30 +91,46 @@ def create_app(server: StudyServer) -> Any:
         action = "/join" + (f"?{request.url.query}" if request.url.query else "")
         return HTMLResponse(
             f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
+            # the form's POST must carry this page's Origin (no-referrer would send "null")
+            '<meta name="referrer" content="same-origin">'
             f'<meta name="robots" content="noindex"><title>{words["title"]}</title>'
             '<link rel="stylesheet" href="/static/facelab.css"></head><body>'
             f'<main class="facelab-page"><h1>{words["title"]}</h1><p>{words["intro"]}</p>'
             f'<form method="post" action="{html.escape(action, quote=True)}">'
+            '<input type="hidden" name="previous_token" value="">'
             f'<button type="submit" data-facelab="join">{words["start"]}</button></form>'
-            "</main></body></html>",
+            '<script src="/static/join.js"></script></main></body></html>',
             headers={"Cache-Control": "no-store"},
         )
 
+    def notice(text: str, status: int, **headers: str) -> HTMLResponse:
+        return HTMLResponse(
+            f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
+            f'<title>{words["title"]}</title><link rel="stylesheet" href="/static/facelab.css">'
+            f'</head><body><main class="facelab-page"><p>{text}</p></main></body></html>',
+            status_code=status,
+            headers={"Cache-Control": "no-store", **headers},
+        )
+
     @app.post("/join", response_model=None)
-    def join(request: Request) -> RedirectResponse | HTMLResponse:
+    async def join(request: Request) -> RedirectResponse | HTMLResponse:
         """A new participant (or the returning one): only this deliberate POST creates one
-        and takes a Latin-square slot."""
+        and takes a Latin-square slot. The form carries the token this browser holds, if
+        any (a returning participant's session comes back under it)."""
         address = request.client.host if request.client else "?"
         if not server.join_limiter.allow(address):
-            return HTMLResponse(
-                f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
-                f"<title>{words['title']}</title></head><body><main><p>{words['busy']}</p>"
-                "</main></body></html>",
-                status_code=429,
-                headers={"Retry-After": "60"},
-            )
+            return notice(words["busy"], 429, **{"Retry-After": "60"})
         recruitment, source = recruitment_of(request)
-        _p, token = server.join(recruitment=recruitment, source=source)
+        form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
+        previous = (form.get("previous_token") or [""])[0]
+        previous = previous if re.fullmatch(r"[A-Za-z0-9_-]{20,128}", previous) else None
+        try:
+            _p, token = await run_in_threadpool(
+                server.join, recruitment=recruitment, source=source, previous_token=previous
+            )
+        except InUseError:
+            minutes = round(server.config.rejoin_idle_s / 60)
+            return notice(words["in_use"].format(minutes=minutes), 409)
         return RedirectResponse(f"/run#t={token}", status_code=303)
 
     @app.get("/")

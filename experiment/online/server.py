@@ -67,7 +67,7 @@ from facelab.experiment.online.limits import Clock, RateLimiter, TokenCache
 from facelab.experiment.online.study import AnswerError, OnlineStudy
 from facelab.experiment.timeline import SCREEN_KINDS, Playback, needed_clips
 
-__all__ = ["RefusedError", "ServeConfig", "StudyServer", "token_sha256"]
+__all__ = ["InUseError", "RefusedError", "ServeConfig", "StudyServer", "token_sha256"]
 
 WEB = Path(__file__).resolve().parent / "web"
 VENDOR_FILES = {
@@ -84,7 +84,6 @@ TOKEN_HEADER = "X-Facelab-Token"
 ADMIN_HEADER = "X-Facelab-Admin"
 TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
 RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
-
 
 
 def _own_plugin(kind: str) -> Path | None:
@@ -110,6 +109,13 @@ class ServeConfig:
     consent: str | None = None
     rate_per_s: float = 20.0  # requests per second per token (burst: 4 s worth)
     joins_per_min: int = 30  # new participants per minute per client address
+    # a recruitment id alone reopens a session only after it has been idle this long; the
+    # browser that holds the session's token reopens it at any time (see StudyServer.join)
+    rejoin_idle_s: float = 1800.0
+
+
+class InUseError(Exception):
+    """A recruitment id whose session is live in another browser (see StudyServer.join)."""
 
 
 class RefusedError(Exception):
@@ -181,9 +187,17 @@ class StudyServer:
         source: str | None,
         simulated: bool = False,
         token: str | None = None,
+        previous_token: str | None = None,
     ) -> tuple[Participant, str]:
-        """A new participant, or the returning one with a fresh token (the old one stops
-        working). ``token`` is given only for simulated participants (stable tokens)."""
+        """A new participant, or the returning one (by recruitment id).
+
+        Knowing a recruitment id is not enough to take a session over: the returning
+        participant gets their session back with the same token when their browser presents
+        it (``previous_token``, read from the browser's storage by the join page - their
+        unsent answers are stored under it and are sent next), or with a fresh token once
+        the session has been idle for ``rejoin_idle_s`` (a new browser or device; the old
+        token stops working). Otherwise :class:`InUseError`: the live session is untouched.
+        ``token`` is given only for simulated participants (stable tokens)."""
         rid = self.keyed_hash(f"{source}:{recruitment}") if recruitment else None
         token = token or secrets.token_urlsafe(32)
         with self._join_lock, Session(self.engine) as db:
@@ -195,9 +209,25 @@ class StudyServer:
                     )
                 ).first()
             if existing is not None:
+                same_browser = previous_token is not None and hmac.compare_digest(
+                    token_sha256(previous_token), existing.token_sha256
+                )
+                if same_browser:
+                    db.add(Event(participant_pk=existing.pk, kind="rejoined",
+                                 detail={"how": "same browser"}))  # fmt: skip
+                    db.commit()
+                    db.refresh(existing)
+                    return existing, previous_token  # type: ignore[return-value]
+                idle = (utcnow() - self._last_seen(db, existing)).total_seconds()
+                if simulated is False and idle < self.config.rejoin_idle_s:
+                    db.add(Event(participant_pk=existing.pk, kind="rejoin_refused",
+                                 detail={"idle_s": round(idle, 1)}))  # fmt: skip
+                    db.commit()
+                    raise InUseError(existing.participant)
                 self._by_token.drop(lambda p: p.pk != existing.pk)
                 existing.token_sha256 = token_sha256(token)
-                db.add(Event(participant_pk=existing.pk, kind="rejoined", detail={}))
+                how = {"how": "new browser after idle", "idle_s": round(idle)}
+                db.add(Event(participant_pk=existing.pk, kind="rejoined", detail=how))
                 db.commit()
                 db.refresh(existing)
                 return existing, token
@@ -363,6 +393,20 @@ class StudyServer:
                 raise RefusedError(409, "this response conflicts with a stored one") from None
         done = self._maybe_complete(p)
         return {"stored": True, "replay": False, "complete": done}
+
+    @staticmethod
+    def _last_seen(db: Session, p: Participant) -> dt.datetime:
+        """The participant's latest stored answer, playback record or event (or joining)."""
+        times = [p.created]
+        for column, key in (
+            (Response.received, Response.participant_pk),
+            (PlaybackRecord.received, PlaybackRecord.participant_pk),
+            (Event.at, Event.participant_pk),
+        ):
+            latest = db.scalar(select(func.max(column)).where(key == p.pk))
+            if latest is not None:
+                times.append(latest)
+        return max(t if t.tzinfo else t.replace(tzinfo=dt.UTC) for t in times)
 
     @staticmethod
     def _value(row: dict[str, Any]) -> Any:
