@@ -24,6 +24,7 @@ from facelab.experiment.online.app import create_app
 from facelab.experiment.online.browser import SimulatedBrowser, chromium
 from facelab.experiment.online.db import (
     Action,
+    Event,
     Participant,
     PlaybackRecord,
     ProtocolFile,
@@ -491,6 +492,12 @@ def test_a_tab_closed_mid_trial_resumes_at_the_first_unanswered_screen(
         records = [r.record for r in s.scalars(select(PlaybackRecord))]
     replays = [r for r in records if r["replay"]]
     assert [r["trial_index"] for r in replays] == [2]  # the clip is shown again before rating
+    with Session(server.engine) as s:
+        resumed = [e.detail for e in s.scalars(select(Event).where(Event.kind == "resumed"))]
+    assert resumed == [{"answered": 3, "first_trial": 2}]  # the return is logged, once
+    export_sessions(server.engine, results=tmp_path / "out")
+    saved = json.loads(next((tmp_path / "out").rglob("*_session.json")).read_text("utf-8"))
+    assert [(r["answered"], r["first_trial"]) for r in saved["resumes"]] == [(3, 2)]
 
 
 def test_the_server_killed_mid_session_and_restarted_loses_nothing(

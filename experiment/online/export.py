@@ -216,7 +216,12 @@ def _export_one(
             for e in events
             if e.kind != "browser"
         ],
-        "resumes": [],
+        # each page load of a session that had answers and was not complete
+        "resumes": [
+            {"at": e.at.isoformat(), "how": "online page load", **(e.detail or {})}
+            for e in events
+            if e.kind == "resumed"
+        ],
     }
     if paths.tsv.exists():
         log = SessionLog.resume(
@@ -232,6 +237,7 @@ def _export_one(
         log.update_provenance(
             **{k: v for k, v in provenance.items() if k not in ("resumes", "events")},
             events=provenance["events"][len(saved.get("events", [])) :],
+            resumes=provenance["resumes"][len(saved.get("resumes", [])) :],
         )
     else:
         log = SessionLog.create(

@@ -324,6 +324,13 @@ class StudyServer:
         answered = self.answered(p)
         timeline, clips = self.study.timeline_json(p.participant, answered, session=p.session)
         planned = self.study.planned(p.participant)
+        if answered and p.completed is None:  # a page reload or a return: logged as a resume
+            left = sorted(planned - answered)
+            with self._writes, Session(self.engine) as db:
+                detail = {"answered": len(answered & planned),
+                          "first_trial": left[0][0] if left else None}  # fmt: skip
+                db.add(Event(participant_pk=p.pk, kind="resumed", detail=detail))
+                db.commit()
         pres = self.study.protocol.presentation
         return {
             "study": self.study.study,
