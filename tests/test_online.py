@@ -500,6 +500,38 @@ def test_a_tab_closed_mid_trial_resumes_at_the_first_unanswered_screen(
     assert [(r["answered"], r["first_trial"]) for r in saved["resumes"]] == [(3, 2)]
 
 
+def test_answers_refused_while_the_protocol_was_changed_are_held_and_stored_after(
+    study: Path, tmp_path: Path
+) -> None:
+    """outbox.js used to drop every answer the server refused: after a protocol edit under
+    running sessions, every answer got 409 and was thrown away, and the end page waited for
+    ever. Now refused answers are held and retried; once the protocol is restored they are
+    stored and the session completes."""
+    server = _server(study, tmp_path / "db.sqlite")
+    original = server.study.protocol_sha256
+    outcome: list[str] = []
+    with BackgroundServer(server) as bg:
+        browser = SimulatedBrowser(server, bg.url, 1)
+        thread = threading.Thread(target=lambda: outcome.append(browser.run(timeout_s=300)))
+        thread.start()
+        deadline = time.monotonic() + 120
+        while len(_rows(server, "P0001")) < 4 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        server.study.protocol_sha256 = "0" * 64  # the protocol as edited: sessions refused
+        server._by_token.drop(lambda p: False)
+        at_edit = len(_rows(server, "P0001"))
+        time.sleep(12.0)
+        during = len(_rows(server, "P0001"))
+        server.study.protocol_sha256 = original  # restored
+        thread.join(timeout=300)
+    assert outcome == ["complete"]
+    assert 4 <= at_edit == during < PLANNED  # nothing was stored while refused
+    _check_session(server, "P0001")  # every answer given is stored once, as clicked
+    with Session(server.engine) as s:
+        held = [e.detail for e in s.scalars(select(Event).where(Event.kind == "error"))]
+    assert held and all("protocol changed" in h["why"] for h in held)
+
+
 def test_the_server_killed_mid_session_and_restarted_loses_nothing(
     study: Path, tmp_path: Path
 ) -> None:

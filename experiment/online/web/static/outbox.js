@@ -38,10 +38,31 @@ const FacelabOutbox = (function () {
     return fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), cache: "no-store" });
   }
 
-  // Send everything in order; resolves when the outbox is empty (retries until then).
+  // Answers the server refused (409, 422) are never thrown away: they are held under
+  // facelab.held.<token> with the reason, reported once as an event (the experimenter sees
+  // it), and put back in the queue after HOLD_MS - so a refusal whose reason goes away (a
+  // protocol edited and restored under a running session) is stored in the end.
+  const HOLD_MS = 20000;
+  function heldKey() { return "facelab.held." + token; }
+  function loadHeld() {
+    try { return JSON.parse(localStorage.getItem(heldKey()) || "[]"); } catch (e) { return []; }
+  }
+  function saveHeld(items) { localStorage.setItem(heldKey(), JSON.stringify(items)); }
+  function requeueHeld() {
+    const now = Date.now();
+    const held = loadHeld();
+    const due = held.filter((h) => now - h.at >= HOLD_MS);
+    if (!due.length) return;
+    saveHeld(held.filter((h) => now - h.at < HOLD_MS));  // queued first, then released
+    save(load().concat(due.map((h) => ({ url: h.url, body: h.body, tries: h.tries }))));
+  }
+
+  // Send everything in order; resolves when the queue is empty (retries until then; held
+  // answers are not waited for - see held()).
   function flush() {
     if (flushing) return flushing;
     flushing = (async () => {
+      requeueHeld();
       for (;;) {
         const items = load();
         if (!items.length) break;
@@ -51,9 +72,16 @@ const FacelabOutbox = (function () {
           const r = await request("POST", item.url, item.body);
           if (r.ok) { drop = true; delay = 500; }
           else if (r.status === 409 || r.status === 422) {
-            // refused for good (a conflicting or invalid answer): recorded as an event, not retried
-            const why = (await r.json().catch(() => ({}))).error || String(r.status);
-            console.warn("facelab: refused", item.url, why);
+            const why = ((await r.json().catch(() => ({}))).error || String(r.status)).slice(0, 300);
+            const tries = (item.tries || 0) + 1;
+            saveHeld(loadHeld().concat([{ url: item.url, body: item.body, why, tries, at: Date.now() }]));
+            if (tries === 1 && item.url !== "/api/event") {  // reported once, through the queue
+              const q = load();
+              q.push({ url: "/api/event", body: { kind: "error", detail: { held: item.url, why,
+                trial_index: item.body.trial_index || null, item: item.body.item || null } } });
+              save(q);
+            }
+            console.warn("facelab: held back", item.url, why);
             drop = true;
           } else if (r.status === 401) {
             throw new Error("token refused");
@@ -75,6 +103,7 @@ const FacelabOutbox = (function () {
     return flush();
   }
 
-  return { readToken, send, flush, request, newKey, pending: () => load().length,
+  return { readToken, send, flush, request, newKey, held: () => loadHeld().length,
+           pending: () => load().length,
            onChange: (f) => listeners.push(f), token: () => token };
 })();

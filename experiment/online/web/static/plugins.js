@@ -277,8 +277,14 @@ class FacelabComplete extends FacelabPlugin {
     box.appendChild(facelabEl("p", "", s.text));
     const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
     box.appendChild(status); el.appendChild(box);
+    const started = Date.now();
     for (;;) {
       await FacelabOutbox.flush();
+      if (Date.now() - started > 90000 && status.dataset.facelab === "saving") {
+        // bounded wait: say what is wrong and what to do, and keep trying in the background
+        status.textContent = FacelabSession.ui.stuck.replace("{n}", String(FacelabOutbox.held()));
+        status.dataset.facelab = "stuck";
+      }
       try {
         const r = await FacelabOutbox.request("GET", "/api/complete");
         if (r.ok) {

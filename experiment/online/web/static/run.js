@@ -4,11 +4,13 @@
 const FACELAB_UI = {
   ja: { agree: "同意して始める", next: "次へ", saving: "回答を保存しています…", saved: "すべての回答を保存しました。",
         back: "完了ページへ", fullscreen: "全画面表示で行います。", start: "開始", loading: "読み込み中…",
-        missing: "このリンクは無効です。募集ページのリンクから開いてください。", resume: "中断したところから再開します。" },
+        missing: "このリンクは無効です。募集ページのリンクから開いてください。", resume: "中断したところから再開します。",
+        stuck: "{n}件の回答をまだ保存できていません。このページを閉じずに、募集サイトのメッセージ機能で研究者にご連絡ください。保存できしだい完了コードを表示します。" },
   en: { agree: "I agree, start", next: "Next", saving: "Saving your answers…", saved: "All your answers are saved.",
         back: "Back to the recruitment site", fullscreen: "The study runs in full screen.", start: "Start",
         loading: "Loading…", missing: "This link is not valid. Please open the link from the recruitment site.",
-        resume: "Continuing where you stopped." },
+        resume: "Continuing where you stopped.",
+        stuck: "{n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. The completion code appears here as soon as they are saved." },
 };
 
 (async function main() {
