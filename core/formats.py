@@ -180,7 +180,7 @@ def encode_track(
     }
     text = json.dumps(header, ensure_ascii=False, sort_keys=True).encode("utf-8")
     text += b" " * (-(12 + len(text)) % 4)
-    values = np.concatenate(columns, axis=1) if columns else np.zeros((n, 0), np.float32)
+    values = np.concatenate(columns, axis=1)
     body = np.ascontiguousarray(values, dtype="<f4").tobytes()
     return TRACK_MAGIC + struct.pack("<I", len(text)) + text + body
 

@@ -101,7 +101,8 @@ class GridTask:
 
 @dataclass
 class GridReport:
-    """What happened to a grid: results by key, failures (key -> reason), re-run keys."""
+    """What happened to a grid: results by key (None for every key when the grid was run with
+    ``keep_results=False``), failures (key -> reason), re-run keys."""
 
     where: str
     results: dict[str, Any] = field(default_factory=dict)
@@ -109,6 +110,7 @@ class GridReport:
     retried: list[str] = field(default_factory=list)
     wall_s: float = 0.0
     start_s: float = 0.0  # starting (or connecting to) the cluster
+    keep_results: bool = True
 
     def summary(self) -> str:
         n = len(self.results) + len(self.failed)
@@ -142,13 +144,16 @@ def run_grid(
     on_result: Callable[[str, Any], None] | None = None,
     progress: Progress | None = None,
     window: int | None = None,
+    keep_results: bool = True,
 ) -> GridReport:
     """Run every task; ``on_result(key, result)`` is called in this process as each finishes
     (in completion order). ``tasks`` may be a generator: on a cluster at most ``window``
     tasks (default 4 per worker) are made and in flight at a time, so a large grid's inputs
-    are never all in memory. Keys must be unique."""
+    are never all in memory. ``keep_results=False`` keeps no result in the report once
+    ``on_result`` has had it (a render grid's mp4 bytes are not all held at once). Keys must
+    be unique."""
     started = time.perf_counter()
-    report = GridReport(where=cluster.describe())
+    report = GridReport(where=cluster.describe(), keep_results=keep_results)
     unique = _unique(tasks)
     if cluster.serial:
         _run_serial(unique, report, on_result, progress)
@@ -174,7 +179,7 @@ def _value(arg: Any) -> Any:
 def _record(report, key, outcome, on_result, progress) -> None:
     ok, value = outcome
     if ok:
-        report.results[key] = value
+        report.results[key] = value if report.keep_results else None
         if on_result is not None:
             on_result(key, value)
     else:
@@ -303,7 +308,7 @@ def _run_dask(tasks, cluster, report, on_result, progress, window) -> None:
                 exc = fut.exception()
                 if not isinstance(exc, FacelabError) and type(exc).__name__ != "KilledWorker":
                     raise exc  # a bug: keep its traceback
-                outcome = (False, str(exc) if isinstance(exc, FacelabError) else _lost(exc))
+                outcome = (False, str(exc) if isinstance(exc, FacelabError) else LOST)
             fut.release()
             _record(report, key, outcome, on_result, progress)
             nxt = next(pending, None)
@@ -313,5 +318,5 @@ def _run_dask(tasks, cluster, report, on_result, progress, window) -> None:
         report.retried = sorted(keys[k] for k, n in attempts.items() if n > 1)
 
 
-def _lost(exc: BaseException | None) -> str:
-    return "its worker was lost every time the task ran (the scheduler gave up after 3 tries)"
+#: why a task failed when every worker that ran it was lost (Dask's KilledWorker)
+LOST = "its worker was lost every time the task ran (the scheduler gave up after 3 tries)"

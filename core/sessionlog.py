@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from facelab.durable import fsync_dir, replace_file
 from facelab.errors import SessionError, StageError
 
 __all__ = [
@@ -236,15 +237,6 @@ class SessionContext:
 # --------------------------------------------------------------------------- durability
 
 
-def fsync_dir(folder: Path) -> None:
-    """fsync a directory, so that files created or renamed in it survive a power cut."""
-    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 @contextlib.contextmanager
 def _signals_held() -> Iterator[None]:
     """Hold back SIGINT/SIGTERM/SIGHUP (delivered right after) while a line is written."""
@@ -280,16 +272,6 @@ def _write_new(path: Path, text: str) -> None:
         fh.write(text)
         fh.flush()
         os.fsync(fh.fileno())
-
-
-def _replace(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
 
 
 # --------------------------------------------------------------------------- rows
@@ -543,7 +525,7 @@ class SessionLog:
             self.repaired.append(cut)
         if not keep.strip():
             keep = "\t".join(LOG_COLUMNS) + "\n"
-        _replace(self.paths.tsv, keep)
+        replace_file(self.paths.tsv, keep)
 
     def _check_unique(self) -> None:
         seen = set()
@@ -590,7 +572,7 @@ class SessionLog:
                 data[key] = data[key] + value
             else:
                 data[key] = value
-        _replace(self.paths.provenance, json.dumps(data, indent=2, ensure_ascii=False) + "\n")
+        replace_file(self.paths.provenance, json.dumps(data, indent=2, ensure_ascii=False) + "\n")
 
 
 def rows_to_tsv(rows: Iterable[Mapping[str, Any]]) -> str:

@@ -340,7 +340,7 @@ def bench_render_grid(
     from facelab.grid import Cluster, GridTask, run_grid
     from facelab.stimuli.avatar import default_head
     from facelab.stimuli.render.renderer import RenderSettings
-    from facelab.stimuli.render.task import close_renderer, render_clip, shared_avatar, write_clip
+    from facelab.stimuli.render.task import render_clip, render_grid, shared_avatar, write_clip
 
     avatar = default_head()
     ref = shared_avatar(avatar)
@@ -356,20 +356,18 @@ def bench_render_grid(
     def run(cluster: Cluster, folder: Path) -> dict:
         tasks = (GridTask(f"grid{i:03d}", render_clip, (clip(i), ref, ref)) for i in range(clips))
         inside: list[float] = []
+        shas: dict[str, str] = {}
 
         def done(key, rendered) -> None:
             inside.append(rendered.seconds)
-            write_clip(rendered, out=folder / f"{key}.mp4")
+            shas[key] = write_clip(rendered, out=folder / f"{key}.mp4").sha256
 
         cpu0 = time.process_time()
-        try:
-            report = run_grid(tasks, cluster=cluster, on_result=done)
-        finally:
-            close_renderer()
+        report = render_grid(tasks, cluster=cluster, on_result=done)
         client_cpu = time.process_time() - cpu0
         if report.failed:
             raise StageError(f"benchmark clips failed: {report.failed}")
-        hashes = [report.results[k].sha256 for k in sorted(report.results)]
+        hashes = [shas[k] for k in sorted(shas)]
         n_workers = 1 if cluster.serial else (cluster.workers or 0)
         busy = report.wall_s - report.start_s
         out = {

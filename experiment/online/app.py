@@ -89,25 +89,23 @@ def create_app(server: StudyServer) -> Any:
         crawlers); the participant's button posts to the same address."""
         recruitment_of(request)  # an over-long id is refused now, not after the click
         action = "/join" + (f"?{request.url.query}" if request.url.query else "")
-        return HTMLResponse(
-            f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
+        return study_page(
             # the form's POST must carry this page's Origin (no-referrer would send "null")
-            '<meta name="referrer" content="same-origin">'
-            f'<meta name="robots" content="noindex"><title>{words["title"]}</title>'
-            '<link rel="stylesheet" href="/static/facelab.css"></head><body>'
-            f'<main class="facelab-page"><h1>{words["title"]}</h1><p>{words["intro"]}</p>'
+            head='<meta name="referrer" content="same-origin">'
+            '<meta name="robots" content="noindex">',
+            body=f"<h1>{words['title']}</h1><p>{words['intro']}</p>"
             f'<form method="post" action="{html.escape(action, quote=True)}">'
             '<input type="hidden" name="previous_token" value="">'
             f'<button type="submit" data-facelab="join">{words["start"]}</button></form>'
-            '<script src="/static/join.js"></script></main></body></html>',
-            headers={"Cache-Control": "no-store"},
+            '<script src="/static/join.js"></script>',
         )
 
-    def notice(text: str, status: int, **headers: str) -> HTMLResponse:
+    def study_page(*, body: str, head: str = "", status: int = 200, **headers: str) -> HTMLResponse:
+        """A page of the join flow in the study's language (never cached)."""
         return HTMLResponse(
-            f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">'
+            f'<!doctype html><html lang="{html.escape(lang)}"><head><meta charset="utf-8">{head}'
             f'<title>{words["title"]}</title><link rel="stylesheet" href="/static/facelab.css">'
-            f'</head><body><main class="facelab-page"><p>{text}</p></main></body></html>',
+            f'</head><body><main class="facelab-page">{body}</main></body></html>',
             status_code=status,
             headers={"Cache-Control": "no-store", **headers},
         )
@@ -119,7 +117,7 @@ def create_app(server: StudyServer) -> Any:
         any (a returning participant's session comes back under it)."""
         address = request.client.host if request.client else "?"
         if not server.join_limiter.allow(address):
-            return notice(words["busy"], 429, **{"Retry-After": "60"})
+            return study_page(body=f"<p>{words['busy']}</p>", status=429, **{"Retry-After": "60"})
         recruitment, source = recruitment_of(request)
         form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
         previous = (form.get("previous_token") or [""])[0]
@@ -130,7 +128,7 @@ def create_app(server: StudyServer) -> Any:
             )
         except InUseError:
             minutes = round(server.config.rejoin_idle_s / 60)
-            return notice(words["in_use"].format(minutes=minutes), 409)
+            return study_page(body=f"<p>{words['in_use'].format(minutes=minutes)}</p>", status=409)
         return RedirectResponse(f"/run#t={token}", status_code=303)
 
     @app.get("/")

@@ -219,7 +219,7 @@ class StudyServer:
                     db.refresh(existing)
                     return existing, previous_token  # type: ignore[return-value]
                 idle = (utcnow() - self._last_seen(db, existing)).total_seconds()
-                if simulated is False and idle < self.config.rejoin_idle_s:
+                if not simulated and idle < self.config.rejoin_idle_s:
                     db.add(Event(participant_pk=existing.pk, kind="rejoin_refused",
                                  detail={"idle_s": round(idle, 1)}))  # fmt: skip
                     db.commit()

@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from facelab.durable import replace_file
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import BehaviourError
 from facelab.formats import write_manifest
-from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
+from facelab.grid import SERIAL, Cluster, GridTask, Progress
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip
 from facelab.stimuli.behaviour.library import ROTATIONS, Library, Unit, default_library
@@ -32,9 +33,9 @@ from facelab.stimuli.render.task import (
     ClipFrames,
     RenderedClip,
     audio_sha256,
-    close_renderer,
     finish_grid,
     render_clip,
+    render_grid,
     shared_avatar,
     write_clip,
 )
@@ -51,9 +52,7 @@ BEHAVIOUR_CLIP_COLUMNS = (
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(json.dumps(data, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    replace_file(path, json.dumps(data, indent=1, ensure_ascii=False) + "\n")
 
 
 def render_behaviour_clips(
@@ -155,10 +154,7 @@ def render_behaviour_clips(
             plt.close(fig)
         log(f"  rendered {clip_id}: {json.dumps(beh.plan.counts()) if beh else 'none'}")
 
-    try:
-        report = run_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
-    finally:
-        close_renderer()
+    report = render_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
     finish_grid(report, rows=list(rows.values()), out=out, log=log)
     rows = list(rows.values())
     for note in write_manifest(out, rows, columns=BEHAVIOUR_CLIP_COLUMNS, merge=True):

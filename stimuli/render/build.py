@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from facelab.durable import replace_file
 from facelab.errors import StageError
 from facelab.formats import (
     TRACK_COLUMNS,
@@ -30,7 +30,7 @@ from facelab.formats import (
     track_path,
     write_manifest,
 )
-from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
+from facelab.grid import SERIAL, Cluster, GridTask, Progress
 from facelab.protocol import Condition, Protocol
 from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, clip_seed
@@ -51,12 +51,11 @@ from facelab.stimuli.render.task import (
     RenderedClip,
     audio_sha256,
     clip_track,
-    close_renderer,
     finish_grid,
     render_clip,
+    render_grid,
     shared_avatar,
     write_clip,
-    write_track,
 )
 from facelab.stimuli.speech.audio import Speech
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack
@@ -154,10 +153,7 @@ def _plan_hash(behaviour: ClipBehaviour) -> str:
 
 
 def _write_json(path: Path, data: dict, *, indent: int = 1, ascii_only: bool = False) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
-    text = json.dumps(data, indent=indent, ensure_ascii=ascii_only)
-    tmp.write_text(text + "\n", encoding="utf-8")
-    tmp.replace(path)
+    replace_file(path, json.dumps(data, indent=indent, ensure_ascii=ascii_only) + "\n")
 
 
 def build_clips(
@@ -264,7 +260,7 @@ def build_clips(
                     and saved.get("sha256") == sha256_file(mp4)
                 ):
                     if not track_file.is_file() or sha256_file(track_file) != row["track_sha256"]:
-                        write_track(track, out=track_file)  # the clip was drawn from these
+                        replace_file(track_file, track)  # the clip was drawn from these
                     row.update(
                         duration_s=round(saved["duration_s"], 6),
                         sha256=saved["sha256"],
@@ -311,7 +307,7 @@ def build_clips(
 
     def finished(clip_id: str, rendered: RenderedClip) -> None:
         row, about, behaviour = waiting.pop(clip_id)
-        write_track(pending_tracks.pop(clip_id), out=out / row["track_file"])
+        replace_file(out / row["track_file"], pending_tracks.pop(clip_id))
         info = write_clip(rendered, out=out / row["path"])
         row.update(duration_s=round(info.duration_s, 6), sha256=info.sha256)
         _write_json(
@@ -333,10 +329,7 @@ def build_clips(
         note = about["stand_in"]
         log(f"  rendered {clip_id} ({info.frames} frames)" + (f"; {note}" if note else ""))
 
-    try:
-        report = run_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
-    finally:
-        close_renderer()
+    report = render_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
     finish_grid(report, rows=rows, out=out, log=log)
     write_manifest(out, rows, columns=(*CLIP_COLUMNS, *TRACK_COLUMNS))
     return rows

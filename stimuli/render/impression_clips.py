@@ -17,7 +17,7 @@ import numpy as np
 
 from facelab.errors import StageError
 from facelab.formats import write_manifest
-from facelab.grid import SERIAL, Cluster, GridTask, Progress, run_grid
+from facelab.grid import SERIAL, Cluster, GridTask, Progress
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.impression.model import ImpressionModel, envelope
@@ -26,9 +26,9 @@ from facelab.stimuli.render.task import (
     ClipFrames,
     RenderedClip,
     audio_sha256,
-    close_renderer,
     finish_grid,
     render_clip,
+    render_grid,
     shared_avatar,
     write_clip,
 )
@@ -178,10 +178,7 @@ def render_levels(
         clip = write_clip(rendered, out=out / rows[name]["path"])
         rows[name].update(duration_s=round(clip.duration_s, 6), sha256=clip.sha256)
 
-    try:
-        report = run_grid(tasks, cluster=cluster, on_result=finished, progress=progress)
-    finally:
-        close_renderer()
+    report = render_grid(tasks, cluster=cluster, on_result=finished, progress=progress)
     finish_grid(report, rows=list(rows.values()), out=out, log=log)
     rows = list(rows.values())
     notes = write_manifest(

@@ -17,14 +17,26 @@ import hashlib
 import os
 import tempfile
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from facelab.durable import replace_file
 from facelab.errors import StageError
 from facelab.formats import POSE_CHANNELS, Track, decode_track, encode_track
-from facelab.grid import SERIAL, GridReport, Shared, check_shared
+from facelab.grid import (
+    SERIAL,
+    Cluster,
+    GridReport,
+    GridTask,
+    Progress,
+    Shared,
+    check_shared,
+    run_grid,
+)
 from facelab.hashing import sha256_file
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import HeadPose
@@ -40,10 +52,10 @@ __all__ = [
     "close_renderer",
     "finish_grid",
     "render_clip",
+    "render_grid",
     "shared_avatar",
     "track_frames",
     "write_clip",
-    "write_track",
 ]
 
 
@@ -140,14 +152,6 @@ def track_frames(track: Track, avatar: Avatar) -> tuple[np.ndarray, tuple[HeadPo
     return weights, poses
 
 
-def write_track(data: bytes, *, out: Path) -> str:
-    """Write a track atomically; its SHA-256."""
-    part = out.with_name(f".{out.name}.{os.getpid()}.part")
-    part.write_bytes(data)
-    part.replace(out)
-    return hashlib.sha256(data).hexdigest()
-
-
 def audio_sha256(audio: Speech) -> str:
     h = hashlib.sha256(np.ascontiguousarray(audio.samples, np.float32).tobytes())
     h.update(str(audio.sample_rate).encode())
@@ -222,6 +226,24 @@ def render_clip(job: ClipFrames, framing: Avatar, drawn: Avatar) -> RenderedClip
     )  # fmt: skip
 
 
+def render_grid(
+    tasks: Iterable[GridTask],
+    *,
+    cluster: Cluster,
+    on_result: Callable[[str, Any], None],
+    progress: Progress | None = None,
+) -> GridReport:
+    """:func:`facelab.grid.run_grid` for render tasks: each clip's bytes go to ``on_result``
+    and are not kept in the report, and this process's renderer (opened by tasks run here) is
+    closed afterwards, whatever happened, so the caller may open another GL context."""
+    try:
+        return run_grid(
+            tasks, cluster=cluster, on_result=on_result, progress=progress, keep_results=False
+        )
+    finally:
+        close_renderer()
+
+
 def finish_grid(report: GridReport, *, rows: list[dict], out: Path, log) -> None:
     """After a render grid: name the clips that failed (one StageError, after the others were
     written) and those a lost worker made the scheduler re-run; check that every row's file
@@ -234,6 +256,7 @@ def finish_grid(report: GridReport, *, rows: list[dict], out: Path, log) -> None
             f"{len(report.failed)} of {len(report.failed) + len(report.results)} clips failed "
             f"(the other clips are written and will be reused):\n" + "\n".join(lines)
         )
+
     def matches(name: str, digest: str | None) -> bool:
         return digest is not None and (out / name).is_file() and sha256_file(out / name) == digest
 
@@ -252,15 +275,7 @@ def write_clip(rendered: RenderedClip, *, out: Path) -> ClipInfo:
     if hashlib.sha256(rendered.data).hexdigest() != rendered.sha256:
         raise StageError(f"{rendered.clip_id}: the clip's bytes do not match their hash")
     out.parent.mkdir(parents=True, exist_ok=True)
-    part = out.with_name(f".{out.name}.{os.getpid()}.{os.urandom(4).hex()}.part")
-    try:
-        with open(part, "wb") as f:
-            f.write(rendered.data)
-            f.flush()
-            os.fsync(f.fileno())
-        part.replace(out)
-    finally:
-        part.unlink(missing_ok=True)
+    replace_file(out, rendered.data)
     if sha256_file(out) != rendered.sha256:
         raise StageError(f"{out}: written clip does not match its hash")
     r = rendered
