@@ -526,3 +526,19 @@ def _rendering(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         yield Issue(
             ("rendering", "width"), "width and height must be even (H.264 needs even sizes)"
         )
+
+
+@_check("presentation", "tasks")
+def _live_display(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """The live 3D and VR views draw one avatar at a time: a side-by-side comparison (two
+    clips at once) plays only as video."""
+    display = protocol.presentation.display
+    if display == "video":
+        return
+    for i, task in enumerate(protocol.tasks):
+        if getattr(task, "layout", "sequential") == "side_by_side":
+            yield Issue(
+                ("tasks", i, "layout"),
+                f"presentation.display {display!r} shows one avatar at a time; a side_by_side "
+                "comparison needs display: video (or layout: sequential)",
+            )

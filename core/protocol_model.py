@@ -388,10 +388,43 @@ class Practice(_Model):
     condition: Id
 
 
+class VirtualReality(_Model):
+    """Where the avatar stands in an immersive (``display: webxr``) session, and what runs
+    when the participant's browser has no headset."""
+
+    avatar_distance_m: float = Field(
+        1.0,
+        gt=0.2,
+        le=10.0,
+        description="From the seated participant's eyes (at the session's start) to the "
+        "avatar's face, in metres.",
+    )
+    avatar_height_m: float = Field(
+        0.0,
+        ge=-1.0,
+        le=1.0,
+        description="The avatar's eyes above (+) or below (-) the participant's eyes at the "
+        "session's start, in metres (0: eye to eye).",
+    )
+    fallback: Literal["none", "live3d"] = Field(
+        "none",
+        description="Without a headset: 'live3d' runs the session on the screen (the session "
+        "file says which ran); 'none' asks for a headset and runs nothing.",
+    )
+
+
 class Presentation(_Model):
     language: LangCode = Field("ja", description="Language of all participant-facing text.")
     items_layout: Literal["sequential", "together"] = "sequential"
     fullscreen: bool = True
+    display: Literal["video", "live3d", "webxr"] = Field(
+        "video",
+        description="How clips are shown online: 'video' plays the rendered mp4; 'live3d' "
+        "draws the avatar in the browser from each clip's animation track against the audio "
+        "clock; 'webxr' does the same in an immersive VR session (see vr). The lab window "
+        "always plays the video.",
+    )
+    vr: VirtualReality = Field(default_factory=VirtualReality)
     instructions: Localized | None = None
     practice: Practice | None = None
     break_text: Localized | None = None

@@ -37,6 +37,8 @@ class ClipRef:
     duration_s: float
     fps: float
     size: tuple[int, int] = (0, 0)
+    track: Path | None = None  # the clip's animation track (clips.csv track_file), if any
+    track_sha256: str | None = None
 
 
 def check_clips(
@@ -105,6 +107,8 @@ def check_clips(
             float(row["duration_s"]),
             float(row["fps"]),
             (int(row["width"]), int(row["height"])),
+            track=clips_dir / row["track_file"] if row.get("track_file") else None,
+            track_sha256=row.get("track_sha256") or None,
         )
     return refs
 

@@ -87,7 +87,7 @@ def plugin_parameters(*extra_js: str) -> dict[str, dict[str, str]]:
 
 def _context(protocol: Any) -> BrowserContext:
     def clip_json(key: tuple[str, str, str]) -> dict[str, Any]:
-        return {"clip": "0" * 64 + ".mp4", "fps": 30, "frames": 150}
+        return {"clip": "0" * 64 + ".mp4", "fps": 30, "frames": 150, "track": ""}
 
     return BrowserContext(lang=protocol.presentation.language, clip_json=clip_json)
 

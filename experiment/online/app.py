@@ -14,10 +14,11 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 
 from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
-from facelab.experiment.online.middleware import SecurityHeaders
+from facelab.experiment.online.middleware import IMPORT_MAP, SecurityHeaders
 from facelab.experiment.online.server import (
     ADMIN_HEADER,
     RECRUITMENT_PARAMS,
+    THREE_FILES,
     TOKEN_HEADER,
     VENDOR_FILES,
     WEB,
@@ -143,7 +144,12 @@ def create_app(server: StudyServer) -> Any:
 
     @app.get("/run")
     def run() -> HTMLResponse:
-        return page("run.html")
+        text = (WEB / "run.html").read_text(encoding="utf-8")
+        return HTMLResponse(
+            text.replace(
+                "<!--facelab-importmap-->", f'<script type="importmap">{IMPORT_MAP}</script>'
+            )
+        )
 
     @app.get("/admin")
     def admin() -> HTMLResponse:
@@ -173,6 +179,38 @@ def create_app(server: StudyServer) -> Any:
         if rel is None or not (config.vendor / rel).is_file():
             raise RefusedError(404, "not found")
         return FileResponse(config.vendor / rel)
+
+    three = {rel: config.vendor / "three" / rel for rel in THREE_FILES}
+
+    @app.get("/vendor/three/{rel:path}")
+    def vendor_three(rel: str) -> FileResponse:
+        """three.js for the live 3D and VR views (only the files they import)."""
+        if rel not in three or not three[rel].is_file():
+            raise RefusedError(404, "not found")
+        return FileResponse(three[rel], media_type="text/javascript")
+
+    live = config.live
+
+    @app.get("/avatar/{name}")
+    def avatar(name: str) -> Any:
+        """The avatar the live views draw (by its hash; only with display live3d/webxr)."""
+        from fastapi.responses import Response as Raw
+
+        if live is None or name != live.avatar_name:
+            raise RefusedError(404, "not found")
+        return Raw(live.avatar_glb, media_type="model/gltf-binary")
+
+    @app.get("/tracks/{name}")
+    def track(name: str) -> FileResponse:
+        """A clip's animation track by its hash (never by its condition)."""
+        path = live.tracks.get(name) if live is not None else None
+        if path is None:
+            raise RefusedError(404, "not found")
+        response = FileResponse(path, media_type="application/octet-stream")
+        for header in ("last-modified", "etag"):  # see /clips: no render order revealed
+            if header in response.headers:
+                del response.headers[header]
+        return response
 
     @app.get("/clips/{name}")
     def clip(name: str) -> FileResponse:

@@ -71,6 +71,10 @@ def chromium(*, size: tuple[int, int] = (1280, 800)) -> Any:
         "--mute-audio",
         "--autoplay-policy=no-user-gesture-required",
         "--disable-gpu",
+        # WebGL for the live 3D and VR views: SwiftShader, which recent Chromium uses only
+        # when asked (no GPU here; frame times measured this way are not device figures)
+        "--enable-unsafe-swiftshader",
+        "--use-angle=swiftshader",
     ):
         opts.add_argument(arg)
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})

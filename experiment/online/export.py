@@ -59,7 +59,28 @@ _PLAYBACK_KEYS = (
     "dropped",
     "flip_times",
     "frames_shown",
+    # the live 3D / VR views' measures (absent from video records)
+    "display",
+    "av_offset_ms",
+    "frames_late",
+    "head_yaw_range_deg",
+    "head_pitch_range_deg",
+    "avatar_distance_m",
 )
+
+
+_LAB_KEYS = _PLAYBACK_KEYS[:8]  # every record has these (None where the browser had none)
+#: the fields only the live 3D / VR views fill (left out of a video record's export)
+_LIVE_ONLY = frozenset(_PLAYBACK_KEYS[8:]) | {"audio_times", "viewer_poses"}
+
+
+def _live(record: dict[str, Any]) -> dict[str, Any]:
+    """A stored record without the lab keys and without live-only fields it did not fill."""
+    return {
+        k: v
+        for k, v in record.items()
+        if k not in _LAB_KEYS and not (k in _LIVE_ONLY and v is None)
+    }
 
 
 def _count_lines(path: Path) -> int:
@@ -209,6 +230,9 @@ def _export_one(
         "clips": p.clips,
         "recruitment_source": p.recruitment_source,
         "browser": p.browser,
+        # what presented the clips: the protocol's display and what ran (webxr falls back to
+        # live3d without a headset where the protocol allows it); None for a video study
+        "display": next((e.detail for e in reversed(events) if e.kind == "display"), None),
         "started": p.created.isoformat() if p.created else None,
         "finished": p.completed.isoformat() if p.completed else None,
         "events": [
@@ -255,8 +279,9 @@ def _export_one(
     _append_new(
         paths.playback,
         [
-            {k: rec.record.get(k) for k in _PLAYBACK_KEYS}
-            | {"browser": {k: v for k, v in rec.record.items() if k not in _PLAYBACK_KEYS}}
+            {k: rec.record.get(k) for k in _LAB_KEYS}
+            | {k: v for k, v in _live(rec.record).items() if k in _PLAYBACK_KEYS}
+            | {"browser": {k: v for k, v in _live(rec.record).items() if k not in _PLAYBACK_KEYS}}
             for rec in playback
         ],
     )

@@ -5,15 +5,25 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
 from typing import Any
 
 from fastapi import FastAPI
 from fastapi.responses import JSONResponse
 
-__all__ = ["CSP", "MAX_BODY_BYTES", "SecurityHeaders"]
+__all__ = ["CSP", "IMPORT_MAP", "MAX_BODY_BYTES", "SecurityHeaders"]
 
+#: the session page's import map (the live 3D/VR view imports three.js by its bare name); an
+#: inline script, so the policy allows exactly these bytes by their hash
+IMPORT_MAP = (
+    '{"imports": {"three": "/vendor/three/build/three.module.js", '
+    '"three/addons/": "/vendor/three/examples/jsm/"}}'
+)
+_IMPORT_MAP_HASH = base64.b64encode(hashlib.sha256(IMPORT_MAP.encode()).digest()).decode()
 CSP = (
-    "default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+    f"default-src 'none'; script-src 'self' 'sha256-{_IMPORT_MAP_HASH}'; "
+    "style-src 'self' 'unsafe-inline'; "
     "img-src 'self' data:; media-src 'self' blob:; connect-src 'self'; font-src 'self' data:; "
     "base-uri 'none'; "
     "form-action 'self'; frame-ancestors 'none'"

@@ -15,7 +15,9 @@ from typing import Any
 from facelab.errors import SessionError
 from facelab.experiment.online.app import create_app
 from facelab.experiment.online.db import default_url, open_engine, store_protocol
+from facelab.experiment.online.live import live_scene
 from facelab.experiment.online.server import (
+    THREE_FILES,
     VENDOR_FILES,
     WEB,
     ServeConfig,
@@ -31,7 +33,8 @@ __all__ = ["BackgroundServer", "free_port", "prepare_server", "vendor_dir"]
 def vendor_dir() -> Path:
     """jsPsych and its plugins, installed by ``npm ci`` from the pinned lockfile."""
     base = WEB / "node_modules"
-    missing = [rel for rel in VENDOR_FILES.values() if not (base / rel).is_file()]
+    wanted = [*VENDOR_FILES.values(), *(f"three/{rel}" for rel in THREE_FILES)]
+    missing = [rel for rel in wanted if not (base / rel).is_file()]
     if missing:
         raise SessionError(
             f"jsPsych is not installed in {base} (missing {missing[0]}); run "
@@ -61,10 +64,14 @@ def prepare_server(
     study = OnlineStudy(
         protocol=protocol, protocol_sha256=protocol_hash(protocol_path), clips=clips
     )
+    live = None
+    if protocol.presentation.display != "video":
+        live = live_scene(protocol, base_dir=base, clips=clips)
     config = ServeConfig(
         study=study,
         clip_paths={ref.sha256 + ".mp4": ref.path for ref in clips.values()},
         vendor=vendor_dir(),
+        live=live,
         completion_url=completion_url,
         completion_code=completion_code,
         consent=consent,

@@ -64,10 +64,18 @@ from facelab.experiment.online.db import (
     utcnow,
 )
 from facelab.experiment.online.limits import Clock, RateLimiter, TokenCache
+from facelab.experiment.online.live import LiveScene
 from facelab.experiment.online.study import AnswerError, OnlineStudy
 from facelab.experiment.timeline import SCREEN_KINDS, Playback, needed_clips
 
-__all__ = ["InUseError", "RefusedError", "ServeConfig", "StudyServer", "token_sha256"]
+__all__ = [
+    "THREE_FILES",
+    "InUseError",
+    "RefusedError",
+    "ServeConfig",
+    "StudyServer",
+    "token_sha256",
+]
 
 WEB = Path(__file__).resolve().parent / "web"
 VENDOR_FILES = {
@@ -80,6 +88,15 @@ VENDOR_FILES = {
         "@jspsych/plugin-html-button-response/dist/index.browser.min.js"
     ),
 }
+#: three.js files the live 3D and VR views load (ES modules, by the paths they import each
+#: other by; the page's import map names "three"), served from node_modules/three
+THREE_FILES = (
+    "build/three.module.js",
+    "build/three.core.js",
+    "examples/jsm/loaders/GLTFLoader.js",
+    "examples/jsm/utils/BufferGeometryUtils.js",
+    "examples/jsm/utils/SkeletonUtils.js",
+)
 TOKEN_HEADER = "X-Facelab-Token"
 ADMIN_HEADER = "X-Facelab-Admin"
 TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
@@ -112,6 +129,7 @@ class ServeConfig:
     # a recruitment id alone reopens a session only after it has been idle this long; the
     # browser that holds the session's token reopens it at any time (see StudyServer.join)
     rejoin_idle_s: float = 1800.0
+    live: LiveScene | None = None  # display live3d / webxr: the avatar, camera and tracks
 
 
 class InUseError(Exception):
@@ -337,6 +355,15 @@ class StudyServer:
             "participant": p.participant,
             "language": pres.language,
             "fullscreen": pres.fullscreen,
+            "display": pres.display,
+            **(
+                {
+                    "scene": self.config.live.scene_json(),
+                    "vr": pres.vr.model_dump(),
+                }
+                if self.config.live is not None
+                else {}
+            ),
             "consent": self.config.consent or "",
             "resumed": bool(answered),
             "planned": len(planned),

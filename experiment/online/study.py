@@ -163,10 +163,13 @@ class OnlineStudy:
     def _clip_json(self, key: ClipKey) -> dict[str, Any]:
         """A clip as the browser fetches it: by its hash (the name never says the condition)."""
         ref = self.clips[key]
+        live = self.protocol.presentation.display != "video" and ref.track_sha256
         return {
             "clip": ref.sha256 + ".mp4",
             "fps": ref.fps,
             "frames": round(ref.duration_s * ref.fps),
+            # display live3d / webxr: the animation track drawn live ("" for video)
+            "track": f"{ref.track_sha256}.bin" if live else "",
         }
 
     def _screen_json(self, s: Screen, shown_before: set[int]) -> dict[str, Any]:

@@ -51,7 +51,7 @@ from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import Skeleton, match_roles
 from facelab.stimuli.avatar.vrm import apply_vrm, detect_kind, humanoid_nodes
 
-__all__ = ["accessor", "buffers_of", "open_gltf", "read_gltf", "write_gltf"]
+__all__ = ["accessor", "buffers_of", "live_glb", "open_gltf", "read_gltf", "write_gltf"]
 
 COMPONENT_DTYPES = {
     5120: np.int8,
@@ -598,9 +598,42 @@ def write_gltf(avatar: Avatar, path: Path) -> None:
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".gltf"):
         raise AvatarError(f"{path}: expected a .glb or .gltf file name")
+    doc, buffer = _gltf_document(avatar)
+    if suffix == ".gltf":
+        doc.buffers[0].uri = (
+            "data:application/octet-stream;base64," + base64.b64encode(buffer).decode()
+        )
+        path.write_text(doc.gltf_to_json(), encoding="utf-8")
+        return
+    doc.set_binary_blob(buffer)
+    path.write_bytes(b"".join(doc.save_to_bytes()))
+
+
+def live_glb(avatar: Avatar) -> bytes:
+    """The avatar as the live browser and VR views draw it (``facelab serve`` with
+    ``display: live3d | webxr``): exactly the geometry, targets (named as the animation
+    tracks' channels) and skeleton the offline renderer deforms, with the vertex colours in
+    linear light as the offline shading uses them (squared), and the skeleton's roles
+    (``neck``, ``head``, ``eye_left``, ``eye_right`` -> joint name) in the mesh's
+    ``extras.facelab.roles`` so a track's head and eye channels turn the same joints."""
+    colors = avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
+    doc, buffer = _gltf_document(avatar, colors=np.asarray(colors, np.float32) ** 2)
+    doc.set_binary_blob(buffer)
+    return b"".join(doc.save_to_bytes())
+
+
+def _gltf_document(
+    avatar: Avatar, *, colors: np.ndarray | None = None
+) -> tuple[pygltflib.GLTF2, bytes]:
+    """The glTF document of ``avatar`` and its one binary buffer (``colors``: the COLOR_0
+    values; default the avatar's own colours; given, the skeleton's roles are added too)."""
+    live = colors is not None
     b = _BufferBuilder()
     pos = b.add(avatar.neutral.astype(np.float32), "VEC3", 5126, 34962, True)
-    colors = avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
+    if colors is None:
+        colors = (
+            avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
+        )
     col = b.add(np.asarray(colors, np.float32), "VEC3", 5126, 34962, False)
     idx = b.add(avatar.faces.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False)
     names = list(avatar.target_names)
@@ -635,6 +668,9 @@ def write_gltf(avatar: Avatar, path: Path) -> None:
     else:
         roots = []
     buffer = b.buffer()
+    facelab_extras: dict[str, Any] = {"landmarks": avatar.landmarks}
+    if live and sk is not None:
+        facelab_extras["roles"] = {role: sk.names[j] for role, j in sk.roles.items()}
     doc = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="facelab"),
         scene=0,
@@ -654,7 +690,7 @@ def write_gltf(avatar: Avatar, path: Path) -> None:
                     )
                 ],
                 weights=[0.0] * len(names),
-                extras={"targetNames": names, "facelab": {"landmarks": avatar.landmarks}},
+                extras={"targetNames": names, "facelab": facelab_extras},
             )
         ],
         materials=[
@@ -669,11 +705,4 @@ def write_gltf(avatar: Avatar, path: Path) -> None:
         bufferViews=b.views,
         buffers=[pygltflib.Buffer(byteLength=len(buffer))],
     )
-    if suffix == ".gltf":
-        doc.buffers[0].uri = (
-            "data:application/octet-stream;base64," + base64.b64encode(buffer).decode()
-        )
-        path.write_text(doc.gltf_to_json(), encoding="utf-8")
-        return
-    doc.set_binary_blob(buffer)
-    path.write_bytes(b"".join(doc.save_to_bytes()))
+    return doc, buffer

@@ -32,9 +32,9 @@ from facelab.formats import (
 )
 from facelab.grid import SERIAL, Cluster, GridTask, Progress
 from facelab.protocol import Condition, Protocol
-from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
+from facelab.stimuli.avatar import Avatar
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, clip_seed
-from facelab.stimuli.methods import DriveInput, check_playable, get
+from facelab.stimuli.methods import DriveInput, get
 from facelab.stimuli.methods.types import BlendshapeTrack
 from facelab.stimuli.render.clip import frame_weights, padded_audio, sha256_file, weights_at
 from facelab.stimuli.render.clipspec import (
@@ -46,6 +46,7 @@ from facelab.stimuli.render.clipspec import (
 )
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.scene import load_avatar, settings_for
 from facelab.stimuli.render.task import (
     ClipFrames,
     RenderedClip,
@@ -62,31 +63,6 @@ from facelab.stimuli.speech.track import VOWELS, VisemeTrack
 from facelab.stimuli.speech.vowels import vowel_segments
 
 __all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
-
-
-def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:
-    """The protocol's avatar, checked to play every condition's method; with ``viseme_*``
-    shapes from ARKit mixes when a method drives visemes the avatar lacks."""
-    spec = protocol.rendering.avatar
-    avatar = default_head() if spec == "default" else load(base_dir / spec)
-    for cond in protocol.conditions:
-        check_playable(avatar, cond.method, cond.settings, base_dir=base_dir)
-    needs_visemes = any(get(c.method).uses_visemes for c in protocol.conditions)
-    return with_viseme_mixes(avatar) if needs_visemes else avatar
-
-
-def settings_for(protocol: Protocol) -> RenderSettings:
-    r = protocol.rendering
-    return RenderSettings(
-        width=r.width,
-        height=r.height,
-        distance_m=r.camera.distance_m,
-        target_m=tuple(r.camera.target_m) if r.camera.target_m is not None else None,
-        fov_deg=r.camera.fov_deg,
-        height_m=r.camera.height_m,
-        background=tuple(r.background),
-        msaa=r.msaa,
-    )
 
 
 def _track_hash(track: BlendshapeTrack) -> str:

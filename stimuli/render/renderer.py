@@ -47,6 +47,12 @@ from pyrender import renderer as _pr_renderer
 from facelab.errors import StageError
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import HeadPose
+from facelab.stimuli.render.scene import (
+    DEFAULT_DISTANCE_M,
+    LIGHTS,
+    RenderSettings,
+    framing,
+)
 
 __all__ = [
     "DEFAULT_DISTANCE_M",
@@ -57,30 +63,6 @@ __all__ = [
     "look_at",
     "vertex_normals",
 ]
-
-
-@dataclass(frozen=True)
-class RenderSettings:
-    """Frame size; the camera (``distance_m`` None frames the head: 0.65 m for a head the size
-    of the default one, scaled with the head's height; ``target_m`` None aims at the head's
-    centre - found from landmarks, the head joint's vertices or the model's top); background
-    colour (linear 0-1) and multisampling."""
-
-    width: int = 1280
-    height: int = 720
-    distance_m: float | None = None
-    fov_deg: float = 30.0
-    height_m: float = 0.0
-    background: tuple[float, float, float] = (0.5, 0.5, 0.5)
-    msaa: int = 1  # protocols default to 4 (smooth, 0.71x real time at 720p30 on 2 cores)
-    target_m: tuple[float, float, float] | None = None
-    zoom: float = 1.0  # divides the automatic distance (contact sheets come closer; from 1.5
-    # on, an avatar without face landmarks is framed on the vertices its shapes move)
-
-
-#: camera distance for the default head, and that head's height from chin to crown (m)
-DEFAULT_DISTANCE_M = 0.65
-DEFAULT_HEAD_HEIGHT_M = 0.24
 
 
 @dataclass
@@ -145,11 +127,7 @@ def look_at(
     return pose
 
 
-_LIGHTS = (  # direction towards the light (world), intensity
-    (np.array([-0.55, 0.60, 0.60]), 0.62),  # key, upper left of the viewer
-    (np.array([0.75, 0.15, 0.65]), 0.30),  # fill, right
-    (np.array([0.0, 0.35, -1.0]), 0.16),  # rim from behind
-)
+_LIGHTS = tuple((np.array(d), i) for d, i in LIGHTS)  # shared with the live view
 _WRAP = 0.25  # light wraps a little round the terminator, as it does on skin
 
 
@@ -166,7 +144,7 @@ def _shade(
     power = np.array([p for _, p in _LIGHTS], np.float32)
     lam = np.clip((normals @ dirs.T + _WRAP) / (1 + _WRAP), 0, None)  # (V, L)
     up = normals[:, 1]
-    ambient = 0.20 + 0.07 * up  # hemisphere: brighter from the sky than from the ground
+    ambient = 0.20 + 0.07 * up  # hemisphere: AMBIENT_GROUND .. AMBIENT_SKY (scene.py)
     light = ambient + lam @ power
     half = dirs[0] + view_dir.astype(np.float32)
     half /= np.linalg.norm(half)
@@ -219,81 +197,10 @@ class Renderer:
             if avatar.gloss is not None
             else np.full(len(avatar.neutral), 0.35, np.float32)
         )
-        self._face_centre, self._distance = self._framing()
+        self._face_centre, self._distance = framing(avatar, settings)
         self._view_dir = np.array([0.0, 0.0, 1.0])
         self._renderer: pyrender.OffscreenRenderer | None = None
         self._groups: list[_Group] = []
-
-    def _framing(self) -> tuple[np.ndarray, float]:
-        """The point the camera aims at and its distance (see :class:`RenderSettings`)."""
-        s = self.settings
-        a = self.avatar
-        lm = a.landmarks
-        head_height = DEFAULT_HEAD_HEIGHT_M
-        if s.target_m is not None:
-            centre = np.asarray(s.target_m, float)
-        elif "upper_lip" in lm and {"upper_lid_left", "upper_lid_right"} <= set(lm):
-            eyes = 0.5 * (a.neutral[lm["upper_lid_left"]] + a.neutral[lm["upper_lid_right"]])
-            c = 0.5 * (eyes + a.neutral[lm["upper_lip"]])
-            centre = np.array([0.0, c[1] + 0.004, c[2] - 0.02])
-            if a.source.get("kind") != "default":
-                head_height = 3.2 * float(eyes[1] - a.neutral[lm["upper_lip"], 1])
-        else:
-            head = self._head_vertices()
-            lo, hi = head.min(axis=0), head.max(axis=0)
-            centre = np.array(
-                [(lo[0] + hi[0]) / 2, lo[1] + 0.52 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2]
-            )
-            head_height = float(hi[1] - lo[1])
-            face = self._face_vertices() if s.zoom >= 1.5 and s.distance_m is None else None
-            if face is not None:  # a close-up without landmarks: frame what the shapes move
-                flo, fhi = face.min(axis=0), face.max(axis=0)
-                centre = np.array([(flo[0] + fhi[0]) / 2, (flo[1] + fhi[1]) / 2, centre[2]])
-                fit = 1.15 * max(fhi[1] - flo[1], (fhi[0] - flo[0]) * s.height / s.width)
-                zoomed = DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M
-                return centre, float(
-                    max(zoomed / s.zoom, fit / (2 * np.tan(np.radians(s.fov_deg) / 2)))
-                )
-        distance = (
-            s.distance_m
-            if s.distance_m is not None
-            else DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M / s.zoom
-        )
-        return centre, float(distance)
-
-    def _face_vertices(self) -> np.ndarray | None:
-        """Rest vertices that the avatar's shapes move (the face: mouth, jaw, lids, brows,
-        cheeks), or None when fewer than 10 move."""
-        a = self.avatar
-        if not a.targets:
-            return None
-        moved = np.zeros(len(a.neutral), bool)
-        scale = float(np.ptp(a.neutral, axis=0).max()) or 1.0
-        for delta in a.targets.values():
-            moved |= np.abs(delta).max(axis=1) > 1e-4 * scale
-        return a.neutral[moved] if moved.sum() >= 10 else None
-
-    def _head_vertices(self) -> np.ndarray:
-        """Rest vertices of the head: those skinned to the head joint, else a mesh named like
-        a head (``Wolf3D_Head``, ``Face``, ``head``), else the model's top."""
-        a = self.avatar
-        sk = a.skeleton
-        if sk is not None and "head" in sk.roles:
-            rows = sk.vertices_of(sk.roles["head"])
-            if len(rows) >= 10:
-                return a.neutral[rows]
-        named = [
-            idx
-            for name, idx in a.parts.items()
-            if any(key in name.lower() for key in ("head", "face")) and len(idx) >= 10
-        ]
-        if named:
-            return a.neutral[np.concatenate(named)]
-        lo, hi = a.neutral.min(axis=0), a.neutral.max(axis=0)
-        height = hi[1] - lo[1]
-        if height > 0.6:  # a full body: its top 0.25 m or so is the head
-            return a.neutral[a.neutral[:, 1] > hi[1] - min(0.25, height / 6)]
-        return a.neutral
 
     def __enter__(self) -> Renderer:
         s = self.settings

@@ -2,7 +2,7 @@
 // (facelab.experiment.timeline), with the lab runner's rules. Each gets its screen as JSON
 // from the server; answers go through FacelabOutbox (stored locally first, then sent).
 "use strict";
-const FacelabSession = { playback: {}, ui: {} };
+const FacelabSession = { playback: {}, ui: {}, stage: null };
 
 function facelabEl(tag, cls, text) {
   const e = document.createElement(tag);
@@ -20,12 +20,19 @@ function facelabBox(cls, kind, screen) {
   return box;
 }
 function facelabSleep(ms) { return new Promise((res) => setTimeout(res, ms)); }
+// Put a screen on the page; in VR (display webxr) its panel mirrors it in front of the
+// participant (FacelabSession.stage: the live view, live.js) - answered there or here alike.
+function facelabShow(el, box, mirror = true) {
+  el.appendChild(box);
+  const stage = FacelabSession.stage;
+  if (stage) stage.mirror(mirror ? box : null);
+}
 // A plugin's jsPsych info: one typed parameter per field of its screen's JSON, exactly the
 // fields facelab.experiment.timeline's Screen.browser() sends for the kind (a contract test,
 // tests/test_screen_kinds.py, reads these and compares them with the Python JSON).
 const FacelabFields = {
   screen: { kind: "STRING", trial_index: "INT", practice: "BOOL" },
-  clip: { replay: "BOOL", clip: "STRING", fps: "FLOAT", frames: "INT", interval: "INT", announce: "STRING", gap_s: "FLOAT" },
+  clip: { replay: "BOOL", clip: "STRING", fps: "FLOAT", frames: "INT", interval: "INT", announce: "STRING", gap_s: "FLOAT", track: "STRING" },
   task: { item: "STRING", question: "STRING" },
 };
 function facelabInfo(name, fields) {
@@ -68,7 +75,7 @@ class FacelabText extends FacelabPlugin {
     box.appendChild(facelabEl("p", "", s.text));
     const next = facelabEl("button", "facelab-button", FacelabSession.ui.next);
     next.dataset.facelab = "next";
-    box.appendChild(next); el.appendChild(box);
+    box.appendChild(next); facelabShow(el, box);
     await new Promise((res) => { const off = facelabKeys({ " ": next }); next.addEventListener("click", () => { off(); res(); }, { once: true }); });
     return { role: s.role };
   }
@@ -129,11 +136,24 @@ class FacelabClip extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-clip", "clip", s);
     const announce = facelabEl("div", "facelab-announce", s.announce || "");
-    const v = facelabVideo(s, false);
-    box.appendChild(announce); box.appendChild(v.video); el.appendChild(box);
-    if (s.gap_s) { v.video.hidden = true; await facelabSleep(s.gap_s * 1000); v.video.hidden = false; }
-    const refused = await facelabPlayAll(this, box, s, [v]);
-    const { onset, dropped } = facelabPlayback(s, v, refused);
+    box.appendChild(announce);
+    const stage = FacelabSession.stage;
+    let onset, dropped;
+    if (stage) {  // display live3d / webxr: the avatar drawn here from the clip's track
+      facelabShow(el, box, false);
+      if (stage.ran === "webxr" && !stage.inVR()) await facelabEnterVR(box);
+      if (!stage.inVR()) stage.attach(box);
+      if (s.gap_s) await facelabSleep(s.gap_s * 1000);
+      const record = await stage.play(s, box);
+      if (!s.practice) FacelabOutbox.send("/api/playback", record);
+      ({ onset, dropped } = record);
+    } else {
+      const v = facelabVideo(s, false);
+      box.appendChild(v.video); el.appendChild(box);
+      if (s.gap_s) { v.video.hidden = true; await facelabSleep(s.gap_s * 1000); v.video.hidden = false; }
+      const refused = await facelabPlayAll(this, box, s, [v]);
+      ({ onset, dropped } = facelabPlayback(s, v, refused));
+    }
     const prev = FacelabSession.playback[s.trial_index];
     FacelabSession.playback[s.trial_index] = (s.interval === 2 && prev)
       ? { onset: prev.onset, dropped: prev.dropped + dropped } : { onset, dropped };
@@ -141,6 +161,22 @@ class FacelabClip extends FacelabPlugin {
   }
 }
 FacelabClip.info = facelabInfo("facelab-clip", { ...FacelabFields.screen, ...FacelabFields.clip });
+
+// The button that starts (or, after the headset was taken off, restarts) the immersive
+// session: entering VR needs a click.
+async function facelabEnterVR(parent) {
+  const stage = FacelabSession.stage;
+  const box = facelabEl("div", "facelab-text"); box.dataset.facelab = "enter_vr";
+  box.appendChild(facelabEl("p", "", stage.words.enter_note));
+  const b = facelabEl("button", "facelab-button", stage.words.enter); b.dataset.facelab = "enter";
+  box.appendChild(b); parent.appendChild(box);
+  for (;;) {
+    await new Promise((res) => b.addEventListener("click", res, { once: true }));
+    try { await stage.enterVR(); break; }
+    catch (e) { FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "enter VR", error: String(e.name || e) } }); }
+  }
+  box.remove();
+}
 
 // Two clips at once, left and right; only the clip on side s.sound has its sound.
 class FacelabClipPair extends FacelabPlugin {
@@ -180,18 +216,21 @@ class FacelabVas extends FacelabPlugin {
       scale.appendChild(facelabEl("div", "facelab-anchor right", item.right));
       wrap.appendChild(scale); box.appendChild(wrap);
       const [lo, hi] = item.range;
-      const place = (ev) => {
-        const r = line.getBoundingClientRect();
-        const frac = Math.min(1, Math.max(0, (ev.clientX - r.left) / r.width));
+      // a VR panel's ray places the marker through the same hook (line.facelabPlace)
+      line.facelabPlace = (frac) => {
         values[item.id] = Math.round((lo + frac * (hi - lo)) * 100) / 100;
         marker.style.left = (frac * 100) + "%";
         marker.classList.add("shown");  // no marker until the first touch
         confirm.disabled = s.items.some((it) => values[it.id] === undefined);
       };
+      const place = (ev) => {
+        const r = line.getBoundingClientRect();
+        line.facelabPlace(Math.min(1, Math.max(0, (ev.clientX - r.left) / r.width)));
+      };
       line.addEventListener("pointerdown", (ev) => { line.setPointerCapture(ev.pointerId); place(ev); });
       line.addEventListener("pointermove", (ev) => { if (line.hasPointerCapture(ev.pointerId)) place(ev); });
     }
-    box.appendChild(confirm); el.appendChild(box);
+    box.appendChild(confirm); facelabShow(el, box);
     await new Promise((res) => confirm.addEventListener("click", res, { once: true }));
     if (!s.practice) {
       for (const item of s.items) {
@@ -218,7 +257,7 @@ class FacelabChoice extends FacelabPlugin {
         keys[String(i + 1)] = b; row.appendChild(b);
       });
     });
-    box.appendChild(row); el.appendChild(box);
+    box.appendChild(row); facelabShow(el, box);
     const off = facelabKeys(keys);
     const value = await picked;
     off();
@@ -276,7 +315,7 @@ class FacelabComplete extends FacelabPlugin {
     const box = facelabBox("facelab-text", "end", s);
     box.appendChild(facelabEl("p", "", s.text));
     const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
-    box.appendChild(status); el.appendChild(box);
+    box.appendChild(status); facelabShow(el, box);
     const started = Date.now();
     for (;;) {
       await FacelabOutbox.flush();
@@ -292,6 +331,8 @@ class FacelabComplete extends FacelabPlugin {
           status.textContent = FacelabSession.ui.saved;
           status.dataset.facelab = "complete";
           if (c.code) box.appendChild(facelabEl("p", "facelab-code", c.code));
+          const stage = FacelabSession.stage;
+          if (stage && stage.session) stage.session.end().catch(() => {});  // the code is on the screen
           if (c.redirect) {
             const a = facelabEl("a", "facelab-button", FacelabSession.ui.back);
             a.href = c.redirect; a.dataset.facelab = "redirect"; box.appendChild(a);

@@ -9,7 +9,7 @@ const FACELAB_UI = {
   en: { agree: "I agree, start", next: "Next", saving: "Saving your answers…", saved: "All your answers are saved.",
         back: "Back to the recruitment site", fullscreen: "The study runs in full screen.", start: "Start",
         loading: "Loading…", missing: "This link is not valid. Please open the link from the recruitment site.",
-        resume: "Continuing where you stopped.",
+        resume: "Continuing where you stopped.", nolive: "This browser cannot show the study's 3D view. Please open the recruitment link again in a current Chrome, Edge or Firefox.",
         stuck: "{n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. The completion code appears here as soon as they are saved." },
 };
 
@@ -40,6 +40,24 @@ const FACELAB_UI = {
       document.head.appendChild(s);
     });
   }
+  if (state.display && state.display !== "video") {  // the avatar drawn live (live.js)
+    let stage = null;
+    try { stage = await (await import("/static/live.js")).createStage(state); }
+    catch (e) {
+      FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "live view", error: String(e && e.message || e).slice(0, 300) } });
+      fail(FACELAB_UI[state.language] ? FACELAB_UI[state.language].nolive : FACELAB_UI.en.nolive); return;
+    }
+    if (state.display === "webxr" && !(await stage.supported())) {
+      const fallback = state.vr && state.vr.fallback === "live3d";
+      FacelabOutbox.send("/api/event", { kind: "display", detail: { requested: "webxr", ran: fallback ? "live3d" : "none", reason: "no immersive-vr session in this browser" } });
+      if (!fallback) { await FacelabOutbox.flush(); fail(stage.words.needs); return; }
+      stage.ran = "live3d"; stage.renderer.xr.enabled = false;
+    } else if (state.display === "live3d") {
+      FacelabOutbox.send("/api/event", { kind: "display", detail: { requested: "live3d", ran: "live3d" } });
+    }
+    FacelabSession.stage = stage;
+    for (const s of state.timeline) if (s.track) stage.clip(s).catch(() => {});  // fetch ahead
+  }
   app.textContent = "";
   const jsPsych = initJsPsych({ display_element: "app" });
   const timeline = [];
@@ -61,10 +79,10 @@ const FACELAB_UI = {
       FacelabOutbox.send("/api/event", { kind: "browser", detail });
     },
   });
-  if (state.fullscreen) {
+  if (state.fullscreen && !(FacelabSession.stage && FacelabSession.stage.ran === "webxr")) {
     timeline.push({ type: jsPsychFullscreen, fullscreen_mode: true, message: `<p>${ui.fullscreen}</p>`, button_label: ui.start });
   }
-  if (state.clips.length) {
+  if (state.clips.length && !FacelabSession.stage) {
     timeline.push({ type: jsPsychPreload, video: state.clips.map((c) => "/clips/" + c), message: ui.loading, show_progress_bar: true, max_load_time: 600000 });
   }
   for (const s of state.timeline) {

@@ -1,0 +1,186 @@
+"""A protocol's scene: the avatar it draws (:func:`load_avatar`), the render settings
+(:func:`settings_for`), where the camera stands and what it aims at (:func:`framing`) and the
+lights - pure functions shared by the offline renderer (:mod:`.renderer`) and the live browser
+and VR views (``facelab serve`` with ``presentation.display: live3d | webxr``,
+:func:`camera_json`), so a live frame and the offline frame of the same instant are framed and
+lit alike. No pyrender here."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facelab.protocol import Protocol
+from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
+from facelab.stimuli.methods import check_playable, get
+
+__all__ = [
+    "AMBIENT_GROUND",
+    "AMBIENT_SKY",
+    "DEFAULT_DISTANCE_M",
+    "DEFAULT_HEAD_HEIGHT_M",
+    "LIGHTS",
+    "RenderSettings",
+    "camera_json",
+    "framing",
+    "load_avatar",
+    "settings_for",
+]
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Frame size; the camera (``distance_m`` None frames the head: 0.65 m for a head the size
+    of the default one, scaled with the head's height; ``target_m`` None aims at the head's
+    centre - found from landmarks, the head joint's vertices or the model's top); background
+    colour (linear 0-1) and multisampling."""
+
+    width: int = 1280
+    height: int = 720
+    distance_m: float | None = None
+    fov_deg: float = 30.0
+    height_m: float = 0.0
+    background: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    msaa: int = 1  # protocols default to 4 (smooth, 0.71x real time at 720p30 on 2 cores)
+    target_m: tuple[float, float, float] | None = None
+    zoom: float = 1.0  # divides the automatic distance (contact sheets come closer; from 1.5
+    # on, an avatar without face landmarks is framed on the vertices its shapes move)
+
+
+#: camera distance for the default head, and that head's height from chin to crown (m)
+DEFAULT_DISTANCE_M = 0.65
+DEFAULT_HEAD_HEIGHT_M = 0.24
+
+
+def framing(avatar: Avatar, settings: RenderSettings) -> tuple[np.ndarray, float]:
+    """The point the camera aims at and its distance (see :class:`RenderSettings`)."""
+    s = settings
+    a = avatar
+    lm = a.landmarks
+    head_height = DEFAULT_HEAD_HEIGHT_M
+    if s.target_m is not None:
+        centre = np.asarray(s.target_m, float)
+    elif "upper_lip" in lm and {"upper_lid_left", "upper_lid_right"} <= set(lm):
+        eyes = 0.5 * (a.neutral[lm["upper_lid_left"]] + a.neutral[lm["upper_lid_right"]])
+        c = 0.5 * (eyes + a.neutral[lm["upper_lip"]])
+        centre = np.array([0.0, c[1] + 0.004, c[2] - 0.02])
+        if a.source.get("kind") != "default":
+            head_height = 3.2 * float(eyes[1] - a.neutral[lm["upper_lip"], 1])
+    else:
+        head = _head_vertices(avatar)
+        lo, hi = head.min(axis=0), head.max(axis=0)
+        centre = np.array(
+            [(lo[0] + hi[0]) / 2, lo[1] + 0.52 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2]
+        )
+        head_height = float(hi[1] - lo[1])
+        face = _face_vertices(avatar) if s.zoom >= 1.5 and s.distance_m is None else None
+        if face is not None:  # a close-up without landmarks: frame what the shapes move
+            flo, fhi = face.min(axis=0), face.max(axis=0)
+            centre = np.array([(flo[0] + fhi[0]) / 2, (flo[1] + fhi[1]) / 2, centre[2]])
+            fit = 1.15 * max(fhi[1] - flo[1], (fhi[0] - flo[0]) * s.height / s.width)
+            zoomed = DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M
+            return centre, float(
+                max(zoomed / s.zoom, fit / (2 * np.tan(np.radians(s.fov_deg) / 2)))
+            )
+    distance = (
+        s.distance_m
+        if s.distance_m is not None
+        else DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M / s.zoom
+    )
+    return centre, float(distance)
+
+
+def _face_vertices(avatar: Avatar) -> np.ndarray | None:
+    """Rest vertices that the avatar's shapes move (the face: mouth, jaw, lids, brows,
+    cheeks), or None when fewer than 10 move."""
+    a = avatar
+    if not a.targets:
+        return None
+    moved = np.zeros(len(a.neutral), bool)
+    scale = float(np.ptp(a.neutral, axis=0).max()) or 1.0
+    for delta in a.targets.values():
+        moved |= np.abs(delta).max(axis=1) > 1e-4 * scale
+    return a.neutral[moved] if moved.sum() >= 10 else None
+
+
+def _head_vertices(avatar: Avatar) -> np.ndarray:
+    """Rest vertices of the head: those skinned to the head joint, else a mesh named like
+    a head (``Wolf3D_Head``, ``Face``, ``head``), else the model's top."""
+    a = avatar
+    sk = a.skeleton
+    if sk is not None and "head" in sk.roles:
+        rows = sk.vertices_of(sk.roles["head"])
+        if len(rows) >= 10:
+            return a.neutral[rows]
+    named = [
+        idx
+        for name, idx in a.parts.items()
+        if any(key in name.lower() for key in ("head", "face")) and len(idx) >= 10
+    ]
+    if named:
+        return a.neutral[np.concatenate(named)]
+    lo, hi = a.neutral.min(axis=0), a.neutral.max(axis=0)
+    height = hi[1] - lo[1]
+    if height > 0.6:  # a full body: its top 0.25 m or so is the head
+        return a.neutral[a.neutral[:, 1] > hi[1] - min(0.25, height / 6)]
+    return a.neutral
+
+
+#: The offline lights (direction towards the light in the avatar's world frame, intensity
+#: on linear base colours); the hemisphere ambient is 0.20 + 0.07 * normal.y. The renderer
+#: shades with these per vertex; the live view gives three.js the same lights.
+LIGHTS = (
+    ((-0.55, 0.60, 0.60), 0.62),  # key, upper left of the viewer
+    ((0.75, 0.15, 0.65), 0.30),  # fill, right
+    ((0.0, 0.35, -1.0), 0.16),  # rim from behind
+)
+AMBIENT_SKY, AMBIENT_GROUND = 0.27, 0.13  # the hemisphere's value for normals up and down
+
+
+def camera_json(avatar: Avatar, settings: RenderSettings) -> dict[str, Any]:
+    """The offline camera as the live view needs it: eye and target (m, avatar world frame),
+    vertical field of view (degrees), near/far planes (m), frame size (px), background
+    (linear 0-1, drawn as is by the offline renderer), the lights and the head-centre
+    height (the point a VR view places at the protocol's distance)."""
+    centre, distance = framing(avatar, settings)
+    eye = centre + np.array([0.0, settings.height_m, distance])
+    return {
+        "eye": [round(float(v), 6) for v in eye],
+        "target": [round(float(v), 6) for v in centre],
+        "fov_deg": settings.fov_deg,
+        "near": max(0.01, 0.08 * distance),
+        "far": 20.0 * distance,
+        "width": settings.width,
+        "height": settings.height,
+        "background": list(settings.background),
+        "lights": [{"direction": list(d), "intensity": i} for d, i in LIGHTS],
+        "ambient": {"sky": AMBIENT_SKY, "ground": AMBIENT_GROUND},
+    }
+
+
+def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:
+    """The protocol's avatar, checked to play every condition's method; with ``viseme_*``
+    shapes from ARKit mixes when a method drives visemes the avatar lacks."""
+    spec = protocol.rendering.avatar
+    avatar = default_head() if spec == "default" else load(base_dir / spec)
+    for cond in protocol.conditions:
+        check_playable(avatar, cond.method, cond.settings, base_dir=base_dir)
+    needs_visemes = any(get(c.method).uses_visemes for c in protocol.conditions)
+    return with_viseme_mixes(avatar) if needs_visemes else avatar
+
+
+def settings_for(protocol: Protocol) -> RenderSettings:
+    r = protocol.rendering
+    return RenderSettings(
+        width=r.width,
+        height=r.height,
+        distance_m=r.camera.distance_m,
+        target_m=tuple(r.camera.target_m) if r.camera.target_m is not None else None,
+        fov_deg=r.camera.fov_deg,
+        height_m=r.camera.height_m,
+        background=tuple(r.background),
+        msaa=r.msaa,
+    )
