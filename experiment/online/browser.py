@@ -36,7 +36,7 @@ from facelab.experiment.timeline import (
     ResponseScreen,
 )
 
-__all__ = ["SimulatedBrowser", "chromium", "run_simulated", "simulated_token"]
+__all__ = ["SimulatedBrowser", "chromium", "emulator_js", "run_simulated", "simulated_token"]
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
@@ -81,7 +81,65 @@ def chromium(*, size: tuple[int, int] = (1280, 800)) -> Any:
     return webdriver.Chrome(service=Service(executable_path=driver_exe), options=opts)
 
 
+#: the emulated headset (Meta's IWER from npm, never served to participants): installed in the
+#: page before its scripts run; while a clip plays it turns the head (yaw +-HEAD_TURN_DEG,
+#: one cycle every 2 s) as a seated participant might, and faces ahead again for the panels
+HEAD_TURN_DEG = 20.0
+_EMULATOR_JS = """
+(function () {
+  const device = new IWER.XRDevice(IWER.metaQuest3, { stereoEnabled: true });
+  device.installRuntime({ forceInstall: true });
+  window.facelabXRDevice = device;
+  const turn = %(turn)s;
+  let t0 = null;
+  setInterval(() => {
+    const live = window.FacelabLive;
+    const playing = !!(live && live.onFrame && live.session);
+    if (playing && t0 === null) t0 = performance.now();
+    if (!playing) t0 = null;
+    const yaw = playing ? turn * Math.sin(2 * Math.PI * (performance.now() - t0) / 2000) : 0;
+    const h = yaw * Math.PI / 360;
+    device.quaternion.set(0, Math.sin(h), 0, Math.cos(h));
+  }, 20);
+})();
+"""
+
+# Point the emulated right controller at a DOM element's place on the VR panel (a VAS line at
+# fraction arguments[1]) and pull the trigger (a select), as a participant would.
+_XR_SELECT_JS = """
+const [selector, frac, done] = arguments;
+const stage = window.FacelabLive, device = window.facelabXRDevice;
+const el = document.querySelector(selector);
+const target = el && stage.target(el, frac);
+if (!target) { done('no panel target for ' + selector); return; }
+const c = device.controllers.right;
+const q = stage.aim(1, target);
+c.quaternion.set(q[0], q[1], q[2], q[3]);
+const frame = () => new Promise((r) => setTimeout(r, 120));
+(async () => {
+  await frame(); await frame();
+  c.updateButtonValue('trigger', 1);
+  for (let i = 0; i < 40 && c.getButtonValue('trigger') < 1; i++) await frame();
+  await frame(); await frame();
+  c.updateButtonValue('trigger', 0);
+  await frame(); await frame();
+  done(null);
+})();
+"""
+
+
+def emulator_js(*, turn_deg: float = HEAD_TURN_DEG) -> str:
+    """The script that installs the emulated headset (IWER, from experiment/online/web)."""
+    from facelab.experiment.online.serve import vendor_dir
+
+    iwer = vendor_dir() / "iwer" / "build" / "iwer.min.js"
+    if not iwer.is_file():
+        raise SessionError(f"the emulated headset needs {iwer}; run scripts/setup.sh (npm ci)")
+    return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {"turn": float(turn_deg)}
+
+
 _STATE_JS = """
+if (document.querySelector('[data-facelab=enter_vr]')) return {kind: 'enter_vr'};
 const el = document.querySelector('#app [data-facelab]');
 const fs = document.querySelector('#jspsych-fullscreen-btn');
 const consent = document.querySelector('#jspsych-html-button-response-btngroup button');
@@ -111,6 +169,8 @@ class SimulatedBrowser:
     given: int = 0
     shots: set[str] = field(default_factory=set)
     texts: dict[str, str] = field(default_factory=dict)  # role -> the text screen's words
+    headset: bool = True  # display webxr: an emulated headset (False: a browser without one)
+    _emulator: Any = None
 
     def participant(self) -> tuple[Participant, str]:
         token = simulated_token(self.server, self.k)
@@ -178,6 +238,22 @@ class SimulatedBrowser:
         if own:
             self.driver = chromium()
         d = self.driver
+        vr = study.protocol.presentation.display == "webxr" and self.headset
+        if vr:  # an emulated headset in this page (and on every reload)
+            self._emulator = self._emulator or d.execute_cdp_cmd(
+                "Page.addScriptToEvaluateOnNewDocument", {"source": emulator_js()}
+            )
+
+        def in_vr() -> bool:
+            return bool(vr and d.execute_script(
+                "return !!(window.FacelabLive && window.FacelabLive.inVR())"))  # fmt: skip
+
+        def xr_select(selector: str, frac: float | None = None) -> None:
+            """A click on the page, or in VR the controller's ray and trigger."""
+            problem = d.execute_async_script(_XR_SELECT_JS, selector, frac)
+            if problem:
+                raise SessionError(f"simulated participant {self.k}: {problem}")
+
         try:
             d.get(f"{self.base_url}/run#t={token}")
             deadline = time.monotonic() + timeout_s
@@ -208,6 +284,11 @@ class SimulatedBrowser:
                     and kind in ("vas", "choice_2afc", "identify")
                 ):
                     return "stopped"
+                if kind == "enter_vr":
+                    self._shot("enter_vr")
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=enter_vr] button").click()
+                    time.sleep(0.5)
+                    continue
                 if kind == "consent":
                     self._shot("consent")
                     d.find_element(
@@ -221,9 +302,13 @@ class SimulatedBrowser:
                     d.find_element(By.ID, "jspsych-fullscreen-btn").click()
                 elif kind == "text":
                     self._shot(f"text-{state.get('role')}")
-                    shown = d.find_element(By.CSS_SELECTOR, "#app [data-facelab=text]").text
-                    self.texts[str(state.get("role"))] = shown
-                    d.find_element(By.CSS_SELECTOR, "[data-facelab=next]").click()
+                    shown = d.find_element(By.CSS_SELECTOR, "#app [data-facelab=text]")
+                    self.texts[str(state.get("role"))] = shown.get_attribute("textContent")
+                    if in_vr():
+                        self._shot("vr-text")
+                        xr_select("[data-facelab=next]")
+                    else:
+                        d.find_element(By.CSS_SELECTOR, "[data-facelab=next]").click()
                 elif kind == "vas":
                     trial = state["trial"]  # None on the practice trial (never logged)
                     screen = screens.get((trial, "vas"))
@@ -240,12 +325,22 @@ class SimulatedBrowser:
                                 condition=screen.trial.condition,
                             )
                             self._record(p, trial_index=trial, item=item, value=value)
+                        if in_vr():  # the ray at the value's place on the panel's line
+                            xr_select(
+                                f".facelab-vas-item[data-item='{item}'] [data-facelab=line]",
+                                (value - lo) / (hi - lo),
+                            )
+                            continue
                         line = wrap.find_element(By.CSS_SELECTOR, "[data-facelab=line]")
                         width = line.size["width"]
                         dx = round((value - lo) / (hi - lo) * (width - 1) - (width - 1) / 2)
                         ActionChains(d).move_to_element_with_offset(line, dx, 0).click().perform()
-                    self._shot("vas")
-                    d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
+                    if in_vr():
+                        self._shot("vr-vas")
+                        xr_select("[data-facelab=confirm]")
+                    else:
+                        self._shot("vas")
+                        d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
                     self.given += screen is not None  # practice answers are not counted
                 elif d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]"):
                     # a screen answered by one of its option buttons: 2AFC, identification
@@ -263,9 +358,11 @@ class SimulatedBrowser:
                             p, trial_index=trial, item=state.get("item") or "", value=value
                         )
                     self._shot(kind)
-                    d.find_element(
-                        By.CSS_SELECTOR, f"[data-facelab=option][data-value='{value}']"
-                    ).click()
+                    option = f"[data-facelab=option][data-value='{value}']"
+                    if in_vr():
+                        xr_select(option)
+                    else:
+                        d.find_element(By.CSS_SELECTOR, option).click()
                     self.given += screen is not None
                 done_screens.add(key)
                 time.sleep(0.05)

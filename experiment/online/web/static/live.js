@@ -151,6 +151,7 @@ export class Stage {
   // -- the frame loop: live3d draws while a clip plays; VR draws every frame of the session
 
   tick(time, xrFrame) {
+    if (this.session && !this.origin && xrFrame) this.place(xrFrame);
     if (this.onFrame) this.onFrame(time, xrFrame);
     if (this.panel) this.panel.hover(this);
     if (this.onFrame || this.session) this.renderer.render(this.scene, this.camera);
@@ -267,9 +268,7 @@ export class Stage {
     await this.renderer.xr.setSession(session);
     this.session = session;
     session.addEventListener("end", () => { this.session = null; if (this.panel) this.panel.remove(); this.panel = null; });
-    const t = this.camera_json.target;
-    this.avatar.position.set(-t[0], (this.vr.avatar_height_m || 0) - t[1], -(this.vr.avatar_distance_m || 1) - t[2]);
-    this.avatar.updateMatrixWorld(true);
+    this.origin = null;  // placed at the first frame's head position (place)
     this.controllers = [0, 1].map((i) => {
       const c = this.renderer.xr.getController(i);
       const ray = new THREE.Line(new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(), new THREE.Vector3(0, 0, -1)]),
@@ -279,15 +278,41 @@ export class Stage {
       this.scene.add(c);
       return c;
     });
+    for (let i = 0; i < 200 && this.session && !this.origin; i++) await new Promise((r) => setTimeout(r, 50));
     FacelabOutbox.send("/api/event", { kind: "display", detail: { requested: this.display, ran: "webxr", vr: this.vr } });
   }
 
-  inVR() { return !!this.session; }
+  // The avatar's face vr.avatar_distance_m straight ahead of where the participant's eyes
+  // are at the session's first frame, vr.avatar_height_m above them, facing them.
+  place(xrFrame) {
+    const pose = xrFrame.getViewerPose(this.renderer.xr.getReferenceSpace());
+    if (!pose) return;
+    const p = pose.transform.position;
+    this.origin = new THREE.Vector3(p.x, p.y, p.z);
+    const t = this.camera_json.target;
+    this.avatar.position.set(p.x - t[0], p.y + (this.vr.avatar_height_m || 0) - t[1],
+      p.z - (this.vr.avatar_distance_m || 1) - t[2]);
+    this.avatar.updateMatrixWorld(true);
+    if (this.panel) this.panel.place();
+  }
+
+  inVR() { return !!this.session && !!this.origin; }
+
+  // For drivers and tests with an emulated headset: the orientation [x, y, z, w] (reference
+  // space axes) that points controller `i`'s ray at `target` ([x, y, z]), from where it is.
+  aim(i, target) {
+    const c = this.controllers[i];
+    c.updateMatrixWorld(true);
+    const from = new THREE.Vector3().setFromMatrixPosition(c.matrixWorld);
+    const dir = new THREE.Vector3(...target).sub(from).normalize();
+    return new THREE.Quaternion().setFromUnitVectors(new THREE.Vector3(0, 0, -1), dir).toArray();
+  }
 
   // Mirror the DOM screen `box` on a panel (VR only); null out of VR.
   mirror(box) {
     if (this.panel) { this.panel.remove(); this.panel = null; }
     if (!this.session || !box) return null;
+    this.avatar.visible = false;  // a screen to answer: the panel alone
     this.panel = new Panel(this, box);
     return this.panel;
   }
@@ -311,10 +336,7 @@ class Panel {
     this.texture.colorSpace = THREE.SRGBColorSpace;
     const width_m = 0.8, height_m = width_m * this.h / this.w;
     this.mesh = new THREE.Mesh(new THREE.PlaneGeometry(width_m, height_m), new THREE.MeshBasicMaterial({ map: this.texture }));
-    const d = Math.min(0.9, (stage.vr.avatar_distance_m || 1) * 0.8);
-    // below the avatar's face, tilted up towards the eyes, so the face stays in view
-    this.mesh.position.set(0, (stage.vr.avatar_height_m || 0) - 0.32, -d);
-    this.mesh.lookAt(0, 0, 0);
+    this.place();
     this.cursor = new THREE.Mesh(new THREE.RingGeometry(0.006, 0.01, 24), new THREE.MeshBasicMaterial({ color: 0x1565c0 }));
     this.cursor.visible = false;
     stage.scene.add(this.mesh); stage.scene.add(this.cursor);
@@ -322,6 +344,15 @@ class Panel {
     this.draw();
     this.observer = new MutationObserver(() => this.draw());
     this.observer.observe(box, { subtree: true, attributes: true, childList: true, characterData: true });
+  }
+
+  // below the avatar's face, nearer, turned towards the eyes, so the face stays in view
+  place() {
+    const o = this.stage.origin || new THREE.Vector3();
+    const d = Math.min(0.9, (this.stage.vr.avatar_distance_m || 1) * 0.8);
+    this.mesh.position.set(o.x, o.y + (this.stage.vr.avatar_height_m || 0) - 0.32, o.z - d);
+    this.mesh.lookAt(o);
+    this.mesh.updateMatrixWorld(true);
   }
 
   remove() {
