@@ -23,7 +23,14 @@ import pandas as pd
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import load_results
 from facelab.analysis.pilot import pilot_items, pilot_sessions
-from facelab.analysis.presentation import exclude_dropped, presentation_quality
+from facelab.analysis.presentation import (
+    exclude_av_offset,
+    exclude_dropped,
+    live_playback,
+    live_quality,
+    presentation_quality,
+    with_live_playback,
+)
 from facelab.analysis.report import ReportFiles, write_report
 from facelab.analysis.study import StudyResults, analyze_study
 from facelab.analysis.tasks import TaskResults, analyze_tasks
@@ -80,6 +87,7 @@ def run(
     boot_seed: int = 1,
     n_boot: int = 200,
     max_dropped_frames: int | None = None,
+    max_av_offset_ms: float | None = None,
 ) -> AnalysisRun:
     """Analyse the study's sessions under ``results`` into ``out`` (created; files in it are
     replaced).
@@ -91,6 +99,10 @@ def run(
     max_dropped_frames : leave out responses to trials whose clip dropped more frames (the
         report says how many, per condition); None keeps every response. Either way the
         dropped frames per condition are tabled (``presentation_quality``).
+    max_av_offset_ms : leave out responses to trials drawn live (display live3d / webxr)
+        whose picture and sound were further apart; the live measures per condition are
+        tabled either way (``live_presentation``), and each response carries its trial's
+        ``av_offset_ms``, head movement and viewing distance as covariates.
     """
     data = load_results(results, study=protocol.study.id)
     if exclude:
@@ -100,9 +112,14 @@ def run(
                 f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
             )
         data = data[~data["participant"].isin(list(exclude))].reset_index(drop=True)
-    excluded, dropped_note = data.iloc[:0], None
+    logs = [Path(src) for src in sorted(data["source"].dropna().unique())]
+    data = with_live_playback(data, live_playback(logs))
+    excluded, dropped_note, offset_note = data.iloc[:0], None, None
     if max_dropped_frames is not None:
         data, excluded, dropped_note = exclude_dropped(data, max_dropped=max_dropped_frames)
+    if max_av_offset_ms is not None:
+        data, late, offset_note = exclude_av_offset(data, max_ms=max_av_offset_ms)
+        excluded = pd.concat([excluded, late], ignore_index=True) if not late.empty else excluded
     check = check_data(
         pd.concat([data, excluded], ignore_index=True) if not excluded.empty else data,
         protocol,
@@ -114,13 +131,15 @@ def run(
     tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(data, excluded=excluded)
+    live = live_quality(data)
+    if not live.empty:  # clips drawn live (display live3d / webxr): A/V offset, head movement
+        tasks.tables["live_presentation"] = live
     tasks.tables["pilot_sessions"] = pilot_sessions(data, check)
     items, item_notes = pilot_items(vas)
     if not items.empty:
         tasks.tables["pilot_items"] = items
     tasks.notes.extend(item_notes)
-    if dropped_note:
-        tasks.notes.append(dropped_note)
+    tasks.notes.extend(n for n in (dropped_note, offset_note) if n)
     files = write_report(
         results=study,
         data=data,

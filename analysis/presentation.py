@@ -4,9 +4,22 @@ left out of the analysis - with what was left out and why stated in the report."
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pandas as pd
 
-__all__ = ["QUALITY_COLUMNS", "exclude_dropped", "presentation_quality", "trials_shown"]
+__all__ = [
+    "LIVE_COLUMNS",
+    "QUALITY_COLUMNS",
+    "exclude_av_offset",
+    "exclude_dropped",
+    "live_playback",
+    "live_quality",
+    "presentation_quality",
+    "trials_shown",
+    "with_live_playback",
+]
 
 QUALITY_COLUMNS = (
     "stimulus_set",
@@ -76,5 +89,110 @@ def exclude_dropped(
     note = (
         f"excluded {len(excluded)} responses of {int(per.sum())} trials whose clip dropped more "
         f"than {max_dropped} frames (--max-dropped-frames), per condition {listed}"
+    )
+    return kept, excluded, note
+
+
+#: the live 3D / VR views' per-clip measures (``_playback.jsonl``; facelab serve with
+#: ``presentation.display: live3d | webxr``) joined to each trial by :func:`with_live_playback`
+LIVE_COLUMNS = (
+    "display",
+    "av_offset_ms",
+    "frames_late",
+    "head_yaw_range_deg",
+    "head_pitch_range_deg",
+    "avatar_distance_m",
+)
+
+
+def live_playback(logs: list[Path]) -> pd.DataFrame:
+    """One row per (participant, session, trial_index) shown live: the measures of the
+    trial's last showing (a replay after a resume is what the answer followed), from the
+    ``_playback.jsonl`` beside each session TSV in ``logs``. Empty when no clip was drawn
+    live (video studies, lab sessions)."""
+    rows = []
+    for tsv in logs:
+        path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
+        if not path.is_file():
+            continue
+        first = pd.read_csv(tsv, sep="\t", nrows=1, dtype=str)
+        if first.empty:
+            continue
+        who = {
+            "participant": first["participant"].iloc[0],
+            "session": int(first["session"].iloc[0]),
+        }
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut off mid-write: the trial's earlier record stands
+            if record.get("display") in ("live3d", "webxr") and record.get("trial_index"):
+                rows.append(who | {"trial_index": int(record["trial_index"])}
+                            | {k: record.get(k) for k in LIVE_COLUMNS})  # fmt: skip
+    if not rows:
+        return pd.DataFrame(columns=[*_TRIAL, *LIVE_COLUMNS])
+    return pd.DataFrame(rows).drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+
+
+def with_live_playback(data: pd.DataFrame, live: pd.DataFrame) -> pd.DataFrame:
+    """``data`` with :data:`LIVE_COLUMNS` per trial (NaN for trials not shown live)."""
+    if live.empty:
+        return data
+    keys = data[_TRIAL].astype({"session": int, "trial_index": int})
+    merged = keys.merge(live, on=_TRIAL, how="left")
+    out = data.copy()
+    for col in LIVE_COLUMNS:
+        out[col] = merged[col].to_numpy()
+    return out
+
+
+def live_quality(data: pd.DataFrame) -> pd.DataFrame:
+    """Per stimulus set and condition, for trials shown live: trials, the display that ran,
+    the median and largest |A/V offset| (ms), frames late, and in VR the median head yaw and
+    pitch ranges (deg) and viewing distance (m)."""
+    if "av_offset_ms" not in data.columns:
+        return pd.DataFrame()
+    trials = data.drop_duplicates(_TRIAL)
+    trials = trials[trials["display"].notna()]
+    rows = []
+    for (sset, cond), part in trials.groupby(["stimulus_set", "condition"], sort=True):
+        off = pd.to_numeric(part["av_offset_ms"], errors="coerce").abs()
+        num = {c: pd.to_numeric(part[c], errors="coerce") for c in LIVE_COLUMNS[2:]}
+        rows.append(
+            {
+                "stimulus_set": sset,
+                "condition": cond,
+                "trials": len(part),
+                "display": ",".join(sorted(part["display"].astype(str).unique())),
+                "median_abs_av_offset_ms": round(float(off.median()), 2),
+                "max_abs_av_offset_ms": round(float(off.max()), 2),
+                "frames_late": int(num["frames_late"].fillna(0).sum()),
+                "median_head_yaw_range_deg": round(float(num["head_yaw_range_deg"].median()), 2),
+                "median_head_pitch_range_deg": round(
+                    float(num["head_pitch_range_deg"].median()), 2
+                ),
+                "median_avatar_distance_m": round(float(num["avatar_distance_m"].median()), 3),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def exclude_av_offset(
+    data: pd.DataFrame, *, max_ms: float
+) -> tuple[pd.DataFrame, pd.DataFrame, str | None]:
+    """Responses to live trials whose |A/V offset| exceeded ``max_ms`` left out:
+    ``(kept, excluded, note)`` as :func:`exclude_dropped`."""
+    if "av_offset_ms" not in data.columns:
+        return data, data.iloc[:0], None
+    over = pd.to_numeric(data["av_offset_ms"], errors="coerce").abs() > max_ms
+    kept, excluded = data[~over].reset_index(drop=True), data[over].reset_index(drop=True)
+    if excluded.empty:
+        return kept, excluded, None
+    per = trials_shown(excluded).groupby("condition").size()
+    listed = ", ".join(f"{c}: {n}" for c, n in per.items())
+    note = (
+        f"excluded {len(excluded)} responses of {int(per.sum())} live trials whose picture and "
+        f"sound were more than {max_ms:g} ms apart (--max-av-offset-ms), per condition {listed}"
     )
     return kept, excluded, note

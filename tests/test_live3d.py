@@ -306,6 +306,14 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     first = json.loads(lines[0])
     assert first["display"] == "webxr" and first["head_yaw_range_deg"] > 15
     assert "viewer_poses" in first["browser"]
+    report = tmp_path / "report"  # the live measures as covariates and an exclusion rule
+    code = main(["analyze", str(study / "vr.yaml"), str(out), "--out", str(report),
+                 "--bootstrap", "0", "--max-av-offset-ms", "0"])  # fmt: skip
+    assert code == 0
+    live = (report / "live_presentation.csv").read_text("utf-8")
+    assert live.startswith("stimulus_set,condition,trials,display,median_abs_av_offset_ms")
+    assert "webxr" in live
+    assert "--max-av-offset-ms" in (report / "report.md").read_text("utf-8")
 
 
 @slow

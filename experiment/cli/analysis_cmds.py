@@ -50,6 +50,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         boot_seed=args.boot_seed,
         n_boot=args.bootstrap,
         max_dropped_frames=args.max_dropped_frames,
+        max_av_offset_ms=args.max_av_offset_ms,
     )
     data, check = done.data, done.check
     kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
@@ -458,6 +459,14 @@ def register(add: AddCommand) -> None:
         help="leave out responses to trials whose clip dropped more than N frames (the report "
         "says how many per condition; default: keep all, and table the drops)",
     )
+    p.add_argument(
+        "--max-av-offset-ms",
+        type=_milliseconds,
+        metavar="MS",
+        help="leave out responses to trials drawn live (display live3d/webxr) whose picture and "
+        "sound were more than MS apart (av_offset_ms of the playback record; the report says "
+        "how many per condition; default: keep all, and table the live measures)",
+    )
     force_option(p)
 
     p = add(
@@ -548,3 +557,17 @@ def register(add: AddCommand) -> None:
     deprecated(p, "--seed", new="--sim-seed", dest="sim_seed", type=seed)
     force_option(p)
     p.add_argument("--json", action="store_true", help="print JSON")
+
+
+def _milliseconds(text: str) -> float:
+    """A finite, non-negative number of milliseconds (for --max-av-offset-ms)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected milliseconds >= 0, got {text!r}")
+    return value
