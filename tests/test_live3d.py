@@ -13,6 +13,7 @@ import json
 import re
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -250,8 +251,10 @@ def test_live_frames_match_the_offline_clip_at_the_same_instants(
                         Image.fromarray(np.concatenate([frames[k], live], axis=1)).save(
                             tmp_path / f"{row['condition']}_{k}.png"
                         )
+            pose_mad = _head_poses_match(d, tmp_path)
         finally:
             d.quit()
+    assert max(pose_mad) < 4.0, pose_mad  # out of 255, whole frame
     diffs_a, lo, oo = np.array(diffs), np.array(live_open), np.array(off_open)
     figures = {
         "frames": len(diffs_a),
@@ -266,6 +269,45 @@ def test_live_frames_match_the_offline_clip_at_the_same_instants(
     assert np.ptp(oo) > 10  # the mouth opens and closes in these clips
     assert figures["mouth_open_r"] > 0.9, figures  # the live mouth opens when the offline one does
     assert figures["mouth_open_mad"] < 0.2 * np.ptp(oo), figures  # and as far
+
+
+def _head_poses_match(d, folder: Path) -> list[float]:
+    """A track of turned heads (yaw, pitch, roll, eyes, neck share) drawn by the page and by
+    the offline renderer: mean absolute difference per pose (the rig's conventions agree)."""
+    from facelab.formats import encode_track
+    from facelab.stimuli.avatar.rig import HeadPose
+    from facelab.stimuli.render.renderer import Renderer
+
+    head = default_head()
+    poses = np.array(
+        [[0, 0, 0, 0, 0, 0.4], [-20, 0, 0, 0, 0, 0.4], [12, 8, 0, 10, 0, 0.4],
+         [5, -6, 7, 0, -8, 0.3]], np.float32,
+    )  # fmt: skip
+    weights = np.array([[0.0], [0.3], [0.6], [0.1]], np.float32)
+    data = encode_track(
+        clip_id="poses", fps=30, blendshapes=["jawOpen"], weights=weights, poses=poses,
+        sample_rate=24000, speech_start_s=0.0, avatar_sha256=head.content_hash(),
+    )  # fmt: skip
+    settings = replace(settings_for(load_protocol(KATO)), width=320, height=180, msaa=1)
+    out = []
+    with Renderer(head, settings) as r:
+        for k, pose in enumerate(poses):
+            offline = r.frame(
+                head.weight_vector({"jawOpen": float(weights[k, 0])}),
+                pose=HeadPose(*map(float, pose)),  # yaw, pitch, roll, eye yaw/pitch, share
+            )
+            url = d.execute_script(
+                "const b = Uint8Array.from(atob(arguments[0]), (c) => c.charCodeAt(0));"
+                "return FacelabLive.still(FacelabTrack.parse(b.buffer), arguments[1]);",
+                base64.b64encode(data).decode(), k,
+            )  # fmt: skip
+            live = np.asarray(
+                Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB")
+            )
+            out.append(float(np.abs(live.astype(int) - offline).mean()))
+            Image.fromarray(np.concatenate([offline, live], axis=1)).save(folder / f"pose{k}.png")
+    print("poses", [round(x, 2) for x in out])
+    return out
 
 
 @slow
