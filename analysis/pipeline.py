@@ -131,7 +131,7 @@ def run(
     tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(data, excluded=excluded)
-    live = live_quality(data)
+    live = live_quality(pd.concat([data, excluded], ignore_index=True))  # every trial shown
     if not live.empty:  # clips drawn live (display live3d / webxr): A/V offset, head movement
         tasks.tables["live_presentation"] = live
     tasks.tables["pilot_sessions"] = pilot_sessions(data, check)

@@ -32,6 +32,7 @@ from facelab.formats import read_manifest
 from facelab.protocol import Protocol, load_protocol
 from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.avatar.gltf import live_glb
+from facelab.stimuli.avatar.samples import write_sample
 from facelab.stimuli.render.scene import camera_json, framing, settings_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -132,6 +133,13 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
         _with_display(text, "  display: webxr\n  vr:\n    fallback: live3d\n"), "utf-8"
     )
     args = ["render", str(root / "video.yaml"), "--out", str(root / "clips")]
+    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0
+    # a textured, skinned avatar file (Ready Player Me's layout: ARKit + visemes)
+    write_sample(root / "rpm.glb", kind="rpm")
+    rpm = _with_display(text, "  display: live3d\n")
+    rpm = rpm.replace("  avatar: default", "  avatar: rpm.glb")
+    (root / "rpm.yaml").write_text(rpm, "utf-8")
+    args = ["render", str(root / "rpm.yaml"), "--out", str(root / "rpm_clips")]
     assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0
     return root
 
@@ -269,6 +277,48 @@ def test_live_frames_match_the_offline_clip_at_the_same_instants(
     assert np.ptp(oo) > 10  # the mouth opens and closes in these clips
     assert figures["mouth_open_r"] > 0.9, figures  # the live mouth opens when the offline one does
     assert figures["mouth_open_mad"] < 0.2 * np.ptp(oo), figures  # and as far
+
+
+@slow
+def test_a_textured_skinned_avatar_file_looks_the_same_live(study: Path, tmp_path: Path) -> None:
+    """The protocol's own avatar file (textured, skinned: the sample in Ready Player Me's
+    layout) drawn live at frames of every clip against the offline clip."""
+    from facelab.stimuli.render.clip import decode_frames
+
+    protocol = load_protocol(study / "rpm.yaml")
+    server, _ = prepare_server(
+        protocol, protocol_path=study / "rpm.yaml", clips_dir=study / "rpm_clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    server.config.live.camera.update(width=320, height=180)
+    mads = []
+    with BackgroundServer(server) as bg:
+        d = chromium()
+        try:
+            _, token = server.join(recruitment="tex", source="simulated", simulated=True,
+                                   token=simulated_token(server, 98))  # fmt: skip
+            d.get(f"{bg.url}/run#t={token}")
+            for _ in range(300):
+                if d.execute_script("return !!window.FacelabLive"):
+                    break
+                time.sleep(0.1)
+            for row in read_manifest(study / "rpm_clips"):
+                frames = decode_frames(study / "rpm_clips" / row["path"], width=320, height=180)
+                for k in (0, len(frames) // 2):
+                    url = d.execute_async_script(
+                        "const [clip, track, k, done] = arguments;"
+                        "FacelabLive.clip({clip, track}).then("
+                        "(c) => done(FacelabLive.still(c.track, k)), (e) => done('ERR ' + e));",
+                        row["sha256"] + ".mp4", row["track_sha256"] + ".bin", k,
+                    )  # fmt: skip
+                    png = base64.b64decode(url.split(",", 1)[1])
+                    live = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+                    mads.append(float(np.abs(live.astype(int) - frames[k]).mean()))
+        finally:
+            d.quit()
+    print("textured avatar MAD", [round(m, 2) for m in mads])
+    # an untextured (white) head would differ by ~14/255 over the frame: the texture is drawn
+    assert len(mads) == 12 and max(mads) < 3.0, mads
 
 
 def _head_poses_match(d, folder: Path) -> list[float]:

@@ -24,7 +24,8 @@ _IMPORT_MAP_HASH = base64.b64encode(hashlib.sha256(IMPORT_MAP.encode()).digest()
 CSP = (
     f"default-src 'none'; script-src 'self' 'sha256-{_IMPORT_MAP_HASH}'; "
     "style-src 'self' 'unsafe-inline'; "
-    "img-src 'self' data:; media-src 'self' blob:; connect-src 'self'; font-src 'self' data:; "
+    "img-src 'self' data: blob:; media-src 'self' blob:; connect-src 'self' blob:; "
+    "font-src 'self' data:; "
     "base-uri 'none'; "
     "form-action 'self'; frame-ancestors 'none'"
 )

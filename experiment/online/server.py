@@ -28,7 +28,8 @@ Pages and routes (all same-origin; no cookies; the participant's token travels i
 ========================  ===================================================================
 
 Every response carries a strict Content-Security-Policy (scripts, media and connections
-from this origin only - media also from the blob: URLs jsPsych's preload makes; style
+from this origin only - media, images and fetches also from the blob: URLs that jsPsych's
+preload and the live view's avatar textures make; style
 attributes are allowed because jsPsych's plugins write them in their HTML), ``nosniff``,
 ``no-referrer`` and ``frame-ancestors 'none'``. Requests are rate-limited per token (and
 ``/join`` per client address, kept in memory only; no IP address is stored).

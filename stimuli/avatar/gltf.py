@@ -37,6 +37,7 @@ joints as nodes with a skin (JOINTS_0, WEIGHTS_0, inverse bind matrices) - as ``
 from __future__ import annotations
 
 import base64
+import io
 import json
 import struct
 from pathlib import Path
@@ -635,13 +636,30 @@ def _gltf_document(
             avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
         )
     col = b.add(np.asarray(colors, np.float32), "VEC3", 5126, 34962, False)
-    idx = b.add(avatar.faces.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False)
+    # one primitive per base-colour texture (the live view draws textured avatars as the
+    # offline renderer does: texture x lit vertex colour); every primitive shares the vertex
+    # data and targets. write_gltf keeps its one untextured primitive.
+    face_tex = (
+        avatar.face_texture
+        if live and avatar.face_texture is not None and avatar.uv is not None
+        else np.full(len(avatar.faces), -1)
+    )
+    groups = [
+        (int(t), b.add(avatar.faces[face_tex == t].astype(np.uint32).reshape(-1), "SCALAR",
+                       5125, 34963, False))
+        for t in np.unique(face_tex)
+    ]  # fmt: skip
     names = list(avatar.target_names)
     targets = [
         {"POSITION": b.add(avatar.targets[n].astype(np.float32), "VEC3", 5126, 34962, True)}
         for n in names
     ]
     attributes = pygltflib.Attributes(POSITION=pos, COLOR_0=col)
+    textured = [t for t, _ in groups if t >= 0]
+    if textured:
+        attributes.TEXCOORD_0 = b.add(avatar.uv.astype(np.float32), "VEC2", 5126, 34962, False)
+    images = [pygltflib.Image(bufferView=b.add_bytes(_png(avatar.textures[t])),
+                              mimeType="image/png") for t in textured]  # fmt: skip
     nodes = [pygltflib.Node(mesh=0, name=avatar.name)]
     skins = []
     sk = avatar.skeleton
@@ -686,8 +704,9 @@ def _gltf_document(
                         indices=idx,
                         mode=4,
                         targets=targets,
-                        material=0,
+                        material=0 if t < 0 else 1 + textured.index(t),
                     )
+                    for t, idx in groups
                 ],
                 weights=[0.0] * len(names),
                 extras={"targetNames": names, "facelab": facelab_extras},
@@ -699,10 +718,39 @@ def _gltf_document(
                     baseColorFactor=[1, 1, 1, 1], metallicFactor=0.0, roughnessFactor=0.8
                 ),
                 doubleSided=True,
-            )
+            ),
+            *(
+                pygltflib.Material(
+                    pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+                        baseColorTexture=pygltflib.TextureInfo(index=k),
+                        metallicFactor=0.0,
+                        roughnessFactor=0.8,
+                    ),
+                    doubleSided=True,
+                )
+                for k in range(len(textured))
+            ),
         ],
+        **(
+            {
+                "textures": [pygltflib.Texture(source=k, sampler=0) for k in range(len(textured))],
+                "images": images,
+                "samplers": [pygltflib.Sampler(magFilter=9729, minFilter=9987)],
+            }
+            if textured
+            else {}
+        ),
         accessors=b.accessors,
         bufferViews=b.views,
         buffers=[pygltflib.Buffer(byteLength=len(buffer))],
     )
     return doc, buffer
+
+
+def _png(image: np.ndarray) -> bytes:
+    """An (H, W, 3) uint8 image as PNG bytes."""
+    from PIL import Image as PILImage
+
+    out = io.BytesIO()
+    PILImage.fromarray(np.asarray(image, np.uint8)).save(out, format="PNG")
+    return out.getvalue()

@@ -73,12 +73,15 @@ export class Stage {
     this.meshes = [];
     gltf.scene.traverse((o) => {
       if (o.isMesh && o.morphTargetDictionary) {
-        o.material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
+        // the offline shading: (texture x) vertex colour x the lights above, no highlight
+        o.material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide, map: o.material.map || null });
         o.frustumCulled = false;  // morphs and skinning move vertices beyond the rest bounds
         this.meshes.push(o);
       }
     });
-    const extras = (this.meshes[0] && this.meshes[0].userData.facelab) || {};
+    // the mesh's extras (on a group when the mesh has one primitive per texture)
+    let extras = {};
+    gltf.scene.traverse((o) => { if (o.userData && o.userData.facelab) extras = o.userData.facelab; });
     this.bones = {};
     for (const [role, name] of Object.entries(extras.roles || {})) {
       const bone = gltf.scene.getObjectByName(THREE.PropertyBinding.sanitizeNodeName(name));
