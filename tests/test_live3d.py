@@ -450,3 +450,47 @@ def test_without_a_headset_webxr_falls_back_only_when_the_protocol_allows(
     ):
         SimulatedBrowser(refused, bg.url, 1, headset=False).run(timeout_s=120)
     assert _rows(refused) == []
+
+
+@slow
+@pytest.mark.parametrize(
+    ("name", "edits", "screen"),
+    [
+        ("gain_2afc", {r"    sets: 2": "    sets: 1",
+                       r"presentations_per_condition: 5": "presentations_per_condition: 1"},
+         "choice_2afc"),
+        ("method_identify", {r"    sets: 4": "    sets: 1",
+                             r"presentations_per_condition: 2": "presentations_per_condition: 1",
+                             r"      - \{id: sentence.*\n": ""},
+         "identify"),
+    ],
+)  # fmt: skip
+def test_forced_choice_and_identification_are_answered_in_vr(
+    tmp_path: Path, name: str, edits: dict[str, str], screen: str
+) -> None:
+    from tests.task_protocols import short_task_protocol
+
+    path = short_task_protocol(
+        name, tmp_path, {**edits, r"\npresentation:\n": "\npresentation:\n  display: webxr\n"}
+    )
+    protocol = load_protocol(path)
+    assert protocol.presentation.display == "webxr"
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
+    rows = _rows(server)
+    assert rows and {r["screen"] for r in rows} == {screen}
+    assert len(rows) == len(server.study.planned("P0001"))
+    with Session(server.engine) as db:
+        clicked = {a.record["trial_index"]: a.record["value"] for a in db.scalars(select(Action))}
+        shown = {r.record["display"] for r in db.scalars(select(PlaybackRecord))}
+    assert shown == {"webxr"}
+    for r in rows:  # the option the ray selected is the one stored
+        if screen == "identify":
+            assert r["response"] == clicked[r["trial_index"]]
+        else:
+            assert (r["response"] == r["condition"]) == (clicked[r["trial_index"]] == r["position"])

@@ -370,7 +370,7 @@ class Panel {
     g.fillStyle = "#111"; g.textAlign = "center"; g.textBaseline = "middle";
     const font = (px) => `${px}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`;
     this.regions = [];
-    let y = 40;
+    let y = 70;
     const wrap = (text, px, maxW) => {
       g.font = font(px);
       const lines = []; let line = "";
@@ -383,9 +383,9 @@ class Panel {
     };
     const texts = this.box.querySelectorAll(".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
     const items = this.box.querySelectorAll(".facelab-vas-item");
-    if (!items.length) for (const t of texts) { wrap(t.textContent, 34, W - 120); y += 10; }
+    if (!items.length) for (const t of texts) { wrap(t.textContent, 40, W - 120); y += 14; }
     for (const item of items) {
-      wrap(item.querySelector(".facelab-question").textContent, 30, W - 120);
+      wrap(item.querySelector(".facelab-question").textContent, 34, W - 120);
       const line = item.querySelector("[data-facelab=line]");
       const x0 = 200, x1 = W - 200, ly = y + 20;
       g.font = font(24); g.textAlign = "right"; g.fillText(item.querySelector(".facelab-anchor.left").textContent, x0 - 16, ly);
