@@ -15,6 +15,7 @@ VENV="$ROOT/.venv"
 # fonts-noto-cjk: Japanese text in windows and figures; libsndfile1/libportaudio2: audio I/O;
 # chromium + chromium-driver: simulated online participants and the browser tests;
 # postgresql: the online database at scale (the tests start one in a temporary folder);
+# g++: builds the meshoptimizer decoder (compressed glTF avatars; PyPI has no wheel);
 # espeak-ng: a second, formant-synthesis Japanese voice family for training and judging the
 # viseme analyser on voices other than OpenJTalk's (bench visemes, tests).
 APT_PACKAGES=(
@@ -22,7 +23,7 @@ APT_PACKAGES=(
   open-jtalk open-jtalk-mecab-naist-jdic
   xvfb xauth xdotool fonts-noto-cjk
   libsndfile1 libportaudio2 libasound2
-  chromium chromium-driver postgresql espeak-ng
+  chromium chromium-driver postgresql espeak-ng g++
 )
 # npm installs jsPsych for `facelab serve` (from the pinned lockfile); Debian's nodejs/npm
 # only when no node is on PATH (a machine may have Node from elsewhere).

@@ -28,10 +28,21 @@ into one avatar in the **rest world frame**:
 
 Landmarks, if the file was written by facelab, come from ``extras.facelab.landmarks``.
 
+Compressed and extended files (:data:`READ_EXTENSIONS`; glTF-Transform, VRoid Studio and
+Blender exports): ``EXT_meshopt_compression`` buffer views and ``KHR_draco_mesh_compression``
+primitives are decoded into plain accessors as the file is opened (``meshoptimizer``,
+``DracoPy``), ``KHR_mesh_quantization`` attributes are read as the normalised or plain
+integers they are, ``EXT_texture_webp`` images are decoded by Pillow, ``KHR_texture_transform``
+moves the texture coordinates, and a ``KHR_texture_basisu`` (KTX2) texture, which nothing here
+decodes, is left out with a note in ``avatar.source["notes"]`` (``facelab avatar inspect``
+prints it). An extension the file lists in ``extensionsRequired`` and facelab does not read is
+refused by name before anything else, with the command that re-exports the file without it.
+
 Writing: one mesh, one primitive (POSITION, COLOR_0, indices, one POSITION target per
 blendshape, ``targetNames`` in ``mesh.extras``), and, for an avatar with a skeleton, its
 joints as nodes with a skin (JOINTS_0, WEIGHTS_0, inverse bind matrices) - as ``.glb`` or
-``.gltf`` with an embedded base64 buffer. Textures are not written.
+``.gltf`` with an embedded base64 buffer. Textures are not written, except by
+:func:`live_glb` (the live 3D/VR views' copy: one primitive per base-colour texture).
 """
 
 from __future__ import annotations
@@ -97,7 +108,168 @@ def open_gltf(path: Path) -> tuple[pygltflib.GLTF2, list[bytes]]:
     version = str(getattr(doc.asset, "version", "") or "")
     if version.split(".")[0] != "2":
         raise AvatarError(f"{path}: glTF version {version!r}; expected 2.x")
-    return doc, buffers_of(doc, path)
+    _check_required(doc, path)
+    buffers = buffers_of(doc, path)
+    try:
+        buffers = _decode_meshopt(doc, buffers)
+        _decode_draco(doc, buffers)
+    except _MalformedError as exc:
+        raise AvatarError(f"{path}: cannot read its compressed geometry: {exc}") from None
+    return doc, buffers
+
+
+#: glTF extensions facelab reads (a file that *requires* another one is refused by name):
+#: geometry compression and quantization are decoded into plain accessors on reading, WebP
+#: textures are decoded by Pillow, texture transforms applied to the coordinates; material
+#: extensions only refine how a surface looks, and the renderer draws base colour
+READ_EXTENSIONS = {
+    "KHR_mesh_quantization": "quantized attributes",
+    "EXT_meshopt_compression": "meshopt-compressed buffers",
+    "KHR_draco_mesh_compression": "Draco-compressed geometry",
+    "EXT_texture_webp": "WebP textures",
+    "KHR_texture_transform": "texture coordinate transforms",
+    "KHR_materials_unlit": "unlit materials (drawn lit)",
+    "KHR_materials_emissive_strength": "emissive strength (not drawn)",
+    "KHR_materials_specular": "specular (not drawn)",
+    "KHR_materials_ior": "index of refraction (not drawn)",
+    "KHR_texture_basisu": "KTX2/Basis textures (not decoded: drawn without them)",
+}
+
+
+def _check_required(doc: pygltflib.GLTF2, path: Path) -> None:
+    """An extension the file requires and facelab does not read is refused by name."""
+    required = [str(e) for e in (doc.extensionsRequired or [])]
+    unknown = [e for e in required if e not in READ_EXTENSIONS]
+    if unknown:
+        listed = ", ".join(unknown)
+        raise AvatarError(
+            f"{path}: needs {listed}, which facelab does not read; re-export without "
+            f"{'it' if len(unknown) == 1 else 'them'}, e.g. `npx @gltf-transform/cli copy "
+            f"{path.name} plain.glb` (it writes plain geometry and textures), or from the "
+            "authoring tool without that option"
+        )
+
+
+def _new_view(doc: pygltflib.GLTF2, buffers: list[bytes], data: bytes, stride: int | None) -> int:
+    """A buffer view over ``data`` in a buffer of its own (decoded geometry); its index."""
+    buffers.append(data)
+    doc.buffers.append(pygltflib.Buffer(byteLength=len(data)))
+    doc.bufferViews.append(
+        pygltflib.BufferView(
+            buffer=len(buffers) - 1, byteOffset=0, byteLength=len(data), byteStride=stride
+        )
+    )
+    return len(doc.bufferViews) - 1
+
+
+def _decode_meshopt(doc: pygltflib.GLTF2, buffers: list[bytes]) -> list[bytes]:
+    """Every ``EXT_meshopt_compression`` buffer view replaced by its decoded bytes (the
+    extension's fallback buffer, which holds no data, is never read)."""
+    buffers = list(buffers)
+    for i, view in enumerate(doc.bufferViews or []):
+        ext = (view.extensions or {}).get("EXT_meshopt_compression")
+        if not ext:
+            continue
+        meshoptimizer = _decoder("meshoptimizer", "EXT_meshopt_compression")
+
+        try:
+            count, stride = int(ext["count"]), int(ext["byteStride"])
+            start = int(ext.get("byteOffset", 0))
+            data = buffers[int(ext["buffer"])][start : start + int(ext["byteLength"])]
+            mode, flt = ext.get("mode", "ATTRIBUTES"), ext.get("filter", "NONE")
+            # the binding's default output (float32 rows, count * stride bytes) and its uint32
+            # indices (count * 4 >= count * stride bytes) are sized right; its dtype= path
+            # allocates count elements only - never used here
+            if mode == "ATTRIBUTES":
+                if stride % 4 or not 0 < stride <= 256:
+                    raise _MalformedError(f"buffer view {i}: meshopt stride {stride}")
+                out = meshoptimizer.decode_vertex_buffer(count, stride, data)
+            elif mode in ("TRIANGLES", "INDICES") and stride in (2, 4):
+                decode_indices = (
+                    meshoptimizer.decode_index_buffer
+                    if mode == "TRIANGLES"
+                    else meshoptimizer.decode_index_sequence
+                )
+                packed = np.asarray(decode_indices(count, stride, data))
+                out = packed.view(np.uint8)[: count * stride] if stride == 2 else packed
+                if stride == 2:  # 16-bit indices come back packed in the 32-bit array
+                    out = np.asarray(out).copy()
+            else:
+                raise _MalformedError(f"buffer view {i}: meshopt mode {mode!r}")
+            if flt != "NONE":
+                decode = {
+                    "OCTAHEDRAL": meshoptimizer.decode_filter_oct,
+                    "QUATERNION": meshoptimizer.decode_filter_quat,
+                    "EXPONENTIAL": meshoptimizer.decode_filter_exp,
+                }.get(flt)
+                if decode is None:
+                    raise _MalformedError(f"buffer view {i}: meshopt filter {flt!r}")
+                out = decode(np.frombuffer(np.asarray(out).tobytes(), np.uint8), count, stride)
+            raw = np.asarray(out).tobytes()
+        except _MalformedError:
+            raise
+        except Exception:  # the decoder's own errors: a damaged stream
+            raise _MalformedError(f"buffer view {i}: its meshopt data do not decode") from None
+        if len(raw) != count * stride:
+            raise _MalformedError(f"buffer view {i}: meshopt data decode to the wrong size")
+        buffers.append(raw)
+        doc.buffers.append(pygltflib.Buffer(byteLength=len(raw)))
+        view.buffer, view.byteOffset, view.byteLength = len(buffers) - 1, 0, len(raw)
+        view.byteStride = stride if view.byteStride else None
+        view.extensions = {}
+    return buffers
+
+
+def _decoder(module: str, extension: str) -> Any:
+    """The decoder package an extension needs, or a worded refusal naming the install."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise _MalformedError(
+            f"it uses {extension}, whose decoder ({module}) is not installed: "
+            "pip install 'facelab[stimuli]'"
+        ) from None
+
+
+def _decode_draco(doc: pygltflib.GLTF2, buffers: list[bytes]) -> None:
+    """Every ``KHR_draco_mesh_compression`` primitive's attributes and indices decoded into
+    the accessors it names (float32 attributes, uint32 indices); morph targets are not
+    compressed by that extension and are read as they are."""
+    for m, mesh in enumerate(doc.meshes or []):
+        for prim in mesh.primitives:
+            ext = (prim.extensions or {}).get("KHR_draco_mesh_compression")
+            if not ext:
+                continue
+            DracoPy = _decoder("DracoPy", "KHR_draco_mesh_compression")  # noqa: N806
+
+            view = doc.bufferViews[int(ext["bufferView"])]
+            start = view.byteOffset or 0
+            try:
+                decoded = DracoPy.decode(buffers[view.buffer][start : start + view.byteLength])
+            except Exception:
+                raise _MalformedError(f"mesh {m}: its Draco data do not decode") from None
+            for name, unique_id in ext.get("attributes", {}).items():
+                index = getattr(prim.attributes, name, None)
+                attribute = decoded.get_attribute_by_unique_id(int(unique_id))
+                if index is None or attribute is None:
+                    raise _MalformedError(f"mesh {m}: Draco attribute {name} is missing")
+                data = np.ascontiguousarray(np.asarray(attribute["data"]), np.float32)
+                data = data.reshape(len(data), -1)
+                acc = doc.accessors[index]
+                if len(data) != acc.count:
+                    raise _MalformedError(f"mesh {m}: Draco attribute {name} has {len(data)} "
+                                          f"values, its accessor {acc.count}")  # fmt: skip
+                acc.bufferView = _new_view(doc, buffers, data.tobytes(), None)
+                acc.byteOffset, acc.componentType, acc.normalized = 0, 5126, False
+                acc.sparse = None
+            if prim.indices is not None:
+                faces = np.ascontiguousarray(np.asarray(decoded.faces), np.uint32).reshape(-1)
+                acc = doc.accessors[prim.indices]
+                acc.bufferView = _new_view(doc, buffers, faces.tobytes(), None)
+                acc.byteOffset, acc.componentType, acc.count = 0, 5125, len(faces)
+            prim.extensions = {}
 
 
 #: the first bytes of files people rename by mistake
@@ -227,8 +399,8 @@ def accessor(doc: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarr
         out[idx] = vals
     if dtype.kind == "f" and not np.isfinite(out).all():
         raise _MalformedError(f"accessor {index}: holds non-finite values (NaN or infinity)")
-    if acc.normalized and dtype.kind in "iu":
-        out = out.astype(np.float32) / np.iinfo(dtype).max
+    if acc.normalized and dtype.kind in "iu":  # glTF 2.0 §3.11: signed ones clamp at -1
+        out = np.maximum(out.astype(np.float32) / np.iinfo(dtype).max, -1.0)
     return out
 
 
@@ -290,8 +462,36 @@ def _image_bytes(doc: pygltflib.GLTF2, buffers: list[bytes], image: Any, path: P
     return ext.read_bytes()
 
 
+def _texture_source(texture: Any, notes: list[str]) -> int | None:
+    """The image a texture shows: its own ``source``, or its ``EXT_texture_webp`` source; a
+    texture only in ``KHR_texture_basisu`` (KTX2) has none here, and that is noted."""
+    ext = _get(texture, "extensions") or {}
+    webp = (ext.get("EXT_texture_webp") or {}).get("source")
+    if webp is not None:
+        return int(webp)
+    if texture.source is not None:
+        return int(texture.source)
+    if "KHR_texture_basisu" in ext:
+        notes.append(
+            "a KTX2 (KHR_texture_basisu) texture is not decoded here: drawn without it (its "
+            "material's base colour); re-export with PNG, JPEG or WebP textures to see it"
+        )
+    return None
+
+
+def _transform_uv(uv: np.ndarray, transform: dict[str, Any]) -> np.ndarray:
+    """Texture coordinates through ``KHR_texture_transform``: uv' = T(offset) R(rotation)
+    S(scale) uv, with R = [[cos, -sin], [sin, cos]] as the extension's GLSL writes it."""
+    offset = _numbers(transform.get("offset", [0.0, 0.0]), 2, "KHR_texture_transform offset")
+    scale = _numbers(transform.get("scale", [1.0, 1.0]), 2, "KHR_texture_transform scale")
+    (rotation,) = _numbers([transform.get("rotation", 0.0)], 1, "KHR_texture_transform rotation")
+    c, s = np.cos(rotation), np.sin(rotation)
+    m = np.array([[c, -s], [s, c]]) @ np.diag(scale)
+    return (uv.astype(np.float64) @ m.T + offset).astype(np.float32)
+
+
 def _decode_image(data: bytes, what: str) -> np.ndarray:
-    """(H, W, 4) uint8 RGBA from PNG/JPEG bytes."""
+    """(H, W, 4) uint8 RGBA from PNG, JPEG or WebP bytes."""
     import io
 
     from PIL import Image, UnidentifiedImageError
@@ -299,8 +499,10 @@ def _decode_image(data: bytes, what: str) -> np.ndarray:
     try:
         with Image.open(io.BytesIO(data)) as img:
             return np.asarray(img.convert("RGBA"), np.uint8).copy()
-    except (UnidentifiedImageError, OSError) as exc:
-        raise AvatarError(f"{what}: cannot decode the image ({exc})") from None
+    except (UnidentifiedImageError, OSError):
+        raise AvatarError(
+            f"{what}: cannot decode the image (not a PNG, JPEG or WebP image, or damaged)"
+        ) from None
 
 
 class _Graph:
@@ -382,6 +584,7 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
     raw_targets: dict[tuple[int, int], list[tuple[int, np.ndarray]]] = {}
     textures: list[np.ndarray] = []
     texture_of_image: dict[int, int] = {}
+    notes: list[str] = []  # what was read only in part (told by avatar inspect)
     landmarks: dict[str, int] = {}
     mesh_names: list[str] = []
     parts: dict[str, np.ndarray] = {}
@@ -440,15 +643,18 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                 else np.arange(n)
             ).astype(np.int64)
             base = [1.0, 1.0, 1.0, 1.0]
-            tex_index, tex_coord = -1, 0
+            tex_index, tex_coord, transform = -1, 0, None
             if prim.material is not None:
                 pbr = doc.materials[prim.material].pbrMetallicRoughness
                 if pbr is not None and pbr.baseColorFactor is not None:
                     base = list(pbr.baseColorFactor)
                 info = _get(pbr, "baseColorTexture") if pbr is not None else None
                 if info is not None and _get(info, "index") is not None:
-                    source = doc.textures[_get(info, "index")].source
+                    source = _texture_source(doc.textures[_get(info, "index")], notes)
                     tex_coord = _get(info, "texCoord") or 0
+                    transform = (_get(info, "extensions") or {}).get("KHR_texture_transform")
+                    if transform:
+                        tex_coord = transform.get("texCoord", tex_coord)
                     if source is not None:
                         if source not in texture_of_image:
                             texture_of_image[source] = len(textures)
@@ -472,6 +678,8 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
             )
             if tex_index >= 0 and uv_attr is None:
                 tex_index = -1  # a texture without coordinates cannot be mapped
+            if tex_index >= 0 and transform:
+                uv = _transform_uv(uv, transform)
             targets = {}
             prim_names = _extras(prim).get("targetNames", names)
             for k, tgt in enumerate(prim.targets or []):
@@ -536,7 +744,12 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
         uv=np.vstack(uvs) if textures else None,
         textures=tuple(t[:, :, :3].copy() for t in textures),
         face_texture=face_texture if textures else None,
-        source={"kind": kind, "file": path.name, "meshes": mesh_names},
+        source={
+            "kind": kind,
+            "file": path.name,
+            "meshes": mesh_names,
+            **({"notes": sorted(set(notes))} if notes else {}),
+        },
     )
     return apply_vrm(avatar, doc, raw_targets) if kind.startswith("vrm") else avatar
 

@@ -66,6 +66,7 @@ def avatar_report(avatar: Avatar) -> dict:
         "landmarks": sorted(avatar.landmarks),
         "lip_landmarks": all(k in avatar.landmarks for k in LANDMARKS),
         "methods": playability(avatar),
+        "notes": list(avatar.source.get("notes", [])),  # what was read only in part
     }
 
 
@@ -104,6 +105,8 @@ def format_report(report: Mapping) -> str:
     lines.append("methods")
     for method, how in report["methods"].items():
         lines.append(f"  {method:<17} {how}")
+    for note in report.get("notes", []):
+        lines.append(f"note       {note}")
     return "\n".join(lines)
 
 
