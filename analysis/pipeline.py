@@ -28,7 +28,9 @@ from facelab.analysis.presentation import (
     exclude_dropped,
     live_playback,
     live_quality,
+    playback_replays,
     presentation_quality,
+    session_modes,
     with_live_playback,
 )
 from facelab.analysis.report import ReportFiles, write_report
@@ -130,11 +132,19 @@ def run(
     study = analyze_study(vas, protocol, method=method) if not vas.empty else None
     tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
-    tasks.tables["presentation_quality"] = presentation_quality(data, excluded=excluded)
+    tasks.tables["presentation_quality"] = presentation_quality(
+        data, excluded=excluded, replays=playback_replays(logs)
+    )
     live = live_quality(pd.concat([data, excluded], ignore_index=True))  # every trial shown
     if not live.empty:  # clips drawn live (display live3d / webxr): A/V offset, head movement
         tasks.tables["live_presentation"] = live
-    tasks.tables["pilot_sessions"] = pilot_sessions(data, check)
+    modes = session_modes(logs)
+    sessions = pilot_sessions(data, check)
+    if not modes.empty and not sessions.empty:  # where each session ran
+        sessions = sessions.merge(modes, on=["participant", "session"], how="left")
+    tasks.tables["pilot_sessions"] = sessions
+    if not modes.empty:
+        tasks.notes.append(_mode_note(modes))
     items, item_notes = pilot_items(vas)
     if not items.empty:
         tasks.tables["pilot_items"] = items
@@ -195,3 +205,18 @@ def _behaviour_tables(
         tasks.tables["identification_covariates"] = frame[
             ["task", *[c for c in frame.columns if c != "task"]]
         ]
+
+
+def _mode_note(modes: pd.DataFrame) -> str:
+    """Where the sessions ran, e.g. "sessions: 2 online (webxr 1, live3d 1), 1 lab"."""
+    parts = []
+    for mode, g in modes.groupby("mode", sort=True):
+        shown = g["display"].value_counts().sort_index()
+        how = (
+            ""
+            if set(shown.index) <= {"video"} or mode != "online"
+            else " (" + ", ".join(f"{d} {n}" for d, n in shown.items()) + ")"
+        )
+        simulated = int(g["simulated"].sum())
+        parts.append(f"{len(g)} {mode}{how}" + (f", {simulated} simulated" if simulated else ""))
+    return "sessions: " + "; ".join(parts)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -16,7 +17,9 @@ __all__ = [
     "exclude_dropped",
     "live_playback",
     "live_quality",
+    "playback_replays",
     "presentation_quality",
+    "session_modes",
     "trials_shown",
     "with_live_playback",
 ]
@@ -29,6 +32,7 @@ QUALITY_COLUMNS = (
     "frames_dropped",
     "max_dropped",
     "excluded_trials",
+    "replays",
 )
 _TRIAL = ["participant", "session", "trial_index"]
 
@@ -46,16 +50,27 @@ def trials_shown(data: pd.DataFrame) -> pd.DataFrame:
 
 
 def presentation_quality(
-    data: pd.DataFrame, *, excluded: pd.DataFrame | None = None
+    data: pd.DataFrame,
+    *,
+    excluded: pd.DataFrame | None = None,
+    replays: pd.DataFrame | None = None,
 ) -> pd.DataFrame:
     """Per stimulus set and condition: trials shown, trials whose clip dropped frames, frames
-    dropped in all and at most in one trial, and trials excluded (``excluded``: responses
-    left out by :func:`exclude_dropped`)."""
+    dropped in all and at most in one trial, trials excluded (``excluded``: responses left out
+    by :func:`exclude_dropped`) and clips shown again after a resume (``replays``, from
+    :func:`playback_replays`)."""
     both = data if excluded is None or excluded.empty else pd.concat([data, excluded])
     trials = trials_shown(both)
     gone = trials_shown(excluded) if excluded is not None else None
     out_keys = set() if gone is None else set(map(tuple, gone[_TRIAL].to_numpy()))
     trials["excluded"] = [tuple(k) in out_keys for k in trials[_TRIAL].to_numpy()]
+    again = {} if replays is None else {
+        (r.participant, int(r.session), int(r.trial_index)): int(r.replays)
+        for r in replays.itertuples()
+    }  # fmt: skip
+    trials["replays"] = [
+        again.get((pid, int(ses), int(t)), 0) for pid, ses, t in trials[_TRIAL].to_numpy()
+    ]
     rows = []
     for (sset, cond), part in trials.groupby(["stimulus_set", "condition"], sort=True):
         dropped = part["dropped"].fillna(0)
@@ -68,6 +83,7 @@ def presentation_quality(
                 "frames_dropped": int(dropped.sum()),
                 "max_dropped": int(dropped.max()) if len(part) else 0,
                 "excluded_trials": int(part["excluded"].sum()),
+                "replays": int(part["replays"].sum()),
             }
         )
     return pd.DataFrame(rows, columns=list(QUALITY_COLUMNS))
@@ -112,27 +128,69 @@ def live_playback(logs: list[Path]) -> pd.DataFrame:
     live (video studies, lab sessions)."""
     rows = []
     for tsv in logs:
-        path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
-        if not path.is_file():
-            continue
-        first = pd.read_csv(tsv, sep="\t", nrows=1, dtype=str)
-        if first.empty:
-            continue
-        who = {
-            "participant": first["participant"].iloc[0],
-            "session": int(first["session"].iloc[0]),
-        }
-        for line in path.read_text(encoding="utf-8").splitlines():
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut off mid-write: the trial's earlier record stands
+        who, records = _playback_lines(tsv)
+        for record in records:
             if record.get("display") in ("live3d", "webxr") and record.get("trial_index"):
                 rows.append(who | {"trial_index": int(record["trial_index"])}
                             | {k: record.get(k) for k in LIVE_COLUMNS})  # fmt: skip
     if not rows:
         return pd.DataFrame(columns=[*_TRIAL, *LIVE_COLUMNS])
     return pd.DataFrame(rows).drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+
+
+def _playback_lines(tsv: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The session's identity (participant, session) and its ``_playback.jsonl`` records."""
+    path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
+    if not path.is_file():
+        return {}, []
+    first = pd.read_csv(tsv, sep="\t", nrows=1, dtype=str)
+    if first.empty:
+        return {}, []
+    who = {"participant": first["participant"].iloc[0], "session": int(first["session"].iloc[0])}
+    records = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a line cut off mid-write: the trial's earlier record stands
+    return who, records
+
+
+def playback_replays(logs: list[Path]) -> pd.DataFrame:
+    """Per (participant, session, trial_index): how many times its clip was shown again after
+    a resume or reload (``replay: true`` records), lab and online alike."""
+    rows = []
+    for tsv in logs:
+        who, records = _playback_lines(tsv)
+        for record in records:
+            if record.get("replay") and record.get("trial_index"):
+                rows.append(who | {"trial_index": int(record["trial_index"])})
+    if not rows:
+        return pd.DataFrame(columns=[*_TRIAL, "replays"])
+    return pd.DataFrame(rows).groupby(_TRIAL).size().rename("replays").reset_index()
+
+
+def session_modes(logs: list[Path]) -> pd.DataFrame:
+    """Per (participant, session): where it ran (``mode`` of the session JSON: ``lab``,
+    ``online``; simulated sessions say so) and, online, the display that ran."""
+    rows = []
+    for tsv in logs:
+        path = tsv.with_name(tsv.name.replace("_beh.tsv", "_session.json"))
+        try:
+            info = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        display = info.get("display") if isinstance(info.get("display"), dict) else None
+        rows.append(
+            {
+                "participant": info.get("participant"),
+                "session": int(info.get("session", 1)),
+                "mode": str(info.get("mode") or "lab"),
+                "simulated": bool(info.get("simulated")),
+                "display": (display or {}).get("ran", "video"),
+            }
+        )
+    return pd.DataFrame(rows, columns=["participant", "session", "mode", "simulated", "display"])
 
 
 def with_live_playback(data: pd.DataFrame, live: pd.DataFrame) -> pd.DataFrame:

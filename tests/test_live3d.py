@@ -428,6 +428,20 @@ def test_a_tab_closed_mid_trial_in_vr_resumes(study: Path, tmp_path: Path) -> No
     with Session(server.engine) as s:
         resumed = [e.detail for e in s.scalars(select(Event).where(Event.kind == "resumed"))]
     assert resumed == [{"answered": 3, "first_trial": 2}]
+    # the report says where the session ran and counts the clip shown again
+    export_sessions(server.engine, results=tmp_path / "out")
+    report = tmp_path / "report"
+    code = main(["analyze", str(study / "vr.yaml"), str(tmp_path / "out"), "--out",
+                 str(report), "--bootstrap", "0"])  # fmt: skip
+    assert code == 0
+    sessions = (report / "pilot_sessions.csv").read_text("utf-8").splitlines()
+    assert sessions[0].endswith("mode,simulated,display") and sessions[1].endswith(
+        "online,True,webxr"
+    )
+    quality = (report / "presentation_quality.csv").read_text("utf-8").splitlines()
+    assert quality[0].endswith(",replays")
+    assert sum(int(line.rsplit(",", 1)[1]) for line in quality[1:]) == 1  # trial 2, once
+    assert "sessions: 1 online (webxr 1), 1 simulated" in (report / "report.md").read_text()
 
 
 @slow
