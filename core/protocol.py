@@ -54,6 +54,7 @@ __all__ = [
     "VasItem",
     "json_schema",
     "load_protocol",
+    "load_protocol_text",
     "protocol_hash",
     "schema_json_text",
 ]
@@ -87,7 +88,13 @@ def load_protocol(path: Path | str) -> Protocol:
         raise ProtocolError(
             path, [Issue((), f"cannot read the file ({exc.strerror or 'unreadable'})")]
         ) from None
+    return load_protocol_text(text, path=path, base_dir=path.parent)
 
+
+def load_protocol_text(text: str, *, path: Path | str, base_dir: Path) -> Protocol:
+    """A protocol from its text (e.g. a stored copy of the file a session ran), files it names
+    resolved against ``base_dir``; ``path`` names it in errors. See :func:`load_protocol`."""
+    path = Path(path)
     try:
         root, data = read_yaml(text)
     except YamlRefusedError as exc:
@@ -103,7 +110,7 @@ def load_protocol(path: Path | str) -> Protocol:
         raise ProtocolError(path, [Issue((), "expected a YAML mapping with the study's sections")])
 
     with gc_paused():
-        return _validate(path, root, data)
+        return _validate(path, root, data, base_dir=base_dir)
 
 
 def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
@@ -115,7 +122,7 @@ def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
     return ProtocolError(path, [Issue(i.path, i.message, locator.line(i.path)) for i in issues])
 
 
-def _validate(path: Path, root: Any, data: dict[str, Any]) -> Protocol:
+def _validate(path: Path, root: Any, data: dict[str, Any], *, base_dir: Path) -> Protocol:
     """Every problem of the file at once: duplicate keys, then types, then the checks across
     sections on whatever validated."""
     locator = Locator(root)
@@ -138,7 +145,7 @@ def _validate(path: Path, root: Any, data: dict[str, Any]) -> Protocol:
     if protocol is not None:
         issues += [
             Issue(i.path, i.message, locator.line(i.path))
-            for i in cross_check(protocol, base_dir=path.parent, available=available)
+            for i in cross_check(protocol, base_dir=base_dir, available=available)
         ]
     if issues:
         raise ProtocolError(path, issues)

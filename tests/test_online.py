@@ -9,6 +9,7 @@ import csv
 import json
 import os
 import re
+import shutil
 import signal
 import threading
 import time
@@ -334,6 +335,63 @@ def test_replays_are_harmless_conflicts_refused_completion_waits(
     assert len(rows) == PLANNED == len({(r["trial_index"], r["item"]) for r in rows})
 
 
+def test_a_session_keeps_the_protocol_version_it_started_with(study: Path, tmp_path: Path) -> None:
+    """A fix for new participants never strands current ones: the server keeps every version
+    of the file it served; a session that started under an earlier one is served that one
+    (its texts, its design) when its clips are still there, and refused with the reason when
+    they are not."""
+    folder = tmp_path / "study"
+    shutil.copytree(study / "clips", folder / "clips")
+    path = folder / "short.yaml"
+    v1 = (study / "short.yaml").read_text(encoding="utf-8")
+    path.write_text(v1, encoding="utf-8")
+    first = _server(folder, tmp_path / "db.sqlite")
+    p, token = first.join(recruitment=None, source=None)
+    ok = {"X-Facelab-Token": token}
+    keys = sorted(first.study.planned(p.participant))
+    client = TestClient(create_app(first))
+    for n, key in enumerate(keys[:2]):
+        r = client.post("/api/response", json=_answer(*key, 40.0, f"vvvvvvvvvvvv{n:04d}"),
+                        headers=ok)  # fmt: skip
+        assert r.status_code == 200
+    # the experimenter fixes a typo in the end text and restarts the server with the new file
+    v2 = v1.replace("ご協力ありがとうございました", "ご協力、誠にありがとうございました", 1)
+    assert v2 != v1
+    path.write_text(v2, encoding="utf-8")
+    second = _server(folder, tmp_path / "db.sqlite")
+    assert second.study.protocol_sha256 != first.study.protocol_sha256
+    client = TestClient(create_app(second))
+    state = client.get("/api/session", headers=ok)
+    assert state.status_code == 200 and state.json()["answered"] == 2
+    for n, key in enumerate(keys[2:], start=2):
+        r = client.post("/api/response", json=_answer(*key, 60.0, f"vvvvvvvvvvvv{n:04d}"),
+                        headers=ok)  # fmt: skip
+        assert r.status_code == 200, r.json()
+    assert r.json()["complete"] is True
+    assert client.get("/api/complete", headers=ok).status_code == 200
+    newcomer, _ = second.join(recruitment=None, source=None)
+    assert newcomer.protocol_sha256 == second.study.protocol_sha256
+    progress = {row["participant"]: row for row in second.progress()}
+    assert progress[p.participant]["protocol"] == f"earlier {first.study.protocol_sha256[:12]}"
+    assert progress[newcomer.participant]["protocol"] == "current"
+    # a version whose clips are gone (rendered over for another design) cannot be served
+    other, other_token = second.join(recruitment=None, source=None)
+    import sqlalchemy
+
+    with Session(second.engine) as db:
+        db.execute(
+            sqlalchemy.update(Participant)
+            .where(Participant.pk == other.pk)
+            .values(protocol_sha256="f" * 64)
+        )
+        db.commit()
+    second._by_token.drop(lambda q: False)
+    r = client.get("/api/session", headers={"X-Facelab-Token": other_token})
+    assert r.status_code == 409 and "is not stored in the database" in r.json()["error"]
+    progress = {row["participant"]: row for row in second.progress()}
+    assert progress[other.participant]["protocol"].startswith("cannot be served: protocol ffff")
+
+
 def test_join_assigns_ids_hashes_recruitment_ids_and_rejoin_resumes(
     study: Path, tmp_path: Path
 ) -> None:
@@ -505,8 +563,9 @@ def test_answers_refused_while_the_protocol_was_changed_are_held_and_stored_afte
 ) -> None:
     """outbox.js used to drop every answer the server refused: after a protocol edit under
     running sessions, every answer got 409 and was thrown away, and the end page waited for
-    ever. Now refused answers are held and retried; once the protocol is restored they are
-    stored and the session completes."""
+    ever. Now refused answers are held and retried; once the reason goes (here: the session's
+    protocol version could not be served, then could) they are stored and the session
+    completes; meanwhile the progress page lists what the browser holds and why."""
     server = _server(study, tmp_path / "db.sqlite")
     original = server.study.protocol_sha256
     outcome: list[str] = []
@@ -517,12 +576,15 @@ def test_answers_refused_while_the_protocol_was_changed_are_held_and_stored_afte
         deadline = time.monotonic() + 120
         while len(_rows(server, "P0001")) < 4 and time.monotonic() < deadline:
             time.sleep(0.1)
-        server.study.protocol_sha256 = "0" * 64  # the protocol as edited: sessions refused
+        # the version the session started with cannot be served (e.g. its clips were
+        # rendered over): every request of the session is refused
+        server._versions[original] = "its clips were rendered for another version"
         server._by_token.drop(lambda p: False)
         at_edit = len(_rows(server, "P0001"))
         time.sleep(12.0)
         during = len(_rows(server, "P0001"))
-        server.study.protocol_sha256 = original  # restored
+        listed = {p["participant"]: p for p in server.progress()}["P0001"]
+        server._versions[original] = server.study  # restored
         thread.join(timeout=300)
     assert outcome == ["complete"]
     assert 4 <= at_edit == during < PLANNED  # nothing was stored while refused
@@ -530,6 +592,13 @@ def test_answers_refused_while_the_protocol_was_changed_are_held_and_stored_afte
     with Session(server.engine) as s:
         held = [e.detail for e in s.scalars(select(Event).where(Event.kind == "error"))]
     assert held and all("protocol changed" in h["why"] for h in held)
+    # meanwhile the progress page said why the session was refused; the held answers were
+    # reported once it was served again, and are stored now
+    assert listed["protocol"] == "cannot be served: its clips were rendered for another version"
+    assert all(h["why"].endswith("(its clips were rendered for another version); the "
+                                 "experimenter must serve the original protocol to continue "
+                                 "this session") for h in held)  # fmt: skip
+    assert {p["participant"]: p for p in server.progress()}["P0001"]["held"] == 0
 
 
 def test_the_server_killed_mid_session_and_restarted_loses_nothing(

@@ -72,6 +72,8 @@ def prepare_server(
         clip_paths={ref.sha256 + ".mp4": ref.path for ref in clips.values()},
         vendor=vendor_dir(),
         live=live,
+        protocol_dir=base,
+        clips_dir=clips_dir,
         completion_url=completion_url,
         completion_code=completion_code,
         consent=consent,

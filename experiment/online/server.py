@@ -60,6 +60,7 @@ from facelab.experiment.online.db import (
     Event,
     Participant,
     PlaybackRecord,
+    ProtocolFile,
     Response,
     Setting,
     utcnow,
@@ -131,6 +132,10 @@ class ServeConfig:
     # browser that holds the session's token reopens it at any time (see StudyServer.join)
     rejoin_idle_s: float = 1800.0
     live: LiveScene | None = None  # display live3d / webxr: the avatar, camera and tracks
+    # where the protocol file and the clips are: sessions that started under an earlier
+    # version of the file (kept in the database by its SHA-256) are served that version
+    protocol_dir: Path | None = None
+    clips_dir: Path | None = None
 
 
 class InUseError(Exception):
@@ -166,6 +171,10 @@ class StudyServer:
             else contextlib.nullcontext()
         )
         self._by_token: TokenCache[Participant] = TokenCache(ttl_s=TOKEN_CACHE_S, clock=clock)
+        # protocol SHA-256 -> the study under that version of the file, or why it cannot be
+        # served (sessions keep the protocol they started with)
+        self._versions: dict[str, OnlineStudy | str] = {config.study.protocol_sha256: self.study}
+        self._versions_lock = threading.Lock()
         self.hmac_key = bytes.fromhex(self._setting("hmac_key", lambda: secrets.token_hex(32)))
 
     # -- settings and secrets
@@ -307,14 +316,76 @@ class StudyServer:
             ).first()
         if p is None:
             raise RefusedError(401, "unknown token (a rejoin gives a new one)")
-        if p.protocol_sha256 != self.study.protocol_sha256:
+        version = self._version(p.protocol_sha256)
+        if isinstance(version, str):
             raise RefusedError(
                 409,
-                "the study's protocol changed since this participant started; the experimenter "
-                "must serve the original protocol to continue this session",
+                "the study's protocol changed since this participant started, and the version "
+                f"they started with cannot be served ({version}); the experimenter must serve "
+                "the original protocol to continue this session",
             )
         self._by_token.put(digest, p)
         return p
+
+    def study_of(self, p: Participant) -> OnlineStudy:
+        """The study as the participant's session started it (its protocol version)."""
+        version = self._version(p.protocol_sha256)
+        if isinstance(version, str):  # checked by participant() before any use
+            raise RefusedError(409, version)
+        return version
+
+    def _version(self, sha256: str) -> OnlineStudy | str:
+        """The study under protocol version ``sha256`` (kept in the database when a server
+        served it), its clips checked as at start; or the reason it cannot be served: the
+        file is not stored, does not load beside the current one, its clips are not in the
+        clip folder (rendered for another version), or it draws clips live and this server
+        does not (or the other way round)."""
+        with self._versions_lock:
+            if sha256 not in self._versions:
+                self._versions[sha256] = self._load_version(sha256)
+            return self._versions[sha256]
+
+    def _load_version(self, sha256: str) -> OnlineStudy | str:
+        from facelab.errors import FacelabError
+        from facelab.experiment.preflight import check_clips
+        from facelab.protocol import load_protocol_text
+
+        cfg = self.config
+        if cfg.protocol_dir is None or cfg.clips_dir is None:
+            return "this server was not told where the protocol's files and clips are"
+        with Session(self.engine) as db:
+            stored = db.get(ProtocolFile, sha256)
+            content = None if stored is None else bytes(stored.content)
+        if content is None:
+            return f"protocol {sha256[:12]}… is not stored in the database"
+        try:
+            protocol = load_protocol_text(
+                content.decode("utf-8"),
+                path=cfg.protocol_dir / f"protocol-{sha256[:12]}.yaml",
+                base_dir=cfg.protocol_dir,
+            )
+            probe = OnlineStudy(protocol=protocol, protocol_sha256=sha256, clips={})
+            clips = check_clips(protocol, probe.needed(), cfg.clips_dir,
+                                base_dir=cfg.protocol_dir, verify_hashes=True)  # fmt: skip
+        except (FacelabError, UnicodeDecodeError) as exc:
+            first = str(exc).strip().splitlines()
+            return (first[-1] if first else "it does not load").strip()[:300]
+        if protocol.study.id != self.study.study:
+            return f"it is the protocol of study {protocol.study.id!r}"
+        live = protocol.presentation.display != "video"
+        if live != (cfg.live is not None):
+            return (
+                "it shows clips "
+                + ("live" if live else "as video")
+                + ", and this server does not: serve a protocol with the same display"
+            )
+        if live and cfg.live is not None:
+            for ref in clips.values():
+                if ref.track is not None and ref.track_sha256:
+                    cfg.live.tracks.setdefault(ref.track_sha256 + ".bin", ref.track)
+        for ref in clips.values():
+            cfg.clip_paths.setdefault(ref.sha256 + ".mp4", ref.path)
+        return OnlineStudy(protocol=protocol, protocol_sha256=sha256, clips=clips)
 
     def answered(self, p: Participant) -> set[tuple[int, str]]:
         with Session(self.engine) as db:
@@ -332,7 +403,7 @@ class StudyServer:
     def adaptive(self, p: Participant, trial_index: int) -> dict[str, Any]:
         """The screens of a staircase trial at the level the stored answers give."""
         try:
-            screens = self.study.adaptive_json(
+            screens = self.study_of(p).adaptive_json(
                 p.participant, trial_index, logged=self.logged(p), session=p.session
             )
         except AnswerError as exc:
@@ -341,8 +412,9 @@ class StudyServer:
 
     def session_state(self, p: Participant) -> dict[str, Any]:
         answered = self.answered(p)
-        timeline, clips = self.study.timeline_json(p.participant, answered, session=p.session)
-        planned = self.study.planned(p.participant)
+        study = self.study_of(p)
+        timeline, clips = study.timeline_json(p.participant, answered, session=p.session)
+        planned = study.planned(p.participant)
         if answered and p.completed is None:  # a page reload or a return: logged as a resume
             left = sorted(planned - answered)
             with self._writes, Session(self.engine) as db:
@@ -350,7 +422,7 @@ class StudyServer:
                           "first_trial": left[0][0] if left else None}  # fmt: skip
                 db.add(Event(participant_pk=p.pk, kind="resumed", detail=detail))
                 db.commit()
-        pres = self.study.protocol.presentation
+        pres = study.protocol.presentation
         return {
             "study": self.study.study,
             "participant": p.participant,
@@ -395,7 +467,7 @@ class StudyServer:
             else Playback(onset=answer.clip_onset, dropped=answer.clip_frames_dropped or 0)
         )
         try:
-            row = self.study.row(
+            row = self.study_of(p).row(
                 participant=p.participant,
                 session=p.session,
                 simulated=p.simulated,
@@ -474,7 +546,7 @@ class StudyServer:
         )
 
     def _maybe_complete(self, p: Participant) -> bool:
-        planned = len(self.study.planned(p.participant))
+        planned = len(self.study_of(p).planned(p.participant))
         with self._writes, Session(self.engine) as db:  # stored rows are planned ones
             count = db.scalar(select(func.count()).where(Response.participant_pk == p.pk))
             if (count or 0) < planned:
@@ -526,7 +598,7 @@ class StudyServer:
             db.commit()
 
     def completion(self, p: Participant) -> dict[str, Any]:
-        planned = self.study.planned(p.participant)
+        planned = self.study_of(p).planned(p.participant)
         missing = planned - self.answered(p)
         if missing:
             raise RefusedError(
@@ -552,10 +624,25 @@ class StudyServer:
                 .where(Participant.study == self.study.study)
                 .order_by(Participant.number)
             ).all()
+            pks = [p.pk for p in people]
+            errors: dict[int, list[dict[str, Any]]] = {}
+            for e in db.scalars(
+                select(Event).where(Event.kind == "error", Event.participant_pk.in_(pks))
+            ):
+                errors.setdefault(e.participant_pk, []).append(dict(e.detail or {}))
         out = []
         for p in people:
+            version = self._version(p.protocol_sha256)
             if p.participant not in planned_n:
-                planned_n[p.participant] = len(self.study.planned(p.participant))
+                planned_n[p.participant] = (
+                    len(version.planned(p.participant)) if not isinstance(version, str) else 0
+                )
+            stored = self.answered(p) if p.pk in errors else set()
+            held = [
+                d for d in errors.get(p.pk, [])
+                if d.get("held") == "/api/response"
+                and (d.get("trial_index"), d.get("item")) not in stored
+            ]  # fmt: skip
             out.append(
                 {
                     "participant": p.participant,
@@ -565,6 +652,21 @@ class StudyServer:
                     "planned": planned_n[p.participant],
                     "started": p.created.isoformat() if p.created else None,
                     "completed": p.completed.isoformat() if p.completed else None,
+                    # the protocol version the session runs: "current", "earlier <sha12>",
+                    # or why it cannot be served
+                    "protocol": f"cannot be served: {version}"
+                    if isinstance(version, str)
+                    else (
+                        "current"
+                        if p.protocol_sha256 == self.study.protocol_sha256
+                        else f"earlier {p.protocol_sha256[:12]}"
+                    ),
+                    # answers the server refused that the browser holds (and retries), why
+                    "held": len(held),
+                    "held_why": held[-1].get("why") if held else None,
+                    # the end page waited over its limit with answers unsaved
+                    "stuck": p.completed is None
+                    and any(d.get("what") == "end page" for d in errors.get(p.pk, [])),
                 }
             )
         return out

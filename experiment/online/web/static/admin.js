@@ -15,15 +15,21 @@
     if (!r.ok) { status.textContent = (await r.json()).error; return; }
     const data = await r.json();
     const done = data.participants.filter((p) => p.completed).length;
-    status.textContent = `${data.study}: ${data.participants.length} participants, ${done} complete`;
+    const held = data.participants.reduce((n, p) => n + (p.held || 0), 0);
+    const stuck = data.participants.filter((p) => p.stuck).length;
+    status.textContent = `${data.study}: ${data.participants.length} participants, ${done} complete` +
+      (held ? `; ${held} answers held back in browsers (see held_why)` : "") +
+      (stuck ? `; ${stuck} waiting at the end page with unsaved answers` : "");
     table.textContent = "";
     const head = table.insertRow();
-    for (const h of ["participant", "responses", "planned", "source", "simulated", "started", "completed"]) {
+    const columns = ["participant", "responses", "planned", "held", "held_why", "stuck", "protocol", "source", "simulated", "started", "completed"];
+    for (const h of columns) {
       const th = document.createElement("th"); th.textContent = h; head.appendChild(th);
     }
     for (const p of data.participants) {
       const row = table.insertRow();
-      for (const k of ["participant", "responses", "planned", "source", "simulated", "started", "completed"]) cell(row, p[k]);
+      for (const k of columns) cell(row, p[k]);
+      if (p.held || p.stuck) row.className = "facelab-attention";
     }
   }
   form.addEventListener("submit", (ev) => {

@@ -323,6 +323,8 @@ class FacelabComplete extends FacelabPlugin {
         // bounded wait: say what is wrong and what to do, and keep trying in the background
         status.textContent = FacelabSession.ui.stuck.replace("{n}", String(FacelabOutbox.held()));
         status.dataset.facelab = "stuck";
+        // the experimenter's progress page lists this participant
+        FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "end page", unsaved: FacelabOutbox.held() } });
       }
       try {
         const r = await FacelabOutbox.request("GET", "/api/complete");
