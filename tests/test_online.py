@@ -187,6 +187,66 @@ def test_rejoin_through_the_link_in_chromium_keeps_the_session_and_refuses_a_str
     assert [p["participant"] for p in server.progress()] == ["P0001"]
 
 
+def test_answers_saved_under_a_rotated_token_are_sent_first_after_a_rejoin(
+    study: Path, tmp_path: Path
+) -> None:
+    """A participant answered offline in browser A (the answer waits in A's outbox under
+    token T1), then continued on another device after the idle time (T1 retired), then came
+    back to A through the recruitment link: A's waiting answer is sent first, with T1, and
+    stored under the participant; a leftover of another participant's session on the same
+    computer is refused and held, never stored under this one."""
+    from selenium.webdriver.common.by import By
+
+    server = _server(study, tmp_path / "db.sqlite")
+    server.config.rejoin_idle_s = 0.0  # "after the idle time", at once
+    link = "/join?PROLIFIC_PID=70a1b2c3d4e5f60718293a4b"
+    with BackgroundServer(server) as bg:
+        a = chromium()
+        try:
+            a.get(bg.url + link)
+            a.find_element(By.CSS_SELECTOR, "[data-facelab=join]").click()
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not a.execute_script(
+                "return localStorage.getItem('facelab.token')"
+            ):
+                time.sleep(0.1)
+            t1 = a.execute_script("return localStorage.getItem('facelab.token')")
+            (p,) = [q for q in server.progress() if q["participant"] == "P0001"]
+            keys = sorted(server.study.planned("P0001"))
+            other, other_token = server.join(recruitment=None, source=None)  # P0002
+            offline = _answer(*keys[0], 12.34, "aaaaaaaaaaaa0001")
+            leftover = _answer(*keys[1], 98.76, "aaaaaaaaaaaa0002")
+            a.get("about:blank")  # the tab is closed with the answer unsent
+            # another device continues the session after the idle time: T1 is retired
+            server.join(recruitment="70a1b2c3d4e5f60718293a4b", source="prolific")
+            a.get(bg.url + link)  # back in browser A through the link (its page creates nothing)
+            a.execute_script(
+                "localStorage.setItem('facelab.outbox.' + arguments[0], JSON.stringify("
+                "[{url: '/api/response', body: arguments[1]}]));"
+                "localStorage.setItem('facelab.outbox.' + arguments[2], JSON.stringify("
+                "[{url: '/api/response', body: arguments[3]}]));",
+                t1, offline, other_token, leftover,
+            )  # fmt: skip
+            a.refresh()  # the join page reads this browser's token again
+            a.find_element(By.CSS_SELECTOR, "[data-facelab=join]").click()
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and not _rows(server, "P0001"):
+                time.sleep(0.2)
+            time.sleep(1.0)
+            held = a.execute_script(
+                "return Object.keys(localStorage).filter((k) => k.startsWith('facelab.held.'))"
+                ".map((k) => JSON.parse(localStorage.getItem(k))).flat()"
+            )
+        finally:
+            a.quit()
+    rows = _rows(server, "P0001")
+    assert [(r["trial_index"], r["item"], r["rating"]) for r in rows] == [(*keys[0], 12.34)]
+    assert _rows(server, other.participant) == []  # the leftover is not stored anywhere
+    assert [h["body"]["rating"] for h in held] == [98.76]  # held in the browser, with why
+    assert "another session's token" in held[0]["why"]
+    assert p["responses"] == 0
+
+
 def test_limited_joins_get_a_page_in_the_study_language_and_clips_carry_no_dates(
     study: Path, tmp_path: Path
 ) -> None:

@@ -17,6 +17,7 @@ from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
 from facelab.experiment.online.middleware import IMPORT_MAP, SecurityHeaders
 from facelab.experiment.online.server import (
     ADMIN_HEADER,
+    EARLIER_TOKEN_HEADER,
     RECRUITMENT_PARAMS,
     THREE_FILES,
     TOKEN_HEADER,
@@ -238,11 +239,13 @@ def create_app(server: StudyServer) -> Any:
     @app.post("/api/response")
     def response(request: Request, answer: AnswerIn) -> dict[str, Any]:
         p = server.participant(request.headers.get(TOKEN_HEADER))
+        server.check_earlier_token(p, request.headers.get(EARLIER_TOKEN_HEADER))
         return server.store_answer(p, answer)
 
     @app.post("/api/playback")
     def playback(request: Request, record: PlaybackIn) -> dict[str, Any]:
         p = server.participant(request.headers.get(TOKEN_HEADER))
+        server.check_earlier_token(p, request.headers.get(EARLIER_TOKEN_HEADER))
         return server.store_playback(p, record)
 
     @app.post("/api/event")

@@ -71,6 +71,7 @@ from facelab.experiment.online.study import AnswerError, OnlineStudy
 from facelab.experiment.timeline import SCREEN_KINDS, Playback, needed_clips
 
 __all__ = [
+    "EARLIER_TOKEN_HEADER",
     "THREE_FILES",
     "InUseError",
     "RefusedError",
@@ -101,6 +102,8 @@ THREE_FILES = (
 )
 TOKEN_HEADER = "X-Facelab-Token"
 ADMIN_HEADER = "X-Facelab-Admin"
+#: an answer saved under the session's earlier token (see StudyServer.check_earlier_token)
+EARLIER_TOKEN_HEADER = "X-Facelab-Earlier-Token"
 TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
 RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
 
@@ -253,8 +256,11 @@ class StudyServer:
                     db.commit()
                     raise InUseError(existing.participant)
                 self._by_token.drop(lambda p: p.pk != existing.pk)
+                # the retired token's hash is kept: answers a browser saved under it are
+                # still this participant's (see earlier_token)
+                how = {"how": "new browser after idle", "idle_s": round(idle),
+                       "retired_token_sha256": existing.token_sha256}  # fmt: skip
                 existing.token_sha256 = token_sha256(token)
-                how = {"how": "new browser after idle", "idle_s": round(idle)}
                 db.add(Event(participant_pk=existing.pk, kind="rejoined", detail=how))
                 db.commit()
                 db.refresh(existing)
@@ -326,6 +332,30 @@ class StudyServer:
             )
         self._by_token.put(digest, p)
         return p
+
+    def check_earlier_token(self, p: Participant, earlier: str | None) -> None:
+        """Answers a browser saved under an earlier token of this session (before the token
+        was rotated by a rejoin) are sent with it in ``X-Facelab-Earlier-Token``: accepted
+        for ``p`` only when that token was one of ``p``'s, else refused (409) - a shared
+        computer's leftovers never land in another participant's session."""
+        if earlier is None:
+            return
+        if len(earlier) > 128:
+            raise RefusedError(422, f"{EARLIER_TOKEN_HEADER}: malformed")
+        digest = token_sha256(earlier)
+        if hmac.compare_digest(digest, p.token_sha256):
+            return
+        with Session(self.engine) as db:
+            retired = {
+                (e.detail or {}).get("retired_token_sha256")
+                for e in db.scalars(
+                    select(Event).where(Event.participant_pk == p.pk, Event.kind == "rejoined")
+                )
+            }
+        if digest not in retired:
+            raise RefusedError(
+                409, "these answers were saved under another session's token; not stored here"
+            )
 
     def study_of(self, p: Participant) -> OnlineStudy:
         """The study as the participant's session started it (its protocol version)."""

@@ -23,7 +23,33 @@ const FacelabOutbox = (function () {
       history.replaceState(null, "", location.pathname); // the token leaves the address bar
     }
     token = localStorage.getItem(TOKEN_KEY);
+    if (token) adoptEarlier();
     return token;
+  }
+
+  // Answers this browser saved under an earlier token (the session's token before a rejoin
+  // rotated it, or another session's on a shared computer) go first, each carrying that
+  // token: the server stores them only if it was this session's, else they are held and
+  // reported like any refused answer - nothing the participant gave is dropped.
+  function adoptEarlier() {
+    const earlier = [];
+    for (let i = 0; i < localStorage.length; i++) {
+      const k = localStorage.key(i);
+      const m = k && k.match(/^facelab\.(outbox|held)\.([A-Za-z0-9_-]{20,128})$/);
+      if (m && m[2] !== token) earlier.push([k, m[2]]);
+    }
+    if (!earlier.length) return;
+    const moved = [];
+    for (const [k, old] of earlier) {
+      let items = [];
+      try { items = JSON.parse(localStorage.getItem(k) || "[]"); } catch (e) { items = []; }
+      for (const it of items) {
+        if (it.url === "/api/event") continue;  // the earlier session's page events stay there
+        moved.push({ url: it.url, body: it.body, earlier: it.earlier || old });
+      }
+    }
+    save(moved.concat(load()));     // saved under this token first, then the old keys go
+    for (const [k] of earlier) localStorage.removeItem(k);
   }
 
   function newKey() {
@@ -32,8 +58,9 @@ const FacelabOutbox = (function () {
     return Array.from(b, (x) => x.toString(16).padStart(2, "0")).join("");
   }
 
-  async function request(method, url, body) {
+  async function request(method, url, body, earlier) {
     const headers = { "X-Facelab-Token": token };
+    if (earlier) headers["X-Facelab-Earlier-Token"] = earlier;
     if (body !== undefined) headers["Content-Type"] = "application/json";
     return fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), cache: "no-store" });
   }
@@ -54,7 +81,7 @@ const FacelabOutbox = (function () {
     const due = held.filter((h) => now - h.at >= HOLD_MS);
     if (!due.length) return;
     saveHeld(held.filter((h) => now - h.at < HOLD_MS));  // queued first, then released
-    save(load().concat(due.map((h) => ({ url: h.url, body: h.body, tries: h.tries }))));
+    save(load().concat(due.map((h) => ({ url: h.url, body: h.body, tries: h.tries, earlier: h.earlier }))));
   }
 
   // Send everything in order; resolves when the queue is empty (retries until then; held
@@ -69,12 +96,12 @@ const FacelabOutbox = (function () {
         const item = items[0];
         let drop = false;
         try {
-          const r = await request("POST", item.url, item.body);
+          const r = await request("POST", item.url, item.body, item.earlier);
           if (r.ok) { drop = true; delay = 500; }
           else if (r.status === 409 || r.status === 422) {
             const why = ((await r.json().catch(() => ({}))).error || String(r.status)).slice(0, 300);
             const tries = (item.tries || 0) + 1;
-            saveHeld(loadHeld().concat([{ url: item.url, body: item.body, why, tries, at: Date.now() }]));
+            saveHeld(loadHeld().concat([{ url: item.url, body: item.body, why, tries, at: Date.now(), earlier: item.earlier }]));
             if (tries === 1 && item.url !== "/api/event") {  // reported once, through the queue
               const q = load();
               q.push({ url: "/api/event", body: { kind: "error", detail: { held: item.url, why,
