@@ -10,6 +10,8 @@ from typing import Any
 
 import pandas as pd
 
+from facelab.formats import LIVE_PLAYBACK_KEYS
+
 __all__ = [
     "LIVE_COLUMNS",
     "QUALITY_COLUMNS",
@@ -96,29 +98,30 @@ def exclude_dropped(
     ``(kept, excluded, note)``; the note (None when nothing was left out) says how many per
     condition and why."""
     dropped = pd.to_numeric(data["clip_frames_dropped"], errors="coerce").fillna(0)
-    over = dropped > max_dropped
+    return _exclude(
+        data,
+        dropped > max_dropped,
+        f"trials whose clip dropped more than {max_dropped} frames (--max-dropped-frames)",
+    )
+
+
+def _exclude(
+    data: pd.DataFrame, over: pd.Series, why: str
+) -> tuple[pd.DataFrame, pd.DataFrame, str | None]:
+    """``data`` split by the boolean ``over`` into kept and excluded responses, with the
+    report's note (how many responses of how many trials, per condition, and ``why``)."""
     kept, excluded = data[~over].reset_index(drop=True), data[over].reset_index(drop=True)
     if excluded.empty:
         return kept, excluded, None
     per = trials_shown(excluded).groupby("condition").size()
     listed = ", ".join(f"{c}: {n}" for c, n in per.items())
-    note = (
-        f"excluded {len(excluded)} responses of {int(per.sum())} trials whose clip dropped more "
-        f"than {max_dropped} frames (--max-dropped-frames), per condition {listed}"
-    )
+    note = f"excluded {len(excluded)} responses of {int(per.sum())} {why}, per condition {listed}"
     return kept, excluded, note
 
 
 #: the live 3D / VR views' per-clip measures (``_playback.jsonl``; facelab serve with
 #: ``presentation.display: live3d | webxr``) joined to each trial by :func:`with_live_playback`
-LIVE_COLUMNS = (
-    "display",
-    "av_offset_ms",
-    "frames_late",
-    "head_yaw_range_deg",
-    "head_pitch_range_deg",
-    "avatar_distance_m",
-)
+LIVE_COLUMNS = LIVE_PLAYBACK_KEYS
 
 
 def live_playback(logs: list[Path]) -> pd.DataFrame:
@@ -244,13 +247,9 @@ def exclude_av_offset(
     if "av_offset_ms" not in data.columns:
         return data, data.iloc[:0], None
     over = pd.to_numeric(data["av_offset_ms"], errors="coerce").abs() > max_ms
-    kept, excluded = data[~over].reset_index(drop=True), data[over].reset_index(drop=True)
-    if excluded.empty:
-        return kept, excluded, None
-    per = trials_shown(excluded).groupby("condition").size()
-    listed = ", ".join(f"{c}: {n}" for c, n in per.items())
-    note = (
-        f"excluded {len(excluded)} responses of {int(per.sum())} live trials whose picture and "
-        f"sound were more than {max_ms:g} ms apart (--max-av-offset-ms), per condition {listed}"
+    return _exclude(
+        data,
+        over,
+        f"live trials whose picture and sound were more than {max_ms:g} ms apart "
+        "(--max-av-offset-ms)",
     )
-    return kept, excluded, note

@@ -35,6 +35,7 @@ __all__ = [
     "BEHAVIOUR_LOG_SUFFIX",
     "CLIP_COLUMNS",
     "IMPRESSION_FORMAT",
+    "LIVE_PLAYBACK_KEYS",
     "MANIFEST_NAME",
     "POSE_CHANNELS",
     "TRACK_COLUMNS",
@@ -76,6 +77,16 @@ TRACK_MAGIC = b"FLTRACK1"
 TRACK_FORMAT = "facelab-track-1"
 #: the head-pose channels of a track, in this order after the blendshape channels
 POSE_CHANNELS = ("head_yaw", "head_pitch", "head_roll", "eye_yaw", "eye_pitch", "neck_share")
+#: the measures a live 3D / VR view adds to a clip's ``_playback.jsonl`` record (facelab serve
+#: with ``presentation.display: live3d | webxr``; absent from video and lab records)
+LIVE_PLAYBACK_KEYS = (
+    "display",
+    "av_offset_ms",
+    "frames_late",
+    "head_yaw_range_deg",
+    "head_pitch_range_deg",
+    "avatar_distance_m",
+)
 #: the suffix of a clip's behaviour event log, beside the clip
 BEHAVIOUR_LOG_SUFFIX = ".behaviour.json"
 #: the format id in an impression model file (``facelab impression fit``)

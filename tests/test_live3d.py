@@ -205,6 +205,33 @@ def _mouth_darkness(img: np.ndarray, box: tuple[int, int, int, int]) -> float:
     return float(255.0 - img[y0:y1, x0:x1].astype(float).mean())
 
 
+def _open_stage(server, bg, k: int):
+    """Headless Chromium on the session page of a simulated participant ``k``, once the
+    live view (window.FacelabLive) is up."""
+    d = chromium()
+    _, token = server.join(recruitment=f"still-{k}", source="simulated", simulated=True,
+                           token=simulated_token(server, k))  # fmt: skip
+    d.get(f"{bg.url}/run#t={token}")
+    for _ in range(300):
+        if d.execute_script("return !!window.FacelabLive"):
+            break
+        time.sleep(0.1)
+    return d
+
+
+def _still(d, row: dict[str, str], k: int) -> np.ndarray:
+    """Frame ``k`` of a clip (its manifest ``row``) as the page draws it from the track."""
+    url = d.execute_async_script(
+        "const [clip, track, k, done] = arguments;"
+        "FacelabLive.clip({clip, track}).then("
+        "(c) => done(FacelabLive.still(c.track, k)), (e) => done('ERR ' + e));",
+        row["sha256"] + ".mp4", row["track_sha256"] + ".bin", k,
+    )  # fmt: skip
+    assert url.startswith("data:image/png"), url
+    png = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+
+
 @slow
 def test_live_frames_match_the_offline_clip_at_the_same_instants(
     study: Path, tmp_path: Path
@@ -228,27 +255,12 @@ def test_live_frames_match_the_offline_clip_at_the_same_instants(
     face = (xl - 40, yu - 70, xr + 40, yl + 40)
     diffs, live_open, off_open = [], [], []
     with BackgroundServer(server) as bg:
-        d = chromium()
+        d = _open_stage(server, bg, 99)
         try:
-            _, token = server.join(recruitment="fidelity", source="simulated", simulated=True,
-                                   token=simulated_token(server, 99))  # fmt: skip
-            d.get(f"{bg.url}/run#t={token}")
-            for _ in range(300):
-                if d.execute_script("return !!window.FacelabLive"):
-                    break
-                time.sleep(0.1)
             for row in read_manifest(study / "clips"):
                 frames = decode_frames(study / "clips" / row["path"], width=320, height=180)
                 for k in range(0, len(frames), 3):
-                    url = d.execute_async_script(
-                        "const [clip, track, k, done] = arguments;"
-                        "FacelabLive.clip({clip, track}).then("
-                        "(c) => done(FacelabLive.still(c.track, k)), (e) => done('ERR ' + e));",
-                        row["sha256"] + ".mp4", row["track_sha256"] + ".bin", k,
-                    )  # fmt: skip
-                    assert url.startswith("data:image/png"), url
-                    png = base64.b64decode(url.split(",", 1)[1])
-                    live = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+                    live = _still(d, row, k)
                     x0, y0, x1, y1 = face
                     diffs.append(
                         np.abs(live[y0:y1, x0:x1].astype(int) - frames[k][y0:y1, x0:x1]).mean()
@@ -293,26 +305,12 @@ def test_a_textured_skinned_avatar_file_looks_the_same_live(study: Path, tmp_pat
     server.config.live.camera.update(width=320, height=180)
     mads = []
     with BackgroundServer(server) as bg:
-        d = chromium()
+        d = _open_stage(server, bg, 98)
         try:
-            _, token = server.join(recruitment="tex", source="simulated", simulated=True,
-                                   token=simulated_token(server, 98))  # fmt: skip
-            d.get(f"{bg.url}/run#t={token}")
-            for _ in range(300):
-                if d.execute_script("return !!window.FacelabLive"):
-                    break
-                time.sleep(0.1)
             for row in read_manifest(study / "rpm_clips"):
                 frames = decode_frames(study / "rpm_clips" / row["path"], width=320, height=180)
                 for k in (0, len(frames) // 2):
-                    url = d.execute_async_script(
-                        "const [clip, track, k, done] = arguments;"
-                        "FacelabLive.clip({clip, track}).then("
-                        "(c) => done(FacelabLive.still(c.track, k)), (e) => done('ERR ' + e));",
-                        row["sha256"] + ".mp4", row["track_sha256"] + ".bin", k,
-                    )  # fmt: skip
-                    png = base64.b64decode(url.split(",", 1)[1])
-                    live = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+                    live = _still(d, row, k)
                     mads.append(float(np.abs(live.astype(int) - frames[k]).mean()))
         finally:
             d.quit()

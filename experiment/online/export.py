@@ -45,6 +45,7 @@ from facelab.experiment.online.db import (
     ProtocolFile,
     Response,
 )
+from facelab.formats import LIVE_PLAYBACK_KEYS
 from facelab.protocol import Protocol, load_protocol
 from facelab.sessionlog import SessionLog, append_jsonl, fsync_dir, session_paths
 
@@ -59,13 +60,7 @@ _PLAYBACK_KEYS = (
     "dropped",
     "flip_times",
     "frames_shown",
-    # the live 3D / VR views' measures (absent from video records)
-    "display",
-    "av_offset_ms",
-    "frames_late",
-    "head_yaw_range_deg",
-    "head_pitch_range_deg",
-    "avatar_distance_m",
+    *LIVE_PLAYBACK_KEYS,  # the live 3D / VR views' measures (absent from video records)
 )
 
 
