@@ -145,6 +145,9 @@ class BrowserContext:
     lang: str
     clip_json: Callable[[ClipKey], dict[str, Any]]
     shown_before: frozenset[int] = frozenset()
+    # the practice trial's clip as the browser fetches it (online: a copy of its own, so it
+    # cannot be matched to the main trial showing the same clip); default clip_json
+    practice_json: Callable[[ClipKey], dict[str, Any]] | None = None
 
     @property
     def texts(self) -> dict[str, str]:
@@ -234,8 +237,9 @@ class ClipScreen(Screen):
         }
 
     def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        fetch = ctx.practice_json if self.practice and ctx.practice_json else ctx.clip_json
         return self._shown(ctx) | {
-            **ctx.clip_json(self.clip),
+            **fetch(self.clip),
             "interval": self.interval,
             "announce": ctx.texts["interval"].format(n=self.interval) if self.interval else "",
             "gap_s": self.gap_s,

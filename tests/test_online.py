@@ -6,6 +6,7 @@ and PostgreSQL. Needs Debian's chromium, chromium-driver and postgresql (scripts
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import os
 import re
@@ -245,6 +246,58 @@ def test_answers_saved_under_a_rotated_token_are_sent_first_after_a_rejoin(
     assert [h["body"]["rating"] for h in held] == [98.76]  # held in the browser, with why
     assert "another session's token" in held[0]["why"]
     assert p["responses"] == 0
+
+
+def test_served_files_tell_no_condition(study: Path, tmp_path: Path) -> None:
+    """Clips are served as padded copies under their own hash: every condition of a
+    stimulus has the same size, the practice clip is a copy of its own (same size, other
+    bytes), the rendered files are not reachable by their hash, and a track's header does
+    not name its clip (which names the condition)."""
+    live = study / "live.yaml"
+    text = (study / "short.yaml").read_text(encoding="utf-8")
+    live.write_text(text.replace("presentation:\n", "presentation:\n  display: live3d\n", 1),
+                    encoding="utf-8")  # fmt: skip
+    protocol = load_protocol(live)
+    server, _ = prepare_server(
+        protocol, protocol_path=live, clips_dir=study / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    client = TestClient(create_app(server))
+    _, token = server.join(recruitment=None, source=None)
+    state = client.get("/api/session", headers={"X-Facelab-Token": token}).json()
+    rendered = {ref.sha256 for ref in server.study.clips.values()}
+    sizes: dict[tuple[str, str], set[int]] = {}
+    for key, copy in server.served.main.items():
+        body = client.get(f"/clips/{copy.clip}").content
+        assert hashlib.sha256(body).hexdigest() == copy.clip[:-4] not in rendered
+        original = server.study.clips[key].path.read_bytes()
+        assert body.startswith(original) and body[len(original) + 4 :][:4] == b"free"
+        sizes.setdefault(key[:2], set()).add(len(body))
+        track = client.get(f"/tracks/{copy.track}").content
+        header = json.loads(track[12 : 12 + int.from_bytes(track[8:12], "little")])
+        assert header["clip_id"] == "" and key[2] not in json.dumps(header)
+    assert all(len(v) == 1 for v in sizes.values())  # one size per stimulus
+    for ref in server.study.clips.values():  # the rendered files are not served
+        assert client.get(f"/clips/{ref.sha256}.mp4").status_code == 404
+    (key,) = server.served.practice
+    practice, main = server.served.practice[key], server.served.main[key]
+    assert practice.clip != main.clip and practice.track != main.track
+    a, b = client.get(f"/clips/{practice.clip}").content, client.get(f"/clips/{main.clip}").content
+    assert len(a) == len(b) and a != b
+    shown = [s for s in state["timeline"] if s["kind"] == "clip"]
+    assert next(s for s in shown if s["practice"])["clip"] == practice.clip
+    assert practice.clip in state["clips"] and all(
+        s["clip"] != practice.clip for s in shown if not s["practice"]
+    )
+    # a playback record names the copy shown; the rendered clip is what is stored
+    record = {"client_key": "pppppppppppp0001", "trial_index": 1, "clip": shown[1]["clip"],
+              "replay": False, "onset": 1.0, "frames_expected": 10, "dropped": 0,
+              "flip_times": [], "frames_shown": [], "presented_frames": 10}  # fmt: skip
+    r = client.post("/api/playback", json=record, headers={"X-Facelab-Token": token})
+    assert r.status_code == 200, r.json()
+    with Session(server.engine) as db:
+        stored = db.scalars(select(PlaybackRecord)).one().record
+    assert stored["clip"][:-4] in rendered and stored["served_as"] == shown[1]["clip"]
 
 
 def test_limited_joins_get_a_page_in_the_study_language_and_clips_carry_no_dates(

@@ -74,6 +74,7 @@ def prepare_server(
         live=live,
         protocol_dir=base,
         clips_dir=clips_dir,
+        served_dir=Path(results) / protocol.study.id / "served",
         completion_url=completion_url,
         completion_code=completion_code,
         consent=consent,

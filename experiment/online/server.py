@@ -67,6 +67,7 @@ from facelab.experiment.online.db import (
 )
 from facelab.experiment.online.limits import Clock, RateLimiter, TokenCache
 from facelab.experiment.online.live import LiveScene
+from facelab.experiment.online.served import ServedFiles, served_files
 from facelab.experiment.online.study import AnswerError, OnlineStudy
 from facelab.experiment.timeline import SCREEN_KINDS, Playback, needed_clips
 
@@ -139,6 +140,9 @@ class ServeConfig:
     # version of the file (kept in the database by its SHA-256) are served that version
     protocol_dir: Path | None = None
     clips_dir: Path | None = None
+    # where the copies browsers fetch are written (see facelab.experiment.online.served);
+    # None serves the rendered files under their SHA-256
+    served_dir: Path | None = None
 
 
 class InUseError(Exception):
@@ -179,6 +183,9 @@ class StudyServer:
         self._versions: dict[str, OnlineStudy | str] = {config.study.protocol_sha256: self.study}
         self._versions_lock = threading.Lock()
         self.hmac_key = bytes.fromhex(self._setting("hmac_key", lambda: secrets.token_hex(32)))
+        self.served = ServedFiles()
+        if config.served_dir is not None:
+            self._serve_copies(self.study)
 
     # -- settings and secrets
 
@@ -357,6 +364,33 @@ class StudyServer:
                 409, "these answers were saved under another session's token; not stored here"
             )
 
+    def _serve_copies(self, study: OnlineStudy) -> None:
+        """Serve ``study``'s clips and tracks as padded, renamed copies (conditions hidden;
+        the practice clip a copy of its own) instead of the rendered files."""
+        cfg = self.config
+        assert cfg.served_dir is not None
+        practice = study.protocol.presentation.practice
+        copies = served_files(
+            study.clips,
+            folder=cfg.served_dir,
+            key=self.hmac_key,
+            practice=None
+            if practice is None
+            else (practice.stimulus_set, practice.stimulus, practice.condition),
+        )
+        first = not self.served.paths
+        self.served.merge(copies)
+        study.served = self.served
+        mp4 = {n: path for n, path in self.served.paths.items() if n.endswith(".mp4")}
+        bins = {n: path for n, path in self.served.paths.items() if n.endswith(".bin")}
+        if first:  # only the copies are served, not the rendered files by their own hash
+            cfg.clip_paths.clear()
+            if cfg.live is not None:
+                cfg.live.tracks.clear()
+        cfg.clip_paths.update(mp4)
+        if cfg.live is not None:
+            cfg.live.tracks.update(bins)
+
     def study_of(self, p: Participant) -> OnlineStudy:
         """The study as the participant's session started it (its protocol version)."""
         version = self._version(p.protocol_sha256)
@@ -409,13 +443,17 @@ class StudyServer:
                 + ("live" if live else "as video")
                 + ", and this server does not: serve a protocol with the same display"
             )
-        if live and cfg.live is not None:
+        version = OnlineStudy(protocol=protocol, protocol_sha256=sha256, clips=clips)
+        if cfg.served_dir is not None:
+            self._serve_copies(version)
+        else:
+            if live and cfg.live is not None:
+                for ref in clips.values():
+                    if ref.track is not None and ref.track_sha256:
+                        cfg.live.tracks.setdefault(ref.track_sha256 + ".bin", ref.track)
             for ref in clips.values():
-                if ref.track is not None and ref.track_sha256:
-                    cfg.live.tracks.setdefault(ref.track_sha256 + ".bin", ref.track)
-        for ref in clips.values():
-            cfg.clip_paths.setdefault(ref.sha256 + ".mp4", ref.path)
-        return OnlineStudy(protocol=protocol, protocol_sha256=sha256, clips=clips)
+                cfg.clip_paths.setdefault(ref.sha256 + ".mp4", ref.path)
+        return version
 
     def answered(self, p: Participant) -> set[tuple[int, str]]:
         with Session(self.engine) as db:
@@ -591,7 +629,8 @@ class StudyServer:
 
     def store_playback(self, p: Participant, record: PlaybackIn) -> dict[str, Any]:
         known = set(p.clips.values())
-        if record.clip[:-4] not in known:
+        rendered = self.served.original.get(record.clip, record.clip[:-4])
+        if rendered not in known:
             raise RefusedError(422, f"clip: {record.clip} is not one of this participant's clips")
         with Session(self.engine) as db:
             if db.scalars(
@@ -602,7 +641,10 @@ class StudyServer:
                 PlaybackRecord(
                     participant_pk=p.pk,
                     client_key=record.client_key,
-                    record=record.model_dump(exclude={"client_key"}),
+                    # the rendered clip's hash, as the lab logs it (and the copy shown)
+                    record=record.model_dump(exclude={"client_key"})
+                    | {"clip": rendered + ".mp4"}
+                    | ({"served_as": record.clip} if rendered != record.clip[:-4] else {}),
                     received=utcnow(),
                 )
             )

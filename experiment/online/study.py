@@ -52,6 +52,9 @@ class OnlineStudy:
     protocol: Protocol
     protocol_sha256: str
     clips: Mapping[ClipKey, Any]
+    # the copies browsers fetch (facelab.experiment.online.served; None: the rendered files
+    # by their SHA-256)
+    served: Any = None
     _screens: dict[str, list[Screen]] = field(default_factory=dict, repr=False)
 
     @property
@@ -102,7 +105,10 @@ class OnlineStudy:
             if isinstance(s, TextScreen) and s.role == "welcome":
                 continue  # online: the consent/instructions page greets the participant
             out.append(self._screen_json(s, shown_before))
-        return out, sorted(self.clips[k].sha256 + ".mp4" for k in needed_clips(todo))
+        main = needed_clips([s for s in todo if not getattr(s, "practice", False)])
+        names = {self._clip_json(k)["clip"] for k in main}
+        names |= {s.get("clip") for s in out if s.get("practice") and s.get("clip")}
+        return out, sorted(names)
 
     def adaptive_json(
         self,
@@ -160,16 +166,22 @@ class OnlineStudy:
             raise AnswerError(str(exc)) from None
         return screen.expand(staircases.resolve(trial))
 
-    def _clip_json(self, key: ClipKey) -> dict[str, Any]:
-        """A clip as the browser fetches it: by its hash (the name never says the condition)."""
+    def _clip_json(self, key: ClipKey, *, practice: bool = False) -> dict[str, Any]:
+        """A clip as the browser fetches it: by a hash (the name never says the condition) -
+        of the served copy (:mod:`~facelab.experiment.online.served`) when there is one."""
         ref = self.clips[key]
         live = self.protocol.presentation.display != "video" and ref.track_sha256
+        clip, track = ref.sha256 + ".mp4", f"{ref.track_sha256}.bin"
+        if self.served is not None:
+            copy = (self.served.practice if practice else self.served.main).get(key)
+            copy = copy or self.served.main[key]
+            clip, track = copy.clip, copy.track
         return {
-            "clip": ref.sha256 + ".mp4",
+            "clip": clip,
             "fps": ref.fps,
             "frames": round(ref.duration_s * ref.fps),
             # display live3d / webxr: the animation track drawn live ("" for video)
-            "track": f"{ref.track_sha256}.bin" if live else "",
+            "track": track if live else "",
         }
 
     def _screen_json(self, s: Screen, shown_before: set[int]) -> dict[str, Any]:
@@ -177,6 +189,7 @@ class OnlineStudy:
             lang=self.protocol.presentation.language,
             clip_json=self._clip_json,
             shown_before=frozenset(shown_before),
+            practice_json=lambda key: self._clip_json(key, practice=True),
         )
         return s.browser(ctx)
 
