@@ -93,10 +93,12 @@ def served_files(
     folder: Path,
     key: bytes,
     practice: Any | None = None,
+    tracks: bool = False,
 ) -> ServedFiles:
     """Copies of the checked ``clips`` ({(set, stimulus, condition): ClipRef}) in
     ``folder``; ``practice`` the practice trial's clip key (it gets copies of its own);
-    ``key`` the server's secret (the practice copy's padding bytes come from it)."""
+    ``key`` the server's secret (the practice copy's padding bytes come from it); ``tracks``:
+    copy the animation tracks too (a live display; checked by the server before)."""
     folder.mkdir(parents=True, exist_ok=True)
     sizes: dict[tuple[str, str], int] = {}
     for (sset, stim, _cond), ref in clips.items():
@@ -106,7 +108,7 @@ def served_files(
         data = ref.path.read_bytes()
         group = sizes[(k[0], k[1])]
         target = -(-(group + 8) // _ALIGN) * _ALIGN  # room for the smallest free box
-        track = ref.track.read_bytes() if ref.track is not None and ref.track.is_file() else None
+        track = ref.track.read_bytes() if tracks and ref.track is not None else None
         roles = [("main", b"")]
         if practice is not None and tuple(practice) == tuple(k):
             roles.append(("practice", hmac.new(key, b"practice:" + bytes.fromhex(ref.sha256),

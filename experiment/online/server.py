@@ -377,6 +377,7 @@ class StudyServer:
             practice=None
             if practice is None
             else (practice.stimulus_set, practice.stimulus, practice.condition),
+            tracks=cfg.live is not None,
         )
         first = not self.served.paths
         self.served.merge(copies)

@@ -170,8 +170,9 @@ class OnlineStudy:
         """A clip as the browser fetches it: by a hash (the name never says the condition) -
         of the served copy (:mod:`~facelab.experiment.online.served`) when there is one."""
         ref = self.clips[key]
-        live = self.protocol.presentation.display != "video" and ref.track_sha256
-        clip, track = ref.sha256 + ".mp4", f"{ref.track_sha256}.bin"
+        track_sha = getattr(ref, "track_sha256", None)
+        live = self.protocol.presentation.display != "video" and track_sha
+        clip, track = ref.sha256 + ".mp4", f"{track_sha}.bin"
         if self.served is not None:
             copy = (self.served.practice if practice else self.served.main).get(key)
             copy = copy or self.served.main[key]
