@@ -149,3 +149,41 @@ def test_a_compressed_avatar_is_described(
     assert main(["avatar", "inspect", str(path), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["arkit_targets"] == "52/52" and report["textures"] and not report["notes"]
+
+
+def test_damaged_compressed_files_load_or_are_refused(
+    samples: dict[str, Path], tmp_path: Path
+) -> None:
+    """Random edits of compressed files' JSON (deleted keys, values of other types) and random
+    bytes in their compressed streams: each loads into a finite avatar or is refused in
+    words - no other exception, no crash of a decoder."""
+    import random
+
+    from tests.mutation import mutated
+
+    rng = random.Random(20261125)
+    files = {
+        steps: read_glb(compress(samples["rpm"], tmp_path / f"{'_'.join(steps)}.glb", *steps))
+        for steps in (("meshopt",), ("draco",), ("quantize", "webp", "meshopt"))
+    }
+    values = [None, 0, -1, 10**9, "", "x", [], {}, [1, 2], True, 0.5, float("nan"), 3,
+              "TRIANGLES", "ATTRIBUTES", 2**40]  # fmt: skip
+    outcomes = {"loaded": 0, "refused": 0}
+    for i in range(200):
+        doc, blob = files[rng.choice(sorted(files))]
+        if i % 4 == 3:  # bytes of the binary chunk (compressed streams, images) damaged
+            data = bytearray(blob)
+            for _ in range(rng.choice([1, 5, 50])):
+                data[rng.randrange(len(data))] = rng.randrange(256)
+            path = write_glb(tmp_path / f"m{i}.glb", doc, bytes(data))
+        else:
+            path = write_glb(tmp_path / f"m{i}.glb", mutated(doc, rng=rng, values=values), blob)
+        try:
+            avatar = load(path)
+        except AvatarError:
+            outcomes["refused"] += 1
+            continue
+        outcomes["loaded"] += 1
+        assert np.isfinite(avatar.neutral).all()
+        assert avatar.faces.max() < len(avatar.neutral)
+    assert min(outcomes.values()) > 20, outcomes

@@ -115,6 +115,11 @@ def open_gltf(path: Path) -> tuple[pygltflib.GLTF2, list[bytes]]:
         _decode_draco(doc, buffers)
     except _MalformedError as exc:
         raise AvatarError(f"{path}: cannot read its compressed geometry: {exc}") from None
+    except _MALFORMED:  # a damaged document: buffer views or extensions of the wrong shape
+        raise AvatarError(
+            f"{path}: malformed glTF: a buffer view, mesh primitive or compression extension "
+            "refers to data that is not there or has the wrong shape (a damaged file?)"
+        ) from None
     return doc, buffers
 
 
@@ -138,7 +143,10 @@ READ_EXTENSIONS = {
 
 def _check_required(doc: pygltflib.GLTF2, path: Path) -> None:
     """An extension the file requires and facelab does not read is refused by name."""
-    required = [str(e) for e in (doc.extensionsRequired or [])]
+    listed = doc.extensionsRequired or []
+    if not isinstance(listed, list):
+        raise AvatarError(f"{path}: malformed glTF: extensionsRequired is not a list of names")
+    required = [str(e) for e in listed]
     unknown = [e for e in required if e not in READ_EXTENSIONS]
     if unknown:
         listed = ", ".join(unknown)
