@@ -240,13 +240,12 @@ def test_close_ups_of_avatars_without_landmarks_frame_the_moving_face(
     """Contact-sheet close-ups (zoom 1.9) of a user's avatar show every vertex its shapes
     move - the stand-ins' mouths sit low on the head, below a crop around the head's centre."""
     from facelab.stimuli.avatar.samples import write_sample
-    from facelab.stimuli.render.renderer import Renderer, RenderSettings
+    from facelab.stimuli.render.scene import RenderSettings, framing
 
     avatar = load(write_sample(tmp_path / f"{kind}.glb", kind=kind))
     assert "upper_lip" not in avatar.landmarks
     settings = RenderSettings(width=420, height=420, zoom=1.9)
-    renderer = Renderer(avatar, settings)  # framing only: no GL context is opened
-    centre, distance = renderer._face_centre, renderer._distance
+    centre, distance = framing(avatar, settings)  # the renderer's framing (no GL context)
     moved = np.zeros(len(avatar.neutral), bool)
     for delta in avatar.targets.values():
         moved |= np.abs(delta).max(axis=1) > 1e-5

@@ -158,15 +158,17 @@ def _check_required(doc: pygltflib.GLTF2, path: Path) -> None:
         )
 
 
-def _new_view(doc: pygltflib.GLTF2, buffers: list[bytes], data: bytes, stride: int | None) -> int:
-    """A buffer view over ``data`` in a buffer of its own (decoded geometry); its index."""
+def _new_buffer(doc: pygltflib.GLTF2, buffers: list[bytes], data: bytes) -> int:
+    """``data`` (decoded geometry) as a buffer of its own; its index."""
     buffers.append(data)
     doc.buffers.append(pygltflib.Buffer(byteLength=len(data)))
-    doc.bufferViews.append(
-        pygltflib.BufferView(
-            buffer=len(buffers) - 1, byteOffset=0, byteLength=len(data), byteStride=stride
-        )
-    )
+    return len(buffers) - 1
+
+
+def _new_view(doc: pygltflib.GLTF2, buffers: list[bytes], data: bytes) -> int:
+    """A buffer view over ``data`` in a buffer of its own; its index."""
+    buffer = _new_buffer(doc, buffers, data)
+    doc.bufferViews.append(pygltflib.BufferView(buffer=buffer, byteOffset=0, byteLength=len(data)))
     return len(doc.bufferViews) - 1
 
 
@@ -198,10 +200,9 @@ def _decode_meshopt(doc: pygltflib.GLTF2, buffers: list[bytes]) -> list[bytes]:
                     if mode == "TRIANGLES"
                     else meshoptimizer.decode_index_sequence
                 )
+                # 16-bit indices come back packed at the front of the 32-bit array
                 packed = np.asarray(decode_indices(count, stride, data))
-                out = packed.view(np.uint8)[: count * stride] if stride == 2 else packed
-                if stride == 2:  # 16-bit indices come back packed in the 32-bit array
-                    out = np.asarray(out).copy()
+                out = packed.view(np.uint8)[: count * stride]
             else:
                 raise _MalformedError(f"buffer view {i}: meshopt mode {mode!r}")
             if flt != "NONE":
@@ -220,9 +221,7 @@ def _decode_meshopt(doc: pygltflib.GLTF2, buffers: list[bytes]) -> list[bytes]:
             raise _MalformedError(f"buffer view {i}: its meshopt data do not decode") from None
         if len(raw) != count * stride:
             raise _MalformedError(f"buffer view {i}: meshopt data decode to the wrong size")
-        buffers.append(raw)
-        doc.buffers.append(pygltflib.Buffer(byteLength=len(raw)))
-        view.buffer, view.byteOffset, view.byteLength = len(buffers) - 1, 0, len(raw)
+        view.buffer, view.byteOffset, view.byteLength = _new_buffer(doc, buffers, raw), 0, len(raw)
         view.byteStride = stride if view.byteStride else None
         view.extensions = {}
     return buffers
@@ -269,13 +268,13 @@ def _decode_draco(doc: pygltflib.GLTF2, buffers: list[bytes]) -> None:
                 if len(data) != acc.count:
                     raise _MalformedError(f"mesh {m}: Draco attribute {name} has {len(data)} "
                                           f"values, its accessor {acc.count}")  # fmt: skip
-                acc.bufferView = _new_view(doc, buffers, data.tobytes(), None)
+                acc.bufferView = _new_view(doc, buffers, data.tobytes())
                 acc.byteOffset, acc.componentType, acc.normalized = 0, 5126, False
                 acc.sparse = None
             if prim.indices is not None:
                 faces = np.ascontiguousarray(np.asarray(decoded.faces), np.uint32).reshape(-1)
                 acc = doc.accessors[prim.indices]
-                acc.bufferView = _new_view(doc, buffers, faces.tobytes(), None)
+                acc.bufferView = _new_view(doc, buffers, faces.tobytes())
                 acc.byteOffset, acc.componentType, acc.count = 0, 5125, len(faces)
             prim.extensions = {}
 
@@ -500,8 +499,6 @@ def _transform_uv(uv: np.ndarray, transform: dict[str, Any]) -> np.ndarray:
 
 def _decode_image(data: bytes, what: str) -> np.ndarray:
     """(H, W, 4) uint8 RGBA from PNG, JPEG or WebP bytes."""
-    import io
-
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -838,24 +835,18 @@ def live_glb(avatar: Avatar) -> bytes:
     linear light as the offline shading uses them (squared), and the skeleton's roles
     (``neck``, ``head``, ``eye_left``, ``eye_right`` -> joint name) in the mesh's
     ``extras.facelab.roles`` so a track's head and eye channels turn the same joints."""
-    colors = avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
-    doc, buffer = _gltf_document(avatar, colors=np.asarray(colors, np.float32) ** 2)
+    doc, buffer = _gltf_document(avatar, live=True)
     doc.set_binary_blob(buffer)
     return b"".join(doc.save_to_bytes())
 
 
-def _gltf_document(
-    avatar: Avatar, *, colors: np.ndarray | None = None
-) -> tuple[pygltflib.GLTF2, bytes]:
-    """The glTF document of ``avatar`` and its one binary buffer (``colors``: the COLOR_0
-    values; default the avatar's own colours; given, the skeleton's roles are added too)."""
-    live = colors is not None
+def _gltf_document(avatar: Avatar, *, live: bool = False) -> tuple[pygltflib.GLTF2, bytes]:
+    """The glTF document of ``avatar`` and its one binary buffer; ``live``: the live views'
+    copy (:func:`live_glb`: linear colours, the skeleton's roles, textures)."""
     b = _BufferBuilder()
     pos = b.add(avatar.neutral.astype(np.float32), "VEC3", 5126, 34962, True)
-    if colors is None:
-        colors = (
-            avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
-        )
+    colors = avatar.colors if avatar.colors is not None else np.full((len(avatar.neutral), 3), 0.8)
+    colors = np.asarray(colors, np.float32) ** 2 if live else colors
     col = b.add(np.asarray(colors, np.float32), "VEC3", 5126, 34962, False)
     # one primitive per base-colour texture (the live view draws textured avatars as the
     # offline renderer does: texture x lit vertex colour); every primitive shares the vertex

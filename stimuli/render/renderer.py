@@ -48,10 +48,12 @@ from facelab.errors import StageError
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import HeadPose
 from facelab.stimuli.render.scene import (
+    AMBIENT,
+    AMBIENT_UP,
     DEFAULT_DISTANCE_M,
     LIGHTS,
     RenderSettings,
-    framing,
+    camera_placement,
 )
 
 __all__ = [
@@ -144,7 +146,7 @@ def _shade(
     power = np.array([p for _, p in _LIGHTS], np.float32)
     lam = np.clip((normals @ dirs.T + _WRAP) / (1 + _WRAP), 0, None)  # (V, L)
     up = normals[:, 1]
-    ambient = 0.20 + 0.07 * up  # hemisphere: AMBIENT_GROUND .. AMBIENT_SKY (scene.py)
+    ambient = AMBIENT + AMBIENT_UP * up  # hemisphere: brighter from the sky than the ground
     light = ambient + lam @ power
     half = dirs[0] + view_dir.astype(np.float32)
     half /= np.linalg.norm(half)
@@ -197,7 +199,8 @@ class Renderer:
             if avatar.gloss is not None
             else np.full(len(avatar.neutral), 0.35, np.float32)
         )
-        self._face_centre, self._distance = framing(avatar, settings)
+        self._placement = camera_placement(avatar, settings)
+        self._face_centre = self._placement.target
         self._view_dir = np.array([0.0, 0.0, 1.0])
         self._renderer: pyrender.OffscreenRenderer | None = None
         self._groups: list[_Group] = []
@@ -224,13 +227,11 @@ class Renderer:
         self._scene = pyrender.Scene(bg_color=[*s.background, 1.0], ambient_light=[1.0, 1.0, 1.0])
         self._groups = self._make_groups()
         self._scene.add(pyrender.Mesh([g.primitive for g in self._groups]))
-        eye = self._face_centre + np.array([0.0, s.height_m, self._distance])
+        cam = self._placement
+        eye = cam.eye
         self._view_dir = (eye - self._face_centre) / np.linalg.norm(eye - self._face_centre)
         self._camera = pyrender.PerspectiveCamera(
-            yfov=np.radians(s.fov_deg),
-            aspectRatio=s.width / s.height,
-            znear=max(0.01, 0.08 * self._distance),
-            zfar=20.0 * self._distance,
+            yfov=np.radians(s.fov_deg), aspectRatio=s.width / s.height, znear=cam.near, zfar=cam.far
         )
         self._camera_pose = look_at(eye, self._face_centre)
         view_projection = self._camera.get_projection_matrix(s.width, s.height) @ np.linalg.inv(

@@ -18,13 +18,15 @@ from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
 from facelab.stimuli.methods import check_playable, get
 
 __all__ = [
-    "AMBIENT_GROUND",
-    "AMBIENT_SKY",
+    "AMBIENT",
+    "AMBIENT_UP",
     "DEFAULT_DISTANCE_M",
     "DEFAULT_HEAD_HEIGHT_M",
     "LIGHTS",
+    "CameraPlacement",
     "RenderSettings",
     "camera_json",
+    "camera_placement",
     "framing",
     "load_avatar",
     "settings_for",
@@ -137,7 +139,31 @@ LIGHTS = (
     ((0.75, 0.15, 0.65), 0.30),  # fill, right
     ((0.0, 0.35, -1.0), 0.16),  # rim from behind
 )
-AMBIENT_SKY, AMBIENT_GROUND = 0.27, 0.13  # the hemisphere's value for normals up and down
+#: the hemisphere ambient, AMBIENT + AMBIENT_UP * normal.y (sky above, warm bounce below)
+AMBIENT, AMBIENT_UP = 0.20, 0.07
+
+
+@dataclass(frozen=True)
+class CameraPlacement:
+    """Where the camera stands (``eye``) and what it aims at (``target``), metres in the
+    avatar's world frame, and its near and far planes (m)."""
+
+    eye: np.ndarray
+    target: np.ndarray
+    near: float
+    far: float
+
+
+def camera_placement(avatar: Avatar, settings: RenderSettings) -> CameraPlacement:
+    """The offline renderer's camera (and the live view's): :func:`framing`'s distance in
+    front of the aim point, ``height_m`` above it."""
+    centre, distance = framing(avatar, settings)
+    return CameraPlacement(
+        eye=centre + np.array([0.0, settings.height_m, distance]),
+        target=centre,
+        near=max(0.01, 0.08 * distance),
+        far=20.0 * distance,
+    )
 
 
 def camera_json(avatar: Avatar, settings: RenderSettings) -> dict[str, Any]:
@@ -145,19 +171,18 @@ def camera_json(avatar: Avatar, settings: RenderSettings) -> dict[str, Any]:
     vertical field of view (degrees), near/far planes (m), frame size (px), background
     (linear 0-1, drawn as is by the offline renderer), the lights and the head-centre
     height (the point a VR view places at the protocol's distance)."""
-    centre, distance = framing(avatar, settings)
-    eye = centre + np.array([0.0, settings.height_m, distance])
+    cam = camera_placement(avatar, settings)
     return {
-        "eye": [round(float(v), 6) for v in eye],
-        "target": [round(float(v), 6) for v in centre],
+        "eye": [round(float(v), 6) for v in cam.eye],
+        "target": [round(float(v), 6) for v in cam.target],
         "fov_deg": settings.fov_deg,
-        "near": max(0.01, 0.08 * distance),
-        "far": 20.0 * distance,
+        "near": cam.near,
+        "far": cam.far,
         "width": settings.width,
         "height": settings.height,
         "background": list(settings.background),
         "lights": [{"direction": list(d), "intensity": i} for d, i in LIGHTS],
-        "ambient": {"sky": AMBIENT_SKY, "ground": AMBIENT_GROUND},
+        "ambient": {"sky": AMBIENT + AMBIENT_UP, "ground": AMBIENT - AMBIENT_UP},
     }
 
 
