@@ -28,6 +28,7 @@ from facelab.analysis.presentation import (
     exclude_dropped,
     live_playback,
     live_quality,
+    playback_records,
     playback_replays,
     presentation_quality,
     session_modes,
@@ -114,8 +115,9 @@ def run(
                 f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
             )
         data = data[~data["participant"].isin(list(exclude))].reset_index(drop=True)
-    logs = [Path(src) for src in sorted(data["source"].dropna().unique())]
-    data = with_live_playback(data, live_playback(logs))
+    records = playback_records(data)  # each session's _playback.jsonl, read once
+    modes = session_modes(data)  # where each session ran (before any exclusion)
+    data = with_live_playback(data, live_playback(records))
     excluded, dropped_note, offset_note = data.iloc[:0], None, None
     if max_dropped_frames is not None:
         data, excluded, dropped_note = exclude_dropped(data, max_dropped=max_dropped_frames)
@@ -133,12 +135,11 @@ def run(
     tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(
-        data, excluded=excluded, replays=playback_replays(logs)
+        data, excluded=excluded, replays=playback_replays(records)
     )
     live = live_quality(pd.concat([data, excluded], ignore_index=True))  # every trial shown
     if not live.empty:  # clips drawn live (display live3d / webxr): A/V offset, head movement
         tasks.tables["live_presentation"] = live
-    modes = session_modes(logs)
     sessions = pilot_sessions(data, check)
     if not modes.empty and not sessions.empty:  # where each session ran
         sessions = sessions.merge(modes, on=["participant", "session"], how="left")

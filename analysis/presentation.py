@@ -19,6 +19,7 @@ __all__ = [
     "exclude_dropped",
     "live_playback",
     "live_quality",
+    "playback_records",
     "playback_replays",
     "presentation_quality",
     "session_modes",
@@ -124,60 +125,59 @@ def _exclude(
 LIVE_COLUMNS = LIVE_PLAYBACK_KEYS
 
 
-def live_playback(logs: list[Path]) -> pd.DataFrame:
+def playback_records(data: pd.DataFrame) -> list[dict[str, Any]]:
+    """Every ``_playback.jsonl`` record beside the session logs ``data`` was read from (its
+    ``source`` column), each with its session's ``participant`` and ``session``; a line cut
+    off mid-write is passed over (the trial's earlier record stands)."""
+    out = []
+    sessions = data[["source", "participant", "session"]].drop_duplicates("source")
+    for source, participant, session in sessions.itertuples(index=False):
+        tsv = Path(source)
+        path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
+        if not path.is_file():
+            continue
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            out.append(record | {"participant": participant, "session": int(session)})
+    return out
+
+
+def live_playback(records: list[dict[str, Any]]) -> pd.DataFrame:
     """One row per (participant, session, trial_index) shown live: the measures of the
     trial's last showing (a replay after a resume is what the answer followed), from the
-    ``_playback.jsonl`` beside each session TSV in ``logs``. Empty when no clip was drawn
-    live (video studies, lab sessions)."""
-    rows = []
-    for tsv in logs:
-        who, records = _playback_lines(tsv)
-        for record in records:
-            if record.get("display") in ("live3d", "webxr") and record.get("trial_index"):
-                rows.append(who | {"trial_index": int(record["trial_index"])}
-                            | {k: record.get(k) for k in LIVE_COLUMNS})  # fmt: skip
+    :func:`playback_records`. Empty when no clip was drawn live (video studies, lab
+    sessions)."""
+    rows = [
+        {k: r.get(k) for k in (*_TRIAL, *LIVE_COLUMNS)}
+        for r in records
+        if r.get("display") in ("live3d", "webxr") and r.get("trial_index")
+    ]
     if not rows:
         return pd.DataFrame(columns=[*_TRIAL, *LIVE_COLUMNS])
-    return pd.DataFrame(rows).drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+    frame = pd.DataFrame(rows).astype({"trial_index": int})
+    return frame.drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
 
 
-def _playback_lines(tsv: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """The session's identity (participant, session) and its ``_playback.jsonl`` records."""
-    path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
-    if not path.is_file():
-        return {}, []
-    first = pd.read_csv(tsv, sep="\t", nrows=1, dtype=str)
-    if first.empty:
-        return {}, []
-    who = {"participant": first["participant"].iloc[0], "session": int(first["session"].iloc[0])}
-    records = []
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue  # a line cut off mid-write: the trial's earlier record stands
-    return who, records
-
-
-def playback_replays(logs: list[Path]) -> pd.DataFrame:
+def playback_replays(records: list[dict[str, Any]]) -> pd.DataFrame:
     """Per (participant, session, trial_index): how many times its clip was shown again after
-    a resume or reload (``replay: true`` records), lab and online alike."""
-    rows = []
-    for tsv in logs:
-        who, records = _playback_lines(tsv)
-        for record in records:
-            if record.get("replay") and record.get("trial_index"):
-                rows.append(who | {"trial_index": int(record["trial_index"])})
+    a resume or reload (``replay: true`` :func:`playback_records`), lab and online alike."""
+    rows = [{k: r[k] for k in _TRIAL} for r in records if r.get("replay") and r.get("trial_index")]
     if not rows:
         return pd.DataFrame(columns=[*_TRIAL, "replays"])
-    return pd.DataFrame(rows).groupby(_TRIAL).size().rename("replays").reset_index()
+    frame = pd.DataFrame(rows).astype({"trial_index": int})
+    return frame.groupby(_TRIAL).size().rename("replays").reset_index()
 
 
-def session_modes(logs: list[Path]) -> pd.DataFrame:
-    """Per (participant, session): where it ran (``mode`` of the session JSON: ``lab``,
-    ``online``; simulated sessions say so) and, online, the display that ran."""
+def session_modes(data: pd.DataFrame) -> pd.DataFrame:
+    """Per (participant, session) of the logs ``data`` was read from: where it ran (``mode``
+    of the session JSON: ``lab``, ``online``; simulated sessions say so) and, online, the
+    display that ran."""
     rows = []
-    for tsv in logs:
+    for source in data["source"].dropna().unique():
+        tsv = Path(source)
         path = tsv.with_name(tsv.name.replace("_beh.tsv", "_session.json"))
         try:
             info = json.loads(path.read_text(encoding="utf-8"))

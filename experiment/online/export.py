@@ -51,7 +51,8 @@ from facelab.sessionlog import SessionLog, append_jsonl, fsync_dir, session_path
 
 __all__ = ["export_sessions"]
 
-_PLAYBACK_KEYS = (
+#: the keys every record has (the lab's; None where the browser had none)
+_LAB_KEYS = (
     "trial_index",
     "clip",
     "replay",
@@ -60,22 +61,26 @@ _PLAYBACK_KEYS = (
     "dropped",
     "flip_times",
     "frames_shown",
-    *LIVE_PLAYBACK_KEYS,  # the live 3D / VR views' measures (absent from video records)
 )
-
-
-_LAB_KEYS = _PLAYBACK_KEYS[:8]  # every record has these (None where the browser had none)
+#: the keys of an exported record's top level: the lab's, then the live 3D / VR views'
+_PLAYBACK_KEYS = (*_LAB_KEYS, *LIVE_PLAYBACK_KEYS)
 #: the fields only the live 3D / VR views fill (left out of a video record's export)
-_LIVE_ONLY = frozenset(_PLAYBACK_KEYS[8:]) | {"audio_times", "viewer_poses"}
+_LIVE_ONLY = frozenset(LIVE_PLAYBACK_KEYS) | {"audio_times", "viewer_poses"}
 
 
-def _live(record: dict[str, Any]) -> dict[str, Any]:
-    """A stored record without the lab keys and without live-only fields it did not fill."""
-    return {
+def _exported(record: dict[str, Any]) -> dict[str, Any]:
+    """A stored playback record as ``_playback.jsonl`` holds it: the lab keys, the live keys
+    it filled, and what else the browser sent under ``browser``."""
+    rest = {
         k: v
         for k, v in record.items()
         if k not in _LAB_KEYS and not (k in _LIVE_ONLY and v is None)
     }
+    return (
+        {k: record.get(k) for k in _LAB_KEYS}
+        | {k: v for k, v in rest.items() if k in _PLAYBACK_KEYS}
+        | {"browser": {k: v for k, v in rest.items() if k not in _PLAYBACK_KEYS}}
+    )
 
 
 def _count_lines(path: Path) -> int:
@@ -273,12 +278,7 @@ def _export_one(
         log.append(r.row)
     _append_new(
         paths.playback,
-        [
-            {k: rec.record.get(k) for k in _LAB_KEYS}
-            | {k: v for k, v in _live(rec.record).items() if k in _PLAYBACK_KEYS}
-            | {"browser": {k: v for k, v in _live(rec.record).items() if k not in _PLAYBACK_KEYS}}
-            for rec in playback
-        ],
+        [_exported(rec.record) for rec in playback],
     )
     if actions:
         _append_new(paths.actions, [a.record for a in actions])

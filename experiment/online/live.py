@@ -23,7 +23,7 @@ from facelab.formats import read_track
 from facelab.hashing import sha256_file
 from facelab.protocol import Protocol
 
-__all__ = ["LiveScene", "live_scene"]
+__all__ = ["LiveScene", "checked_tracks", "live_scene"]
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,7 @@ class LiveScene:
 
     avatar_glb: bytes
     avatar_name: str
+    avatar_sha256: str  # the avatar's content hash, as each track's header names it
     camera: dict[str, Any]
     tracks: dict[str, Path]
 
@@ -48,6 +49,23 @@ def live_scene(protocol: Protocol, *, base_dir: Path, clips: Mapping[Any, Any]) 
 
     avatar = load_avatar(protocol, base_dir=base_dir)
     avatar_sha = avatar.content_hash()
+    tracks = checked_tracks(protocol, clips=clips, avatar_sha256=avatar_sha)
+    glb = live_glb(avatar)
+    return LiveScene(
+        avatar_glb=glb,
+        avatar_name=hashlib.sha256(glb).hexdigest() + ".glb",
+        avatar_sha256=avatar_sha,
+        camera=camera_json(avatar, settings_for(protocol)),
+        tracks=tracks,
+    )
+
+
+def checked_tracks(
+    protocol: Protocol, *, clips: Mapping[Any, Any], avatar_sha256: str
+) -> dict[str, Path]:
+    """The animation track of every clip ({key: ClipRef}) by the name the browser fetches,
+    each checked: listed in clips.csv, unchanged since rendering, drawn on the avatar whose
+    content hash is ``avatar_sha256``; SessionError naming the clip otherwise."""
     tracks: dict[str, Path] = {}
     for key, ref in sorted(clips.items()):
         name = "/".join(key)
@@ -66,16 +84,10 @@ def live_scene(protocol: Protocol, *, base_dir: Path, clips: Mapping[Any, Any]) 
             header = read_track(ref.track).header
         except FormatError as exc:
             raise SessionError(str(exc)) from None
-        if header.get("avatar_sha256") != avatar_sha:
+        if header.get("avatar_sha256") != avatar_sha256:
             raise SessionError(
                 f"the animation track of clip {name} was drawn on another avatar than "
                 f"rendering.avatar ({protocol.rendering.avatar}) gives now: render again"
             )
         tracks[ref.track_sha256 + ".bin"] = ref.track
-    glb = live_glb(avatar)
-    return LiveScene(
-        avatar_glb=glb,
-        avatar_name=hashlib.sha256(glb).hexdigest() + ".glb",
-        camera=camera_json(avatar, settings_for(protocol)),
-        tracks=tracks,
-    )
+    return tracks

@@ -23,8 +23,7 @@ from facelab.experiment.online.server import (
     ServeConfig,
     StudyServer,
 )
-from facelab.experiment.online.study import OnlineStudy
-from facelab.experiment.preflight import check_clips
+from facelab.experiment.online.study import checked_study
 from facelab.protocol import Protocol, protocol_hash
 
 __all__ = ["BackgroundServer", "free_port", "prepare_server", "vendor_dir"]
@@ -59,11 +58,10 @@ def prepare_server(
     when ``admin_secret`` was given). Every clip is checked first (present, unchanged, from
     the protocol as it is now), as before a lab session."""
     base = protocol_path.parent
-    probe = OnlineStudy(protocol=protocol, protocol_sha256="", clips={})
-    clips = check_clips(protocol, probe.needed(), clips_dir, base_dir=base, verify_hashes=True)
-    study = OnlineStudy(
-        protocol=protocol, protocol_sha256=protocol_hash(protocol_path), clips=clips
+    study = checked_study(
+        protocol, protocol_sha256=protocol_hash(protocol_path), clips_dir=clips_dir, base_dir=base
     )
+    clips = study.clips
     live = None
     if protocol.presentation.display != "video":
         live = live_scene(protocol, base_dir=base, clips=clips)

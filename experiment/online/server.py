@@ -66,9 +66,9 @@ from facelab.experiment.online.db import (
     utcnow,
 )
 from facelab.experiment.online.limits import Clock, RateLimiter, TokenCache
-from facelab.experiment.online.live import LiveScene
+from facelab.experiment.online.live import LiveScene, checked_tracks
 from facelab.experiment.online.served import ServedFiles, served_files
-from facelab.experiment.online.study import AnswerError, OnlineStudy
+from facelab.experiment.online.study import AnswerError, OnlineStudy, checked_study
 from facelab.experiment.timeline import SCREEN_KINDS, Playback, needed_clips
 
 __all__ = [
@@ -379,18 +379,16 @@ class StudyServer:
             else (practice.stimulus_set, practice.stimulus, practice.condition),
             tracks=cfg.live is not None,
         )
-        first = not self.served.paths
         self.served.merge(copies)
         study.served = self.served
-        mp4 = {n: path for n, path in self.served.paths.items() if n.endswith(".mp4")}
-        bins = {n: path for n, path in self.served.paths.items() if n.endswith(".bin")}
-        if first:  # only the copies are served, not the rendered files by their own hash
-            cfg.clip_paths.clear()
-            if cfg.live is not None:
-                cfg.live.tracks.clear()
-        cfg.clip_paths.update(mp4)
+        # only the copies are served (every version's), not the rendered files by their hash
+        cfg.clip_paths.clear()
+        cfg.clip_paths.update({n: f for n, f in self.served.paths.items() if n.endswith(".mp4")})
         if cfg.live is not None:
-            cfg.live.tracks.update(bins)
+            cfg.live.tracks.clear()
+            cfg.live.tracks.update(
+                {n: f for n, f in self.served.paths.items() if n.endswith(".bin")}
+            )
 
     def study_of(self, p: Participant) -> OnlineStudy:
         """The study as the participant's session started it (its protocol version)."""
@@ -412,7 +410,6 @@ class StudyServer:
 
     def _load_version(self, sha256: str) -> OnlineStudy | str:
         from facelab.errors import FacelabError
-        from facelab.experiment.preflight import check_clips
         from facelab.protocol import load_protocol_text
 
         cfg = self.config
@@ -429,31 +426,32 @@ class StudyServer:
                 path=cfg.protocol_dir / f"protocol-{sha256[:12]}.yaml",
                 base_dir=cfg.protocol_dir,
             )
-            probe = OnlineStudy(protocol=protocol, protocol_sha256=sha256, clips={})
-            clips = check_clips(protocol, probe.needed(), cfg.clips_dir,
-                                base_dir=cfg.protocol_dir, verify_hashes=True)  # fmt: skip
+            if protocol.study.id != self.study.study:
+                return f"it is the protocol of study {protocol.study.id!r}"
+            live = protocol.presentation.display != "video"
+            if live != (cfg.live is not None):
+                return (
+                    "it shows clips "
+                    + ("live" if live else "as video")
+                    + ", and this server does not: serve a protocol with the same display"
+                )
+            version = checked_study(protocol, protocol_sha256=sha256, clips_dir=cfg.clips_dir,
+                                    base_dir=cfg.protocol_dir)  # fmt: skip
+            # its tracks must fit the avatar this server draws (checked as at start)
+            tracks = {}
+            if cfg.live is not None:
+                tracks = checked_tracks(
+                    protocol, clips=version.clips, avatar_sha256=cfg.live.avatar_sha256
+                )
         except (FacelabError, UnicodeDecodeError) as exc:
             first = str(exc).strip().splitlines()
             return (first[-1] if first else "it does not load").strip()[:300]
-        if protocol.study.id != self.study.study:
-            return f"it is the protocol of study {protocol.study.id!r}"
-        live = protocol.presentation.display != "video"
-        if live != (cfg.live is not None):
-            return (
-                "it shows clips "
-                + ("live" if live else "as video")
-                + ", and this server does not: serve a protocol with the same display"
-            )
-        version = OnlineStudy(protocol=protocol, protocol_sha256=sha256, clips=clips)
         if cfg.served_dir is not None:
             self._serve_copies(version)
-        else:
-            if live and cfg.live is not None:
-                for ref in clips.values():
-                    if ref.track is not None and ref.track_sha256:
-                        cfg.live.tracks.setdefault(ref.track_sha256 + ".bin", ref.track)
-            for ref in clips.values():
-                cfg.clip_paths.setdefault(ref.sha256 + ".mp4", ref.path)
+        else:  # the rendered files, by their own hash
+            cfg.clip_paths.update({r.sha256 + ".mp4": r.path for r in version.clips.values()})
+            if cfg.live is not None:
+                cfg.live.tracks.update(tracks)
         return version
 
     def answered(self, p: Participant) -> set[tuple[int, str]]:

@@ -18,11 +18,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from facelab.design import build_trials
 from facelab.errors import SessionError
 from facelab.experiment.adaptive import Staircases
+from facelab.experiment.preflight import check_clips
 from facelab.experiment.timeline import (
     AdaptiveTrial,
     AnswerError,
@@ -40,7 +42,7 @@ from facelab.experiment.timeline import (
 from facelab.protocol import Protocol
 from facelab.sessionlog import SessionContext
 
-__all__ = ["AnswerError", "OnlineStudy"]
+__all__ = ["AnswerError", "OnlineStudy", "checked_study"]
 
 
 @dataclass
@@ -242,3 +244,15 @@ class OnlineStudy:
         )
         given = screen.answer(item, answer, rt_s=rt, timestamp=timestamp)
         return screen.row(item, given, context=context, playback=playback)
+
+
+def checked_study(
+    protocol: Protocol, *, protocol_sha256: str, clips_dir: Path, base_dir: Path
+) -> OnlineStudy:
+    """``protocol`` served with every clip any participant may see checked first (present,
+    unchanged since rendering, rendered from this protocol), as before a lab session;
+    SessionError naming the clip otherwise."""
+    probe = OnlineStudy(protocol=protocol, protocol_sha256=protocol_sha256, clips={})
+    clips = check_clips(protocol, probe.needed(), clips_dir, base_dir=base_dir,
+                        verify_hashes=True)  # fmt: skip
+    return OnlineStudy(protocol=protocol, protocol_sha256=protocol_sha256, clips=clips)
