@@ -173,6 +173,12 @@ class Stimulus(_Model):
     silence_s: float | None = Field(
         None, gt=0, le=60, description="A silent stimulus of this many seconds (no speech)."
     )
+    track_from: Literal["words", "audio"] | None = Field(
+        None,
+        description="Where the viseme track comes from: 'words' (the phoneme timing of "
+        "'text', or of 'transcript' aligned to 'audio') or 'audio' (audio-only analysis, as a "
+        "live lip-sync plug-in hears it). Default: the words whenever they are known.",
+    )
     tts: TtsOptions = Field(default_factory=TtsOptions)
     expected_vowels: Annotated[str, StringConstraints(pattern=r"^[aiueo]+$")] | None = Field(
         None, description="The vowels spoken, in order (e.g. aiueo); needed for vowel isolation."
@@ -198,11 +204,27 @@ class Stimulus(_Model):
             )
         if self.transcript is not None and self.audio is None:
             raise ValueError("'transcript' belongs to a recording: give it with 'audio'")
+        if self.track_from == "words" and self.text is None and self.transcript is None:
+            raise ValueError(
+                "track_from: words needs the words: give the recording its 'transcript'"
+            )
+        if self.track_from is not None and self.silence_s is not None:
+            raise ValueError("'track_from' is for speech; a 'silence_s' stimulus has no track")
         if self.vowel_isolation and self.expected_vowels is None:
             raise ValueError("'vowel_isolation' needs 'expected_vowels' (e.g. aiueo)")
         if self.emotion is not None:
             emotion_of(self.emotion)
         return self
+
+    @property
+    def track_source(self) -> Literal["words", "audio", "silence"]:
+        """Where this stimulus' viseme track comes from (``track_from``, else the words when
+        known): every method is driven from it, and each clip's JSON records it."""
+        if self.silence_s is not None:
+            return "silence"
+        if self.track_from is not None:
+            return self.track_from
+        return "words" if (self.text is not None or self.transcript is not None) else "audio"
 
 
 class StimulusSet(_Model):

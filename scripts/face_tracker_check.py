@@ -1,16 +1,19 @@
-"""Does a face tracker nobody here wrote see the default head as a face, with the right mouths?
+"""Does a face tracker nobody here wrote see the right mouth for each vowel, in every condition?
 
 Two steps, two Python environments (MediaPipe 0.10.21 pins an older NumPy than facelab):
 
-    .venv/bin/python scripts/face_tracker_check.py render --out DIR
+    .venv/bin/python scripts/face_tracker_check.py render --out DIR [--protocol P] [--avatar F]
     .venv-mediapipe/bin/python scripts/face_tracker_check.py track DIR
 
-``render`` (facelab's venv) writes PNG frames of the default head into DIR: the five vowels
-at full strength (the shipped standard Z), a blink, a head turn, a gaze shift, and every frame
-of a spoken "あいうえお" clip (vowel_blend, standard Z) with the vowel the analyser heard in
-each frame (``frames.csv``). ``track`` (MediaPipe's venv) runs MediaPipe Face Mesh on every
-frame and prints JSON: the share of frames with a face found, and the inner-lip aperture
-(landmarks 13/14) relative to the face height (landmarks 10/152) per still and per vowel.
+``render`` (facelab's venv) draws, for every condition of the protocol (default ``kato2021``)
+and every vowel of its vowel stimulus, the frames within ±0.1 s of the vowel's peak exactly as
+``facelab render`` draws them (the protocol's camera, 640x360 unless ``--size``), on the
+protocol's avatar or ``--avatar FILE``; plus stills of a blink, a head turn and a gaze shift.
+``track`` (MediaPipe's venv) runs MediaPipe Face Mesh on every frame and prints JSON (also
+written to ``DIR/result.json``): per condition and vowel, the median inner-lip aperture
+(landmarks 13/14) and mouth width (corners 61/291), each over the face height (10/152); and the
+checks of Japanese articulation - あ the largest aperture, う the smallest, い the widest mouth,
+emphasized あ at least 1.3x standard あ. It exits 1 when a frame has no face or a check fails.
 ``scripts/face_tracker_check.sh`` runs both, creating ``.venv-mediapipe`` when missing.
 """
 
@@ -22,52 +25,74 @@ import json
 import sys
 from pathlib import Path
 
+VOWEL_ORDER = "aiueo"
 
-def render(out: Path) -> None:
-    import numpy as np
+
+def render(out: Path, *, protocol_ref: str, avatar_file: str | None, size: str) -> None:
+    from dataclasses import replace
+
     from PIL import Image
 
-    from facelab.stimuli.avatar import default_head
-    from facelab.stimuli.methods import DriveInput, drive
-    from facelab.stimuli.render.clip import frame_weights
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+    from facelab.stimuli.render.build import vowel_peaks
     from facelab.stimuli.render.inspect import sheet_poses
-    from facelab.stimuli.render.renderer import Renderer, RenderSettings
-    from facelab.stimuli.speech.analyser import analyze
-    from facelab.stimuli.speech.track import VOWELS
-    from facelab.stimuli.speech.tts import synthesize
+    from facelab.stimuli.render.renderer import Renderer
+    from facelab.stimuli.render.scene import load_avatar, settings_for
 
+    path = Path(protocol_ref) if protocol_ref.endswith(".yaml") else protocol_path(protocol_ref)
+    protocol = load_protocol(path)
+    if avatar_file is not None:
+        rendering = protocol.rendering.model_copy(
+            update={"avatar": str(Path(avatar_file).resolve())}
+        )
+        protocol = protocol.model_copy(update={"rendering": rendering})
+    width, height = (int(v) for v in size.split("x"))
+    settings = replace(settings_for(protocol), width=width, height=height)
+    avatar = load_avatar(protocol, base_dir=path.parent)
+    peaks = vowel_peaks(protocol, base_dir=path.parent, avatar=avatar)
     out.mkdir(parents=True, exist_ok=True)
-    head = default_head()
-    speech = synthesize("あ、い、う、え、お。")
-    track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
-    bs = drive("vowel_blend", DriveInput(track=track), {"z": "standard", "gain": 1.0})
-    fps = 30
-    n = int(track.times[-1] * fps)
-    weights = frame_weights(bs, head, fps=fps, n_frames=n, pad_s=0.0)
-    vowels = track.vowels()
     rows = []
-    with Renderer(head, RenderSettings(width=640, height=480, msaa=4)) as r:
-        for label, w, pose in sheet_poses(head):
-            name = (
-                "still_"
-                + label.strip("/").split()[0]
-                + ("_" + label.split()[1] if " " in label else "")
-            )
-            Image.fromarray(r.frame(head.weight_vector(w), pose=pose)).save(out / f"{name}.png")
-        for k in range(n):
-            t = k / fps
-            i = min(int(np.searchsorted(track.times, t)), len(track.times) - 1)
-            heard = VOWELS[int(np.argmax(vowels[i]))] if vowels[i].max() > 0.5 else ""
-            Image.fromarray(r.frame(weights[k])).save(out / f"clip_{k:04d}.png")
-            rows.append({"frame": f"clip_{k:04d}.png", "t": round(t, 4), "vowel": heard})
+    with Renderer(avatar, settings) as r:
+        for label, w, pose in sheet_poses(avatar):
+            name = "still_" + "_".join(label.strip("/").split()[:2])
+            Image.fromarray(r.frame(avatar.weight_vector(w), pose=pose)).save(out / f"{name}.png")
+        for peak in peaks:
+            for k, weights in enumerate(peak.window):
+                name = f"{peak.condition}_{peak.vowel}_{k}.png"
+                Image.fromarray(r.frame(weights)).save(out / name)
+                rows.append({"frame": name, "condition": peak.condition, "vowel": peak.vowel})
     with open(out / "frames.csv", "w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, fieldnames=["frame", "t", "vowel"])
+        writer = csv.DictWriter(fh, fieldnames=["frame", "condition", "vowel"])
         writer.writeheader()
         writer.writerows(rows)
-    print(f"wrote {len(rows)} clip frames and the stills into {out}")
+    (out / "about.json").write_text(
+        json.dumps({"protocol": str(path), "avatar": avatar.name, "size": size}) + "\n"
+    )
+    print(f"wrote {len(rows)} vowel frames of {avatar.name} and the stills into {out}")
 
 
-def track(folder: Path) -> None:
+def _checks(table: dict[str, dict[str, dict[str, float]]]) -> dict[str, bool]:
+    """Japanese articulation, per condition: あ opens most, う least, い is widest."""
+    checks = {}
+    for cond, vowels in table.items():
+        if set(vowels) != set(VOWEL_ORDER):
+            checks[f"{cond}: all five vowels measured"] = False
+            continue
+        ap = {v: vowels[v]["aperture"] for v in VOWEL_ORDER}
+        wd = {v: vowels[v]["width"] for v in VOWEL_ORDER}
+        checks[f"{cond}: a has the largest aperture"] = max(ap, key=ap.get) == "a"
+        checks[f"{cond}: u has the smallest aperture"] = min(ap, key=ap.get) == "u"
+        checks[f"{cond}: i has the widest mouth"] = max(wd, key=wd.get) == "i"
+    if "standard" in table and "emphasized" in table:
+        a_std = table["standard"].get("a", {}).get("aperture")
+        a_emp = table["emphasized"].get("a", {}).get("aperture")
+        if a_std and a_emp:
+            checks["emphasized a >= 1.3x standard a"] = a_emp >= 1.3 * a_std
+    return checks
+
+
+def track(folder: Path) -> int:
     import mediapipe as mp
     import numpy as np
     from PIL import Image
@@ -76,44 +101,56 @@ def track(folder: Path) -> None:
         static_image_mode=True, max_num_faces=1, refine_landmarks=False
     )
 
-    def aperture(path: Path) -> float | None:
+    def measure(path: Path) -> tuple[float, float] | None:
         img = np.asarray(Image.open(path).convert("RGB"))
         res = mesh.process(img)
         if not res.multi_face_landmarks:
             return None
         lm = res.multi_face_landmarks[0].landmark
-        face = np.hypot(lm[10].x - lm[152].x, (lm[10].y - lm[152].y) * img.shape[0] / img.shape[1])
-        lips = np.hypot(lm[13].x - lm[14].x, (lm[13].y - lm[14].y) * img.shape[0] / img.shape[1])
-        return float(lips / face)
+        aspect = img.shape[0] / img.shape[1]
 
-    stills = {
-        p.stem.removeprefix("still_"): aperture(p) for p in sorted(folder.glob("still_*.png"))
-    }
+        def dist(i: int, j: int) -> float:
+            return float(np.hypot(lm[i].x - lm[j].x, (lm[i].y - lm[j].y) * aspect))
+
+        face = dist(10, 152)
+        return dist(13, 14) / face, dist(61, 291) / face
+
+    stills = {p.stem.removeprefix("still_"): measure(p) for p in sorted(folder.glob("still_*"))}
     frames = list(csv.DictReader((folder / "frames.csv").read_text(encoding="utf-8").splitlines()))
-    per_vowel: dict[str, list[float]] = {}
-    found = 0
+    found: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    missing = []
     for row in frames:
-        a = aperture(folder / row["frame"])
-        if a is not None:
-            found += 1
-            if row["vowel"]:
-                per_vowel.setdefault(row["vowel"], []).append(a)
+        m = measure(folder / row["frame"])
+        if m is None:
+            missing.append(row["frame"])
+        else:
+            found.setdefault((row["condition"], row["vowel"]), []).append(m)
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for (cond, vowel), values in found.items():
+        a = np.asarray(values)
+        table.setdefault(cond, {})[vowel] = {
+            "aperture": round(float(np.median(a[:, 0])), 4),
+            "width": round(float(np.median(a[:, 1])), 4),
+            "frames": len(values),
+        }
+    table = {c: {v: table[c][v] for v in VOWEL_ORDER if v in table[c]} for c in table}
+    checks = _checks(table)
     result = {
         "tracker": f"mediapipe {mp.__version__} face mesh (static images)",
+        **json.loads((folder / "about.json").read_text()),
+        "measure": "median over the frames within ±0.1 s of each vowel's peak; aperture = "
+        "inner lips 13-14, width = corners 61-291, both / face height 10-152",
         "stills_found": f"{sum(v is not None for v in stills.values())}/{len(stills)}",
-        "still_aperture_over_face_height": {
-            k: None if v is None else round(v, 4) for k, v in stills.items()
-        },
-        "clip_frames_found": f"{found}/{len(frames)}",
-        "clip_aperture_median_by_heard_vowel": {
-            v: round(float(np.median(x)), 4) for v, x in sorted(per_vowel.items())
-        },
-        "clip_frames_per_vowel": {v: len(x) for v, x in sorted(per_vowel.items())},
+        "vowel_frames_found": f"{len(frames) - len(missing)}/{len(frames)}",
+        "frames_without_a_face": missing,
+        "by_condition": table,
+        "checks": checks,
+        "passed": not missing and all(checks.values()) and bool(checks),
     }
-    s = result["still_aperture_over_face_height"]
-    if all(s.get(v) is not None for v in "aeiu"):
-        result["a > e > i,u (stills)"] = bool(s["a"] > s["e"] > max(s["i"], s["u"]))
-    print(json.dumps(result, indent=2, ensure_ascii=False))
+    text = json.dumps(result, indent=2, ensure_ascii=False)
+    (folder / "result.json").write_text(text + "\n", encoding="utf-8")
+    print(text)
+    return 0 if result["passed"] else 1
 
 
 def main() -> int:
@@ -121,10 +158,15 @@ def main() -> int:
     parser.add_argument("step", choices=["render", "track"])
     parser.add_argument("folder", nargs="?")
     parser.add_argument("--out")
+    parser.add_argument("--protocol", default="kato2021")
+    parser.add_argument("--avatar", help="a glTF/VRM file instead of the protocol's avatar")
+    parser.add_argument("--size", default="640x360")
     args = parser.parse_args()
     folder = Path(args.out or args.folder or "results/face_tracker_check")
-    render(folder) if args.step == "render" else track(folder)
-    return 0
+    if args.step == "render":
+        render(folder, protocol_ref=args.protocol, avatar_file=args.avatar, size=args.size)
+        return 0
+    return track(folder)
 
 
 if __name__ == "__main__":

@@ -17,8 +17,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
     try:
         from facelab.stimuli.render.inputs import input_problems
+        from facelab.stimuli.render.prepare import audio_only_note
     except ImportError:  # the core alone: the files the protocol names are not read
-        input_problems = None
+        input_problems = audio_only_note = None
         print("note: files named by the protocols are not checked (needs facelab[stimuli])")
     for path in args.protocols:
         protocol = load_protocol(path)
@@ -26,6 +27,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             issues = input_problems(protocol, base_dir=Path(path).parent)
             if issues:
                 raise refuse(path, issues)
+            note = audio_only_note(protocol)
+            if note:
+                print(f"{path}: {note}")
         n_trials = count_trials(protocol)
         print(
             f"ok: {path}: study {protocol.study.id!r}, {len(protocol.conditions)} conditions, "

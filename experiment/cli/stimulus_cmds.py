@@ -43,6 +43,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.build import build_clips, contact_sheets, plan
+    from facelab.stimuli.render.prepare import audio_only_note
 
     protocol = load_protocol(args.protocol)
     out = output_dir(
@@ -59,6 +60,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
         f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out} "
         f"({cluster.describe()})"
     )
+    note = audio_only_note(protocol)
+    if note:
+        print(note)
     progress.start(n)
     try:
         rows = build_clips(
@@ -173,9 +177,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         proto = Path(given) if given else protocol_path("kato2021")
         print(
             json.dumps(
-                bench_analyze(
-                    protocol=proto, participants=args.participants, runs=args.runs
-                ),
+                bench_analyze(protocol=proto, participants=args.participants, runs=args.runs),
                 indent=2,
             )
         )

@@ -226,6 +226,12 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
         * _smoothstep(0.0235, 0.0215, np.abs(vx))
     )
     colors = colors * (1 - lip_w[:, None]) + LIP * lip_w[:, None]
+    # the commissures: a small shadowed crease where the lips meet (it moves with the corners)
+    for sgn in (1, -1):
+        crease = np.exp(
+            -0.5 * (((vx - sgn * MOUTH_HALF_W) / 0.0016) ** 2 + ((vy - MOUTH_Y) / 0.0010) ** 2)
+        )
+        colors *= 1 - 0.55 * (crease * (vz > 0.03))[:, None]
     # nostrils and the shadowed underside of the nose
     for sgn in (1, -1):
         nostril = np.exp(
@@ -235,7 +241,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     # inner lips: lip colour at the edge, darkening to the mouth interior
     for inner in (upper_inner, lower_inner):
         ring = np.arange(len(inner)) // (len(inner) // 3)
-        shade = np.array([0.75, 0.45, 0.0])[np.minimum(ring, 2)]
+        shade = np.array([0.55, 0.20, 0.0])[np.minimum(ring, 2)]
         colors[inner] = LIP * shade[:, None] + MOUTH * (1 - shade[:, None])
     for side in (1, -1):
         bx = (vx - side * (EYE_X + 0.002)) / 0.020
@@ -684,7 +690,7 @@ def _build_targets(
     below = _smoothstep(boundary + 0.0005, boundary - 0.008, y)
     # soft lips: near the mouth the opening is lens-shaped, the corners stay put
     lens = np.sqrt(np.clip(1 - (x / MOUTH_HALF_W) ** 2, 0, 1))
-    near_mouth = np.exp(-0.5 * ((y - MOUTH_Y) / 0.007) ** 2) * np.exp(-0.5 * (x / 0.035) ** 8)
+    near_mouth = np.exp(-0.5 * ((y - MOUTH_Y) / 0.010) ** 2) * np.exp(-0.5 * (x / 0.035) ** 8)
     jaw_w = below * _smoothstep(-0.055, 0.0, z) * skin
     jaw_w = jaw_w * (1 - near_mouth * (1 - (0.25 + 0.75 * lens)))
     jaw_w[lower_set] = 0.25 + 0.75 * lens[lower_set]
@@ -746,10 +752,11 @@ def _build_targets(
         )
 
     # jaw
-    ang = np.radians(-17.0)  # chin down and back
+    ang = np.radians(-26.0)  # chin down and back
     rot = np.array([[1, 0, 0], [0, np.cos(ang), np.sin(ang)], [0, -np.sin(ang), np.cos(ang)]])
     swing = (v - HINGE) @ rot.T + HINGE - v
-    t["jawOpen"] = swing * jaw_w[:, None]
+    # an opening jaw draws the mouth corners in (the lips stretch vertically)
+    t["jawOpen"] = swing * jaw_w[:, None] + field(-0.35 * x, 0, 0, corner_l + corner_r)
     t["jawForward"] = field(0, 0, 0.006, jaw_w)
     t["jawLeft"] = field(0.006, 0, 0, jaw_w)
     t["jawRight"] = field(-0.006, 0, 0, jaw_w)
@@ -760,22 +767,28 @@ def _build_targets(
     # rounding: corners towards the midline, lips forward; funnel opens, pucker stays closed
     t["mouthFunnel"] = (
         field(-0.42 * x, 0, 0.011, lips)
-        + field(0, 0.0035, 0, upper_lips)
-        + field(0, -0.0045, 0, lower_lips)
+        + field(0, 0.0015, 0, upper_lips)
+        + field(0, -0.0020, 0, lower_lips)
     )
-    t["mouthPucker"] = field(-0.50 * x, 0, 0.013, lips) + field(
-        0, 0, 0.002, upper_lips + lower_lips
+    # pursed lips press together: the upper lip comes down in front, the lower one tucks
+    # behind it (alone, the lower edge passes up to 7 mm behind the upper lip; with the jaw
+    # of an う it closes the gap)
+    t["mouthPucker"] = (
+        field(-0.50 * x, 0, 0.013, lips)
+        + field(0, 0, 0.002, upper_lips + lower_lips)
+        + field(0, -0.0050, 0.0015, upper_lips * _midlip(x))
+        + field(0, 0.0050, -0.0015, lower_lips * _midlip(x))
     )
     t["mouthLeft"] = field(0.007, 0, 0, lips)
     t["mouthRight"] = field(-0.007, 0, 0, lips)
     for side, cw, sw in (("Left", corner_l, side_l), ("Right", corner_r, side_r)):
         sgn = 1.0 if side == "Left" else -1.0
-        t[f"mouthSmile{side}"] = field(sgn * 0.004, 0.0075, -0.003, cw) + field(
+        t[f"mouthSmile{side}"] = field(sgn * 0.006, 0.0075, -0.003, cw) + field(
             0, 0.0025, 0.001, _cheek(x, y, sgn) * front
         )
         t[f"mouthFrown{side}"] = field(sgn * 0.001, -0.0065, 0, cw)
         t[f"mouthDimple{side}"] = field(sgn * 0.002, 0.0005, -0.005, cw)
-        t[f"mouthStretch{side}"] = field(sgn * 0.0085, -0.0025, -0.002, cw)
+        t[f"mouthStretch{side}"] = field(sgn * 0.0150, -0.0025, -0.002, cw)
         t[f"mouthPress{side}"] = field(0, 0.0022, -0.0005, lower_lips * sw * lip_body) + field(
             0, -0.0012, -0.0005, upper_lips * sw * lip_body
         )

@@ -59,12 +59,16 @@ VISEME_MIXES: dict[str, dict[str, float]] = {
         "mouthSmileLeft": 0.15,
         "mouthSmileRight": 0.15,
     },
-    "viseme_ih": {
+    "viseme_ih": {  # spread, the lips parted over the teeth
         "jawOpen": 0.15,
         "mouthStretchLeft": 0.45,
         "mouthStretchRight": 0.45,
         "mouthSmileLeft": 0.25,
         "mouthSmileRight": 0.25,
+        "mouthLowerDownLeft": 0.15,
+        "mouthLowerDownRight": 0.15,
+        "mouthUpperUpLeft": 0.1,
+        "mouthUpperUpRight": 0.1,
     },
     "viseme_oh": {"jawOpen": 0.35, "mouthFunnel": 0.6, "mouthPucker": 0.2},
     "viseme_ou": {"jawOpen": 0.1, "mouthPucker": 0.7, "mouthFunnel": 0.3},

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +44,7 @@ from facelab.stimuli.render.clipspec import (
     clip_spec_hash,
     plan,
 )
-from facelab.stimuli.render.prepare import speech_for, tracks_for
+from facelab.stimuli.render.prepare import speech_for, track_source_text, tracks_for
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
 from facelab.stimuli.render.scene import load_avatar, settings_for
 from facelab.stimuli.render.task import (
@@ -62,7 +62,14 @@ from facelab.stimuli.speech.audio import Speech
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack
 from facelab.stimuli.speech.vowels import vowel_segments
 
-__all__ = ["build_clips", "contact_sheets", "load_avatar", "settings_for"]
+__all__ = [
+    "VowelPeak",
+    "build_clips",
+    "contact_sheets",
+    "load_avatar",
+    "settings_for",
+    "vowel_peaks",
+]
 
 
 def _track_hash(track: BlendshapeTrack) -> str:
@@ -253,13 +260,7 @@ def build_clips(
                 "spec_sha256": spec,
                 "method": cond.method,
                 "params": cond.params,
-                "track_source": (
-                    "phonemes of the transcript aligned to the recording"
-                    if job.stimulus.transcript
-                    else "silence"
-                    if job.stimulus.silence_s is not None
-                    else "audio analysis"
-                ),
+                "track_source": track_source_text(job.stimulus),
                 "avatar": avatar.name,
                 "avatar_kind": avatar.source.get("kind", "unknown"),
                 "stand_in": note,
@@ -320,12 +321,8 @@ def contact_sheets(
     from PIL import Image, ImageDraw
 
     base_dir = protocol_path.parent
-    stim_set, stim = next(
-        ((s.id, st) for s in protocol.stimulus_sets for st in s.stimuli if st.expected_vowels),
-        (None, None),
-    )
     settings = settings or settings_for(protocol)
-    if stim is None:
+    if not any(st.expected_vowels for s in protocol.stimulus_sets for st in s.stimuli):
         return [_peak_sheet(protocol, base_dir=base_dir, out=out, settings=settings)]
     closer = 0.36 / 0.65
     settings = replace(
@@ -336,29 +333,17 @@ def contact_sheets(
         zoom=1 / closer,
     )
     avatar = load_avatar(protocol, base_dir=base_dir)
-    speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
-    analysed, isolated = tracks_for(stim, speech)
-    segments = vowel_segments(analysed, widen=True)
-    if len(segments) != len(stim.expected_vowels or ""):
-        raise StageError(
-            f"{stim_set}/{stim.id}: found {len(segments)} vowel segments, expected "
-            f"{len(stim.expected_vowels or '')}"
-        )
     font = _font(28)
     paths = []
     out.mkdir(parents=True, exist_ok=True)
+    peaks = vowel_peaks(protocol, base_dir=base_dir, avatar=avatar)
     with Renderer(avatar, settings) as renderer:
         for cond in protocol.conditions:
-            job = ClipJob("", stim_set, stim, cond.id)
-            bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir, avatar)
             tiles = []
-            for (a, b), vowel in zip(segments, stim.expected_vowels or "", strict=True):
-                x = analysed.vowels()[a:b, VOWELS.index(vowel)]
-                centre = analysed.times[a + int(np.argmax(x))]  # the vowel's peak
-                w = weights_at(bs, avatar, t=float(centre))
-                img = Image.fromarray(renderer.frame(w)).crop((80, 150, 560, 630))
+            for peak in (p for p in peaks if p.condition == cond.id):
+                img = Image.fromarray(renderer.frame(peak.weights)).crop((80, 150, 560, 630))
                 ImageDraw.Draw(img).text(
-                    (16, 10), f"{vowel}  t={centre:.2f}s", fill=(255, 255, 255), font=font
+                    (16, 10), f"{peak.vowel}  t={peak.t:.2f}s", fill=(255, 255, 255), font=font
                 )
                 tiles.append(img)
             sheet = Image.new(
@@ -377,6 +362,50 @@ def contact_sheets(
             sheet.save(path)
             paths.append(path)
     return paths
+
+
+@dataclass(frozen=True)
+class VowelPeak:
+    """One condition's face at one vowel's peak in the protocol's vowel stimulus."""
+
+    condition: str
+    vowel: str
+    t: float  # s from the speech's start (the clip adds rendering.pad_s before it)
+    weights: np.ndarray  # (n_targets,) the avatar's target weights at t
+    window: np.ndarray  # (k, n_targets) weights every 1/30 s within ±0.1 s of t
+
+
+def vowel_peaks(protocol: Protocol, *, base_dir: Path, avatar: Avatar) -> list[VowelPeak]:
+    """Every condition's target weights at each vowel's peak of the first stimulus with
+    ``expected_vowels`` (for contact sheets and articulation checks). Raises StageError when
+    the protocol has no such stimulus or its vowels are not found in the track."""
+    stim_set, stim = next(
+        ((s.id, st) for s in protocol.stimulus_sets for st in s.stimuli if st.expected_vowels),
+        (None, None),
+    )
+    if stim is None or stim_set is None:
+        raise StageError("no stimulus gives expected_vowels: no vowel peaks to show")
+    speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
+    analysed, isolated = tracks_for(stim, speech)
+    segments = vowel_segments(analysed, widen=True)
+    vowels = stim.expected_vowels or ""
+    if len(segments) != len(vowels):
+        raise StageError(
+            f"{stim_set}/{stim.id}: found {len(segments)} vowel segments, expected {len(vowels)}"
+        )
+    offsets = np.arange(-3, 4) / 30.0
+    peaks = []
+    for cond in protocol.conditions:
+        job = ClipJob("", stim_set, stim, cond.id)
+        bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir, avatar)
+        for (a, b), vowel in zip(segments, vowels, strict=True):
+            x = analysed.vowels()[a:b, VOWELS.index(vowel)]
+            centre = float(analysed.times[a + int(np.argmax(x))])
+            window = np.stack([weights_at(bs, avatar, t=centre + dt) for dt in offsets])
+            peaks.append(
+                VowelPeak(cond.id, vowel, centre, weights_at(bs, avatar, t=centre), window)
+            )
+    return peaks
 
 
 def _peak_sheet(protocol: Protocol, *, base_dir: Path, out: Path, settings: RenderSettings) -> Path:

@@ -16,7 +16,7 @@ from facelab.stimuli.speech.track import VisemeTrack, from_phonemes
 from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowels import isolate_vowels
 
-__all__ = ["find_stimulus", "speech_for", "tracks_for"]
+__all__ = ["audio_only_note", "find_stimulus", "speech_for", "track_source_text", "tracks_for"]
 
 
 def find_stimulus(protocol: Protocol, ref: str) -> tuple[str, Stimulus]:
@@ -68,10 +68,43 @@ def speech_for(stimulus: Stimulus, *, base_dir: Path, sample_rate: int) -> Speec
     )
 
 
+def track_source_text(stimulus: Stimulus) -> str:
+    """What made a stimulus' track, in words (each clip's JSON ``track_source``)."""
+    source = stimulus.track_source
+    if source == "words":
+        return (
+            "words: the synthesiser's phoneme timing of the text"
+            if stimulus.text is not None
+            else "words: phonemes of the transcript aligned to the recording"
+        )
+    if source == "audio":
+        return "audio analysis" + (" (track_from: audio)" if stimulus.track_from else "")
+    return "silence"
+
+
+def audio_only_note(protocol: Protocol) -> str | None:
+    """One line naming the recordings analysed audio-only (no transcript), or None."""
+    found = [
+        f"{s.id} ({s.audio})"
+        for ss in protocol.stimulus_sets
+        for s in ss.stimuli
+        if s.audio is not None and s.transcript is None
+    ]
+    if not found:
+        return None
+    return (
+        f"note: {len(found)} recording(s) without a transcript get their tracks from "
+        f"audio-only analysis: {', '.join(found)} (give each a 'transcript' to drive the "
+        "mouth from the aligned words)"
+    )
+
+
 def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeTrack | None]:
-    """(analysed track with its latency removed, vowel-isolated track or None); a recording
-    with a transcript gets the track of its aligned phonemes instead (no latency)."""
-    if stimulus.transcript is not None and speech.phones:
+    """(the stimulus' viseme track, vowel-isolated track or None). With the words
+    (``Stimulus.track_source``), the track follows the phonemes - the synthesiser's timing
+    for TTS, the transcript aligned to a recording - with no latency; else it is the
+    audio-only analysis with its latency removed."""
+    if stimulus.track_source == "words" and speech.phones:
         track = from_phonemes(speech.phones, duration_s=speech.duration_s)
     else:
         track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
