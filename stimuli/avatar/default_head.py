@@ -441,9 +441,9 @@ def _mouth_parts(surface: np.ndarray, info: dict) -> list[_Part]:
         return v, faces, TEETH * shade[:, None]
 
     up_v, up_f, up_c = arch(MOUTH_Y - 0.0022, 0.0095, 0.0080)  # shows 2 mm below the upper lip
-    lo_v, lo_f, lo_c = arch(MOUTH_Y - 0.0058, 0.0060, 0.0135)
+    lo_v, lo_f, lo_c = arch(MOUTH_Y - 0.0078, 0.0060, 0.0135)
     tongue_v, tongue_f = _sphere(
-        np.array([0.0, MOUTH_Y - 0.008, lip_z - 0.034]), np.array([0.016, 0.005, 0.016]), 10, 18
+        np.array([0.0, MOUTH_Y - 0.011, lip_z - 0.034]), np.array([0.016, 0.005, 0.016]), 10, 18
     )
     return [
         bag,
@@ -687,9 +687,12 @@ def _build_targets(
     # lower face (jaw) weight: below the mouth line, fading up to the cheeks and back to the ears
     # the jaw's upper boundary is the mouth line near the lips and rises towards the cheeks
     boundary = MOUTH_Y + 0.012 * _smoothstep(0.024, 0.050, np.abs(x))
-    below = _smoothstep(boundary + 0.0005, boundary - 0.008, y)
+    # the lower lip and chin sit on the mandible: below the lips' middle the jaw's weight is
+    # full within 1.5 mm of the mouth line; towards the cheeks the skin takes 8 mm to follow
+    ramp = 0.0015 + 0.0065 * _smoothstep(0.012, 0.030, np.abs(x))
+    below = _smoothstep(boundary + 0.0005, boundary - ramp, y)
     # soft lips: near the mouth the opening is lens-shaped, the corners stay put
-    lens = np.sqrt(np.clip(1 - (x / MOUTH_HALF_W) ** 2, 0, 1))
+    lens = np.clip(1 - (x / MOUTH_HALF_W) ** 2, 0, 1) ** 1.5
     near_mouth = np.exp(-0.5 * ((y - MOUTH_Y) / 0.010) ** 2) * np.exp(-0.5 * (x / 0.035) ** 8)
     jaw_w = below * _smoothstep(-0.055, 0.0, z) * skin
     jaw_w = jaw_w * (1 - near_mouth * (1 - (0.25 + 0.75 * lens)))
@@ -752,11 +755,11 @@ def _build_targets(
         )
 
     # jaw
-    ang = np.radians(-26.0)  # chin down and back
+    ang = np.radians(-18.0)  # chin down and back
     rot = np.array([[1, 0, 0], [0, np.cos(ang), np.sin(ang)], [0, -np.sin(ang), np.cos(ang)]])
     swing = (v - HINGE) @ rot.T + HINGE - v
     # an opening jaw draws the mouth corners in (the lips stretch vertically)
-    t["jawOpen"] = swing * jaw_w[:, None] + field(-0.35 * x, 0, 0, corner_l + corner_r)
+    t["jawOpen"] = swing * jaw_w[:, None] + field(-0.30 * x, 0, 0, corner_l + corner_r)
     t["jawForward"] = field(0, 0, 0.006, jaw_w)
     t["jawLeft"] = field(0.006, 0, 0, jaw_w)
     t["jawRight"] = field(-0.006, 0, 0, jaw_w)
@@ -783,12 +786,12 @@ def _build_targets(
     t["mouthRight"] = field(-0.007, 0, 0, lips)
     for side, cw, sw in (("Left", corner_l, side_l), ("Right", corner_r, side_r)):
         sgn = 1.0 if side == "Left" else -1.0
-        t[f"mouthSmile{side}"] = field(sgn * 0.006, 0.0075, -0.003, cw) + field(
+        t[f"mouthSmile{side}"] = field(sgn * 0.008, 0.0075, -0.003, cw) + field(
             0, 0.0025, 0.001, _cheek(x, y, sgn) * front
         )
         t[f"mouthFrown{side}"] = field(sgn * 0.001, -0.0065, 0, cw)
         t[f"mouthDimple{side}"] = field(sgn * 0.002, 0.0005, -0.005, cw)
-        t[f"mouthStretch{side}"] = field(sgn * 0.0150, -0.0025, -0.002, cw)
+        t[f"mouthStretch{side}"] = field(sgn * 0.0190, -0.0025, -0.001, cw)
         t[f"mouthPress{side}"] = field(0, 0.0022, -0.0005, lower_lips * sw * lip_body) + field(
             0, -0.0012, -0.0005, upper_lips * sw * lip_body
         )

@@ -52,12 +52,16 @@ VISEME_MIXES: dict[str, dict[str, float]] = {
     "viseme_nn": {"jawOpen": 0.15, "mouthStretchLeft": 0.1, "mouthStretchRight": 0.1},
     "viseme_RR": {"mouthPucker": 0.3, "mouthFunnel": 0.2, "jawOpen": 0.15},
     "viseme_aa": {"jawOpen": 0.6, "mouthLowerDownLeft": 0.3, "mouthLowerDownRight": 0.3},
-    "viseme_E": {
+    "viseme_E": {  # mid-open and spread, the lower lip down off the teeth (as Z's e)
         "jawOpen": 0.3,
         "mouthStretchLeft": 0.4,
         "mouthStretchRight": 0.4,
         "mouthSmileLeft": 0.15,
         "mouthSmileRight": 0.15,
+        "mouthLowerDownLeft": 0.2,
+        "mouthLowerDownRight": 0.2,
+        "mouthUpperUpLeft": 0.1,
+        "mouthUpperUpRight": 0.1,
     },
     "viseme_ih": {  # spread, the lips parted over the teeth
         "jawOpen": 0.15,
@@ -71,7 +75,7 @@ VISEME_MIXES: dict[str, dict[str, float]] = {
         "mouthUpperUpRight": 0.1,
     },
     "viseme_oh": {"jawOpen": 0.35, "mouthFunnel": 0.6, "mouthPucker": 0.2},
-    "viseme_ou": {"jawOpen": 0.1, "mouthPucker": 0.7, "mouthFunnel": 0.3},
+    "viseme_ou": {"jawOpen": 0.1, "mouthPucker": 0.55, "mouthFunnel": 0.3},
 }
 
 
