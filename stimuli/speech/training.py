@@ -41,6 +41,7 @@ from facelab.stimuli.speech.analyser import (
 from facelab.stimuli.speech.audio import Phone, Speech
 from facelab.stimuli.speech.espeak import EspeakVoice, espeak_synthesize
 from facelab.stimuli.speech.features import HOP_S
+from facelab.stimuli.speech.natural import VOWEL_CLASS, Syllable, core_frames
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack, from_phonemes, phoneme_viseme
 from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowels import calibrate
@@ -213,6 +214,7 @@ def train(
     temperature: float = 1.5,
     drills: Sequence[str] = VOWEL_DRILLS,
     l2: float = 1e-3,
+    natural: Sequence[Syllable] = (),
 ) -> VisemeModel:
     """Fit the neural viseme classifier on synthesised speech with exact labels.
 
@@ -221,16 +223,50 @@ def train(
     140..230 wpm and pitch 25..80); the isolated-vowel ``drills`` (the material of vowel
     stimuli and calibration recordings, which sentences rarely contain: a vowel standing alone
     and fading out) by every mei variant at a random speed 0.6..1.2 and as many eSpeak
-    voices. Every utterance enters twice: at warp 1 and at a random
-    mel-filter warp log-uniform in ``warp_range`` (vocal-tract-length augmentation). The
-    network (one ReLU layer of ``hidden`` units, softmax) is fitted by scikit-learn's Adam
-    with early stopping on a 10 % validation split; inference is numpy (:class:`VisemeModel`).
+    voices. ``natural`` syllables (Kokoro's training voices, :mod:`.natural`) add their vowel
+    cores. Every utterance enters twice: at warp 1 and at a random mel-filter warp
+    log-uniform in ``warp_range`` (vocal-tract-length augmentation). The network (one ReLU
+    layer of ``hidden`` units, softmax) is fitted by scikit-learn's Adam with early stopping
+    on a 10 % validation split; inference is numpy (:class:`VisemeModel`).
     """
-    from sklearn.neural_network import MLPClassifier
+    x, y, about = synthetic_frames(
+        sentences=sentences,
+        variants=variants,
+        espeak_voices=espeak_voices,
+        rng=rng,
+        per_sentence=per_sentence,
+        espeak_per_sentence=espeak_per_sentence,
+        warp_range=warp_range,
+        drills=drills,
+    )
+    if natural:
+        xn, yn = natural_frames(natural, rng=rng, warp_range=warp_range)
+        x, y = np.vstack([x, xn]), np.concatenate([y, yn])
+        voices = sorted({s.voice for s in natural})
+        about += f"; {len(natural)} Kokoro syllables ({', '.join(voices)}), vowel cores"
+    return fit_model(x, y, rng=rng, hidden=hidden, temperature=temperature, l2=l2, about=about)
 
+
+def _warps(rng: np.random.Generator, warp_range: tuple[float, float]) -> tuple[float, float]:
+    log_lo, log_hi = np.log(warp_range)
+    return 1.0, float(np.exp(rng.uniform(log_lo, log_hi)))
+
+
+def synthetic_frames(
+    *,
+    sentences: Iterable[str],
+    variants: Sequence[Variant],
+    espeak_voices: Sequence[EspeakVoice] = (),
+    rng: np.random.Generator,
+    per_sentence: int = 4,
+    espeak_per_sentence: int = 6,
+    warp_range: tuple[float, float] = (0.8, 1.25),
+    drills: Sequence[str] = VOWEL_DRILLS,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """(features (N, D), class labels (N,), description): the labelled frames of OpenJTalk
+    and eSpeak NG speech that :func:`train` fits (see there)."""
     xs, ys = [], []
     texts = [(text, False) for text in sentences] + [(text, True) for text in drills]
-    log_lo, log_hi = np.log(warp_range)
     for text, drill in texts:
         if drill:  # every mei variant says the drills, at a random speed 0.6..1.2
             voices: list[Voice] = [
@@ -249,13 +285,54 @@ def train(
                 )
         for voice in voices:
             speech = speak(text, voice)
-            for warp in (1.0, float(np.exp(rng.uniform(log_lo, log_hi)))):
+            for warp in _warps(rng, warp_range):
                 times, x = features(speech.samples, sample_rate=speech.sample_rate, warp=warp)
                 labels = frame_labels(speech.phones, times)
                 keep = (labels != "") & (x[:, 0] > -50.0)
                 xs.append(x[keep, 1:])
                 ys.append(labels[keep])
-    x_all, y_all = np.vstack(xs), np.concatenate(ys).astype(str)
+    about = (
+        f"{len(texts) - len(drills)} sentences x ({per_sentence} of {len(variants)} mei "
+        f"variants + {espeak_per_sentence if espeak_voices else 0} of {len(espeak_voices)} "
+        f"eSpeak NG voices) and {len(drills)} vowel drills x (every mei variant + "
+        f"{espeak_per_sentence if espeak_voices else 0} eSpeak voices), each at warp 1 and "
+        f"one random warp in {warp_range[0]}..{warp_range[1]}"
+    )
+    return np.vstack(xs), np.concatenate(ys).astype(str), about
+
+
+def natural_frames(
+    syllables: Sequence[Syllable],
+    *,
+    rng: np.random.Generator,
+    warp_range: tuple[float, float] = (0.8, 1.25),
+) -> tuple[np.ndarray, np.ndarray]:
+    """(features (N, D), labels (N,)) of the vowel cores of natural syllables, each at warp 1
+    and one random warp."""
+    xs, ys = [], []
+    for syl in syllables:
+        for warp in _warps(rng, warp_range):
+            times, x = features(syl.samples, sample_rate=syl.sample_rate, warp=warp)
+            idx = core_frames(times, syl)
+            idx = idx[x[idx, 0] > -50.0]
+            xs.append(x[idx, 1:])
+            ys.append(np.full(len(idx), VOWEL_CLASS[syl.vowel], dtype=object))
+    return np.vstack(xs), np.concatenate(ys).astype(str)
+
+
+def fit_model(
+    x_all: np.ndarray,
+    y_all: np.ndarray,
+    *,
+    rng: np.random.Generator,
+    hidden: int = 128,
+    temperature: float = 1.5,
+    l2: float = 1e-3,
+    about: str = "",
+) -> VisemeModel:
+    """The network fitted to labelled frames (see :func:`train`)."""
+    from sklearn.neural_network import MLPClassifier
+
     classes = tuple(c for c in SPEECH_CLASSES if np.any(y_all == c))
     mean, sd = x_all.mean(axis=0), x_all.std(axis=0) + 1e-9
     net = MLPClassifier(
@@ -279,11 +356,7 @@ def train(
         class_means=np.stack([x_all[y_all == c].mean(axis=0) for c in classes]),
         temperature=temperature,
         info={
-            "trained_on": f"{len(texts) - len(drills)} sentences x ({per_sentence} of "
-            f"{len(variants)} mei variants + {espeak_per_sentence if espeak_voices else 0} "
-            f"of {len(espeak_voices)} eSpeak NG voices) and {len(drills)} vowel drills x "
-            f"(every mei variant + {espeak_per_sentence if espeak_voices else 0} eSpeak "
-            f"voices), each at warp 1 and one random warp in {warp_range[0]}..{warp_range[1]}",
+            "trained_on": about,
             "frames": len(x_all),
             "validation_accuracy": round(float(net.best_validation_score_), 4),
             "class_frames": dict(zip(classes, counts.astype(int).tolist(), strict=True)),
@@ -618,6 +691,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="do not rebuild the shipped model; train on one synthesizer, test on the other "
         "(JSON on stdout)",
     )
+    parser.add_argument(
+        "--natural",
+        action="store_true",
+        help="add Kokoro's training voices (jf_alpha, jf_gongitsune, jf_nezumi; needs "
+        "facelab[training]) as syllables with their vowel cores; the held-out voices never "
+        "enter",
+    )
+    parser.add_argument("--out", type=Path, default=MODEL_PATH, help="model file to write")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(20261122)
     if args.cross_synthesizer:
@@ -625,13 +706,26 @@ def main(argv: Sequence[str] | None = None) -> None:
         return
     train_sentences, _ = corpus()
     t0 = time.perf_counter()
+    natural: list[Syllable] = []
+    if args.natural:
+        from facelab.stimuli.speech.natural import NATURAL_TRAIN, TRAIN_SYLLABLES, natural_syllables
+
+        natural = list(
+            natural_syllables(
+                NATURAL_TRAIN, syllables=TRAIN_SYLLABLES, speeds=(0.75, 0.9, 1.05, 1.25)
+            )
+        )
     model = train(
-        sentences=train_sentences, variants=TRAIN_VARIANTS, espeak_voices=ESPEAK_TRAIN, rng=rng
+        sentences=train_sentences,
+        variants=TRAIN_VARIANTS,
+        espeak_voices=ESPEAK_TRAIN,
+        rng=rng,
+        natural=natural,
     )
-    model.save(MODEL_PATH)
+    model.save(args.out)
     print(
         f"trained on {model.info['frames']} frames in {time.perf_counter() - t0:.1f} s; "
-        f"classes {', '.join(model.classes)} -> {MODEL_PATH}"
+        f"classes {', '.join(model.classes)} -> {args.out}"
     )
 
 
