@@ -22,22 +22,31 @@ COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 512
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 
 
-def read_glb(path: Path) -> tuple[dict[str, Any], bytes]:
+def glb_chunks(path: Path) -> tuple[dict[str, Any], bytes]:
+    """(JSON chunk, every byte after it, unparsed) of a .glb/.vrm file."""
     raw = path.read_bytes()
     n = struct.unpack_from("<I", raw, 12)[0]
-    doc = json.loads(raw[20 : 20 + n])
-    rest = raw[20 + n :]
+    return json.loads(raw[20 : 20 + n]), raw[20 + n :]
+
+
+def write_glb_chunks(path: Path, doc: dict[str, Any], rest: bytes) -> Path:
+    """A .glb of ``doc`` (NaN allowed, for damaged files) followed by ``rest`` as given."""
+    text = json.dumps(doc, allow_nan=True).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + rest
+    path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
+    return path
+
+
+def read_glb(path: Path) -> tuple[dict[str, Any], bytes]:
+    """(JSON chunk, BIN chunk payload)."""
+    doc, rest = glb_chunks(path)
     return doc, rest[8 : 8 + struct.unpack_from("<I", rest, 0)[0]] if rest else b""
 
 
 def write_glb(path: Path, doc: dict[str, Any], blob: bytes) -> Path:
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
     blob += b"\0" * (-len(blob) % 4)
-    body = struct.pack("<II", len(text), 0x4E4F534A) + text
-    body += struct.pack("<II", len(blob), 0x004E4942) + blob
-    path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
-    return path
+    return write_glb_chunks(path, doc, struct.pack("<II", len(blob), 0x004E4942) + blob)
 
 
 def _array(doc: dict[str, Any], blob: bytes, index: int) -> np.ndarray:

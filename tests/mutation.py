@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import random
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 
@@ -33,3 +34,23 @@ def mutated(
         else:
             parent[where[-1]] = rng.choice(values)
     return doc
+
+
+def load_or_refuse(path: Path, outcomes: dict[str, int], *, what: str = "") -> None:
+    """Load a (damaged) avatar file: it is refused with AvatarError, or it loads into a sound
+    avatar (finite vertices and targets, faces within the vertices); count which in
+    ``outcomes`` ("loaded", "refused"). Any other exception fails the calling test."""
+    import numpy as np
+
+    from facelab.errors import AvatarError
+    from facelab.stimuli.avatar import load
+
+    try:
+        avatar = load(path)
+    except AvatarError:
+        outcomes["refused"] += 1
+        return
+    outcomes["loaded"] += 1
+    assert np.isfinite(avatar.neutral).all(), what
+    assert avatar.faces.max() < len(avatar.neutral), what
+    assert all(np.isfinite(t).all() for t in avatar.targets.values()), what

@@ -159,7 +159,7 @@ def test_damaged_compressed_files_load_or_are_refused(
     words - no other exception, no crash of a decoder."""
     import random
 
-    from tests.mutation import mutated
+    from tests.mutation import load_or_refuse, mutated
 
     rng = random.Random(20261125)
     files = {
@@ -178,12 +178,5 @@ def test_damaged_compressed_files_load_or_are_refused(
             path = write_glb(tmp_path / f"m{i}.glb", doc, bytes(data))
         else:
             path = write_glb(tmp_path / f"m{i}.glb", mutated(doc, rng=rng, values=values), blob)
-        try:
-            avatar = load(path)
-        except AvatarError:
-            outcomes["refused"] += 1
-            continue
-        outcomes["loaded"] += 1
-        assert np.isfinite(avatar.neutral).all()
-        assert avatar.faces.max() < len(avatar.neutral)
+        load_or_refuse(path, outcomes)
     assert min(outcomes.values()) > 20, outcomes
