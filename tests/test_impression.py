@@ -537,3 +537,48 @@ def test_face_captures_reduce_to_one_sample_row_per_expression(tmp_path: Path) -
         )
         == 2
     )
+
+
+def test_a_step_gives_delta_a_visible_meaning(samples, tmp_path: Path) -> None:
+    """--step: q = 1 moves the channel that moves most by exactly the step; the clip's facts
+    report the realised change; levels closer than VISIBLE_CHANGE are named by validate."""
+    from facelab.stimuli.impression.model import VISIBLE_CHANGE
+
+    sd = fit_impression(samples, label="friendly", expressions=["open_smile"])
+    step = fit_impression(samples, label="friendly", expressions=["open_smile"], step=0.25)
+    assert np.allclose(sd.model("open_smile").direction, step.model("open_smile").direction)
+    zero = np.zeros(52)
+    change, where = step.level_change("open_smile", 1.0, neutral=zero)
+    assert change == pytest.approx(0.25, abs=1e-9) and where.startswith("cheekSquint")
+    half, _ = step.level_change("open_smile", 1.0, q_from=0.5, neutral=zero)
+    assert half == pytest.approx(0.125, abs=1e-9)
+    assert sd.level_change("open_smile", 1.0, neutral=zero)[0] < VISIBLE_CHANGE["arkit"]
+    _, info = step.frames("open_smile", 1.0, np.ones(3), neutral=zero)
+    assert (
+        info["change_from_q0"] == pytest.approx(0.25) and info["change_unit"] == "ARKit coefficient"
+    )
+    back = ImpressionModel.from_json(json.loads(json.dumps(step.to_json())))
+    assert (
+        back.step == 0.25 and "moves the largest channel by 0.25" in step.to_json()["delta_units"]
+    )
+
+
+def test_validate_names_impression_levels_too_close_to_see(
+    samples, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    shipped = (ROOT / "protocols" / "horii_impression.yaml").read_text(encoding="utf-8")
+    (tmp_path / "p.yaml").write_text(shipped, encoding="utf-8")
+    smiles = ["open_smile", "closed_smile"]
+    for name, model in (
+        ("sd", fit_impression(samples, label="friendly", expressions=smiles)),
+        ("step", fit_impression(samples, label="friendly", expressions=smiles, step=0.25)),
+    ):
+        (tmp_path / "horii_friendly_model.json").write_text(json.dumps(model.to_json()))
+        assert main(["validate", str(tmp_path / "p.yaml")]) == 0
+        warnings = [ln for ln in capsys.readouterr().out.splitlines() if "warning:" in ln]
+        if name == "sd":  # one SD moves the face by ~0.08 at q = 1: each half step hidden
+            assert len(warnings) == 4 and all(
+                "below the 0.1 taken as visible" in w for w in warnings
+            )
+        else:
+            assert warnings == []

@@ -53,6 +53,7 @@ def _fit(args: argparse.Namespace) -> int:
         expressions=args.expression or None,
         orthogonal_to_speech=args.orthogonal_to_speech,
         svm_c=args.svm_c,
+        step=args.step,
     )
     out.write_text(json.dumps(model.to_json(), indent=1) + "\n", encoding="utf-8")
     print(f"impression model '{args.label}' ({args.method}, {model.k_rule}) -> {out}")
@@ -193,6 +194,10 @@ def register(add: AddCommand) -> None:
                    help="keep the direction clear of the speech methods' mouth shapes")  # fmt: skip
     v.add_argument("--expression", action="append", metavar="NAME",
                    help="expressions to model (repeat; default all)")  # fmt: skip
+    v.add_argument("--step", type=real(above=0), metavar="CHANGE",
+                   help="choose delta so that q = 1 moves the channel that moves most by CHANGE "
+                   "(ARKit units; metres for vertices; e.g. 0.25) instead of one SD of the "
+                   "training projections")  # fmt: skip
     v.add_argument("--out", required=True, metavar="MODEL.json")
     force_option(v)
 

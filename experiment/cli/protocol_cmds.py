@@ -17,9 +17,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
     try:
         from facelab.stimuli.render.inputs import input_problems
-        from facelab.stimuli.render.prepare import audio_only_note
+        from facelab.stimuli.render.prepare import input_notes
     except ImportError:  # the core alone: the files the protocol names are not read
-        input_problems = audio_only_note = None
+        input_problems = input_notes = None
         print("note: files named by the protocols are not checked (needs facelab[stimuli])")
     for path in args.protocols:
         protocol = load_protocol(path)
@@ -27,8 +27,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             issues = input_problems(protocol, base_dir=Path(path).parent)
             if issues:
                 raise refuse(path, issues)
-            note = audio_only_note(protocol)
-            if note:
+            for note in input_notes(protocol, base_dir=Path(path).parent):
                 print(f"{path}: {note}")
         n_trials = count_trials(protocol)
         print(

@@ -43,7 +43,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.build import build_clips, contact_sheets, plan
-    from facelab.stimuli.render.prepare import audio_only_note
+    from facelab.stimuli.render.prepare import input_notes
 
     protocol = load_protocol(args.protocol)
     out = output_dir(
@@ -60,8 +60,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out} "
         f"({cluster.describe()})"
     )
-    note = audio_only_note(protocol)
-    if note:
+    for note in input_notes(protocol, base_dir=Path(args.protocol).parent):
         print(note)
     progress.start(n)
     try:

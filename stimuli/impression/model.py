@@ -51,6 +51,7 @@ from facelab.textfiles import read_text
 __all__ = [
     "DIRECTION_METHODS",
     "EASINGS",
+    "VISIBLE_CHANGE",
     "ExpressionModel",
     "ExpressionSamples",
     "ImpressionModel",
@@ -304,6 +305,13 @@ def read_vertex_samples(index: Path) -> ExpressionSamples:
 # ----------------------------------------------------------------------------- easing
 
 
+#: The smallest change between two levels taken as visible: a tenth of an ARKit coefficient's
+#: range in the channel that moves most (vertex samples: 2 mm). An assumption, not a
+#: perceptual measurement: below it, levels looked alike in rendered frames here (at δ = one SD
+#: the shipped model's q = 0 / 0.5 / 1 differed by 0.13/255 in mean pixel value).
+VISIBLE_CHANGE = {"arkit": 0.10, "vertices": 0.002}
+
+
 def ease(x: np.ndarray | float, *, kind: str = "sigmoid", k: float = 5.0) -> np.ndarray:
     """Easing e(x) on x in [0, 1], e(0) = 0, e(1) = 1 (see the module docstring)."""
     x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
@@ -417,6 +425,7 @@ class ImpressionModel:
     neutral_mean: np.ndarray  # (D,) mean neutral face (ARKit: coefficients; vertices: positions)
     faces: np.ndarray | None = None
     svm_c: float | None = None
+    step: float | None = None  # δ chosen so that q = 1 moves the largest channel by this much
 
     def model(self, expression: str) -> ExpressionModel:
         if expression not in self.expressions:
@@ -425,6 +434,33 @@ class ImpressionModel:
                 f"{', '.join(self.expressions)}"
             )
         return self.expressions[expression]
+
+    def level_change(
+        self,
+        expression: str,
+        q: float,
+        *,
+        q_from: float = 0.0,
+        neutral: np.ndarray | None = None,
+    ) -> tuple[float, str]:
+        """(size, where) of the largest change of the face between levels ``q_from`` and
+        ``q`` (the mean face of the expression on ``neutral``, default the model's mean
+        neutral; ARKit faces clipped to [0, 1]): ARKit coefficient units and the channel's
+        name, or metres and the vertex."""
+        m = self.model(expression)
+        base = self.neutral_mean if neutral is None else neutral
+
+        def face(level: float) -> np.ndarray:
+            full = base + m.edited(level)
+            return np.clip(full, 0.0, 1.0) if self.space == "arkit" else full
+
+        diff = face(q) - face(q_from)
+        if self.space == "arkit":
+            i = int(np.argmax(np.abs(diff)))
+            return float(abs(diff[i])), self.channels[i]
+        moved = np.linalg.norm(diff.reshape(-1, 3), axis=1)
+        i = int(np.argmax(moved))
+        return float(moved[i]), f"vertex {i}"
 
     def frames(
         self, expression: str, q: float, env: np.ndarray, *, neutral: np.ndarray | None = None
@@ -444,11 +480,16 @@ class ImpressionModel:
         _, s_zero = realised(0.0)
         q_real = float((s_real - s_zero) @ m.direction / m.delta) if m.delta else 0.0
         frames = base + env[:, None] * s_real[None, :]
+        change, where = self.level_change(expression, q, neutral=base)
         info = {
             "expression": expression,
             "q_intended": float(q),
             "q_realised": round(q_real, 6),
             "clipped_channels": int(np.sum(np.abs(full - clipped) > 1e-9)),
+            # the realised level in a visible unit: the largest change from q = 0
+            "change_from_q0": round(change, 6),
+            "change_unit": "ARKit coefficient" if self.space == "arkit" else "m",
+            "changed_most": where,
             "decision_value": round(float(m.decision(frames[np.argmax(env)] - base)), 6),
         }
         return frames, info
@@ -471,8 +512,13 @@ class ImpressionModel:
             "orthogonal_to_speech": self.orthogonal_to_speech,
             "data_sha256": self.data_sha256,
             "source": self.source,
-            "delta_units": "one SD of the training projections on the direction "
+            "delta_units": (
+                "one SD of the training projections on the direction "
+                if self.step is None
+                else f"q = 1 moves the largest channel by {self.step:g} "
+            )
             + ("(ARKit coefficient units)" if self.space == "arkit" else "(metres)"),
+            "step": self.step,
             "directions": {e: named(m.direction) for e, m in self.expressions.items()},
             "delta": {e: m.delta for e, m in self.expressions.items()},
             "cv": {e: m.cv for e, m in self.expressions.items()},
@@ -528,7 +574,7 @@ class ImpressionModel:
                 data["k_rule"], bool(data["orthogonal_to_speech"]), data["data_sha256"],
                 data.get("source", ""), models, vec(data["neutral_mean"]),
                 None if data.get("faces") is None else np.asarray(data["faces"], np.int64),
-                data.get("svm_c"),
+                data.get("svm_c"), data.get("step"),
             )  # fmt: skip
             model.check()
             return model
@@ -668,8 +714,13 @@ def fit_impression(
     expressions: Sequence[str] | None = None,
     orthogonal_to_speech: bool = False,
     svm_c: float = 0.1,
+    step: float | None = None,
 ) -> ImpressionModel:
     """Fit the seed's model per expression (see the module docstring).
+
+    ``step``: instead of one SD of the projections, δ is chosen so that q = 1 moves the
+    largest channel of the direction by ``step`` (ARKit coefficient units; metres for vertex
+    samples) - a level with a visible meaning (:data:`VISIBLE_CHANGE`).
 
     ``label`` names a column: two classes for ``svm``/``mean_diff`` (``positive`` names the
     class the direction points to; default ``high`` if present, else the larger value in sort
@@ -733,6 +784,13 @@ def fit_impression(
         delta = float(np.std(proj, ddof=1))
         if not delta > 0:
             raise StageError(f"expression {expr!r}: the samples do not vary along the direction")
+        if step is not None:
+            largest = (
+                np.abs(direction).max()
+                if samples.space == "arkit"
+                else np.linalg.norm(direction.reshape(-1, 3), axis=1).max()
+            )
+            delta = float(step / largest)
         cv = _cross_validate(s, y, persons, method=method, k=len(basis), svm_c=svm_c)
         cv["variance_explained"] = round(float(share.sum()), 4)
         models[expr] = ExpressionModel(
@@ -753,6 +811,7 @@ def fit_impression(
         neutral_mean,
         samples.faces,
         svm_c if method == "svm" else None,
+        step,
     )
 
 

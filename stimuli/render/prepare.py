@@ -3,6 +3,7 @@ inspection (``facelab track``) and the demo."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,15 @@ from facelab.stimuli.speech.track import VisemeTrack, from_phonemes
 from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowels import isolate_vowels
 
-__all__ = ["audio_only_note", "find_stimulus", "speech_for", "track_source_text", "tracks_for"]
+__all__ = [
+    "audio_only_note",
+    "find_stimulus",
+    "impression_level_notes",
+    "input_notes",
+    "speech_for",
+    "track_source_text",
+    "tracks_for",
+]
 
 
 def find_stimulus(protocol: Protocol, ref: str) -> tuple[str, Stimulus]:
@@ -97,6 +106,47 @@ def audio_only_note(protocol: Protocol) -> str | None:
         f"audio-only analysis: {', '.join(found)} (give each a 'transcript' to drive the "
         "mouth from the aligned words)"
     )
+
+
+def impression_level_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
+    """One line per pair of neighbouring impression levels (same model and expression) whose
+    faces differ by less than :data:`VISIBLE_CHANGE` in the channel that moves most. A
+    protocol with forced-choice or identification tasks is asked only that its lowest and
+    highest levels differ visibly: close levels are what a psychometric design wants."""
+    from facelab.methods import ImpressionParams
+    from facelab.stimuli.impression.model import VISIBLE_CHANGE, ImpressionModel
+
+    levels: dict[tuple[str, str], set[float]] = {}
+    for cond in protocol.conditions:
+        if cond.method == "impression" and isinstance(cond.settings, ImpressionParams):
+            key = (cond.settings.model, cond.settings.expression)
+            levels.setdefault(key, set()).add(float(cond.settings.q))
+    notes = []
+    for (model_file, expression), qs in levels.items():
+        model = ImpressionModel.load_cached(base_dir / model_file)
+        limit = VISIBLE_CHANGE[model.space]
+        unit = "" if model.space == "arkit" else " m"
+        ordered = sorted(qs)
+        pairs = itertools.pairwise(ordered) if not protocol.tasks else [(ordered[0], ordered[-1])]
+        for lo, hi in pairs if len(ordered) > 1 else ():
+            change, where = model.level_change(
+                expression, hi, q_from=lo, neutral=np.zeros_like(model.neutral_mean)
+                if model.space == "arkit" else None,
+            )  # fmt: skip
+            if change < limit:
+                notes.append(
+                    f"warning: {model_file} {expression}: levels q={lo:g} and q={hi:g} differ "
+                    f"by {change:.3f}{unit} at most ({where}), below the {limit:g}{unit} taken "
+                    "as visible; raise the levels or refit with 'facelab impression fit --step'"
+                )
+    return notes
+
+
+def input_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
+    """What ``validate`` and ``render`` say about the protocol's inputs besides problems:
+    recordings analysed audio-only, impression levels too close to see."""
+    note = audio_only_note(protocol)
+    return ([note] if note else []) + impression_level_notes(protocol, base_dir=base_dir)
 
 
 def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeTrack | None]:
