@@ -34,6 +34,7 @@ from facelab.errors import AnalysisError
 
 __all__ = [
     "PowerResult",
+    "f2_from_one",
     "f2_from_pilot",
     "f2_from_reported_p",
     "implied_effect",
@@ -152,6 +153,44 @@ def f2_from_pilot(
         "f_pilot": (ss_cond / (k - 1)) / ms_err,
         "f2_raw": float(raw),
         "f2_rm": float(max(0.0, raw - (k - 1) / (n * k))),
+    }
+
+
+def f2_from_one(
+    data: pd.DataFrame,
+    *,
+    dv: str = "rating",
+    within: str = "condition",
+) -> dict[str, float]:
+    """RM effect size from a pilot of **one** participant: the spread of the condition means
+    over the error of a condition mean estimated from that person's repeated ratings of the
+    same condition (ms_within / ratings per condition). One person cannot show the
+    participant x condition interaction, which the RM error also holds, so this f² is an
+    upper bound and the power and n that follow from it are optimistic."""
+    groups = data.groupby(within, observed=True)[dv]
+    means, counts = groups.mean(), groups.count()
+    k = len(means)
+    if k < 2:
+        raise AnalysisError("one participant's pilot needs ratings of 2 or more conditions")
+    if (counts < 2).any():
+        once = ", ".join(str(c) for c in counts[counts < 2].index)
+        raise AnalysisError(
+            f"one participant's pilot needs 2 or more ratings of every condition (once: {once})"
+        )
+    ss_within = float(groups.apply(lambda v: ((v - v.mean()) ** 2).sum()).sum())
+    ms_within = ss_within / float((counts - 1).sum())
+    if not ms_within > 0:
+        raise AnalysisError("the participant gave every condition the same rating each time")
+    ms_err = ms_within / float(counts.mean())
+    spread = float(((means - means.mean()) ** 2).mean())
+    raw = spread / ms_err
+    return {
+        "n_pilot": 1,
+        "k": k,
+        "f_pilot": float(counts.mean()) * spread * k / (k - 1) / ms_within,
+        "f2_raw": float(raw),
+        "f2_rm": float(max(0.0, raw - (k - 1) / k)),
+        "error_from": "one participant's repeated ratings (no interaction: optimistic)",
     }
 
 

@@ -6,10 +6,12 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy import stats as sps
 
 from facelab.analysis import power
+from facelab.errors import AnalysisError
 from facelab.experiment.cli import main
 
 
@@ -274,3 +276,27 @@ def test_simulated_power_does_not_depend_on_the_number_of_processes(tmp_path: Pa
         for jobs in (1, 2)
     )
     assert one.equals(two) and one["power"].between(0, 1).all()
+
+
+def test_one_participant_pilot_powers_with_its_own_repeats_and_says_so(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["simulate", str(kato_path), "--participants", "1", "--sim-seed", "1"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0
+    capsys.readouterr()
+    assert main(["power", str(kato_path), "--pilot", str(tmp_path), "--sims", "100"]) == 0
+    out = capsys.readouterr().out
+    assert "ONE participant" in out and "optimistic" in out and out.count("f2_rm") == 4
+
+
+def test_one_participant_effect_size_is_the_spread_over_the_repeat_error() -> None:
+    data = pd.DataFrame(
+        {"condition": ["a", "a", "b", "b", "c", "c"], "rating": [10, 20, 40, 50, 70, 80]}
+    )
+    est = power.f2_from_one(data)
+    # means 15, 45, 75: spread 600; within-condition variance 50, over 2 ratings: 25
+    assert est["f2_raw"] == pytest.approx(600 / 25)
+    assert est["f2_rm"] == pytest.approx(600 / 25 - 2 / 3)
+    assert est["f_pilot"] == pytest.approx((2 * 1800 / 2) / 50)
+    with pytest.raises(AnalysisError, match="2 or more ratings of every condition"):
+        power.f2_from_one(data.iloc[1:])

@@ -8,7 +8,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from facelab.errors import FacelabError
+from facelab.errors import AnalysisError, FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
     cluster_of,
@@ -186,20 +186,27 @@ def _cmd_power(args: argparse.Namespace) -> int:
         protocol = load_protocol(protocol_file)
         data = load_results(args.pilot, study=protocol.study.id)
         n_pilot = data["participant"].nunique()
-        if n_pilot < 2:
-            raise FacelabError(
-                f"--pilot {args.pilot}: {n_pilot} participant; the repeated-measures effect "
-                "size needs the participant x condition variation of 2 or more people (one "
-                "person's condition differences include their own interaction). Put the "
-                "effects you expect in the protocol's simulation section and run: facelab "
-                f"power {protocol_file} --simulate"
-            )
+        effect = power.f2_from_pilot if n_pilot >= 2 else power.f2_from_one
         for item in protocol.items:
             for sset in protocol.stimulus_sets:
                 sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
                 if not sub.empty:
-                    rows.append({"label": f"{item.id}/{sset.id}", **power.f2_from_pilot(sub)})
-        assumptions = "effect sizes from pilot data (participant means, bias-corrected)"
+                    try:
+                        found = effect(sub)
+                    except AnalysisError as exc:
+                        where = f"--pilot {args.pilot}: {item.id}/{sset.id}"
+                        raise FacelabError(f"{where}: {exc}") from None
+                    rows.append({"label": f"{item.id}/{sset.id}", **found})
+        assumptions = (
+            "effect sizes from pilot data (participant means, bias-corrected)"
+            if n_pilot >= 2
+            else "effect sizes from ONE participant: the error of a condition mean comes from "
+            "their repeated ratings of each condition, without the participant x condition "
+            "interaction that 2 or more people show - f2 is an upper bound, power and n "
+            "optimistic, and one person's f2 varies widely (0 to 8 across five simulated "
+            "one-person pilots of kato2021 whose 8-person f2 is 0.36-0.61); run a second "
+            "pilot participant before planning on these"
+        )
         tasks = ", ".join(t.id for t in protocol.tasks)
         simulate_hint = (
             f"for its forced-choice and identification tasks ({tasks}) put the pilot's effects "
