@@ -435,6 +435,20 @@ class ImpressionModel:
             )
         return self.expressions[expression]
 
+    def _face(self, m: ExpressionModel, level: float, base: np.ndarray) -> np.ndarray:
+        """The mean face of ``m`` at ``level`` on ``base`` (ARKit: clipped to [0, 1])."""
+        full = base + m.edited(level)
+        return np.clip(full, 0.0, 1.0) if self.space == "arkit" else full
+
+    def _largest(self, diff: np.ndarray) -> tuple[float, str]:
+        """(size, where) of the largest entry of a face difference: a channel, or a vertex."""
+        if self.space == "arkit":
+            i = int(np.argmax(np.abs(diff)))
+            return float(abs(diff[i])), self.channels[i]
+        moved = np.linalg.norm(diff.reshape(-1, 3), axis=1)
+        i = int(np.argmax(moved))
+        return float(moved[i]), f"vertex {i}"
+
     def level_change(
         self,
         expression: str,
@@ -449,18 +463,7 @@ class ImpressionModel:
         name, or metres and the vertex."""
         m = self.model(expression)
         base = self.neutral_mean if neutral is None else neutral
-
-        def face(level: float) -> np.ndarray:
-            full = base + m.edited(level)
-            return np.clip(full, 0.0, 1.0) if self.space == "arkit" else full
-
-        diff = face(q) - face(q_from)
-        if self.space == "arkit":
-            i = int(np.argmax(np.abs(diff)))
-            return float(abs(diff[i])), self.channels[i]
-        moved = np.linalg.norm(diff.reshape(-1, 3), axis=1)
-        i = int(np.argmax(moved))
-        return float(moved[i]), f"vertex {i}"
+        return self._largest(self._face(m, q, base) - self._face(m, q_from, base))
 
     def frames(
         self, expression: str, q: float, env: np.ndarray, *, neutral: np.ndarray | None = None
@@ -470,17 +473,12 @@ class ImpressionModel:
         ARKit faces are clipped to [0, 1]."""
         m = self.model(expression)
         base = self.neutral_mean if neutral is None else neutral
-
-        def realised(level: float) -> tuple[np.ndarray, np.ndarray]:
-            full = base + m.edited(level)
-            return full, (np.clip(full, 0.0, 1.0) if self.space == "arkit" else full) - base
-
-        full, s_real = realised(q)
-        clipped = base + s_real
-        _, s_zero = realised(0.0)
+        full = base + m.edited(q)
+        clipped = self._face(m, q, base)
+        s_real, s_zero = clipped - base, self._face(m, 0.0, base) - base
         q_real = float((s_real - s_zero) @ m.direction / m.delta) if m.delta else 0.0
         frames = base + env[:, None] * s_real[None, :]
-        change, where = self.level_change(expression, q, neutral=base)
+        change, where = self._largest(s_real - s_zero)
         info = {
             "expression": expression,
             "q_intended": float(q),

@@ -371,8 +371,12 @@ class VowelPeak:
     condition: str
     vowel: str
     t: float  # s from the speech's start (the clip adds rendering.pad_s before it)
-    weights: np.ndarray  # (n_targets,) the avatar's target weights at t
-    window: np.ndarray  # (k, n_targets) weights every 1/30 s within ±0.1 s of t
+    window: np.ndarray  # (7, n_targets) the avatar's target weights every 1/30 s, t ± 0.1 s
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(n_targets,) the weights at t (the window's middle)."""
+        return self.window[len(self.window) // 2]
 
 
 def vowel_peaks(protocol: Protocol, *, base_dir: Path, avatar: Avatar) -> list[VowelPeak]:
@@ -402,9 +406,7 @@ def vowel_peaks(protocol: Protocol, *, base_dir: Path, avatar: Avatar) -> list[V
             x = analysed.vowels()[a:b, VOWELS.index(vowel)]
             centre = float(analysed.times[a + int(np.argmax(x))])
             window = np.stack([weights_at(bs, avatar, t=centre + dt) for dt in offsets])
-            peaks.append(
-                VowelPeak(cond.id, vowel, centre, weights_at(bs, avatar, t=centre), window)
-            )
+            peaks.append(VowelPeak(cond.id, vowel, centre, window))
     return peaks
 
 

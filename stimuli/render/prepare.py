@@ -127,8 +127,8 @@ def impression_level_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
         limit = VISIBLE_CHANGE[model.space]
         unit = "" if model.space == "arkit" else " m"
         ordered = sorted(qs)
-        pairs = itertools.pairwise(ordered) if not protocol.tasks else [(ordered[0], ordered[-1])]
-        for lo, hi in pairs if len(ordered) > 1 else ():
+        ends = [(ordered[0], ordered[-1])] if len(ordered) > 1 else []
+        for lo, hi in ends if protocol.tasks else itertools.pairwise(ordered):
             change, where = model.level_change(
                 expression, hi, q_from=lo, neutral=np.zeros_like(model.neutral_mean)
                 if model.space == "arkit" else None,
