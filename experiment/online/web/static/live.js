@@ -224,7 +224,9 @@ export class Stage {
     const times = frames.map((f) => f[0]);
     const gaps = times.slice(1).map((t, i) => t - times[i]);
     const med = median(gaps);
-    const offsets = frames.map((f) => 1000 * ((f[1] + 0.5) / fps - f[2]));
+    // a frame drawn after the track's end (the loop's last, late on a loaded machine) holds
+    // the last track frame: it says nothing about sync, so it is not in the offset
+    const offsets = frames.filter((f) => f[2] * fps < n).map((f) => 1000 * ((f[1] + 0.5) / fps - f[2]));
     const poses = frames.map((f) => f[3]).filter((p) => p);
     const face = this.facePosition();
     const rec = {
