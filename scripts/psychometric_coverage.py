@@ -8,6 +8,12 @@ previous default) and the grid posterior with psignifit's default priors
 observers whose 95 % interval holds the true midpoint and slope, and the median estimate.
 
     python scripts/psychometric_coverage.py [PROTOCOL] [--observers 200] [--seed 7] [--boot 200]
+        [--midpoint M] [--slope B] [--lapse L]
+
+``--midpoint/--slope/--lapse`` replace the protocol's observer, to measure coverage at other
+truths: per-participant coverage depends on the truth (a slope steeper than the levels'
+spacing can show is pulled down by the width prior; a shallow one is covered by the prior's
+breadth), so report it at more than one.
 """
 
 from __future__ import annotations
@@ -33,9 +39,19 @@ def main() -> None:
     ap.add_argument("--observers", type=int, default=200)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--boot", type=int, default=200)
+    for name in ("midpoint", "slope", "lapse"):
+        ap.add_argument(f"--{name}", type=float, help=f"true {name} (default: the protocol's)")
     args = ap.parse_args()
     path = protocol_path(args.protocol) if not args.protocol.endswith(".yaml") else args.protocol
     protocol = load_protocol(path)
+    names = ("midpoint", "slope", "lapse")
+    changed = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
+    if changed:
+        sim = protocol.simulation
+        observer = sim.observer.model_copy(update=changed)
+        protocol = protocol.model_copy(
+            update={"simulation": sim.model_copy(update={"observer": observer})}
+        )
     truth = protocol.simulation.observer
     task = protocol.tasks[0]
     master = np.random.default_rng(args.seed)
