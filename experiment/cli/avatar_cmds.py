@@ -43,10 +43,12 @@ def _cmd_avatar(args: argparse.Namespace) -> int:
     if not args.out:
         raise FacelabError("facelab avatar sample: --out FILE is required")
     out = output_file(args.out, option="--out", force=args.force)
+    if args.vroid and not args.kind.startswith("vrm"):
+        raise FacelabError("facelab avatar sample: --vroid goes with --kind vrm0 or vrm1")
     if args.kind == "default":
         save(default_head(), out)
     elif args.kind in KINDS:
-        write_sample(out, kind=args.kind, head_rows=args.head_rows)
+        write_sample(out, kind=args.kind, head_rows=args.head_rows, vroid=args.vroid)
     print(f"wrote {out}")
     return 0
 
@@ -76,5 +78,12 @@ def register(add: AddCommand) -> None:
         "VRM 0.x / 1.0 or generic skinned export",
     )
     v.add_argument("--head-rows", type=whole(lo=8, hi=400), default=40, help="mesh density")
+    v.add_argument(
+        "--vroid",
+        action="store_true",
+        help="with --kind vrm0/vrm1: VRoid Studio's layout (a face of several primitives, "
+        "sparse morph targets, MToon materials, an alpha-masked eyelash card, a texture "
+        "atlas read through KHR_texture_transform)",
+    )
     v.add_argument("--out", required=True, metavar="FILE", help="file to write (.glb, .gltf, .vrm)")
     force_option(v)

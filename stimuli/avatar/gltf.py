@@ -21,8 +21,10 @@ into one avatar in the **rest world frame**:
   drives the head, teeth and tongue meshes together; names are normalised to ARKit camelCase
   / ``viseme_*`` (``_L``/``Left``, any case); a target a primitive lacks is zero there;
 * colours: the material's base colour × COLOR_0; a base-colour texture (PNG/JPEG, embedded,
-  data URI or beside the file) with its TEXCOORD set is kept for the renderer (alpha is
-  ignored: alpha-masked cards such as eyelashes draw opaque);
+  data URI or beside the file) with its TEXCOORD set is kept for the renderer, its alpha as
+  the material says: ignored (``OPAQUE``), a cut-out at ``alphaCutoff`` (``MASK``: VRoid's
+  eyelashes and brows, hair cards) or blended (``BLEND``); a texture used by materials of
+  different alpha modes is kept once per mode;
 * each mesh's vertices are listed in ``avatar.parts`` under the mesh name; VRM files are
   handled by :mod:`facelab.stimuli.avatar.vrm` (presets, humanoid bones, VRM 0.x facing −z).
 
@@ -137,6 +139,12 @@ READ_EXTENSIONS = {
     "KHR_materials_emissive_strength": "emissive strength (not drawn)",
     "KHR_materials_specular": "specular (not drawn)",
     "KHR_materials_ior": "index of refraction (not drawn)",
+    "KHR_materials_clearcoat": "clear coat (not drawn)",
+    "VRM": "VRM 0.x (expressions, humanoid bones; MToon drawn by its lit colour)",
+    "VRMC_vrm": "VRM 1.0 (expressions, humanoid bones, look-at)",
+    "VRMC_materials_mtoon": "MToon materials (drawn by their lit colour and texture)",
+    "VRMC_springBone": "spring bones (left at rest)",
+    "VRMC_node_constraint": "node constraints (left at rest)",
     "KHR_texture_basisu": "KTX2/Basis textures (not decoded: drawn without them)",
 }
 
@@ -510,6 +518,40 @@ def _decode_image(data: bytes, what: str) -> np.ndarray:
         ) from None
 
 
+#: told by ``avatar inspect`` when a file has MToon (VRM toon) materials
+MTOON_NOTE = (
+    "MToon materials drawn with their lit colour and texture (shade colour, rim and outline "
+    "not drawn)"
+)
+
+
+def _alpha_cut(material: Any, factor_alpha: float) -> tuple[str, float]:
+    """How a material's texture alpha is drawn: ``("OPAQUE", 1)`` ignores it, ``("MASK",
+    cutoff)`` keeps texels whose alpha x the factor's alpha reaches the cutoff (glTF's
+    default 0.5), ``("BLEND", factor)`` blends by it."""
+    mode = str(_get(material, "alphaMode") or "OPAQUE").upper()
+    if mode == "MASK":
+        cutoff = _get(material, "alphaCutoff")
+        return "MASK", float(0.5 if cutoff is None else cutoff) / max(float(factor_alpha), 1e-6)
+    if mode == "BLEND":
+        return "BLEND", float(factor_alpha)
+    return "OPAQUE", 1.0
+
+
+def _with_alpha(rgba: np.ndarray, cut: tuple[str, float]) -> np.ndarray:
+    """The texture as the renderer draws it: alpha 255 (opaque), 0/255 (masked: a cut-out
+    such as eyelashes or a brow card) or the blended alpha."""
+    mode, value = cut
+    out = rgba.copy()
+    if mode == "OPAQUE":
+        out[..., 3] = 255
+    elif mode == "MASK":
+        out[..., 3] = np.where(rgba[..., 3] / 255.0 >= value, 255, 0)
+    else:
+        out[..., 3] = np.round(rgba[..., 3] * min(max(value, 0.0), 1.0)).astype(np.uint8)
+    return out
+
+
 class _Graph:
     """Node hierarchy of the default scene: parent and rest world matrix of every node."""
 
@@ -588,7 +630,8 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
     positions, faces, colors, uvs, face_tex, skins_j, skins_w, per_target = ([] for _ in range(8))
     raw_targets: dict[tuple[int, int], list[tuple[int, np.ndarray]]] = {}
     textures: list[np.ndarray] = []
-    texture_of_image: dict[int, int] = {}
+    texture_of_image: dict[tuple[int, tuple[str, float]], int] = {}
+    images: dict[int, np.ndarray] = {}  # decoded once, however many materials use them
     notes: list[str] = []  # what was read only in part (told by avatar inspect)
     landmarks: dict[str, int] = {}
     mesh_names: list[str] = []
@@ -650,9 +693,12 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
             base = [1.0, 1.0, 1.0, 1.0]
             tex_index, tex_coord, transform = -1, 0, None
             if prim.material is not None:
-                pbr = doc.materials[prim.material].pbrMetallicRoughness
+                mat = doc.materials[prim.material]
+                pbr = mat.pbrMetallicRoughness
                 if pbr is not None and pbr.baseColorFactor is not None:
                     base = list(pbr.baseColorFactor)
+                if _get(mat, "extensions") and "VRMC_materials_mtoon" in mat.extensions:
+                    notes.append(MTOON_NOTE)
                 info = _get(pbr, "baseColorTexture") if pbr is not None else None
                 if info is not None and _get(info, "index") is not None:
                     source = _texture_source(doc.textures[_get(info, "index")], notes)
@@ -661,15 +707,16 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                     if transform:
                         tex_coord = transform.get("texCoord", tex_coord)
                     if source is not None:
-                        if source not in texture_of_image:
-                            texture_of_image[source] = len(textures)
-                            textures.append(
-                                _decode_image(
-                                    _image_bytes(doc, buffers, doc.images[source], path),
-                                    f"{path}: image {source}",
-                                )
+                        cut = _alpha_cut(mat, base[3] if len(base) > 3 else 1.0)
+                        if source not in images:
+                            images[source] = _decode_image(
+                                _image_bytes(doc, buffers, doc.images[source], path),
+                                f"{path}: image {source}",
                             )
-                        tex_index = texture_of_image[source]
+                        if (source, cut) not in texture_of_image:
+                            texture_of_image[source, cut] = len(textures)
+                            textures.append(_with_alpha(images[source], cut))
+                        tex_index = texture_of_image[source, cut]
             elif attrs.COLOR_0 is None:
                 base = [0.8, 0.7, 0.65, 1.0]
             col = np.tile(np.array(base[:3], np.float32), (n, 1))
@@ -712,6 +759,12 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
             for key, value in facelab.get("landmarks", {}).items():
                 landmarks[key] = int(value) + offset
             offset += n
+    vrm0 = (doc.extensions or {}).get("VRM")
+    if isinstance(vrm0, dict) and any(
+        isinstance(m, dict) and "MToon" in str(m.get("shader", ""))
+        for m in vrm0.get("materialProperties") or []
+    ):
+        notes.append(MTOON_NOTE)
     if not positions:
         raise AvatarError(f"{path}: no triangle primitives")
     verts = np.vstack(positions)
@@ -747,7 +800,8 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
         parts=parts,
         skeleton=skeleton,
         uv=np.vstack(uvs) if textures else None,
-        textures=tuple(t[:, :, :3].copy() for t in textures),
+        # RGB, or RGBA where the material lets something through (cut-outs, blending)
+        textures=tuple(t if (t[..., 3] < 255).any() else t[..., :3].copy() for t in textures),
         face_texture=face_texture if textures else None,
         source={
             "kind": kind,
@@ -939,8 +993,9 @@ def _gltf_document(avatar: Avatar, *, live: bool = False) -> tuple[pygltflib.GLT
                         roughnessFactor=0.8,
                     ),
                     doubleSided=True,
+                    alphaMode="BLEND" if avatar.textures[t].shape[2] == 4 else "OPAQUE",
                 )
-                for k in range(len(textured))
+                for k, t in enumerate(textured)
             ),
         ],
         **(
@@ -960,7 +1015,7 @@ def _gltf_document(avatar: Avatar, *, live: bool = False) -> tuple[pygltflib.GLT
 
 
 def _png(image: np.ndarray) -> bytes:
-    """An (H, W, 3) uint8 image as PNG bytes."""
+    """An (H, W, 3|4) uint8 image as PNG bytes."""
     from PIL import Image as PILImage
 
     out = io.BytesIO()

@@ -17,6 +17,15 @@ skin below) and vertex colours on the teeth. Per kind:
 * ``vrm1`` - the same in ``extensions.VRMC_vrm`` (presets aa ih ou ee oh blinkLeft
   blinkRight happy); facing +z.
 
+``vroid=True`` (``vrm0``/``vrm1``) lays the face out as VRoid Studio / UniVRM export it: the
+``Face`` mesh is several primitives with their own vertices (skin, hair cap, eyelash cards),
+its morph targets are stored as sparse accessors (only the vertices a shape moves; an
+all-zero target as an accessor without data), the materials are MToon (VRM 0.x
+``materialProperties`` with shader ``VRM/MToon``; VRM 1.0 ``VRMC_materials_mtoon``) with
+their glTF fallback, the eyelashes an alpha-masked (``MASK``) cut-out, and every texture a
+region of one atlas picked by ``KHR_texture_transform`` (the atlas's fourth region is
+magenta: a reader that ignores the transform shows it).
+
 The geometry is simple (an ellipsoid head with a mouth region): these files test loading,
 names, skinning and framing, not looks. ``head_rows`` sets the mesh density (about
 ``2 * head_rows**2`` head vertices; 160 gives ~51k vertices in all).
@@ -144,11 +153,77 @@ def _png(rgb_top: tuple[int, int, int], rgb_bottom: tuple[int, int, int], size: 
 HAIR_RGB, SKIN_RGB = (70, 40, 25), (225, 180, 150)
 
 
-def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
+#: the VRoid layout's atlas (64 x 64): hair (top left), skin (top right), eyelashes - black
+#: strands on alpha 0 (bottom left), magenta (bottom right, never meant to show); each
+#: material's KHR_texture_transform (offset, scale) picks its region
+ATLAS_REGIONS = {"hair": (0.0, 0.0), "skin": (0.5, 0.0), "lashes": (0.0, 0.5)}
+MAGENTA = (255, 0, 255)
+
+
+def _atlas_png(size: int = 64) -> bytes:
+    from PIL import Image
+
+    half = size // 2
+    rgba = np.zeros((size, size, 4), np.uint8)
+    rgba[:half, :half] = (*HAIR_RGB, 255)
+    rgba[:half, half:] = (*SKIN_RGB, 255)
+    rgba[half:, half:] = (*MAGENTA, 255)
+    strands = (np.arange(half) // 2) % 2 == 0  # two-texel strands, two-texel gaps
+    rgba[half:, :half, :3] = 20
+    rgba[half:, :half, 3] = np.where(strands[None, :], 255, 0)
+    out = io.BytesIO()
+    Image.fromarray(rgba).save(out, format="PNG")
+    return out.getvalue()
+
+
+def _sparse_target(b: _BufferBuilder, delta: np.ndarray) -> int:
+    """A POSITION morph target as VRoid writes it: a sparse accessor holding only the moved
+    vertices, or (nothing moves) an accessor without data, which reads as zeros."""
+    moved = np.nonzero(np.abs(delta).max(axis=1) > 1e-9)[0]
+    bounds = {"min": delta.min(axis=0).tolist(), "max": delta.max(axis=0).tolist()}
+    if len(moved) == 0:
+        b.accessors.append(
+            pygltflib.Accessor(componentType=5126, count=len(delta), type="VEC3", **bounds)
+        )
+        return len(b.accessors) - 1
+    indices = b.add_bytes(moved.astype(np.uint32).tobytes())
+    values = b.add_bytes(delta[moved].astype(np.float32).tobytes())
+    b.accessors.append(
+        pygltflib.Accessor(
+            componentType=5126,
+            count=len(delta),
+            type="VEC3",
+            sparse=pygltflib.Sparse(
+                count=len(moved),
+                indices=pygltflib.AccessorSparseIndices(bufferView=indices, componentType=5125),
+                values=pygltflib.AccessorSparseValues(bufferView=values),
+            ),
+            **bounds,
+        )
+    )
+    return len(b.accessors) - 1
+
+
+def _lash_cards() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two eyelash cards (quads in front of the upper lids): vertices, faces, uv."""
+    verts, faces, uv = [], [], []
+    for sgn in (1.0, -1.0):
+        x0, x1 = sgn * EYE_X - 0.014, sgn * EYE_X + 0.014
+        y0, y1, z = EYE_Y + 0.006, EYE_Y + 0.013, 0.084
+        k = len(verts)
+        verts += [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
+        uv += [(0, 1), (1, 1), (1, 0), (0, 0)]
+        faces += [(k, k + 1, k + 2), (k, k + 2, k + 3)]
+    return np.array(verts), np.array(faces), np.array(uv, float)
+
+
+def write_sample(path: Path | str, *, kind: str, head_rows: int = 40, vroid: bool = False) -> Path:
     """Write a sample avatar of ``kind`` (see the module docstring) to ``path`` (.glb, .gltf or
-    .vrm); return the path."""
+    .vrm); return the path. ``vroid`` (VRM kinds only): VRoid Studio's layout."""
     if kind not in KINDS:
         raise AvatarError(f"unknown sample kind {kind!r}; expected one of {', '.join(KINDS)}")
+    if vroid and not kind.startswith("vrm"):
+        raise AvatarError(f"vroid=True is for the VRM kinds, not {kind!r}")
     path = Path(path)
     worlds = _world_matrices()
     joint_names = list(_JOINTS)
@@ -196,10 +271,9 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
     turn = np.diag([*flip, 1.0])
     worlds = {k: turn @ m @ turn for k, m in worlds.items()} if kind == "vrm0" else worlds
 
-    def add_mesh(name, v, f, joints, weights, targets, *, uv=None, material, color=None):
-        v = v * flip
+    def primitive(v, f, joints, weights, targets, tnames, *, uv, material, color, sparse):
         attrs = pygltflib.Attributes(
-            POSITION=b.add(v.astype(np.float32), "VEC3", 5126, 34962, True),
+            POSITION=b.add((v * flip).astype(np.float32), "VEC3", 5126, 34962, True),
             JOINTS_0=b.add(joints.astype(np.uint16), "VEC4", 5123, 34962, False),
             WEIGHTS_0=b.add(weights.astype(np.float32), "VEC4", 5126, 34962, False),
         )
@@ -207,24 +281,52 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
             attrs.TEXCOORD_0 = b.add(uv.astype(np.float32), "VEC2", 5126, 34962, False)
         if color is not None:
             attrs.COLOR_0 = b.add(color.astype(np.float32), "VEC4", 5126, 34962, False)
-        tnames = [n for n in names if n in targets]
+        deltas = [(targets[n] if n in targets else np.zeros_like(v)) * flip for n in tnames]
         prim_targets = [
-            {"POSITION": b.add((targets[n] * flip).astype(np.float32), "VEC3", 5126, 34962, True)}
-            for n in tnames
-        ]
+            {"POSITION": _sparse_target(b, d) if sparse
+             else b.add(d.astype(np.float32), "VEC3", 5126, 34962, True)}
+            for d in deltas
+        ]  # fmt: skip
+        return pygltflib.Primitive(
+            attributes=attrs,
+            indices=b.add(f.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False),
+            targets=prim_targets or None,
+            material=material,
+        )
+
+    def add_mesh(name, v, f, joints, weights, targets, *, uv=None, material, color=None):
+        tnames = [n for n in names if n in targets]
+        prims = [primitive(v, f, joints, weights, targets, tnames, uv=uv, material=material,
+                           color=color, sparse=False)]  # fmt: skip
+        if vroid and name == "Face":  # skin and hair cap with their own vertices, lash cards
+            prims = []
+            hair = v[f].mean(axis=1)[:, 1] > HEAD_CENTRE[1] + 0.06
+            for faces, mat in ((f[~hair], 0), (f[hair], 4)):
+                used, local = np.unique(faces, return_inverse=True)
+                prims.append(primitive(
+                    v[used], local.reshape(-1, 3), joints[used], weights[used],
+                    {n: t[used] for n, t in targets.items()}, tnames, uv=uv[used],
+                    material=mat, color=None, sparse=True,
+                ))  # fmt: skip
+            lv, lf, luv = _lash_cards()
+            blink = {"Left": lv[:, 0] > 0, "Right": lv[:, 0] < 0}
+            lash_t = {
+                n: np.outer(
+                    blink["Left"] * ("blink_R" not in n) + blink["Right"] * ("blink_L" not in n),
+                    [0.0, -0.008, 0.0],
+                )
+                if n in ("Fcl_EYE_Close", "blink_L", "blink_R") else np.zeros_like(lv)
+                for n in tnames
+            }  # fmt: skip
+            prims.append(primitive(
+                lv, lf, np.tile([joint_names.index("Head"), 0, 0, 0], (len(lv), 1)),
+                np.tile([1.0, 0, 0, 0], (len(lv), 1)), lash_t, tnames, uv=luv, material=5,
+                color=None, sparse=True,
+            ))  # fmt: skip
         meshes.append(
             pygltflib.Mesh(
                 name=name,
-                primitives=[
-                    pygltflib.Primitive(
-                        attributes=attrs,
-                        indices=b.add(
-                            f.astype(np.uint32).reshape(-1), "SCALAR", 5125, 34963, False
-                        ),
-                        targets=prim_targets or None,
-                        material=material,
-                    )
-                ],
+                primitives=prims,
                 weights=[0.0] * len(tnames) if tnames else None,
                 extras={"targetNames": tnames} if tnames else None,
             )
@@ -290,20 +392,37 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
         nodes.append(pygltflib.Node(name="hat", mesh=hat_mesh, matrix=local.T.reshape(-1).tolist()))
         nodes[node_of["Head"]].children.append(len(nodes) - 1)
     # --- texture, materials ------------------------------------------------------------------
-    image_view = b.add_bytes(_png(HAIR_RGB, SKIN_RGB))
+    image_view = b.add_bytes(_atlas_png() if vroid else _png(HAIR_RGB, SKIN_RGB))
 
-    def material(rgba, texture=False):
+    def material(rgba, texture=False, region=None, mask=False):
         pbr = pygltflib.PbrMetallicRoughness(baseColorFactor=rgba, metallicFactor=0.0)
         if texture:
             pbr.baseColorTexture = pygltflib.TextureInfo(index=0)
-        return pygltflib.Material(pbrMetallicRoughness=pbr)
+        out = pygltflib.Material(pbrMetallicRoughness=pbr)
+        if vroid:
+            if region is not None:
+                pbr.baseColorTexture = pygltflib.TextureInfo(index=0, extensions={
+                    "KHR_texture_transform": {"offset": list(ATLAS_REGIONS[region]),
+                                              "scale": [0.5, 0.5]}})  # fmt: skip
+            if mask:
+                out.alphaMode, out.alphaCutoff = "MASK", 0.5
+            if kind == "vrm1":
+                out.extensions = {"VRMC_materials_mtoon": {
+                    "specVersion": "1.0", "shadeColorFactor": [c * 0.7 for c in rgba[:3]],
+                    "shadingToonyFactor": 0.9, "outlineWidthMode": "none"}}  # fmt: skip
+        return out
 
     materials = [
-        material([1, 1, 1, 1], texture=True),
+        material([1, 1, 1, 1], texture=True, region="skin"),
         material([1, 1, 1, 1]),
         material([0.95, 0.95, 0.95, 1]),
         material([0.2, 0.25, 0.4, 1]),
     ]
+    if vroid:
+        materials += [
+            material([1, 1, 1, 1], texture=True, region="hair"),
+            material([1, 1, 1, 1], texture=True, region="lashes", mask=True),
+        ]
     buffer = b.buffer()
     doc = pygltflib.GLTF2(
         asset=pygltflib.Asset(
@@ -343,6 +462,18 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
         doc.extensions = {"VRM": {"specVersion": "0.0", "humanoid": {"humanBones": bones},
                                   "blendShapeMaster": {"blendShapeGroups": groups}}}  # fmt: skip
         doc.extensionsUsed = ["VRM"]
+        if vroid:  # UniVRM 0.x keeps the MToon parameters beside the glTF fallback
+            doc.extensions["VRM"]["materialProperties"] = [
+                {"name": f"material_{i}", "shader": "VRM/MToon",
+                 "renderQueue": 2450 if m.alphaMode == "MASK" else 2000,
+                 "floatProperties": {"_Cutoff": 0.5, "_BlendMode": 1 if m.alphaMode else 0},
+                 "vectorProperties": {"_Color": m.pbrMetallicRoughness.baseColorFactor,
+                                      "_ShadeColor": [0.7, 0.6, 0.6, 1.0]},
+                 "textureProperties": {"_MainTex": 0} if i in (0, 4, 5) else {},
+                 "keywordMap": {"_ALPHATEST_ON": True} if m.alphaMode == "MASK" else {},
+                 "tagMap": {"RenderType": "TransparentCutout" if m.alphaMode else "Opaque"}}
+                for i, m in enumerate(materials)
+            ]  # fmt: skip
     elif kind == "vrm1":
         head_node = mesh_nodes[0]
         teeth_node = mesh_nodes[1]
@@ -365,7 +496,10 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40) -> Path:
         }
         doc.extensions = {"VRMC_vrm": {"specVersion": "1.0", "humanoid": {"humanBones": bones},
                                        "expressions": {"preset": preset}}}  # fmt: skip
-        doc.extensionsUsed = ["VRMC_vrm"]
+        doc.extensionsUsed = ["VRMC_vrm"] + (["VRMC_materials_mtoon"] if vroid else [])
+    if vroid:
+        doc.extensionsUsed.append("KHR_texture_transform")
+        doc.extensionsRequired = ["KHR_texture_transform"]  # the atlas is wrong without it
     if path.suffix.lower() == ".gltf":
         doc.buffers[0].uri = (
             "data:application/octet-stream;base64," + base64.b64encode(buffer).decode()
