@@ -14,6 +14,10 @@ written to ``DIR/result.json``): per condition and vowel, the median inner-lip a
 (landmarks 13/14) and mouth width (corners 61/291), each over the face height (10/152); and the
 checks of Japanese articulation - あ the largest aperture, う the smallest, い the widest mouth,
 emphasized あ at least 1.3x standard あ. It exits 1 when a frame has no face or a check fails.
+It also runs MediaPipe face *detection* (short-range model) on every frame and still - the
+head turned ±25° in yaw included (``still_yaw_m25``/``still_yaw_25``) - and reports its
+confidence: median and minimum over the vowel frames, and per still (issue 37.3 compares
+the default head with a real avatar by it).
 ``scripts/face_tracker_check.sh`` runs both, creating ``.venv-mediapipe`` when missing.
 """
 
@@ -54,7 +58,12 @@ def render(out: Path, *, protocol_ref: str, avatar_file: str | None, size: str) 
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     with Renderer(avatar, settings) as r:
-        for label, w, pose in sheet_poses(avatar):
+        from facelab.stimuli.avatar.rig import HeadPose
+
+        stills = sheet_poses(avatar)
+        if avatar.skeleton is not None and "head" in avatar.skeleton.roles:
+            stills += [("yaw m25", {}, HeadPose(yaw=-25)), ("yaw 25", {}, HeadPose(yaw=25))]
+        for label, w, pose in stills:
             name = "still_" + "_".join(label.strip("/").split()[:2])
             Image.fromarray(r.frame(avatar.weight_vector(w), pose=pose)).save(out / f"{name}.png")
         for peak in peaks:
@@ -100,6 +109,14 @@ def track(folder: Path) -> int:
     mesh = mp.solutions.face_mesh.FaceMesh(
         static_image_mode=True, max_num_faces=1, refine_landmarks=False
     )
+    detector = mp.solutions.face_detection.FaceDetection(
+        model_selection=0, min_detection_confidence=0.1
+    )
+
+    def confidence(path: Path) -> float:
+        """The detector's best score on the picture (0 when it finds no face)."""
+        res = detector.process(np.asarray(Image.open(path).convert("RGB")))
+        return max((float(d.score[0]) for d in res.detections or []), default=0.0)
 
     def measure(path: Path) -> tuple[float, float] | None:
         img = np.asarray(Image.open(path).convert("RGB"))
@@ -135,6 +152,16 @@ def track(folder: Path) -> int:
         }
     table = {c: {v: table[c][v] for v in VOWEL_ORDER if v in table[c]} for c in table}
     checks = _checks(table)
+    scores = [confidence(folder / row["frame"]) for row in frames]
+    detection = {
+        "model": "mediapipe face detection, short range",
+        "vowel_frames_median": round(float(np.median(scores)), 3) if scores else None,
+        "vowel_frames_min": round(float(np.min(scores)), 3) if scores else None,
+        "stills": {
+            p.stem.removeprefix("still_"): round(confidence(p), 3)
+            for p in sorted(folder.glob("still_*"))
+        },
+    }
     result = {
         "tracker": f"mediapipe {mp.__version__} face mesh (static images)",
         **json.loads((folder / "about.json").read_text()),
@@ -144,6 +171,7 @@ def track(folder: Path) -> int:
         "vowel_frames_found": f"{len(frames) - len(missing)}/{len(frames)}",
         "frames_without_a_face": missing,
         "by_condition": table,
+        "detection": detection,
         "checks": checks,
         "passed": not missing and all(checks.values()) and bool(checks),
     }

@@ -3,7 +3,16 @@
 :func:`default_head` builds a skull surface with a real mouth slit (upper and lower lips are
 separate vertices, with inner lip surfaces), a dark mouth interior, upper and lower teeth and
 a tongue, eyeballs behind lid openings, brows, hair, neck and shoulders - and all 52 ARKit
-targets plus the 15 ``viseme_*`` targets as smooth per-vertex displacement fields. Visemes
+targets plus the 15 ``viseme_*`` targets as smooth per-vertex displacement fields.
+
+Proportions follow an adult face in thirds (hairline to brows, brows to the base of the nose,
+nose to chin): a cranium tall and broad enough for a forehead, cheekbones and an angle of the
+jaw that widen only the sides of the face (never the mouth, nose or eyes, whose shapes the
+articulation checks measure), a chin with some breadth; hair with volume, its line receding
+a little at the temples, cut round the ears and fading into the skin rather than ending on
+the grid's staircase; ears standing out far enough to be seen from the front; a neck that
+widens into the trapezius and sloping shoulders; skin tinted (warmer cheeks and nose tip, a
+faint beard shadow along the jaw, shaded eye sockets, fine mottling). Visemes
 are mixes of ARKit shapes (:data:`~facelab.stimuli.avatar.targets.VISEME_MIXES`), an approximation
 of the MPEG-4 viseme shapes that keeps all conditions on one face.
 """
@@ -125,6 +134,19 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     # a narrower jaw and chin, a fuller cranium at the back
     narrow = 1 - 0.17 * _smoothstep(-0.01, -0.11, y) * _smoothstep(-0.02, 0.06, z)
     x = x * narrow
+    # a cranium tall enough for a forehead (the hairline a third of the face above the brows)
+    y = y + 0.016 * _smoothstep(0.045, HEAD_H, y)
+    x = x * (1 + 0.07 * _smoothstep(0.05, 0.11, y))  # a broad crown, not a dome
+    # the sides of the face (never the mouth, nose or eyes): cheekbones and the angle of the jaw
+    lateral = np.sign(x) * _smoothstep(0.040, 0.064, np.abs(x))
+    x = x + lateral * (
+        0.0050 * np.exp(-0.5 * ((y + 0.068) / 0.014) ** 2) * _smoothstep(-0.045, 0.0, z)
+        + 0.0035 * np.exp(-0.5 * ((y + 0.006) / 0.012) ** 2) * _smoothstep(-0.02, 0.04, z)
+    )
+    # a chin with some breadth (below the lower lip's reach)
+    x = x + np.sign(x) * 0.003 * _smoothstep(0.0, 0.025, np.abs(x)) * np.exp(
+        -0.5 * ((y + 0.098) / 0.010) ** 2
+    ) * _smoothstep(0.0, 0.05, z)
     z = z * (1 - 0.12 * _smoothstep(-0.03, -0.11, y) * _smoothstep(0.0, 0.05, -z))
     z = z + _front_surface(x, y, z)
     verts = np.stack([x, y, z], -1).reshape(-1, 3)
@@ -210,6 +232,32 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     # colours: skin, lips, brows, hair
     vx, vy, vz = verts[:, 0], verts[:, 1], verts[:, 2]
     colors = np.tile(SKIN, (len(verts), 1))
+    # skin that is not one flat colour: warmer cheeks and nose tip, a faint shadow of beard
+    # along the jaw and under the chin, a lighter forehead, and fine mottling
+    for sgn in (1, -1):
+        blush = _gauss(vx, vy, sgn * 0.040, -0.022, 0.016, 0.014) * (vz > 0.02)
+        colors = colors * (1 - 0.10 * blush[:, None]) + np.array([0.86, 0.52, 0.48]) * (
+            0.10 * blush[:, None]
+        )
+    tip = _gauss(vx, vy, 0.0, -0.032, 0.008, 0.008) * (vz > 0.05)
+    colors = colors * (1 - 0.08 * tip[:, None]) + np.array([0.86, 0.55, 0.50]) * (
+        0.08 * tip[:, None]
+    )
+    beard = (
+        _smoothstep(-0.066, -0.085, vy) * _smoothstep(0.072, 0.045, np.abs(vx)) * (vz > 0.0)
+    )
+    colors *= 1 - 0.07 * np.clip(beard, 0, 1)[:, None] * np.array([1.0, 0.9, 0.8])
+    colors *= 1 + 0.03 * _smoothstep(0.045, 0.075, vy)[:, None]
+    # where light reaches less: the eye sockets (a lid crease above the eye, beside the nose,
+    # below the lower lid)
+    shade = np.zeros(len(vx))
+    for sgn in (1, -1):
+        shade += 0.16 * _gauss(vx, vy, sgn * (EYE_X - 0.004), EYE_Y + 0.009, 0.011, 0.004)
+        shade += 0.10 * _gauss(vx, vy, sgn * (EYE_X - 0.012), EYE_Y - 0.002, 0.004, 0.008)
+        shade += 0.08 * _gauss(vx, vy, sgn * (EYE_X - 0.002), EYE_Y - 0.011, 0.010, 0.003)
+    colors *= 1 - np.clip(shade, 0, 0.3)[:, None] * (vz > 0.02)[:, None]
+    mottle = np.sin(410 * vx + 37 * vy) * np.sin(380 * vy - 29 * vz) * np.sin(350 * vz + 41 * vx)
+    colors *= 1 + 0.015 * mottle[:, None]
     # the vermilion: an upper lip with a cupid's bow and a fuller lower lip, edged sharply
     across = np.clip(1 - (vx / 0.0225) ** 2, 0, 1)
     top = (
@@ -255,8 +303,20 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
         upper = verts[rim, 1] > EYE_Y + 0.0008
         colors[rim[upper]] = LASH
         colors[rim[~upper]] = colors[rim[~upper]] * 0.75 + LASH * 0.25
-    hairline = 0.056 - 0.04 * _smoothstep(0.02, -0.06, vz) + 0.015 * (vx / HEAD_W) ** 2
-    hair_w = _smoothstep(hairline - 0.003, hairline + 0.006, vy)
+    # the hairline: high over the forehead, receding a little at the temples, down the sides
+    # in front of the ears (sideburns) and low at the nape
+    ax = np.abs(vx)
+    hairline = (
+        0.088
+        - 0.010 * (ax / 0.045) ** 2
+        + 0.005 * np.exp(-0.5 * ((ax - 0.036) / 0.008) ** 2)
+        - 0.075 * _smoothstep(0.050, 0.070, ax) * _smoothstep(0.030, -0.005, vz)
+        - 0.05 * _smoothstep(0.02, -0.06, vz)
+    )
+    hair_w = _smoothstep(hairline - 0.004, hairline + 0.008, vy)
+    # the ears stay free: the hair is cut round them, above and behind
+    ear_zone = np.exp(-0.5 * (((vy + 0.004) / 0.024) ** 4 + ((vz + 0.014) / 0.022) ** 4))
+    hair_w *= 1 - ear_zone * _smoothstep(0.055, 0.068, ax)
     hair_w = np.maximum(hair_w, _smoothstep(0.0, -0.04, vz) * _smoothstep(-0.06, -0.02, vy))
     hair_w *= ~np.isin(np.arange(len(verts)), np.concatenate([upper_inner, lower_inner]))
     paint = _smoothstep(0.0, 0.3, hair_w)  # the scalp is dark wherever the hair shell may end
@@ -458,28 +518,51 @@ def _body() -> list[_Part]:
     rows, cols = 16, 40
     ang = np.linspace(-np.pi, np.pi, cols, endpoint=False)
     for i, yy in enumerate(np.linspace(-0.07, -0.21, rows)):
-        r = 0.047 + 0.008 * (i / rows) ** 2
+        r = 0.051 + 0.014 * (i / rows) ** 2  # widening into the trapezius
         neck_v.append(
             np.stack([r * np.sin(ang), np.full(cols, yy), -0.014 + 0.92 * r * np.cos(ang)], -1)
         )
     neck_v = np.vstack(neck_v)
     neck_f = _grid_faces(rows, cols, wrap=True)[:, ::-1]  # rows go down here: flip the winding
-    torso_v, torso_f = _sphere(np.array([0.0, -0.285, -0.02]), np.array([0.20, 0.12, 0.11]), 16, 40)
+    torso_v, torso_f = _torso()
     return [
         _Part(neck_v, neck_f, np.tile(SKIN * 0.95, (len(neck_v), 1)), "neck"),
         _Part(torso_v, torso_f, np.tile(CLOTH, (len(torso_v), 1)), "torso"),
     ]
 
 
+def _torso() -> tuple[np.ndarray, np.ndarray]:
+    """Shoulders and chest: rounded-box cross sections (superellipses) that grow from the base
+    of the neck along the slope of the trapezius to the shoulders, closed at the top."""
+    rows, cols = 22, 48
+    ang = np.linspace(-np.pi, np.pi, cols, endpoint=False)
+    ys = np.linspace(-0.168, -0.42, rows)
+    rings = []
+    for yy in ys:
+        spread = _smoothstep(-0.168, -0.240, yy)
+        half_w = 0.042 + 0.164 * spread**0.7
+        half_d = 0.040 + 0.064 * _smoothstep(-0.168, -0.26, yy)
+        c, sn = np.cos(ang), np.sin(ang)
+        k = 2.0 + 1.6 * spread  # round at the neck, boxier at the shoulders
+        x = half_w * np.sign(sn) * np.abs(sn) ** (2 / k)
+        z = -0.02 + half_d * np.sign(c) * np.abs(c) ** (2 / k)
+        rings.append(np.stack([x, np.full(cols, yy), z], -1))
+    verts = np.vstack([*rings, [[0.0, -0.168, -0.02]]])
+    faces = _grid_faces(rows, cols, wrap=True)[:, ::-1]  # rows go down: flip the winding
+    top = len(verts) - 1
+    cap = np.stack([np.full(cols, top), np.arange(cols), (np.arange(cols) + 1) % cols], -1)
+    return verts, np.vstack([faces, cap[:, ::-1]])
+
+
 def _ear(side: int) -> _Part:
     """A flattened shell with a hollow (the concha) on its outer face, wider at the top than at
     the lobe, leaning back and flaring away from the head."""
-    v, f = _sphere(np.zeros(3), np.array([0.0055, 0.029, 0.016]), 16, 26)
+    v, f = _sphere(np.zeros(3), np.array([0.0055, 0.031, 0.017]), 16, 26)
     outer = v[:, 0] > 0
     concha = np.exp(-0.5 * (((v[:, 1] + 0.004) / 0.010) ** 2 + ((v[:, 2] + 0.001) / 0.0065) ** 2))
     v[:, 0] -= 0.0075 * concha * outer
     v[:, 2] *= 1 - 0.30 * _smoothstep(0.0, -0.028, v[:, 1])
-    lean, flare = np.radians(-12.0), np.radians(-30.0)
+    lean, flare = np.radians(-12.0), np.radians(-38.0)
     rx = np.array([[1, 0, 0], [0, np.cos(lean), -np.sin(lean)], [0, np.sin(lean), np.cos(lean)]])
     ry = np.array(
         [[np.cos(flare), 0, np.sin(flare)], [0, 1, 0], [-np.sin(flare), 0, np.cos(flare)]]
@@ -489,7 +572,7 @@ def _ear(side: int) -> _Part:
     if side < 0:
         v[:, 0] *= -1
         f = f[:, ::-1]
-    v = v + np.array([side * 0.0720, -0.006, -0.012])
+    v = v + np.array([side * 0.0765, -0.004, -0.014])
     return _Part(v, f, colors, f"ear_{'left' if side > 0 else 'right'}")
 
 
@@ -497,18 +580,34 @@ def _hair(skin: _Part, hair_w: np.ndarray) -> _Part:
     """A shell of hair over the painted scalp: thickest on the crown, thinning to nothing at
     the hairline, with faint strands."""
     v = skin.vertices
-    keep = (hair_w > 0.3)[skin.faces].all(axis=1)
+    keep = (hair_w > 0.3)[skin.faces].any(axis=1)
     faces = skin.faces[keep]
     used = np.unique(faces)
     remap = np.full(len(v), -1)
     remap[used] = np.arange(len(used))
     out = v[used] - np.array([0.0, -0.005, -0.012])
     out /= np.linalg.norm(out, axis=1, keepdims=True)
-    thick = 0.0075 * _smoothstep(0.3, 0.95, hair_w[used])
-    thick *= 1 + 0.6 * _smoothstep(0.02, 0.10, v[used, 1])
+    thick = 0.011 * _smoothstep(0.3, 0.95, hair_w[used])
+    thick *= 1 + 0.5 * _smoothstep(0.02, 0.10, v[used, 1])
+    # smooth the thickness over the shell (the grid is coarse at the sides, where a step in
+    # thickness from one column to the next would stick out of the silhouette as a spike);
+    # the shell's own border stays on the scalp
+    local = remap[faces]
+    edges = np.concatenate([local[:, [0, 1]], local[:, [1, 2]], local[:, [2, 0]]])
+    m = len(used)
+    adj = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(m, m))
+    adj = ((adj + adj.T) > 0).astype(float).tocsr()
+    degree = np.asarray(adj.sum(axis=1)).ravel()
+    border = hair_w[used] < 0.3
+    for _ in range(12):
+        thick = 0.5 * thick + 0.5 * (adj @ thick) / np.maximum(degree, 1)
+        thick[border] = 0.0
     hv = v[used] + out * thick[:, None]
     streak = 1 + 0.12 * np.sin(90 * np.arctan2(v[used, 0], v[used, 2]) + 50 * v[used, 1])
-    return _Part(hv, remap[faces], HAIR * streak[:, None], "hair")
+    # the border fades into the skin beneath, so the hairline is not the grid's staircase
+    cover = _smoothstep(0.3, 0.75, hair_w[used])[:, None]
+    colors = HAIR * streak[:, None] * cover + skin.colors[used] * (1 - cover)
+    return _Part(hv, remap[faces], colors, "hair")
 
 
 @cache
