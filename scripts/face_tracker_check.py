@@ -39,6 +39,7 @@ def render(out: Path, *, protocol_ref: str, avatar_file: str | None, size: str) 
 
     from facelab.protocol import load_protocol
     from facelab.resources import protocol_path
+    from facelab.stimuli.avatar.rig import HeadPose
     from facelab.stimuli.render.build import vowel_peaks
     from facelab.stimuli.render.inspect import sheet_poses
     from facelab.stimuli.render.renderer import Renderer
@@ -58,8 +59,6 @@ def render(out: Path, *, protocol_ref: str, avatar_file: str | None, size: str) 
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     with Renderer(avatar, settings) as r:
-        from facelab.stimuli.avatar.rig import HeadPose
-
         stills = sheet_poses(avatar)
         if avatar.skeleton is not None and "head" in avatar.skeleton.roles:
             stills += [("yaw m25", {}, HeadPose(yaw=-25)), ("yaw 25", {}, HeadPose(yaw=25))]
@@ -113,16 +112,15 @@ def track(folder: Path) -> int:
         model_selection=0, min_detection_confidence=0.1
     )
 
-    def confidence(path: Path) -> float:
-        """The detector's best score on the picture (0 when it finds no face)."""
-        res = detector.process(np.asarray(Image.open(path).convert("RGB")))
-        return max((float(d.score[0]) for d in res.detections or []), default=0.0)
-
-    def measure(path: Path) -> tuple[float, float] | None:
+    def look(path: Path) -> tuple[tuple[float, float] | None, float]:
+        """(aperture, width) from the face mesh (None without a face) and the detector's best
+        score (0 when it finds no face), from one reading of the picture."""
         img = np.asarray(Image.open(path).convert("RGB"))
+        score = max((float(d.score[0]) for d in detector.process(img).detections or []),
+                    default=0.0)  # fmt: skip
         res = mesh.process(img)
         if not res.multi_face_landmarks:
-            return None
+            return None, score
         lm = res.multi_face_landmarks[0].landmark
         aspect = img.shape[0] / img.shape[1]
 
@@ -130,14 +128,16 @@ def track(folder: Path) -> int:
             return float(np.hypot(lm[i].x - lm[j].x, (lm[i].y - lm[j].y) * aspect))
 
         face = dist(10, 152)
-        return dist(13, 14) / face, dist(61, 291) / face
+        return (dist(13, 14) / face, dist(61, 291) / face), score
 
-    stills = {p.stem.removeprefix("still_"): measure(p) for p in sorted(folder.glob("still_*"))}
+    stills = {p.stem.removeprefix("still_"): look(p) for p in sorted(folder.glob("still_*"))}
     frames = list(csv.DictReader((folder / "frames.csv").read_text(encoding="utf-8").splitlines()))
     found: dict[tuple[str, str], list[tuple[float, float]]] = {}
     missing = []
+    scores = []
     for row in frames:
-        m = measure(folder / row["frame"])
+        m, score = look(folder / row["frame"])
+        scores.append(score)
         if m is None:
             missing.append(row["frame"])
         else:
@@ -152,22 +152,18 @@ def track(folder: Path) -> int:
         }
     table = {c: {v: table[c][v] for v in VOWEL_ORDER if v in table[c]} for c in table}
     checks = _checks(table)
-    scores = [confidence(folder / row["frame"]) for row in frames]
     detection = {
         "model": "mediapipe face detection, short range",
         "vowel_frames_median": round(float(np.median(scores)), 3) if scores else None,
         "vowel_frames_min": round(float(np.min(scores)), 3) if scores else None,
-        "stills": {
-            p.stem.removeprefix("still_"): round(confidence(p), 3)
-            for p in sorted(folder.glob("still_*"))
-        },
+        "stills": {name: round(score, 3) for name, (_, score) in stills.items()},
     }
     result = {
         "tracker": f"mediapipe {mp.__version__} face mesh (static images)",
         **json.loads((folder / "about.json").read_text()),
         "measure": "median over the frames within ±0.1 s of each vowel's peak; aperture = "
         "inner lips 13-14, width = corners 61-291, both / face height 10-152",
-        "stills_found": f"{sum(v is not None for v in stills.values())}/{len(stills)}",
+        "stills_found": f"{sum(m is not None for m, _ in stills.values())}/{len(stills)}",
         "vowel_frames_found": f"{len(frames) - len(missing)}/{len(frames)}",
         "frames_without_a_face": missing,
         "by_condition": table,

@@ -39,6 +39,11 @@ def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
     return t * t * (3 - 2 * t)
 
 
+def _tint(colors: np.ndarray, target: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(V, 3) colours moved towards ``target`` ((3,) or (V, 3)) by ``w`` (V,) in [0, 1]."""
+    return colors * (1 - w[:, None]) + target * w[:, None]
+
+
 def _gauss(x: np.ndarray, y: np.ndarray, cx: float, cy: float, sx: float, sy: float) -> np.ndarray:
     return np.exp(-0.5 * (((x - cx) / sx) ** 2 + ((y - cy) / sy) ** 2))
 
@@ -236,13 +241,9 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     # along the jaw and under the chin, a lighter forehead, and fine mottling
     for sgn in (1, -1):
         blush = _gauss(vx, vy, sgn * 0.040, -0.022, 0.016, 0.014) * (vz > 0.02)
-        colors = colors * (1 - 0.10 * blush[:, None]) + np.array([0.86, 0.52, 0.48]) * (
-            0.10 * blush[:, None]
-        )
+        colors = _tint(colors, np.array([0.86, 0.52, 0.48]), 0.10 * blush)
     tip = _gauss(vx, vy, 0.0, -0.032, 0.008, 0.008) * (vz > 0.05)
-    colors = colors * (1 - 0.08 * tip[:, None]) + np.array([0.86, 0.55, 0.50]) * (
-        0.08 * tip[:, None]
-    )
+    colors = _tint(colors, np.array([0.86, 0.55, 0.50]), 0.08 * tip)
     beard = (
         _smoothstep(-0.066, -0.085, vy) * _smoothstep(0.072, 0.045, np.abs(vx)) * (vz > 0.0)
     )
@@ -273,7 +274,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
         * (vz > 0.03)
         * _smoothstep(0.0235, 0.0215, np.abs(vx))
     )
-    colors = colors * (1 - lip_w[:, None]) + LIP * lip_w[:, None]
+    colors = _tint(colors, LIP, lip_w)
     # the commissures: a small shadowed crease where the lips meet (it moves with the corners)
     for sgn in (1, -1):
         crease = np.exp(
@@ -297,7 +298,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
         brow_w = (
             0.9 * _smoothstep(0.2, 0.6, np.exp(-0.5 * (bx**8 + (by * 1.25) ** 2))) * (vz > 0.03)
         )
-        colors = colors * (1 - brow_w[:, None]) + BROW * brow_w[:, None]
+        colors = _tint(colors, BROW, brow_w)
     # lash lines: dark along the upper lid margin, faint along the lower
     for rim in (lid_rim,):
         upper = verts[rim, 1] > EYE_Y + 0.0008
@@ -320,7 +321,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     hair_w = np.maximum(hair_w, _smoothstep(0.0, -0.04, vz) * _smoothstep(-0.06, -0.02, vy))
     hair_w *= ~np.isin(np.arange(len(verts)), np.concatenate([upper_inner, lower_inner]))
     paint = _smoothstep(0.0, 0.3, hair_w)  # the scalp is dark wherever the hair shell may end
-    colors = colors * (1 - paint[:, None]) + HAIR * paint[:, None]
+    colors = _tint(colors, HAIR, paint)
 
     # drop the vertices the eye openings left unused, renumbering everything that refers to them
     used = np.unique(faces)
@@ -343,19 +344,24 @@ def _almond(side: int, angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return side * EYE_X + EYE_HALF_W * c, EYE_Y + 0.0008 * (1 - c**2) + EYE_HALF_H * sn
 
 
-def _smooth_eye_openings(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Move the rim of each eye opening onto the almond contour and relax the skin around it
-    (umbrella smoothing in x, y with the rim and the outer skin held), so the lid margin is a
-    smooth curve rather than the grid's staircase. Returns the vertices and the rim indices."""
+def _edge_graph(n: int, faces: np.ndarray) -> tuple[sparse.csr_matrix, np.ndarray, np.ndarray]:
+    """The mesh's vertex graph: (n, n) adjacency (1 per edge), each vertex's degree, and the
+    vertices on the border (edges of one face only)."""
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     uniq, counts = np.unique(edges, axis=0, return_counts=True)
-    boundary = np.unique(uniq[counts == 1])
-    n = len(verts)
     adj = sparse.coo_matrix(
         (np.ones(2 * len(uniq)), (np.r_[uniq[:, 0], uniq[:, 1]], np.r_[uniq[:, 1], uniq[:, 0]])),
         shape=(n, n),
     ).tocsr()
-    degree = np.asarray(adj.sum(axis=1)).ravel()
+    return adj, np.asarray(adj.sum(axis=1)).ravel(), np.unique(uniq[counts == 1])
+
+
+def _smooth_eye_openings(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Move the rim of each eye opening onto the almond contour and relax the skin around it
+    (umbrella smoothing in x, y with the rim and the outer skin held), so the lid margin is a
+    smooth curve rather than the grid's staircase. Returns the vertices and the rim indices."""
+    n = len(verts)
+    adj, degree, boundary = _edge_graph(n, faces)
     verts = verts.copy()
     rims = []
     for side in (1, -1):
@@ -592,12 +598,7 @@ def _hair(skin: _Part, hair_w: np.ndarray) -> _Part:
     # smooth the thickness over the shell (the grid is coarse at the sides, where a step in
     # thickness from one column to the next would stick out of the silhouette as a spike);
     # the shell's own border stays on the scalp
-    local = remap[faces]
-    edges = np.concatenate([local[:, [0, 1]], local[:, [1, 2]], local[:, [2, 0]]])
-    m = len(used)
-    adj = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(m, m))
-    adj = ((adj + adj.T) > 0).astype(float).tocsr()
-    degree = np.asarray(adj.sum(axis=1)).ravel()
+    adj, degree, _ = _edge_graph(len(used), remap[faces])
     border = hair_w[used] < 0.3
     for _ in range(12):
         thick = 0.5 * thick + 0.5 * (adj @ thick) / np.maximum(degree, 1)
@@ -605,8 +606,8 @@ def _hair(skin: _Part, hair_w: np.ndarray) -> _Part:
     hv = v[used] + out * thick[:, None]
     streak = 1 + 0.12 * np.sin(90 * np.arctan2(v[used, 0], v[used, 2]) + 50 * v[used, 1])
     # the border fades into the skin beneath, so the hairline is not the grid's staircase
-    cover = _smoothstep(0.3, 0.75, hair_w[used])[:, None]
-    colors = HAIR * streak[:, None] * cover + skin.colors[used] * (1 - cover)
+    cover = _smoothstep(0.3, 0.75, hair_w[used])
+    colors = _tint(skin.colors[used], HAIR * streak[:, None], cover)
     return _Part(hv, remap[faces], colors, "hair")
 
 

@@ -42,7 +42,7 @@ class Avatar:
     parts: dict[str, np.ndarray] = field(default_factory=dict)  # part name -> vertex indices
     skeleton: Skeleton | None = None
     uv: np.ndarray | None = None  # (V, 2) texture coordinates (glTF convention, v down)
-    textures: tuple[np.ndarray, ...] = ()  # (H, W, 3|4) uint8 sRGB base colour [+ alpha]
+    textures: tuple[np.ndarray, ...] = ()  # (H, W, 3) uint8 sRGB; (H, W, 4) lets light through
     face_texture: np.ndarray | None = None  # (F,) index into textures, -1 untextured
     gloss: np.ndarray | None = None  # (V,) specular strength in [0, 1] (None: 1 everywhere)
     source: dict[str, Any] = field(default_factory=dict)  # kind, file, preset stand-ins...

@@ -296,9 +296,10 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40, vroid: boo
 
     def add_mesh(name, v, f, joints, weights, targets, *, uv=None, material, color=None):
         tnames = [n for n in names if n in targets]
-        prims = [primitive(v, f, joints, weights, targets, tnames, uv=uv, material=material,
-                           color=color, sparse=False)]  # fmt: skip
-        if vroid and name == "Face":  # skin and hair cap with their own vertices, lash cards
+        if not (vroid and name == "Face"):
+            prims = [primitive(v, f, joints, weights, targets, tnames, uv=uv, material=material,
+                               color=color, sparse=False)]  # fmt: skip
+        else:  # skin and hair cap with their own vertices, lash cards
             prims = []
             hair = v[f].mean(axis=1)[:, 1] > HEAD_CENTRE[1] + 0.06
             for faces, mat in ((f[~hair], 0), (f[hair], 4)):
@@ -398,12 +399,11 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40, vroid: boo
         pbr = pygltflib.PbrMetallicRoughness(baseColorFactor=rgba, metallicFactor=0.0)
         if texture:
             pbr.baseColorTexture = pygltflib.TextureInfo(index=0)
+            if vroid:  # a region of the atlas
+                transform = {"offset": list(ATLAS_REGIONS[region]), "scale": [0.5, 0.5]}
+                pbr.baseColorTexture.extensions = {"KHR_texture_transform": transform}
         out = pygltflib.Material(pbrMetallicRoughness=pbr)
         if vroid:
-            if region is not None:
-                pbr.baseColorTexture = pygltflib.TextureInfo(index=0, extensions={
-                    "KHR_texture_transform": {"offset": list(ATLAS_REGIONS[region]),
-                                              "scale": [0.5, 0.5]}})  # fmt: skip
             if mask:
                 out.alphaMode, out.alphaCutoff = "MASK", 0.5
             if kind == "vrm1":
@@ -469,7 +469,8 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40, vroid: boo
                  "floatProperties": {"_Cutoff": 0.5, "_BlendMode": 1 if m.alphaMode else 0},
                  "vectorProperties": {"_Color": m.pbrMetallicRoughness.baseColorFactor,
                                       "_ShadeColor": [0.7, 0.6, 0.6, 1.0]},
-                 "textureProperties": {"_MainTex": 0} if i in (0, 4, 5) else {},
+                 "textureProperties": {"_MainTex": 0}
+                 if m.pbrMetallicRoughness.baseColorTexture is not None else {},
                  "keywordMap": {"_ALPHATEST_ON": True} if m.alphaMode == "MASK" else {},
                  "tagMap": {"RenderType": "TransparentCutout" if m.alphaMode else "Opaque"}}
                 for i, m in enumerate(materials)

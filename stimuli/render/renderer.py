@@ -107,11 +107,6 @@ def vertex_normals(
     return vn / np.maximum(length, 1e-12)[:, None]
 
 
-def _has_alpha(texture: np.ndarray) -> bool:
-    """Whether an (H, W, 3|4) texture lets anything through (alpha below 255 somewhere)."""
-    return texture.ndim == 3 and texture.shape[2] == 4 and bool((texture[..., 3] < 255).any())
-
-
 def _incidence(n_vertices: int, faces: np.ndarray) -> sparse.csr_matrix:
     rows = faces.reshape(-1)
     cols = np.repeat(np.arange(len(faces)), 3)
@@ -253,16 +248,17 @@ class Renderer:
         a = self.avatar
         face_tex = a.face_texture if a.face_texture is not None else np.full(len(a.faces), -1)
         groups = []
-        # cut-out and blended textures (alpha < 255 somewhere) are drawn after the opaque
-        # surfaces, blended, so what shows through them is already there
-        see_through = {int(t) for t in np.unique(face_tex) if t >= 0 and _has_alpha(a.textures[t])}
-        for tex in sorted(np.unique(face_tex), key=lambda t: (int(t) in see_through, int(t))):
+        # cut-out and blended textures (the RGBA ones: see Avatar.textures) are drawn after the
+        # opaque surfaces, blended, so what shows through them is already there
+        used_tex = [int(t) for t in np.unique(face_tex)]
+        see_through = {t for t in used_tex if t >= 0 and a.textures[t].shape[2] == 4}
+        for tex in sorted(used_tex, key=lambda t: (t in see_through, t)):
             faces = a.faces[face_tex == tex]
             used, local = np.unique(faces, return_inverse=True)
             local = local.reshape(-1, 3).astype(np.int32)
             n = len(used)
             textured = tex >= 0 and a.uv is not None
-            alpha = textured and int(tex) in see_through
+            alpha = textured and tex in see_through
             material = pyrender.MetallicRoughnessMaterial(
                 baseColorFactor=[1.0, 1.0, 1.0, 1.0],
                 doubleSided=False,
@@ -270,7 +266,7 @@ class Renderer:
                 baseColorTexture=(
                     # glTF puts uv (0, 0) at the image's first row; GL at its last
                     pyrender.Texture(
-                        source=np.flipud(a.textures[tex][..., : 4 if alpha else 3]).copy(),
+                        source=np.flipud(a.textures[tex]).copy(),
                         source_channels="RGBA" if alpha else "RGB",
                     )
                     if textured
