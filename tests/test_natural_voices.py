@@ -1,8 +1,9 @@
 """Natural-voice material for the analyser (issue 32.1): labelling by construction and scoring.
 
 Kokoro itself is an optional extra (``facelab[training]``) that the test environment does not
-install; these tests check the parts that label and score its syllables on signals built
-here, and that asking for Kokoro without it is a clear error.
+install; these tests check the parts that label and score its clips on signals built here,
+the causal cepstral mean normalisation that made the analyser generalise to natural voices,
+and that asking for Kokoro without it is a clear error.
 """
 
 from __future__ import annotations
@@ -13,16 +14,21 @@ import numpy as np
 import pytest
 
 from facelab.errors import VisemeError
+from facelab.stimuli.speech.analyser import StreamingAnalyzer, VisemeModel, default_model
+from facelab.stimuli.speech.audio import Phone
+from facelab.stimuli.speech.features import MeanNormalisation
 from facelab.stimuli.speech.natural import (
     EVAL_SYLLABLES,
     NATURAL_HELDOUT,
     NATURAL_TRAIN,
     TRAIN_SYLLABLES,
-    Syllable,
+    NaturalClip,
     _kokoro,
+    core_frames,
     natural_syllables,
     score_natural,
     syllable_core,
+    vowel_cores,
 )
 from facelab.stimuli.speech.track import VISEMES, VOWEL_VISEMES, VisemeTrack
 
@@ -55,7 +61,7 @@ def test_scoring_counts_core_frames_per_voice_and_vowel() -> None:
     times = np.arange(60) / 100.0
     syllables, tracks = [], {}
     for voice, vowel, heard in (("v1", "a", "a"), ("v1", "e", "i"), ("v2", "o", "o")):
-        syl = Syllable("x", voice, 1.0, vowel, np.zeros(10, np.float32), RATE, (0.2, 0.4))
+        syl = NaturalClip("x", voice, 1.0, np.zeros(10, np.float32), RATE, ((0.2, 0.4, vowel),))
         weights = np.zeros((len(times), len(VISEMES)))
         weights[:, VISEMES.index(VOWEL_VISEMES["aiueo".index(heard)])] = 1.0
         syllables.append(syl)
@@ -83,3 +89,86 @@ def test_without_the_extra_natural_voices_are_refused_in_words(
             next(natural_syllables(NATURAL_HELDOUT))
     finally:
         _kokoro.cache_clear()
+
+
+def test_vowel_cores_are_the_middle_of_voiced_vowels_long_enough() -> None:
+    phones = [
+        Phone("sil", 0.0, 0.1),
+        Phone("k", 0.1, 0.15),
+        Phone("a", 0.15, 0.25),  # 100 ms -> core 0.17..0.23
+        Phone("s", 0.25, 0.3),
+        Phone("U", 0.3, 0.36),  # devoiced: no core
+        Phone("e", 0.36, 0.39),  # 30 ms: too short to have a sure core
+        Phone("o", 0.39, 0.59),
+    ]
+    cores = vowel_cores(phones)
+    assert [v for _, _, v in cores] == ["a", "o"]
+    assert cores[0][:2] == pytest.approx((0.17, 0.23))
+    assert cores[1][:2] == pytest.approx((0.43, 0.55))
+    clip = NaturalClip("かさすえお", "v", 1.0, np.zeros(10, np.float32), RATE, cores, "alignment")
+    idx, vowel = core_frames(np.arange(60) / 100.0, clip)
+    assert idx.tolist() == [17, 18, 19, 20, 21, 22, 43, 44, 45, 46, 47, 48, 49, 50, 51, 52, 53, 54]
+    assert set(vowel[:6]) == {0} and set(vowel[6:]) == {4}
+
+
+def _frames(rng: np.random.Generator, n: int, offset: float) -> np.ndarray:
+    """(n, 13) loud frames (-20 dBFS) whose cepstra are noise around ``offset``."""
+    ceps = offset + rng.standard_normal((n, 12))
+    return np.column_stack([np.full(n, -20.0), ceps])
+
+
+def test_mean_normalisation_removes_a_speakers_constant_spectral_shape() -> None:
+    rng = np.random.default_rng(3)
+    norm = MeanNormalisation(prior=np.zeros(12), tau_s=2.0, prior_s=0.5)
+    same = rng.standard_normal((800, 12))
+    plain = np.column_stack([np.full(800, -20.0), same])
+    shifted = plain.copy()
+    shifted[:, 1:] += 3.0  # another voice: the same frames with a different average shape
+    a, _ = norm.apply(plain)
+    b, _ = norm.apply(shifted)
+    # at first the prior dominates; after a few seconds the offset is gone
+    assert np.abs(b[:5, 1:] - a[:5, 1:]).mean() > 2.0
+    assert np.abs(b[-100:, 1:] - a[-100:, 1:]).max() < 0.05
+    # quiet frames do not move the mean (silence is not the speaker)
+    quiet = shifted.copy()
+    quiet[:400, 0] = -60.0
+    c, _ = norm.apply(quiet)
+    assert np.allclose(c[:400, 1:], shifted[:400, 1:])
+
+
+def test_mean_normalisation_streams_exactly_as_offline() -> None:
+    rng = np.random.default_rng(4)
+    frames = _frames(rng, 300, 1.0)
+    frames[::7, 0] = -70.0
+    norm = MeanNormalisation(prior=np.full(12, 0.5))
+    whole, end = norm.apply(frames)
+    state, parts = None, []
+    for k in range(0, 300, 11):
+        out, state = norm.apply(frames[k : k + 11], state)
+        parts.append(out)
+    assert np.array_equal(np.vstack(parts), whole)
+    assert np.allclose(state[0], end[0]) and state[1] == pytest.approx(end[1])
+
+
+def test_a_model_keeps_its_normalisation_through_its_file(tmp_path) -> None:
+    model = default_model()
+    assert model.normalisation is not None, "the shipped model is trained with it"
+    model.save(tmp_path / "m.json")
+    back = VisemeModel.load(tmp_path / "m.json")
+    assert back.normalisation.tau_s == model.normalisation.tau_s
+    assert np.allclose(back.normalisation.prior, model.normalisation.prior, atol=1e-6)
+
+
+def test_streaming_with_normalisation_matches_offline_analysis() -> None:
+    from facelab.stimuli.speech.analyser import analyze
+    from facelab.stimuli.speech.tts import synthesize
+
+    speech = synthesize("あおいうみがみえる。")
+    offline = analyze(speech.samples, sample_rate=speech.sample_rate)
+    stream = StreamingAnalyzer(sample_rate=speech.sample_rate)
+    chunk = speech.sample_rate // 100
+    parts = [
+        stream.feed(speech.samples[i : i + chunk]) for i in range(0, len(speech.samples), chunk)
+    ]
+    parts.append(stream.flush())
+    assert np.abs(np.vstack([p.weights for p in parts]) - offline.weights).max() < 1e-9

@@ -84,8 +84,8 @@ def align_phones(
     samples, rate = analysis_input(samples, sample_rate=sample_rate)
     ref = synthesize(text, sample_rate=rate)
     model = model or default_model()
-    _, xa = features(samples, sample_rate=rate)
-    _, xr = features(ref.samples, sample_rate=rate)
+    _, xa = features(samples, sample_rate=rate, normalisation=model.normalisation)
+    _, xr = features(ref.samples, sample_rate=rate, normalisation=model.normalisation)
     level_a = _frame_level(samples, rate, len(xa))
     level_r = _frame_level(ref.samples, rate, len(xr))
     loud_a = level_a > np.percentile(level_a, 95) - 25

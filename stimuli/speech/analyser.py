@@ -36,7 +36,6 @@ so only the smoothing lag remains; ``VisemeTrack.latency_s`` states it and rende
 it (``compensated()``) so the mouth is not late.
 """
 
-
 from __future__ import annotations
 
 import json
@@ -58,6 +57,7 @@ from facelab.stimuli.speech.features import (
     N_MELS,
     WINDOW_S,
     FrameGeometry,
+    MeanNormalisation,
     cepstra,
     frame_features,
     frame_power,
@@ -89,7 +89,8 @@ class VisemeModel:
     (speaker calibration, :func:`calibrate`); one ReLU hidden layer (``hidden_w`` (D, H),
     ``hidden_b`` (H,)), a softmax output over ``classes`` (``out_w`` (H, C), ``out_b`` (C,)).
     ``class_means`` (C, D) are the training frames' mean features per class, kept for
-    calibration.
+    calibration. ``normalisation``: the causal cepstral mean normalisation the model was
+    trained with (None: none, as models before it).
     """
 
     classes: tuple[str, ...]
@@ -105,6 +106,7 @@ class VisemeModel:
     gate_db: tuple[float, float] = (-50.0, -30.0)
     smoothing_tau_s: float = 0.010
     info: dict = field(default_factory=dict)
+    normalisation: MeanNormalisation | None = None
 
     def __post_init__(self) -> None:
         if self.input_bias is None:
@@ -178,6 +180,11 @@ class VisemeModel:
                 "context": list(CONTEXT),
                 "mel_range_hz": list(MEL_RANGE_HZ),
             },
+            **(
+                {"mean_normalisation": self.normalisation.to_json()}
+                if self.normalisation is not None
+                else {}
+            ),
             "info": self.info,
         }
 
@@ -196,6 +203,11 @@ class VisemeModel:
             gate_db=tuple(data["gate_db"]),
             smoothing_tau_s=float(data["smoothing_tau_s"]),
             info=data.get("info", {}),
+            normalisation=(
+                MeanNormalisation.from_json(data["mean_normalisation"])
+                if "mean_normalisation" in data
+                else None
+            ),
         )
 
     def save(self, path: Path | str) -> None:
@@ -246,6 +258,7 @@ class StreamingAnalyzer:
         self._offset = 0  # samples dropped from the front of _buf
         self._next = 0  # next frame index
         self._history = np.zeros((max(CONTEXT), 1 + N_CEPS))
+        self._norm_state = None
         alpha = (
             1.0 - np.exp(-HOP_S / self.model.smoothing_tau_s) if self.model.smoothing_tau_s else 1.0
         )
@@ -286,6 +299,8 @@ class StreamingAnalyzer:
         feats = frame_features(
             self._buf, geo, self._next - self._offset // geo.hop, count, self.warp
         )
+        if self.model.normalisation is not None:
+            feats, self._norm_state = self.model.normalisation.apply(feats, self._norm_state)
         stacked = stack_context(feats, self._history)
         self._history = np.vstack([self._history, feats])[-max(CONTEXT) :]
         smooth = self._smooth(self.model.weights(stacked))
@@ -368,6 +383,10 @@ def choose_warp(
     def score(warp: float) -> float:
         if warp not in scores:
             ceps = cepstra(power, geo, warp)
+            if model.normalisation is not None:
+                hop_s = sparse.hop / sample_rate
+                ceps = model.normalisation.apply(np.column_stack([energy, ceps]), hop_s=hop_s)[0]
+                ceps = ceps[:, 1:]
             full = np.vstack([np.zeros((max(lags), ceps.shape[1])), ceps])
             stacked = np.column_stack(
                 [full[max(lags) - lag : max(lags) - lag + len(ceps)] for lag in lags]
@@ -420,16 +439,21 @@ def analyze(
 
 
 def features(
-    samples: np.ndarray, *, sample_rate: int, warp: float = 1.0
+    samples: np.ndarray,
+    *,
+    sample_rate: int,
+    warp: float = 1.0,
+    normalisation: MeanNormalisation | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(times (T,), stacked features (T, D)) exactly as the analyser sees them (training);
-    ``warp`` scales the mel filters' frequencies (:func:`choose_warp`)."""
+    """(times (T,), stacked features (T, 1 + D)) exactly as a model with this
+    ``normalisation`` sees them (pass ``model.normalisation``); ``warp`` scales the mel
+    filters' frequencies (:func:`choose_warp`)."""
     samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
     geo = FrameGeometry.for_rate(sample_rate)
     x = np.asarray(samples, dtype=np.float64)
     padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
     count = (len(x) - 1) // geo.hop + 1
     feats = frame_features(padded, geo, 0, count, warp)
+    if normalisation is not None:
+        feats = normalisation.apply(feats)[0]
     return np.arange(count) * HOP_S, stack_context(feats, np.zeros((max(CONTEXT), feats.shape[1])))
-
-

@@ -3,20 +3,24 @@
 Per 10 ms frame: a 32 ms Hamming window centred on the frame time, pre-emphasis (0.97,
 applied to the spectrum), a mel filterbank (40 bands, 60-7600 Hz, at the input's own rate,
 optionally warped for vocal-tract-length normalisation), log, DCT -> 12 cepstral coefficients
-plus the log energy, stacked with the frames 30 ms and 60 ms earlier.
+plus the log energy, stacked with the frames 30 ms and 60 ms earlier. A model may also
+subtract a causal running mean of the cepstra (:class:`MeanNormalisation`: the speaker's and
+channel's average spectral shape), before stacking.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
 from scipy.fft import dct, rfft
+from scipy.signal import lfilter
 
 from facelab.errors import VisemeError
 
 __all__ = [
+    "MeanNormalisation",
 ]
 
 # --------------------------------------------------------------------------- features
@@ -123,3 +127,66 @@ def stack_context(feats: np.ndarray, history: np.ndarray) -> np.ndarray:
     return np.column_stack([feats[:, :1], *parts])
 
 
+@dataclass(frozen=True)
+class MeanNormalisation:
+    """Causal cepstral mean normalisation: each frame's c1..c12 less the running mean of the
+    loud frames' cepstra so far (the speaker's and the channel's average spectral shape),
+    forgotten with time constant ``tau_s``, starting from ``prior`` (N_CEPS,) - the training
+    speech's mean - worth ``prior_s`` of speech. Frames count as loud above ``gate_db`` dBFS.
+    Needs no audio after the frame, so streaming latency is unchanged."""
+
+    prior: np.ndarray = field(repr=False)  # (N_CEPS,)
+    tau_s: float = 2.0
+    prior_s: float = 0.5
+    gate_db: float = -40.0
+
+    def start(self) -> tuple[np.ndarray, float]:
+        """The state before any audio: (weighted sum of cepstra (N_CEPS,), weight (frames))."""
+        weight = self.prior_s / HOP_S
+        return np.asarray(self.prior, float) * weight, weight
+
+    def apply(
+        self,
+        feats: np.ndarray,
+        state: tuple[np.ndarray, float] | None = None,
+        *,
+        hop_s: float = HOP_S,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
+        """(normalised feats (T, 1 + N_CEPS), state after them) for consecutive frames
+        ``feats`` (level, c1..c12) ``hop_s`` apart; ``state`` from :meth:`start` or the
+        previous call."""
+        total, weight = self.start() if state is None else state
+        if len(feats) == 0:
+            return feats, (total, weight)
+        keep = np.exp(-hop_s / self.tau_s)
+        loud = (feats[:, 0] > self.gate_db).astype(float)
+        # s[t] = keep s[t-1] + loud[t] c[t]; w[t] = keep w[t-1] + loud[t] (scaled to 10 ms)
+        gain = loud * hop_s / HOP_S
+        sums, zs = lfilter(
+            [1.0],
+            [1.0, -keep],
+            gain[:, None] * feats[:, 1:],
+            axis=0,
+            zi=keep * np.asarray(total)[None, :],
+        )
+        weights, zw = lfilter([1.0], [1.0, -keep], gain, zi=[keep * weight])
+        out = feats.copy()
+        out[:, 1:] -= sums / weights[:, None]
+        return out, (zs[0] / keep, float(zw[0]) / keep)
+
+    def to_json(self) -> dict:
+        return {
+            "prior": np.round(np.asarray(self.prior, float), 7).tolist(),
+            "tau_s": self.tau_s,
+            "prior_s": self.prior_s,
+            "gate_db": self.gate_db,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict) -> MeanNormalisation:
+        return cls(
+            prior=np.asarray(data["prior"], float),
+            tau_s=float(data["tau_s"]),
+            prior_s=float(data["prior_s"]),
+            gate_db=float(data["gate_db"]),
+        )

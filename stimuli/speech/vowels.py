@@ -80,7 +80,7 @@ def calibrate(
             f"calibration recording: found {len(segs)} voiced segments, expected "
             f"{len(vowels)} ({vowels}); leave clear pauses between the vowels"
         )
-    _, x = features(samples, sample_rate=sample_rate)
+    _, x = features(samples, sample_rate=sample_rate, normalisation=model.normalisation)
     cores, labels, shifts = [], [], []
     for (a, b), vowel in zip(segs, vowels, strict=True):
         n = b - a
