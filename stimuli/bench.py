@@ -48,13 +48,14 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
     )
     from facelab.stimuli.speech.track import from_phonemes
 
-    def audio_only(x, rate):
-        return analyze(x, sample_rate=rate, model=model).compensated()
+    def audio_only(x, rate, warp=1.0):
+        return analyze(x, sample_rate=rate, model=model, warp=warp).compensated()
 
     voices = NATURAL_HELDOUT if quick else NATURAL_TRAIN + NATURAL_HELDOUT
     _, held = corpus()
     sentences = list(natural_sentences(voices, sentences=held[:6] if quick else held))
     in_sentences = score_natural(sentences, analyse=audio_only)
+    searched = score_natural(sentences, analyse=lambda x, rate: audio_only(x, rate, "auto"))
     syllables = list(natural_syllables(voices, speeds=(1.0,) if quick else (0.8, 1.0, 1.2)))
     alone = score_natural(syllables, analyse=audio_only)
 
@@ -69,6 +70,7 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
             "held_out": voice in NATURAL_HELDOUT,
             "sentences_audio_only": in_sentences[voice]["core_accuracy"],
             "sentences_per_vowel": in_sentences[voice]["per_vowel"],
+            "sentences_warp_search": searched[voice]["core_accuracy"],
             "sentences_frames": in_sentences[voice]["frames"],
             "sentences_confusion": in_sentences[voice]["confusion"],
             "syllables_audio_only": alone[voice]["core_accuracy"],

@@ -1,0 +1,57 @@
+"""Training the analyser (issue 32.1): what the network is fitted on is what it later sees.
+
+The mean normalisation is applied in two places - to whole training utterances and, frame by
+frame, in the streaming analyser - so these check that the two give the same features, and
+that a tiny model trained here carries its normalisation and reads its own training voice.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facelab.stimuli.speech.analyser import analyze, features
+from facelab.stimuli.speech.track import VOWELS
+from facelab.stimuli.speech.training import (
+    TRAIN_VARIANTS,
+    frame_labels,
+    speak,
+    train,
+    training_matrix,
+)
+
+SENTENCES = ("あおいうみがみえる。", "えきのまえでまつ。")
+
+
+def test_a_trained_model_carries_its_normalisation_and_training_sees_what_analysis_sees() -> None:
+    model = train(
+        sentences=SENTENCES,
+        variants=TRAIN_VARIANTS[:2],
+        rng=np.random.default_rng(5),
+        per_sentence=2,
+        drills=("あ。い。う。え。お。",),
+        hidden=16,
+    )
+    norm = model.normalisation
+    assert norm is not None and norm.prior.shape == (12,)
+    assert "mean normalisation" in model.info["trained_on"]
+    # one utterance through the training path and through the analyser's features()
+    speech = speak(SENTENCES[0], TRAIN_VARIANTS[0])
+    times, seen = features(speech.samples, sample_rate=speech.sample_rate, normalisation=norm)
+    raw = features(speech.samples, sample_rate=speech.sample_rate)[1][:, :13]
+    labels = frame_labels(speech.phones, times).astype(str)
+    x, y = training_matrix([(raw, labels)], normalisation=norm)
+    keep = (labels != "") & (raw[:, 0] > -50.0)
+    assert np.allclose(x, seen[keep, 1:]) and list(y) == list(labels[keep])
+    # the normalisation changes the features (else it would not need carrying)
+    plain, _ = training_matrix([(raw, labels)], normalisation=None)
+    assert np.abs(plain - x).max() > 0.1
+    # and the model reads the vowels of a sentence its training voices said
+    track = analyze(speech.samples, sample_rate=speech.sample_rate, model=model).compensated()
+    heard = np.argmax(track.vowels(), axis=1)
+    right = total = 0
+    for p in speech.phones:
+        if p.phoneme in VOWELS and p.end - p.start > 0.05:
+            sel = (track.times > p.start + 0.02) & (track.times < p.end - 0.02)
+            right += int(np.sum(heard[sel] == VOWELS.index(p.phoneme)))
+            total += int(sel.sum())
+    assert total > 20 and right / total > 0.8
