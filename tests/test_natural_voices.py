@@ -172,3 +172,22 @@ def test_streaming_with_normalisation_matches_offline_analysis() -> None:
     ]
     parts.append(stream.flush())
     assert np.abs(np.vstack([p.weights for p in parts]) - offline.weights).max() < 1e-9
+
+
+def test_a_model_file_from_before_the_normalisation_still_loads_and_runs_without_it(
+    tmp_path,
+) -> None:
+    import json
+
+    from facelab.stimuli.speech.analyser import analyze
+
+    data = default_model().to_json()
+    del data["mean_normalisation"]
+    (tmp_path / "old.json").write_text(json.dumps(data), encoding="utf-8")
+    old = VisemeModel.load(tmp_path / "old.json")
+    assert old.normalisation is None
+    rng = np.random.default_rng(6)
+    noise = (0.1 * rng.standard_normal(RATE)).astype(np.float32)
+    with_norm = analyze(noise, sample_rate=RATE).weights
+    without = analyze(noise, sample_rate=RATE, model=old).weights
+    assert with_norm.shape == without.shape and not np.allclose(with_norm, without)
