@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from facelab.errors import VisemeError
-from facelab.stimuli.speech.analyser import StreamingAnalyzer, VisemeModel, default_model
+from facelab.stimuli.speech.analyser import VisemeModel, default_model
 from facelab.stimuli.speech.audio import Phone
 from facelab.stimuli.speech.features import MeanNormalisation
 from facelab.stimuli.speech.natural import (
@@ -157,21 +157,6 @@ def test_a_model_keeps_its_normalisation_through_its_file(tmp_path) -> None:
     back = VisemeModel.load(tmp_path / "m.json")
     assert back.normalisation.tau_s == model.normalisation.tau_s
     assert np.allclose(back.normalisation.prior, model.normalisation.prior, atol=1e-6)
-
-
-def test_streaming_with_normalisation_matches_offline_analysis() -> None:
-    from facelab.stimuli.speech.analyser import analyze
-    from facelab.stimuli.speech.tts import synthesize
-
-    speech = synthesize("あおいうみがみえる。")
-    offline = analyze(speech.samples, sample_rate=speech.sample_rate)
-    stream = StreamingAnalyzer(sample_rate=speech.sample_rate)
-    chunk = speech.sample_rate // 100
-    parts = [
-        stream.feed(speech.samples[i : i + chunk]) for i in range(0, len(speech.samples), chunk)
-    ]
-    parts.append(stream.flush())
-    assert np.abs(np.vstack([p.weights for p in parts]) - offline.weights).max() < 1e-9
 
 
 def test_a_model_file_from_before_the_normalisation_still_loads_and_runs_without_it(

@@ -68,6 +68,7 @@ from facelab.stimuli.speech.features import (
     frame_features,
     frame_power,
     stack_context,
+    utterance_features,
 )
 from facelab.stimuli.speech.track import VISEMES, VisemeTrack
 
@@ -81,6 +82,7 @@ __all__ = [
     "choose_warp",
     "default_model",
     "features",
+    "raw_features",
 ]
 
 # --------------------------------------------------------------------------- the model
@@ -444,6 +446,19 @@ def analyze(
     )
 
 
+def raw_features(
+    samples: np.ndarray, *, sample_rate: int, warp: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """(times (T,), level + c1..c12 (T, 1 + N_CEPS)) of every frame, before normalisation and
+    stacking; ``warp`` scales the mel filters' frequencies (:func:`choose_warp`)."""
+    samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
+    geo = FrameGeometry.for_rate(sample_rate)
+    x = np.asarray(samples, dtype=np.float64)
+    padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
+    count = (len(x) - 1) // geo.hop + 1
+    return np.arange(count) * HOP_S, frame_features(padded, geo, 0, count, warp)
+
+
 def features(
     samples: np.ndarray,
     *,
@@ -454,12 +469,5 @@ def features(
     """(times (T,), stacked features (T, 1 + D)) exactly as a model with this
     ``normalisation`` sees them (pass ``model.normalisation``); ``warp`` scales the mel
     filters' frequencies (:func:`choose_warp`)."""
-    samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
-    geo = FrameGeometry.for_rate(sample_rate)
-    x = np.asarray(samples, dtype=np.float64)
-    padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
-    count = (len(x) - 1) // geo.hop + 1
-    feats = frame_features(padded, geo, 0, count, warp)
-    if normalisation is not None:
-        feats = normalisation.apply(feats)[0]
-    return np.arange(count) * HOP_S, stack_context(feats, np.zeros((max(CONTEXT), feats.shape[1])))
+    times, feats = raw_features(samples, sample_rate=sample_rate, warp=warp)
+    return times, utterance_features(feats, normalisation=normalisation)

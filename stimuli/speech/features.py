@@ -21,6 +21,7 @@ from facelab.errors import VisemeError
 
 __all__ = [
     "MeanNormalisation",
+    "utterance_features",
 ]
 
 # --------------------------------------------------------------------------- features
@@ -190,3 +191,14 @@ class MeanNormalisation:
             prior_s=float(data["prior_s"]),
             gate_db=float(data["gate_db"]),
         )
+
+
+def utterance_features(
+    feats: np.ndarray, *, normalisation: MeanNormalisation | None = None
+) -> np.ndarray:
+    """(T, 1 + D) stacked features of a whole utterance's frames ``feats`` (level + c1..c12,
+    (T, 1 + N_CEPS)), normalised from its start when ``normalisation`` is given and stacked
+    with silence before it - what the streaming analyser computes frame by frame."""
+    if normalisation is not None:
+        feats = normalisation.apply(feats)[0]
+    return stack_context(feats, np.zeros((max(CONTEXT), feats.shape[1])))

@@ -36,11 +36,11 @@ from facelab.stimuli.speech.analyser import (
     StreamingAnalyzer,
     VisemeModel,
     analyze,
-    features,
+    raw_features,
 )
 from facelab.stimuli.speech.audio import Phone, Speech
 from facelab.stimuli.speech.espeak import EspeakVoice, espeak_synthesize
-from facelab.stimuli.speech.features import CONTEXT, HOP_S, N_CEPS, MeanNormalisation, stack_context
+from facelab.stimuli.speech.features import HOP_S, MeanNormalisation, utterance_features
 from facelab.stimuli.speech.natural import VOWEL_CLASS, NaturalClip, core_frames
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack, from_phonemes, phoneme_viseme
 from facelab.stimuli.speech.tts import synthesize
@@ -251,16 +251,15 @@ def train(
         about += f"; {len(natural)} Kokoro clips ({', '.join(voices)}), vowel cores"
     norm = None
     if normalise:
-        loud = np.vstack([raw[raw[:, 0] > NORM_GATE_DB, 1:] for raw, _ in utterances])
-        norm = MeanNormalisation(prior=loud.mean(axis=0), gate_db=NORM_GATE_DB)
+        gate = MeanNormalisation.gate_db  # the frames that update the running mean
+        loud = np.vstack([raw[raw[:, 0] > gate, 1:] for raw, _ in utterances])
+        norm = MeanNormalisation(prior=loud.mean(axis=0))
         about += "; causal cepstral mean normalisation"
     x, y = training_matrix(utterances, normalisation=norm)
     model = fit_model(x, y, rng=rng, hidden=hidden, temperature=temperature, l2=l2, about=about)
     return replace(model, normalisation=norm)
 
 
-#: Frames above this level (dBFS) update the running cepstral mean.
-NORM_GATE_DB = -40.0
 #: One utterance's frames before stacking: (level + c1..c12 (T, 13), class label per frame (T,),
 #: '' where unusable).
 Utterance = tuple[np.ndarray, np.ndarray]
@@ -273,8 +272,7 @@ def training_matrix(
     each utterance normalised from its start and stacked as the analyser does."""
     xs, ys = [], []
     for raw, labels in utterances:
-        feats = raw if normalisation is None else normalisation.apply(raw)[0]
-        x = stack_context(feats, np.zeros((max(CONTEXT), feats.shape[1])))
+        x = utterance_features(raw, normalisation=normalisation)
         keep = (labels != "") & (raw[:, 0] > -50.0)
         xs.append(x[keep, 1:])
         ys.append(labels[keep])
@@ -284,12 +282,6 @@ def training_matrix(
 def _warps(rng: np.random.Generator, warp_range: tuple[float, float]) -> tuple[float, float]:
     log_lo, log_hi = np.log(warp_range)
     return 1.0, float(np.exp(rng.uniform(log_lo, log_hi)))
-
-
-def _frames(samples: np.ndarray, *, sample_rate: int, warp: float) -> tuple[np.ndarray, np.ndarray]:
-    """(times (T,), level + c1..c12 (T, 13)) before normalisation and stacking."""
-    times, x = features(samples, sample_rate=sample_rate, warp=warp)
-    return times, x[:, : 1 + N_CEPS]
 
 
 def synthetic_utterances(
@@ -326,7 +318,7 @@ def synthetic_utterances(
         for voice in voices:
             speech = speak(text, voice)
             for warp in _warps(rng, warp_range):
-                times, raw = _frames(speech.samples, sample_rate=speech.sample_rate, warp=warp)
+                times, raw = raw_features(speech.samples, sample_rate=speech.sample_rate, warp=warp)
                 out.append((raw, frame_labels(speech.phones, times).astype(str)))
     about = (
         f"{len(texts) - len(drills)} sentences x ({per_sentence} of {len(variants)} mei "
@@ -350,7 +342,7 @@ def natural_utterances(
     out: list[Utterance] = []
     for clip in clips:
         for warp in _warps(rng, warp_range):
-            times, raw = _frames(clip.samples, sample_rate=clip.sample_rate, warp=warp)
+            times, raw = raw_features(clip.samples, sample_rate=clip.sample_rate, warp=warp)
             labels = np.full(len(times), "", dtype=object)
             idx, vowel = core_frames(times, clip)
             labels[idx] = classes[vowel]
