@@ -76,12 +76,15 @@ def test_mouth_shapes_behave_as_named(head: Avatar) -> None:
     )
     assert left[1] > 0.005 and left[0] > 0  # the corner goes up and out on the face's left (+x)
     assert _m(head, {"mouthLowerDownLeft": 1, "mouthLowerDownRight": 1})["aperture"] > 0.003
+    # stretched lips part: the lower lip is drawn down off the teeth (an い shows its teeth)
+    assert _m(head, {"mouthStretchLeft": 1, "mouthStretchRight": 1})["aperture"] > 0.002
 
 
 def test_the_five_vowels_are_distinct_on_the_face(head: Avatar) -> None:
     z = load_z("standard")
     m = {v: _m(head, dict(zip(ARKIT_NAMES, z[:, j], strict=True))) for j, v in enumerate("aiueo")}
     assert max(m, key=lambda v: m[v]["aperture"]) == "a"  # a: open
+    assert min(m, key=lambda v: m[v]["aperture"]) == "u"  # u: the smallest opening
     assert max(m, key=lambda v: m[v]["width"]) == "i"  # i: spread
     assert min(m, key=lambda v: m[v]["width"]) in ("u", "o")  # u and o: small and rounded
     assert m["u"]["aperture"] < m["o"]["aperture"] < m["a"]["aperture"]  # o: rounded but open

@@ -891,7 +891,10 @@ def _build_targets(
         )
         t[f"mouthFrown{side}"] = field(sgn * 0.001, -0.0065, 0, cw)
         t[f"mouthDimple{side}"] = field(sgn * 0.002, 0.0005, -0.005, cw)
-        t[f"mouthStretch{side}"] = field(sgn * 0.0190, -0.0025, -0.001, cw)
+        # stretched lips thin and the lower lip is drawn down off the teeth
+        t[f"mouthStretch{side}"] = field(sgn * 0.0190, -0.0025, -0.001, cw) + field(
+            0, -0.0045, 0, lower_lips * sw * _midlip(x)
+        )
         t[f"mouthPress{side}"] = field(0, 0.0022, -0.0005, lower_lips * sw * lip_body) + field(
             0, -0.0012, -0.0005, upper_lips * sw * lip_body
         )
