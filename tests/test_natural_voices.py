@@ -70,6 +70,7 @@ def test_scoring_counts_core_frames_per_voice_and_vowel() -> None:
     assert scores["v1"]["core_accuracy"] == 0.5 and scores["v2"]["core_accuracy"] == 1.0
     assert scores["v1"]["per_vowel"]["e"] == 0.0 and scores["v1"]["confusion"]["e"]["i"] == 20
     assert scores["v1"]["frames"] == 40 and not scores["v1"]["held_out"]
+    assert scores["v1"]["clips"] == 2 and scores["v2"]["clips"] == 1
 
 
 def test_voices_and_syllables_are_fixed_by_the_issue() -> None:

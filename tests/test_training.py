@@ -10,10 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from facelab.stimuli.speech.analyser import analyze, features, raw_features
+from facelab.stimuli.speech.natural import NaturalClip, vowel_cores
 from facelab.stimuli.speech.track import VOWELS
 from facelab.stimuli.speech.training import (
     TRAIN_VARIANTS,
     frame_labels,
+    natural_utterances,
     speak,
     train,
     training_matrix,
@@ -55,3 +57,38 @@ def test_a_trained_model_carries_its_normalisation_and_training_sees_what_analys
             right += int(np.sum(heard[sel] == VOWELS.index(p.phoneme)))
             total += int(sel.sum())
     assert total > 20 and right / total > 0.8
+
+
+def test_natural_clips_also_enter_as_a_lower_voice_with_their_cores_moved_along() -> None:
+    speech = speak(SENTENCES[0], TRAIN_VARIANTS[0])
+    clip = NaturalClip(
+        SENTENCES[0],
+        "mei",
+        1.0,
+        speech.samples,
+        speech.sample_rate,
+        vowel_cores(speech.phones),
+        labelled_by="alignment",
+    )
+    rng = np.random.default_rng(3)
+    plain = natural_utterances([clip], rng=rng)
+    assert len(plain) == 2  # warp 1 and one random warp
+    lowered = natural_utterances([clip], rng=rng, lower_range=(0.8, 0.8))
+    assert len(lowered) == 3
+    (raw, labels), (raw_low, labels_low) = lowered[0], lowered[2]
+    # read at 0.8 of its rate the clip lasts 1.25 times as long, and so do its labelled cores
+    assert abs(len(raw_low) / len(raw) - 1.25) < 0.01
+    n, n_low = np.sum(labels != ""), np.sum(labels_low != "")
+    assert n > 20 and abs(n_low / n - 1.25) < 0.1
+
+    # the cores keep their vowels, in order: the label runs are the same
+    def runs(lab: np.ndarray) -> list[str]:
+        kept = [v for v in lab if v]
+        return [v for k, v in enumerate(kept) if k == 0 or kept[k - 1] != v]
+
+    assert runs(labels_low) == runs(labels)
+    # and the labelled frames are the moved cores: each core's middle frame is labelled
+    times_low = np.arange(len(raw_low)) * 0.01
+    for lo, hi, _ in clip.cores:
+        mid = (lo + hi) / 2 * 1.25
+        assert labels_low[int(np.argmin(np.abs(times_low - mid)))] != ""

@@ -209,15 +209,17 @@ def score_natural(
     clips: Sequence[NaturalClip], *, analyse=None, tracks: dict | None = None
 ) -> dict[str, dict]:
     """Per voice: the share of vowel-core frames whose strongest vowel is the intended one,
-    per vowel and overall, and the 5x5 confusion (true x heard, frames). ``analyse(samples,
-    sample_rate)`` returns a :class:`VisemeTrack`; or ``tracks`` gives one per clip."""
+    per vowel and overall, the 5x5 confusion (true x heard, frames) and the clips scored.
+    ``analyse(samples, sample_rate)`` returns a :class:`VisemeTrack`; or ``tracks`` gives one
+    per clip."""
     out: dict[str, dict] = {}
     for clip in clips:
         track = tracks[clip] if tracks is not None else analyse(clip.samples, clip.sample_rate)
         idx, truth = core_frames(track.times, clip)
         heard = np.argmax(track.vowels()[idx], axis=1)
-        entry = out.setdefault(clip.voice, {"confusion": np.zeros((5, 5), int)})
+        entry = out.setdefault(clip.voice, {"confusion": np.zeros((5, 5), int), "clips": 0})
         np.add.at(entry["confusion"], (truth, heard), 1)
+        entry["clips"] += 1
     for voice, entry in out.items():
         c = entry["confusion"]
         entry["core_accuracy"] = round(float(np.trace(c) / max(c.sum(), 1)), 3)
