@@ -345,8 +345,8 @@ _TASK_HEADINGS = {
     "presentation_quality": "Presentation: frames the clips dropped, per condition (the "
     "session logs' clip_frames_dropped; trials over --max-dropped-frames excluded)",
     "psychometric_fits": "Psychometric fits, P = gamma + (1 - gamma - lambda) F(level): "
-    "per participant the posterior (medians, 95 % credible intervals, psignifit's default "
-    "priors), pooled by ML (95 % parametric-bootstrap CIs)",
+    "per participant the posterior with psignifit's default priors (its mode, 95 % profile "
+    "intervals), pooled by ML (95 % parametric-bootstrap CIs)",
     "staircase_tracks": "Staircases: every step (level shown, answer, reversal, running estimate)",
     "staircase_thresholds": "Staircases: each participant's threshold by the rule's own "
     "estimate (up-down: mean level of the last reversals; QUEST+: posterior mean of the midpoint)",

@@ -528,8 +528,8 @@ def psychometric(
         ``numpy.random.default_rng(0)``, so repeated calls agree).
     per_subject : how each subject's row is estimated: ``ml`` (maximum likelihood with the
         bootstrap intervals, as the pooled row always is) or ``posterior`` (logistic only:
-        marginal posterior medians and 95 % credible intervals under psignifit's default
-        priors - for one person's few trials, where the ML slope runs away; see
+        psignifit's default priors as a penalty - the posterior mode and 95 % profile
+        intervals - for one person's few trials, where the ML slope runs away; see
         :mod:`facelab.analysis.bayes_psychometric`). ``estimate`` says which a row is.
 
     Returns one row per subject (then the pooled row, subject ``"pooled"``), columns
@@ -596,6 +596,10 @@ def _posterior_row(counts: pd.DataFrame, *, gamma: float) -> dict[str, Any]:
     from facelab.psychometric_function import slope_at_midpoint
 
     post = posterior_fit(counts, gamma=gamma)
+    notes = ["posterior mode, 95 % profile intervals (psignifit's default priors)"]
+    notes += [f"the data alone do not bound the {name} (its interval's ends are the prior's)"
+              for name, at_limit in (("midpoint", post.midpoint_at_limit),
+                                     ("slope", post.slope_at_limit)) if at_limit]  # fmt: skip
     return {
         "sigmoid": "logistic",
         "gamma": gamma,
@@ -618,5 +622,5 @@ def _posterior_row(counts: pd.DataFrame, *, gamma: float) -> dict[str, Any]:
         "lapse_ci_high": post.lapse_ci_high,
         "n_boot": 0,
         "estimate": "posterior",
-        "note": "posterior medians, 95 % credible intervals (psignifit's default priors)",
+        "note": "; ".join(notes),
     }

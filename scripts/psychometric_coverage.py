@@ -2,13 +2,15 @@
 
 Simulates N observers of a shipped forced-choice protocol (its ``simulation.observer`` is the
 truth) through the protocol's own design - staircase or constant stimuli - and fits each
-participant twice: maximum likelihood with parametric-bootstrap percentile intervals (the
-previous default) and the grid posterior with psignifit's default priors
-(:mod:`facelab.analysis.bayes_psychometric`). Prints JSON: for each estimator the share of
-observers whose 95 % interval holds the true midpoint and slope, and the median estimate.
+participant three ways: maximum likelihood with parametric-bootstrap percentile intervals
+(``ml_bootstrap``), and the grid posterior with psignifit's default priors
+(:mod:`facelab.analysis.bayes_psychometric`) summarised by its mode and profile intervals
+(``profile``, the per-participant default of ``facelab analyze``) or by marginal medians and
+credible intervals (``credible``). Prints JSON: for each estimator the share of observers
+whose 95 % interval holds the true midpoint and slope, and the median estimate.
 
     python scripts/psychometric_coverage.py [PROTOCOL] [--observers 200] [--seed 7] [--boot 200]
-        [--midpoint M] [--slope B] [--lapse L]
+        [--midpoint M] [--slope B] [--lapse L] [--estimators profile credible ml_bootstrap]
 
 ``--midpoint/--slope/--lapse`` replace the protocol's observer, to measure coverage at other
 truths: per-participant coverage depends on the truth (a slope steeper than the levels'
@@ -32,6 +34,8 @@ from facelab.experiment.simulate import simulated_rows
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 
+ESTIMATORS = ("profile", "credible", "ml_bootstrap")
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
@@ -39,6 +43,7 @@ def main() -> None:
     ap.add_argument("--observers", type=int, default=200)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--boot", type=int, default=200)
+    ap.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=ESTIMATORS)
     for name in ("midpoint", "slope", "lapse"):
         ap.add_argument(f"--{name}", type=float, help=f"true {name} (default: the protocol's)")
     args = ap.parse_args()
@@ -55,25 +60,25 @@ def main() -> None:
     truth = protocol.simulation.observer
     task = protocol.tasks[0]
     master = np.random.default_rng(args.seed)
-    found: dict[str, list[tuple[float, float, float, float, float, float]]] = {
-        "ml_bootstrap": [], "posterior": []
-    }  # fmt: skip
-    seconds = {"ml_bootstrap": 0.0, "posterior": 0.0}
+    found: dict[str, list[tuple[float, ...]]] = {name: [] for name in args.estimators}
+    seconds = dict.fromkeys(args.estimators, 0.0)
     for i, child in enumerate(master.spawn(args.observers)):
         rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=child))
         rows = rows[rows["item"] == task.id]
         y, gamma = choice_outcome(rows, task)
         counts = count_responses(rows.assign(y=y.to_numpy()), x="level", y="y")
-        t0 = time.perf_counter()
-        ml = fit_psychometric(counts, gamma=gamma, n_boot=args.boot, rng=child)
-        seconds["ml_bootstrap"] += time.perf_counter() - t0
-        found["ml_bootstrap"].append((ml.midpoint, ml.midpoint_ci_low, ml.midpoint_ci_high,
-                                      ml.beta, ml.beta_ci_low, ml.beta_ci_high))  # fmt: skip
-        t0 = time.perf_counter()
-        post = posterior_fit(counts, gamma=gamma)
-        seconds["posterior"] += time.perf_counter() - t0
-        found["posterior"].append((post.midpoint, post.midpoint_ci_low, post.midpoint_ci_high,
-                                   post.slope, post.slope_ci_low, post.slope_ci_high))  # fmt: skip
+        for name in args.estimators:
+            t0 = time.perf_counter()
+            if name == "ml_bootstrap":
+                ml = fit_psychometric(counts, gamma=gamma, n_boot=args.boot, rng=child)
+                row = (ml.midpoint, ml.midpoint_ci_low, ml.midpoint_ci_high,
+                       ml.beta, ml.beta_ci_low, ml.beta_ci_high)  # fmt: skip
+            else:
+                post = posterior_fit(counts, gamma=gamma, interval=name)
+                row = (post.midpoint, post.midpoint_ci_low, post.midpoint_ci_high,
+                       post.slope, post.slope_ci_low, post.slope_ci_high)  # fmt: skip
+            seconds[name] += time.perf_counter() - t0
+            found[name].append(row)
     report = {"protocol": args.protocol, "observers": args.observers, "seed": args.seed,
               "truth": {"midpoint": truth.midpoint, "slope": truth.slope, "lapse": truth.lapse,
                         "midpoint_sd": truth.midpoint_sd}}  # fmt: skip

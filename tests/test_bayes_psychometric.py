@@ -1,14 +1,21 @@
 """Per-participant psychometric fits that tell the truth about few trials (issue 34.2): the
-grid posterior with psignifit's default priors, checked against psignifit 4 itself, and the
-coverage of its intervals on simulated observers."""
+grid posterior with psignifit's default priors - its credible intervals checked against
+psignifit 4 itself, its mode and profile intervals against an R implementation that optimises
+instead of gridding - and the coverage of its intervals on simulated observers."""
 
 from __future__ import annotations
+
+import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
 from facelab.analysis.bayes_psychometric import LN19, posterior_fit
+from facelab.errors import AnalysisError
+
+REF = Path(__file__).parent / "reference"
 
 DATASETS = {  # level, correct, trials
     "moderate": [[0.0, 5, 10], [0.1, 6, 10], [0.2, 8, 10], [0.3, 9, 10], [0.4, 10, 10]],
@@ -30,7 +37,8 @@ def test_the_posterior_agrees_with_psignifit(name: str) -> None:
         data, sigmoid="logistic", experiment_type="2AFC", fixed_parameters={"eta": 0}
     )
     ours = posterior_fit(
-        pd.DataFrame({"level": data[:, 0], "k": data[:, 1], "n": data[:, 2]}), gamma=0.5
+        pd.DataFrame({"level": data[:, 0], "k": data[:, 1], "n": data[:, 2]}), gamma=0.5,
+        interval="credible",
     )
     span = data[:, 0].max() - data[:, 0].min()
     lo, hi = ref.confidence_intervals["threshold"]["0.95"]
@@ -46,21 +54,90 @@ def test_the_posterior_agrees_with_psignifit(name: str) -> None:
     assert ours.lapse_ci_high == pytest.approx(l_hi, abs=0.01)
 
 
+def test_profile_intervals_agree_with_r() -> None:
+    """The default summary - posterior mode and 95 % profile intervals - against
+    tests/reference/psychometric_profile.R (optim and uniroot on the same model and priors):
+    interval ends within 0.5 % of the level range (midpoint) and 1.5 % (width), the mode
+    within the grid's spacing."""
+    ref = json.loads((REF / "psychometric_profile_R.json").read_text())
+    data = pd.read_csv(REF / "psychometric_profile.csv")
+    assert set(ref) == set(data["dataset"])
+    for name, want in ref.items():
+        counts = data[data["dataset"] == name]
+        span = float(counts["level"].max() - counts["level"].min())
+        fit = posterior_fit(counts[["level", "k", "n"]], gamma=0.5)
+        assert fit.interval == "profile"
+        lo, hi = want["midpoint_ci"]
+        assert fit.midpoint_ci_low == pytest.approx(lo, abs=0.005 * span), name
+        assert fit.midpoint_ci_high == pytest.approx(hi, abs=0.005 * span), name
+        assert fit.midpoint == pytest.approx(want["midpoint"], abs=0.015 * span), name
+        w_lo, w_hi = want["width_ci"]  # a narrow F is a steep slope
+        assert 2 * LN19 / fit.slope_ci_high == pytest.approx(w_lo, rel=0.015), name
+        assert 2 * LN19 / fit.slope_ci_low == pytest.approx(w_hi, rel=0.015), name
+        assert 2 * LN19 / fit.slope == pytest.approx(want["width"], rel=0.05), name
+        assert fit.lapse == pytest.approx(want["lapse"], abs=0.01), name
+
+
+def test_profile_intervals_hold_the_mode_and_narrow_with_data() -> None:
+    """Ten times the trials at the same proportions: a narrower interval around the same
+    place; the interval always holds the estimate."""
+    rows = np.array(DATASETS["moderate"], dtype=float)
+    few = pd.DataFrame({"level": rows[:, 0], "k": rows[:, 1], "n": rows[:, 2]})
+    many = few.assign(k=few["k"] * 10, n=few["n"] * 10)
+    a, b = posterior_fit(few, gamma=0.5), posterior_fit(many, gamma=0.5)
+    for fit in (a, b):
+        assert fit.midpoint_ci_low <= fit.midpoint <= fit.midpoint_ci_high
+        assert fit.slope_ci_low <= fit.slope <= fit.slope_ci_high
+    assert b.midpoint_ci_high - b.midpoint_ci_low < 0.5 * (a.midpoint_ci_high - a.midpoint_ci_low)
+    assert b.slope_ci_high - b.slope_ci_low < a.slope_ci_high - a.slope_ci_low
+    assert b.midpoint == pytest.approx(a.midpoint, abs=0.05)
+
+
+def test_a_slope_the_data_cannot_bound_is_flagged() -> None:
+    """Near separation (chance up to 0.05, all right from 0.1 on), even with three times the
+    trials: the likelihood does not exclude a step function, so the slope's upper limit is the
+    prior's - flagged, and the per-participant row says so. The moderate set with three times
+    its trials bounds its slope by the data: not flagged."""
+    from facelab.analysis.stats import psychometric
+
+    def counts_of(name: str) -> pd.DataFrame:
+        rows = np.array(DATASETS[name], dtype=float)
+        return pd.DataFrame({"level": rows[:, 0], "k": 3 * rows[:, 1], "n": 3 * rows[:, 2]})
+
+    separated, moderate = counts_of("near separation"), counts_of("moderate")
+    assert posterior_fit(separated, gamma=0.5).slope_at_limit
+    assert not posterior_fit(moderate, gamma=0.5).slope_at_limit
+    for counts, flagged in ((separated, True), (moderate, False)):
+        trials = counts.loc[counts.index.repeat(counts["n"].astype(int))].reset_index(drop=True)
+        trials["correct"] = np.concatenate(
+            [[1] * int(k) + [0] * int(n - k) for k, n in zip(counts["k"], counts["n"], strict=True)]
+        )
+        trials["participant"] = "P1"
+        row = psychometric(trials, level="level", correct="correct", subject="participant",
+                           per_subject="posterior").iloc[0]  # fmt: skip
+        assert row["note"].startswith("posterior mode, 95 % profile intervals")
+        assert ("do not bound the slope" in row["note"]) == flagged
+    with pytest.raises(AnalysisError, match="interval must be"):
+        posterior_fit(moderate, gamma=0.5, interval="bootstrap")  # type: ignore[arg-type]
+
+
 @pytest.mark.slow
-def test_posterior_intervals_cover_simulated_observers() -> None:
-    """200 simulated observers of gain_staircase (50 staircase trials each; the truth is the
-    protocol's observer): the 95 % credible intervals hold the true midpoint and slope at
-    least 90 % of the time (maximum likelihood with bootstrap intervals: about half)."""
+@pytest.mark.parametrize("protocol_name", ["gain_staircase", "gain_2afc"])
+def test_profile_intervals_cover_simulated_observers(protocol_name: str) -> None:
+    """200 simulated observers (50 staircase trials each, or gain_2afc's constant stimuli;
+    the truth is the protocol's observer; seed 11, not the seed the summary was chosen on):
+    the 95 % profile intervals hold the true midpoint and slope 0.90-0.98 of the time (the
+    credible intervals: 0.99-1.00 - too wide)."""
     from facelab.analysis.psychometric import count_responses
     from facelab.analysis.tasks import choice_outcome
     from facelab.experiment.simulate import simulated_rows
     from facelab.protocol import load_protocol
     from facelab.resources import protocol_path
 
-    protocol = load_protocol(protocol_path("gain_staircase"))
+    protocol = load_protocol(protocol_path(protocol_name))
     truth, task = protocol.simulation.observer, protocol.tasks[0]
     hits = []
-    for i, rng in enumerate(np.random.default_rng(7).spawn(200)):
+    for i, rng in enumerate(np.random.default_rng(11).spawn(200)):
         rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=rng))
         rows = rows[rows["item"] == task.id]
         y, gamma = choice_outcome(rows, task)
@@ -69,4 +146,4 @@ def test_posterior_intervals_cover_simulated_observers() -> None:
         hits.append((fit.midpoint_ci_low <= truth.midpoint <= fit.midpoint_ci_high,
                      fit.slope_ci_low <= truth.slope <= fit.slope_ci_high))  # fmt: skip
     coverage = np.mean(hits, axis=0)
-    assert coverage[0] >= 0.9 and coverage[1] >= 0.9, coverage
+    assert np.all((coverage >= 0.9) & (coverage <= 0.98)), coverage
