@@ -29,6 +29,34 @@ from facelab.stimuli.speech.tts import synthesize
 __all__ = ["bench_render", "bench_render_grid", "bench_visemes"]
 
 
+#: a voice none of whose clips was scored (the aligner refused every one)
+_UNSCORED = {"core_accuracy": None, "per_vowel": {}, "frames": 0, "clips": 0, "confusion": None}
+
+
+def natural_voice_row(voice: str, *, sentences: dict, searched: dict, syllables: dict,
+                      with_text: dict) -> dict:  # fmt: skip
+    """One voice's bench row from :func:`~facelab.stimuli.speech.natural.score_natural`'s
+    results (a voice missing from one: nothing scored there - 0 clips, accuracy None)."""
+    from facelab.stimuli.speech.natural import NATURAL_HELDOUT
+
+    sent, search = sentences.get(voice, _UNSCORED), searched.get(voice, _UNSCORED)
+    syl, text = syllables.get(voice, _UNSCORED), with_text.get(voice, _UNSCORED)
+    return {
+        "held_out": voice in NATURAL_HELDOUT,
+        "sentences_audio_only": sent["core_accuracy"],
+        "sentences_per_vowel": sent["per_vowel"],
+        "sentences_warp_search": search["core_accuracy"],
+        "sentences_frames": sent["frames"],
+        "sentences_scored": sent["clips"],
+        "sentences_confusion": sent["confusion"],
+        "syllables_audio_only": syl["core_accuracy"],
+        "syllables_per_vowel": syl["per_vowel"],
+        "syllables_aligned_with_text": text["core_accuracy"],
+        "syllables_frames": syl["frames"],
+        "syllables_confusion": syl["confusion"],
+    }
+
+
 def natural_voice_rows(model, *, quick: bool = False) -> dict:
     """Per Kokoro voice (trained-on and held-out marked): the share of vowel-core frames
     heard right by audio-only analysis, per vowel, with its confusion - in the corpus's
@@ -64,22 +92,9 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
         return from_phonemes(found.phones, duration_s=len(syl.samples) / syl.sample_rate)
 
     with_text = score_natural(syllables, tracks={s: aligned(s) for s in syllables})
-    rows = {}
-    for voice in voices:
-        rows[voice] = {
-            "held_out": voice in NATURAL_HELDOUT,
-            "sentences_audio_only": in_sentences[voice]["core_accuracy"],
-            "sentences_per_vowel": in_sentences[voice]["per_vowel"],
-            "sentences_warp_search": searched[voice]["core_accuracy"],
-            "sentences_frames": in_sentences[voice]["frames"],
-            "sentences_scored": in_sentences[voice]["clips"],
-            "sentences_confusion": in_sentences[voice]["confusion"],
-            "syllables_audio_only": alone[voice]["core_accuracy"],
-            "syllables_per_vowel": alone[voice]["per_vowel"],
-            "syllables_aligned_with_text": with_text[voice]["core_accuracy"],
-            "syllables_frames": alone[voice]["frames"],
-            "syllables_confusion": alone[voice]["confusion"],
-        }
+    parts = {"sentences": in_sentences, "searched": searched, "syllables": alone,
+             "with_text": with_text}  # fmt: skip
+    rows = {voice: natural_voice_row(voice, **parts) for voice in voices}
     return {
         "voices": rows,
         "sentences": len(held[:6] if quick else held),  # per voice; sentences_scored: aligned

@@ -73,6 +73,23 @@ def test_scoring_counts_core_frames_per_voice_and_vowel() -> None:
     assert scores["v1"]["clips"] == 2 and scores["v2"]["clips"] == 1
 
 
+def test_a_bench_row_reports_a_voice_with_nothing_scored() -> None:
+    """The aligner may refuse every sentence of a voice: its bench row then says 0 scored and
+    no accuracy, instead of failing the whole bench."""
+    from facelab.stimuli.bench import natural_voice_row
+
+    times = np.arange(60) / 100.0
+    syl = NaturalClip("x", "jm_kumo", 1.0, np.zeros(10, np.float32), RATE, ((0.2, 0.4, "a"),))
+    weights = np.zeros((len(times), len(VISEMES)))
+    weights[:, VISEMES.index(VOWEL_VISEMES[0])] = 1.0
+    scored = score_natural([syl], tracks={syl: VisemeTrack(times=times, weights=weights)})
+    row = natural_voice_row("jm_kumo", sentences={}, searched={}, syllables=scored,
+                            with_text=scored)  # fmt: skip
+    assert row["held_out"] and row["sentences_scored"] == 0
+    assert row["sentences_audio_only"] is None and row["sentences_frames"] == 0
+    assert row["syllables_audio_only"] == 1.0 and row["syllables_frames"] == 20
+
+
 def test_voices_and_syllables_are_fixed_by_the_issue() -> None:
     assert set(NATURAL_TRAIN).isdisjoint(NATURAL_HELDOUT)
     assert set(NATURAL_HELDOUT) == {"jf_tebukuro", "jm_kumo"}

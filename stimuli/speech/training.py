@@ -296,9 +296,14 @@ def training_matrix(
     return np.vstack(xs), np.concatenate(ys).astype(str)
 
 
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    """A value drawn log-uniformly between ``bounds`` (ratios: a warp, a rate)."""
+    log_lo, log_hi = np.log(bounds)
+    return float(np.exp(rng.uniform(log_lo, log_hi)))
+
+
 def _warps(rng: np.random.Generator, warp_range: tuple[float, float]) -> tuple[float, float]:
-    log_lo, log_hi = np.log(warp_range)
-    return 1.0, float(np.exp(rng.uniform(log_lo, log_hi)))
+    return 1.0, _log_uniform(rng, warp_range)
 
 
 def synthetic_utterances(
@@ -365,8 +370,7 @@ def natural_utterances(
         for warp in _warps(rng, warp_range):
             out.append(_clip_utterance(clip, warp=warp, slower=1.0))
         if lower_range is not None:
-            slower = float(np.exp(rng.uniform(*np.log(lower_range))))
-            out.append(_clip_utterance(clip, warp=1.0, slower=slower))
+            out.append(_clip_utterance(clip, warp=1.0, slower=_log_uniform(rng, lower_range)))
     return out
 
 
