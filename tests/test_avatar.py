@@ -103,6 +103,25 @@ def test_lids_close_and_brows_rise(head: Avatar) -> None:
     assert brow[:, 1].max() > 0.005 and brow[:, 1].min() >= -1e-6
 
 
+def test_the_cheek_rises_and_narrows_the_eye_from_below(head: Avatar) -> None:
+    """cheekSquint (AU6, the smile's cheek raise): the lower lid rises by 2 mm or more and the
+    skin under the eye comes forward, so a Duchenne smile's eyes narrow from below; the upper
+    lid stays (that is eyeSquint's and eyeBlink's)."""
+    for side in ("left", "right"):
+        up, lo = head.landmarks[f"upper_lid_{side}"], head.landmarks[f"lower_lid_{side}"]
+        target = head.targets[f"cheekSquint{side.title()}"]
+        assert target[lo, 1] >= 0.002 and abs(target[up, 1]) < 5e-4
+        raised = head.deform({f"cheekSquint{side.title()}": 1})
+        gap = raised[up, 1] - raised[lo, 1]
+        assert 0.004 < gap < head.neutral[up, 1] - head.neutral[lo, 1] - 0.002
+    sgn = {"Left": 1, "Right": -1}
+    for side, s in sgn.items():
+        x, y = head.neutral[:, 0], head.neutral[:, 1]
+        under = (np.abs(x - s * 0.033) < 0.006) & (np.abs(y - 0.005) < 0.004)
+        under &= head.neutral[:, 2] > 0.04  # the face's skin, not the back of the head
+        assert under.sum() > 3 and head.targets[f"cheekSquint{side}"][under, 2].mean() > 0.001
+
+
 # mouthClose alone is, in Apple's words, unrealistic (lips sealed with the jaw closed):
 # it is defined relative to jawOpen, so it is exempt from the crossing check alone; so is
 # mouthPucker, whose lower lip tucks behind the upper one (test_mouth_shapes_behave_as_named)

@@ -978,8 +978,15 @@ def _build_targets(
         t[f"browDown{side}"] = field(-sgn * 0.0015, -0.0040, 0.0005, brow)
         t[f"browOuterUp{side}"] = field(0, 0.0055, 0, outer)
         t[f"_browInnerUp{side}"] = field(0, 0.0060, 0.0003, inner)
-        t[f"cheekSquint{side}"] = field(0, 0.0030, 0.0008, _cheek(x, y, sgn) * front) + field(
-            0, 0.0010, 0, lower_lid
+        # the cheek rises (AU6): the skin under the eye bunches up and forward, pushing the
+        # lower lid up - the eye narrows from below, as in ARKit's reference
+        under_eye = np.exp(-0.5 * (((x - sgn * 0.033) / 0.014) ** 2
+                                   + ((y - (EYE_Y - 0.017)) / 0.009) ** 2)) * front  # fmt: skip
+        under_eye = under_eye * (1 - lower_lid) * ~eye
+        t[f"cheekSquint{side}"] = (
+            field(0, 0.0030, 0.0008, _cheek(x, y, sgn) * front)
+            + field(0, 0.0035, 0.0020, under_eye)
+            + field(0, 0.0025, 0.0006, lower_lid)
         )
         nose_side = (
             np.exp(-0.5 * (((x - sgn * 0.010) / 0.006) ** 2 + ((y + 0.030) / 0.008) ** 2)) * front

@@ -200,6 +200,11 @@ def render_levels(
     return rows
 
 
+#: how much the contact sheet amplifies the difference images (so a step of a few grey levels
+#: shows; the sheet states the factor)
+DIFF_GAIN = 4
+
+
 def _contact_sheet(
     model: ImpressionModel, expression: str, rows: list[dict], peaks: list[np.ndarray], path: Path
 ) -> None:
@@ -209,16 +214,32 @@ def _contact_sheet(
     import matplotlib.pyplot as plt
 
     m = model.model(expression)
-    fig = plt.figure(figsize=(3.2 * len(peaks) + 4.5, 4.2))
-    grid = fig.add_gridspec(1, len(peaks) + 1, width_ratios=[3.2] * len(peaks) + [4.5])
-    for i, (row, img) in enumerate(zip(rows, peaks, strict=True)):
-        ax = fig.add_subplot(grid[0, i])
+    n = len(peaks)
+    # top row: the peak face at each level; bottom row: where and how much it differs from
+    # the lowest level's face (absolute RGB difference, amplified so that a step shows)
+    fig = plt.figure(figsize=(3.0 * n + 6.0, 6.6))
+    outer = fig.add_gridspec(1, 2, width_ratios=[3.0 * n, 4.0], wspace=0.45)
+    grid = outer[0].subgridspec(2, n, hspace=0.12, wspace=0.04)
+    squares = []
+    for img in peaks:
         h, w = img.shape[:2]
         side = min(h, w)
-        ax.imshow(img[(h - side) // 2 : (h + side) // 2, (w - side) // 2 : (w + side) // 2])
+        squares.append(img[(h - side) // 2 : (h + side) // 2, (w - side) // 2 : (w + side) // 2])
+    base = squares[0].astype(float)
+    for i, (row, img) in enumerate(zip(rows, squares, strict=True)):
+        ax = fig.add_subplot(grid[0, i])
+        ax.imshow(img)
         ax.set_title(f"q = {row['q_intended']:g} (realised {row['q_realised']:.2f})", fontsize=9)
         ax.axis("off")
-    ax = fig.add_subplot(grid[0, -1])
+        ax = fig.add_subplot(grid[1, i])
+        diff = np.abs(img.astype(float) - base).mean(axis=2)
+        ax.imshow(np.clip(diff * DIFF_GAIN, 0, 255), cmap="magma", vmin=0, vmax=255)
+        ax.set_title(
+            f"|face - q = {rows[0]['q_intended']:g}| x{DIFF_GAIN}: mean {diff.mean():.2f}/255",
+            fontsize=8,
+        )
+        ax.axis("off")
+    ax = fig.add_subplot(outer[1])
     if model.space == "arkit":
         order = np.argsort(-np.abs(m.direction))[:10]
         ax.barh([ARKIT_NAMES[j] for j in order][::-1], m.direction[order][::-1], color="#4c72b0")
@@ -234,8 +255,7 @@ def _contact_sheet(
         f"LOPO {', '.join(f'{k} {v}' for k, v in m.cv.items() if k in ('accuracy', 'r2'))})",
         fontsize=10,
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
