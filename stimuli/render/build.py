@@ -261,6 +261,12 @@ def build_clips(
                 "method": cond.method,
                 "params": cond.params,
                 "track_source": track_source_text(job.stimulus),
+                # audio-only analysis: the mel-filter warp its search chose (1 = as trained)
+                **(
+                    {"analysis_warp": tracks[0].warp}
+                    if job.stimulus.track_source == "audio"
+                    else {}
+                ),
                 "avatar": avatar.name,
                 "avatar_kind": avatar.source.get("kind", "unknown"),
                 "stand_in": note,

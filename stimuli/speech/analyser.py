@@ -24,9 +24,13 @@ constant 2 s, starting from the training speech's mean): the speaker's and the c
 average spectral shape fades out as the utterance goes on, with no look-ahead. Trained on the
 synthesizers and two of the natural voices, the network read the third one's sentences at
 0.62-0.90 without it and 0.84-0.91 with it (each voice left out in turn).
-:func:`choose_warp` (vocal-tract-length normalisation chosen per utterance) remains an option
-(``warp="auto"``); on the shipped model it helps some voices and hurts others,
-so it is off by default (``facelab bench visemes`` reports both).
+:func:`analyze` then chooses a mel-filter warp per utterance (:func:`choose_warp`,
+vocal-tract-length normalisation by the model's confidence; ``warp=1`` turns it off). Chosen as
+the default on material that may be tuned on only - the natural training voices each left out
+of a model trained without it, as recorded and read at 0.85 / 0.75 of their rate (a lower,
+longer vocal tract), and synthetic voices kept out of training: mean 0.877 / 0.872 / 0.866
+against 0.879 / 0.836 / 0.727 at warp 1, synthetic 0.950 against 0.936; the search finds the
+simulated shift (median warp 0.74-0.76 at rate 0.75). ``facelab bench visemes`` reports both.
 
 Why this and not uLipSync's template matching: the network uses the same MFCC evidence but
 learns which directions separate the classes across voices (uLipSync's L1/L2/cosine
@@ -413,16 +417,17 @@ def analyze(
     *,
     sample_rate: int,
     model: VisemeModel | None = None,
-    warp: float | str = 1.0,
+    warp: float | str = "auto",
 ) -> VisemeTrack:
     """15 viseme weights per 10 ms frame from audio alone (see the module docstring).
 
     samples : (n,) mono float in [-1, 1]; sample_rate : Hz, any rate >= 8 kHz
     (:func:`analysis_input` resamples rates the framing cannot use).
-    warp : mel-filter warp, 1 (default) = the filters the model was trained with (the model
-    is trained across voices and warps, see the module docstring); ``"auto"`` chooses one
-    per utterance by :func:`choose_warp` (a calibrated model always runs at warp 1). The
-    track's ``warp`` says which was used.
+    warp : ``"auto"`` (default) chooses the mel-filter warp per utterance by
+    :func:`choose_warp` (vocal-tract-length normalisation; a calibrated model always runs at
+    warp 1); a number fixes it, 1 = the filters the model was trained with. The track's
+    ``warp`` says which was used. (:class:`StreamingAnalyzer`, for live audio, runs at a
+    given warp, 1 unless told.)
     Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
     on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
     """

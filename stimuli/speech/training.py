@@ -520,7 +520,7 @@ def per_voice(
         for text in sentences:
             speech = speak(text, variant)
             track = analyze(
-                speech.samples, sample_rate=speech.sample_rate, model=model
+                speech.samples, sample_rate=speech.sample_rate, model=model, warp=1.0
             ).compensated()
             score_track(evs["audio"], track, track.times, speech.phones)
             t1 = analyze(
@@ -746,7 +746,7 @@ def cross_synthesizer(*, rng: np.random.Generator, sentences: int = 8) -> dict:
             for text in held[:sentences]:
                 speech = speak(text, voice)
                 track = analyze(
-                    speech.samples, sample_rate=speech.sample_rate, model=model
+                    speech.samples, sample_rate=speech.sample_rate, model=model, warp=1.0
                 ).compensated()
                 score_track(ev, track, track.times, speech.phones)
             scores[voice.label()] = round(ev.all_accuracy, 4)
