@@ -169,6 +169,15 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
     assert changed == {"vowels__aiueo__emphasized.mp4"}
     meta = json.loads((out / "vowels__aiueo__emphasized.json").read_text())
     assert meta["params"]["gain"] == 1.2
+    assert meta["track_source"].startswith("words") and "analysis_warp" not in meta
+    # analysed from its audio instead: the clip names the warp the analysis chose
+    line = "text: あ。い。う。え。お。\n"
+    audio_only = text.replace(line, line + "        track_from: audio\n", 1)
+    proto.write_text(audio_only, encoding="utf-8")
+    assert main(argv) == 0
+    meta = json.loads((out / "vowels__aiueo__standard.json").read_text())
+    assert meta["track_source"].startswith("audio analysis")
+    assert 0.7 <= meta["analysis_warp"] <= 1.4
 
 
 def test_msaa_beyond_what_opengl_offers_is_a_clear_error() -> None:
