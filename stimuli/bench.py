@@ -46,6 +46,8 @@ def natural_voice_row(voice: str, *, sentences: dict, searched: dict, syllables:
         "sentences_audio_only": sent["core_accuracy"],
         "sentences_per_vowel": sent["per_vowel"],
         "sentences_warp_search": search["core_accuracy"],
+        "sentences_warp_search_per_vowel": search["per_vowel"],
+        "sentences_warp_search_confusion": search["confusion"],
         "sentences_frames": sent["frames"],
         "sentences_scored": sent["clips"],
         "sentences_confusion": sent["confusion"],

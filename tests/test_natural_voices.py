@@ -88,6 +88,7 @@ def test_a_bench_row_reports_a_voice_with_nothing_scored() -> None:
     assert row["held_out"] and row["sentences_scored"] == 0
     assert row["sentences_audio_only"] is None and row["sentences_frames"] == 0
     assert row["syllables_audio_only"] == 1.0 and row["syllables_frames"] == 20
+    assert row["sentences_warp_search_per_vowel"] == {}
 
 
 def test_voices_and_syllables_are_fixed_by_the_issue() -> None:
