@@ -23,9 +23,10 @@ the model otherwise is that of :mod:`facelab.analysis.psychometric`. Two summari
   and each interval holds the values whose *profile* - the log posterior maximised over the
   other two parameters - lies within ``chi2_1(ci) / 2`` of the mode (a penalised
   likelihood-ratio interval, as ``logistf`` gives for separated logistic regressions; ends
-  interpolated between grid cells). Over 200 simulated staircase observers these 95 %
-  intervals hold the true midpoint and slope 0.93-0.99 of the time at several truths
-  (``scripts/psychometric_coverage.py``).
+  interpolated between grid cells). Over simulated observers these 95 % intervals hold the
+  true midpoint and slope 0.91-0.995 of the time across truths and designs - a little
+  conservative where 50 staircase trials cannot bound the slope (0.974 / 0.981 at
+  ``gain_staircase``'s observer over 1000); ``scripts/psychometric_coverage.py``.
 * ``interval="credible"``: marginal posterior medians and equal-tailed credible intervals
   (psignifit's summary; checked against psignifit 4). With 50 trials the priors' breadth
   makes these conservative (coverage 0.995 / 1.000 at ``gain_staircase``'s observer) and a
