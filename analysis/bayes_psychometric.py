@@ -173,16 +173,15 @@ def posterior_fit(
     if interval == "profile":
         drop = float(stats.chi2.ppf(ci, df=1)) / 2.0
         # log-posterior cells have -690 where a prior is zero; the profile never ends there
-        m_lo, m_mode, m_hi, m_lim = _profile_interval(
+        m_lo, m_est, m_hi, m_lim = _profile_interval(
             mids, log_post.max(axis=(1, 2)), drop, loglik.max(axis=(1, 2))
         )
-        w_lo, w_mode, w_hi, w_lim = _profile_interval(
+        w_lo, w_est, w_hi, w_lim = _profile_interval(
             widths, log_post.max(axis=(0, 2)), drop, loglik.max(axis=(0, 2))
         )
-        l_lo, l_mode, l_hi, _ = _profile_interval(
+        l_lo, l_est, l_hi, _ = _profile_interval(
             lapses, log_post.max(axis=(0, 1)), drop, loglik.max(axis=(0, 1))
         )
-        m_est, w_est, l_est = m_mode, w_mode, l_mode
     else:
         post = np.exp(log_post - log_post.max())
         tail = (1.0 - ci) / 2.0

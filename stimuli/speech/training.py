@@ -374,6 +374,9 @@ def natural_utterances(
     return out
 
 
+_VOWEL_CLASSES = np.array([VOWEL_CLASS[v] for v in VOWELS])  # the class each vowel trains
+
+
 def _clip_utterance(clip: NaturalClip, *, warp: float, slower: float) -> Utterance:
     """A clip's frames at mel-filter ``warp``, its samples read at ``slower`` times their
     rate (rounded to 100 Hz; resampled back to the clip's rate, so that the mel filters keep
@@ -389,9 +392,6 @@ def _clip_utterance(clip: NaturalClip, *, warp: float, slower: float) -> Utteran
     idx, vowel = core_frames(times, scaled)
     labels[idx] = _VOWEL_CLASSES[vowel]
     return raw, labels.astype(str)
-
-
-_VOWEL_CLASSES = np.array([VOWEL_CLASS[v] for v in VOWELS])
 
 
 def fit_model(
