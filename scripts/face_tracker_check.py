@@ -19,6 +19,12 @@ head turned ±25° in yaw included (``still_yaw_m25``/``still_yaw_25``) - and re
 confidence: median and minimum over the vowel frames, and per still (issue 37.3 compares
 the default head with a real avatar by it).
 ``scripts/face_tracker_check.sh`` runs both, creating ``.venv-mediapipe`` when missing.
+
+``clips`` (MediaPipe's venv) runs the detector on every frame of every clip of a
+``facelab render`` folder, decoded from the MP4s participants see::
+
+    facelab render protocols/kato2021.yaml --size 320x180 --out DIR
+    .venv-mediapipe/bin/python scripts/face_tracker_check.py clips DIR [--below 0.92]
 """
 
 from __future__ import annotations
@@ -177,16 +183,75 @@ def track(folder: Path) -> int:
     return 0 if result["passed"] else 1
 
 
+def clips(folder: Path, *, below: float) -> int:
+    """MediaPipe face detection (short range) on every frame of every clip a ``facelab render``
+    folder lists (decoded by ffmpeg, as participants see them). Prints JSON (also written to
+    ``FOLDER/face_detection.json``): per clip the median, minimum and the frames under
+    ``below``; over all frames the same. Exits 1 when a frame has no face."""
+    import subprocess
+
+    import mediapipe as mp
+    import numpy as np
+
+    detector = mp.solutions.face_detection.FaceDetection(
+        model_selection=0, min_detection_confidence=0.1
+    )
+    rows = list(csv.DictReader((folder / "clips.csv").read_text(encoding="utf-8").splitlines()))
+    per_clip = {}
+    every = []
+    for row in rows:
+        w, h = int(row["width"]), int(row["height"])
+        raw = subprocess.run(
+            ["ffmpeg", "-v", "error", "-i", str(folder / row["path"]), "-f", "rawvideo",
+             "-pix_fmt", "rgb24", "-"],
+            check=True, capture_output=True,
+        ).stdout  # fmt: skip
+        frames = np.frombuffer(raw, np.uint8).reshape(-1, h, w, 3)
+        scores = np.array([
+            max((float(d.score[0]) for d in detector.process(f).detections or []), default=0.0)
+            for f in frames
+        ])  # fmt: skip
+        every.append(scores)
+        low = np.nonzero(scores < below)[0]
+        per_clip[row["clip_id"]] = {
+            "frames": len(scores),
+            "median": round(float(np.median(scores)), 3),
+            "min": round(float(scores.min()), 3),
+            "min_frame": int(scores.argmin()),
+            f"frames_below_{below}": len(low),
+        }
+    allscores = np.concatenate(every) if every else np.zeros(0)
+    result = {
+        "model": f"mediapipe {mp.__version__} face detection, short range",
+        "folder": str(folder),
+        "frames": len(allscores),
+        "median": round(float(np.median(allscores)), 3) if len(allscores) else None,
+        "min": round(float(allscores.min()), 3) if len(allscores) else None,
+        f"frames_below_{below}": int((allscores < below).sum()),
+        "frames_without_a_face": int((allscores == 0).sum()),
+        "clips": per_clip,
+    }
+    text = json.dumps(result, indent=2)
+    (folder / "face_detection.json").write_text(text + "\n", encoding="utf-8")
+    print(text)
+    return 0 if len(allscores) and result["frames_without_a_face"] == 0 else 1
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("step", choices=["render", "track"])
+    parser.add_argument("step", choices=["render", "track", "clips"])
     parser.add_argument("folder", nargs="?")
     parser.add_argument("--out")
     parser.add_argument("--protocol", default="kato2021")
     parser.add_argument("--avatar", help="a glTF/VRM file instead of the protocol's avatar")
     parser.add_argument("--size", default="640x360")
+    parser.add_argument(
+        "--below", type=float, default=0.92, help="clips: count the frames under this score"
+    )
     args = parser.parse_args()
     folder = Path(args.out or args.folder or "results/face_tracker_check")
+    if args.step == "clips":
+        return clips(folder, below=args.below)
     if args.step == "render":
         render(folder, protocol_ref=args.protocol, avatar_file=args.avatar, size=args.size)
         return 0

@@ -122,6 +122,32 @@ def test_the_cheek_rises_and_narrows_the_eye_from_below(head: Avatar) -> None:
         assert under.sum() > 3 and head.targets[f"cheekSquint{side}"][under, 2].mean() > 0.001
 
 
+def test_the_hairline_is_a_curve_not_the_grids_staircase(head: Avatar) -> None:
+    """The hair shell's edge over the forehead follows the hairline: along x its height never
+    steps by more than 1 mm from one border vertex to the next (the grid's rows are ~3 mm)."""
+    hair = head.parts["hair"]
+    local = {int(g): i for i, g in enumerate(hair)}
+    faces = head.faces[np.isin(head.faces, hair).all(axis=1)]
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    border = np.unique(uniq[counts == 1])
+    assert all(int(b) in local for b in border)
+    edge = head.neutral[border]
+    edge = edge[(np.abs(edge[:, 0]) < 0.035) & (edge[:, 2] > 0.04)]
+    edge = edge[np.argsort(edge[:, 0])]
+    assert len(edge) > 30 and np.abs(np.diff(edge[:, 1])).max() < 0.001
+
+
+def test_the_nose_sits_where_a_face_has_it(head: Avatar) -> None:
+    """The nose's most forward point about 0.6 of the way from the eyes' height down to the
+    mouth (adults: eyes to subnasale ~50 mm of ~72 mm to the lips' meeting line); the first
+    design's long nose had it at 0.70, and a face detector read that face less surely."""
+    v, lm = head.neutral, head.landmarks
+    eyes = 0.5 * (v[lm["upper_lid_left"], 1] + v[lm["lower_lid_left"], 1])
+    ratio = (eyes - v[lm["nose_tip"], 1]) / (eyes - v[lm["upper_lip"], 1])
+    assert 0.55 < ratio < 0.66
+
+
 # mouthClose alone is, in Apple's words, unrealistic (lips sealed with the jaw closed):
 # it is defined relative to jawOpen, so it is exempt from the crossing check alone; so is
 # mouthPucker, whose lower lip tucks behind the upper one (test_mouth_shapes_behave_as_named)

@@ -54,14 +54,15 @@ HEAD_CENTRE_Y = 0.0
 MOUTH_Y = -0.052  # height of the mouth slit
 MOUTH_HALF_W = 0.0235
 EYE_Y = 0.022
-EYE_X = 0.031
+EYE_X = 0.033
 EYE_R = 0.0118
 EYE_HALF_W, EYE_HALF_H = 0.0120, 0.0055  # the lid opening (an almond), half width and height
+NOSE_LIFT = 0.005  # the nose's tip and base sit this much above the first design's
 LID_EXTENT = 0.0085  # skin above the upper lid margin that moves in a blink
 HINGE = np.array([0.0, -0.002, -0.012])  # jaw rotation axis point (x axis through it)
 
 SKIN = np.array([0.86, 0.68, 0.58])
-LIP = np.array([0.72, 0.38, 0.38])
+LIP = np.array([0.74, 0.30, 0.34])
 BROW = np.array([0.25, 0.18, 0.14])
 HAIR = np.array([0.16, 0.11, 0.08])
 SCLERA = np.array([0.95, 0.94, 0.92])
@@ -78,8 +79,16 @@ EAR = np.array([0.84, 0.62, 0.54])
 def _front_surface(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Forward offset (metres, along z) of facial features at surface points (front only)."""
     front = _smoothstep(0.0, 0.06, z)
-    nose = 0.021 * _gauss(x, y, 0.0, -0.018, 0.009, 0.022) * _smoothstep(-0.045, -0.030, y)
-    nose += 0.008 * _gauss(x, y, 0.0, -0.034, 0.013, 0.008)  # tip and alae
+    # the nose: a narrow bridge widening towards a rounded tip, with the alae either side
+    ny = y - NOSE_LIFT
+    half_w = 0.0060 + 0.0045 * _smoothstep(-0.004, -0.028, ny)
+    nose = 0.021 * np.exp(-0.5 * ((x / half_w) ** 2 + ((ny + 0.018) / 0.022) ** 2))
+    nose *= _smoothstep(-0.045, -0.030, ny)
+    nose += 0.007 * _gauss(x, ny, 0.0, -0.0335, 0.009, 0.007)
+    nose += 0.0035 * (
+        _gauss(x, ny, 0.0088, -0.0335, 0.0033, 0.0038)
+        + _gauss(x, ny, -0.0088, -0.0335, 0.0033, 0.0038)
+    )
     bridge = 0.004 * _gauss(x, y, 0.0, 0.012, 0.008, 0.012)
     sockets = -0.009 * (
         _gauss(x, y, EYE_X, EYE_Y, 0.014, 0.010) + _gauss(x, y, -EYE_X, EYE_Y, 0.014, 0.010)
@@ -242,7 +251,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     for sgn in (1, -1):
         blush = _gauss(vx, vy, sgn * 0.040, -0.022, 0.016, 0.014) * (vz > 0.02)
         colors = _tint(colors, np.array([0.86, 0.52, 0.48]), 0.10 * blush)
-    tip = _gauss(vx, vy, 0.0, -0.032, 0.008, 0.008) * (vz > 0.05)
+    tip = _gauss(vx, vy, 0.0, -0.032 + NOSE_LIFT, 0.008, 0.008) * (vz > 0.05)
     colors = _tint(colors, np.array([0.86, 0.55, 0.50]), 0.08 * tip)
     beard = (
         _smoothstep(-0.066, -0.085, vy) * _smoothstep(0.072, 0.045, np.abs(vx)) * (vz > 0.0)
@@ -256,7 +265,16 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
         shade += 0.16 * _gauss(vx, vy, sgn * (EYE_X - 0.004), EYE_Y + 0.009, 0.011, 0.004)
         shade += 0.10 * _gauss(vx, vy, sgn * (EYE_X - 0.012), EYE_Y - 0.002, 0.004, 0.008)
         shade += 0.08 * _gauss(vx, vy, sgn * (EYE_X - 0.002), EYE_Y - 0.011, 0.010, 0.003)
-    colors *= 1 - np.clip(shade, 0, 0.3)[:, None] * (vz > 0.02)[:, None]
+    colors *= 1 - np.clip(2.2 * shade, 0, 0.66)[:, None] * (vz > 0.02)[:, None]
+    # light the per-vertex shading cannot take away (it casts no shadows): beside the nose,
+    # the folds from the nose to the mouth corners, under the nose and under the lower lip
+    occluded = np.zeros(len(vx))
+    for sgn in (1, -1):
+        occluded += 0.09 * _gauss(vx, vy, sgn * 0.0095, -0.014 + NOSE_LIFT, 0.0022, 0.013)
+        occluded += 0.05 * _gauss(vx, vy, sgn * 0.021, -0.047, 0.004, 0.009)
+    occluded += 0.12 * _gauss(vx, vy, 0.0, -0.0405 + NOSE_LIFT, 0.009, 0.0025)
+    occluded += 0.07 * _gauss(vx, vy, 0.0, -0.0665, 0.013, 0.003)
+    colors *= 1 - np.clip(occluded, 0, 0.24)[:, None] * (vz > 0.02)[:, None]
     mottle = np.sin(410 * vx + 37 * vy) * np.sin(380 * vy - 29 * vz) * np.sin(350 * vz + 41 * vx)
     colors *= 1 + 0.015 * mottle[:, None]
     # the vermilion: an upper lip with a cupid's bow and a fuller lower lip, edged sharply
@@ -284,7 +302,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     # nostrils and the shadowed underside of the nose
     for sgn in (1, -1):
         nostril = np.exp(
-            -0.5 * (((vx - sgn * 0.0062) / 0.0026) ** 2 + ((vy + 0.0385) / 0.0016) ** 2)
+            -0.5 * (((vx - sgn * 0.0062) / 0.0026) ** 2 + ((vy + 0.0385 - NOSE_LIFT) / 0.0016) ** 2)
         )
         colors *= 1 - 0.55 * (nostril * (vz > 0.05))[:, None]
     # inner lips: lip colour at the edge, darkening to the mouth interior
@@ -320,7 +338,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
     hair_w *= 1 - ear_zone * _smoothstep(0.055, 0.068, ax)
     hair_w = np.maximum(hair_w, _smoothstep(0.0, -0.04, vz) * _smoothstep(-0.06, -0.02, vy))
     hair_w *= ~np.isin(np.arange(len(verts)), np.concatenate([upper_inner, lower_inner]))
-    paint = _smoothstep(0.0, 0.3, hair_w)  # the scalp is dark wherever the hair shell may end
+    paint = _smoothstep(0.2, 0.32, hair_w)  # the scalp is dark under the hair shell
     colors = _tint(colors, HAIR, paint)
 
     # drop the vertices the eye openings left unused, renumbering everything that refers to them
@@ -396,31 +414,11 @@ def _eyeball(side: int) -> _Part:
     """A sphere whose rings are centred on the line of sight, so the iris and pupil edges are
     circles (rings on each edge); the iris darkens towards its rim (the limbal ring)."""
     centre = _eye_centre(side)
+    # rings either side of the pupil's edge (12 degrees) and the iris' edge (36 degrees)
     alpha = np.radians(
-        [
-            0.5,
-            4,
-            8,
-            11.5,
-            12.5,
-            16,
-            20,
-            24,
-            27,
-            29.5,
-            30.5,
-            34,
-            40,
-            50,
-            62,
-            75,
-            90,
-            110,
-            135,
-            160,
-            179.5,
-        ]
-    )
+        [0.5, 4, 8, 11.5, 12.5, 16, 20, 24, 28, 32, 35.5, 36.5, 40, 46, 54, 64, 75, 90, 110, 135,
+         160, 179.5]
+    )  # fmt: skip
     theta = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     a, t = np.meshgrid(alpha, theta, indexing="ij")
     d = np.stack([np.sin(a) * np.cos(t), np.sin(a) * np.sin(t), np.cos(a)], -1).reshape(-1, 3)
@@ -446,12 +444,12 @@ def _eyeball(side: int) -> _Part:
     faces = np.vstack([faces, cap])
     ang = np.degrees(np.arccos(np.clip(d[:, 2], -1, 1)))
     colors = np.tile(SCLERA, (len(d), 1))
-    iris = ang < 30
-    limbal = np.clip((ang - 20) / 10, 0, 1)[:, None]
+    iris = ang < 36
+    limbal = np.clip((ang - 26) / 10, 0, 1)[:, None]
     colors[iris] = (IRIS * (1 - 0.55 * limbal) + 0.02 * limbal)[iris]
     colors[ang < 12] = PUPIL
     # the cornea bulges a little over the iris
-    radius = EYE_R * (1 + 0.06 * np.clip(1 - ang / 30, 0, 1) ** 2)
+    radius = EYE_R * (1 + 0.06 * np.clip(1 - ang / 36, 0, 1) ** 2)
     return _Part(
         centre + d * radius[:, None], faces, colors, f"eye_{'left' if side > 0 else 'right'}"
     )
@@ -530,9 +528,12 @@ def _body() -> list[_Part]:
         )
     neck_v = np.vstack(neck_v)
     neck_f = _grid_faces(rows, cols, wrap=True)[:, ::-1]  # rows go down here: flip the winding
+    # the jaw shades the top of the neck
+    under_jaw = _smoothstep(-0.115, -0.075, neck_v[:, 1]) * _smoothstep(-0.02, 0.03, neck_v[:, 2])
+    neck_c = np.tile(SKIN * 0.95, (len(neck_v), 1)) * (1 - 0.3 * under_jaw)[:, None]
     torso_v, torso_f = _torso()
     return [
-        _Part(neck_v, neck_f, np.tile(SKIN * 0.95, (len(neck_v), 1)), "neck"),
+        _Part(neck_v, neck_f, neck_c, "neck"),
         _Part(torso_v, torso_f, np.tile(CLOTH, (len(torso_v), 1)), "torso"),
     ]
 
@@ -605,9 +606,23 @@ def _hair(skin: _Part, hair_w: np.ndarray) -> _Part:
         thick[border] = 0.0
     hv = v[used] + out * thick[:, None]
     streak = 1 + 0.12 * np.sin(90 * np.arctan2(v[used, 0], v[used, 2]) + 50 * v[used, 1])
-    # the border fades into the skin beneath, so the hairline is not the grid's staircase
-    cover = _smoothstep(0.3, 0.75, hair_w[used])
-    colors = _tint(skin.colors[used], HAIR * streak[:, None], cover)
+    # the border onto the hairline itself: each border vertex moves to where hair_w crosses
+    # 0.3 on its edges to the inside (averaged), so the edge follows the hairline's curve, not
+    # the grid's triangles; its colour is the skin's there, a little covered by hair
+    base = skin.colors[used].copy()
+    e = adj.tocoo()
+    w = hair_w[used]
+    pick = border[e.row] & ~border[e.col]
+    b_i, c_i = e.row[pick], e.col[pick]
+    t = ((0.3 - w[b_i]) / np.maximum(w[c_i] - w[b_i], 1e-9))[:, None]
+    cnt = np.bincount(b_i, minlength=len(used)).astype(float)
+    moved = cnt > 0
+    for arr, src in ((hv, v[used]), (base, skin.colors[used])):
+        acc = np.zeros((len(used), 3))
+        np.add.at(acc, b_i, src[b_i] + t * (src[c_i] - src[b_i]))
+        arr[moved] = acc[moved] / cnt[moved, None]
+    cover = np.where(border, 0.4, _smoothstep(0.3, 0.75, w))
+    colors = _tint(base, HAIR * streak[:, None], cover)
     return _Part(hv, remap[faces], colors, "hair")
 
 

@@ -63,12 +63,12 @@ VISEME_MIXES: dict[str, dict[str, float]] = {
         "mouthUpperUpLeft": 0.1,
         "mouthUpperUpRight": 0.1,
     },
-    "viseme_ih": {  # spread, the lips parted over the teeth
+    "viseme_ih": {  # spread (the most of any vowel), the lips parted over the teeth
         "jawOpen": 0.15,
-        "mouthStretchLeft": 0.45,
-        "mouthStretchRight": 0.45,
-        "mouthSmileLeft": 0.25,
-        "mouthSmileRight": 0.25,
+        "mouthStretchLeft": 0.5,
+        "mouthStretchRight": 0.5,
+        "mouthSmileLeft": 0.3,
+        "mouthSmileRight": 0.3,
         "mouthLowerDownLeft": 0.15,
         "mouthLowerDownRight": 0.15,
         "mouthUpperUpLeft": 0.1,
