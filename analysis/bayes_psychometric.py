@@ -27,6 +27,13 @@ the model otherwise is that of :mod:`facelab.analysis.psychometric`. Two summari
   true midpoint and slope 0.91-0.995 of the time across truths and designs - a little
   conservative where 50 staircase trials cannot bound the slope (0.974 / 0.981 at
   ``gain_staircase``'s observer over 1000); ``scripts/psychometric_coverage.py``.
+* calibrated profile intervals (``drops=``, what ``facelab analyze`` gives each participant):
+  the same mode and profile, but each interval ends where the profile has dropped by an
+  amount found for the study's design - participants are simulated through the design as
+  an observer at the posterior mode of everyone's answers pooled, and
+  :func:`calibrated_drops` takes the 95th percentile of their profiles' deficit at that
+  (known) truth: a parametric-bootstrap calibration of the penalised likelihood ratio in
+  place of the chi-square's 1.92.
 * ``interval="credible"``: marginal posterior medians and equal-tailed credible intervals
   (psignifit's summary; checked against psignifit 4). With 50 trials the priors' breadth
   makes these conservative (coverage 0.995 / 1.000 at ``gain_staircase``'s observer) and a
@@ -35,6 +42,7 @@ the model otherwise is that of :mod:`facelab.analysis.psychometric`. Two summari
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -44,7 +52,7 @@ from scipy import special, stats
 
 from facelab.errors import AnalysisError
 
-__all__ = ["PosteriorFit", "posterior_fit"]
+__all__ = ["PosteriorFit", "calibrated_drops", "posterior_fit"]
 
 LN19 = float(np.log(19.0))
 N_MID, N_WIDTH, N_LAPSE = 101, 101, 51
@@ -123,17 +131,22 @@ def _profile_interval(values: np.ndarray, profile: np.ndarray, drop: float,
     return low, float(values[best]), high, bool(unbounded)
 
 
-def posterior_fit(
-    counts: pd.DataFrame,
-    *,
-    gamma: float,
-    ci: float = 0.95,
-    interval: Literal["profile", "credible"] = "profile",
-) -> PosteriorFit:
-    """The posterior fit of ``counts`` (columns ``level, n, k``: trials and "yes" answers at
-    each level) with guess rate ``gamma``, summarised as ``interval`` says (module doc)."""
-    if interval not in ("profile", "credible"):
-        raise AnalysisError(f"interval must be 'profile' or 'credible', not {interval!r}")
+@dataclass(frozen=True)
+class _Grid:
+    """The posterior on a grid: midpoints (M,), widths (W,), lapse rates (L,), the log
+    likelihood and the log posterior (M, W, L)."""
+
+    mids: np.ndarray
+    widths: np.ndarray
+    lapses: np.ndarray
+    loglik: np.ndarray
+    log_post: np.ndarray
+
+
+def _grid(counts: pd.DataFrame, *, gamma: float,
+          shape: tuple[int, int, int] = (N_MID, N_WIDTH, N_LAPSE)) -> _Grid:  # fmt: skip
+    """The log likelihood and log posterior of ``counts`` (``level, n, k``) on a grid of
+    ``shape`` (midpoints, widths, lapse rates) spanning the priors' support."""
     x = counts["level"].to_numpy(dtype=float)
     n = counts["n"].to_numpy(dtype=float)
     k = counts["k"].to_numpy(dtype=float)
@@ -143,9 +156,10 @@ def posterior_fit(
     lo, hi = float(levels.min()), float(levels.max())
     span = hi - lo
     step = float(np.diff(levels).min())
-    mids = np.linspace(lo - 0.5 * span, hi + 0.5 * span, N_MID)
-    widths = np.exp(np.linspace(np.log(step), np.log(3.0 * span), N_WIDTH))
-    lapses = np.linspace(0.0, LAPSE_MAX, N_LAPSE)
+    n_mid, n_width, n_lapse = shape
+    mids = np.linspace(lo - 0.5 * span, hi + 0.5 * span, n_mid)
+    widths = np.exp(np.linspace(np.log(step), np.log(3.0 * span), n_width))
+    lapses = np.linspace(0.0, LAPSE_MAX, n_lapse)
 
     log_prior_m = np.log(
         _cosine_window(mids, zero_lo=lo - 0.5 * span, flat_lo=lo, flat_hi=hi,
@@ -160,24 +174,47 @@ def posterior_fit(
 
     beta = 2.0 * LN19 / widths  # (W,)
     f = special.expit(beta[None, :, None] * (x[None, None, :] - mids[:, None, None]))  # M W X
-    loglik = np.zeros((N_MID, N_WIDTH, N_LAPSE))
+    loglik = np.zeros((n_mid, n_width, n_lapse))
     for j, lam in enumerate(lapses):
         p = np.clip(gamma + (1.0 - gamma - lam) * f, 1e-12, 1 - 1e-12)
-        loglik[:, :, j] = (k * np.log(p) + (n - k) * np.log1p(-p)).sum(axis=2)
+        loglik[:, :, j] = np.log(p) @ k + np.log1p(-p) @ (n - k)
     log_post = (
         loglik
         + log_prior_m[:, None, None]
         + log_prior_w[None, :, None]
         + log_prior_l[None, None, :]
     )
+    return _Grid(mids, widths, lapses, loglik, log_post)
+
+
+def posterior_fit(
+    counts: pd.DataFrame,
+    *,
+    gamma: float,
+    ci: float = 0.95,
+    interval: Literal["profile", "credible"] = "profile",
+    drops: tuple[float, float] | None = None,
+) -> PosteriorFit:
+    """The posterior fit of ``counts`` (columns ``level, n, k``: trials and "yes" answers at
+    each level) with guess rate ``gamma``, summarised as ``interval`` says (module doc).
+    ``drops`` (profile only): the log-posterior drops that end the midpoint's and the width's
+    intervals, as :func:`calibrated_drops` finds them for a design (default ``chi2_1(ci) / 2``
+    for both); the lapse's interval keeps ``chi2_1(ci) / 2``."""
+    if interval not in ("profile", "credible"):
+        raise AnalysisError(f"interval must be 'profile' or 'credible', not {interval!r}")
+    g = _grid(counts, gamma=gamma)
+    mids, widths, lapses, loglik, log_post = g.mids, g.widths, g.lapses, g.loglik, g.log_post
+    n = counts["n"].to_numpy(dtype=float)
+    levels = np.unique(counts["level"].to_numpy(dtype=float))
     if interval == "profile":
         drop = float(stats.chi2.ppf(ci, df=1)) / 2.0
+        drop_m, drop_w = drops if drops is not None else (drop, drop)
         # log-posterior cells have -690 where a prior is zero; the profile never ends there
         m_lo, m_est, m_hi, m_lim = _profile_interval(
-            mids, log_post.max(axis=(1, 2)), drop, loglik.max(axis=(1, 2))
+            mids, log_post.max(axis=(1, 2)), drop_m, loglik.max(axis=(1, 2))
         )
         w_lo, w_est, w_hi, w_lim = _profile_interval(
-            widths, log_post.max(axis=(0, 2)), drop, loglik.max(axis=(0, 2))
+            widths, log_post.max(axis=(0, 2)), drop_w, loglik.max(axis=(0, 2))
         )
         l_lo, l_est, l_hi, _ = _profile_interval(
             lapses, log_post.max(axis=(0, 1)), drop, loglik.max(axis=(0, 1))
@@ -206,3 +243,48 @@ def posterior_fit(
         slope_at_limit=w_lim,
         midpoint_at_limit=m_lim,
     )
+
+
+#: the coarser grid of the calibration's many fits (an eighth of the cells)
+CALIBRATION_GRID = (51, 51, 26)
+
+
+def _deficit_at(values: np.ndarray, profile: np.ndarray, value: float) -> float:
+    """How far below its maximum the ``profile`` lies at ``value`` (linear between cells;
+    infinite outside the grid, where the prior is zero)."""
+    if not values[0] <= value <= values[-1]:
+        return float("inf")
+    return float(np.interp(value, values, profile.max() - profile))
+
+
+def calibrated_drops(
+    samples: Sequence[tuple[pd.DataFrame, float, float]],
+    *,
+    gamma: float,
+    ci: float = 0.95,
+) -> tuple[float, float]:
+    """The log-posterior drops (midpoint, width) at which profile intervals hold the truth
+    ``ci`` of the time in ``samples``: for each, the counts (``level, n, k``) of a participant
+    simulated through the study's design and the true midpoint and logistic slope of the
+    observer simulated. For each sample, the profile's deficit at its true value; the drops
+    are their ``ci`` quantiles (a parametric-bootstrap calibration of the penalised
+    likelihood ratio; with 50 staircase trials the chi-square's 1.92 over-covers where the
+    data do not bound the slope). Fitted on :data:`CALIBRATION_GRID`. Samples with answers at
+    one level only are skipped; fewer than 20 usable raise AnalysisError."""
+    mid_deficits, width_deficits = [], []
+    for counts, midpoint, slope in samples:
+        try:
+            g = _grid(counts, gamma=gamma, shape=CALIBRATION_GRID)
+        except AnalysisError:
+            continue
+        mid_deficits.append(_deficit_at(g.mids, g.log_post.max(axis=(1, 2)), midpoint))
+        width_deficits.append(
+            _deficit_at(np.log(g.widths), g.log_post.max(axis=(0, 2)),
+                        float(np.log(2.0 * LN19 / slope)))
+        )  # fmt: skip
+    if len(mid_deficits) < 20:
+        raise AnalysisError(
+            f"calibrating the intervals needs 20 or more simulated participants with answers "
+            f"at two levels; {len(mid_deficits)} had them"
+        )
+    return (float(np.quantile(mid_deficits, ci)), float(np.quantile(width_deficits, ci)))

@@ -36,7 +36,7 @@ from facelab.analysis.presentation import (
 )
 from facelab.analysis.report import ReportFiles, write_report
 from facelab.analysis.study import StudyResults, analyze_study
-from facelab.analysis.tasks import TaskResults, analyze_tasks
+from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks
 from facelab.errors import AnalysisError
 from facelab.formats import MANIFEST_NAME
 from facelab.protocol import Protocol, protocol_hash
@@ -91,6 +91,7 @@ def run(
     n_boot: int = 200,
     max_dropped_frames: int | None = None,
     max_av_offset_ms: float | None = None,
+    sampler: DesignSampler | None = None,
 ) -> AnalysisRun:
     """Analyse the study's sessions under ``results`` into ``out`` (created; files in it are
     replaced).
@@ -106,6 +107,8 @@ def run(
         whose picture and sound were further apart; the live measures per condition are
         tabled either way (``live_presentation``), and each response carries its trial's
         ``av_offset_ms``, head movement and viewing distance as covariates.
+    sampler : simulates the protocol's design, to calibrate each participant's psychometric
+        intervals (``facelab.experiment.simulate.design_sampler``; None: uncalibrated).
     """
     data = load_results(results, study=protocol.study.id)
     if exclude:
@@ -132,7 +135,9 @@ def run(
     )
     vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
     study = analyze_study(vas, protocol, method=method) if not vas.empty else None
-    tasks = analyze_tasks(data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot)
+    tasks = analyze_tasks(
+        data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot, sampler=sampler
+    )
     _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)

@@ -509,6 +509,7 @@ def psychometric(
     n_boot: int = 200,
     rng: np.random.Generator | None = None,
     per_subject: Literal["ml", "posterior"] = "ml",
+    drops: tuple[float, float] | None = None,
 ) -> pd.DataFrame:
     """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x): the one psychometric API
     of facelab (its engines: :mod:`facelab.analysis.psychometric`, maximum likelihood, and
@@ -531,6 +532,9 @@ def psychometric(
         psignifit's default priors as a penalty - the posterior mode and 95 % profile
         intervals - for one person's few trials, where the ML slope runs away; see
         :mod:`facelab.analysis.bayes_psychometric`). ``estimate`` says which a row is.
+    drops : with ``per_subject="posterior"``, the log-posterior drops (midpoint, width) that
+        end the profile intervals, calibrated for the design
+        (:func:`facelab.analysis.bayes_psychometric.calibrated_drops`); default chi2_1(.95)/2.
 
     Returns one row per subject (then the pooled row, subject ``"pooled"``), columns
     :data:`PSYCHOMETRIC_COLUMNS`: ``subject, n, midpoint, slope, lapse, deviance,
@@ -571,7 +575,7 @@ def psychometric(
         posterior = per_subject == "posterior" and key != "pooled" and sigmoid == "logistic"
         try:
             if posterior:
-                fit = _posterior_row(counts, gamma=gamma)
+                fit = _posterior_row(counts, gamma=gamma, drops=drops)
             else:
                 fit = asdict(
                     fit_psychometric(
@@ -590,13 +594,21 @@ def psychometric(
     return pd.DataFrame(rows, columns=list(PSYCHOMETRIC_COLUMNS))
 
 
-def _posterior_row(counts: pd.DataFrame, *, gamma: float) -> dict[str, Any]:
+def _posterior_row(
+    counts: pd.DataFrame, *, gamma: float, drops: tuple[float, float] | None
+) -> dict[str, Any]:
     """One subject's posterior fit in the engine's column names (no deviance: no ML fit)."""
     from facelab.analysis.bayes_psychometric import posterior_fit
     from facelab.psychometric_function import slope_at_midpoint
 
-    post = posterior_fit(counts, gamma=gamma)
+    post = posterior_fit(counts, gamma=gamma, drops=drops)
     notes = ["posterior mode, 95 % profile intervals (psignifit's default priors)"]
+    if drops is not None:
+        notes.append(
+            "intervals calibrated on the design simulated at the pooled estimate (they end "
+            f"{drops[0]:.2f} / {drops[1]:.2f} below the mode for midpoint / slope; "
+            "uncalibrated 1.92)"
+        )
     notes += [f"the data alone do not bound the {name} (its interval's ends are the prior's)"
               for name, at_limit in (("midpoint", post.midpoint_at_limit),
                                      ("slope", post.slope_at_limit)) if at_limit]  # fmt: skip

@@ -3,7 +3,10 @@
 * forced choice (``choice_2afc``), constant stimuli or staircase: a psychometric fit of each
   participant and of everyone pooled (:mod:`facelab.analysis.psychometric`); y is "correct"
   when the task has a correct answer (guess rate 1/2), "chose the comparison" for a
-  preference (guess rate 0); x is the comparison's level;
+  preference (guess rate 0); x is the comparison's level. Given a :class:`DesignSampler`
+  (``facelab analyze`` passes one that runs the protocol's own design), each participant's
+  profile intervals are calibrated on 200 participants simulated at the pooled estimate
+  (:func:`calibrate_drops`);
 * staircases: also the rule's own estimate per participant - the mean level of the last
   reversals (up-down) or the posterior mean of the midpoint with its SD (QUEST+);
 * identification: confusion matrix, accuracy, per-class recall and Cohen's kappa
@@ -20,6 +23,8 @@ figure specifications the report draws.
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,8 +39,10 @@ from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 from facelab.staircase import new_staircase
 
 __all__ = [
+    "DesignSampler",
     "TaskResults",
     "analyze_tasks",
+    "calibrate_drops",
     "choice_outcome",
     "compares_conditions",
     "graded_ratings",
@@ -148,10 +155,67 @@ def _staircase_tables(
     return pd.DataFrame(out), pd.DataFrame(track)
 
 
+#: (task id, observer midpoint, logistic slope, lapse, generator) -> the rows of one simulated
+#: participant answering that task through the protocol's design (staircase or constant
+#: stimuli) as that observer; ``facelab.experiment.simulate.design_sampler`` makes one
+DesignSampler = Callable[[str, float, float, float, np.random.Generator], pd.DataFrame]
+
+#: simulated participants per calibration
+CALIBRATION_PARTICIPANTS = 200
+
+
+def calibrate_drops(
+    trials: pd.DataFrame,
+    task: ChoiceTask,
+    *,
+    gamma: float,
+    sampler: DesignSampler,
+    rng: np.random.Generator,
+    n: int = CALIBRATION_PARTICIPANTS,
+) -> tuple[float, float] | None:
+    """The profile-interval drops (midpoint, width) for ``task``'s design: ``n`` participants
+    simulated by ``sampler`` as an observer at the posterior mode of everyone's ``trials``
+    pooled (columns ``level, y``), each fitted, and the drops at which their intervals hold
+    that truth 95 % of the time (:func:`facelab.analysis.bayes_psychometric.
+    calibrated_drops`). None when the pooled answers cannot be fitted (one level only).
+    ``gamma``: the guess rate."""
+    from tqdm import tqdm
+
+    from facelab.analysis.bayes_psychometric import calibrated_drops, posterior_fit
+
+    pooled = psychometric.count_responses(trials, x="level", y="y")
+    try:
+        truth = posterior_fit(pooled, gamma=gamma)
+    except AnalysisError:
+        return None
+    samples = []
+    quiet = not sys.stderr.isatty()
+    for child in tqdm(rng.spawn(n), desc="calibrating intervals", leave=False, disable=quiet):
+        rows = sampler(task.id, truth.midpoint, truth.slope, truth.lapse, child)
+        rows = rows[(rows["item"] == task.id) & (rows["screen"] == task.type)]
+        if rows.empty:
+            continue
+        y, _ = choice_outcome(rows, task)  # simulated answers: no gaps, 0/1 (counted directly)
+        levels, at = np.unique(rows["level"].to_numpy(dtype=float), return_inverse=True)
+        counts = pd.DataFrame({"level": levels, "n": np.bincount(at),
+                               "k": np.bincount(at, weights=y.to_numpy(dtype=float))})  # fmt: skip
+        samples.append((counts, truth.midpoint, truth.slope))
+    try:
+        return calibrated_drops(samples, gamma=gamma)
+    except AnalysisError:
+        return None
+
+
 def analyze_tasks(
-    data: pd.DataFrame, protocol: Protocol, *, rng: np.random.Generator, n_boot: int = 200
+    data: pd.DataFrame,
+    protocol: Protocol,
+    *,
+    rng: np.random.Generator,
+    n_boot: int = 200,
+    sampler: DesignSampler | None = None,
 ) -> TaskResults:
-    """Every task and graded-design analysis the protocol calls for (see the module)."""
+    """Every task and graded-design analysis the protocol calls for (see the module);
+    ``sampler`` calibrates each participant's psychometric intervals on the design."""
     res = TaskResults()
     psy_tables, stair_tables, stair_tracks = [], [], []
     id_summary, id_recall, id_matrix = [], [], []
@@ -172,9 +236,19 @@ def analyze_tasks(
         if isinstance(task, ChoiceTask):
             y, gamma = choice_outcome(rows, task)
             trials = rows.assign(y=y.to_numpy())
+            drops = None
+            if sampler is not None:  # its own generator: the bootstrap's draws stay as they were
+                drops = calibrate_drops(
+                    trials, task, gamma=gamma, sampler=sampler, rng=rng.spawn(1)[0]
+                )
+                if drops is None:
+                    res.notes.append(
+                        f"task {task.id!r}: the intervals were not calibrated (the pooled "
+                        "answers or the simulated ones cannot be fitted)"
+                    )
             fits = stats.psychometric(  # a participant's few trials: the posterior
                 trials, level="level", correct="y", subject="participant", pooled=True,
-                gamma=gamma, n_boot=n_boot, rng=rng, per_subject="posterior",
+                gamma=gamma, n_boot=n_boot, rng=rng, per_subject="posterior", drops=drops,
             ).rename(columns={"subject": "participant"})  # fmt: skip
             psy_tables.append(fits.assign(task=task.id, gamma=gamma))
             counts = psychometric.count_responses(trials, x="level", y="y")

@@ -46,7 +46,7 @@ def run_demo(
 ) -> dict[str, Path | float | int]:
     from facelab.analysis import run
     from facelab.experiment.cli.analysis_cmds import print_layout
-    from facelab.experiment.simulate import simulate_study
+    from facelab.experiment.simulate import design_sampler, simulate_study
     from facelab.stimuli.render.build import build_clips, contact_sheets, plan, settings_for
 
     t0 = time.perf_counter()
@@ -96,7 +96,10 @@ def run_demo(
     )
 
     t = time.perf_counter()
-    done = run(results, protocol, protocol_path=protocol_path, out=run_dir / "analysis")
+    done = run(
+        results, protocol, protocol_path=protocol_path, out=run_dir / "analysis",
+        sampler=design_sampler(protocol),
+    )  # fmt: skip
     say(
         f"[4/4] analysed {len(done.data)} responses in {time.perf_counter() - t:.1f} s -> "
         f"{done.files.html}"

@@ -22,9 +22,9 @@ A simulated session walks the same timeline of screens as a real one
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -55,12 +55,16 @@ from facelab.sessionlog import (
     session_paths,
 )
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 __all__ = [
     "ChoiceModel",
     "RatingModel",
     "SimulatedParticipant",
     "check_effects",
     "condition_effect",
+    "design_sampler",
     "simulate_participant",
     "simulate_study",
     "simulated_rows",
@@ -382,6 +386,35 @@ def simulated_rows(
         staircases=Staircases(protocol),
     )
     return memory.rows
+
+
+def design_sampler(
+    protocol: Protocol,
+) -> Callable[[str, float, float, float, np.random.Generator], pd.DataFrame]:
+    """A :data:`facelab.analysis.tasks.DesignSampler` for ``protocol``: one participant
+    simulated through the protocol's own design (its trial order, staircases or constant
+    stimuli) by an observer with the given midpoint, logistic slope and lapse; returns the
+    rows of the named task. ``facelab analyze`` calibrates per-participant intervals with it."""
+
+    import pandas as pd
+
+    def sample(
+        task: str, midpoint: float, slope: float, lapse: float, rng: np.random.Generator
+    ) -> pd.DataFrame:
+        observer = protocol.simulation.observer.model_copy(
+            update={"midpoint": midpoint, "slope": min(slope, 1e4), "lapse": lapse,
+                    "midpoint_sd": 0.0}
+        )  # fmt: skip
+        simulation = protocol.simulation.model_copy(update={"observer": observer})
+        rows = pd.DataFrame(
+            simulated_rows(
+                protocol.model_copy(update={"simulation": simulation}),
+                participant="calibration", rng=rng,
+            )
+        )  # fmt: skip
+        return rows[rows["item"] == task] if not rows.empty else rows
+
+    return sample
 
 
 def check_effects(protocol: Protocol, effects: Mapping[str, float] | None) -> None:

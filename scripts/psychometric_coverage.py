@@ -5,12 +5,16 @@ truth) through the protocol's own design - staircase or constant stimuli - and f
 participant three ways: maximum likelihood with parametric-bootstrap percentile intervals
 (``ml_bootstrap``), and the grid posterior with psignifit's default priors
 (:mod:`facelab.analysis.bayes_psychometric`) summarised by its mode and profile intervals
-(``profile``, the per-participant default of ``facelab analyze``) or by marginal medians and
-credible intervals (``credible``). Prints JSON: for each estimator the share of observers
-whose 95 % interval holds the true midpoint and slope, and the median estimate.
+(``profile``), the same with the interval ends calibrated on the design
+(``calibrated``, the per-participant default of ``facelab analyze``: the observers are taken
+in studies of ``--group`` participants, each study's pooled estimate simulated through the
+protocol's design 200 times; :func:`facelab.analysis.tasks.calibrate_drops`), or by marginal
+medians and credible intervals (``credible``). Prints JSON: for each estimator the share of
+observers whose 95 % interval holds the true midpoint and slope, and the median estimate.
 
     python scripts/psychometric_coverage.py [PROTOCOL] [--observers 200] [--seed 7] [--boot 200]
-        [--midpoint M] [--slope B] [--lapse L] [--estimators profile credible ml_bootstrap]
+        [--midpoint M] [--slope B] [--lapse L] [--group 8]
+        [--estimators calibrated profile credible ml_bootstrap]
 
 ``--midpoint/--slope/--lapse`` replace the protocol's observer, to measure coverage at other
 truths: per-participant coverage depends on the truth (a slope steeper than the levels'
@@ -29,12 +33,12 @@ import pandas as pd
 
 from facelab.analysis.bayes_psychometric import posterior_fit
 from facelab.analysis.psychometric import count_responses, fit_psychometric
-from facelab.analysis.tasks import choice_outcome
-from facelab.experiment.simulate import simulated_rows
+from facelab.analysis.tasks import calibrate_drops, choice_outcome
+from facelab.experiment.simulate import design_sampler, simulated_rows
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 
-ESTIMATORS = ("profile", "credible", "ml_bootstrap")
+ESTIMATORS = ("calibrated", "profile", "credible", "ml_bootstrap")
 
 
 def main() -> None:
@@ -43,6 +47,7 @@ def main() -> None:
     ap.add_argument("--observers", type=int, default=200)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--boot", type=int, default=200)
+    ap.add_argument("--group", type=int, default=8, help="participants per study (calibrated)")
     ap.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=ESTIMATORS)
     for name in ("midpoint", "slope", "lapse"):
         ap.add_argument(f"--{name}", type=float, help=f"true {name} (default: the protocol's)")
@@ -62,11 +67,27 @@ def main() -> None:
     master = np.random.default_rng(args.seed)
     found: dict[str, list[tuple[float, ...]]] = {name: [] for name in args.estimators}
     seconds = dict.fromkeys(args.estimators, 0.0)
-    for i, child in enumerate(master.spawn(args.observers)):
+    children = master.spawn(args.observers)
+    observers = []  # (trials with y, counts, gamma) per observer
+    for i, child in enumerate(children):
         rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=child))
         rows = rows[rows["item"] == task.id]
         y, gamma = choice_outcome(rows, task)
-        counts = count_responses(rows.assign(y=y.to_numpy()), x="level", y="y")
+        trials = rows.assign(y=y.to_numpy())
+        observers.append((trials, count_responses(trials, x="level", y="y"), gamma))
+    sampler = design_sampler(protocol)
+    drops = None
+    for i, (_, counts, gamma) in enumerate(observers):
+        if "calibrated" in args.estimators and i % args.group == 0:
+            # a study of this observer and the next group - 1: calibrated on their answers
+            t0 = time.perf_counter()
+            study = pd.concat([t for t, _, _ in observers[i : i + args.group]], ignore_index=True)
+            drops = calibrate_drops(
+                study, task, gamma=gamma, sampler=sampler,
+                rng=np.random.default_rng([args.seed, i]),
+            )  # fmt: skip
+            seconds["calibrated"] += time.perf_counter() - t0
+        child = children[i]
         for name in args.estimators:
             t0 = time.perf_counter()
             if name == "ml_bootstrap":
@@ -74,7 +95,10 @@ def main() -> None:
                 row = (ml.midpoint, ml.midpoint_ci_low, ml.midpoint_ci_high,
                        ml.beta, ml.beta_ci_low, ml.beta_ci_high)  # fmt: skip
             else:
-                post = posterior_fit(counts, gamma=gamma, interval=name)
+                post = posterior_fit(
+                    counts, gamma=gamma, interval="profile" if name == "calibrated" else name,
+                    drops=drops if name == "calibrated" else None,
+                )  # fmt: skip
                 row = (post.midpoint, post.midpoint_ci_low, post.midpoint_ci_high,
                        post.slope, post.slope_ci_low, post.slope_ci_high)  # fmt: skip
             seconds[name] += time.perf_counter() - t0

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from facelab.analysis.bayes_psychometric import LN19, posterior_fit
+from facelab.analysis.bayes_psychometric import LN19, calibrated_drops, posterior_fit
 from facelab.errors import AnalysisError
 
 REF = Path(__file__).parent / "reference"
@@ -121,6 +121,41 @@ def test_a_slope_the_data_cannot_bound_is_flagged() -> None:
         posterior_fit(moderate, gamma=0.5, interval="bootstrap")  # type: ignore[arg-type]
 
 
+def test_calibrated_drops_are_the_quantile_of_the_truths_deficit() -> None:
+    """Samples drawn at a known observer on the staircase-like levels: the calibrated drops
+    make the profile intervals of those samples hold the truth 95 % of the time (within the
+    coarse calibration grid's error); the drops given back to posterior_fit move the ends
+    (a smaller drop, a narrower interval) and the uncalibrated default equals drops of
+    chi2_1(.95)/2. Too few usable samples are refused in words."""
+    rows = np.array(DATASETS["staircase-like"], dtype=float)
+    levels, n = rows[:, 0], rows[:, 2].astype(int)
+    midpoint, slope, lapse = 0.15, 18.0, 0.03
+    p = 0.5 + (0.5 - lapse) / (1 + np.exp(-slope * (levels - midpoint)))
+    rng = np.random.default_rng(3)
+    samples = [pd.DataFrame({"level": levels, "n": n, "k": rng.binomial(n, p)})
+               for _ in range(200)]  # fmt: skip
+    drop_m, drop_w = calibrated_drops([(c, midpoint, slope) for c in samples], gamma=0.5)
+    assert 0.5 < drop_m < 4 and 0.5 < drop_w < 4
+    held = [
+        (f.midpoint_ci_low <= midpoint <= f.midpoint_ci_high,
+         f.slope_ci_low <= slope <= f.slope_ci_high)
+        for f in (posterior_fit(c, gamma=0.5, drops=(drop_m, drop_w)) for c in samples[:100])
+    ]  # fmt: skip
+    assert np.all(np.abs(np.mean(held, axis=0) - 0.95) <= 0.05), np.mean(held, axis=0)
+    counts = samples[0]
+    default = posterior_fit(counts, gamma=0.5)
+    same = posterior_fit(counts, gamma=0.5, drops=(1.920729, 1.920729))
+    assert same.slope_ci_low == pytest.approx(default.slope_ci_low, rel=1e-5)
+    narrow = posterior_fit(counts, gamma=0.5, drops=(0.5, 0.5))
+    assert narrow.midpoint_ci_high - narrow.midpoint_ci_low < (
+        default.midpoint_ci_high - default.midpoint_ci_low
+    )
+    one_level = pd.DataFrame({"level": [0.2], "n": [10], "k": [7]})
+    with pytest.raises(AnalysisError, match="20 or more simulated participants"):
+        calibrated_drops([(c, midpoint, slope) for c in [one_level] * 30 + samples[:5]],
+                         gamma=0.5)  # fmt: skip
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("protocol_name", ["gain_staircase", "gain_2afc"])
 def test_profile_intervals_cover_simulated_observers(protocol_name: str) -> None:
@@ -147,3 +182,41 @@ def test_profile_intervals_cover_simulated_observers(protocol_name: str) -> None
                      fit.slope_ci_low <= truth.slope <= fit.slope_ci_high))  # fmt: skip
     coverage = np.mean(hits, axis=0)
     assert np.all((coverage >= 0.9) & (coverage <= 0.98)), coverage
+
+
+@pytest.mark.slow
+def test_calibrated_intervals_cover_the_staircase_observer() -> None:
+    """gain_staircase's observer, 200 simulated participants in studies of 8 (seed 11; the
+    calibration was designed on seed 7): with each study's intervals calibrated on the
+    design at its pooled estimate, as `facelab analyze` does, the 95 % intervals hold the
+    true midpoint and slope 0.90-0.97 of the time (uncalibrated: 0.960 / 0.965 here, 0.974 /
+    0.981 over 1000 observers of seed 2026; calibrated 0.955 / 0.923 there)."""
+    from facelab.analysis.psychometric import count_responses
+    from facelab.analysis.tasks import calibrate_drops, choice_outcome
+    from facelab.experiment.simulate import design_sampler, simulated_rows
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    protocol = load_protocol(protocol_path("gain_staircase"))
+    truth, task = protocol.simulation.observer, protocol.tasks[0]
+    people = []
+    for i, rng in enumerate(np.random.default_rng(11).spawn(200)):
+        rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=rng))
+        rows = rows[rows["item"] == task.id]
+        y, gamma = choice_outcome(rows, task)
+        people.append(rows.assign(y=y.to_numpy()))
+    sampler, hits = design_sampler(protocol), []
+    for start in range(0, 200, 8):
+        study = people[start : start + 8]
+        drops = calibrate_drops(
+            pd.concat(study, ignore_index=True), task, gamma=gamma, sampler=sampler,
+            rng=np.random.default_rng([11, start]),
+        )  # fmt: skip
+        assert drops is not None
+        for trials in study:
+            fit = posterior_fit(count_responses(trials, x="level", y="y"), gamma=gamma,
+                                drops=drops)  # fmt: skip
+            hits.append((fit.midpoint_ci_low <= truth.midpoint <= fit.midpoint_ci_high,
+                         fit.slope_ci_low <= truth.slope <= fit.slope_ci_high))  # fmt: skip
+    coverage = np.mean(hits, axis=0)
+    assert np.all((coverage >= 0.9) & (coverage <= 0.97)), coverage

@@ -475,6 +475,32 @@ def test_simulated_observers_are_recovered(tmp_path):
             assert abs(pooled["accuracy"] - expected) < 3 * se
 
 
+def test_per_participant_intervals_are_calibrated_on_the_design(tmp_path):
+    """With a design sampler (as `facelab analyze` passes), each participant's intervals end
+    at the drops found by simulating the staircase at the pooled estimate - named in the
+    note - and the pooled row is the same as without it (its bootstrap draws untouched)."""
+    from facelab.experiment.simulate import design_sampler
+
+    path = protocol_path("gain_staircase")
+    protocol = load_protocol(path)
+    simulate_study(protocol, protocol_path=path, results=tmp_path, participants=4, seed=5)
+    data = load_results(tmp_path, study=protocol.study.id)
+    plain = analyze_tasks(data, protocol, rng=np.random.default_rng(1), n_boot=20)
+    cal = analyze_tasks(data, protocol, rng=np.random.default_rng(1), n_boot=20,
+                        sampler=design_sampler(protocol))  # fmt: skip
+    a = plain.tables["psychometric_fits"].set_index("participant")
+    b = cal.tables["psychometric_fits"].set_index("participant")
+    pd.testing.assert_series_equal(a.loc["pooled"], b.loc["pooled"])
+    people = [p for p in a.index if p != "pooled"]
+    assert len(people) == 4
+    for p in people:
+        assert "calibrated on the design" in b.loc[p, "note"]
+        assert "calibrated" not in a.loc[p, "note"]
+        assert b.loc[p, "midpoint"] == a.loc[p, "midpoint"]  # the same mode
+        assert b.loc[p, "midpoint_ci_low"] <= b.loc[p, "midpoint"] <= b.loc[p, "midpoint_ci_high"]
+    assert any(b.loc[p, "slope_ci_low"] != a.loc[p, "slope_ci_low"] for p in people)
+
+
 def test_identification_is_compared_between_conditions(tmp_path):
     """Emotions portrayed under two behaviour conditions (seed 003): simulated identifiers
     name the emotion more often under composite behaviour; the analysis finds it."""

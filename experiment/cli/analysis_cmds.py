@@ -29,6 +29,7 @@ from facelab.experiment.cli.common import (
 def _cmd_analyze(args: argparse.Namespace) -> int:
     from facelab.analysis import run
     from facelab.analysis.pipeline import study_root
+    from facelab.experiment.simulate import design_sampler
     from facelab.protocol import load_protocol
 
     protocol_file, results_dir = _analyze_paths(args)
@@ -51,6 +52,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         n_boot=args.bootstrap,
         max_dropped_frames=args.max_dropped_frames,
         max_av_offset_ms=args.max_av_offset_ms,
+        sampler=design_sampler(protocol),
     )
     data, check = done.data, done.check
     kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
