@@ -22,7 +22,7 @@ A simulated session walks the same timeline of screens as a real one
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -57,6 +57,8 @@ from facelab.sessionlog import (
 
 if TYPE_CHECKING:
     import pandas as pd
+
+    from facelab.analysis.tasks import DesignSampler
 
 __all__ = [
     "ChoiceModel",
@@ -388,9 +390,7 @@ def simulated_rows(
     return memory.rows
 
 
-def design_sampler(
-    protocol: Protocol,
-) -> Callable[[str, float, float, float, np.random.Generator], pd.DataFrame]:
+def design_sampler(protocol: Protocol) -> DesignSampler:
     """A :data:`facelab.analysis.tasks.DesignSampler` for ``protocol``: one participant
     simulated through the protocol's own design (its trial order, staircases or constant
     stimuli) by an observer with the given midpoint, logistic slope and lapse; returns the
