@@ -258,30 +258,30 @@ def _deficit_at(values: np.ndarray, profile: np.ndarray, value: float) -> float:
 
 
 def calibrated_drops(
-    samples: Sequence[tuple[pd.DataFrame, float, float]],
+    samples: Sequence[pd.DataFrame],
     *,
     gamma: float,
+    midpoint: float,
+    slope: float,
     ci: float = 0.95,
 ) -> tuple[float, float]:
     """The log-posterior drops (midpoint, width) at which profile intervals hold the truth
-    ``ci`` of the time in ``samples``: for each, the counts (``level, n, k``) of a participant
-    simulated through the study's design and the true midpoint and logistic slope of the
-    observer simulated. For each sample, the profile's deficit at its true value; the drops
-    are their ``ci`` quantiles (a parametric-bootstrap calibration of the penalised
+    ``ci`` of the time in ``samples``: counts (``level, n, k``) of participants simulated
+    through the study's design as an observer with this ``midpoint`` and logistic ``slope``.
+    For each sample, the profile's deficit at the true value; the drops are their ``ci``
+    quantiles (a parametric-bootstrap calibration of the penalised
     likelihood ratio; with 50 staircase trials the chi-square's 1.92 over-covers where the
     data do not bound the slope). Fitted on :data:`CALIBRATION_GRID`. Samples with answers at
     one level only are skipped; fewer than 20 usable raise AnalysisError."""
+    log_width = float(np.log(2.0 * LN19 / slope))
     mid_deficits, width_deficits = [], []
-    for counts, midpoint, slope in samples:
+    for counts in samples:
         try:
             g = _grid(counts, gamma=gamma, shape=CALIBRATION_GRID)
         except AnalysisError:
             continue
         mid_deficits.append(_deficit_at(g.mids, g.log_post.max(axis=(1, 2)), midpoint))
-        width_deficits.append(
-            _deficit_at(np.log(g.widths), g.log_post.max(axis=(0, 2)),
-                        float(np.log(2.0 * LN19 / slope)))
-        )  # fmt: skip
+        width_deficits.append(_deficit_at(np.log(g.widths), g.log_post.max(axis=(0, 2)), log_width))
     if len(mid_deficits) < 20:
         raise AnalysisError(
             f"calibrating the intervals needs 20 or more simulated participants with answers "

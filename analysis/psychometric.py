@@ -106,6 +106,16 @@ def count_responses(
     if values.isna().any() or not values.isin([0.0, 1.0]).all():
         raise AnalysisError(f"column {y!r} must hold 0/1 answers")
     data = data.assign(_y=values, _x=pd.to_numeric(data[x], errors="coerce"))
+    if not by:  # counted directly (a groupby costs ~10 ms; simulations count thousands)
+        level = data["_x"].to_numpy(dtype=float)
+        kept = ~np.isnan(level)
+        levels, at = np.unique(level[kept], return_inverse=True)
+        return pd.DataFrame({
+            "level": levels,
+            "n": np.bincount(at, minlength=len(levels)),
+            "k": np.bincount(at, weights=values.to_numpy()[kept], minlength=len(levels))
+            .round().astype(int),
+        })  # fmt: skip
     keys = [*by, "_x"]
     out = data.groupby(keys, sort=True).agg(n=("_y", "size"), k=("_y", "sum")).reset_index()
     out = out.rename(columns={"_x": "level"})

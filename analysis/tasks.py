@@ -195,13 +195,10 @@ def calibrate_drops(
         rows = rows[(rows["item"] == task.id) & (rows["screen"] == task.type)]
         if rows.empty:
             continue
-        y, _ = choice_outcome(rows, task)  # simulated answers: no gaps, 0/1 (counted directly)
-        levels, at = np.unique(rows["level"].to_numpy(dtype=float), return_inverse=True)
-        counts = pd.DataFrame({"level": levels, "n": np.bincount(at),
-                               "k": np.bincount(at, weights=y.to_numpy(dtype=float))})  # fmt: skip
-        samples.append((counts, truth.midpoint, truth.slope))
+        y, _ = choice_outcome(rows, task)
+        samples.append(psychometric.count_responses(rows.assign(y=y.to_numpy()), x="level", y="y"))
     try:
-        return calibrated_drops(samples, gamma=gamma)
+        return calibrated_drops(samples, gamma=gamma, midpoint=truth.midpoint, slope=truth.slope)
     except AnalysisError:
         return None
 
