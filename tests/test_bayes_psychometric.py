@@ -12,8 +12,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from facelab.analysis.bayes_psychometric import LN19, calibrated_drops, posterior_fit
+from facelab.analysis.bayes_psychometric import (
+    LN19,
+    PosteriorFit,
+    calibrated_drops,
+    posterior_fit,
+)
 from facelab.errors import AnalysisError
+from facelab.protocol import ChoiceTask, Protocol
+from facelab.protocol_model import Observer
 
 REF = Path(__file__).parent / "reference"
 
@@ -134,7 +141,7 @@ def test_calibrated_drops_are_the_quantile_of_the_truths_deficit() -> None:
     rng = np.random.default_rng(3)
     samples = [pd.DataFrame({"level": levels, "n": n, "k": rng.binomial(n, p)})
                for _ in range(200)]  # fmt: skip
-    drop_m, drop_w = calibrated_drops([(c, midpoint, slope) for c in samples], gamma=0.5)
+    drop_m, drop_w = calibrated_drops(samples, gamma=0.5, midpoint=midpoint, slope=slope)
     assert 0.5 < drop_m < 4 and 0.5 < drop_w < 4
     held = [
         (f.midpoint_ci_low <= midpoint <= f.midpoint_ci_high,
@@ -152,8 +159,36 @@ def test_calibrated_drops_are_the_quantile_of_the_truths_deficit() -> None:
     )
     one_level = pd.DataFrame({"level": [0.2], "n": [10], "k": [7]})
     with pytest.raises(AnalysisError, match="20 or more simulated participants"):
-        calibrated_drops([(c, midpoint, slope) for c in [one_level] * 30 + samples[:5]],
-                         gamma=0.5)  # fmt: skip
+        calibrated_drops([one_level] * 30 + samples[:5], gamma=0.5, midpoint=midpoint,
+                         slope=slope)  # fmt: skip
+
+
+def _simulated_observers(
+    protocol_name: str, *, seed: int, n: int
+) -> tuple[Protocol, ChoiceTask, float, list[pd.DataFrame]]:
+    """(protocol, its first task, the guess rate, each of ``n`` simulated participants'
+    trials of that task with ``y`` scored), the protocol's observer the truth."""
+    from facelab.analysis.tasks import choice_outcome
+    from facelab.experiment.simulate import simulated_rows
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    protocol = load_protocol(protocol_path(protocol_name))
+    task = protocol.tasks[0]
+    assert isinstance(task, ChoiceTask)
+    people, gamma = [], 0.5
+    for i, rng in enumerate(np.random.default_rng(seed).spawn(n)):
+        rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=rng))
+        rows = rows[rows["item"] == task.id]
+        y, gamma = choice_outcome(rows, task)
+        people.append(rows.assign(y=y.to_numpy()))
+    return protocol, task, gamma, people
+
+
+def _holds(fit: PosteriorFit, truth: Observer) -> tuple[bool, bool]:
+    """Whether the fit's intervals hold the true midpoint and slope."""
+    return (fit.midpoint_ci_low <= truth.midpoint <= fit.midpoint_ci_high,
+            fit.slope_ci_low <= truth.slope <= fit.slope_ci_high)  # fmt: skip
 
 
 @pytest.mark.slow
@@ -164,22 +199,11 @@ def test_profile_intervals_cover_simulated_observers(protocol_name: str) -> None
     the 95 % profile intervals hold the true midpoint and slope 0.90-0.98 of the time (the
     credible intervals: 0.99-1.00 - too wide)."""
     from facelab.analysis.psychometric import count_responses
-    from facelab.analysis.tasks import choice_outcome
-    from facelab.experiment.simulate import simulated_rows
-    from facelab.protocol import load_protocol
-    from facelab.resources import protocol_path
 
-    protocol = load_protocol(protocol_path(protocol_name))
-    truth, task = protocol.simulation.observer, protocol.tasks[0]
-    hits = []
-    for i, rng in enumerate(np.random.default_rng(11).spawn(200)):
-        rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=rng))
-        rows = rows[rows["item"] == task.id]
-        y, gamma = choice_outcome(rows, task)
-        fit = posterior_fit(count_responses(rows.assign(y=y.to_numpy()), x="level", y="y"),
-                            gamma=gamma)  # fmt: skip
-        hits.append((fit.midpoint_ci_low <= truth.midpoint <= fit.midpoint_ci_high,
-                     fit.slope_ci_low <= truth.slope <= fit.slope_ci_high))  # fmt: skip
+    protocol, _, gamma, people = _simulated_observers(protocol_name, seed=11, n=200)
+    truth = protocol.simulation.observer
+    hits = [_holds(posterior_fit(count_responses(t, x="level", y="y"), gamma=gamma), truth)
+            for t in people]  # fmt: skip
     coverage = np.mean(hits, axis=0)
     assert np.all((coverage >= 0.9) & (coverage <= 0.98)), coverage
 
@@ -192,19 +216,11 @@ def test_calibrated_intervals_cover_the_staircase_observer() -> None:
     true midpoint and slope 0.90-0.97 of the time (uncalibrated: 0.960 / 0.965 here, 0.974 /
     0.981 over 1000 observers of seed 2026; calibrated 0.955 / 0.923 there)."""
     from facelab.analysis.psychometric import count_responses
-    from facelab.analysis.tasks import calibrate_drops, choice_outcome
-    from facelab.experiment.simulate import design_sampler, simulated_rows
-    from facelab.protocol import load_protocol
-    from facelab.resources import protocol_path
+    from facelab.analysis.tasks import calibrate_drops
+    from facelab.experiment.simulate import design_sampler
 
-    protocol = load_protocol(protocol_path("gain_staircase"))
-    truth, task = protocol.simulation.observer, protocol.tasks[0]
-    people = []
-    for i, rng in enumerate(np.random.default_rng(11).spawn(200)):
-        rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=rng))
-        rows = rows[rows["item"] == task.id]
-        y, gamma = choice_outcome(rows, task)
-        people.append(rows.assign(y=y.to_numpy()))
+    protocol, task, gamma, people = _simulated_observers("gain_staircase", seed=11, n=200)
+    truth = protocol.simulation.observer
     sampler, hits = design_sampler(protocol), []
     for start in range(0, 200, 8):
         study = people[start : start + 8]
@@ -216,7 +232,6 @@ def test_calibrated_intervals_cover_the_staircase_observer() -> None:
         for trials in study:
             fit = posterior_fit(count_responses(trials, x="level", y="y"), gamma=gamma,
                                 drops=drops)  # fmt: skip
-            hits.append((fit.midpoint_ci_low <= truth.midpoint <= fit.midpoint_ci_high,
-                         fit.slope_ci_low <= truth.slope <= fit.slope_ci_high))  # fmt: skip
+            hits.append(_holds(fit, truth))
     coverage = np.mean(hits, axis=0)
     assert np.all((coverage >= 0.9) & (coverage <= 0.97)), coverage
