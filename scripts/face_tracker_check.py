@@ -33,7 +33,9 @@ import argparse
 import csv
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 VOWEL_ORDER = "aiueo"
 
@@ -106,6 +108,19 @@ def _checks(table: dict[str, dict[str, dict[str, float]]]) -> dict[str, bool]:
     return checks
 
 
+def _face_detector() -> Callable[[Any], float]:
+    """MediaPipe face detection (short range): an (H, W, 3) RGB image -> the best face's
+    confidence (0 when it finds none). The same detector for the stills and the clips."""
+    import mediapipe as mp
+
+    detector = mp.solutions.face_detection.FaceDetection(
+        model_selection=0, min_detection_confidence=0.1
+    )
+    return lambda img: max(
+        (float(d.score[0]) for d in detector.process(img).detections or []), default=0.0
+    )
+
+
 def track(folder: Path) -> int:
     import mediapipe as mp
     import numpy as np
@@ -114,16 +129,13 @@ def track(folder: Path) -> int:
     mesh = mp.solutions.face_mesh.FaceMesh(
         static_image_mode=True, max_num_faces=1, refine_landmarks=False
     )
-    detector = mp.solutions.face_detection.FaceDetection(
-        model_selection=0, min_detection_confidence=0.1
-    )
+    detect = _face_detector()
 
     def look(path: Path) -> tuple[tuple[float, float] | None, float]:
         """(aperture, width) from the face mesh (None without a face) and the detector's best
         score (0 when it finds no face), from one reading of the picture."""
         img = np.asarray(Image.open(path).convert("RGB"))
-        score = max((float(d.score[0]) for d in detector.process(img).detections or []),
-                    default=0.0)  # fmt: skip
+        score = detect(img)
         res = mesh.process(img)
         if not res.multi_face_landmarks:
             return None, score
@@ -193,9 +205,7 @@ def clips(folder: Path, *, below: float) -> int:
     import mediapipe as mp
     import numpy as np
 
-    detector = mp.solutions.face_detection.FaceDetection(
-        model_selection=0, min_detection_confidence=0.1
-    )
+    detect = _face_detector()
     rows = list(csv.DictReader((folder / "clips.csv").read_text(encoding="utf-8").splitlines()))
     per_clip = {}
     every = []
@@ -207,10 +217,7 @@ def clips(folder: Path, *, below: float) -> int:
             check=True, capture_output=True,
         ).stdout  # fmt: skip
         frames = np.frombuffer(raw, np.uint8).reshape(-1, h, w, 3)
-        scores = np.array([
-            max((float(d.score[0]) for d in detector.process(f).detections or []), default=0.0)
-            for f in frames
-        ])  # fmt: skip
+        scores = np.array([detect(f) for f in frames])
         every.append(scores)
         low = np.nonzero(scores < below)[0]
         per_clip[row["clip_id"]] = {
