@@ -272,7 +272,10 @@ def calibrated_drops(
     quantiles (a parametric-bootstrap calibration of the penalised
     likelihood ratio; with 50 staircase trials the chi-square's 1.92 over-covers where the
     data do not bound the slope). Fitted on :data:`CALIBRATION_GRID`. Samples with answers at
-    one level only are skipped; fewer than 20 usable raise AnalysisError."""
+    one level only are skipped; fewer than 20 usable raise AnalysisError. A drop is infinite
+    when more than ``1 - ci`` of the samples' priors exclude the truth (e.g. a pooled slope
+    shallower than an adaptive design's narrow span of levels allows): the interval is then
+    the grid's whole range."""
     log_width = float(np.log(2.0 * LN19 / slope))
     mid_deficits, width_deficits = [], []
     for counts in samples:
@@ -287,4 +290,15 @@ def calibrated_drops(
             f"calibrating the intervals needs 20 or more simulated participants with answers "
             f"at two levels; {len(mid_deficits)} had them"
         )
-    return (float(np.quantile(mid_deficits, ci)), float(np.quantile(width_deficits, ci)))
+    return (_upper_quantile(mid_deficits, ci), _upper_quantile(width_deficits, ci))
+
+
+def _upper_quantile(deficits: Sequence[float], ci: float) -> float:
+    """The ``ci`` quantile of ``deficits`` (linear between order statistics), infinite when
+    the order statistic above it is: a truth outside the prior's support for that many
+    simulated participants is held only by an interval spanning the whole grid. (numpy's
+    own interpolation gives NaN between two infinities, and a NaN drop an empty interval.)"""
+    ordered = np.sort(np.asarray(deficits, dtype=float))
+    if np.isinf(ordered[int(np.ceil(ci * (len(ordered) - 1)))]):
+        return float("inf")
+    return float(np.quantile(ordered, ci))

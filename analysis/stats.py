@@ -594,6 +594,10 @@ def psychometric(
     return pd.DataFrame(rows, columns=list(PSYCHOMETRIC_COLUMNS))
 
 
+def _drop_text(drop: float) -> str:
+    return f"{drop:.2f}" if np.isfinite(drop) else "unbounded (the prior's whole range)"
+
+
 def _posterior_row(
     counts: pd.DataFrame, *, gamma: float, drops: tuple[float, float] | None
 ) -> dict[str, Any]:
@@ -606,8 +610,8 @@ def _posterior_row(
     if drops is not None:
         notes.append(
             "intervals calibrated on the design simulated at the pooled estimate (they end "
-            f"{drops[0]:.2f} / {drops[1]:.2f} below the mode for midpoint / slope; "
-            "uncalibrated 1.92)"
+            f"{_drop_text(drops[0])} / {_drop_text(drops[1])} below the mode for midpoint / "
+            "slope; uncalibrated 1.92)"
         )
     notes += [f"the data alone do not bound the {name} (its interval's ends are the prior's)"
               for name, at_limit in (("midpoint", post.midpoint_at_limit),

@@ -163,6 +163,27 @@ def test_calibrated_drops_are_the_quantile_of_the_truths_deficit() -> None:
                          slope=slope)  # fmt: skip
 
 
+def test_a_truth_most_designs_cannot_hold_gives_the_whole_range_not_an_empty_interval() -> None:
+    """When more than 5 % of the simulated participants' priors exclude the truth (here a
+    slope shallower than their levels' span allows: width 3.3 x the span), the drop is
+    infinite and the interval is the grid's whole range - it was NaN (numpy interpolating
+    between two infinities), which made every participant's interval empty."""
+    levels = np.array([0.2, 0.3, 0.4])
+    n = np.array([10, 10, 10])
+    midpoint, slope = 0.3, 2.0 * np.log(19.0) / 0.66  # width 0.66 > 3 x span 0.2
+    p = 0.5 + 0.5 / (1 + np.exp(-slope * (levels - midpoint)))
+    rng = np.random.default_rng(5)
+    samples = [pd.DataFrame({"level": levels, "n": n, "k": rng.binomial(n, p)})
+               for _ in range(40)]  # fmt: skip
+    drop_m, drop_w = calibrated_drops(samples, gamma=0.5, midpoint=midpoint, slope=slope)
+    assert np.isfinite(drop_m) and drop_w == np.inf
+    fit = posterior_fit(samples[0], gamma=0.5, drops=(drop_m, drop_w))
+    grid_w = (0.1, 3 * 0.2)  # the width grid: smallest step to three spans
+    assert fit.slope_ci_low == pytest.approx(2 * np.log(19) / grid_w[1])
+    assert fit.slope_ci_high == pytest.approx(2 * np.log(19) / grid_w[0])
+    assert fit.slope_at_limit and np.isfinite(fit.midpoint_ci_low)
+
+
 def _simulated_observers(
     protocol_name: str, *, seed: int, n: int
 ) -> tuple[Protocol, ChoiceTask, float, list[pd.DataFrame]]:
