@@ -678,8 +678,9 @@ def _default_head_cached() -> Avatar:
     targets = _build_targets(verts, part_index, info)
     for name, delta in targets.items():
         targets[name] = delta.astype(np.float32)
-    lid = _lid_landmarks(verts, faces, part_index)
+    lid, margins = _lid_margins(verts, faces, part_index)
     landmarks.update(lid)
+    part_index.update(margins)
     return Avatar(
         verts,
         faces,
@@ -757,26 +758,31 @@ def default_head() -> Avatar:
     return h.replace(targets=dict(h.targets), landmarks=dict(h.landmarks), parts=dict(h.parts))
 
 
-def _lid_landmarks(
+def _lid_margins(
     verts: np.ndarray, faces: np.ndarray, parts: dict[str, np.ndarray]
-) -> dict[str, int]:
-    """Upper and lower lid margin vertices above/below each pupil (boundary of the opening)."""
+) -> tuple[dict[str, int], dict[str, np.ndarray]]:
+    """The eye openings' edges (the skin's boundary around each eye): landmarks
+    ``upper_lid_*`` / ``lower_lid_*`` above and below each pupil, and parts ``lid_upper_*`` /
+    ``lid_lower_*``, every margin vertex above / below the opening's midline."""
     skin = parts["skin"]
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     edges = edges[np.isin(edges, skin).all(axis=1)]
     key = np.sort(edges, axis=1)
     uniq, counts = np.unique(key, axis=0, return_counts=True)
     boundary = np.unique(uniq[counts == 1])
-    out = {}
+    landmarks, margins = {}, {}
     for side, label in ((1, "left"), (-1, "right")):
         near = boundary[
             (np.hypot(verts[boundary, 0] - side * EYE_X, verts[boundary, 1] - EYE_Y) < 0.016)
             & (verts[boundary, 2] > 0)
         ]
         col = near[np.abs(verts[near, 0] - side * EYE_X) < 0.003]
-        out[f"upper_lid_{label}"] = int(col[np.argmax(verts[col, 1])])
-        out[f"lower_lid_{label}"] = int(col[np.argmin(verts[col, 1])])
-    return out
+        landmarks[f"upper_lid_{label}"] = int(col[np.argmax(verts[col, 1])])
+        landmarks[f"lower_lid_{label}"] = int(col[np.argmin(verts[col, 1])])
+        upper = verts[near, 1] > EYE_Y + 0.0008  # the lids' bulge at the pupil (targets)
+        margins[f"lid_upper_{label}"] = near[upper]
+        margins[f"lid_lower_{label}"] = near[~upper]
+    return landmarks, margins
 
 
 # --------------------------------------------------------------------------- target fields
@@ -960,9 +966,13 @@ def _build_targets(
         )
         blink = np.where((lid_zone > 0)[:, None], shell - v, 0.0)
         t[f"eyeBlink{side}"] = blink
+        # a squint or a cheek raise lifts the lower lid by a share of the opening above it
+        # (most mid-lid, nothing at the corners), as the blink lowers the upper one: any mix
+        # of them closes the eye evenly along its length (facelab.stimuli.avatar.lids)
+        lower_raise = lower_lid * g
         t[f"eyeSquint{side}"] = (
             0.30 * blink
-            + field(0, 0.0022, 0.0005, lower_lid)
+            + field(0, 0.0022, 0.0005, lower_raise)
             + field(0, 0.0012, 0, _cheek(x, y, sgn) * front)
         )
         t[f"eyeWide{side}"] = field(0, 0.0025, 0.0006, upper_lid) + field(0, -0.0008, 0, lower_lid)
@@ -1001,7 +1011,7 @@ def _build_targets(
         t[f"cheekSquint{side}"] = (
             field(0, 0.0030, 0.0008, _cheek(x, y, sgn) * front)
             + field(0, 0.0035, 0.0020, under_eye)
-            + field(0, 0.0025, 0.0006, lower_lid)
+            + field(0, 0.0025, 0.0006, lower_raise)
         )
         nose_side = (
             np.exp(-0.5 * (((x - sgn * 0.010) / 0.006) ** 2 + ((y + 0.030) / 0.008) ** 2)) * front

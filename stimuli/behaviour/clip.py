@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from facelab.emotions import BEHAVIOUR_MODES
+from facelab.stimuli.avatar.lids import lid_model
 from facelab.stimuli.avatar.rig import HeadPose
 from facelab.stimuli.behaviour.library import LAYERS, Library, default_library, load_library
 from facelab.stimuli.behaviour.plan import EmotionTimeline, Plan, SpeechCues, plan_behaviour
@@ -128,5 +129,6 @@ def behaviour_for_clip(
         target_names=avatar.target_names,
         has_head=bool({"head", "neck"} & set(roles)),
         has_eyes={"eye_left", "eye_right"} <= set(roles),
+        lids=lid_model(avatar),
     )
     return ClipBehaviour(mode, name, library, plan, out, poses, report)

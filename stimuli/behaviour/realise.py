@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from facelab.stimuli.avatar.lids import LidModel, close_lids
 from facelab.stimuli.avatar.rig import HeadPose, gaze_weights
 from facelab.stimuli.behaviour.library import ROTATIONS, Curve, Library
 from facelab.stimuli.behaviour.plan import Plan
@@ -91,12 +92,17 @@ def apply_to_weights(
     target_names: tuple[str, ...],
     has_head: bool,
     has_eyes: bool,
+    lids: LidModel | None = None,
 ) -> tuple[np.ndarray, list[HeadPose | None], dict]:
     """Speech weights (n, K) in ``target_names`` order + behaviour -> (weights clamped to
     [0, 1], one pose per frame (None at rest), report).
 
+    ``lids`` (:func:`~facelab.stimuli.avatar.lids.lid_model` of the avatar): a blink during
+    a squint or a smile closes the eye no further than shut (the blink gives way), instead of
+    driving the upper lid through the lower one.
+
     The report has ``clamped`` {channel: frames} (only channels the behaviour touched),
-    ``dropped`` {channel: why} and ``energy``."""
+    ``dropped`` {channel: why}, ``lid_limited_frames`` and ``energy``."""
     out = np.array(weights, dtype=np.float32, copy=True)
     index = {n: i for i, n in enumerate(target_names)}
     dropped: dict[str, str] = {}
@@ -129,6 +135,7 @@ def apply_to_weights(
         if n:
             clamped[name] = n
     np.clip(out, 0.0, 1.0, out=out)
+    out, lid_limited = close_lids(out, lids)
     poses: list[HeadPose | None] = []
     for k in range(len(frames.times)):
         r = rot[k]
@@ -147,6 +154,7 @@ def apply_to_weights(
     report = {
         "clamped_frames": clamped,
         "dropped": dropped,
+        "lid_limited_frames": lid_limited,
         "energy": {k: round(v, 4) for k, v in frames.energy().items()},
         **frames.report,
     }

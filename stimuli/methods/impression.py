@@ -68,7 +68,7 @@ class Impression(Method):
 
     def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
         n = len(set(avatar.targets) & set(ARKIT_NAMES))
-        return Playback(True, f"needs the ARKit targets its model moves (this avatar has {n}/52)")
+        return Playback(True, f"plays the ARKit targets its model moves ({n}/52 on this avatar)")
 
 
 register(Impression())

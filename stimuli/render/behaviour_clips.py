@@ -21,6 +21,7 @@ from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import BehaviourError
 from facelab.formats import write_manifest
 from facelab.grid import SERIAL, Cluster, GridTask, Progress
+from facelab.stimuli.avatar.lids import lid_model
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip
 from facelab.stimuli.behaviour.library import ROTATIONS, Library, Unit, default_library
@@ -187,6 +188,7 @@ def unit_sheet(
         raise BehaviourError("the library has no unit with a motion to draw")
     settings = RenderSettings(width=tile, height=tile, zoom=1.35, msaa=4)
     roles = avatar.skeleton.roles if avatar.skeleton is not None else {}
+    lids = lid_model(avatar)
     font = _font(15)
     tiles = []
     with Renderer(avatar, settings) as renderer:
@@ -207,7 +209,7 @@ def unit_sheet(
                 frames, np.zeros((1, len(avatar.target_names)), np.float32),
                 target_names=avatar.target_names,
                 has_head=bool({"head", "neck"} & set(roles)),
-                has_eyes={"eye_left", "eye_right"} <= set(roles),
+                has_eyes={"eye_left", "eye_right"} <= set(roles), lids=lids,
             )  # fmt: skip
             img = Image.fromarray(renderer.frame(w[0], pose=poses[0]))
             values = set(u.intensity.values())

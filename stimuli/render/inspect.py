@@ -17,6 +17,7 @@ import numpy as np
 
 from facelab.errors import AvatarError
 from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.avatar.lids import lid_model
 from facelab.stimuli.avatar.mesh import LANDMARKS, Avatar
 from facelab.stimuli.avatar.rig import ROLES, HeadPose
 from facelab.stimuli.avatar.vrm import VOWEL_PRESET_TARGETS
@@ -65,6 +66,7 @@ def avatar_report(avatar: Avatar) -> dict:
         "textures": [f"{t.shape[1]}x{t.shape[0]}" for t in avatar.textures],
         "landmarks": sorted(avatar.landmarks),
         "lip_landmarks": all(k in avatar.landmarks for k in LANDMARKS),
+        "lid_limits": lid_model(avatar) is not None,
         "methods": playability(avatar),
         "notes": list(avatar.source.get("notes", [])),  # what was read only in part
     }
@@ -100,6 +102,14 @@ def format_report(report: Mapping) -> str:
             "lip landmarks present"
             if report["lip_landmarks"]
             else "no lip landmarks (lip metrics unavailable)"
+        )
+    )
+    lines.append(
+        "lids       "
+        + (
+            "a blink in a squint or smile closes the eye no further than shut (lid landmarks)"
+            if report.get("lid_limits")
+            else "no lid landmarks: blinks and squints add as the avatar's own shapes do"
         )
     )
     lines.append("methods")
