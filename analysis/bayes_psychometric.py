@@ -294,11 +294,16 @@ def calibrated_drops(
 
 
 def _upper_quantile(deficits: Sequence[float], ci: float) -> float:
-    """The ``ci`` quantile of ``deficits`` (linear between order statistics), infinite when
-    the order statistic above it is: a truth outside the prior's support for that many
-    simulated participants is held only by an interval spanning the whole grid. (numpy's
-    own interpolation gives NaN between two infinities, and a NaN drop an empty interval.)"""
+    """The ``ci`` quantile of ``deficits`` at rank ``ci * (n + 1)`` (linear between order
+    statistics; Hyndman & Fan's type 6): the k-th of n sorted draws lies above a share
+    k / (n + 1) of their distribution on average, so an interval ending there holds the truth
+    ``ci`` of the time on average over calibrations (numpy's default rank ``ci * (n - 1) + 1``
+    gives 0.945 with n = 200). Infinite when the order statistic above that rank is: a truth
+    outside the prior's support for that many simulated participants is held only by an
+    interval spanning the whole grid (numpy would interpolate NaN between two infinities,
+    and a NaN drop gives an empty interval)."""
     ordered = np.sort(np.asarray(deficits, dtype=float))
-    if np.isinf(ordered[int(np.ceil(ci * (len(ordered) - 1)))]):
+    upper = min(int(np.ceil(ci * (len(ordered) + 1))), len(ordered)) - 1
+    if np.isinf(ordered[upper]):
         return float("inf")
-    return float(np.quantile(ordered, ci))
+    return float(np.quantile(ordered, ci, method="weibull"))

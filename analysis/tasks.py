@@ -6,7 +6,8 @@
   preference (guess rate 0); x is the comparison's level. Given a :class:`DesignSampler`
   (``facelab analyze`` passes one that runs the protocol's own design), each participant's
   profile intervals are calibrated on 200 participants simulated at the pooled estimate
-  (:func:`calibrate_drops`);
+  (:func:`calibrate_design`) - a session with fewer trials than the design on simulated
+  sessions stopped after as many;
 * staircases: also the rule's own estimate per participant - the mean level of the last
   reversals (up-down) or the posterior mean of the midpoint with its SD (QUEST+);
 * identification: confusion matrix, accuracy, per-class recall and Cohen's kappa
@@ -26,6 +27,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -39,10 +41,11 @@ from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 from facelab.staircase import new_staircase
 
 __all__ = [
+    "DesignCalibration",
     "DesignSampler",
     "TaskResults",
     "analyze_tasks",
-    "calibrate_drops",
+    "calibrate_design",
     "choice_outcome",
     "compares_conditions",
     "graded_ratings",
@@ -164,7 +167,48 @@ DesignSampler = Callable[[str, float, float, float, np.random.Generator], pd.Dat
 CALIBRATION_PARTICIPANTS = 200
 
 
-def calibrate_drops(
+@dataclass
+class DesignCalibration:
+    """Participants simulated through a task's design at a known truth (the pooled
+    posterior mode), for calibrating profile intervals: ``samples`` the simulated trials
+    (``level, y, trial_index``) of each, in presentation order."""
+
+    gamma: float
+    midpoint: float
+    slope: float
+    samples: list[pd.DataFrame]
+    _drops: dict[int | None, tuple[float, float] | None] = field(default_factory=dict)
+
+    @property
+    def full_trials(self) -> int:
+        """Trials of a complete simulated session (the longest, for a variable design)."""
+        return max(len(s) for s in self.samples)
+
+    def drops(self, n_trials: int | None = None) -> tuple[float, float] | None:
+        """The drops (midpoint, width) at which the profile intervals of these simulated
+        participants hold the truth 95 % of the time
+        (:func:`facelab.analysis.bayes_psychometric.calibrated_drops`), for sessions stopped
+        after ``n_trials`` trials (None or at least :attr:`full_trials`: complete sessions).
+        None when too few of them can be fitted."""
+        from facelab.analysis.bayes_psychometric import calibrated_drops
+
+        key = None if n_trials is None or n_trials >= self.full_trials else int(n_trials)
+        if key not in self._drops:
+            counts = [
+                psychometric.count_responses(s if key is None else s.iloc[:key], x="level",
+                                             y="y")
+                for s in self.samples
+            ]  # fmt: skip
+            try:
+                self._drops[key] = calibrated_drops(
+                    counts, gamma=self.gamma, midpoint=self.midpoint, slope=self.slope
+                )
+            except AnalysisError:
+                self._drops[key] = None
+        return self._drops[key]
+
+
+def calibrate_design(
     trials: pd.DataFrame,
     task: ChoiceTask,
     *,
@@ -172,16 +216,14 @@ def calibrate_drops(
     sampler: DesignSampler,
     rng: np.random.Generator,
     n: int = CALIBRATION_PARTICIPANTS,
-) -> tuple[float, float] | None:
-    """The profile-interval drops (midpoint, width) for ``task``'s design: ``n`` participants
-    simulated by ``sampler`` as an observer at the posterior mode of everyone's ``trials``
-    pooled (columns ``level, y``), each fitted, and the drops at which their intervals hold
-    that truth 95 % of the time (:func:`facelab.analysis.bayes_psychometric.
-    calibrated_drops`). None when the pooled answers cannot be fitted (one level only).
-    ``gamma``: the guess rate."""
+) -> DesignCalibration | None:
+    """``n`` participants simulated by ``sampler`` through ``task``'s design as an observer at
+    the posterior mode of everyone's ``trials`` pooled (columns ``level, y``), for
+    calibrating each participant's intervals (:meth:`DesignCalibration.drops`). None when
+    the pooled answers cannot be fitted (one level only). ``gamma``: the guess rate."""
     from tqdm import tqdm
 
-    from facelab.analysis.bayes_psychometric import calibrated_drops, posterior_fit
+    from facelab.analysis.bayes_psychometric import posterior_fit
 
     pooled = psychometric.count_responses(trials, x="level", y="y")
     try:
@@ -196,11 +238,30 @@ def calibrate_drops(
         if rows.empty:
             continue
         y, _ = choice_outcome(rows, task)
-        samples.append(psychometric.count_responses(rows.assign(y=y.to_numpy()), x="level", y="y"))
-    try:
-        return calibrated_drops(samples, gamma=gamma, midpoint=truth.midpoint, slope=truth.slope)
-    except AnalysisError:
+        rows = rows.assign(y=y.to_numpy()).sort_values("trial_index", kind="stable")
+        samples.append(rows[["trial_index", "level", "y"]].reset_index(drop=True))
+    if not samples:
         return None
+    return DesignCalibration(gamma, truth.midpoint, truth.slope, samples)
+
+
+def _calibrated_drops(
+    trials: pd.DataFrame, calibration: DesignCalibration | None
+) -> tuple[dict[Any, tuple[float, float]], dict[Any, int]]:
+    """Each participant's drops ({participant: (midpoint, width)}) and, for those whose
+    session has fewer of the task's trials than the design, that count: their intervals are
+    calibrated on simulated sessions stopped after as many trials."""
+    drops: dict[Any, tuple[float, float]] = {}
+    short: dict[Any, int] = {}
+    if calibration is None:
+        return drops, short
+    for pid, k in trials.groupby("participant", sort=True).size().items():
+        d = calibration.drops(int(k))
+        if d is not None:
+            drops[pid] = d
+            if k < calibration.full_trials:
+                short[pid] = int(k)
+    return drops, short
 
 
 def analyze_tasks(
@@ -233,12 +294,14 @@ def analyze_tasks(
         if isinstance(task, ChoiceTask):
             y, gamma = choice_outcome(rows, task)
             trials = rows.assign(y=y.to_numpy())
-            drops = None
+            drops: dict[Any, tuple[float, float]] = {}
+            short: dict[Any, int] = {}
             if sampler is not None:  # its own generator: the bootstrap's draws stay as they were
-                drops = calibrate_drops(
+                calibration = calibrate_design(
                     trials, task, gamma=gamma, sampler=sampler, rng=rng.spawn(1)[0]
                 )
-                if drops is None:
+                drops, short = _calibrated_drops(trials, calibration)
+                if not drops:
                     res.notes.append(
                         f"task {task.id!r}: the intervals were not calibrated (the pooled "
                         "answers or the simulated ones cannot be fitted)"
@@ -247,6 +310,12 @@ def analyze_tasks(
                 trials, level="level", correct="y", subject="participant", pooled=True,
                 gamma=gamma, n_boot=n_boot, rng=rng, per_subject="posterior", drops=drops,
             ).rename(columns={"subject": "participant"})  # fmt: skip
+            for pid, k in short.items():
+                at = fits["participant"] == pid
+                fits.loc[at, "note"] = fits.loc[at, "note"] + (
+                    f"; this session has {k} of the design's trials: calibrated on simulated "
+                    f"sessions stopped after {k}"
+                )
             psy_tables.append(fits.assign(task=task.id, gamma=gamma))
             counts = psychometric.count_responses(trials, x="level", y="y")
             curves = _curves(fits, counts["level"].to_numpy(dtype=float))

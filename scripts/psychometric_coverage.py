@@ -8,18 +8,21 @@ participant three ways: maximum likelihood with parametric-bootstrap percentile 
 (``profile``), the same with the interval ends calibrated on the design
 (``calibrated``, the per-participant default of ``facelab analyze``: the observers are taken
 in studies of ``--group`` participants, each study's pooled estimate simulated through the
-protocol's design 200 times; :func:`facelab.analysis.tasks.calibrate_drops`), or by marginal
+protocol's design 200 times; :func:`facelab.analysis.tasks.calibrate_design`), or by marginal
 medians and credible intervals (``credible``). Prints JSON: for each estimator the share of
 observers whose 95 % interval holds the true midpoint and slope, and the median estimate.
 
     python scripts/psychometric_coverage.py [PROTOCOL] [--observers 200] [--seed 7] [--boot 200]
         [--midpoint M] [--slope B] [--lapse L] [--group 8]
-        [--estimators calibrated profile credible ml_bootstrap]
+        [--estimators calibrated calibrated_complete profile credible ml_bootstrap]
+        [--stop-after K]
 
-``--midpoint/--slope/--lapse`` replace the protocol's observer, to measure coverage at other
-truths: per-participant coverage depends on the truth (a slope steeper than the levels'
-spacing can show is pulled down by the width prior; a shallow one is covered by the prior's
-breadth), so report it at more than one.
+``--stop-after K`` cuts every session after K trials (a pilot stopped early): ``calibrated``
+is then calibrated on simulated sessions cut as early (as ``facelab analyze`` does),
+``calibrated_complete`` on complete ones. ``--midpoint/--slope/--lapse`` replace the
+protocol's observer, to measure coverage at other truths: per-participant coverage depends
+on the truth (a slope steeper than the levels' spacing can show is pulled down by the width
+prior; a shallow one is covered by the prior's breadth), so report it at more than one.
 """
 
 from __future__ import annotations
@@ -33,12 +36,12 @@ import pandas as pd
 
 from facelab.analysis.bayes_psychometric import posterior_fit
 from facelab.analysis.psychometric import count_responses, fit_psychometric
-from facelab.analysis.tasks import calibrate_drops, choice_outcome
+from facelab.analysis.tasks import calibrate_design, choice_outcome
 from facelab.experiment.simulate import design_sampler, simulated_rows
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 
-ESTIMATORS = ("calibrated", "profile", "credible", "ml_bootstrap")
+ESTIMATORS = ("calibrated", "calibrated_complete", "profile", "credible", "ml_bootstrap")
 
 
 def main() -> None:
@@ -48,6 +51,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--boot", type=int, default=200)
     ap.add_argument("--group", type=int, default=8, help="participants per study (calibrated)")
+    ap.add_argument("--stop-after", type=int, help="every session stops after this many trials")
     ap.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=ESTIMATORS)
     for name in ("midpoint", "slope", "lapse"):
         ap.add_argument(f"--{name}", type=float, help=f"true {name} (default: the protocol's)")
@@ -71,22 +75,28 @@ def main() -> None:
     observers = []  # (trials with y, counts, gamma) per observer
     for i, child in enumerate(children):
         rows = pd.DataFrame(simulated_rows(protocol, participant=f"S{i:04d}", rng=child))
-        rows = rows[rows["item"] == task.id]
+        rows = rows[rows["item"] == task.id].sort_values("trial_index")
+        if args.stop_after:
+            rows = rows.iloc[: args.stop_after]
         y, gamma = choice_outcome(rows, task)
         trials = rows.assign(y=y.to_numpy())
         observers.append((trials, count_responses(trials, x="level", y="y"), gamma))
     sampler = design_sampler(protocol)
-    drops = None
+    drops = complete = None
+    calibrating = {"calibrated", "calibrated_complete"} & set(args.estimators)
     for i, (_, counts, gamma) in enumerate(observers):
-        if "calibrated" in args.estimators and i % args.group == 0:
+        if calibrating and i % args.group == 0:
             # a study of this observer and the next group - 1: calibrated on their answers
             t0 = time.perf_counter()
             study = pd.concat([t for t, _, _ in observers[i : i + args.group]], ignore_index=True)
-            drops = calibrate_drops(
+            calibration = calibrate_design(
                 study, task, gamma=gamma, sampler=sampler,
                 rng=np.random.default_rng([args.seed, i]),
             )  # fmt: skip
-            seconds["calibrated"] += time.perf_counter() - t0
+            drops = calibration.drops(args.stop_after) if calibration is not None else None
+            complete = calibration.drops() if calibration is not None else None
+            for name in calibrating:
+                seconds[name] += time.perf_counter() - t0
         child = children[i]
         for name in args.estimators:
             t0 = time.perf_counter()
@@ -95,15 +105,17 @@ def main() -> None:
                 row = (ml.midpoint, ml.midpoint_ci_low, ml.midpoint_ci_high,
                        ml.beta, ml.beta_ci_low, ml.beta_ci_high)  # fmt: skip
             else:
+                mine = {"calibrated": drops, "calibrated_complete": complete}.get(name)
                 post = posterior_fit(
-                    counts, gamma=gamma, interval="profile" if name == "calibrated" else name,
-                    drops=drops if name == "calibrated" else None,
+                    counts, gamma=gamma,
+                    interval="profile" if name.startswith("calibrated") else name, drops=mine,
                 )  # fmt: skip
                 row = (post.midpoint, post.midpoint_ci_low, post.midpoint_ci_high,
                        post.slope, post.slope_ci_low, post.slope_ci_high)  # fmt: skip
             seconds[name] += time.perf_counter() - t0
             found[name].append(row)
     report = {"protocol": args.protocol, "observers": args.observers, "seed": args.seed,
+              "stop_after": args.stop_after,
               "truth": {"midpoint": truth.midpoint, "slope": truth.slope, "lapse": truth.lapse,
                         "midpoint_sd": truth.midpoint_sd}}  # fmt: skip
     for name, values in found.items():

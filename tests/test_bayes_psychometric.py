@@ -237,7 +237,7 @@ def test_calibrated_intervals_cover_the_staircase_observer() -> None:
     true midpoint and slope 0.90-0.97 of the time (uncalibrated: 0.960 / 0.965 here, 0.974 /
     0.981 over 1000 observers of seed 2026; calibrated 0.955 / 0.923 there)."""
     from facelab.analysis.psychometric import count_responses
-    from facelab.analysis.tasks import calibrate_drops
+    from facelab.analysis.tasks import calibrate_design
     from facelab.experiment.simulate import design_sampler
 
     protocol, task, gamma, people = _simulated_observers("gain_staircase", seed=11, n=200)
@@ -245,10 +245,12 @@ def test_calibrated_intervals_cover_the_staircase_observer() -> None:
     sampler, hits = design_sampler(protocol), []
     for start in range(0, 200, 8):
         study = people[start : start + 8]
-        drops = calibrate_drops(
+        calibration = calibrate_design(
             pd.concat(study, ignore_index=True), task, gamma=gamma, sampler=sampler,
             rng=np.random.default_rng([11, start]),
         )  # fmt: skip
+        assert calibration is not None
+        drops = calibration.drops()
         assert drops is not None
         for trials in study:
             fit = posterior_fit(count_responses(trials, x="level", y="y"), gamma=gamma,

@@ -501,6 +501,41 @@ def test_per_participant_intervals_are_calibrated_on_the_design(tmp_path):
     assert any(b.loc[p, "slope_ci_low"] != a.loc[p, "slope_ci_low"] for p in people)
 
 
+def test_a_session_stopped_early_is_calibrated_on_sessions_stopped_as_early(tmp_path):
+    """P02 stopped after 20 of the staircase's 50 trials: its intervals are calibrated on
+    the simulated sessions cut after 20 trials (the note says so, and the drops differ from
+    the complete sessions'); the others' are those of complete sessions, as without P02's
+    stop. DesignCalibration.drops(k) fits the first k trials of each simulated session."""
+    from facelab.analysis.tasks import calibrate_design, choice_outcome
+    from facelab.experiment.simulate import design_sampler
+
+    path = protocol_path("gain_staircase")
+    protocol = load_protocol(path)
+    simulate_study(protocol, protocol_path=path, results=tmp_path, participants=4, seed=5)
+    data = load_results(tmp_path, study=protocol.study.id)
+    task = protocol.tasks[0]
+    mine = (data["participant"] == "P02") & (data["item"] == task.id)
+    late = data[mine].sort_values("trial_index").index[20:]
+    stopped = data.drop(index=late)
+    res = analyze_tasks(stopped, protocol, rng=np.random.default_rng(1), n_boot=20,
+                        sampler=design_sampler(protocol))  # fmt: skip
+    fits = res.tables["psychometric_fits"].set_index("participant")
+    assert "stopped after 20" in fits.loc["P02", "note"]
+    assert fits.loc["P02", "n"] == 20
+    for p in ("P01", "P03", "P04"):
+        assert "stopped after" not in fits.loc[p, "note"]
+        assert fits.loc[p, "note"] == fits.loc["P01", "note"]  # one calibration, one drop
+
+    rows = stopped[stopped["item"] == task.id]
+    y, gamma = choice_outcome(rows, task)
+    cal = calibrate_design(rows.assign(y=y.to_numpy()), task, gamma=gamma,
+                           sampler=design_sampler(protocol), rng=np.random.default_rng(2),
+                           n=40)  # fmt: skip
+    assert cal is not None and cal.full_trials == 50
+    assert cal.drops(50) == cal.drops() == cal.drops(70) and cal.drops(20) != cal.drops()
+    assert all(list(s["trial_index"]) == sorted(s["trial_index"]) for s in cal.samples)
+
+
 def test_identification_is_compared_between_conditions(tmp_path):
     """Emotions portrayed under two behaviour conditions (seed 003): simulated identifiers
     name the emotion more often under composite behaviour; the analysis finds it."""
