@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import sys
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict
 from typing import Any, Literal
 
@@ -509,7 +509,7 @@ def psychometric(
     n_boot: int = 200,
     rng: np.random.Generator | None = None,
     per_subject: Literal["ml", "posterior"] = "ml",
-    drops: tuple[float, float] | Mapping[Any, tuple[float, float]] | None = None,
+    drops: tuple[float, float] | None = None,
 ) -> pd.DataFrame:
     """Psychometric fits, P = gamma + (1 - gamma - lambda) * F(x): the one psychometric API
     of facelab (its engines: :mod:`facelab.analysis.psychometric`, maximum likelihood, and
@@ -534,8 +534,7 @@ def psychometric(
         :mod:`facelab.analysis.bayes_psychometric`). ``estimate`` says which a row is.
     drops : with ``per_subject="posterior"``, the log-posterior drops (midpoint, width) that
         end the profile intervals, calibrated for the design
-        (:func:`facelab.analysis.bayes_psychometric.calibrated_drops`), for every subject or
-        {subject: drops} (a subject not in it: the default); default chi2_1(.95)/2.
+        (:func:`facelab.analysis.bayes_psychometric.calibrated_drops`); default chi2_1(.95)/2.
 
     Returns one row per subject (then the pooled row, subject ``"pooled"``), columns
     :data:`PSYCHOMETRIC_COLUMNS`: ``subject, n, midpoint, slope, lapse, deviance,
@@ -576,8 +575,7 @@ def psychometric(
         posterior = per_subject == "posterior" and key != "pooled" and sigmoid == "logistic"
         try:
             if posterior:
-                mine = drops.get(key) if isinstance(drops, Mapping) else drops
-                fit = _posterior_row(counts, gamma=gamma, drops=mine)
+                fit = _posterior_row(counts, gamma=gamma, drops=drops)
             else:
                 fit = asdict(
                     fit_psychometric(

@@ -14,15 +14,15 @@ observers whose 95 % interval holds the true midpoint and slope, and the median 
 
     python scripts/psychometric_coverage.py [PROTOCOL] [--observers 200] [--seed 7] [--boot 200]
         [--midpoint M] [--slope B] [--lapse L] [--group 8]
-        [--estimators calibrated calibrated_complete profile credible ml_bootstrap]
+        [--estimators calibrated profile credible ml_bootstrap]
         [--stop-after K]
 
-``--stop-after K`` cuts every session after K trials (a pilot stopped early): ``calibrated``
-is then calibrated on simulated sessions cut as early (as ``facelab analyze`` does),
-``calibrated_complete`` on complete ones. ``--midpoint/--slope/--lapse`` replace the
-protocol's observer, to measure coverage at other truths: per-participant coverage depends
-on the truth (a slope steeper than the levels' spacing can show is pulled down by the width
-prior; a shallow one is covered by the prior's breadth), so report it at more than one.
+``--stop-after K`` cuts every session after K trials (sessions stopped early; ``calibrated``
+still simulates complete sessions, as ``facelab analyze`` does). ``--midpoint/--slope/
+--lapse`` replace the protocol's observer, to measure coverage at other truths:
+per-participant coverage depends on the truth (a slope steeper than the levels' spacing can
+show is pulled down by the width prior; a shallow one is covered by the prior's breadth),
+so report it at more than one.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from facelab.experiment.simulate import design_sampler, simulated_rows
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 
-ESTIMATORS = ("calibrated", "calibrated_complete", "profile", "credible", "ml_bootstrap")
+ESTIMATORS = ("calibrated", "profile", "credible", "ml_bootstrap")
 
 
 def main() -> None:
@@ -82,10 +82,9 @@ def main() -> None:
         trials = rows.assign(y=y.to_numpy())
         observers.append((trials, count_responses(trials, x="level", y="y"), gamma))
     sampler = design_sampler(protocol)
-    drops = complete = None
-    calibrating = {"calibrated", "calibrated_complete"} & set(args.estimators)
+    drops = None
     for i, (_, counts, gamma) in enumerate(observers):
-        if calibrating and i % args.group == 0:
+        if "calibrated" in args.estimators and i % args.group == 0:
             # a study of this observer and the next group - 1: calibrated on their answers
             t0 = time.perf_counter()
             study = pd.concat([t for t, _, _ in observers[i : i + args.group]], ignore_index=True)
@@ -93,10 +92,8 @@ def main() -> None:
                 study, task, gamma=gamma, sampler=sampler,
                 rng=np.random.default_rng([args.seed, i]),
             )  # fmt: skip
-            drops = calibration.drops(args.stop_after) if calibration is not None else None
-            complete = calibration.drops() if calibration is not None else None
-            for name in calibrating:
-                seconds[name] += time.perf_counter() - t0
+            drops = calibration.drops() if calibration is not None else None
+            seconds["calibrated"] += time.perf_counter() - t0
         child = children[i]
         for name in args.estimators:
             t0 = time.perf_counter()
@@ -105,10 +102,9 @@ def main() -> None:
                 row = (ml.midpoint, ml.midpoint_ci_low, ml.midpoint_ci_high,
                        ml.beta, ml.beta_ci_low, ml.beta_ci_high)  # fmt: skip
             else:
-                mine = {"calibrated": drops, "calibrated_complete": complete}.get(name)
                 post = posterior_fit(
-                    counts, gamma=gamma,
-                    interval="profile" if name.startswith("calibrated") else name, drops=mine,
+                    counts, gamma=gamma, interval="profile" if name == "calibrated" else name,
+                    drops=drops if name == "calibrated" else None,
                 )  # fmt: skip
                 row = (post.midpoint, post.midpoint_ci_low, post.midpoint_ci_high,
                        post.slope, post.slope_ci_low, post.slope_ci_high)  # fmt: skip
