@@ -138,6 +138,22 @@ def test_the_hairline_is_a_curve_not_the_grids_staircase(head: Avatar) -> None:
     assert len(edge) > 30 and np.abs(np.diff(edge[:, 1])).max() < 0.001
 
 
+def test_the_neck_is_shaded_below_the_open_jaw(head: Avatar) -> None:
+    """The renderer casts no shadows, so the shade the head throws on the neck is painted:
+    the front of the neck just below where the chin reaches with the jaw fully open is at
+    least 35 % darker than the neck lower down (the painting once stopped above that point,
+    and an open mouth's chin then met a bright neck)."""
+    chin = head.landmarks["chin"]
+    low = float(head.neutral[chin, 1] + head.targets["jawOpen"][chin, 1])  # about -0.111 m
+    neck = head.parts["neck"]
+    v, c = head.neutral[neck], head.colors[neck].mean(axis=1)
+    front = v[:, 2] > 0.03
+    below_chin = front & (v[:, 1] < low) & (v[:, 1] > low - 0.01)
+    lower_neck = front & (v[:, 1] < -0.19)
+    assert below_chin.sum() >= 3 and lower_neck.sum() >= 3
+    assert c[below_chin].mean() < 0.65 * c[lower_neck].mean()
+
+
 def test_the_nose_sits_where_a_face_has_it(head: Avatar) -> None:
     """The nose's most forward point about 0.6 of the way from the eyes' height down to the
     mouth (adults: eyes to subnasale ~50 mm of ~72 mm to the lips' meeting line); the first

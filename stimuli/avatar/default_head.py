@@ -528,9 +528,10 @@ def _body() -> list[_Part]:
         )
     neck_v = np.vstack(neck_v)
     neck_f = _grid_faces(rows, cols, wrap=True)[:, ::-1]  # rows go down here: flip the winding
-    # the jaw shades the top of the neck
-    under_jaw = _smoothstep(-0.115, -0.075, neck_v[:, 1]) * _smoothstep(-0.02, 0.03, neck_v[:, 2])
-    neck_c = np.tile(SKIN * 0.95, (len(neck_v), 1)) * (1 - 0.3 * under_jaw)[:, None]
+    # the head shades the neck (the renderer casts no shadows): darkest under the jaw and
+    # down past where the chin reaches with the jaw open (-0.111 m), fading to the shoulders
+    under_jaw = _smoothstep(-0.17, -0.095, neck_v[:, 1]) * _smoothstep(-0.02, 0.03, neck_v[:, 2])
+    neck_c = np.tile(SKIN * 0.95, (len(neck_v), 1)) * (1 - 0.6 * under_jaw)[:, None]
     torso_v, torso_f = _torso()
     return [
         _Part(neck_v, neck_f, neck_c, "neck"),
