@@ -3,11 +3,14 @@ look shuts the default head's eye without driving one lid through the other."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from facelab.stimuli.avatar import Avatar, default_head
 from facelab.stimuli.avatar.lids import close_lids, lid_model
+from facelab.stimuli.avatar.rig import HeadPose
 from facelab.stimuli.behaviour.library import ROTATIONS
 from facelab.stimuli.behaviour.realise import BehaviourFrames, apply_to_weights
 
@@ -99,3 +102,30 @@ def test_behaviour_on_the_weights_limits_the_lids_and_reports_it(head: Avatar) -
     assert report["lid_limited_frames"] == 1 and plain_report["lid_limited_frames"] == 0
     assert out[1, blink] < 0.9 and plain[1, blink] == 1.0
     np.testing.assert_array_equal(np.delete(out, blink, axis=1), np.delete(plain, blink, axis=1))
+
+
+def test_a_behaviour_clips_cache_key_covers_what_realising_its_plan_drew(head: Avatar) -> None:
+    """`facelab render` reuses a behaviour clip when its key matches; the key holds the
+    realised weights and poses, not only the plan, so a change in how a plan is drawn (as the
+    lid limit was) renders the clip again instead of keeping frames drawn the old way."""
+    from dataclasses import replace
+
+    from facelab.stimuli.behaviour.clip import behaviour_for_clip
+    from facelab.stimuli.render.build import _behaviour_hash
+    from facelab.stimuli.speech.tts import synthesize
+
+    speech = synthesize("こんにちは。")
+    n = 60
+    beh = behaviour_for_clip(
+        setting="composite", emotion={"joy": 0.9}, base_dir=Path("."), seed=4, speech=speech,
+        pad_s=0.2, fps=30, n_frames=n,
+        weights=np.zeros((n, len(head.target_names)), np.float32), avatar=head,
+    )  # fmt: skip
+    assert beh is not None
+    key = _behaviour_hash(beh)
+    assert _behaviour_hash(replace(beh, weights=beh.weights.copy())) == key
+    moved = beh.weights.copy()
+    moved[n // 2, head.target_names.index("eyeBlinkLeft")] += 0.25
+    assert _behaviour_hash(replace(beh, weights=moved)) != key
+    turned = [HeadPose(yaw=1.0), *beh.poses[1:]]
+    assert _behaviour_hash(replace(beh, poses=turned)) != key

@@ -130,9 +130,15 @@ def _behaviour(
     )
 
 
-def _plan_hash(behaviour: ClipBehaviour) -> str:
-    text = json.dumps(behaviour.plan.to_json(), sort_keys=True, ensure_ascii=False)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+def _behaviour_hash(behaviour: ClipBehaviour) -> str:
+    """SHA-256 of the plan and of what realising it gave: the weights and poses drawn (so a
+    change in how a plan is realised - e.g. the lid limit - re-renders the clip)."""
+    h = hashlib.sha256(
+        json.dumps(behaviour.plan.to_json(), sort_keys=True, ensure_ascii=False).encode("utf-8")
+    )
+    h.update(np.ascontiguousarray(behaviour.weights, dtype=np.float32).tobytes())
+    h.update(repr(behaviour.poses).encode())
+    return h.hexdigest()
 
 
 def _write_json(path: Path, data: dict, *, indent: int = 1, ascii_only: bool = False) -> None:
@@ -202,7 +208,11 @@ def build_clips(
                         "fps": fps,
                         "pad_s": protocol.rendering.pad_s,
                         "track_format": TRACK_FORMAT,  # drawn from the track's float32 values
-                        **({"behaviour": _plan_hash(behaviour)} if behaviour is not None else {}),
+                        **(
+                            {"behaviour": _behaviour_hash(behaviour)}
+                            if behaviour is not None
+                            else {}
+                        ),
                     },
                     sort_keys=True,
                     default=str,
