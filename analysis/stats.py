@@ -594,8 +594,26 @@ def psychometric(
     return pd.DataFrame(rows, columns=list(PSYCHOMETRIC_COLUMNS))
 
 
-def _drop_text(drop: float) -> str:
-    return f"{drop:.2f}" if np.isfinite(drop) else "unbounded (the prior's whole range)"
+def _calibration_note(drops: tuple[float, float]) -> str:
+    """How the calibrated intervals end, in words (an infinite drop: the whole grid)."""
+    if all(np.isfinite(drops)):
+        return (
+            "intervals calibrated on the design simulated at the pooled estimate (they end "
+            f"{drops[0]:.2f} / {drops[1]:.2f} below the mode for midpoint / slope; "
+            "uncalibrated 1.92)"
+        )
+    ends = [
+        f"the {name}'s interval ends {drop:.2f} below the mode"
+        if np.isfinite(drop)
+        else f"the {name}'s interval is the prior's whole range: too many simulated "
+        "participants' priors excluded the pooled estimate for a finite drop"
+        for name, drop in zip(("midpoint", "slope"), drops, strict=True)
+    ]
+    return (
+        "intervals calibrated on the design simulated at the pooled estimate ("
+        + "; ".join(ends)
+        + "; uncalibrated 1.92)"
+    )
 
 
 def _posterior_row(
@@ -608,11 +626,7 @@ def _posterior_row(
     post = posterior_fit(counts, gamma=gamma, drops=drops)
     notes = ["posterior mode, 95 % profile intervals (psignifit's default priors)"]
     if drops is not None:
-        notes.append(
-            "intervals calibrated on the design simulated at the pooled estimate (they end "
-            f"{_drop_text(drops[0])} / {_drop_text(drops[1])} below the mode for midpoint / "
-            "slope; uncalibrated 1.92)"
-        )
+        notes.append(_calibration_note(drops))
     notes += [f"the data alone do not bound the {name} (its interval's ends are the prior's)"
               for name, at_limit in (("midpoint", post.midpoint_at_limit),
                                      ("slope", post.slope_at_limit)) if at_limit]  # fmt: skip

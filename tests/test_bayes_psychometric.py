@@ -182,6 +182,10 @@ def test_a_truth_most_designs_cannot_hold_gives_the_whole_range_not_an_empty_int
     assert fit.slope_ci_low == pytest.approx(2 * np.log(19) / grid_w[1])
     assert fit.slope_ci_high == pytest.approx(2 * np.log(19) / grid_w[0])
     assert fit.slope_at_limit and np.isfinite(fit.midpoint_ci_low)
+    from facelab.analysis.stats import _posterior_row
+
+    note = _posterior_row(samples[0], gamma=0.5, drops=(drop_m, drop_w))["note"]
+    assert "the slope's interval is the prior's whole range" in note and "inf" not in note
 
 
 def _simulated_observers(
