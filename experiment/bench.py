@@ -3,7 +3,8 @@
 Simulates N participants of a protocol once (not timed), then times ``facelab analyze`` on
 them as a user runs it (a new process, imports included), ``runs`` times; prints the median
 and every run. It also checks that the fast path gives the same numbers: the mixed-model F
-by the closed form against a statsmodels MixedLM fit on the first 50 participants.
+by the closed form against a statsmodels MixedLM fit on the first 50 participants (where the
+protocol has rating items; for a choice-only protocol those fields are null).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from facelab.errors import StageError
 
 __all__ = ["bench_analyze"]
 
@@ -52,18 +55,21 @@ def bench_analyze(*, protocol: Path, participants: int = 1000, runs: int = 3) ->
             )
             times.append(time.perf_counter() - t0)
             if done.returncode != 0:
-                raise RuntimeError(f"facelab analyze failed: {done.stderr[-800:]}")
+                raise StageError(f"facelab analyze failed: {done.stderr[-800:]}")
         forced_choice = _forced_choice_analysis(Path(tmp), exe)
         data = load_results(results, study=proto.study.id)
-        first = sorted(data["participant"].unique())[:50]
-        sub = data[
-            data["participant"].isin(first)
-            & (data["item"] == proto.items[0].id)
-            & (data["stimulus_set"] == proto.stimulus_sets[0].id)
-        ]
-        kw = {"dv": "rating", "within": "condition", "subject": "participant"}
-        closed = float(stats.lmm_anova(sub, **kw)["f"].iloc[0])
-        fitted = float(stats.lmm_anova(sub, closed_form=False, **kw)["f"].iloc[0])
+        closed = fitted = difference = None
+        if proto.items:  # the mixed-model check needs ratings (a choice-only protocol has none)
+            first = sorted(data["participant"].unique())[:50]
+            sub = data[
+                data["participant"].isin(first)
+                & (data["item"] == proto.items[0].id)
+                & (data["stimulus_set"] == proto.stimulus_sets[0].id)
+            ]
+            kw = {"dv": "rating", "within": "condition", "subject": "participant"}
+            closed = float(stats.lmm_anova(sub, **kw)["f"].iloc[0])
+            fitted = float(stats.lmm_anova(sub, closed_form=False, **kw)["f"].iloc[0])
+            difference = abs(closed - fitted) / fitted
     return {
         "benchmark": "analyze",
         "protocol": str(protocol),
@@ -75,7 +81,7 @@ def bench_analyze(*, protocol: Path, participants: int = 1000, runs: int = 3) ->
         "target_s": 5.0,
         "lmm_f_closed_form_50": closed,
         "lmm_f_mixedlm_fit_50": fitted,
-        "lmm_f_relative_difference": abs(closed - fitted) / fitted,
+        "lmm_f_relative_difference": difference,
         "forced_choice": forced_choice,
     }
 
@@ -100,6 +106,6 @@ def _forced_choice_analysis(tmp: Path, exe: str) -> dict[str, Any]:
     )
     seconds = time.perf_counter() - t0
     if done.returncode != 0:
-        raise RuntimeError(f"facelab analyze failed: {done.stderr[-800:]}")
+        raise StageError(f"facelab analyze failed: {done.stderr[-800:]}")
     return {"protocol": "gain_2afc", "participants": 8, "trials_each": 60,
             "bootstrap": 200, "analyze_s": round(seconds, 2), "target_s": 10.0}  # fmt: skip
