@@ -171,8 +171,8 @@ CALIBRATION_PARTICIPANTS = 200
 @dataclass
 class DesignCalibration:
     """Participants simulated through a task's design at a known truth (the pooled
-    posterior mode), for calibrating profile intervals: ``samples`` the simulated trials
-    (``level, y``) of each."""
+    posterior mode), for calibrating profile intervals: ``samples`` the answer counts
+    (``level, n, k``) of each."""
 
     gamma: float
     midpoint: float
@@ -182,7 +182,7 @@ class DesignCalibration:
     @property
     def full_trials(self) -> int:
         """Trials of a complete simulated session (the longest, for a variable design)."""
-        return max(len(s) for s in self.samples)
+        return max(int(s["n"].sum()) for s in self.samples)
 
     def drops(self) -> tuple[float, float] | None:
         """The drops (midpoint, width) at which the profile intervals of these simulated
@@ -193,10 +193,9 @@ class DesignCalibration:
         doc)."""
         from facelab.analysis.bayes_psychometric import calibrated_drops
 
-        counts = [psychometric.count_responses(s, x="level", y="y") for s in self.samples]
         try:
             return calibrated_drops(
-                counts, gamma=self.gamma, midpoint=self.midpoint, slope=self.slope
+                self.samples, gamma=self.gamma, midpoint=self.midpoint, slope=self.slope
             )
         except AnalysisError:
             return None
@@ -232,7 +231,8 @@ def calibrate_design(
         if rows.empty:
             continue
         y, _ = choice_outcome(rows, task)
-        samples.append(pd.DataFrame({"level": rows["level"].to_numpy(), "y": y.to_numpy()}))
+        samples.append(psychometric.count_responses(rows.assign(y=y.to_numpy()), x="level",
+                                                    y="y"))  # fmt: skip
     if not samples:
         return None
     return DesignCalibration(gamma, truth.midpoint, truth.slope, samples)

@@ -7,15 +7,18 @@ full strength drives the upper lid 7.7 mm through the lower one. ARKit rigs buil
 carry corrective shapes for such combinations; a rig without them needs a rule.
 
 The rule here works in weight space, so it holds wherever the weights go (the lab renderer,
-the browser and VR players): at each frame, the gap between the lid margins above and below
-the pupil - predicted from how far each target moves those two vertices - may not close
-beyond where the blink alone closes it. When it would, the blink gives way first (the eye
-is then shut by the squint and the blink together), then the other channels that lower the
-upper lid (``eyeSquint``, ``eyeLookDown``), in proportion. Channels that only raise the lower
-lid or the cheek keep their weight: a smiling face that blinks keeps its raised cheeks.
+the browser and VR players): at each frame, the gap between the lid margins - each upper
+margin vertex and the lower one across from it, predicted from how far each target moves
+them - may not close beyond where the blink alone closes it (pairs where the blink sweeps
+at least half its largest travel: not the corners). When it would, the blink gives way
+first (the eye is then shut by the squint and the blink together), then the other channels
+that lower the upper lid (``eyeSquint``, ``eyeLookDown``), in proportion. Channels that
+only raise the lower lid or the cheek keep their weight: a smiling face that blinks keeps
+its raised cheeks.
 
-It needs lid landmarks (``upper_lid_{left,right}``, ``lower_lid_{left,right}``) and the
-side's ``eyeBlink`` target; an avatar without them is left to its own shapes (:func:`lid_model`
+It needs lid landmarks (``upper_lid_{left,right}``, ``lower_lid_{left,right}``; the margins
+themselves from parts ``lid_upper_*`` / ``lid_lower_*`` where listed) and the side's
+``eyeBlink`` target; an avatar without them is left to its own shapes (:func:`lid_model`
 returns None) - a glTF avatar's artist-made shapes usually are made to combine.
 """
 
@@ -83,9 +86,8 @@ def lid_model(avatar: Avatar) -> LidModel | None:
         if not pairs or blink is None:
             continue
         up, lo = (np.array(p) for p in zip(*pairs, strict=True))
-        stack = np.stack([avatar.targets[n][:, 1] for n in names], axis=1)  # (V, K) y moves
-        lowers = -stack[up]  # (P, K)
-        closure = lowers + stack[lo]
+        lowers = -np.stack([avatar.targets[n][up, 1] for n in names], axis=1)  # (P, K)
+        closure = lowers + np.stack([avatar.targets[n][lo, 1] for n in names], axis=1)
         open_gap = avatar.neutral[up, 1] - avatar.neutral[lo, 1]
         swept = (closure[:, blink] >= SWEPT * closure[:, blink].max()) & (open_gap > 0)
         if closure[:, blink].max() <= 0 or not np.any(swept):
