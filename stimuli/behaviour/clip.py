@@ -16,11 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from facelab.emotions import BEHAVIOUR_MODES
-from facelab.stimuli.avatar.lids import lid_model
 from facelab.stimuli.avatar.rig import HeadPose
 from facelab.stimuli.behaviour.library import LAYERS, Library, default_library, load_library
 from facelab.stimuli.behaviour.plan import EmotionTimeline, Plan, SpeechCues, plan_behaviour
-from facelab.stimuli.behaviour.realise import apply_to_weights, realise
+from facelab.stimuli.behaviour.realise import apply_to_weights, avatar_traits, realise
 
 __all__ = ["ClipBehaviour", "behaviour_for_clip", "clip_seed", "layers_for"]
 
@@ -122,13 +121,5 @@ def behaviour_for_clip(
         neutral_layers=neutral,
     )
     frames = realise(plan, library, fps=fps, n_frames=n_frames)
-    roles = avatar.skeleton.roles if avatar.skeleton is not None else {}
-    out, poses, report = apply_to_weights(
-        frames,
-        weights,
-        target_names=avatar.target_names,
-        has_head=bool({"head", "neck"} & set(roles)),
-        has_eyes={"eye_left", "eye_right"} <= set(roles),
-        lids=lid_model(avatar),
-    )
+    out, poses, report = apply_to_weights(frames, weights, **avatar_traits(avatar))
     return ClipBehaviour(mode, name, library, plan, out, poses, report)

@@ -17,12 +17,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facelab.stimuli.avatar.lids import LidModel, close_lids
+from facelab.stimuli.avatar.lids import LidModel, close_lids, lid_model
+from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import HeadPose, gaze_weights
 from facelab.stimuli.behaviour.library import ROTATIONS, Curve, Library
 from facelab.stimuli.behaviour.plan import Plan
 
-__all__ = ["BehaviourFrames", "apply_to_weights", "curve_values", "realise"]
+__all__ = ["BehaviourFrames", "apply_to_weights", "avatar_traits", "curve_values", "realise"]
 
 
 def curve_values(curve: Curve, phase: np.ndarray) -> np.ndarray:
@@ -85,6 +86,18 @@ def realise(plan: Plan, library: Library, *, fps: int, n_frames: int) -> Behavio
     return BehaviourFrames(times, arkit, rot, report)
 
 
+def avatar_traits(avatar: Avatar) -> dict:
+    """What :func:`apply_to_weights` needs to know of ``avatar``: its target order, whether
+    it turns its head and eyes by joints, and its lid limits."""
+    roles = set(avatar.skeleton.roles) if avatar.skeleton is not None else set()
+    return {
+        "target_names": avatar.target_names,
+        "has_head": bool({"head", "neck"} & roles),
+        "has_eyes": {"eye_left", "eye_right"} <= roles,
+        "lids": lid_model(avatar),
+    }
+
+
 def apply_to_weights(
     frames: BehaviourFrames,
     weights: np.ndarray,
@@ -97,7 +110,8 @@ def apply_to_weights(
     """Speech weights (n, K) in ``target_names`` order + behaviour -> (weights clamped to
     [0, 1], one pose per frame (None at rest), report).
 
-    ``lids`` (:func:`~facelab.stimuli.avatar.lids.lid_model` of the avatar): a blink during
+    The avatar's facts (:func:`avatar_traits` gives them). ``lids``
+    (:func:`~facelab.stimuli.avatar.lids.lid_model` of the avatar): a blink during
     a squint or a smile closes the eye no further than shut (the blink gives way), instead of
     driving the upper lid through the lower one.
 

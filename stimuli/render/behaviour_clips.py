@@ -21,12 +21,16 @@ from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import BehaviourError
 from facelab.formats import write_manifest
 from facelab.grid import SERIAL, Cluster, GridTask, Progress
-from facelab.stimuli.avatar.lids import lid_model
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip
 from facelab.stimuli.behaviour.library import ROTATIONS, Library, Unit, default_library
 from facelab.stimuli.behaviour.plan import SpeechCues, blend_pose, complete_emotion
-from facelab.stimuli.behaviour.realise import BehaviourFrames, apply_to_weights, curve_values
+from facelab.stimuli.behaviour.realise import (
+    BehaviourFrames,
+    apply_to_weights,
+    avatar_traits,
+    curve_values,
+)
 from facelab.stimuli.methods import DriveInput, drive
 from facelab.stimuli.render.clip import frame_weights
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
@@ -187,8 +191,7 @@ def unit_sheet(
     if not units:
         raise BehaviourError("the library has no unit with a motion to draw")
     settings = RenderSettings(width=tile, height=tile, zoom=1.35, msaa=4)
-    roles = avatar.skeleton.roles if avatar.skeleton is not None else {}
-    lids = lid_model(avatar)
+    traits = avatar_traits(avatar)
     font = _font(15)
     tiles = []
     with Renderer(avatar, settings) as renderer:
@@ -206,11 +209,8 @@ def unit_sheet(
                     arkit[ch] = np.array([a * value])
             frames = BehaviourFrames(np.zeros(1), arkit, rot)
             w, poses, _ = apply_to_weights(
-                frames, np.zeros((1, len(avatar.target_names)), np.float32),
-                target_names=avatar.target_names,
-                has_head=bool({"head", "neck"} & set(roles)),
-                has_eyes={"eye_left", "eye_right"} <= set(roles), lids=lids,
-            )  # fmt: skip
+                frames, np.zeros((1, len(avatar.target_names)), np.float32), **traits
+            )
             img = Image.fromarray(renderer.frame(w[0], pose=poses[0]))
             values = set(u.intensity.values())
             top = max(u.intensity, key=lambda e: u.intensity[e]) if len(values) > 1 else "all"
