@@ -19,7 +19,7 @@ from facelab.methods import METHODS
 from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
 from facelab.protocol_yaml import read_data
 
-__all__ = ["clean_loc", "cross_check", "describe", "pydantic_message"]
+__all__ = ["CHECK_NAMES", "clean_loc", "cross_check", "describe", "pydantic_message"]
 
 
 def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
@@ -542,3 +542,40 @@ def _live_display(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 f"presentation.display {display!r} shows one avatar at a time; a side_by_side "
                 "comparison needs display: video (or layout: sequential)",
             )
+
+
+#: the stimulus checks by name (``facelab check``; ``checks.accept`` and --accept-check)
+CHECK_NAMES = (
+    "avatar_audit",
+    "conditions_differ",
+    "articulation",
+    "face_visible",
+    "av_sync",
+    "levels",
+    "track_source",
+)
+
+
+@_check("checks", "conditions")
+def _stimulus_checks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """The stimulus checks' rules name real conditions and checks."""
+    condition_ids = {c.id for c in protocol.conditions}
+    known = ", ".join(c.id for c in protocol.conditions)
+    checks = protocol.checks
+    for gi, group in enumerate(checks.equal_conditions):
+        if len(group) < 2:
+            yield Issue(("checks", "equal_conditions", gi), "a group needs two conditions or more")
+        for ci, cond_id in enumerate(group):
+            if cond_id not in condition_ids:
+                yield Issue(("checks", "equal_conditions", gi, ci),
+                            f"unknown condition {cond_id!r}; conditions: {known}")  # fmt: skip
+    for ri, rule in enumerate(checks.articulation):
+        for key in ("condition", "relative_to"):
+            if getattr(rule, key) not in condition_ids:
+                name = getattr(rule, key)
+                yield Issue(("checks", "articulation", ri, key),
+                            f"unknown condition {name!r}; conditions: {known}")  # fmt: skip
+    for ai, name in enumerate(checks.accept):
+        if name not in CHECK_NAMES:
+            yield Issue(("checks", "accept", ai),
+                        f"unknown check {name!r}; checks: {', '.join(CHECK_NAMES)}")  # fmt: skip

@@ -593,6 +593,48 @@ class ReportedResults(_Model):
     tests: list[ReportedTest] = Field(min_length=1)
 
 
+# ------------------------------------------------------------------------- stimulus checks
+
+
+class ArticulationRule(_Model):
+    """A mouth relation the rendered clips must show, as the face tracker measures it: the
+    median ``measure`` at the peaks of ``vowel`` in ``condition`` is at least ``at_least``
+    times the same in ``relative_to``."""
+
+    measure: Literal["aperture", "width"] = Field(
+        description="Inner-lip aperture or mouth width, each over the face height."
+    )
+    vowel: Literal["a", "i", "u", "e", "o"]
+    condition: Id
+    relative_to: Id
+    at_least: float = Field(gt=0, le=100, description="e.g. 1.3: 30 % more than relative_to.")
+
+
+class StimulusChecks(_Model):
+    """What ``facelab check`` (and every render) holds the clips to beyond its defaults."""
+
+    equal_conditions: list[list[Id]] = Field(
+        default_factory=list,
+        description="Groups of conditions meant to render alike (e.g. a repeated control); "
+        "any other two conditions must differ on the face.",
+    )
+    articulation: list[ArticulationRule] = Field(
+        default_factory=list,
+        description="Rules between conditions, checked on stimuli with expected_vowels.",
+    )
+    vowel_rules: bool = Field(
+        True,
+        description="The default Japanese vowel rules on stimuli with expected_vowels: "
+        "a the largest aperture, u the smallest, i the widest mouth.",
+    )
+    accept: list[str] = Field(
+        default_factory=list,
+        description="Checks whose failures are accepted (recorded, not an error), by name: "
+        "avatar_audit, conditions_differ, articulation, face_visible, av_sync, levels, "
+        "track_source.",
+    )
+
+
 # --------------------------------------------------------------------------- the protocol
 
 
@@ -614,6 +656,10 @@ class Protocol(_Model):
     presentation: Presentation = Field(default_factory=Presentation)
     rendering: Rendering = Field(default_factory=Rendering)
     simulation: Simulation = Field(default_factory=Simulation)
+    checks: StimulusChecks = Field(
+        default_factory=StimulusChecks,
+        description="The stimulus checks' protocol rules (facelab check).",
+    )
     reported_results: ReportedResults | None = None
 
     # -- convenience lookups (the loader guarantees the ids are unique)

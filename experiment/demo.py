@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import datetime as dt
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,9 +43,11 @@ def run_demo(
     fps: int | None = None,
     progress: GridProgress | None = None,
     say: Callable[[str], None] = print,
+    accept: Sequence[str] = (),
 ) -> dict[str, Path | float | int]:
     from facelab.analysis import run
     from facelab.experiment.cli.analysis_cmds import print_layout
+    from facelab.experiment.cli.common import run_stimulus_checks
     from facelab.experiment.simulate import design_sampler, simulate_study
     from facelab.stimuli.render.build import build_clips, contact_sheets, plan, settings_for
 
@@ -77,6 +79,8 @@ def run_demo(
         f"{time.perf_counter() - t:.1f} s -> {clips / 'clips.csv'}; contact sheets "
         f"{', '.join(p.name for p in sheets)}"
     )
+    run_stimulus_checks(protocol, protocol_path=protocol_path, clips_dir=clips, accept=accept,
+                        say=lambda s: say("      " + s))  # fmt: skip
 
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%d-%H%M%S")
     run_dir = out / f"run-{stamp}"

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Render every vowel of kato2021 in every condition and let MediaPipe Face Mesh (0.10.21,
 # offline, CPU) measure the mouths; exits 1 when the vowels are not articulated in order.
-# Not part of the test suite: MediaPipe pins an older NumPy, so it lives in its own venv.
+# MediaPipe pins an older NumPy, so it lives in its own venv (.venv-mediapipe, made by setup.sh).
 # Usage: bash scripts/face_tracker_check.sh [FOLDER [--avatar FILE] [--protocol P] [--size WxH]]
 #        (FOLDER defaults to results/face_tracker_check)
 set -euo pipefail
@@ -9,10 +9,6 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh >/dev/null
 folder="${1:-results/face_tracker_check}"
 shift || true
-if [ ! -x .venv-mediapipe/bin/python ]; then
-    python3 -m venv .venv-mediapipe
-    .venv-mediapipe/bin/pip install --quiet "mediapipe==0.10.21" pillow
-fi
 export PYOPENGL_PLATFORM=egl
 .venv/bin/python scripts/face_tracker_check.py render --out "$folder" "$@"
 .venv-mediapipe/bin/python scripts/face_tracker_check.py track "$folder"

@@ -2,7 +2,9 @@
 # Idempotent set-up for facelab on Debian with Python >= 3.11:
 #   1. Debian packages that facelab's stages need, installed with apt-get only when missing;
 #   2. a virtual environment in .venv with facelab and all its extras (editable install),
-#      reinstalled only when pyproject.toml changes.
+#      reinstalled only when pyproject.toml changes;
+#   3. the stimulus checks' face tracker (MediaPipe, which pins an older NumPy) in a venv of its
+#      own, .venv-mediapipe, reinstalled only when its pinned requirements change.
 # Sourced by scripts/demo.sh and scripts/test.sh; safe to run again at any time.
 set -euo pipefail
 
@@ -81,6 +83,21 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
     exit 1
   fi
   echo "$WANT" >"$STAMP"
+fi
+
+TRACKER_VENV="$ROOT/.venv-mediapipe"
+TRACKER_STAMP="$TRACKER_VENV/.facelab-installed"
+TRACKER_WANT="mediapipe==0.10.21 pillow"
+if [ ! -f "$TRACKER_STAMP" ] || [ "$(cat "$TRACKER_STAMP")" != "$TRACKER_WANT" ]; then
+  log "installing the face tracker (MediaPipe) for the stimulus checks into .venv-mediapipe"
+  [ -x "$TRACKER_VENV/bin/python" ] || "$PYTHON" -m venv "$TRACKER_VENV"
+  # shellcheck disable=SC2086  # the requirements are words
+  if ! "$TRACKER_VENV/bin/python" -m pip install -q $TRACKER_WANT >"$TRACKER_VENV/pip.log" 2>&1; then
+    tail -20 "$TRACKER_VENV/pip.log" >&2
+    log "pip install of the face tracker failed; see .venv-mediapipe/pip.log"
+    exit 1
+  fi
+  echo "$TRACKER_WANT" >"$TRACKER_STAMP"
 fi
 
 WEB="$ROOT/experiment/online/web"

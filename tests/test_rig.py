@@ -252,7 +252,7 @@ def test_vowel_condition_on_a_vrm_plays_the_vowel_presets(
     rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
     assert len(rows) == 3
     meta = {r["condition"]: json.loads((out / (r["clip_id"] + ".json")).read_text()) for r in rows}
-    assert "vowel presets" in meta["standard"]["stand_in"]
+    assert "vowel shapes" in meta["standard"]["stand_in"]
     assert meta["standard"]["avatar_kind"] == kind
     assert "no shape for" in meta["baseline"]["stand_in"]
 
@@ -262,7 +262,7 @@ def test_avatar_inspect_command(
 ) -> None:
     assert main(["avatar", "inspect", str(samples["vrm0"])]) == 0
     out = capsys.readouterr().out
-    assert "vrm0" in out and "vowel presets" in out and "head=J_Bip_C_Head" in out
+    assert "vrm0" in out and "vowel shapes" in out and "head=J_Bip_C_Head" in out
     assert main(["avatar", "inspect", "default", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["arkit_targets"] == "52/52" and report["viseme_targets"] == "15/15"

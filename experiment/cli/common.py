@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from facelab.errors import FacelabError
@@ -296,3 +296,35 @@ def cluster_of(args: argparse.Namespace):
     return Cluster(
         workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None)
     )
+
+
+def check_options(parser: argparse.ArgumentParser) -> None:
+    """``--accept-check NAME`` (repeatable): a stimulus check whose failures are recorded
+    instead of stopping the command."""
+    from facelab.protocol_checks import CHECK_NAMES
+
+    parser.add_argument(
+        "--accept-check", action="append", default=[], metavar="NAME", choices=CHECK_NAMES,
+        help="accept the failures of this stimulus check (recorded in clips.csv and "
+        f"stimulus_checks.csv): {', '.join(CHECK_NAMES)}",
+    )  # fmt: skip
+
+
+def run_stimulus_checks(
+    protocol, *, protocol_path: Path, clips_dir: Path, accept: Sequence[str],
+    say: Callable[[str], None] = print,
+):  # fmt: skip
+    """The stimulus checks of rendered clips (``facelab check`` and the end of ``render``):
+    writes ``stimulus_checks.csv``, marks ``clips.csv``, prints the summary and every
+    warning; raises the StageError naming each failure (exit 2) unless accepted."""
+    from facelab.stimuli.checks.run_checks import check_clips, record_in_manifest
+
+    report = check_clips(protocol, protocol_path=protocol_path, clips_dir=clips_dir,
+                         accept=accept, log=say)  # fmt: skip
+    record_in_manifest(clips_dir, report)
+    for row in report.warnings:
+        say(("accepted: " if row.accepted else "warning: ") + row.describe())
+    say(report.summary())
+    if report.failures:
+        raise report.error()
+    return report

@@ -8,6 +8,7 @@ from pathlib import Path
 from facelab.experiment.cli.common import (
     AddCommand,
     GridProgress,
+    check_options,
     deprecated,
     output_dir,
     parse_size,
@@ -33,6 +34,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             size=size,
             fps=args.fps,
             progress=progress,
+            accept=args.accept_check,
         )
     finally:
         progress.close()
@@ -60,3 +62,4 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("--fps", type=whole(lo=1, hi=240), help="override the frame rate")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    check_options(p)

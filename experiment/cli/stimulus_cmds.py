@@ -9,6 +9,7 @@ from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
     GridProgress,
+    check_options,
     cluster_of,
     cluster_options,
     deprecated,
@@ -19,6 +20,7 @@ from facelab.experiment.cli.common import (
     protocol_argument,
     protocol_of,
     real,
+    run_stimulus_checks,
     verbs,
     whole,
 )
@@ -86,6 +88,18 @@ def _cmd_render(args: argparse.Namespace) -> int:
             protocol, protocol_path=Path(args.protocol), out=out, settings=settings
         ):
             print(f"contact sheet: {path}")
+    run_stimulus_checks(protocol, protocol_path=Path(args.protocol), clips_dir=out,
+                        accept=args.accept_check)  # fmt: skip
+    return 0
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    from facelab.protocol import load_protocol
+
+    protocol = load_protocol(args.protocol)
+    clips = Path(args.clips) if args.clips else Path("results") / protocol.study.id / "clips"
+    run_stimulus_checks(protocol, protocol_path=Path(args.protocol), clips_dir=clips,
+                        accept=args.accept_check)  # fmt: skip
     return 0
 
 
@@ -242,7 +256,18 @@ def register(add: AddCommand) -> None:
     p.add_argument("--size", metavar="WxH", help="override the protocol's resolution")
     p.add_argument("--fps", type=whole(lo=1, hi=240), help="override the protocol's frame rate")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    check_options(p)
     cluster_options(p)
+
+    p = add(
+        "check",
+        "measure every rendered clip (avatar audit, face tracker, sync, conditions, levels) "
+        "and write stimulus_checks.csv",
+        _cmd_check,
+    )
+    p.add_argument("protocol", metavar="PROTOCOL")
+    p.add_argument("--clips", metavar="DIR", help="clip folder (default results/<study>/clips)")
+    check_options(p)
 
     p = add(
         "track", "analyse one stimulus's speech: viseme track as CSV and a vowel plot", _cmd_track

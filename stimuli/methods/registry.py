@@ -60,6 +60,14 @@ class Method:
         when the clip is built)."""
         return set()
 
+    def driven_targets(
+        self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")
+    ) -> set[str]:
+        """The targets of ``avatar`` the method moves with weight a viewer would see (what the
+        stimulus checks' avatar audit measures): by default its :meth:`targets` the avatar
+        has."""
+        return self.targets(params, base_dir=base_dir) & set(avatar.targets)
+
     def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
         """Whether and how the method plays on ``avatar``."""
         missing = sorted(self.targets(params, base_dir=base_dir) - set(avatar.targets))

@@ -25,6 +25,16 @@ class _VisemeMethod(Method):
     def targets(self, params: object, *, base_dir: Path = Path(".")) -> set[str]:
         return set(VISEME_TARGETS[1:])
 
+    def driven_targets(
+        self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")
+    ) -> set[str]:
+        """The viseme shapes it moves, less those a VRM gets as zero shapes (said by
+        :meth:`playback`'s stand-in note instead)."""
+        zero = set(avatar.source.get("zero_visemes") or ())
+        if vowel_presets_only(avatar):
+            zero |= set(self.targets(params)) - set(avatar.targets)
+        return (self.targets(params) & set(avatar.targets)) - zero
+
     def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
         have = set(avatar.targets)
         kind = avatar.source.get("kind")

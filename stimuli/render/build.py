@@ -31,7 +31,7 @@ from facelab.formats import (
     write_manifest,
 )
 from facelab.grid import SERIAL, Cluster, GridTask, Progress
-from facelab.protocol import Condition, Protocol
+from facelab.protocol import Condition, Protocol, Stimulus
 from facelab.stimuli.avatar import Avatar
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, clip_seed
 from facelab.stimuli.methods import DriveInput, get
@@ -406,24 +406,34 @@ def vowel_peaks(protocol: Protocol, *, base_dir: Path, avatar: Avatar) -> list[V
     if stim is None or stim_set is None:
         raise StageError("no stimulus gives expected_vowels: no vowel peaks to show")
     speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
-    analysed, isolated = tracks_for(stim, speech)
-    segments = vowel_segments(analysed, widen=True)
-    vowels = stim.expected_vowels or ""
-    if len(segments) != len(vowels):
-        raise StageError(
-            f"{stim_set}/{stim.id}: found {len(segments)} vowel segments, expected {len(vowels)}"
-        )
+    tracks = tracks_for(stim, speech)
+    times = vowel_peak_times(stim, tracks[0], where=f"{stim_set}/{stim.id}")
     offsets = np.arange(-3, 4) / 30.0
     peaks = []
     for cond in protocol.conditions:
         job = ClipJob("", stim_set, stim, cond.id)
-        bs = _blendshapes(protocol, job, speech, (analysed, isolated), base_dir, avatar)
-        for (a, b), vowel in zip(segments, vowels, strict=True):
-            x = analysed.vowels()[a:b, VOWELS.index(vowel)]
-            centre = float(analysed.times[a + int(np.argmax(x))])
+        bs = _blendshapes(protocol, job, speech, tracks, base_dir, avatar)
+        for vowel, centre in times:
             window = np.stack([weights_at(bs, avatar, t=centre + dt) for dt in offsets])
             peaks.append(VowelPeak(cond.id, vowel, centre, window))
     return peaks
+
+
+def vowel_peak_times(
+    stim: Stimulus, analysed: VisemeTrack, *, where: str
+) -> list[tuple[str, float]]:
+    """(vowel, s from the speech's start) at each peak of ``stim.expected_vowels`` in its
+    analysed track (the frame where the vowel's own weight is highest within its segment).
+    StageError when the segments found do not match the expected vowels."""
+    segments = vowel_segments(analysed, widen=True)
+    vowels = stim.expected_vowels or ""
+    if len(segments) != len(vowels):
+        raise StageError(f"{where}: found {len(segments)} vowel segments, expected {len(vowels)}")
+    out = []
+    for (a, b), vowel in zip(segments, vowels, strict=True):
+        x = analysed.vowels()[a:b, VOWELS.index(vowel)]
+        out.append((vowel, float(analysed.times[a + int(np.argmax(x))])))
+    return out
 
 
 def _peak_sheet(protocol: Protocol, *, base_dir: Path, out: Path, settings: RenderSettings) -> Path:

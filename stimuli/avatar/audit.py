@@ -1,0 +1,71 @@
+"""What an avatar's geometry can show, measured rather than assumed from its target names.
+
+A file may name all 52 ARKit targets and still leave some of them empty (every delta zero) or
+fill two with the same shape (a VRoid export whose ``mouthFunnel`` and ``mouthPucker`` are both
+its ``Fcl_MTH_U``). The animation methods (which targets stand in for which) and the stimulus
+checks (``facelab check``'s avatar audit) both ask these functions, so the two cannot disagree.
+
+Distances are millimetres of the avatar's own units read as metres (glTF's unit).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from facelab.stimuli.avatar.mesh import Avatar
+
+__all__ = [
+    "EMPTY_TARGET_MM",
+    "IDENTICAL_TOLERANCE_MM",
+    "identical_targets",
+    "target_motion_mm",
+    "unusable_targets",
+]
+
+#: a target whose largest vertex displacement at full weight is below this moves nothing a
+#: viewer could see (a pixel of a 720p close-up is about 0.3 mm on a face)
+EMPTY_TARGET_MM = 0.5
+#: two targets whose deltas differ nowhere by more than this are the same shape
+IDENTICAL_TOLERANCE_MM = 0.01
+
+
+def target_motion_mm(avatar: Avatar, names: Iterable[str]) -> dict[str, float]:
+    """{name: the largest displacement of any vertex at full weight, mm} for each of ``names``
+    the avatar has (absent names are left out)."""
+    return {
+        n: float(np.sqrt((avatar.targets[n].astype(np.float64) ** 2).sum(axis=1)).max()) * 1e3
+        for n in names
+        if n in avatar.targets
+    }
+
+
+def identical_targets(avatar: Avatar, names: Iterable[str]) -> list[tuple[str, str]]:
+    """Pairs of ``names`` (present, not empty) whose shapes are the same within
+    :data:`IDENTICAL_TOLERANCE_MM`, each pair once, in sorted order."""
+    motion = target_motion_mm(avatar, names)
+    live = sorted(n for n, mm in motion.items() if mm >= EMPTY_TARGET_MM)
+    pairs = []
+    tol = IDENTICAL_TOLERANCE_MM * 1e-3
+    for i, a in enumerate(live):
+        da = avatar.targets[a]
+        for b in live[i + 1 :]:
+            if np.abs(da - avatar.targets[b]).max() <= tol:
+                pairs.append((a, b))
+    return pairs
+
+
+def unusable_targets(avatar: Avatar, names: Iterable[str]) -> dict[str, str]:
+    """{name: why} for each of ``names`` the avatar has but cannot show: empty (moves less
+    than :data:`EMPTY_TARGET_MM`) or the same shape as another of ``names``."""
+    names = list(names)
+    why = {
+        n: f"empty (moves {mm:.2f} mm at full weight)"
+        for n, mm in target_motion_mm(avatar, names).items()
+        if mm < EMPTY_TARGET_MM
+    }
+    for a, b in identical_targets(avatar, names):
+        why.setdefault(a, f"the same shape as {b}")
+        why.setdefault(b, f"the same shape as {a}")
+    return why

@@ -1,0 +1,125 @@
+"""The avatar audit: what the avatar's geometry can show of what the protocol asks, measured
+from the file without rendering (``facelab check``, ``validate`` and ``avatar inspect``).
+
+Rows (check ``avatar_audit``, no clip):
+
+* per condition, every target its method drives on this avatar moves a vertex by
+  :data:`~facelab.stimuli.avatar.audit.EMPTY_TARGET_MM` or more at full weight
+  (``target_motion_mm:<name>``), and no two of them are the same shape
+  (``identical_driven_targets``); a stand-in (the avatar's own vowel shapes playing Z) is
+  reported as it plays;
+* the lip landmarks, when the file has them, lie where a mouth is: the upper lip not below the
+  lower, the left corner left of the right, a mouth 15-90 mm wide, both lips between the
+  corners (``lip_landmarks_consistent``; facelab resolves landmarks from their stored
+  positions, so a tool that reorders vertices cannot move them);
+* per eye joint, how far behind the front of the eye it turns the eye
+  (``eye_pivot_depth_mm``) and the gaze angle that keeps the iris inside the eye
+  (``gaze_range_deg``: the angle that moves the front of the eye by a third of the eye's
+  width); an error when a condition has a behaviour layer (which moves the gaze), else a
+  warning.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from facelab.protocol import Protocol
+from facelab.stimuli.avatar.audit import EMPTY_TARGET_MM, identical_targets, target_motion_mm
+from facelab.stimuli.avatar.mesh import LANDMARKS, Avatar
+from facelab.stimuli.checks.rows import CheckRow, at_least, at_most, info
+from facelab.stimuli.methods import get
+
+__all__ = ["GAZE_RANGE_DEG", "audit_avatar", "eye_rows", "landmark_rows"]
+
+CHECK = "avatar_audit"
+#: the gaze angle (degrees) an eye must reach with its iris still inside the eye: the largest
+#: gaze shift the behaviour layer plans
+GAZE_RANGE_DEG = 20.0
+
+
+def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[CheckRow]:
+    """Every avatar-audit row for ``protocol``'s conditions on ``avatar``."""
+    rows: list[CheckRow] = []
+    for cond in protocol.conditions:
+        method = get(cond.method)
+        driven = method.driven_targets(avatar, cond.settings, base_dir=base_dir)
+        motion = target_motion_mm(avatar, driven)
+        playback = method.playback(avatar, cond.settings, base_dir=base_dir)
+        if playback.stand_in:
+            rows.append(info(None, clip="", condition=cond.id, check=CHECK, measure="stand_in",
+                             note=playback.stand_in))  # fmt: skip
+        for name in sorted(motion):
+            rows.append(at_least(
+                EMPTY_TARGET_MM, motion[name], clip="", condition=cond.id, check=CHECK,
+                measure=f"target_motion_mm:{name}", unit=" mm",
+                note="" if motion[name] >= EMPTY_TARGET_MM else
+                f"{name} moves nothing visible at full weight: the method cannot show it",
+            ))  # fmt: skip
+        if motion:
+            pairs = identical_targets(avatar, driven)
+            rows.append(at_most(
+                0, len(pairs), clip="", condition=cond.id, check=CHECK,
+                measure="identical_driven_targets",
+                note="; ".join(f"{a} is the same shape as {b}" for a, b in pairs),
+            ))  # fmt: skip
+    rows += landmark_rows(avatar)
+    gaze_used = any(c.behaviour != "none" for c in protocol.conditions)
+    rows += eye_rows(avatar, severity="error" if gaze_used else "warning")
+    return rows
+
+
+def landmark_rows(avatar: Avatar) -> list[CheckRow]:
+    """Whether the lip landmarks lie where a mouth is (see the module docstring)."""
+    lm = avatar.landmarks
+    if not all(k in lm for k in LANDMARKS):
+        note = "the file has no lip landmarks: the face tracker measures the mouth"
+        return [info(None, clip="", condition="", check=CHECK, measure="lip_landmarks",
+                     note=note)]  # fmt: skip
+    up, lo, left, right = (avatar.neutral[lm[k]].astype(float) for k in LANDMARKS)
+    width_mm = (left[0] - right[0]) * 1e3
+    problems = []
+    if up[1] < lo[1] - 5e-4:
+        problems.append("the upper lip is below the lower lip")
+    if not 15 <= width_mm <= 90:
+        problems.append(f"the corners are {width_mm:.1f} mm apart (a mouth: 15-90 mm)")
+    for name, p in (("upper lip", up), ("lower lip", lo)):
+        if not right[0] - 1e-3 <= p[0] <= left[0] + 1e-3:
+            problems.append(f"the {name} is not between the corners")
+    if abs(up[1] - left[1]) > 0.03 or abs(lo[1] - right[1]) > 0.03:
+        problems.append("the lips are more than 30 mm above or below the corners")
+    return [CheckRow("", "", CHECK, "lip_landmarks_consistent", float(not problems), "= 1",
+                     not problems, "; ".join(problems))]  # fmt: skip
+
+
+def eye_rows(avatar: Avatar, *, severity: str) -> list[CheckRow]:
+    """Per eye joint: the pivot's depth behind the eye's front and the gaze range."""
+    sk = avatar.skeleton
+    rows: list[CheckRow] = []
+    for role in ("eye_left", "eye_right"):
+        if sk is None or role not in sk.roles:
+            continue
+        j = sk.roles[role]
+        verts = avatar.neutral[sk.vertices_of(j)].astype(float)
+        if len(verts) < 4:
+            rows.append(info(None, clip="", condition="", check=CHECK, measure=f"{role}_pivot",
+                             note=f"no vertices follow the {role} joint"))  # fmt: skip
+            continue
+        pivot = sk.pivots[j].astype(float)
+        depth = float(verts[:, 2].max() - pivot[2])
+        eye_width = float(np.ptp(verts[:, 0]))
+        travel = eye_width / 3.0
+        gaze = 90.0 if depth <= travel else float(np.degrees(np.arcsin(travel / depth)))
+        moved_mm = depth * np.sin(np.radians(GAZE_RANGE_DEG)) * 1e3
+        rows.append(info(depth * 1e3, clip="", condition="", check=CHECK,
+                         measure=f"eye_pivot_depth_mm:{role}",
+                         note=f"eye {eye_width * 1e3:.1f} mm wide"))  # fmt: skip
+        rows.append(at_least(
+            GAZE_RANGE_DEG, gaze, clip="", condition="", check=CHECK,
+            measure=f"gaze_range_deg:{role}", severity=severity, unit=" deg",
+            note="" if gaze >= GAZE_RANGE_DEG else
+            f"the eye turns about a point {depth * 1e3:.0f} mm behind its front: a "
+            f"{GAZE_RANGE_DEG:g} deg gaze moves the iris {moved_mm:.0f} mm, past the eye's edge",
+        ))  # fmt: skip
+    return rows

@@ -1,0 +1,177 @@
+"""The outside observer of the stimulus checks: MediaPipe face detection and Face Mesh, run in
+their own environment (``.venv-mediapipe``, made by ``scripts/setup.sh``) on the clips'
+decoded frames. This module is the edge: it starts :mod:`.tracker_worker` there as a child
+process and returns what it measured as arrays; nothing here imports MediaPipe.
+
+The tracker's Python is ``$FACELAB_TRACKER_PYTHON`` when set, else ``.venv-mediapipe`` beside
+the ``.venv`` facelab runs from (or beside the source tree of an editable install).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facelab.errors import StageError
+
+__all__ = [
+    "ANALYSIS_HEIGHT",
+    "ClipTracking",
+    "PendingTracking",
+    "analysis_size",
+    "start_tracking",
+    "track_clips",
+    "tracker_python",
+]
+
+#: every clip is decoded at this height (px) for the tracker, whatever size it was rendered at:
+#: MediaPipe reads faces at 128-192 px, and one size keeps the measures comparable
+ANALYSIS_HEIGHT = 360
+WORKER = Path(__file__).with_name("tracker_worker.py")
+
+
+@dataclass(frozen=True)
+class ClipTracking:
+    """Per-frame measures of one clip (n frames): ``detection`` (n,) the best face's confidence
+    (0 without a face); ``box`` (n, 4) x0 y0 x1 y1 of the face mesh in fractions of the frame
+    (NaN without a mesh); ``aperture``, ``width`` (n,) inner-lip opening and mouth width over
+    the face height (10-152); ``face_height`` (n,) in frame heights."""
+
+    path: str
+    detection: np.ndarray
+    box: np.ndarray
+    aperture: np.ndarray
+    width: np.ndarray
+    face_height: np.ndarray
+    tracker: str
+    grey: np.ndarray  # (n, h, w) uint8: the frames' grey levels at half the analysis size
+
+    @property
+    def frames(self) -> int:
+        return len(self.detection)
+
+
+def tracker_python() -> Path | None:
+    """The MediaPipe environment's Python, or None when it is not installed."""
+    given = os.environ.get("FACELAB_TRACKER_PYTHON")
+    if given:
+        return Path(given) if Path(given).is_file() else None
+    here = Path(__file__).resolve()
+    for root in (Path(sys.prefix).parent, *here.parents):
+        candidate = root / ".venv-mediapipe" / "bin" / "python"
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def analysis_size(width: int, height: int) -> tuple[int, int]:
+    """(width, height) a clip of ``width`` x ``height`` px is decoded at for the tracker."""
+    w = 2 * round(width * ANALYSIS_HEIGHT / height / 2)
+    return max(w, 2), ANALYSIS_HEIGHT
+
+
+def _array(values: list, shape: tuple[int, ...] = ()) -> np.ndarray:
+    nan = [np.nan] * shape[0] if shape else np.nan
+    return np.asarray([nan if v is None else v for v in values], float)
+
+
+class PendingTracking:
+    """Tracker processes started by :func:`start_tracking`; :meth:`collect` waits for them
+    (the caller may do its own work meanwhile) and returns {str(path): ClipTracking}."""
+
+    def __init__(self, clips: Sequence[tuple[Path, int, int, float]], processes: int | None):
+        python = tracker_python()
+        if python is None:
+            raise StageError(
+                "the face tracker is not installed (MediaPipe's environment .venv-mediapipe); "
+                "run bash scripts/setup.sh, or set FACELAB_TRACKER_PYTHON"
+            )
+        self.python = python
+        n_proc = max(1, min(processes or min(os.cpu_count() or 1, 4), len(clips)))
+        groups: list[list[dict]] = [[] for _ in range(n_proc)]
+        load = [0.0] * n_proc
+        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+        env.setdefault("GLOG_minloglevel", "2")
+        env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        self._tmp = tempfile.TemporaryDirectory(prefix="facelab-track-")
+        tmp = Path(self._tmp.name)
+        for i in sorted(range(len(clips)), key=lambda i: -clips[i][3]):  # longest first
+            path, w, h, duration = clips[i]
+            k = load.index(min(load))
+            load[k] += duration
+            aw, ah = analysis_size(w, h)
+            groups[k].append({"path": str(path), "width": aw, "height": ah,
+                              "grey": str(tmp / f"{i}.npy")})  # fmt: skip
+        self._greys = {c["path"]: c["grey"] for g in groups for c in g}
+        self._errors = [tmp / f"stderr-{k}.txt" for k in range(n_proc)]
+        self._procs = []
+        for group, err in zip(groups, self._errors, strict=True):
+            with open(err, "w") as fh:  # the child keeps its own handle
+                proc = subprocess.Popen(
+                    [str(python), str(WORKER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                    stderr=fh, text=True, env=env,
+                )  # fmt: skip
+            proc.stdin.write(json.dumps({"clips": group}))  # type: ignore[union-attr]
+            proc.stdin.close()  # type: ignore[union-attr]
+            self._procs.append(proc)
+
+    def collect(self) -> dict[str, ClipTracking]:
+        try:
+            answers = []
+            for proc, err in zip(self._procs, self._errors, strict=True):
+                stdout = proc.stdout.read()  # type: ignore[union-attr]
+                if proc.wait() != 0:
+                    stderr = err.read_text(errors="replace").strip()
+                    last = stderr.splitlines()[-1] if stderr else "no message"
+                    raise StageError(f"the face tracker ({self.python}) stopped with exit "
+                                     f"{proc.returncode}: {last}")  # fmt: skip
+                answers.append(json.loads(stdout))
+            out = {}
+            for answer in answers:
+                for clip in answer["clips"]:
+                    if "error" in clip:
+                        raise StageError(
+                            f"{clip['path']}: the face tracker cannot decode it: {clip['error']}"
+                        )
+                    out[clip["path"]] = ClipTracking(
+                        path=clip["path"],
+                        detection=np.asarray(clip["detection"], float),
+                        box=_array(clip["box"], (4,)).reshape(-1, 4),
+                        aperture=_array(clip["aperture"]),
+                        width=_array(clip["width"]),
+                        face_height=_array(clip["face_height"]),
+                        tracker=answer["tracker"],
+                        grey=np.load(self._greys[clip["path"]]),
+                    )
+            return out
+        finally:
+            for proc in self._procs:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+            self._tmp.cleanup()
+
+
+def start_tracking(
+    clips: Sequence[tuple[Path, int, int, float]], *, processes: int | None = None
+) -> PendingTracking:
+    """Start tracking every clip ``(path, width, height, duration_s)``: the clips are shared
+    out, longest first, among ``processes`` tracker processes (default: one per CPU, at most
+    4). StageError when the tracker is not installed."""
+    return PendingTracking(clips, processes)
+
+
+def track_clips(
+    clips: Sequence[tuple[Path, int, int, float]], *, processes: int | None = None
+) -> dict[str, ClipTracking]:
+    """:func:`start_tracking` and wait: {str(path): ClipTracking}. StageError when the tracker
+    is not installed or fails (naming the clip)."""
+    return start_tracking(clips, processes=processes).collect()

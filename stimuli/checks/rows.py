@@ -1,0 +1,102 @@
+"""One measured check of one stimulus: the rows of ``stimulus_checks.csv``.
+
+Columns (DESIGN.md): ``clip, condition, check, measure, value, threshold, passed, note``, then
+``severity`` (``error``: a failure stops the render unless the check is accepted;
+``warning``: said, recorded, never stops) and ``accepted`` (the failure was accepted by name).
+``passed`` is empty for a row that only reports a measure (e.g. each vowel's aperture, which
+the rules rows then compare). ``value`` is a number (NaN when it could not be measured: the
+note says why); ``threshold`` says the comparison in words, e.g. ``>= 0.5``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+__all__ = ["CHECK_COLUMNS", "CheckRow", "at_least", "at_most", "info"]
+
+CHECK_COLUMNS = (
+    "clip",
+    "condition",
+    "check",
+    "measure",
+    "value",
+    "threshold",
+    "passed",
+    "note",
+    "severity",
+    "accepted",
+)
+
+
+@dataclass(frozen=True)
+class CheckRow:
+    clip: str
+    condition: str
+    check: str
+    measure: str
+    value: float
+    threshold: str
+    passed: bool | None
+    note: str = ""
+    severity: str = "error"
+    accepted: bool = False
+
+    @property
+    def failed(self) -> bool:
+        """A failure that stops: an error row that did not pass and was not accepted."""
+        return self.passed is False and self.severity == "error" and not self.accepted
+
+    def accept(self) -> CheckRow:
+        return replace(self, accepted=True) if self.passed is False else self
+
+    def as_dict(self) -> dict:
+        value = "" if self.value is None or math.isnan(self.value) else round(self.value, 6)
+        passed = "" if self.passed is None else str(bool(self.passed)).lower()
+        return {
+            "clip": self.clip, "condition": self.condition, "check": self.check,
+            "measure": self.measure, "value": value, "threshold": self.threshold,
+            "passed": passed, "note": self.note, "severity": self.severity,
+            "accepted": str(self.accepted).lower(),
+        }  # fmt: skip
+
+    def describe(self) -> str:
+        """One line for the terminal: what failed, where, the value against its threshold."""
+        where = " ".join(x for x in (self.clip or "(avatar)", self.condition and
+                                     f"[{self.condition}]") if x)  # fmt: skip
+        value = "not measured" if math.isnan(self.value) else f"{self.value:.4g}"
+        return (
+            f"{self.check}: {where}: {self.measure} = {value}, expected {self.threshold}"
+            + (f" ({self.note})" if self.note else "")
+        )
+
+
+def _num(value: float | None) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def at_least(
+    limit: float, value: float | None, *, clip: str, condition: str, check: str, measure: str,
+    note: str = "", severity: str = "error", unit: str = "",
+) -> CheckRow:  # fmt: skip
+    """A row that passes when ``value >= limit`` (fails when it could not be measured)."""
+    v = _num(value)
+    return CheckRow(clip, condition, check, measure, v, f">= {limit:g}{unit}",
+                    bool(v >= limit) if not math.isnan(v) else False, note, severity)  # fmt: skip
+
+
+def at_most(
+    limit: float, value: float | None, *, clip: str, condition: str, check: str, measure: str,
+    note: str = "", severity: str = "error", unit: str = "",
+) -> CheckRow:  # fmt: skip
+    """A row that passes when ``value <= limit`` (fails when it could not be measured)."""
+    v = _num(value)
+    return CheckRow(clip, condition, check, measure, v, f"<= {limit:g}{unit}",
+                    bool(v <= limit) if not math.isnan(v) else False, note, severity)  # fmt: skip
+
+
+def info(
+    value: float | None, *, clip: str, condition: str, check: str, measure: str, note: str = ""
+) -> CheckRow:
+    """A row that reports a measure without a threshold."""
+    return CheckRow(clip, condition, check, measure, _num(value), "", None, note, "info")

@@ -1,0 +1,415 @@
+"""The stimulus checks of a protocol's rendered clips (``facelab check``, and the end of every
+``facelab render``): measure every clip with an observer that does not share facelab's
+assumptions, write ``stimulus_checks.csv`` beside ``clips.csv``, and say which failed.
+
+A failed check (an ``error`` row that did not pass) stops the command with exit 2 unless its
+check is accepted by name (``--accept-check NAME`` or the protocol's ``checks.accept``); an
+accepted failure is recorded (``accepted`` true in the CSV, listed in the report).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import subprocess
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from facelab.durable import replace_file
+from facelab.errors import StageError
+from facelab.formats import CLIP_COLUMNS, read_manifest, read_track
+from facelab.protocol import Protocol
+from facelab.protocol_checks import CHECK_NAMES
+from facelab.stimuli.checks.avatar_checks import audit_avatar
+from facelab.stimuli.checks.clip_checks import (
+    articulation_rows,
+    av_sync_rows,
+    difference_rows,
+    envelope,
+    face_visible_rows,
+    level_rows,
+    mouth_at_peaks,
+)
+from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
+from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, info
+from facelab.stimuli.render.build import vowel_peak_times
+from facelab.stimuli.render.clip import padded_audio
+from facelab.stimuli.render.prepare import speech_for, tracks_for
+from facelab.stimuli.render.scene import load_avatar
+from facelab.stimuli.speech.audio import Speech
+
+__all__ = [
+    "CHECKS_NAME",
+    "MANIFEST_COLUMN",
+    "CheckReport",
+    "accept_checks",
+    "check_clips",
+    "read_checks",
+    "record_in_manifest",
+    "track_source_rows",
+    "write_checks",
+]
+
+CHECKS_NAME = "stimulus_checks.csv"
+AUDIO_RATE = 16000
+#: what the README measured for audio-only analysis on voices it was not trained on
+AUDIO_ONLY_ACCURACY = (
+    "on voices it was not trained on, audio-only analysis reads about 0.74-0.87 of vowel "
+    "frames right in read sentences and as few as 0.30-0.56 in isolated vowels"
+)
+
+
+@dataclass
+class CheckReport:
+    """The rows, where they were written, how long the checks took, the tracker used."""
+
+    rows: list[CheckRow]
+    path: Path | None = None
+    seconds: float = 0.0
+    tracker: str = ""
+    accepted: tuple[str, ...] = ()
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def failures(self) -> list[CheckRow]:
+        return [r for r in self.rows if r.failed]
+
+    @property
+    def warnings(self) -> list[CheckRow]:
+        return [r for r in self.rows if r.passed is False and not r.failed]
+
+    def summary(self) -> str:
+        judged = [r for r in self.rows if r.passed is not None]
+        return (
+            f"stimulus checks: {sum(bool(r.passed) for r in judged)} of {len(judged)} passed, "
+            f"{len(self.failures)} failed, {len(self.warnings)} warnings or accepted "
+            f"({self.seconds:.1f} s{', ' + self.tracker if self.tracker else ''})"
+            + (f" -> {self.path}" if self.path else "")
+        )
+
+    def error(self) -> StageError:
+        """The StageError naming every failure (clip, condition, measure, value, threshold)."""
+        lines = [f"{len(self.failures)} stimulus check(s) failed "
+                 f"(a participant would see a broken stimulus):"]  # fmt: skip
+        lines += [f"  {r.describe()}" for r in self.failures[:30]]
+        if len(self.failures) > 30:
+            lines.append(f"  … and {len(self.failures) - 30} more in {self.path}")
+        names = sorted({r.check for r in self.failures})
+        lines.append(
+            "fix the avatar, the method or the protocol, or accept a check by name: "
+            + " ".join(f"--accept-check {n}" for n in names)
+            + " (recorded in clips.csv's folder and the report)"
+        )
+        return StageError("\n".join(lines))
+
+
+def accept_checks(rows: Iterable[CheckRow], names: Iterable[str]) -> list[CheckRow]:
+    """The rows with the failures of the checks ``names`` marked accepted."""
+    names = set(names)
+    unknown = names - set(CHECK_NAMES)
+    if unknown:
+        raise StageError(
+            f"--accept-check {', '.join(sorted(unknown))}: unknown check; checks: "
+            f"{', '.join(CHECK_NAMES)}"
+        )
+    return [r.accept() if r.check in names else r for r in rows]
+
+
+def write_checks(rows: Sequence[CheckRow], path: Path) -> Path:
+    """``stimulus_checks.csv`` (:data:`~facelab.stimuli.checks.rows.CHECK_COLUMNS`), atomically."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(CHECK_COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(r.as_dict() for r in rows)
+    replace_file(path, buf.getvalue())
+    return path
+
+
+def read_checks(path: Path) -> list[dict[str, str]]:
+    """The rows of a ``stimulus_checks.csv`` as written (strings)."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _audio(path: Path) -> np.ndarray:
+    proc = subprocess.run(
+        ["ffmpeg", "-v", "error", "-nostdin", "-i", str(path), "-vn", "-ac", "1", "-ar",
+         str(AUDIO_RATE), "-f", "f32le", "-"],
+        capture_output=True, check=False,
+    )  # fmt: skip
+    if proc.returncode != 0:
+        return np.zeros(0, np.float32)
+    return np.frombuffer(proc.stdout, "<f4")
+
+
+def _vowel_confidence(weights: np.ndarray) -> float:
+    """Mean share of the strongest vowel among the five over frames with a vowel (the
+    analyser's confidence in the vowel it reports; 1 = one vowel at a time)."""
+    mass = weights.sum(axis=1)
+    voiced = mass >= 0.3
+    if not voiced.any():
+        return math.nan
+    return float((weights[voiced].max(axis=1) / mass[voiced]).mean())
+
+
+def track_source_rows(
+    protocol: Protocol, *, clip_of: dict, speech_of: Callable[[tuple[str, str]], Speech]
+) -> list[CheckRow]:
+    """Per stimulus: where its track comes from; a recording analysed audio-only (no
+    transcript) is a warning naming the expected accuracy and how to give the words."""
+    rows = []
+    for sset in protocol.stimulus_sets:
+        for stim in sset.stimuli:
+            clip = clip_of.get((sset.id, stim.id))
+            if clip is None:
+                continue
+            kw = {"clip": clip, "condition": "", "check": "track_source"}
+            if stim.track_source == "audio":
+                track, _ = tracks_for(stim, speech_of((sset.id, stim.id)))
+                conf = _vowel_confidence(track.vowels())
+                words = (
+                    f"give the words as 'transcript:' under {sset.id}/{stim.id} (or "
+                    "'track_from: words') to drive the mouth from the aligned text"
+                    if stim.transcript is None
+                    else "its transcript is ignored (track_from: audio)"
+                )
+                rows.append(CheckRow(
+                    **kw, measure="audio_only_vowel_confidence", value=conf, threshold="words",
+                    passed=False, severity="warning",
+                    note=f"{stim.audio}: the track comes from the audio alone (the analyser's "
+                    f"vowel confidence {conf:.2f}, warp {track.warp:g}); {AUDIO_ONLY_ACCURACY}; "
+                    + words,
+                ))  # fmt: skip
+            else:
+                rows.append(info(None, **kw, measure=f"source:{stim.track_source}",
+                                 note="the mouth follows the words' phonemes"
+                                 if stim.track_source == "words" else "no speech"))  # fmt: skip
+    return rows
+
+
+def check_clips(
+    protocol: Protocol,
+    *,
+    protocol_path: Path,
+    clips_dir: Path,
+    accept: Sequence[str] = (),
+    log: Callable[[str], None] = print,
+) -> CheckReport:
+    """Every stimulus check of the clips in ``clips_dir`` (``clips.csv``) against
+    ``protocol``; writes ``clips_dir/stimulus_checks.csv`` and returns the report (the caller
+    decides what a failure does: :meth:`CheckReport.error`)."""
+    t0 = time.perf_counter()
+    base_dir = protocol_path.parent
+    manifest = read_manifest(clips_dir, need=CLIP_COLUMNS)
+    wanted = {(c.id) for c in protocol.conditions}
+    manifest = [m for m in manifest if m["condition"] in wanted]
+    if not manifest:
+        raise StageError(f"{clips_dir / 'clips.csv'}: no clip of {protocol.study.id!r}'s "
+                         "conditions: render them first")  # fmt: skip
+    names = (*protocol.checks.accept, *accept)
+    key = _inputs_key(protocol, manifest)
+    earlier = _earlier(clips_dir, key)
+    if earlier is not None:  # the same clips, checked by the same rules: measured already
+        log("the clips are unchanged since they were checked: stimulus checks reused")
+        rows = accept_checks([replace(r, accepted=False) for r in earlier], names)
+        report = CheckReport(rows, tracker="reused", accepted=tuple(dict.fromkeys(names)))
+        report.path = write_checks(rows, clips_dir / CHECKS_NAME)
+        report.seconds = time.perf_counter() - t0
+        return report
+    missing = [m["path"] for m in manifest if not (clips_dir / m["path"]).is_file()]
+    if missing:
+        raise StageError(f"{clips_dir}: clips listed in clips.csv are missing: "
+                         f"{', '.join(missing[:5])}")  # fmt: skip
+    log(f"checking {len(manifest)} clips with the face tracker …")
+    pending = start_tracking([
+        (clips_dir / m["path"], int(m["width"]), int(m["height"]), float(m["duration_s"] or 0))
+        for m in manifest
+    ])  # fmt: skip
+    # while the tracker runs: the avatar's geometry, the stimuli's audio
+    avatar = load_avatar(protocol, base_dir=base_dir)
+    rows = audit_avatar(avatar, protocol, base_dir=base_dir)
+    stimuli = {(s.id, st.id): st for s in protocol.stimulus_sets for st in s.stimuli}
+    speeches: dict[tuple[str, str], Speech] = {}
+
+    def speech_of(key: tuple[str, str]) -> Speech:
+        if key not in speeches:
+            rate = protocol.rendering.audio_sample_rate
+            speeches[key] = speech_for(stimuli[key], base_dir=base_dir, sample_rate=rate)
+        return speeches[key]
+
+    sounds = {m["clip_id"]: _audio(clips_dir / m["path"]) for m in manifest}
+    for m in manifest:
+        if stimuli.get((m["stimulus_set"], m["stimulus"])) is not None:
+            speech_of((m["stimulus_set"], m["stimulus"]))
+    tracked = pending.collect()
+    tracking: dict[str, ClipTracking] = {m["clip_id"]: tracked[str(clips_dir / m["path"])]
+                                         for m in manifest}  # fmt: skip
+    tracker = next(iter(tracked.values())).tracker if tracked else ""
+    by_stimulus: dict[tuple[str, str], list[dict]] = {}
+    for m in manifest:
+        by_stimulus.setdefault((m["stimulus_set"], m["stimulus"]), []).append(m)
+    for m in manifest:
+        tr = tracking[m["clip_id"]]
+        rows += face_visible_rows(tr, clip=m["clip_id"], condition=m["condition"])
+        stim = stimuli.get((m["stimulus_set"], m["stimulus"]))
+        if stim is not None and stim.track_source != "silence" and m.get("track_file"):
+            fps = float(m["fps"])
+            audio = padded_audio(speech_of((m["stimulus_set"], m["stimulus"])),
+                                 pad_s=protocol.rendering.pad_s)  # fmt: skip
+            sound = envelope(sounds[m["clip_id"]], sample_rate=AUDIO_RATE, fps=fps,
+                             n_frames=tr.frames)  # fmt: skip
+            want = envelope(audio.samples, sample_rate=audio.sample_rate, fps=fps,
+                            n_frames=tr.frames)  # fmt: skip
+            values = read_track(clips_dir / m["track_file"]).values
+            rows += av_sync_rows(tr, sound, track_values=values, intended_sound=want, fps=fps,
+                                 clip=m["clip_id"], condition=m["condition"])  # fmt: skip
+    levelled = {c.id: c.level for c in protocol.conditions if c.level is not None}
+    for (set_id, stim_id), clips in by_stimulus.items():
+        plain = {m["condition"]: (m["clip_id"], tracking[m["clip_id"]], m["sha256"])
+                 for m in clips if m["condition"] not in levelled}  # fmt: skip
+        rows += difference_rows(plain, equal_groups=protocol.checks.equal_conditions,
+                                explain=_explanations(clips_dir, clips))  # fmt: skip
+        graded: dict[str, list] = {}
+        for m in clips:
+            if m["condition"] in levelled:
+                cond = protocol.condition(m["condition"])
+                graded.setdefault(cond.method, []).append(
+                    (levelled[cond.id], m["clip_id"], tracking[m["clip_id"]]))
+        for method, levels in graded.items():
+            if protocol.tasks and len(levels) > 2:  # psychometric designs want close levels:
+                ordered = sorted(levels, key=lambda x: x[0])  # only the ends must differ
+                levels = [ordered[0], ordered[-1]]
+            rows += level_rows(levels, condition_of={m["clip_id"]: m["condition"] for m in clips},
+                               group=f"{set_id}/{stim_id} {method}")  # fmt: skip
+        stim = stimuli.get((set_id, stim_id))
+        if stim is not None and stim.expected_vowels:
+            peaks = vowel_peak_times(stim, tracks_for(stim, speech_of((set_id, stim_id)))[0],
+                                     where=f"{set_id}/{stim_id}")  # fmt: skip
+            mouths = {m["condition"]: mouth_at_peaks(tracking[m["clip_id"]], peaks,
+                                                      fps=float(m["fps"]),
+                                                      offset_s=protocol.rendering.pad_s)
+                      for m in clips}  # fmt: skip
+            rows += articulation_rows(
+                mouths, clips={m["condition"]: m["clip_id"] for m in clips},
+                vowel_rules=protocol.checks.vowel_rules, rules=protocol.checks.articulation,
+            )  # fmt: skip
+    clip_of = {k: v[0]["clip_id"] for k, v in by_stimulus.items()}
+    rows += track_source_rows(protocol, clip_of=clip_of, speech_of=speech_of)
+    rows = accept_checks(rows, names)
+    report = CheckReport(rows, seconds=time.perf_counter() - t0, tracker=tracker,
+                         accepted=tuple(dict.fromkeys(names)))  # fmt: skip
+    report.path = write_checks(rows, clips_dir / CHECKS_NAME)
+    report.seconds = time.perf_counter() - t0
+    saved = {"inputs": key, "tracker": tracker, "seconds": round(report.seconds, 2)}
+    replace_file(clips_dir / CHECKS_KEY_NAME, json.dumps(saved) + "\n")
+    return report
+
+
+#: bump when a check's measure or threshold changes: earlier results are then measured again
+CHECKS_VERSION = 1
+CHECKS_KEY_NAME = "stimulus_checks.json"
+
+
+def _inputs_key(protocol: Protocol, manifest: Sequence[dict]) -> str:
+    """What the checks' rows depend on: the clips' bytes and inputs, the conditions and the
+    protocol's check rules."""
+    import hashlib
+
+    data = {
+        "version": CHECKS_VERSION,
+        "clips": sorted(
+            (m["clip_id"], m["sha256"], m["spec_sha256"], m.get("track_sha256", ""))
+            for m in manifest
+        ),
+        "conditions": [c.model_dump(mode="json") for c in protocol.conditions],
+        "checks": protocol.checks.model_dump(mode="json", exclude={"accept"}),
+        "pad_s": protocol.rendering.pad_s,
+    }
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _earlier(clips_dir: Path, key: str) -> list[CheckRow] | None:
+    """The rows of an earlier check of the same inputs, or None."""
+    try:
+        saved = json.loads((clips_dir / CHECKS_KEY_NAME).read_text(encoding="utf-8"))
+        if saved.get("inputs") != key:
+            return None
+        rows = read_checks(clips_dir / CHECKS_NAME)
+    except (OSError, ValueError):
+        return None
+    out = []
+    for r in rows:
+        try:
+            value = float(r["value"]) if r["value"] != "" else math.nan
+        except ValueError:
+            return None
+        passed = None if r["passed"] == "" else r["passed"] == "true"
+        out.append(CheckRow(r["clip"], r["condition"], r["check"], r["measure"], value,
+                            r["threshold"], passed, r["note"], r["severity"],
+                            r.get("accepted") == "true"))  # fmt: skip
+    return out
+
+
+def _explanations(clips_dir: Path, clips: Sequence[dict]) -> dict[tuple[str, str], str]:
+    """{(condition a, condition b): why they look alike}, from the clips' JSON (stand-ins) and
+    animation tracks (the same weights drawn)."""
+    out = {}
+    meta = {}
+    for m in clips:
+        path = clips_dir / f"{m['clip_id']}.json"
+        try:
+            meta[m["condition"]] = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            meta[m["condition"]] = {}
+    tracks = {m["condition"]: m.get("track_sha256") for m in clips}
+    for a in meta:
+        for b in meta:
+            if a >= b:
+                continue
+            why = []
+            if tracks.get(a) and tracks.get(a) == tracks.get(b):
+                why.append("both draw the same weights on this avatar")
+            for c in (a, b):
+                if meta[c].get("stand_in"):
+                    why.append(f"{c}: {meta[c]['stand_in']}")
+            out[(a, b)] = "; ".join(why)
+    return out
+
+
+#: the column ``facelab check`` adds to ``clips.csv``: each clip's check outcome
+MANIFEST_COLUMN = "stimulus_checks"
+
+
+def record_in_manifest(clips_dir: Path, report: CheckReport) -> None:
+    """Add (or refresh) ``clips.csv``'s :data:`MANIFEST_COLUMN`: per clip ``passed``, or
+    ``failed: NAMES`` / ``accepted: NAMES`` for the checks that failed on it (an avatar-audit
+    failure counts for every clip of its condition, a pair's for both clips)."""
+    path = clips_dir / "clips.csv"
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        header = [c for c in (reader.fieldnames or []) if c != MANIFEST_COLUMN]
+        rows = list(reader)
+    for row in rows:
+        failed, accepted = set(), set()
+        for r in report.rows:
+            if r.passed is not False or r.severity != "error":
+                continue
+            mine = (r.clip == row["clip_id"] or row["clip_id"] in r.clip.split("~")
+                    or (not r.clip and r.condition in ("", row["condition"])))  # fmt: skip
+            if mine:
+                (accepted if r.accepted else failed).add(r.check)
+        row[MANIFEST_COLUMN] = "; ".join(
+            [f"failed: {', '.join(sorted(failed))}"] * bool(failed)
+            + [f"accepted: {', '.join(sorted(accepted))}"] * bool(accepted)
+        ) or "passed"
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=[*header, MANIFEST_COLUMN], lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    replace_file(path, buf.getvalue())
