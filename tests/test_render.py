@@ -131,7 +131,7 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
     rows = list(csv.DictReader((out / "clips.csv").read_text(encoding="utf-8").splitlines()))
     assert [r["condition"] for r in rows] == ["baseline", "standard", "emphasized"]
     # DESIGN.md's columns first, then the hash of the clip's declared inputs (stale-clip check),
-    # then the animation track and its hash
+    # then the animation track and its hash, then the stimulus checks' verdict on the clip
     assert list(rows[0]) == [
         "clip_id",
         "stimulus_set",
@@ -146,7 +146,10 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
         "spec_sha256",
         "track_file",
         "track_sha256",
+        "stimulus_checks",
     ]
+    assert {r["stimulus_checks"] for r in rows} == {"passed"}
+    assert (out / "stimulus_checks.csv").is_file()
     from facelab.hashing import sha256_file
 
     for r in rows:

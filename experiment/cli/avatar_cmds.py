@@ -18,6 +18,25 @@ def _load(spec: str):
     return default_head() if spec == "default" else load(Path(spec))
 
 
+def _audit(avatar) -> list[str]:
+    """The stimulus checks' avatar audit against the reference study's conditions
+    (kato2021): each row that did not pass, in words."""
+    from facelab.errors import AvatarError
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+    from facelab.stimuli.avatar.targets import with_viseme_mixes
+    from facelab.stimuli.checks.avatar_checks import audit_avatar
+
+    path = protocol_path("kato2021")
+    try:
+        avatar = with_viseme_mixes(avatar)
+    except AvatarError:
+        pass  # the viseme methods cannot play: the methods lines say so
+    rows = audit_avatar(avatar, load_protocol(path), base_dir=path.parent)
+    return [("warning: " if r.severity != "error" else "") + r.describe()
+            for r in rows if r.passed is False]  # fmt: skip
+
+
 def _cmd_avatar(args: argparse.Namespace) -> int:
     from facelab.stimuli.render.inspect import avatar_report, format_report, write_sheet
 
@@ -29,6 +48,7 @@ def _cmd_avatar(args: argparse.Namespace) -> int:
         sheet = output_file(args.sheet, option="--sheet", force=args.force) if args.sheet else None
         avatar = _load(args.file)
         report = avatar_report(avatar)
+        report["audit"] = _audit(avatar)
         print(
             json.dumps(report, indent=2, ensure_ascii=False) if args.json else format_report(report)
         )

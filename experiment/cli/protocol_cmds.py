@@ -29,6 +29,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                 raise refuse(path, issues)
             for note in input_notes(protocol, base_dir=Path(path).parent):
                 print(f"{path}: {note}")
+            _audit(protocol, path=Path(path))
         n_trials = count_trials(protocol)
         print(
             f"ok: {path}: study {protocol.study.id!r}, {len(protocol.conditions)} conditions, "
@@ -42,6 +43,30 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             )
         )
     return 0
+
+
+def _audit(protocol, *, path) -> None:
+    """The stimulus checks' avatar audit (geometry only): warnings printed, failures refused
+    unless the protocol accepts them (``checks.accept``)."""
+    from facelab.errors import StageError
+    from facelab.stimuli.checks.avatar_checks import audit_avatar
+    from facelab.stimuli.checks.run_checks import accept_checks
+    from facelab.stimuli.render.scene import load_avatar
+
+    avatar = load_avatar(protocol, base_dir=path.parent)
+    rows = accept_checks(audit_avatar(avatar, protocol, base_dir=path.parent),
+                         protocol.checks.accept)  # fmt: skip
+    for row in rows:
+        if row.passed is False and not row.failed:
+            print(f"{path}: {'accepted' if row.accepted else 'warning'}: {row.describe()}")
+    failures = [r for r in rows if r.failed]
+    if failures:
+        raise StageError(
+            f"{path}: the avatar cannot show what the protocol asks (stimulus check "
+            "avatar_audit):\n" + "\n".join(f"  {r.describe()}" for r in failures)
+            + "\nre-export the avatar with these shapes, or accept with "
+            "'checks: {accept: [avatar_audit]}' in the protocol"
+        )
 
 
 def _cmd_design(args: argparse.Namespace) -> int:

@@ -37,8 +37,10 @@ __all__ = [
     "face_visible_rows",
     "level_rows",
     "mouth_at_peaks",
+    "not_measured",
     "picture_lag",
     "sync_lag",
+    "too_small",
 ]
 
 #: face detection (MediaPipe, short range): every frame at least DETECTION_MIN, half of them at
@@ -54,9 +56,30 @@ FACE_DIFFERENCE = 2.0
 MAX_LAG_FRAMES = 1.0
 #: frames either side of a vowel's peak that are measured (±0.1 s at 30 fps)
 PEAK_HALF_WINDOW_S = 0.1
+#: the lips are read only on faces at least this tall (forehead to chin, pixels of the clip as
+#: rendered): smaller, the tracker's mouth landmarks are guesses (the default head at 160x90 is
+#: 45 px tall and "opens" お wider than あ); articulation and sync are then not measured (warning)
+MIN_FACE_PX = 80
 #: the vowel rules compare medians of tracked measures that jitter: on a still face the
 #: tracker's mouth width varies by 1.1 % (SD over frames); a rule holds within 2 %
 RULE_TOLERANCE = 0.02
+
+
+def too_small(tr: ClipTracking, *, clip_height: int) -> str | None:
+    """Why the lips of this clip cannot be read (face under :data:`MIN_FACE_PX`), or None."""
+    if not np.isfinite(tr.face_height).any():
+        return "the face mesh found no face"
+    px = float(np.nanmedian(tr.face_height)) * clip_height
+    if px < MIN_FACE_PX:
+        return (f"the face is {px:.0f} px tall in this clip; the tracker reads lips from "
+                f"{MIN_FACE_PX} px: render larger (--size) to check it")  # fmt: skip
+    return None
+
+
+def not_measured(*, clip: str, condition: str, check: str, why: str) -> CheckRow:
+    """A warning row: the check could not be made on this clip."""
+    return CheckRow(clip, condition, check, "not_measured", math.nan, "measurable", False, why,
+                    "warning")  # fmt: skip
 
 
 def face_visible_rows(tr: ClipTracking, *, clip: str, condition: str) -> list[CheckRow]:
@@ -207,35 +230,39 @@ def sync_lag(sound: np.ndarray, mouth: np.ndarray, *, max_lag: int = 8) -> tuple
 def picture_lag(
     track_values: np.ndarray, mouth: np.ndarray, *, max_lag: int = 8
 ) -> tuple[float, float]:
-    """(lag, R²): how many frames the tracked mouth opening follows the animation track - at
-    each lag the track's channels (n, K) are fitted to the opening by least squares; the lag
-    with the best fit, refined by a parabola - and that fit's R². NaN without enough tracked
-    frames."""
+    """(lag, R²): how many frames the tracked mouth opening follows the animation track. The
+    track's channels (n, K) are reduced to their first three principal components, fitted to
+    the opening by least squares (R² of that fit), and the fitted opening is cross-correlated
+    with the tracked one (:func:`sync_lag`). NaN without enough tracked frames."""
     m = np.asarray(mouth, float)
     x = np.asarray(track_values, float)
     n = min(len(m), len(x))
     m, x = m[:n], x[:n]
-    x = x[:, np.ptp(x, axis=0) > 1e-6] if x.size else x
-    if n < 20 or x.shape[1] == 0:
+    ok = np.isfinite(m)
+    if x.ndim != 2 or ok.sum() < 20:
         return math.nan, math.nan
-    lags = np.arange(-max_lag, max_lag + 1)
-    r2 = []
-    for lag in lags:
-        a, b = (x[: n - lag], m[lag:]) if lag >= 0 else (x[-lag:], m[: n + lag])
-        ok = np.isfinite(b)
-        if ok.sum() < 10 or np.var(b[ok]) == 0:
-            r2.append(0.0)
-            continue
-        design = np.column_stack([a[ok], np.ones(ok.sum())])
-        coef, *_ = np.linalg.lstsq(design, b[ok], rcond=None)
-        r2.append(1 - np.var(b[ok] - design @ coef) / np.var(b[ok]))
-    c = np.asarray(r2)
-    k = int(np.argmax(c))
-    shift = 0.0
-    if 0 < k < len(c) - 1:
-        denom = c[k - 1] - 2 * c[k] + c[k + 1]
-        shift = 0.5 * (c[k - 1] - c[k + 1]) / denom if denom < 0 else 0.0
-    return float(lags[k] + shift), float(c[k])
+    x = x - x.mean(axis=0)
+    u, sv, _ = np.linalg.svd(x, full_matrices=False)
+    keep = int(min(3, (sv > 1e-6 * max(sv.max(), 1e-12)).sum()))
+    if keep == 0:
+        return math.nan, math.nan
+    design = np.column_stack([u[:, :keep] * sv[:keep], np.ones(n)])
+
+    def fit(shift: int) -> tuple[np.ndarray, float]:
+        """The fitted opening with the picture ``shift`` frames behind, and its R²."""
+        d = np.roll(design, shift, axis=0)
+        use = ok.copy()
+        use[: max(shift, 0)] = use[n + min(shift, 0) :] = False
+        coef, *_ = np.linalg.lstsq(d[use], m[use], rcond=None)
+        r2 = 1 - np.var(m[use] - d[use] @ coef) / max(np.var(m[use]), 1e-18)
+        return design @ coef, float(r2)
+
+    fitted, _ = fit(0)
+    lag, _ = sync_lag(fitted, m, max_lag=max_lag)
+    if math.isnan(lag):
+        return math.nan, math.nan
+    _, r2 = fit(round(lag))
+    return lag, r2
 
 
 #: the tracked mouth must follow the animation track this closely (R² of the fit) for its lag
@@ -276,7 +303,7 @@ def av_sync_rows(
                       + ("; the tracked mouth follows the track too loosely to time it"
                          if loose else "")) if offset is not None
                 else "too few frames with a tracked mouth",
-                severity="warning" if loose else "error", **kw),
+                severity="warning" if loose or offset is None else "error", **kw),
         info(offset, measure="av_offset_signed_frames", note="positive: the picture is late", **kw),
     ]  # fmt: skip
     lag_ms = lag * frame_ms if not math.isnan(lag) else math.nan

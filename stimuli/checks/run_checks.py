@@ -35,6 +35,8 @@ from facelab.stimuli.checks.clip_checks import (
     face_visible_rows,
     level_rows,
     mouth_at_peaks,
+    not_measured,
+    too_small,
 )
 from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
 from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, info
@@ -258,7 +260,11 @@ def check_clips(
         tr = tracking[m["clip_id"]]
         rows += face_visible_rows(tr, clip=m["clip_id"], condition=m["condition"])
         stim = stimuli.get((m["stimulus_set"], m["stimulus"]))
-        if stim is not None and stim.track_source != "silence" and m.get("track_file"):
+        small = too_small(tr, clip_height=int(m["height"]))
+        if stim is not None and stim.track_source != "silence" and small:
+            rows.append(not_measured(clip=m["clip_id"], condition=m["condition"],
+                                     check="av_sync", why=small))  # fmt: skip
+        elif stim is not None and stim.track_source != "silence" and m.get("track_file"):
             fps = float(m["fps"])
             audio = padded_audio(speech_of((m["stimulus_set"], m["stimulus"])),
                                  pad_s=protocol.rendering.pad_s)  # fmt: skip
@@ -291,12 +297,20 @@ def check_clips(
         if stim is not None and stim.expected_vowels:
             peaks = vowel_peak_times(stim, tracks_for(stim, speech_of((set_id, stim_id)))[0],
                                      where=f"{set_id}/{stim_id}")  # fmt: skip
+            readable = []
+            for m in clips:
+                small = too_small(tracking[m["clip_id"]], clip_height=int(m["height"]))
+                if small:
+                    rows.append(not_measured(clip=m["clip_id"], condition=m["condition"],
+                                             check="articulation", why=small))  # fmt: skip
+                else:
+                    readable.append(m)
             mouths = {m["condition"]: mouth_at_peaks(tracking[m["clip_id"]], peaks,
                                                       fps=float(m["fps"]),
                                                       offset_s=protocol.rendering.pad_s)
-                      for m in clips}  # fmt: skip
+                      for m in readable}  # fmt: skip
             rows += articulation_rows(
-                mouths, clips={m["condition"]: m["clip_id"] for m in clips},
+                mouths, clips={m["condition"]: m["clip_id"] for m in readable},
                 vowel_rules=protocol.checks.vowel_rules, rules=protocol.checks.articulation,
             )  # fmt: skip
     clip_of = {k: v[0]["clip_id"] for k, v in by_stimulus.items()}
@@ -312,7 +326,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 1
+CHECKS_VERSION = 2
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 

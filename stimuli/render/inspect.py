@@ -72,6 +72,7 @@ def avatar_report(avatar: Avatar) -> dict:
     }
 
 
+
 def format_report(report: Mapping) -> str:
     """The report as aligned text lines."""
     sk = report["skeleton"]
@@ -99,7 +100,7 @@ def format_report(report: Mapping) -> str:
     lines.append(
         "landmarks  "
         + (
-            "lip landmarks present"
+            "lip landmarks present (checked against the mouth's geometry in the audit)"
             if report["lip_landmarks"]
             else "no lip landmarks (lip metrics unavailable)"
         )
@@ -115,6 +116,13 @@ def format_report(report: Mapping) -> str:
     lines.append("methods")
     for method, how in report["methods"].items():
         lines.append(f"  {method:<17} {how}")
+    audit = report.get("audit", [])
+    lines.append(
+        f"audit      {len(audit)} problem(s) for kato2021's conditions (facelab check's "
+        "avatar audit)" if audit else "audit      every target kato2021's conditions drive "
+        "moves, none is a copy"
+    )  # fmt: skip
+    lines += [f"  {line}" for line in audit]
     for note in report.get("notes", []):
         lines.append(f"note       {note}")
     return "\n".join(lines)

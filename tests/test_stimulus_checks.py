@@ -1,0 +1,221 @@
+"""Stimulus checks (issue 48): the avatar audit from geometry, the vowel shapes standing in for
+an ARKit mouth that cannot show Z, and the measures the clip checks take from what the face
+tracker saw. Fast tests use synthetic arrays with known answers; the slow ones render and run
+the real tracker (MediaPipe in .venv-mediapipe, made by scripts/setup.sh)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facelab.experiment.cli import main
+from facelab.protocol import load_protocol
+from facelab.resources import protocol_path
+from facelab.stimuli.avatar import default_head
+from facelab.stimuli.avatar.audit import identical_targets, target_motion_mm, unusable_targets
+from facelab.stimuli.capture.zmatrix import load_z
+from facelab.stimuli.checks.avatar_checks import audit_avatar, landmark_rows
+from facelab.stimuli.checks.clip_checks import (
+    articulation_rows,
+    face_difference,
+    level_rows,
+    picture_lag,
+    sync_lag,
+)
+from facelab.stimuli.checks.face_tracker import ClipTracking, tracker_python
+from facelab.stimuli.checks.rows import CHECK_COLUMNS
+from facelab.stimuli.methods import get
+from facelab.stimuli.methods.vowel_blend import PRESET_NAMES, vowel_shape_weights
+
+KATO = protocol_path("kato2021")
+
+
+def _broken_head(**changes):
+    """The default head with jawOpen emptied and mouthFunnel made a copy of mouthPucker (as the
+    VRoid export that issue 48 found)."""
+    head = default_head()
+    targets = dict(head.targets)
+    targets["jawOpen"] = np.zeros_like(targets["jawOpen"])
+    targets["mouthFunnel"] = targets["mouthPucker"].copy()
+    return head.replace(targets=targets, **changes)
+
+
+def test_empty_and_copied_targets_are_found_from_the_geometry() -> None:
+    head = _broken_head()
+    motion = target_motion_mm(head, ["jawOpen", "mouthPucker", "mouthSmileLeft"])
+    assert motion["jawOpen"] == 0 and motion["mouthSmileLeft"] > 1
+    assert identical_targets(head, ["mouthFunnel", "mouthPucker", "jawOpen"]) == [
+        ("mouthFunnel", "mouthPucker")
+    ]
+    why = unusable_targets(head, ["jawOpen", "mouthFunnel", "mouthPucker", "mouthSmileLeft"])
+    assert set(why) == {"jawOpen", "mouthFunnel", "mouthPucker"}
+    assert "empty" in why["jawOpen"] and "same shape" in why["mouthFunnel"]
+
+
+def test_the_audit_fails_an_arkit_mouth_that_cannot_show_z() -> None:
+    """Without vowel shapes to stand in, the empty jawOpen and the copied funnel fail."""
+    head = _broken_head()
+    head = head.replace(targets={k: v for k, v in head.targets.items() if k not in PRESET_NAMES})
+    rows = audit_avatar(head, load_protocol(KATO), base_dir=KATO.parent)
+    failed = {(r.condition, r.measure) for r in rows if r.passed is False}
+    assert ("standard", "target_motion_mm:jawOpen") in failed
+    assert ("emphasized", "identical_driven_targets") in failed
+    row = next(r for r in rows if r.measure == "identical_driven_targets" and not r.passed)
+    assert "mouthFunnel is the same shape as mouthPucker" in row.note
+
+
+def test_vowel_shapes_stand_in_and_z_still_acts() -> None:
+    """With its own vowel shapes the broken avatar plays Z through them, emphasized opening
+    further than standard (the retargeted weights), and the audit passes what it drives."""
+    head = _broken_head()
+    method = get("vowel_blend")
+    protocol = load_protocol(KATO)
+    std = protocol.condition("standard").settings
+    assert method.driven_targets(head, std, base_dir=KATO.parent) == set(PRESET_NAMES)
+    assert "stand in" in (method.playback(head, std, base_dir=KATO.parent).stand_in or "")
+    w_std, w_emp = vowel_shape_weights(load_z("standard")), vowel_shape_weights(load_z("emphasized"))
+    assert w_std.shape == (5, 5) and (w_std >= 0).all()
+    for j in (0, 1, 2, 4):  # a i u o mostly their own shape (e is a mix of a and i here)
+        assert np.argmax(w_std[:, j]) == j
+    for j in range(5):  # emphasized opens every vowel further
+        assert np.linalg.norm(w_emp[:, j]) > 1.3 * np.linalg.norm(w_std[:, j])
+    rows = audit_avatar(head, protocol, base_dir=KATO.parent)
+    assert not [r for r in rows if r.failed and r.condition in ("standard", "emphasized")]
+    # the intact default head plays Z on its ARKit targets, as before
+    assert method.driven_targets(default_head(), std, base_dir=KATO.parent) >= {"jawOpen"}
+
+
+def test_lip_landmarks_are_checked_against_where_a_mouth_is() -> None:
+    head = default_head()
+    assert landmark_rows(head)[0].passed
+    lm = dict(head.landmarks)
+    lm["lower_lip"] = int(np.argmax(head.neutral[:, 1]))  # on the crown, as meshopt left it
+    row = landmark_rows(head.replace(landmarks=lm))[0]
+    assert row.passed is False and "the upper lip is below the lower lip" in row.note
+    lm = dict(head.landmarks)
+    lm["mouth_left"], lm["mouth_right"] = lm["mouth_right"], lm["mouth_left"]
+    row = landmark_rows(head.replace(landmarks=lm))[0]
+    assert row.passed is False and "apart" in row.note
+
+
+def _tracking(n: int, *, aperture=None, grey=None, box=(0.3, 0.2, 0.7, 0.8)) -> ClipTracking:
+    return ClipTracking(
+        path="x.mp4", detection=np.full(n, 0.95), box=np.tile(box, (n, 1)).astype(float),
+        aperture=np.zeros(n) if aperture is None else np.asarray(aperture, float),
+        width=np.full(n, 0.3), face_height=np.full(n, 0.5), tracker="test",
+        grey=np.zeros((n, 40, 60), np.uint8) if grey is None else grey,
+    )  # fmt: skip
+
+
+def test_face_difference_is_zero_for_identical_pictures_and_sees_a_local_change() -> None:
+    rng = np.random.default_rng(1)
+    grey = rng.integers(0, 255, (30, 40, 60), dtype=np.uint8)
+    a = _tracking(30, grey=grey)
+    assert face_difference(a, _tracking(30, grey=grey.copy())) == 0
+    moved = grey.copy()
+    moved[:, 25:28, 28:32] = np.clip(moved[:, 25:28, 28:32].astype(int) + 40, 0, 255)  # a mouth
+    d = face_difference(a, _tracking(30, grey=moved))
+    assert d > 2, d  # a change on 12 of 576 face pixels is not averaged away
+    far = grey.copy()
+    far[:, :, :5] = 0  # outside the face box: not counted
+    assert face_difference(a, _tracking(30, grey=far)) == 0
+
+
+@pytest.mark.parametrize("shift", [-3, 0, 2])
+def test_sync_lag_and_picture_lag_recover_a_known_shift(shift: int) -> None:
+    rng = np.random.default_rng(7)
+    n = 300
+    drive = np.convolve(rng.random(n + 20), np.ones(5) / 5, "same")[10 : n + 10]
+    mouth = np.roll(drive, shift)  # the mouth follows the drive by `shift` frames
+    mouth[:5] = mouth[-5:] = np.nan
+    lag, corr = sync_lag(drive, mouth)
+    assert abs(lag - shift) < 0.25 and corr > 0.9
+    track = np.column_stack([drive, rng.random(n) * 1e-3])
+    plag, r2 = picture_lag(track, 0.02 + 0.1 * mouth)
+    assert abs(plag - shift) < 0.25 and r2 > 0.9
+
+
+def test_articulation_rules_and_protocol_ratios() -> None:
+    protocol = load_protocol(KATO)
+    good = {"a": (0.08, 0.29), "i": (0.02, 0.34), "u": (0.01, 0.26), "e": (0.04, 0.33),
+            "o": (0.05, 0.26)}  # fmt: skip
+    mouths = {
+        "standard": {v: {"aperture": ap, "width": w} for v, (ap, w) in good.items()},
+        "emphasized": {v: {"aperture": 1.5 * ap, "width": w} for v, (ap, w) in good.items()},
+    }
+    mouths["emphasized"]["o"]["aperture"] = 0.2  # お opens more than あ: fails あ largest
+    rule = protocol.checks.articulation  # kato2021: emphasized あ >= 1.3 x standard
+    rows = articulation_rows(mouths, clips={"standard": "s", "emphasized": "e"}, vowel_rules=True,
+                             rules=rule)  # fmt: skip
+    judged = {(r.condition, r.measure): r.passed for r in rows if r.passed is not None}
+    assert judged[("standard", "a_largest_aperture")] is True
+    assert judged[("emphasized", "a_largest_aperture")] is False
+    assert judged[("standard", "i_widest_mouth")] is True
+    assert judged[("emphasized", "aperture:a emphasized/standard")] is True
+
+
+def test_levels_must_grow_and_each_step_show() -> None:
+    base = np.full((10, 40, 60), 100, np.uint8)
+
+    def at(level: float) -> ClipTracking:
+        g = base.copy()
+        g[:, 20:30, 25:35] += np.uint8(level * 20)
+        return _tracking(10, grey=g)
+
+    rows = level_rows([(0.0, "q0", at(0)), (0.5, "q05", at(0.5)), (1.0, "q1", at(1.0))],
+                      condition_of={}, group="smile")  # fmt: skip
+    assert all(r.passed for r in rows)
+    rows = level_rows([(0.0, "q0", at(0)), (0.5, "q05", at(0.05)), (1.0, "q1", at(1.0))],
+                      condition_of={}, group="smile")  # fmt: skip
+    assert [r.passed for r in rows] == [False, True, True]
+
+
+@pytest.mark.slow
+def test_identical_conditions_are_refused_with_the_reason_then_accepted_by_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two conditions that draw the same clip: render exits 2 naming the check, the clips, the
+    measure and the threshold; with --accept-check it exits 0 and says so in clips.csv and
+    stimulus_checks.csv - measured by the real face tracker on the decoded clips."""
+    assert tracker_python() is not None, "scripts/setup.sh makes .venv-mediapipe"
+    text = KATO.read_text(encoding="utf-8").replace(
+        "params: {z: emphasized, gain: 1.0}", "params: {z: standard, gain: 1.0}"
+    )
+    text = text[: text.index("  - id: sentences\n    stimulus_set: sentences")] + text[
+        text.index("items:") :
+    ]  # vowels only: a short render
+    text = text.replace(
+        "practice: {stimulus_set: sentences, stimulus: passage, condition: standard}",
+        "practice: {stimulus_set: vowels, stimulus: aiueo, condition: standard}",
+    )
+    # kato2021's own rule (emphasized あ 1.3x standard) cannot hold for equal conditions
+    text = text.replace("at_least: 1.3}", "at_least: 1.0}")
+    proto = tmp_path / "same.yaml"
+    proto.write_text(text, encoding="utf-8")
+    out = tmp_path / "clips"
+    argv = ["render", str(proto), "--out", str(out), "--size", "640x360", "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "conditions_differ" in err and "emphasized~standard" in err
+    assert "byte-identical" in err and "expected >= 2" in err
+    assert "--accept-check conditions_differ" in err
+    with open(out / "stimulus_checks.csv", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == CHECK_COLUMNS
+    checks = {r["check"] for r in rows}
+    assert {"avatar_audit", "face_visible", "av_sync", "articulation",
+            "conditions_differ", "track_source"} <= checks  # fmt: skip
+    visible = [r for r in rows if r["measure"] == "detection_min"]
+    assert len(visible) == 3 and all(float(r["value"]) > 0.8 for r in visible)
+    assert main([*argv, "--accept-check", "conditions_differ"]) == 0
+    with open(out / "clips.csv", encoding="utf-8") as fh:
+        marks = {r["condition"]: r["stimulus_checks"] for r in csv.DictReader(fh)}
+    assert marks["standard"] == "accepted: conditions_differ" and marks["baseline"] == "passed"
+    with open(out / "stimulus_checks.csv", encoding="utf-8") as fh:
+        accepted = [r for r in csv.DictReader(fh) if r["accepted"] == "true"]
+    assert [r["check"] for r in accepted] == ["conditions_differ"]
+    assert math.isclose(float(accepted[0]["value"]), 0.0)
