@@ -77,7 +77,8 @@ def test_vowel_shapes_stand_in_and_z_still_acts() -> None:
     std = protocol.condition("standard").settings
     assert method.driven_targets(head, std, base_dir=KATO.parent) == set(PRESET_NAMES)
     assert "stand in" in (method.playback(head, std, base_dir=KATO.parent).stand_in or "")
-    w_std, w_emp = vowel_shape_weights(load_z("standard")), vowel_shape_weights(load_z("emphasized"))
+    w_std = vowel_shape_weights(load_z("standard"))
+    w_emp = vowel_shape_weights(load_z("emphasized"))
     assert w_std.shape == (5, 5) and (w_std >= 0).all()
     for j in (0, 1, 2, 4):  # a i u o mostly their own shape (e is a mix of a and i here)
         assert np.argmax(w_std[:, j]) == j

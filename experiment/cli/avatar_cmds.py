@@ -21,6 +21,8 @@ def _load(spec: str):
 def _audit(avatar) -> list[str]:
     """The stimulus checks' avatar audit against the reference study's conditions
     (kato2021): each row that did not pass, in words."""
+    import contextlib
+
     from facelab.errors import AvatarError
     from facelab.protocol import load_protocol
     from facelab.resources import protocol_path
@@ -28,10 +30,8 @@ def _audit(avatar) -> list[str]:
     from facelab.stimuli.checks.avatar_checks import audit_avatar
 
     path = protocol_path("kato2021")
-    try:
+    with contextlib.suppress(AvatarError):  # else the viseme methods cannot play (said above)
         avatar = with_viseme_mixes(avatar)
-    except AvatarError:
-        pass  # the viseme methods cannot play: the methods lines say so
     rows = audit_avatar(avatar, load_protocol(path), base_dir=path.parent)
     return [("warning: " if r.severity != "error" else "") + r.describe()
             for r in rows if r.passed is False]  # fmt: skip

@@ -75,14 +75,24 @@ def _num(value: float | None) -> float:
     return float("nan") if value is None else float(value)
 
 
+def _judged(
+    limit: float, value: float | None, *, above: bool, clip: str, condition: str, check: str,
+    measure: str, note: str, severity: str, unit: str,
+) -> CheckRow:  # fmt: skip
+    v = _num(value)
+    ok = (v >= limit if above else v <= limit) if not math.isnan(v) else False
+    sign = ">=" if above else "<="
+    return CheckRow(clip, condition, check, measure, v, f"{sign} {limit:g}{unit}", bool(ok),
+                    note, severity)  # fmt: skip
+
+
 def at_least(
     limit: float, value: float | None, *, clip: str, condition: str, check: str, measure: str,
     note: str = "", severity: str = "error", unit: str = "",
 ) -> CheckRow:  # fmt: skip
     """A row that passes when ``value >= limit`` (fails when it could not be measured)."""
-    v = _num(value)
-    return CheckRow(clip, condition, check, measure, v, f">= {limit:g}{unit}",
-                    bool(v >= limit) if not math.isnan(v) else False, note, severity)  # fmt: skip
+    return _judged(limit, value, above=True, clip=clip, condition=condition, check=check,
+                   measure=measure, note=note, severity=severity, unit=unit)  # fmt: skip
 
 
 def at_most(
@@ -90,9 +100,8 @@ def at_most(
     note: str = "", severity: str = "error", unit: str = "",
 ) -> CheckRow:  # fmt: skip
     """A row that passes when ``value <= limit`` (fails when it could not be measured)."""
-    v = _num(value)
-    return CheckRow(clip, condition, check, measure, v, f"<= {limit:g}{unit}",
-                    bool(v <= limit) if not math.isnan(v) else False, note, severity)  # fmt: skip
+    return _judged(limit, value, above=False, clip=clip, condition=condition, check=check,
+                   measure=measure, note=note, severity=severity, unit=unit)  # fmt: skip
 
 
 def info(

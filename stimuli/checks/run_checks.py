@@ -106,7 +106,7 @@ class CheckReport:
         lines.append(
             "fix the avatar, the method or the protocol, or accept a check by name: "
             + " ".join(f"--accept-check {n}" for n in names)
-            + " (recorded in clips.csv's folder and the report)"
+            + " (recorded in clips.csv and stimulus_checks.csv)"
         )
         return StageError("\n".join(lines))
 
