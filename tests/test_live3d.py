@@ -140,7 +140,10 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     rpm = rpm.replace("  avatar: default", "  avatar: rpm.glb")
     (root / "rpm.yaml").write_text(rpm, "utf-8")
     args = ["render", str(root / "rpm.yaml"), "--out", str(root / "rpm_clips")]
-    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0
+    # the sample is a stand-in: one shape serves all nine consonant visemes, and its face is
+    # not one a face detector takes for a face - the checks say so, the test accepts it
+    accept = ["--accept-check", "avatar_audit", "--accept-check", "face_visible"]
+    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet", *accept]) == 0
     return root
 
 

@@ -61,13 +61,30 @@ def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[
             pairs = identical_targets(avatar, driven)
             rows.append(at_most(
                 0, len(pairs), clip="", condition=cond.id, check=CHECK,
-                measure="identical_driven_targets",
-                note="; ".join(f"{a} is the same shape as {b}" for a, b in pairs),
+                measure="identical_driven_targets", note=_same_shapes(pairs),
             ))  # fmt: skip
     rows += landmark_rows(avatar)
     gaze_used = any(c.behaviour != "none" for c in protocol.conditions)
     rows += eye_rows(avatar, severity="error" if gaze_used else "warning")
     return rows
+
+
+def _same_shapes(pairs: list[tuple[str, str]]) -> str:
+    """Identical pairs as groups: "a is the same shape as b" or "a = b = c are one shape"."""
+    group: dict[str, set[str]] = {}
+    for a, b in pairs:
+        merged = group.get(a, {a}) | group.get(b, {b})
+        for name in merged:
+            group[name] = merged
+    seen, out = set(), []
+    for names in group.values():
+        key = tuple(sorted(names))
+        if key in seen:
+            continue
+        seen.add(key)
+        out.append(f"{key[0]} is the same shape as {key[1]}" if len(key) == 2
+                   else f"{' = '.join(key)} are one shape")  # fmt: skip
+    return "; ".join(out)
 
 
 def landmark_rows(avatar: Avatar) -> list[CheckRow]:
