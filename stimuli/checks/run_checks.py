@@ -45,6 +45,7 @@ from facelab.stimuli.render.clip import padded_audio
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.scene import load_avatar
 from facelab.stimuli.speech.audio import Speech
+from facelab.stimuli.speech.track import VisemeTrack
 
 __all__ = [
     "CHECKS_NAME",
@@ -161,7 +162,7 @@ def _vowel_confidence(weights: np.ndarray) -> float:
 
 
 def track_source_rows(
-    protocol: Protocol, *, clip_of: dict, speech_of: Callable[[tuple[str, str]], Speech]
+    protocol: Protocol, *, clip_of: dict, track_of: Callable[[tuple[str, str]], VisemeTrack]
 ) -> list[CheckRow]:
     """Per stimulus: where its track comes from; a recording analysed audio-only (no
     transcript) is a warning naming the expected accuracy and how to give the words."""
@@ -173,7 +174,7 @@ def track_source_rows(
                 continue
             kw = {"clip": clip, "condition": "", "check": "track_source"}
             if stim.track_source == "audio":
-                track, _ = tracks_for(stim, speech_of((sset.id, stim.id)))
+                track = track_of((sset.id, stim.id))
                 conf = _vowel_confidence(track.vowels())
                 words = (
                     f"give the words as 'transcript:' under {sset.id}/{stim.id} (or "
@@ -245,6 +246,14 @@ def check_clips(
             speeches[key] = speech_for(stimuli[key], base_dir=base_dir, sample_rate=rate)
         return speeches[key]
 
+    analysed: dict[tuple[str, str], VisemeTrack] = {}
+
+    def track_of(key: tuple[str, str]) -> VisemeTrack:
+        """The stimulus' viseme track (audio-only analysis is slow: made once)."""
+        if key not in analysed:
+            analysed[key] = tracks_for(stimuli[key], speech_of(key))[0]
+        return analysed[key]
+
     sounds = {m["clip_id"]: _audio(clips_dir / m["path"]) for m in manifest}
     for m in manifest:
         if stimuli.get((m["stimulus_set"], m["stimulus"])) is not None:
@@ -295,7 +304,7 @@ def check_clips(
                                group=f"{set_id}/{stim_id} {method}")  # fmt: skip
         stim = stimuli.get((set_id, stim_id))
         if stim is not None and stim.expected_vowels:
-            peaks = vowel_peak_times(stim, tracks_for(stim, speech_of((set_id, stim_id)))[0],
+            peaks = vowel_peak_times(stim, track_of((set_id, stim_id)),
                                      where=f"{set_id}/{stim_id}")  # fmt: skip
             readable = []
             for m in clips:
@@ -314,7 +323,7 @@ def check_clips(
                 vowel_rules=protocol.checks.vowel_rules, rules=protocol.checks.articulation,
             )  # fmt: skip
     clip_of = {k: v[0]["clip_id"] for k, v in by_stimulus.items()}
-    rows += track_source_rows(protocol, clip_of=clip_of, speech_of=speech_of)
+    rows += track_source_rows(protocol, clip_of=clip_of, track_of=track_of)
     rows = accept_checks(rows, names)
     report = CheckReport(rows, seconds=time.perf_counter() - t0, tracker=tracker,
                          accepted=tuple(dict.fromkeys(names)))  # fmt: skip
