@@ -35,6 +35,7 @@ from facelab.analysis.presentation import (
     with_live_playback,
 )
 from facelab.analysis.report import ReportFiles, write_report
+from facelab.analysis.stimulus_checks import summarize_stimulus_checks
 from facelab.analysis.study import StudyResults, analyze_study
 from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks
 from facelab.errors import AnalysisError
@@ -98,7 +99,8 @@ def run(
 
     method : the primary VAS procedure, ``rm`` (repeated measures) or ``paper``.
     exclude : participant ids left out (each must be in the logs).
-    clips : the rendered clips with behaviour logs (default ``<study>/clips``).
+    clips : the rendered clips: their behaviour logs and stimulus checks (default
+        ``<study>/clips``).
     boot_seed, n_boot : the bootstrap of the psychometric intervals (seeded Generator).
     max_dropped_frames : leave out responses to trials whose clip dropped more frames (the
         report says how many, per condition); None keeps every response. Either way the
@@ -138,7 +140,8 @@ def run(
     tasks = analyze_tasks(
         data, protocol, rng=np.random.default_rng(boot_seed), n_boot=n_boot, sampler=sampler
     )
-    _behaviour_tables(protocol, clips or study_root(results, protocol) / "clips", vas, tasks)
+    clips = clips or study_root(results, protocol) / "clips"
+    _behaviour_tables(protocol, clips, vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)
     )
@@ -164,6 +167,7 @@ def run(
         protocol_path=protocol_path,
         check=check,
         tasks=tasks,
+        stimulus_checks=summarize_stimulus_checks(clips),
     )
     return AnalysisRun(data=data, check=check, results=study, tasks=tasks, files=files)
 

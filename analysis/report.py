@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import base64
 import datetime as dt
-import html
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jinja2
 import pandas as pd
 
 import facelab.analysis.figures as figures
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import session_summary
+from facelab.analysis.stimulus_checks import StimulusCheckSummary
 from facelab.analysis.study import METHODS, StudyResults, bracket_pairs
 from facelab.analysis.tasks import TaskResults
 from facelab.protocol import Protocol
@@ -48,6 +50,7 @@ def _fmt(value: object) -> str:
 
 
 def _html_table(frame: pd.DataFrame) -> str:
+    """The table as HTML; pandas escapes every cell (the template marks it ``safe``)."""
     if len(frame.columns) == 0:  # e.g. the items of a protocol without VAS items
         return ""
     return frame.astype(object).map(_fmt).to_html(index=False, border=0, escape=True)
@@ -62,6 +65,24 @@ def _md_table(frame: pd.DataFrame) -> str:
         for row in frame.itertuples(index=False)
     ]
     return "\n".join(lines)
+
+
+@functools.cache
+def _environment() -> jinja2.Environment:
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("facelab.analysis", "templates"),
+        autoescape=jinja2.select_autoescape(enabled_extensions=("html.j2",)),
+        undefined=jinja2.StrictUndefined,
+        keep_trailing_newline=True,
+        trim_blocks=True,
+    )
+    env.filters["html_table"] = _html_table
+    env.filters["md_table"] = _md_table
+    return env
+
+
+def _template(name: str) -> jinja2.Template:
+    return _environment().get_template(name)
 
 
 def _f_df(row: Any) -> str:
@@ -104,11 +125,14 @@ def write_report(
     protocol_path: Path,
     check: DataCheck | None = None,
     tasks: TaskResults | None = None,
+    stimulus_checks: StimulusCheckSummary | None = None,
 ) -> ReportFiles:
     """Write everything into ``out`` (created if needed; files in it are replaced).
 
     ``check`` (from :func:`facelab.analysis.integrity.check_data`) gives the banner, the
     data-check notes and the per-session table; without it they are derived from ``data``.
+    ``stimulus_checks`` (the clips' ``stimulus_checks.csv``, summarised) is its own section.
+    The HTML and Markdown are rendered from the templates in ``analysis/templates``.
     """
     if check is None:
         check = check_data(data, protocol, protocol_sha256=None, accept_protocol_change=True)
@@ -236,102 +260,39 @@ def write_report(
         )
     )
 
-    # ---- HTML
-    parts = [
-        "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
-        f"<h1>{html.escape(protocol.study.title)}</h1>",
-        f"<p class='meta'>study <b>{html.escape(protocol.study.id)}</b> · protocol "
-        f"{html.escape(str(protocol_path))} · generated {when}</p>",
-    ]
-    if banner:
-        parts.append(f"<div class='banner'>{html.escape(banner)}</div>")
-    if notes:
-        parts.append("<h2>Data checks</h2><ul>")
-        parts += [f"<li>{html.escape(n)}</li>" for n in notes]
-        parts.append("</ul>")
-    if results is not None:
-        parts += [
-            "<h2>Results beside the paper</h2>",
-            f"<p>{html.escape(method_note)}</p>",
-        ]
-        if reported:
-            parts.append(
-                f"<p>Paper: {html.escape(reported.source)} - {html.escape(reported.procedure)}.</p>"
-            )
-        parts.append(_html_table(headline))
-    for heading, frame in _task_headline(tasks):
-        parts += [f"<h2>{html.escape(heading)}</h2>", _html_table(frame)]
-    parts.append("<h2>Figures</h2><div class='figs'>")
-    for label, png in fig_blocks:
-        data_uri = base64.b64encode(png.read_bytes()).decode("ascii")
-        parts.append(
-            f"<figure><img src='data:image/png;base64,{data_uri}' alt='{html.escape(label)}'>"
-            f"<figcaption>{html.escape(label)} (<a href='{png.name}'>PNG</a>, "
-            f"<a href='{png.with_suffix('.svg').name}'>SVG</a>)</figcaption></figure>"
-        )
-    parts.append("</div>")
-    parts += [
-        "<h2>Design</h2>",
-        _html_table(conditions),
-        _html_table(design),
-        _html_table(items),
-        "<h2>Sample</h2>",
-        _html_table(sessions),
-    ]
-    parts.append("<h2>Detailed tables</h2>")
-    for heading, frame in details.items():
-        parts += [f"<h3>{html.escape(heading)}</h3>", _html_table(frame)]
-    parts.append(
-        "<p class='meta'>Tables as CSV: "
-        + ", ".join(f"<a href='{p.name}'>{p.name}</a>" for p in tables.values())
-        + "</p>"
-    )
-    parts.append("</body></html>")
+    context = {
+        "title": title,
+        "css": _CSS,
+        "protocol": protocol,
+        "protocol_path": str(protocol_path),
+        "when": when,
+        "banner": banner,
+        "notes": notes,
+        "headline": headline if results is not None else None,
+        "method_note": method_note,
+        "reported": reported,
+        "task_headline": _task_headline(tasks),
+        "stimulus_checks": stimulus_checks,
+        "figures": [
+            {
+                "label": label,
+                "png": png.name,
+                "svg": png.with_suffix(".svg").name,
+                "data": base64.b64encode(png.read_bytes()).decode("ascii"),
+            }
+            for label, png in fig_blocks
+        ],
+        "conditions": conditions,
+        "design": design,
+        "items": items,
+        "sessions": sessions,
+        "details": list(details.items()),
+        "csv_files": [p.name for p in tables.values()],
+    }
     html_path = out / "report.html"
-    html_path.write_text("\n".join(parts), encoding="utf-8")
-
-    # ---- Markdown
-    md = [
-        f"# {title}",
-        "",
-        f"Study `{protocol.study.id}`, protocol `{protocol_path}`, generated {when}.",
-        "",
-    ]
-    if banner:
-        md += [f"> **{banner}**", ""]
-    if notes:
-        md += ["## Data checks", "", *[f"- {n}" for n in notes], ""]
-    if results is not None:
-        md += ["## Results beside the paper", "", method_note, ""]
-        if reported:
-            md += [f"Paper: {reported.source} - {reported.procedure}.", ""]
-        md += [_md_table(headline), ""]
-    for heading, frame in _task_headline(tasks):
-        md += [f"## {heading}", "", _md_table(frame), ""]
-    md += ["## Figures", ""]
-    md += [f"![{label}]({png.name})" for label, png in fig_blocks]
-    md += [
-        "",
-        "## Design",
-        "",
-        _md_table(conditions),
-        "",
-        _md_table(design),
-        "",
-        _md_table(items),
-        "",
-        "## Sample",
-        "",
-        _md_table(sessions),
-        "",
-        "## Detailed tables",
-        "",
-    ]
-    for heading, frame in details.items():
-        md += [f"### {heading}", "", _md_table(frame), ""]
+    html_path.write_text(_template("report.html.j2").render(context), encoding="utf-8")
     md_path = out / "report.md"
-    md_path.write_text("\n".join(md) + "\n", encoding="utf-8")
+    md_path.write_text(_template("report.md.j2").render(context), encoding="utf-8")
     return ReportFiles(
         folder=out, html=html_path, markdown=md_path, tables=tables, figures=figure_paths
     )

@@ -91,6 +91,25 @@ def participant_seed(study_seed: int, participant: str) -> int:
     """A 63-bit seed from the study seed and the participant id (stable across versions).
 
     SHA-256 of ``"<study_seed>:<participant>"``, first 8 bytes, top bit cleared.
+
+    Parameters
+    ----------
+    study_seed : int
+        The protocol's ``seed``.
+    participant : str
+        The participant id (e.g. ``P01``).
+
+    Returns
+    -------
+    int
+        A seed in ``[0, 2**63)`` for ``numpy.random.default_rng``.
+
+    Examples
+    --------
+    >>> participant_seed(2021, "P01") == participant_seed(2021, "P01")
+    True
+    >>> participant_seed(2021, "P01") != participant_seed(2021, "P02")
+    True
     """
     digest = hashlib.sha256(f"{study_seed}:{participant}".encode()).digest()
     return int.from_bytes(digest[:8], "big") & (2**63 - 1)
@@ -101,6 +120,24 @@ def balanced_latin_square(k: int) -> list[list[int]]:
 
     For even ``k`` there are ``k`` rows; for odd ``k`` the square and its mirror image,
     ``2k`` rows, so that first-order carry-over is balanced.
+
+    Parameters
+    ----------
+    k : int
+        The number of items (conditions), at least 1.
+
+    Returns
+    -------
+    list of list of int
+        ``k`` (even ``k``) or ``2k`` (odd ``k``) orders, each a permutation of ``range(k)``;
+        every item follows every other item equally often.
+
+    Examples
+    --------
+    >>> balanced_latin_square(4)
+    [[0, 1, 3, 2], [1, 2, 0, 3], [2, 3, 1, 0], [3, 0, 2, 1]]
+    >>> len(balanced_latin_square(3))  # odd: the square and its mirror
+    6
     """
     if k < 1:
         raise ValueError("k must be >= 1")
@@ -151,13 +188,31 @@ def _set_sequence(
 def build_trials(protocol: Protocol, *, participant: str, seed: int | None = None) -> list[Trial]:
     """The ordered trial list for one participant.
 
+    The generator is ``numpy.random.default_rng(participant_seed(seed, participant))``, so a
+    participant's order is the same on every machine and in every facelab version.
+
     Parameters
     ----------
-    protocol : a validated protocol.
-    participant : participant id (letters and digits).
-    seed : the study seed to use instead of ``protocol.seed`` (e.g. ``--seed``).
+    protocol : Protocol
+        A validated protocol (:func:`facelab.protocol.load_protocol`).
+    participant : str
+        Participant id (letters and digits).
+    seed : int, optional
+        The study seed to use instead of ``protocol.seed`` (e.g. ``--seed``).
 
-    The generator is ``numpy.random.default_rng(participant_seed(seed, participant))``.
+    Returns
+    -------
+    list of Trial
+        In presentation order, numbered from 1.
+
+    Examples
+    --------
+    >>> from facelab.resources import protocol_path
+    >>> from facelab.protocol import load_protocol
+    >>> kato = load_protocol(protocol_path("kato2021"))
+    >>> trials = build_trials(kato, participant="P01")
+    >>> len(trials), sorted({t.condition for t in trials})
+    (18, ['baseline', 'emphasized', 'standard'])
     """
     validate_participant_id(participant)
     study_seed = protocol.seed if seed is None else seed

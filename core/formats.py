@@ -38,6 +38,8 @@ __all__ = [
     "LIVE_PLAYBACK_KEYS",
     "MANIFEST_NAME",
     "POSE_CHANNELS",
+    "STIMULUS_CHECKS_NAME",
+    "STIMULUS_CHECK_COLUMNS",
     "TRACK_COLUMNS",
     "TRACK_FORMAT",
     "Track",
@@ -47,6 +49,7 @@ __all__ = [
     "impression_header_problems",
     "read_behaviour_log",
     "read_manifest",
+    "read_stimulus_checks",
     "read_track",
     "track_path",
     "write_manifest",
@@ -91,6 +94,45 @@ LIVE_PLAYBACK_KEYS = (
 BEHAVIOUR_LOG_SUFFIX = ".behaviour.json"
 #: the format id in an impression model file (``facelab impression fit``)
 IMPRESSION_FORMAT = "facelab-impression-1"
+
+
+#: the stimulus checks beside clips.csv (DESIGN.md's columns, then severity and accepted):
+#: written by ``facelab check`` / ``render``, read by the analysis report
+STIMULUS_CHECKS_NAME = "stimulus_checks.csv"
+STIMULUS_CHECK_COLUMNS = (
+    "clip",
+    "condition",
+    "check",
+    "measure",
+    "value",
+    "threshold",
+    "passed",
+    "note",
+    "severity",
+    "accepted",
+)
+
+
+def read_stimulus_checks(clips_dir: Path) -> list[dict[str, str]] | None:
+    """The rows of ``clips_dir/stimulus_checks.csv`` (strings), or None when the clips were
+    never checked. Raises :class:`FormatError` naming the file when it is unreadable or lacks
+    a column."""
+    path = Path(clips_dir) / STIMULUS_CHECKS_NAME
+    if not path.is_file():
+        return None
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            header = list(reader.fieldnames or [])
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error):
+        raise FormatError(f"{path}: not a readable CSV of stimulus checks") from None
+    lacking = [c for c in STIMULUS_CHECK_COLUMNS if c not in header]
+    if lacking:
+        raise FormatError(
+            f"{path}: no column {', '.join(lacking)}; run `facelab check` on the clips again"
+        )
+    return rows
 
 
 def read_manifest(clips_dir: Path, *, need: Sequence[str] = ()) -> list[dict[str, str]]:

@@ -102,7 +102,7 @@ def run_demo(
     t = time.perf_counter()
     done = run(
         results, protocol, protocol_path=protocol_path, out=run_dir / "analysis",
-        sampler=design_sampler(protocol),
+        clips=clips, sampler=design_sampler(protocol),
     )  # fmt: skip
     say(
         f"[4/4] analysed {len(done.data)} responses in {time.perf_counter() - t:.1f} s -> "

@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # Idempotent set-up for facelab on Debian with Python >= 3.11:
 #   1. Debian packages that facelab's stages need, installed with apt-get only when missing;
-#   2. a virtual environment in .venv with facelab and all its extras (editable install),
-#      reinstalled only when pyproject.toml changes;
+#   2. a virtual environment in .venv with every dependency of facelab[all] at the versions and
+#      hashes pinned in requirements/lock.txt, then facelab itself (editable, no dependencies);
+#      reinstalled only when pyproject.toml or the lock file changes;
 #   3. the stimulus checks' face tracker (MediaPipe, which pins an older NumPy) in a venv of its
-#      own, .venv-mediapipe, reinstalled only when its pinned requirements change.
+#      own, .venv-mediapipe, from requirements/tracker-lock.txt, likewise.
+# The lock files are made by scripts/lock.sh (see there to update them).
 # Sourced by scripts/demo.sh and scripts/test.sh; safe to run again at any time.
 set -euo pipefail
 
@@ -73,11 +75,13 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PYTHON" -m venv "$VENV"
 fi
 
+LOCK="$ROOT/requirements/lock.txt"
 STAMP="$VENV/.facelab-installed"
-WANT="$(cat "$ROOT/pyproject.toml" | sha256sum | cut -d' ' -f1)"
+WANT="$(cat "$ROOT/pyproject.toml" "$LOCK" | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
-  log "installing facelab and its dependencies into .venv (log: .venv/pip.log)"
-  if ! "$VENV/bin/python" -m pip install -q -e "$ROOT[all]" >"$VENV/pip.log" 2>&1; then
+  log "installing facelab and its pinned dependencies into .venv (log: .venv/pip.log)"
+  if ! { "$VENV/bin/python" -m pip install -q --require-hashes -r "$LOCK" &&
+         "$VENV/bin/python" -m pip install -q --no-deps -e "$ROOT"; } >"$VENV/pip.log" 2>&1; then
     grep -v "is ignored: it is neither a file nor a directory" "$VENV/pip.log" | tail -40 >&2
     log "pip install failed; see .venv/pip.log"
     exit 1
@@ -87,12 +91,13 @@ fi
 
 TRACKER_VENV="$ROOT/.venv-mediapipe"
 TRACKER_STAMP="$TRACKER_VENV/.facelab-installed"
-TRACKER_WANT="mediapipe==0.10.21 pillow"
+TRACKER_LOCK="$ROOT/requirements/tracker-lock.txt"
+TRACKER_WANT="$(sha256sum "$TRACKER_LOCK" | cut -d' ' -f1)"
 if [ ! -f "$TRACKER_STAMP" ] || [ "$(cat "$TRACKER_STAMP")" != "$TRACKER_WANT" ]; then
   log "installing the face tracker (MediaPipe) for the stimulus checks into .venv-mediapipe"
   [ -x "$TRACKER_VENV/bin/python" ] || "$PYTHON" -m venv "$TRACKER_VENV"
-  # shellcheck disable=SC2086  # the requirements are words
-  if ! "$TRACKER_VENV/bin/python" -m pip install -q $TRACKER_WANT >"$TRACKER_VENV/pip.log" 2>&1; then
+  if ! "$TRACKER_VENV/bin/python" -m pip install -q --require-hashes -r "$TRACKER_LOCK" \
+       >"$TRACKER_VENV/pip.log" 2>&1; then
     tail -20 "$TRACKER_VENV/pip.log" >&2
     log "pip install of the face tracker failed; see .venv-mediapipe/pip.log"
     exit 1

@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# The test command: set up (Debian packages, .venv), lint with ruff, run pytest.
-# Display tests run on a virtual X screen (xvfb-run). Extra arguments go to pytest,
-# e.g. `bash scripts/test.sh -m "not slow"` for the quick subset.
+# The test command: set up (Debian packages, .venv), lint with ruff, run pytest in parallel
+# workers (pytest-xdist; FACELAB_TEST_WORKERS, default 4: most slow tests wait on real-time
+# playback, browsers and servers, so more workers than the 2 cores pay). Each worker draws on
+# an X screen of its own (tests/conftest.py). The 15 slowest tests are listed at the end; the
+# documentation site is built, strictly, by tests/test_docs.py. Extra arguments go to pytest,
+# e.g. `bash scripts/test.sh -m "not slow"` for the quick subset, or `-n 0` to run serially.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/setup.sh"
 cd "$ROOT"
 .venv/bin/ruff check .
 export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-egl}"
-exec xvfb-run -a -s "-screen 0 1280x1024x24" .venv/bin/python -m pytest "$@"
+exec xvfb-run -a -s "-screen 0 1280x1024x24" .venv/bin/python -m pytest \
+  -n "${FACELAB_TEST_WORKERS:-4}" --dist worksteal "$@"

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from facelab.experiment.cli import _parser, main
+from facelab.experiment.cli import build_parser, main
 
-COMMANDS = sorted(_parser()._subparsers._group_actions[0].choices)  # type: ignore[union-attr]
+COMMANDS = sorted(build_parser()._subparsers._group_actions[0].choices)  # type: ignore[union-attr]
 
 
 def test_validate_ok(kato_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -53,6 +53,13 @@ def test_demo_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     report = (run / "analysis" / "report.html").read_text(encoding="utf-8")
     assert "SIMULATED DATA" in report and report.count("data:image/png;base64,") == 4
     assert "0.0053" in report  # the paper's reported values beside facelab's
+    # the clips' stimulus checks are a section of the report, every check and condition
+    checks = pd.read_csv(out / "clips" / "stimulus_checks.csv", keep_default_na=False)
+    assert "<h2>Stimulus checks</h2>" in report
+    section = report.split("<h2>Stimulus checks</h2>", 1)[1].split("<h2>", 1)[0]
+    for check in set(checks["check"][checks["passed"] != ""]):
+        assert f"<td>{check}</td>" in section, check
+    assert "## Stimulus checks" in (run / "analysis" / "report.md").read_text(encoding="utf-8")
 
     # a second demo reuses the clips and never touches the first run's sessions
     before = {p: p.read_bytes() for p in run.rglob("*.tsv")}

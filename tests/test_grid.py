@@ -4,6 +4,7 @@ either way, a worker SIGKILLed mid-clip costs a retry and nothing else."""
 from __future__ import annotations
 
 import csv
+import fcntl
 import os
 import re
 import signal
@@ -161,14 +162,27 @@ def _render(out: Path, *extra: str) -> subprocess.CompletedProcess:
     )  # fmt: skip
 
 
+@pytest.fixture(scope="session")
+def serial_clips(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> dict[str, str]:
+    """kato2021 rendered in the command itself (no cluster): the clips' hashes. Rendered once
+    for the whole run: parallel workers share the folder (the first renders, under a lock)."""
+    base = tmp_path_factory.getbasetemp()
+    root = base if worker_id == "master" else base.parent  # shared by the run's workers
+    out = root / "kato2021-serial-160x90"
+    with open(root / "kato2021-serial-160x90.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (out / "clips.csv").is_file():
+            serial = _render(out, "--quiet")
+            assert serial.returncode == 0, serial.stderr
+    return _clips(out)
+
+
 @pytest.mark.slow
 def test_render_on_two_workers_matches_serial_and_survives_a_killed_worker(
-    tmp_path: Path,
+    tmp_path: Path, serial_clips: dict[str, str]
 ) -> None:
     import psutil  # installed with dask.distributed
 
-    serial = _render(tmp_path / "serial", "--quiet")
-    assert serial.returncode == 0, serial.stderr
     proc = subprocess.Popen(
         [FACELAB, "render", str(KATO), "--size",
          "160x90", "--out", str(tmp_path / "dask"), "--workers", "2"],
@@ -196,7 +210,7 @@ def test_render_on_two_workers_matches_serial_and_survives_a_killed_worker(
     assert proc.returncode == 0, err
     retried = re.search(r"(\d+) retried", out)
     assert "re-run after a worker was lost" in out and retried and int(retried[1]) >= 1, out
-    assert _clips(tmp_path / "dask") == _clips(tmp_path / "serial")
+    assert _clips(tmp_path / "dask") == serial_clips
     leftovers = [p.name for p in (tmp_path / "dask").iterdir() if p.name.startswith(".")]
     assert leftovers == []
     again = _render(tmp_path / "dask", "--workers", "2")
@@ -204,7 +218,9 @@ def test_render_on_two_workers_matches_serial_and_survives_a_killed_worker(
 
 
 @pytest.mark.slow
-def test_render_through_a_scheduler_and_workers_started_by_hand(tmp_path: Path) -> None:
+def test_render_through_a_scheduler_and_workers_started_by_hand(
+    tmp_path: Path, serial_clips: dict[str, str]
+) -> None:
     """The README's two-machine recipe on one machine: `dask scheduler`, `dask worker`."""
     dask = str(Path(sys.executable).parent / "dask")
     port = 18786 + os.getpid() % 1000
@@ -218,13 +234,11 @@ def test_render_through_a_scheduler_and_workers_started_by_hand(tmp_path: Path) 
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     try:
-        serial = _render(tmp_path / "serial", "--quiet")
-        assert serial.returncode == 0, serial.stderr
         time.sleep(3)  # the workers register
         remote = _render(tmp_path / "remote", "--scheduler", f"tcp://127.0.0.1:{port}")
         assert remote.returncode == 0, remote.stderr
         assert f"Dask scheduler tcp://127.0.0.1:{port}" in remote.stdout
-        assert _clips(tmp_path / "remote") == _clips(tmp_path / "serial")
+        assert _clips(tmp_path / "remote") == serial_clips
     finally:
         for proc in (worker, scheduler):
             proc.terminate()

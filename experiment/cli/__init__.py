@@ -47,7 +47,8 @@ FAMILIES = (
 )
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
+    """The `facelab` command line: every verb its family module registers."""
     parser = argparse.ArgumentParser(
         prog="facelab",
         description="Perception experiments on talking 3D avatar heads: one protocol file -> "
@@ -80,7 +81,9 @@ def _raise_terminated(signum: int, _frame: object) -> None:
 
 #: top-level import names of the optional dependencies -> the extra that installs them
 _EXTRA_OF = {
-    **dict.fromkeys(["pyopenjtalk", "pygltflib", "soundfile", "sklearn", "pympi"], "stimuli"),
+    **dict.fromkeys(
+        ["pyopenjtalk", "pygltflib", "soundfile", "sklearn", "pympi", "PIL"], "stimuli"
+    ),
     **dict.fromkeys(["pyrender", "trimesh", "OpenGL"], "render"),
     "psychopy": "runner",
     **dict.fromkeys(
@@ -91,7 +94,7 @@ _EXTRA_OF = {
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = _parser()
+    parser = build_parser()
     args = parser.parse_args(argv)
     previous = {}
     if threading.current_thread() is threading.main_thread():

@@ -13,20 +13,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from facelab.formats import STIMULUS_CHECK_COLUMNS
+
 __all__ = ["CHECK_COLUMNS", "CheckRow", "at_least", "at_most", "info"]
 
-CHECK_COLUMNS = (
-    "clip",
-    "condition",
-    "check",
-    "measure",
-    "value",
-    "threshold",
-    "passed",
-    "note",
-    "severity",
-    "accepted",
-)
+CHECK_COLUMNS = STIMULUS_CHECK_COLUMNS
 
 
 @dataclass(frozen=True)

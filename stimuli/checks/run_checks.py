@@ -23,7 +23,7 @@ import numpy as np
 
 from facelab.durable import replace_file
 from facelab.errors import StageError
-from facelab.formats import CLIP_COLUMNS, read_manifest, read_track
+from facelab.formats import CLIP_COLUMNS, STIMULUS_CHECKS_NAME, read_manifest, read_track
 from facelab.protocol import Protocol
 from facelab.protocol_checks import CHECK_NAMES
 from facelab.stimuli.checks.avatar_checks import audit_avatar
@@ -59,7 +59,7 @@ __all__ = [
     "write_checks",
 ]
 
-CHECKS_NAME = "stimulus_checks.csv"
+CHECKS_NAME = STIMULUS_CHECKS_NAME
 AUDIO_RATE = 16000
 #: what the README measured for audio-only analysis on voices it was not trained on
 AUDIO_ONLY_ACCURACY = (
