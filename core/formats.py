@@ -113,6 +113,24 @@ STIMULUS_CHECK_COLUMNS = (
 )
 
 
+def _read_csv_rows(
+    path: Path, *, what: str, need: Sequence[str], remedy: str
+) -> list[dict[str, str]]:
+    """The rows of the CSV file ``path`` (strings), each with at least the columns ``need``;
+    :class:`FormatError` naming the file when it is unreadable or lacks one (then ``remedy``)."""
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            header = list(reader.fieldnames or [])
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error):
+        raise FormatError(f"{path}: not a readable CSV {what}") from None
+    lacking = [c for c in need if c not in header]
+    if lacking:
+        raise FormatError(f"{path}: no column {', '.join(lacking)}; {remedy}")
+    return rows
+
+
 def read_stimulus_checks(clips_dir: Path) -> list[dict[str, str]] | None:
     """The rows of ``clips_dir/stimulus_checks.csv`` (strings), or None when the clips were
     never checked. Raises :class:`FormatError` naming the file when it is unreadable or lacks
@@ -120,19 +138,10 @@ def read_stimulus_checks(clips_dir: Path) -> list[dict[str, str]] | None:
     path = Path(clips_dir) / STIMULUS_CHECKS_NAME
     if not path.is_file():
         return None
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
-            header = list(reader.fieldnames or [])
-            rows = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error):
-        raise FormatError(f"{path}: not a readable CSV of stimulus checks") from None
-    lacking = [c for c in STIMULUS_CHECK_COLUMNS if c not in header]
-    if lacking:
-        raise FormatError(
-            f"{path}: no column {', '.join(lacking)}; run `facelab check` on the clips again"
-        )
-    return rows
+    return _read_csv_rows(
+        path, what="of stimulus checks", need=STIMULUS_CHECK_COLUMNS,
+        remedy="run `facelab check` on the clips again",
+    )  # fmt: skip
 
 
 def read_manifest(clips_dir: Path, *, need: Sequence[str] = ()) -> list[dict[str, str]]:
@@ -142,20 +151,10 @@ def read_manifest(clips_dir: Path, *, need: Sequence[str] = ()) -> list[dict[str
     path = Path(clips_dir) / MANIFEST_NAME
     if not path.is_file():
         raise FormatError(f"no clip manifest at {path}: render the clips first")
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
-            header = list(reader.fieldnames or [])
-            rows = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error):
-        raise FormatError(f"{path}: not a readable CSV clip manifest") from None
-    lacking = [c for c in need if c not in header]
-    if lacking:
-        raise FormatError(
-            f"{path}: no column {', '.join(lacking)} (written by an older facelab?); "
-            "render the clips again"
-        )
-    return rows
+    return _read_csv_rows(
+        path, what="clip manifest", need=need,
+        remedy="written by an older facelab? render the clips again",
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)

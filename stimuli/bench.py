@@ -211,8 +211,11 @@ def bench_render(
     quick: bool = False,
     msaa: int = 4,
     avatar: str = "default",
+    size: tuple[int, int] = (1280, 720),
+    fps_values: tuple[int, ...] = (30, 60),
 ) -> dict:
-    """Real-time factor of clip rendering at 1280x720 (30 and 60 fps), median of ``runs``,
+    """Real-time factor of clip rendering at ``size`` (width, height; 1280x720 by default) and
+    each of ``fps_values``, median of ``runs``,
     beside the naive per-frame ``pyrender.Mesh`` rebuild; where the time goes; and the
     audio/picture offset measured from the produced clip. ``avatar``: ``default`` (the
     built-in head) or ``skinned50k`` (a Ready-Player-Me-style sample, ~50k vertices, several
@@ -246,11 +249,12 @@ def bench_render(
 
         avatar = with_viseme_mixes(avatar)
     audio = padded_audio(speech, pad_s=0.0)
-    settings = RenderSettings(width=1280, height=720, msaa=msaa)
+    width, height = size
+    settings = RenderSettings(width=width, height=height, msaa=msaa)
     result: dict = {
         "avatar": kind,
         "clip_s": round(audio.duration_s, 3),
-        "resolution": "1280x720",
+        "resolution": f"{width}x{height}",
         "msaa": msaa,
         "vertices": len(avatar.neutral),
         "triangles": len(avatar.faces),
@@ -266,7 +270,7 @@ def bench_render(
         tmp_dir as tmp,
         Renderer(avatar, settings) as r,
     ):
-        for fps in (30, 60):
+        for fps in fps_values:
             n = round(audio.duration_s * fps)
             weights = frame_weights(bs, avatar, fps=fps, n_frames=n, pad_s=0.0)
             walls, stages = [], []
@@ -279,8 +283,8 @@ def bench_render(
                     audio=audio,
                     out=out,
                     fps=fps,
-                    width=1280,
-                    height=720,
+                    width=width,
+                    height=height,
                     n_frames=n,
                 )
                 walls.append(time.perf_counter() - t0)
@@ -322,8 +326,8 @@ def bench_render(
                     audio=audio,
                     out=still,
                     fps=fps,
-                    width=1280,
-                    height=720,
+                    width=width,
+                    height=height,
                     n_frames=n,
                 )
                 entry["av_offset_from_clip"] = {

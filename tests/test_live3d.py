@@ -402,15 +402,16 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
         # within a frame of the sound wherever a frame fell inside the track (a loaded machine
         # may draw a short clip's only frames after its end: then there is nothing to measure)
         assert rec["av_offset_ms"] is None or abs(rec["av_offset_ms"]) < 1000 / 15
-    # the scripted +-20 deg turn is in the logged poses. Headless XR frames are sparse (one
-    # every 150-500 ms, fewer on a loaded machine: the suite runs four workers on two cores),
-    # so the poses sample the turn at a few phases: the test asks for a clear part of it (the
-    # whole +-20 was missed by 1.5 deg on a busy machine), not for its extremes
+    # the scripted +-20 deg turn is in the logged poses: the emulated head moves in the XR
+    # frame loop by at most an eighth of its cycle per frame, on from clip to clip, so however
+    # sparse headless frames are (150-500 ms apart; two per short clip with the machine busy)
+    # the poses of the session hold it
     assert sum(rec["av_offset_ms"] is not None for rec in records) >= len(records) // 2
     yaws = [pose[4] for rec in records for pose in rec["viewer_poses"]]
-    assert max(yaws) - min(yaws) > 15, (min(yaws), max(yaws))
-    assert max(yaws) > 3 and min(yaws) < -3, (min(yaws), max(yaws))  # both ways
-    assert any(rec["head_yaw_range_deg"] > 10 for rec in records)
+    print("yaw per logged frame, per clip:",
+          [[round(pose[4], 1) for pose in rec["viewer_poses"]] for rec in records])  # fmt: skip
+    assert max(yaws) - min(yaws) > 30, (min(yaws), max(yaws))
+    assert sum(rec["head_yaw_range_deg"] > 10 for rec in records) >= len(records) // 3
     out = tmp_path / "results"
     export_sessions(server.engine, results=out)
     session = json.loads(next(out.rglob("*_session.json")).read_text("utf-8"))
@@ -420,8 +421,12 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     assert first["display"] == "webxr" and first["head_yaw_range_deg"] is not None
     assert "viewer_poses" in first["browser"]
     report = tmp_path / "report"  # the live measures as covariates and an exclusion rule
+    # the rule at the median measured offset: it leaves out some trials, never all (how far
+    # apart picture and sound are depends on how busy the machine is)
+    offsets = sorted(abs(r["av_offset_ms"]) for r in records if r["av_offset_ms"] is not None)
+    limit = str(offsets[len(offsets) // 2])
     code = main(["analyze", str(study / "vr.yaml"), str(out), "--out", str(report),
-                 "--bootstrap", "0", "--max-av-offset-ms", "0"])  # fmt: skip
+                 "--bootstrap", "0", "--max-av-offset-ms", limit])  # fmt: skip
     assert code == 0
     live = (report / "live_presentation.csv").read_text("utf-8")
     assert live.startswith("stimulus_set,condition,trials,display,median_abs_av_offset_ms")

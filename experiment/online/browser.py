@@ -82,8 +82,14 @@ def chromium(*, size: tuple[int, int] = (1280, 800)) -> Any:
 
 
 #: the emulated headset (Meta's IWER from npm, never served to participants): installed in the
-#: page before its scripts run; while a clip plays it turns the head (yaw +-HEAD_TURN_DEG,
-#: one cycle every 2 s) as a seated participant might, and faces ahead again for the panels
+#: page before its scripts run; while a clip plays it turns the head (yaw +-HEAD_TURN_DEG, one
+#: cycle every 2 s) as a seated participant might, and faces ahead again for the panels. The
+#: head moves inside the session's own frame loop (after each XR frame's callbacks, for the
+#: next frame), not on a page timer: a busy page starves its timers while it draws, and the
+#: head then stood still. A sparse frame advances the turn by at most an eighth of a cycle, and
+#: the turn goes on from clip to clip, so the logged poses sample the whole turn however slowly
+#: a loaded machine draws (headless XR frames come every 150-500 ms idle; with the machine
+#: busy a short clip gets two frames, and a 2-s cycle sampled every second would alias).
 HEAD_TURN_DEG = 20.0
 _EMULATOR_JS = """
 (function () {
@@ -91,16 +97,27 @@ _EMULATOR_JS = """
   device.installRuntime({ forceInstall: true });
   window.facelabXRDevice = device;
   const turn = %(turn)s;
-  let t0 = null;
-  setInterval(() => {
-    const live = window.FacelabLive;
-    const playing = !!(live && live.onFrame && live.session);
-    if (playing && t0 === null) t0 = performance.now();
-    if (!playing) t0 = null;
-    const yaw = playing ? turn * Math.sin(2 * Math.PI * (performance.now() - t0) / 2000) : 0;
+  let phase = 0, last = null;
+  const face = (yaw) => {
     const h = yaw * Math.PI / 360;
     device.quaternion.set(0, Math.sin(h), 0, Math.cos(h));
-  }, 20);
+  };
+  const frameLoop = IWER.XRSession.prototype.requestAnimationFrame;
+  IWER.XRSession.prototype.requestAnimationFrame = function (callback) {
+    return frameLoop.call(this, function (time, frame) {
+      const result = callback(time, frame);
+      const live = window.FacelabLive;
+      if (live && live.onFrame && live.session) {
+        const now = performance.now();
+        phase += last === null ? 1 / 8 : Math.min((now - last) / 2000, 1 / 8);
+        last = now;
+        face(turn * Math.sin(2 * Math.PI * phase));
+      } else if (last !== null) {  // a panel: face ahead; the turn goes on with the next clip
+        last = null; face(0);
+      }
+      return result;
+    });
+  };
 })();
 """
 
