@@ -18,6 +18,7 @@ import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from facelab.errors import SessionError
 from facelab.experiment.simulate import ChoiceModel, RatingModel
@@ -35,8 +36,12 @@ class ScriptedParticipant:
     window_origin: tuple[int, int]
     window_size: tuple[int, int]
     actions: Path
-    pending: list[tuple[float, list[str]]] = field(default_factory=list)
+    # events due: (time, xdotool arguments, the screen state they answer)
+    pending: list[tuple[float, list[str], int | None]] = field(default_factory=list)
     planned: dict[int, float] = field(default_factory=dict)  # state id -> time planned
+    # state id -> the answer chosen: a re-plan (events lost, or not yet seen by a window that
+    # stalled) sends the same answer again, so a late click of the first plan agrees with it
+    chosen: dict[int, Any] = field(default_factory=dict)
     chooser: ChoiceModel | None = None  # answers forced choices and identifications
 
     def __post_init__(self) -> None:
@@ -54,15 +59,21 @@ class ScriptedParticipant:
     def _run(self, args: list[str]) -> None:
         subprocess.run([self.exe, *args], check=False, capture_output=True)
 
-    def schedule(self, delay: float, args: list[str]) -> None:
-        self.pending.append((time.perf_counter() + delay, args))
+    def schedule(self, delay: float, args: list[str], *, state: int | None = None) -> None:
+        self.pending.append((time.perf_counter() + delay, args, state))
+
+    def _replan(self, state: int, answer: Any) -> Any:
+        """The answer for ``state``: the one chosen before, if any (its events still waiting
+        are dropped: the new plan sends them again)."""
+        self.pending = [p for p in self.pending if p[2] != state]
+        return self.chosen.setdefault(state, answer)
 
     def tick(self) -> None:
         """Send the events that are due."""
         now = time.perf_counter()
         due = [p for p in self.pending if p[0] <= now]
         self.pending = [p for p in self.pending if p[0] > now]
-        for _, args in sorted(due, key=lambda p: p[0]):
+        for _, args, _state in sorted(due, key=lambda p: p[0]):
             self._run(args)
 
     def press_key(self, key: str, delay: float = 0.15) -> None:
@@ -76,8 +87,9 @@ class ScriptedParticipant:
         if key_id in self.planned and now - self.planned[key_id] < 4.0:
             return
         self.planned[key_id] = now
+        value, key = self._replan(key_id, (value, key))
         self.record(trial_index=trial_index, item=item, value=value)
-        self.press_key(key, delay=0.4)
+        self.schedule(0.4, ["key", key], state=key_id)
 
     def record(self, *, trial_index: int | None, item: str, value: float | str) -> None:
         """Write the action about to be taken to the actions file (fsync'd)."""
@@ -101,12 +113,16 @@ class ScriptedParticipant:
         if state_id in self.planned and now - self.planned[state_id] < 4.0:
             return  # planned recently; re-planned if events were lost (e.g. before focus)
         self.planned[state_id] = now
+        value = self._replan(state_id, value)
         self.record(trial_index=trial_index, item=item, value=value)
         x, y = self.screen_xy(geometry.x_of(value), geometry.y_line)
         cx, cy = self.screen_xy(*geometry.confirm_centre)
-        self.schedule(delay, ["mousemove", str(x), str(y)])
-        self.schedule(delay + 0.05, ["mousedown", "1"])
-        self.schedule(delay + 0.12, ["mouseup", "1"])
-        self.schedule(delay + 0.30, ["mousemove", str(cx), str(cy)])
-        self.schedule(delay + 0.36, ["mousedown", "1"])
-        self.schedule(delay + 0.44, ["mouseup", "1"])
+        for at, args in (
+            (0.0, ["mousemove", str(x), str(y)]),
+            (0.05, ["mousedown", "1"]),
+            (0.12, ["mouseup", "1"]),
+            (0.30, ["mousemove", str(cx), str(cy)]),
+            (0.36, ["mousedown", "1"]),
+            (0.44, ["mouseup", "1"]),
+        ):
+            self.schedule(delay + at, args, state=state_id)
