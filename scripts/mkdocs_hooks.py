@@ -68,9 +68,7 @@ def readme_section(heading: str, *, page: str) -> str:
         if not fenced and line.startswith("#"):
             line = line[level - 1 :]
         body.append(line)
-    text = "\n".join(body).strip() + "\n"
-    # repository paths become links to the files on a code host we do not know: keep them code
-    return text
+    return "\n".join(body).strip() + "\n"
 
 
 def _type(spec: dict[str, Any]) -> str:
