@@ -115,6 +115,30 @@ def quantize(doc: dict[str, Any], blob: _Blob, raw: bytes) -> None:
                              normalized=True)  # fmt: skip
 
 
+def reorder(doc: dict[str, Any], blob: _Blob, raw: bytes, *, seed: int = 7) -> None:
+    """Every primitive's vertices in a new order (as ``gltf-transform meshopt`` reorders them
+    for the vertex cache): each vertex attribute and morph target permuted, the indices
+    remapped; ``extras`` are left as they were, stale vertex indices included."""
+    rng = np.random.default_rng(seed)
+    done: dict[int, np.ndarray] = {}
+    for mesh in doc["meshes"]:
+        for prim in mesh["primitives"]:
+            pos = prim["attributes"]["POSITION"]
+            if pos not in done:
+                done[pos] = rng.permutation(doc["accessors"][pos]["count"])
+            perm = done[pos]
+            accessors = [*prim["attributes"].values(),
+                         *(a for t in prim.get("targets", []) for a in t.values())]  # fmt: skip
+            for index in dict.fromkeys(accessors):
+                a = doc["accessors"][index]
+                rows = _array(doc, raw, index)[perm]
+                _replace(doc, blob, index, rows, componentType=a["componentType"])
+            if "indices" in prim:
+                a = doc["accessors"][prim["indices"]]
+                new_of_old = np.argsort(perm).astype(COMPONENT[a["componentType"]])
+                _replace(doc, blob, prim["indices"], new_of_old[_array(doc, raw, prim["indices"])])
+
+
 def meshopt(doc: dict[str, Any], blob: bytes) -> bytes:
     """Every vertex-attribute and index buffer view meshopt-encoded into buffer 0; the plain
     bytes' place is an empty fallback buffer (1), as glTF-Transform writes it."""
@@ -241,8 +265,8 @@ def texture_transform(doc: dict[str, Any], *, offset, scale, rotation) -> None:
 
 
 def compress(src: Path, dst: Path, *steps: str) -> Path:
-    """``src`` (a .glb) through ``steps`` (quantize, draco, webp, basisu, meshopt - meshopt
-    last) into ``dst``."""
+    """``src`` (a .glb) through ``steps`` (reorder, quantize, draco, webp, basisu, meshopt -
+    meshopt last) into ``dst``."""
     doc, raw = read_glb(src)
     blob = _Blob(raw)
     for step in steps:
@@ -254,6 +278,8 @@ def compress(src: Path, dst: Path, *steps: str) -> Path:
             webp(doc, blob, raw)
         elif step == "basisu":
             basisu(doc)
+        elif step == "reorder":
+            reorder(doc, blob, raw)
         elif step != "meshopt":
             raise ValueError(step)
         raw = bytes(blob.data)

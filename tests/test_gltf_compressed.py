@@ -14,7 +14,8 @@ import pytest
 
 from facelab.errors import AvatarError
 from facelab.experiment.cli import main
-from facelab.stimuli.avatar import load
+from facelab.stimuli.avatar import default_head, lip_metrics, load, save
+from facelab.stimuli.checks.avatar_checks import landmark_rows
 from facelab.stimuli.avatar.samples import write_sample
 from tests.compressed_gltf import compress, read_glb, write_glb
 
@@ -180,3 +181,27 @@ def test_damaged_compressed_files_load_or_are_refused(
             path = write_glb(tmp_path / f"m{i}.glb", mutated(doc, rng=rng, values=values), blob)
         load_or_refuse(path, outcomes)
     assert min(outcomes.values()) > 20, outcomes
+
+
+@pytest.mark.parametrize("steps", [("reorder",), ("reorder", "quantize", "meshopt")])
+def test_landmarks_survive_a_tool_that_reorders_vertices(
+    tmp_path: Path, steps: tuple[str, ...]
+) -> None:
+    """The default head saved, its vertices shuffled (as gltf-transform meshopt does; the
+    stored landmark indices now point at other vertices), read back: every landmark is the
+    same place on the face, the closed lips' upper and lower edge (one position) told apart
+    by how they move, and the reader says it looked them up."""
+    head = default_head()
+    save(head, tmp_path / "head.glb")
+    got = load(compress(tmp_path / "head.glb", tmp_path / "shuffled.glb", *steps))
+    stale = [k for k, i in head.landmarks.items() if got.landmarks[k] != i]
+    assert len(stale) == len(head.landmarks)  # the indices did change under the tool
+    for name, i in head.landmarks.items():
+        j = got.landmarks[name]
+        assert np.abs(got.neutral[j] - head.neutral[i]).max() < 1e-4, name
+        assert np.abs(got.targets["jawOpen"][j] - head.targets["jawOpen"][i]).max() < 1e-4, name
+    lip = lip_metrics(got, got.deform({"jawOpen": 1.0}))
+    assert lip["aperture"] > 0.005 and lip["width"] > 0.03  # the lips part, corners apart
+    assert any("found by geometry" in n for n in got.source["notes"])
+    rows = landmark_rows(got)
+    assert [r.passed for r in rows] == [True]

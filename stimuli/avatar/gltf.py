@@ -28,7 +28,10 @@ into one avatar in the **rest world frame**:
 * each mesh's vertices are listed in ``avatar.parts`` under the mesh name; VRM files are
   handled by :mod:`facelab.stimuli.avatar.vrm` (presets, humanoid bones, VRM 0.x facing −z).
 
-Landmarks, if the file was written by facelab, come from ``extras.facelab.landmarks``.
+Landmarks, if the file was written by facelab, come from ``extras.facelab``: each one's rest
+position and motion under the targets (``landmark_points``) finds its vertex again after a tool
+reordered or quantized the vertices (:mod:`.landmark_points`); ``landmarks`` (indices) is the
+fallback for older files.
 
 Compressed and extended files (:data:`READ_EXTENSIONS`; glTF-Transform, VRoid Studio and
 Blender exports): ``EXT_meshopt_compression`` buffer views and ``KHR_draco_mesh_compression``
@@ -62,6 +65,7 @@ import pygltflib
 from facelab.errors import AvatarError
 from facelab.stimuli.arkit import canonical_arkit_name
 from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.avatar.landmark_points import landmark_points, resolve_landmarks
 from facelab.stimuli.avatar.rig import Skeleton, match_roles
 from facelab.stimuli.avatar.vrm import apply_vrm, detect_kind, humanoid_nodes
 
@@ -634,6 +638,7 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
     images: dict[int, np.ndarray] = {}  # decoded once, however many materials use them
     notes: list[str] = []  # what was read only in part (told by avatar inspect)
     landmarks: dict[str, int] = {}
+    landmark_at: dict[str, Any] = {}  # extras.facelab.landmark_points (see .landmark_points)
     mesh_names: list[str] = []
     parts: dict[str, np.ndarray] = {}
     offset = 0
@@ -758,6 +763,8 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
             )
             for key, value in facelab.get("landmarks", {}).items():
                 landmarks[key] = int(value) + offset
+            if isinstance(facelab.get("landmark_points"), dict):
+                landmark_at.update(facelab["landmark_points"])
             offset += n
     vrm0 = (doc.extensions or {}).get("VRM")
     if isinstance(vrm0, dict) and any(
@@ -790,6 +797,10 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
             roles,
         )
     face_texture = np.concatenate(face_tex)
+    landmarks, landmark_notes = resolve_landmarks(
+        points=landmark_at, indices=landmarks, neutral=verts, targets=merged
+    )
+    notes += landmark_notes
     avatar = Avatar(
         verts,
         np.vstack(faces),
@@ -952,7 +963,12 @@ def _gltf_document(avatar: Avatar, *, live: bool = False) -> tuple[pygltflib.GLT
     else:
         roots = []
     buffer = b.buffer()
-    facelab_extras: dict[str, Any] = {"landmarks": avatar.landmarks}
+    facelab_extras: dict[str, Any] = {
+        "landmarks": avatar.landmarks,
+        "landmark_points": landmark_points(
+            neutral=avatar.neutral, targets=avatar.targets, landmarks=avatar.landmarks
+        ),
+    }
     if live and sk is not None:
         facelab_extras["roles"] = {role: sk.names[j] for role, j in sk.roles.items()}
     doc = pygltflib.GLTF2(
