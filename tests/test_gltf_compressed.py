@@ -15,8 +15,8 @@ import pytest
 from facelab.errors import AvatarError
 from facelab.experiment.cli import main
 from facelab.stimuli.avatar import default_head, lip_metrics, load, save
-from facelab.stimuli.checks.avatar_checks import landmark_rows
 from facelab.stimuli.avatar.samples import write_sample
+from facelab.stimuli.checks.avatar_checks import landmark_rows
 from tests.compressed_gltf import compress, read_glb, write_glb
 
 STEPS = [

@@ -253,9 +253,7 @@ def _head_surface() -> tuple[_Part, dict[str, np.ndarray]]:
         colors = _tint(colors, np.array([0.86, 0.52, 0.48]), 0.10 * blush)
     tip = _gauss(vx, vy, 0.0, -0.032 + NOSE_LIFT, 0.008, 0.008) * (vz > 0.05)
     colors = _tint(colors, np.array([0.86, 0.55, 0.50]), 0.08 * tip)
-    beard = (
-        _smoothstep(-0.066, -0.085, vy) * _smoothstep(0.072, 0.045, np.abs(vx)) * (vz > 0.0)
-    )
+    beard = _smoothstep(-0.066, -0.085, vy) * _smoothstep(0.072, 0.045, np.abs(vx)) * (vz > 0.0)
     colors *= 1 - 0.07 * np.clip(beard, 0, 1)[:, None] * np.array([1.0, 0.9, 0.8])
     colors *= 1 + 0.03 * _smoothstep(0.045, 0.075, vy)[:, None]
     # where light reaches less: the eye sockets (a lid crease above the eye, beside the nose,

@@ -64,8 +64,8 @@ import pygltflib
 
 from facelab.errors import AvatarError
 from facelab.stimuli.arkit import canonical_arkit_name
-from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.landmark_points import landmark_points, resolve_landmarks
+from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import Skeleton, match_roles
 from facelab.stimuli.avatar.vrm import apply_vrm, detect_kind, humanoid_nodes
 
