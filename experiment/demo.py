@@ -49,7 +49,7 @@ def run_demo(
     from facelab.experiment.cli.analysis_cmds import print_layout
     from facelab.experiment.cli.common import run_stimulus_checks
     from facelab.experiment.simulate import design_sampler, simulate_study
-    from facelab.stimuli.render.build import build_clips, contact_sheets, plan, settings_for
+    from facelab.stimuli.render.build import build_clips, plan, settings_for
 
     t0 = time.perf_counter()
     protocol = load_protocol(protocol_path)
@@ -71,16 +71,15 @@ def run_demo(
         progress=progress,
         log=lambda s: None,
     )
-    sheets = contact_sheets(protocol, protocol_path=protocol_path, out=clips, settings=settings)
     fresh = sum(r["status"] == "rendered" for r in rows)
     say(
         f"[2/4] {len(rows)} clips ({fresh} rendered, {len(rows) - fresh} reused) at "
         f"{settings.width}x{settings.height}, {fps or protocol.rendering.fps} fps in "
-        f"{time.perf_counter() - t:.1f} s -> {clips / 'clips.csv'}; contact sheets "
-        f"{', '.join(p.name for p in sheets)}"
+        f"{time.perf_counter() - t:.1f} s -> {clips / 'clips.csv'}"
     )
     run_stimulus_checks(protocol, protocol_path=protocol_path, clips_dir=clips, accept=accept,
-                        say=lambda s: say("      " + s))  # fmt: skip
+                        say=lambda s: say("      " + s), sheets=True,
+                        settings=settings)  # fmt: skip
 
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%d-%H%M%S")
     run_dir = out / f"run-{stamp}"

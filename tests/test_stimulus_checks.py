@@ -220,3 +220,60 @@ def test_identical_conditions_are_refused_with_the_reason_then_accepted_by_name(
         accepted = [r for r in csv.DictReader(fh) if r["accepted"] == "true"]
     assert [r["check"] for r in accepted] == ["conditions_differ"]
     assert math.isclose(float(accepted[0]["value"]), 0.0)
+
+
+def test_contact_sheet_marks_name_failures_and_mark_the_vowel_tiles() -> None:
+    """sheet_marks reads stimulus_checks.csv rows as written: the banner counts the
+    condition's and the avatar's judged rows and names what failed or warned; the vowel rules
+    of the clips shown mark their vowel's tile (failed: red; accepted: amber)."""
+    from facelab.stimuli.render.contact_sheets import FAILED, PASSED, WARNED, sheet_marks
+
+    def row(clip, cond, check, measure, value, passed, severity="error", accepted="false"):
+        return {"clip": clip, "condition": cond, "check": check, "measure": measure,
+                "value": value, "threshold": ">= 0.98", "passed": passed, "note": "",
+                "severity": severity, "accepted": accepted}  # fmt: skip
+
+    rows = [
+        row("s__v__std", "std", "articulation", "aperture:a", "0.05", ""),
+        row("s__v__std", "std", "articulation", "width:a", "0.3", ""),
+        row("s__v__std", "std", "articulation", "a_largest_aperture", "0.84", "false"),
+        row("s__v__std", "std", "articulation", "u_smallest_aperture", "1.2", "true"),
+        row("s__v__std", "std", "articulation", "aperture:o emp/std", "1.1", "false",
+            accepted="true"),
+        row("s__x__std", "std", "articulation", "i_widest_mouth", "0.5", "false"),  # not shown
+        row("s__v__std", "std", "face_visible", "detection_median", "0.9", "true"),
+        row("", "", "avatar_audit", "gaze_range_deg:eye_left", "7.6", "false", "warning"),
+        row("s__v__emp", "emp", "face_visible", "detection_median", "0.2", "false"),
+    ]
+    marks = sheet_marks(rows, condition="std", clips=["s__v__std"])
+    assert marks.measures["a"] == "aperture 0.05 width 0.3"
+    assert marks.rules["a"] == [("FAILED: a_largest_aperture 0.84 (>= 0.98)", FAILED)]
+    assert marks.rules["u"][0][1] == PASSED and marks.rules["o"][0][1] == WARNED
+    assert "i" not in marks.rules  # the other stimulus's clip is not on this sheet
+    text = " ".join(t for t, _ in marks.banner)
+    assert text.startswith("checks: 2 of 6 passed; 2 failed: articulation a_largest_aperture")
+    assert "2 warned" in text and "gaze_range_deg:eye_left" in text
+    assert "detection_median" not in text.split("failed:")[1].split(";")[0].split("warned")[0]
+    clean = sheet_marks(rows[6:7], condition="std", clips=[])
+    assert clean.banner == [("checks: 1 of 1 passed", PASSED)]
+
+
+@pytest.mark.parametrize("kind", ["default", "vrm0"])
+def test_sheets_frame_the_face_box(kind: str, tmp_path: Path) -> None:
+    """The close-up camera fits the face box (brows to chin) whatever the avatar: projected,
+    the box's corners fall inside the frame and fill most of it."""
+    from facelab.stimuli.avatar import load
+    from facelab.stimuli.avatar.samples import write_sample
+    from facelab.stimuli.render.scene import camera_placement, face_box, face_closeup
+
+    avatar = default_head() if kind == "default" else load(
+        write_sample(tmp_path / "a.vrm", kind="vrm0", vroid=True))
+    settings = face_closeup(avatar, size_px=400)
+    cam = camera_placement(avatar, settings)
+    lo, hi = face_box(avatar)
+    corners = np.array([[x, y, hi[2]] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+    rel = corners - cam.eye
+    f = 0.5 / np.tan(np.radians(settings.fov_deg) / 2)
+    px = 0.5 + f * rel[:, :2] / -rel[:, 2:3]  # 0..1 across the frame
+    assert (px > 0).all() and (px < 1).all()
+    assert np.ptp(px[:, 1]) > 0.6  # the face fills most of the frame's height

@@ -312,12 +312,15 @@ def check_options(parser: argparse.ArgumentParser) -> None:
 
 def run_stimulus_checks(
     protocol, *, protocol_path: Path, clips_dir: Path, accept: Sequence[str],
-    say: Callable[[str], None] = print,
+    say: Callable[[str], None] = print, sheets: bool = False, settings=None,
 ):  # fmt: skip
     """The stimulus checks of rendered clips (``facelab check`` and the end of ``render``):
     writes ``stimulus_checks.csv``, marks ``clips.csv``, prints the summary and every
-    warning; raises the StageError naming each failure (exit 2) unless accepted."""
+    warning; with ``sheets``, draws the contact sheets marked with the results (also when a
+    check failed, so the failure can be looked at); then raises the StageError naming each
+    failure (exit 2) unless accepted."""
     from facelab.stimuli.checks.run_checks import check_clips, record_in_manifest
+    from facelab.stimuli.render.contact_sheets import contact_sheets
 
     report = check_clips(protocol, protocol_path=protocol_path, clips_dir=clips_dir,
                          accept=accept, log=say)  # fmt: skip
@@ -325,6 +328,11 @@ def run_stimulus_checks(
     for row in report.warnings:
         say(("accepted: " if row.accepted else "warning: ") + row.describe())
     say(report.summary())
+    if sheets:
+        drawn = contact_sheets(protocol, protocol_path=protocol_path, out=clips_dir,
+                               settings=settings)  # fmt: skip
+        report.notes += [f"contact sheet: {p}" for p in drawn]
+        say("contact sheets (marked with the checks): " + ", ".join(str(p) for p in drawn))
     if report.failures:
         raise report.error()
     return report

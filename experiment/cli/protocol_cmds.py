@@ -63,7 +63,8 @@ def _audit(protocol, *, path) -> None:
     if failures:
         raise StageError(
             f"{path}: the avatar cannot show what the protocol asks (stimulus check "
-            "avatar_audit):\n" + "\n".join(f"  {r.describe()}" for r in failures)
+            "avatar_audit):\n"
+            + "\n".join(f"  {r.describe()}" for r in failures)
             + "\nre-export the avatar with these shapes, or accept with "
             "'checks: {accept: [avatar_audit]}' in the protocol"
         )

@@ -44,7 +44,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     import time
 
     from facelab.protocol import load_protocol
-    from facelab.stimuli.render.build import build_clips, contact_sheets, plan
+    from facelab.stimuli.render.build import build_clips, plan
     from facelab.stimuli.render.prepare import input_notes
 
     protocol = load_protocol(args.protocol)
@@ -83,13 +83,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
         f"{len(rows)} clips ({fresh} rendered, {len(rows) - fresh} unchanged and reused) listed in "
         f"{out / 'clips.csv'} ({time.perf_counter() - t0:.1f} s)"
     )
-    if args.contact_sheet:
-        for path in contact_sheets(
-            protocol, protocol_path=Path(args.protocol), out=out, settings=settings
-        ):
-            print(f"contact sheet: {path}")
     run_stimulus_checks(protocol, protocol_path=Path(args.protocol), clips_dir=out,
-                        accept=args.accept_check)  # fmt: skip
+                        accept=args.accept_check, sheets=args.contact_sheet,
+                        settings=settings)  # fmt: skip
     return 0
 
 
@@ -98,8 +94,10 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
     protocol = load_protocol(args.protocol)
     clips = Path(args.clips) if args.clips else Path("results") / protocol.study.id / "clips"
+    # contact sheets already drawn (render --contact-sheet) are redrawn with the new marks
     run_stimulus_checks(protocol, protocol_path=Path(args.protocol), clips_dir=clips,
-                        accept=args.accept_check)  # fmt: skip
+                        accept=args.accept_check,
+                        sheets=any(clips.glob("contact_*.png")))  # fmt: skip
     return 0
 
 

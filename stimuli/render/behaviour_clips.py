@@ -184,15 +184,16 @@ def unit_sheet(
     the emotion the unit is most intense in (eq. 5 blend), labelled with unit and layer."""
     from PIL import Image, ImageDraw
 
-    from facelab.stimuli.render.build import _font
+    from facelab.stimuli.render.contact_sheets import sheet_font
+    from facelab.stimuli.render.scene import face_closeup
 
     library = library or default_library()
     units = [u for u in library.units if u.has_motion]
     if not units:
         raise BehaviourError("the library has no unit with a motion to draw")
-    settings = RenderSettings(width=tile, height=tile, zoom=1.35, msaa=4)
+    settings = face_closeup(avatar, size_px=tile, margin=1.5)  # room for head turns
     traits = avatar_traits(avatar)
-    font = _font(15)
+    font = sheet_font(15)
     tiles = []
     with Renderer(avatar, settings) as renderer:
         for u in units:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +45,7 @@ from facelab.stimuli.render.clipspec import (
     plan,
 )
 from facelab.stimuli.render.prepare import speech_for, track_source_text, tracks_for
-from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.renderer import RenderSettings
 from facelab.stimuli.render.scene import load_avatar, settings_for
 from facelab.stimuli.render.task import (
     ClipFrames,
@@ -65,7 +65,6 @@ from facelab.stimuli.speech.vowels import vowel_segments
 __all__ = [
     "VowelPeak",
     "build_clips",
-    "contact_sheets",
     "load_avatar",
     "settings_for",
     "vowel_peaks",
@@ -328,58 +327,6 @@ def build_clips(
     return rows
 
 
-def contact_sheets(
-    protocol: Protocol, *, protocol_path: Path, out: Path, settings: RenderSettings | None = None
-) -> list[Path]:
-    """One PNG per condition: the face at the centre of each vowel of the vowel stimulus; a
-    protocol without a vowel stimulus gets one PNG of every condition at its strongest frame
-    (``contact_conditions.png``)."""
-    from PIL import Image, ImageDraw
-
-    base_dir = protocol_path.parent
-    settings = settings or settings_for(protocol)
-    if not any(st.expected_vowels for s in protocol.stimulus_sets for st in s.stimuli):
-        return [_peak_sheet(protocol, base_dir=base_dir, out=out, settings=settings)]
-    closer = 0.36 / 0.65
-    settings = replace(
-        settings,
-        width=640,
-        height=640,
-        distance_m=None if settings.distance_m is None else settings.distance_m * closer,
-        zoom=1 / closer,
-    )
-    avatar = load_avatar(protocol, base_dir=base_dir)
-    font = _font(28)
-    paths = []
-    out.mkdir(parents=True, exist_ok=True)
-    peaks = vowel_peaks(protocol, base_dir=base_dir, avatar=avatar)
-    with Renderer(avatar, settings) as renderer:
-        for cond in protocol.conditions:
-            tiles = []
-            for peak in (p for p in peaks if p.condition == cond.id):
-                img = Image.fromarray(renderer.frame(peak.weights)).crop((80, 150, 560, 630))
-                ImageDraw.Draw(img).text(
-                    (16, 10), f"{peak.vowel}  t={peak.t:.2f}s", fill=(255, 255, 255), font=font
-                )
-                tiles.append(img)
-            sheet = Image.new(
-                "RGB", (sum(t.width for t in tiles), tiles[0].height + 56), (40, 40, 40)
-            )
-            for i, t in enumerate(tiles):
-                sheet.paste(t, (i * t.width, 56))
-            label = cond.label.get("en") or next(iter(cond.label.values()))
-            ImageDraw.Draw(sheet).text(
-                (16, 12),
-                f"{cond.id}: {label} ({cond.method} {cond.params})",
-                fill=(255, 255, 255),
-                font=font,
-            )
-            path = out / f"contact_{cond.id}.png"
-            sheet.save(path)
-            paths.append(path)
-    return paths
-
-
 @dataclass(frozen=True)
 class VowelPeak:
     """One condition's face at one vowel's peak in the protocol's vowel stimulus."""
@@ -434,56 +381,3 @@ def vowel_peak_times(
         x = analysed.vowels()[a:b, VOWELS.index(vowel)]
         out.append((vowel, float(analysed.times[a + int(np.argmax(x))])))
     return out
-
-
-def _peak_sheet(protocol: Protocol, *, base_dir: Path, out: Path, settings: RenderSettings) -> Path:
-    """Every condition on the first stimulus its blocks show, at the frame where its
-    blendshape weights sum highest, side by side."""
-    from PIL import Image, ImageDraw
-
-    avatar = load_avatar(protocol, base_dir=base_dir)
-    tile_settings = replace(
-        settings, width=400, height=400, distance_m=None, zoom=1.9, target_m=settings.target_m
-    )
-    jobs = {job.condition: job for job in plan(protocol)}
-    font = _font(20)
-    tiles = []
-    with Renderer(avatar, tile_settings) as renderer:
-        for cond in protocol.conditions:
-            job = jobs.get(cond.id)
-            if job is None:
-                continue
-            speech = speech_for(
-                job.stimulus, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate
-            )
-            bs = _blendshapes(
-                protocol, job, speech, tracks_for(job.stimulus, speech), base_dir, avatar
-            )
-            peak = float(bs.times[int(np.argmax(bs.weights.sum(axis=1)))])
-            img = Image.fromarray(renderer.frame(weights_at(bs, avatar, t=peak)))
-            ImageDraw.Draw(img).text(
-                (10, 8), f"{cond.id}  t={peak:.2f}s", fill=(255, 255, 255), font=font
-            )
-            tiles.append(img)
-    if not tiles:
-        raise StageError("no condition is shown by any block: nothing to draw")
-    sheet = Image.new("RGB", (sum(t.width for t in tiles), tiles[0].height), (40, 40, 40))
-    for i, t in enumerate(tiles):
-        sheet.paste(t, (i * t.width, 0))
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "contact_conditions.png"
-    sheet.save(path)
-    return path
-
-
-def _font(size: int):
-    import matplotlib
-    from PIL import ImageFont
-
-    for name in (
-        Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSans.ttf",
-        Path("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc"),
-    ):
-        if name.exists():
-            return ImageFont.truetype(str(name), size)
-    return ImageFont.load_default()

@@ -22,6 +22,7 @@ from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.impression.model import ImpressionModel, envelope
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.scene import face_closeup
 from facelab.stimuli.render.task import (
     ClipFrames,
     RenderedClip,
@@ -189,7 +190,7 @@ def render_levels(
     # the sheet shows the face close up: a second (square, nearer) camera after the first
     # context is closed (pyrender's EGL platform holds one at a time)
     tiles = []
-    with Renderer(avatar, RenderSettings(width=420, height=420, msaa=4, zoom=1.9)) as r:
+    with Renderer(avatar, face_closeup(avatar, size_px=420)) as r:
         for drawn, w in peaks.values():
             r.avatar = drawn
             tiles.append(r.frame(w))

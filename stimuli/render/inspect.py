@@ -72,7 +72,6 @@ def avatar_report(avatar: Avatar) -> dict:
     }
 
 
-
 def format_report(report: Mapping) -> str:
     """The report as aligned text lines."""
     sk = report["skeleton"]
@@ -162,13 +161,14 @@ def write_sheet(avatar: Avatar, *, out: Path, tile: int = 360, msaa: int = 4) ->
     """A contact sheet PNG (see :func:`sheet_poses`), two rows, labelled."""
     from PIL import Image, ImageDraw
 
-    from facelab.stimuli.render.build import _font
-    from facelab.stimuli.render.renderer import Renderer, RenderSettings
+    from facelab.stimuli.render.contact_sheets import sheet_font
+    from facelab.stimuli.render.renderer import Renderer
+    from facelab.stimuli.render.scene import face_closeup
 
     tiles = sheet_poses(avatar)
-    settings = RenderSettings(width=tile, height=tile, msaa=msaa, zoom=1.2)
+    settings = face_closeup(avatar, size_px=tile, msaa=msaa, margin=1.5)  # room for turns
     images = []
-    font = _font(max(12, tile // 18))
+    font = sheet_font(max(12, tile // 18))
     with Renderer(avatar, settings) as r:
         for label, weights, pose in tiles:
             img = Image.fromarray(r.frame(avatar.weight_vector(weights), pose=pose))

@@ -27,6 +27,8 @@ __all__ = [
     "RenderSettings",
     "camera_json",
     "camera_placement",
+    "face_box",
+    "face_closeup",
     "framing",
     "load_avatar",
     "settings_for",
@@ -93,6 +95,45 @@ def framing(avatar: Avatar, settings: RenderSettings) -> tuple[np.ndarray, float
         else DEFAULT_DISTANCE_M * max(head_height, 1e-3) / DEFAULT_HEAD_HEIGHT_M / s.zoom
     )
     return centre, float(distance)
+
+
+def face_box(avatar: Avatar) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (3,) m: the box of the avatar's face at rest, brows to chin. From the eye and
+    lip landmarks when the avatar has them (eyes to mouth is 0.53 of the box's height, the
+    box as wide as high), else from the vertices its shapes move (mouth, lids, brows), else
+    from the head."""
+    a = avatar
+    lm = a.landmarks
+    if "upper_lip" in lm and {"upper_lid_left", "upper_lid_right"} <= set(lm):
+        eyes = 0.5 * (a.neutral[lm["upper_lid_left"]] + a.neutral[lm["upper_lid_right"]])
+        mouth = a.neutral[lm["upper_lip"]].astype(float)
+        d = float(eyes[1] - mouth[1])
+        if d > 0:
+            centre = np.array([0.5 * (eyes[0] + mouth[0]), 0.5 * (eyes[1] + mouth[1]) - 0.15 * d,
+                               max(eyes[2], mouth[2])])  # fmt: skip
+            half = 0.95 * d
+            return centre - half, centre + half
+    face = _face_vertices(a)
+    points = face if face is not None else _head_vertices(a)
+    return points.min(axis=0).astype(float), points.max(axis=0).astype(float)
+
+
+def face_closeup(
+    avatar: Avatar, *, size_px: int, msaa: int = 4, margin: float = 1.2,
+    background: tuple[float, float, float] = (0.5, 0.5, 0.5),
+) -> RenderSettings:  # fmt: skip
+    """Square ``size_px`` frame settings whose camera fits :func:`face_box` (times
+    ``margin``) from straight ahead: what contact sheets show, whatever the avatar's size or
+    where its face sits (a full-body VRoid export, a bust, the default head)."""
+    lo, hi = face_box(avatar)
+    centre = 0.5 * (lo + hi)
+    extent = margin * float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-3))
+    fov = 30.0
+    distance = 0.5 * extent / np.tan(np.radians(fov) / 2) + 0.5 * float(hi[2] - lo[2])
+    return RenderSettings(
+        width=size_px, height=size_px, fov_deg=fov, msaa=msaa, background=background,
+        distance_m=distance, target_m=(float(centre[0]), float(centre[1]), float(centre[2])),
+    )  # fmt: skip
 
 
 def _face_vertices(avatar: Avatar) -> np.ndarray | None:
