@@ -341,3 +341,80 @@ def test_skinning_blends_each_influence_by_its_weight() -> None:
         weights=weights[order], roles=sk.roles,
     )  # fmt: skip
     np.testing.assert_allclose(skin(verts[order], shuffled, pose), expect[order], atol=2e-6)
+
+
+def _eyes_pivoting_behind(head, depth_m: float):
+    """The default head with its eye joints moved ``depth_m`` behind the eyeballs' centres
+    (a VRoid export's eyes turn about a point 73 mm behind the iris)."""
+    sk = head.skeleton
+    pivots = sk.pivots.copy()
+    for role in ("eye_left", "eye_right"):
+        pivots[sk.roles[role], 2] -= depth_m
+    return head.replace(
+        skeleton=type(sk)(sk.names, sk.parents, pivots, sk.joints, sk.weights, sk.roles)
+    )
+
+
+def test_gaze_map_keeps_the_iris_in_the_eye(tmp_path: Path) -> None:
+    """Eye joints at the eyeball's centre turn by the planned gaze; joints far behind the
+    eye give way to the avatar's eyeLook shapes, or - without usable shapes - are scaled to
+    the safe turn; a VRM's lookAt range map is used as the file says; the audit judges the
+    turn each avatar's largest planned gaze gets."""
+    from facelab.stimuli.avatar.gaze import GAZE_RANGE_DEG, gaze_map, safe_eye_angle
+    from facelab.stimuli.checks.avatar_checks import eye_rows
+
+    def played(avatar) -> list[tuple[str, bool | None, float]]:
+        return [(r.measure, r.passed, r.value) for r in eye_rows(avatar, severity="error")
+                if r.measure.startswith("gaze_played")]  # fmt: skip
+
+    head = default_head()
+    assert gaze_map(head).mode == "joints" and gaze_map(head).joint_angles(20, -10) == (20, -10)
+    assert [p for _, p, _ in played(head)] == [True, True]
+
+    behind = _eyes_pivoting_behind(head, 0.06)
+    safe = safe_eye_angle(behind, "eye_left")[0]
+    assert safe < 12
+    shapes = gaze_map(behind)
+    assert shapes.mode == "shapes"
+    assert shapes.shape_weights(12.5, 25) == {
+        "eyeLookOutLeft": 0.5, "eyeLookInRight": 0.5, "eyeLookDownLeft": 1.0,
+        "eyeLookDownRight": 1.0,
+    }  # fmt: skip
+    assert played(behind) == []  # shapes: no joint turn to judge
+
+    no_shapes = behind.replace(
+        targets={k: v for k, v in behind.targets.items() if not k.startswith("eyeLook")}
+    )
+    scaled = gaze_map(no_shapes)
+    assert scaled.mode == "joints"
+    yaw, _ = scaled.joint_angles(GAZE_RANGE_DEG, 0)
+    assert yaw == pytest.approx(safe, abs=0.01)
+    assert [p for _, p, _ in played(no_shapes)] == [True, True]
+
+    vrm = load(write_sample(tmp_path / "a.vrm", kind="vrm1"))
+    look = gaze_map(vrm)
+    assert look.source == "the file's VRM lookAt, bone type"
+    assert look.joint_angles(45, -90) == pytest.approx((5.0, -10.0))
+    vrm0 = load(write_sample(tmp_path / "b.vrm", kind="vrm0", vroid=True))
+    assert gaze_map(vrm0).joint_angles(-90, 9) == pytest.approx((-10.0, 1.0))
+
+
+def test_the_behaviour_layer_shows_gaze_through_the_gaze_map() -> None:
+    """A planned gaze on eyes that pivot far behind becomes eyeLook weights, not a joint
+    turn; on the default head it stays a joint turn of the planned angle."""
+    from facelab.stimuli.behaviour.realise import BehaviourFrames, apply_to_weights, avatar_traits
+
+    head = default_head()
+    rot = np.zeros((2, 8))
+    rot[1, 6] = 10.0  # eye_yaw 10 deg to the avatar's left on the second frame
+    frames = BehaviourFrames(np.array([0.0, 0.04]), {}, rot)
+    speech = np.zeros((2, len(head.target_names)), np.float32)
+    _, poses, report = apply_to_weights(frames, speech, **avatar_traits(head))
+    assert poses[1].eye_yaw == 10.0 and "joints" in report["gaze"]
+    behind = _eyes_pivoting_behind(head, 0.06)
+    w, poses, report = apply_to_weights(frames, speech, **avatar_traits(behind))
+    names = behind.target_names
+    assert poses[1] is None and "shapes" in report["gaze"]
+    assert w[1, names.index("eyeLookOutLeft")] == pytest.approx(0.4)
+    assert w[1, names.index("eyeLookInRight")] == pytest.approx(0.4)
+    assert w[0].sum() == 0

@@ -462,6 +462,13 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40, vroid: boo
         doc.extensions = {"VRM": {"specVersion": "0.0", "humanoid": {"humanBones": bones},
                                   "blendShapeMaster": {"blendShapeGroups": groups}}}  # fmt: skip
         doc.extensionsUsed = ["VRM"]
+        # VRoid Studio's lookAt: the eye bones turn 10 deg at a 90 deg gaze
+        doc.extensions["VRM"]["firstPerson"] = {
+            "lookAtTypeName": "Bone",
+            **{k: {"curve": [0, 0, 0, 1, 1, 1, 1, 0], "xRange": 90.0, "yRange": 10.0}
+               for k in ("lookAtHorizontalInner", "lookAtHorizontalOuter", "lookAtVerticalDown",
+                         "lookAtVerticalUp")},
+        }  # fmt: skip
         if vroid:  # UniVRM 0.x keeps the MToon parameters beside the glTF fallback
             doc.extensions["VRM"]["materialProperties"] = [
                 {"name": f"material_{i}", "shader": "VRM/MToon",
@@ -495,8 +502,12 @@ def write_sample(path: Path | str, *, kind: str, head_rows: int = 40, vroid: boo
             "leftEye": {"node": node_of["LeftEye"]},
             "rightEye": {"node": node_of["RightEye"]},
         }
+        look_at = {"type": "bone", **{k: {"inputMaxValue": 90.0, "outputScale": 10.0}
+                   for k in ("rangeMapHorizontalInner", "rangeMapHorizontalOuter",
+                             "rangeMapVerticalDown", "rangeMapVerticalUp")}}  # fmt: skip
         doc.extensions = {"VRMC_vrm": {"specVersion": "1.0", "humanoid": {"humanBones": bones},
-                                       "expressions": {"preset": preset}}}  # fmt: skip
+                                       "expressions": {"preset": preset},
+                                       "lookAt": look_at}}  # fmt: skip
         doc.extensionsUsed = ["VRMC_vrm"] + (["VRMC_materials_mtoon"] if vroid else [])
     if vroid:
         doc.extensionsUsed.append("KHR_texture_transform")

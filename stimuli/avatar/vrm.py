@@ -155,7 +155,44 @@ def apply_vrm(
                 targets[name] = np.where(side[:, None], both, 0.0).astype(np.float32)
                 made[name] = "blink (one side)"
         result = result.replace(targets=targets)
-    return result.replace(source={**avatar.source, "presets": made})
+    look = _look_at(doc)
+    return result.replace(
+        source={**avatar.source, "presets": made, **({"look_at": look} if look else {})}
+    )
+
+
+#: VRM 1.0 range-map names -> facelab's gaze directions (horizontal outer/inner: the eye
+#: turning away from / towards the nose)
+_RANGE_MAPS = {"rangeMapHorizontalOuter": "out", "rangeMapHorizontalInner": "in",
+               "rangeMapVerticalUp": "up", "rangeMapVerticalDown": "down"}  # fmt: skip
+_VRM0_RANGE_MAPS = {"lookAtHorizontalOuter": "out", "lookAtHorizontalInner": "in",
+                    "lookAtVerticalUp": "up", "lookAtVerticalDown": "down"}  # fmt: skip
+
+
+def _look_at(doc: Any) -> dict[str, Any] | None:
+    """The file's lookAt as {"type": "bone" | "expression", "ranges": {direction: [input max
+    deg, output]}} (output: degrees of eye-bone turn, or expression weight), or None."""
+    ext = doc.extensions or {}
+    if "VRMC_vrm" in ext:
+        look = ext["VRMC_vrm"].get("lookAt")
+        if not isinstance(look, dict):
+            return None
+        kind = "bone" if look.get("type", "bone") == "bone" else "expression"
+        maps = {d: look.get(k) for k, d in _RANGE_MAPS.items()}
+        ranges = {d: [float(m.get("inputMaxValue", 90.0)), float(m.get("outputScale", 10.0))]
+                  for d, m in maps.items() if isinstance(m, dict)}  # fmt: skip
+    elif "VRM" in ext:
+        look = ext["VRM"].get("firstPerson")
+        if not isinstance(look, dict) or not any(k in look for k in _VRM0_RANGE_MAPS):
+            return None
+        kind = "bone" if str(look.get("lookAtTypeName", "Bone")) == "Bone" else "expression"
+        maps = {d: look.get(k) for k, d in _VRM0_RANGE_MAPS.items()}
+        ranges = {d: [float(m.get("xRange", 90.0)), float(m.get("yRange", 10.0))]
+                  for d, m in maps.items() if isinstance(m, dict)}  # fmt: skip
+    else:
+        return None
+    ranges = {d: r for d, r in ranges.items() if r[0] > 0 and r[1] >= 0}
+    return {"type": kind, "ranges": ranges} if ranges else None
 
 
 def _turn_around(avatar: Avatar) -> Avatar:

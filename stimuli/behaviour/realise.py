@@ -6,8 +6,9 @@ animation's weights and are clamped to [0, 1]; every clamped (frame, channel) is
 the report. Speech articulation channels (``jaw* tongue* mouth*`` but the corners) are never
 written - the library refuses them. Rotations become a :class:`~facelab.stimuli.avatar.rig.HeadPose`
 per frame: yaw/pitch/roll = neck_* + head_* (the rig splits them between neck and head),
-eye_* turn the eye joints, or - on avatars without eye joints - the ``eyeLook*`` targets
-(:func:`~facelab.stimuli.avatar.rig.gaze_weights`). What an avatar cannot show (no head joint, a
+eye_* are shown as the avatar's gaze map says (:func:`~facelab.stimuli.avatar.gaze.gaze_map`:
+the file's VRM lookAt, eye joints scaled to keep the iris in the eye, or the ``eyeLook*``
+shapes). What an avatar cannot show (no head joint, a
 missing target) is dropped and named in the report, never silently.
 """
 
@@ -17,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from facelab.stimuli.avatar.gaze import GazeMap, gaze_map
 from facelab.stimuli.avatar.lids import LidModel, close_lids, lid_model
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import HeadPose, gaze_weights
@@ -95,6 +97,7 @@ def avatar_traits(avatar: Avatar) -> dict:
         "has_head": bool({"head", "neck"} & roles),
         "has_eyes": {"eye_left", "eye_right"} <= roles,
         "lids": lid_model(avatar),
+        "gaze": gaze_map(avatar),
     }
 
 
@@ -106,6 +109,7 @@ def apply_to_weights(
     has_head: bool,
     has_eyes: bool,
     lids: LidModel | None = None,
+    gaze: GazeMap | None = None,
 ) -> tuple[np.ndarray, list[HeadPose | None], dict]:
     """Speech weights (n, K) in ``target_names`` order + behaviour -> (weights clamped to
     [0, 1], one pose per frame (None at rest), report).
@@ -113,7 +117,10 @@ def apply_to_weights(
     The avatar's facts (:func:`avatar_traits` gives them). ``lids``
     (:func:`~facelab.stimuli.avatar.lids.lid_model` of the avatar): a blink during
     a squint or a smile closes the eye no further than shut (the blink gives way), instead of
-    driving the upper lid through the lower one.
+    driving the upper lid through the lower one. ``gaze``
+    (:func:`~facelab.stimuli.avatar.gaze.gaze_map` of the avatar): how the planned gaze
+    angles are shown - eye joints turned by the map's ranges, or shapes; without it, eye
+    joints turn by the planned angle (``has_eyes``) or the ``eyeLook*`` targets play.
 
     The report has ``clamped`` {channel: frames} (only channels the behaviour touched),
     ``dropped`` {channel: why}, ``lid_limited_frames`` and ``energy``."""
@@ -124,7 +131,17 @@ def apply_to_weights(
     arkit = dict(frames.arkit)
     rot = frames.rotations.copy()
     eye_cols = [ROTATIONS.index("eye_yaw"), ROTATIONS.index("eye_pitch")]
-    if not has_eyes and np.any(rot[:, eye_cols]):
+    if gaze is not None and np.any(rot[:, eye_cols]):
+        planned = rot[:, eye_cols].copy()
+        if gaze.mode == "shapes":
+            rot[:, eye_cols] = 0.0
+            for k in np.nonzero(np.any(planned, axis=1))[0]:
+                for name, v in gaze.shape_weights(*planned[k]).items():
+                    arkit.setdefault(name, np.zeros(len(frames.times)))[k] += v
+        else:
+            for k in np.nonzero(np.any(planned, axis=1))[0]:
+                rot[k, eye_cols] = gaze.joint_angles(*planned[k])
+    elif not has_eyes and np.any(rot[:, eye_cols]):
         for k in range(len(frames.times)):
             if np.any(rot[k, eye_cols]):
                 for name, v in gaze_weights(rot[k, eye_cols[0]], rot[k, eye_cols[1]]).items():
@@ -170,6 +187,7 @@ def apply_to_weights(
         "dropped": dropped,
         "lid_limited_frames": lid_limited,
         "energy": {k: round(v, 4) for k, v in frames.energy().items()},
+        **({"gaze": gaze.describe()} if gaze is not None else {}),
         **frames.report,
     }
     return out, poses, report

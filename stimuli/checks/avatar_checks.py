@@ -12,11 +12,13 @@ Rows (check ``avatar_audit``, no clip):
   lower, the left corner left of the right, a mouth 15-90 mm wide, both lips between the
   corners (``lip_landmarks_consistent``; facelab resolves landmarks from their stored
   positions, so a tool that reorders vertices cannot move them);
-* per eye joint, how far behind the front of the eye it turns the eye
-  (``eye_pivot_depth_mm``) and the gaze angle that keeps the iris inside the eye
-  (``gaze_range_deg``: the angle that moves the front of the eye by a third of the eye's
-  width); an error when a condition has a behaviour layer (which moves the gaze), else a
-  warning.
+* how the avatar shows gaze (``gaze_shown_by``: the file's VRM lookAt, eye joints, or
+  eyeLook shapes; :mod:`facelab.stimuli.avatar.gaze`) and, per eye joint, how far behind the
+  front of the eye it turns the eye (``eye_pivot_depth_mm``), the turn that keeps the iris
+  inside the eye (``gaze_range_deg``: the angle that moves the front of the eye by a third of
+  the eye's width) and the turn the largest planned gaze gets (``gaze_played_deg``, at most
+  ``gaze_range_deg``); an error when a condition has a behaviour layer (which moves the
+  gaze), else a warning.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 
 from facelab.protocol import Protocol
 from facelab.stimuli.avatar.audit import EMPTY_TARGET_MM, identical_targets, target_motion_mm
+from facelab.stimuli.avatar.gaze import GAZE_RANGE_DEG, gaze_map, safe_eye_angle
 from facelab.stimuli.avatar.mesh import LANDMARKS, Avatar
 from facelab.stimuli.checks.rows import CheckRow, at_least, at_most, info
 from facelab.stimuli.methods import get
@@ -34,9 +37,6 @@ from facelab.stimuli.methods import get
 __all__ = ["GAZE_RANGE_DEG", "audit_avatar", "eye_rows", "landmark_rows"]
 
 CHECK = "avatar_audit"
-#: the gaze angle (degrees) an eye must reach with its iris still inside the eye: the largest
-#: gaze shift the behaviour layer plans
-GAZE_RANGE_DEG = 20.0
 
 
 def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[CheckRow]:
@@ -111,32 +111,41 @@ def landmark_rows(avatar: Avatar) -> list[CheckRow]:
 
 
 def eye_rows(avatar: Avatar, *, severity: str) -> list[CheckRow]:
-    """Per eye joint: the pivot's depth behind the eye's front and the gaze range."""
-    sk = avatar.skeleton
-    rows: list[CheckRow] = []
+    """Per eye joint: the pivot's depth behind the eye's front, the safe turn (the angle
+    that moves the eye's front by a third of its width: ``gaze_range_deg``, reported) and the
+    turn the largest planned gaze gets through the avatar's gaze map (``gaze_played_deg``,
+    judged against the safe turn); a gaze shown by shapes is reported as such."""
+    gaze = gaze_map(avatar)
+    rows: list[CheckRow] = [info(None, clip="", condition="", check=CHECK, measure="gaze_shown_by",
+                                 note=gaze.describe())]  # fmt: skip
     for role in ("eye_left", "eye_right"):
+        sk = avatar.skeleton
         if sk is None or role not in sk.roles:
             continue
-        j = sk.roles[role]
-        verts = avatar.neutral[sk.vertices_of(j)].astype(float)
-        if len(verts) < 4:
+        measured = safe_eye_angle(avatar, role)
+        if measured is None:
             rows.append(info(None, clip="", condition="", check=CHECK, measure=f"{role}_pivot",
                              note=f"no vertices follow the {role} joint"))  # fmt: skip
             continue
-        pivot = sk.pivots[j].astype(float)
-        depth = float(verts[:, 2].max() - pivot[2])
-        eye_width = float(np.ptp(verts[:, 0]))
-        travel = eye_width / 3.0
-        gaze = 90.0 if depth <= travel else float(np.degrees(np.arcsin(travel / depth)))
-        moved_mm = depth * np.sin(np.radians(GAZE_RANGE_DEG)) * 1e3
+        safe, depth, eye_width = measured
         rows.append(info(depth * 1e3, clip="", condition="", check=CHECK,
                          measure=f"eye_pivot_depth_mm:{role}",
                          note=f"eye {eye_width * 1e3:.1f} mm wide"))  # fmt: skip
-        rows.append(at_least(
-            GAZE_RANGE_DEG, gaze, clip="", condition="", check=CHECK,
-            measure=f"gaze_range_deg:{role}", severity=severity, unit=" deg",
-            note="" if gaze >= GAZE_RANGE_DEG else
-            f"the eye turns about a point {depth * 1e3:.0f} mm behind its front: a "
-            f"{GAZE_RANGE_DEG:g} deg gaze moves the iris {moved_mm:.0f} mm, past the eye's edge",
+        rows.append(info(safe, clip="", condition="", check=CHECK,
+                         measure=f"gaze_range_deg:{role}",
+                         note="the eye-joint turn that keeps the iris inside the eye"))  # fmt: skip
+        if gaze.mode != "joints":
+            continue
+        played = max(abs(v) for v in (*gaze.joint_angles(GAZE_RANGE_DEG, 0.0),
+                                      *gaze.joint_angles(0.0, GAZE_RANGE_DEG),
+                                      *gaze.joint_angles(0.0, -GAZE_RANGE_DEG)))  # fmt: skip
+        moved_mm = depth * np.sin(np.radians(played)) * 1e3
+        rows.append(at_most(
+            round(safe, 2), played, clip="", condition="", check=CHECK,
+            measure=f"gaze_played_deg:{role}", severity=severity, unit=" deg",
+            note=f"a {GAZE_RANGE_DEG:g} deg gaze turns the eye joint {played:.1f} deg "
+            f"({gaze.source})" + ("" if played <= safe + 0.01 else
+            f": about a point {depth * 1e3:.0f} mm behind the eye's front, the iris moves "
+            f"{moved_mm:.0f} mm, past the eye's edge"),
         ))  # fmt: skip
     return rows

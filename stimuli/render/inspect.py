@@ -17,6 +17,7 @@ import numpy as np
 
 from facelab.errors import AvatarError
 from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.avatar.gaze import gaze_map
 from facelab.stimuli.avatar.lids import lid_model
 from facelab.stimuli.avatar.mesh import LANDMARKS, Avatar
 from facelab.stimuli.avatar.rig import ROLES, HeadPose
@@ -67,6 +68,7 @@ def avatar_report(avatar: Avatar) -> dict:
         "landmarks": sorted(avatar.landmarks),
         "lip_landmarks": all(k in avatar.landmarks for k in LANDMARKS),
         "lid_limits": lid_model(avatar) is not None,
+        "gaze": gaze_map(avatar).describe(),
         "methods": playability(avatar),
         "notes": list(avatar.source.get("notes", [])),  # what was read only in part
     }
@@ -112,6 +114,8 @@ def format_report(report: Mapping) -> str:
             else "no lid landmarks: blinks and squints add as the avatar's own shapes do"
         )
     )
+    if report.get("gaze"):
+        lines.append(f"gaze       {report['gaze']}")
     lines.append("methods")
     for method, how in report["methods"].items():
         lines.append(f"  {method:<17} {how}")
@@ -152,8 +156,13 @@ def sheet_poses(avatar: Avatar) -> list[tuple[str, dict[str, float], HeadPose | 
     if sk is not None and "head" in sk.roles:
         tiles.append(("head yaw 25° pitch 10°", {}, HeadPose(yaw=25, pitch=10)))
         tiles.append(("head roll 12°", {}, HeadPose(roll=12)))
-    if sk is not None and {"eye_left", "eye_right"} <= set(sk.roles):
-        tiles.append(("gaze 20° left, 10° up", {}, HeadPose(eye_yaw=20, eye_pitch=-10)))
+    gaze = gaze_map(avatar)
+    if gaze.mode == "joints" and sk is not None and {"eye_left", "eye_right"} <= set(sk.roles):
+        yaw, pitch = gaze.joint_angles(20, -10)
+        tiles.append(("gaze 20° left, 10° up", {}, HeadPose(eye_yaw=yaw, eye_pitch=pitch)))
+    elif gaze.mode == "shapes" and all(n in avatar.targets for pair in gaze.targets.values()
+                                       for n in pair):  # fmt: skip
+        tiles.append(("gaze 20° left, 10° up (shapes)", gaze.shape_weights(20, -10), None))
     return tiles
 
 
