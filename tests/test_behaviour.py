@@ -769,6 +769,11 @@ def test_cli_render_writes_clips_logs_and_keeps_earlier_emotions(
         assert int(video["nb_read_frames"]) == 45
         logged = (out / f"{r['clip_id']}.behaviour.json").is_file()
         assert logged == (r["mode"] != "none")
+    checks = list(csv.DictReader((out / "stimulus_checks.csv").read_text().splitlines()))
+    assert {r["clip"] for r in checks if r["measure"] == "detection_median"} == {
+        r["clip_id"] for r in rows
+    }  # the second render kept the first one's checks
+    assert any(r["measure"] == "gaze_shown_by" for r in checks)
     events = json.loads((out / "sadness__composite.behaviour.json").read_text())
     assert int(rows[2]["n_blink"]) == sum(1 for e in events["events"] if e["layer"] == "blink")
 

@@ -346,6 +346,13 @@ def test_impression_render_writes_one_clip_per_level(
         assert int(video["nb_read_frames"]) == round((0.3 + 0.6 + 0.4 + 0.6) * 30) + 1
     assert (out / "contact_open_smile.png").stat().st_size > 10_000
     assert (out / "channels_open_smile.png").is_file()
+    checks = list(csv.DictReader((out / "stimulus_checks.csv").read_text().splitlines()))
+    measured = {(r["clip"], r["measure"]): r for r in checks}
+    for level in ("0", "0.5", "1"):  # the tracker saw each level's face
+        assert measured[f"open_smile__q{level}", "detection_median"]["passed"] == "true"
+        assert measured[f"open_smile__q{level}", "realised_level"]["passed"] == "true"
+    steps = [r for r in checks if r["measure"].startswith("step_difference:open_smile")]
+    assert len(steps) == 2 and all(float(r["value"]) > 0 for r in steps)
     # a second render into the folder keeps the other clips' rows, replaces re-rendered ones
     # and forgets a clip whose file was deleted
     (out / "open_smile__q0.mp4").unlink()
@@ -582,3 +589,32 @@ def test_validate_names_impression_levels_too_close_to_see(
             )
         else:
             assert warnings == []
+
+
+def test_headroom_and_clipping_eat_levels_are_said(samples) -> None:
+    """The headroom is the level where the first (moving) channel reaches 0 or 1; the fit's
+    lines say when q = 1 is too small to see or clipped, with a --step range; a clip whose
+    realised level falls short of the intended one gets a warning row naming the clipping."""
+    from facelab.stimuli.checks.clip_set_checks import impression_rows
+    from facelab.stimuli.impression.model import level_visibility
+
+    sd = fit_impression(samples, label="friendly", expressions=["open_smile"])
+    big = fit_impression(samples, label="friendly", expressions=["open_smile"], step=0.5)
+    room, channel = big.headroom("open_smile")
+    assert 0 < room < 1 and channel in ARKIT_NAMES
+    _, clipped = big.frames("open_smile", min(room, 1.0) * 0.999, np.ones(2))
+    assert clipped["clipped_channels"] == 0  # below the headroom nothing clips
+    _, over = big.frames("open_smile", 1.0, np.ones(2))
+    assert over["clipped_channels"] > 0 and over["q_realised"] < 1
+    assert sd.headroom("open_smile")[0] == pytest.approx(room * 0.5 / np.abs(
+        sd.model("open_smile").delta * sd.model("open_smile").direction).max())
+    said = "\n".join(level_visibility(sd))
+    assert "will look alike; refit with --step S" in said
+    said = "\n".join(level_visibility(big))
+    assert "clipping eats the levels above q = " in said
+    _, far = big.frames("open_smile", 2.0, np.ones(2))  # twice the step: clipping eats it
+    assert far["q_realised"] < 1.9
+    rows = impression_rows([{"clip_id": "x__q2", **far}])
+    realised = next(r for r in rows if r.measure == "realised_level")
+    assert realised.passed is False and realised.severity == "warning"
+    assert "clipping eats the level" in realised.note

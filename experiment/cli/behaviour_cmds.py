@@ -11,6 +11,7 @@ from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
     GridProgress,
+    check_options,
     cluster_of,
     cluster_options,
     force_option,
@@ -18,6 +19,7 @@ from facelab.experiment.cli.common import (
     output_file,
     parse_size,
     real,
+    say_checks,
     seed,
     verbs,
     whole,
@@ -167,6 +169,7 @@ def _plan(args: argparse.Namespace) -> int:
 def _render(args: argparse.Namespace) -> int:
     from facelab.stimuli.avatar import default_head, load
     from facelab.stimuli.behaviour.plan import parse_emotion
+    from facelab.stimuli.checks.clip_set_checks import behaviour_rows, check_clip_set
     from facelab.stimuli.render.behaviour_clips import render_behaviour_clips
     from facelab.stimuli.render.renderer import RenderSettings
 
@@ -198,6 +201,11 @@ def _render(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     print(f"wrote {len(rows)} clips with event logs and timelines, and clips.csv into {out}")
+    report = check_clip_set(clips_dir=out, clips=rows, accept=args.accept_check,
+                            extra=behaviour_rows(rows, avatar=avatar, clips_dir=out))  # fmt: skip
+    say_checks(report)
+    if report.failures:
+        raise report.error()
     return 0
 
 
@@ -291,6 +299,7 @@ def register(add: AddCommand) -> None:
 
     v = verb("render", "demonstration clips with event logs and timelines")
     library(v)
+    check_options(v)
     emotions(v, " (repeat: one clip per emotion and mode)")
     v.add_argument("--text", required=True, metavar="TEXT", help="Japanese text (OpenJTalk)")
     v.add_argument("--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",

@@ -310,6 +310,13 @@ def check_options(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+def say_checks(report, *, say: Callable[[str], None] = print) -> None:
+    """Every warning and accepted failure of a stimulus-check report, then its summary."""
+    for row in report.warnings:
+        say(("accepted: " if row.accepted else "warning: ") + row.describe())
+    say(report.summary())
+
+
 def run_stimulus_checks(
     protocol, *, protocol_path: Path, clips_dir: Path, accept: Sequence[str],
     say: Callable[[str], None] = print, sheets: bool = False, settings=None,
@@ -325,9 +332,7 @@ def run_stimulus_checks(
     report = check_clips(protocol, protocol_path=protocol_path, clips_dir=clips_dir,
                          accept=accept, log=say)  # fmt: skip
     record_in_manifest(clips_dir, report)
-    for row in report.warnings:
-        say(("accepted: " if row.accepted else "warning: ") + row.describe())
-    say(report.summary())
+    say_checks(report, say=say)
     if sheets:
         drawn = contact_sheets(protocol, protocol_path=protocol_path, out=clips_dir,
                                settings=settings)  # fmt: skip

@@ -11,6 +11,7 @@ from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
     GridProgress,
+    check_options,
     cluster_of,
     cluster_options,
     force_option,
@@ -18,6 +19,7 @@ from facelab.experiment.cli.common import (
     output_file,
     parse_size,
     real,
+    say_checks,
     seed,
     verbs,
     whole,
@@ -29,6 +31,7 @@ __all__ = ["register"]
 def _fit(args: argparse.Namespace) -> int:
     from facelab.stimuli.impression.model import (
         fit_impression,
+        level_visibility,
         read_arkit_samples,
         read_vertex_samples,
     )
@@ -66,11 +69,14 @@ def _fit(args: argparse.Namespace) -> int:
             f"{e:<14} {m.n:>4} {len(m.basis):>3} {m.cv.get('variance_explained', 0):>6.3f} "
             f"{m.delta:>8.4f}  {score}"
         )
+    for line in level_visibility(model):
+        print(line)
     return 0
 
 
 def _render(args: argparse.Namespace) -> int:
     from facelab.stimuli.avatar import load
+    from facelab.stimuli.checks.clip_set_checks import check_clip_set, impression_rows
     from facelab.stimuli.impression.model import ImpressionModel
     from facelab.stimuli.render.impression_clips import Timing, render_levels
     from facelab.stimuli.render.renderer import RenderSettings
@@ -112,6 +118,13 @@ def _render(args: argparse.Namespace) -> int:
             f"decision {r['decision_value']:.3f}, {r['clipped_channels']} channels clipped"
         )
     print(f"wrote {len(rows)} clips, clips.csv, contact_{args.expression[0]}.png into {out}")
+    report = check_clip_set(
+        clips_dir=out, clips=rows, extra=impression_rows(rows), accept=args.accept_check,
+        graded={args.expression[0]: [(float(r["q_intended"]), r["clip_id"]) for r in rows]},
+    )  # fmt: skip
+    say_checks(report)
+    if report.failures:
+        raise report.error()
     return 0
 
 
@@ -203,6 +216,7 @@ def register(add: AddCommand) -> None:
 
     v = verb("render", "one clip per level of an impression model, clips.csv, a contact sheet")
     v.add_argument("input", metavar="MODEL.json")
+    check_options(v)
     v.add_argument("--expression", action="append", required=True, metavar="NAME",
                    help="the expression to play")  # fmt: skip
     v.add_argument("--levels", type=real(), nargs="+", required=True, metavar="Q",

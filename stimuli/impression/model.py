@@ -36,6 +36,7 @@ import csv
 import functools
 import hashlib
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,6 +60,7 @@ __all__ = [
     "envelope",
     "envelope_at",
     "fit_impression",
+    "level_visibility",
     "read_arkit_samples",
     "read_vertex_samples",
     "samples_from_captures",
@@ -312,6 +314,38 @@ def read_vertex_samples(index: Path) -> ExpressionSamples:
 VISIBLE_CHANGE = {"arkit": 0.10, "vertices": 0.002}
 
 
+def level_visibility(model: ImpressionModel) -> list[str]:
+    """Per expression, what q = 1 shows on the model's mean neutral face: the largest change
+    (against :data:`VISIBLE_CHANGE`) and the headroom (the level from which a channel clips),
+    with a warning and the ``--step`` range that is both visible and unclipped when either
+    falls short."""
+    lines = []
+    limit = VISIBLE_CHANGE[model.space]
+    unit = "" if model.space == "arkit" else " m"
+    for e in model.expressions:
+        change, where = model.level_change(e, 1.0)
+        room, channel = model.headroom(e)
+        unclipped = np.abs(model.model(e).delta * model.model(e).direction).max() * room
+        line = f"{e}: q = 1 moves {where} by {change:.3g}{unit} (taken as visible from {limit:g})"
+        line += "; no channel clips" if not math.isfinite(room) else (
+            f"; {channel} clips from q = {room:.2f}")  # fmt: skip
+        lines.append(line)
+        if change < limit and unclipped >= limit:
+            lines.append(f"warning: {e}: q = 0, 0.5, 1 will look alike; refit with --step S, "
+                         f"S from {limit:g} to {unclipped:.2f} (visible and unclipped at "
+                         "q = 1)")  # fmt: skip
+        elif change < limit:
+            lines.append(f"warning: {e}: the mean face has room for a change of "
+                         f"{unclipped:.3f} before {channel} clips, below the {limit:g} taken "
+                         "as visible: this expression cannot show the impression visibly "
+                         "without clipping")  # fmt: skip
+        elif room < 1.0:
+            lines.append(f"warning: {e}: clipping eats the levels above q = {room:.2f} "
+                         f"({channel} held at its limit); refit with --step at most "
+                         f"{unclipped:.2f} to keep q = 1 unclipped")  # fmt: skip
+    return lines
+
+
 def ease(x: np.ndarray | float, *, kind: str = "sigmoid", k: float = 5.0) -> np.ndarray:
     """Easing e(x) on x in [0, 1], e(0) = 0, e(1) = 1 (see the module docstring)."""
     x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
@@ -449,6 +483,28 @@ class ImpressionModel:
         i = int(np.argmax(moved))
         return float(moved[i]), f"vertex {i}"
 
+    def headroom(
+        self, expression: str, *, neutral: np.ndarray | None = None
+    ) -> tuple[float, str]:
+        """(q, channel): the highest level whose face no ARKit channel clips (the base
+        expression's headroom along the direction; channels moving under 5 % of the
+        largest are left out), and the channel that reaches its limit there; (inf, "") for
+        vertex models, which do not clip."""
+        m = self.model(expression)
+        if self.space != "arkit":
+            return math.inf, ""
+        base = (self.neutral_mean if neutral is None else neutral) + m.mean
+        step = m.delta * m.direction
+        room = np.full(len(step), math.inf)
+        # a channel that barely moves (under 5 % of the largest) clipping eats no level
+        moving = np.abs(step) >= 0.05 * np.abs(step).max()
+        up, down = moving & (step > 1e-12), moving & (step < -1e-12)
+        room[up] = (1.0 - base[up]) / step[up]
+        room[down] = (0.0 - base[down]) / step[down]
+        room = np.maximum(room, 0.0)
+        i = int(np.argmin(room))
+        return float(room[i]), self.channels[i] if np.isfinite(room[i]) else ""
+
     def level_change(
         self,
         expression: str,
@@ -489,6 +545,7 @@ class ImpressionModel:
             "change_unit": "ARKit coefficient" if self.space == "arkit" else "m",
             "changed_most": where,
             "decision_value": round(float(m.decision(frames[np.argmax(env)] - base)), 6),
+            "headroom_q": round(self.headroom(expression, neutral=neutral)[0], 6),
         }
         return frames, info
 

@@ -38,7 +38,8 @@ from facelab.stimuli.speech.audio import Speech
 __all__ = ["IMPRESSION_CLIP_COLUMNS", "Timing", "clip_name", "render_levels"]
 
 IMPRESSION_CLIP_COLUMNS = (
-    "clip_id", "expression", "q_intended", "q_realised", "clipped_channels", "decision_value",
+    "clip_id", "expression", "q_intended", "q_realised", "clipped_channels", "headroom_q",
+    "decision_value",
     "path", "duration_s", "fps", "width", "height", "sha256", "avatar", "space", "label",
     "model_sha256",
 )  # fmt: skip
