@@ -22,6 +22,7 @@ from facelab.formats import impression_header_problems
 __all__ = [
     "BUILTIN_Z",
     "METHODS",
+    "ExternalTrackParams",
     "ImpressionParams",
     "MethodSpec",
     "TextVisemesParams",
@@ -85,6 +86,24 @@ class ImpressionParams(_Params):
     speech: VowelBlendParams | None = Field(
         None, description="Also lip-sync the stimulus's speech with the vowel-driven method "
         "(added to the expression, clipped to [0, 1]); omitted: no speech animation.",
+    )  # fmt: skip
+
+
+class ExternalTrackParams(_Params):
+    """An animation made elsewhere (a capture, another model), one file per stimulus."""
+
+    tracks: str = Field(description="A folder relative to the protocol file holding "
+                        "<stimulus_set>/<stimulus_id>.<csv|json|glb|gltf>.")  # fmt: skip
+    format: Literal["auto", "live_link_face", "arkit_json", "audio2face", "viseme_csv",
+                    "gltf"] = Field("auto", description="The files' format; auto tells them "
+                                    "apart by extension and content.")  # fmt: skip
+    offset_ms: float | Literal["auto"] = Field(
+        0.0, description="Shift of the animation against the stimulus audio (ms, positive: "
+        "later); auto aligns each file by the WAV recorded with it (<stimulus_id>.wav).",
+    )  # fmt: skip
+    fps: float | None = Field(
+        None, gt=0, le=1000, description="The timecode's frame rate of a Live Link Face "
+        "capture, where the file cannot tell it (a capture shorter than a second).",
     )  # fmt: skip
 
 
@@ -163,6 +182,13 @@ METHODS: dict[str, MethodSpec] = {
             TextVisemesParams,
             "visemes from OpenJTalk phoneme timing, with coarticulation smoothing",
             needs_text=True,
+        ),
+        MethodSpec(
+            "external_track",
+            ExternalTrackParams,
+            "an animation made elsewhere (Live Link Face, Audio2Face-3D, Oculus/uLipSync "
+            "visemes, ARKit JSON, a glTF animation), one file per stimulus, resampled to the "
+            "clip",
         ),
         MethodSpec(
             "impression",

@@ -3,10 +3,16 @@
 * :mod:`.types` - :class:`DriveInput` and :class:`BlendshapeTrack`;
 * :mod:`.registry` - the :class:`Method` plugin type, :func:`register`, :func:`get`,
   :func:`drive` (see there how a method is added);
-* :mod:`.visemes`, :mod:`.vowel_blend`, :mod:`.impression` - the built-in methods.
+* :mod:`.visemes`, :mod:`.vowel_blend`, :mod:`.impression`, :mod:`.external_track` - the
+  built-in methods.
 """
 
-from facelab.stimuli.methods import impression, visemes, vowel_blend  # noqa: F401  (register)
+from facelab.stimuli.methods import (  # noqa: F401  (register)
+    external_track,
+    impression,
+    visemes,
+    vowel_blend,
+)
 from facelab.stimuli.methods.registry import (
     REGISTRY,
     Method,

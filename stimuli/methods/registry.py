@@ -85,6 +85,20 @@ class Method:
         bytes are part of each clip's input hash, so a changed file re-renders its clips."""
         return {}
 
+    def stimulus_files(
+        self, params: object, *, base_dir: Path, stimulus_set: str, stimulus_id: str
+    ) -> dict[str, str]:
+        """The files one stimulus' clip reads besides :meth:`input_files` (a method with one
+        file per stimulus), by role, relative to the protocol's folder; hashed like them."""
+        return {}
+
+    def stimulus_problems(
+        self, params: object, *, base_dir: Path, stimulus_set: str, stimulus_id: str
+    ) -> Iterator[str]:
+        """Why one stimulus' clip cannot be made (its file missing or unreadable): ``facelab
+        validate`` reports them at the condition."""
+        return iter(())
+
     def input_problems(
         self, params: object, *, base_dir: Path
     ) -> Iterator[tuple[tuple[str, ...], str]]:

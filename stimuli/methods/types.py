@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facelab.stimuli.speech.audio import Phone
+from facelab.stimuli.speech.audio import Phone, Speech
 from facelab.stimuli.speech.track import VisemeTrack
 
 __all__ = ["BlendshapeTrack", "DriveInput"]
@@ -39,8 +39,12 @@ class BlendshapeTrack:
 @dataclass(frozen=True)
 class DriveInput:
     """What a method may use: the audio-analysed track (latency already removed), the phoneme
-    timeline for TTS stimuli, and the folder custom files are relative to."""
+    timeline for TTS stimuli, the folder custom files are relative to, which stimulus the clip
+    shows (set and id: a method reading one file per stimulus) and its audio."""
 
     track: VisemeTrack
     phones: tuple[Phone, ...] = ()
     base_dir: Path = Path(".")
+    stimulus_set: str = ""
+    stimulus_id: str = ""
+    audio: Speech | None = None

@@ -101,7 +101,8 @@ def _blendshapes(
         if (isolated is not None and job.condition in job.stimulus.vowel_isolation)
         else analysed
     )
-    inp = DriveInput(track=viseme_track, phones=speech.phones, base_dir=base_dir)
+    inp = DriveInput(track=viseme_track, phones=speech.phones, base_dir=base_dir,
+                     stimulus_set=job.stimulus_set, stimulus_id=job.stimulus.id, audio=speech)
     return get(cond.method).drive_on(avatar, inp, cond.settings)
 
 

@@ -68,8 +68,13 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
     files = {}
     if stim.audio is not None:
         files["audio"] = _file_sha256(base_dir / stim.audio)
-    for role, name in get(cond.method).input_files(cond.settings).items():
+    method = get(cond.method)
+    for role, name in method.input_files(cond.settings).items():
         files[role] = _file_sha256(base_dir / name)  # a Z matrix, an impression model, …
+    for role, name in method.stimulus_files(cond.settings, base_dir=base_dir,
+                                            stimulus_set=job.stimulus_set,
+                                            stimulus_id=stim.id).items():  # fmt: skip
+        files[role] = _file_sha256(base_dir / name)  # one track file per stimulus
     if r.avatar != "default":
         files["avatar"] = _file_sha256(base_dir / r.avatar)
     if cond.behaviour.lower().endswith((".json", ".yaml", ".yml")):

@@ -12,6 +12,7 @@ from facelab.protocol import Protocol
 from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.behaviour.library import load_library
 from facelab.stimuli.methods import check_playable, get
+from facelab.stimuli.render.clipspec import plan
 from facelab.stimuli.speech.audio import load_audio
 
 __all__ = ["input_problems"]
@@ -30,6 +31,13 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
                 load_library(base_dir / cond.behaviour)
             except FacelabError as exc:
                 issues.append(Issue(("conditions", i, "behaviour"), str(exc)))
+    for job in plan(protocol):
+        i, cond = next((i, c) for i, c in enumerate(protocol.conditions) if c.id == job.condition)
+        for message in get(cond.method).stimulus_problems(
+            cond.settings, base_dir=base_dir, stimulus_set=job.stimulus_set,
+            stimulus_id=job.stimulus.id,
+        ):  # fmt: skip
+            issues.append(Issue(("conditions", i, "params"), message))
     rate = protocol.rendering.audio_sample_rate
     for si, sset in enumerate(protocol.stimulus_sets):
         for ti, stim in enumerate(sset.stimuli):

@@ -1,0 +1,211 @@
+"""method: external_track (issue 49): animations made elsewhere, read from the formats other
+tools write (files made by tests/external_track_files.py with known values), resampled to the
+clip, aligned by their recording, refused in words when they cannot be used, and played as a
+protocol condition beside the built-in methods."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facelab.errors import StageError
+from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
+from facelab.stimuli.capture.external_tracks import detect_format, read_capture, resample
+from facelab.stimuli.methods.external_track import align_offset_s
+from tests.external_track_files import (
+    arkit_json,
+    audio2face_json,
+    gltf_animation,
+    live_link_face_csv,
+    viseme_csv,
+)
+
+
+def _truth(fps: float, seconds: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """(times, (T, 52) weights): jawOpen and mouthFunnel rise and fall, the rest 0."""
+    t = np.arange(round(seconds * fps)) / fps
+    w = np.zeros((len(t), 52))
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.5 - 0.5 * np.cos(2 * np.pi * t / seconds)
+    w[:, ARKIT_NAMES.index("mouthFunnel")] = 0.3 * np.sin(np.pi * t / seconds) ** 2
+    return t, w
+
+
+def _at(times: np.ndarray) -> np.ndarray:
+    w = np.zeros((len(times), 52))
+    w[:, ARKIT_NAMES.index("jawOpen")] = 0.5 - 0.5 * np.cos(2 * np.pi * times / 1.5)
+    w[:, ARKIT_NAMES.index("mouthFunnel")] = 0.3 * np.sin(np.pi * times / 1.5) ** 2
+    return w
+
+
+@pytest.mark.parametrize("fmt", ["live_link_face", "audio2face", "arkit_json", "gltf"])
+def test_every_arkit_format_reads_to_the_same_motion(tmp_path: Path, fmt: str) -> None:
+    fps = {"live_link_face": 60, "audio2face": 30, "arkit_json": 50, "gltf": 24}[fmt]
+    t, w = _truth(fps)
+    path = {
+        "live_link_face": lambda: live_link_face_csv(tmp_path / "a.csv", w, fps=fps),
+        "audio2face": lambda: audio2face_json(tmp_path / "a.json", w, fps=fps),
+        "arkit_json": lambda: arkit_json(tmp_path / "a.json", t, w),
+        "gltf": lambda: gltf_animation(tmp_path / "a.glb", t, w),
+    }[fmt]()
+    assert detect_format(path) == fmt
+    track = read_capture(path)
+    assert track.format == fmt
+    assert track.times[0] == 0 and track.times[-1] == pytest.approx(t[-1], abs=1e-3)
+    grid = np.arange(0, 1.4, 1 / 30)
+    got = resample(track, grid)
+    want = _at(grid)
+    for name in ("jawOpen", "mouthFunnel"):
+        k = track.names.index(name)
+        assert np.abs(got[:, k] - want[:, ARKIT_NAMES.index(name)]).max() < 0.01, name
+    if fmt == "live_link_face":  # a 30 fps timecode read from its rollover, 60 fps capture
+        assert track.notes["timecode_fps"] == 30 and track.fps == 60
+        assert track.notes["timecode_fps_source"].startswith("from the")
+        assert "HeadYaw" in track.angles and "HeadYaw" not in track.names
+        assert set(track.names) == set(ARKIT_NAMES)
+
+
+def test_live_link_face_shorter_than_a_second_needs_its_rate(tmp_path: Path) -> None:
+    t, w = _truth(60, seconds=0.5)
+    path = live_link_face_csv(tmp_path / "short.csv", w, fps=60, start_s=0)
+    guessed = read_capture(path)  # no second rolls over: timecode frame 14 -> 24 fps assumed
+    assert guessed.notes["timecode_fps"] == 24
+    assert "no second rolls over" in guessed.notes["timecode_fps_source"]
+    given = read_capture(path, fps=30)
+    assert given.times[-1] == pytest.approx(t[-1], abs=1e-3) and given.fps == 60
+
+
+def test_viseme_csv_drives_the_viseme_targets(tmp_path: Path) -> None:
+    t = np.arange(30) / 30
+    w = np.zeros((30, 15))
+    w[:, 10] = np.linspace(0, 1, 30)  # aa
+    track = read_capture(viseme_csv(tmp_path / "v.csv", t, w))
+    assert track.format == "viseme_csv" and track.names == VISEME_TARGETS
+    assert resample(track, np.array([0.5]))[0, VISEME_TARGETS.index("viseme_aa")] == (
+        pytest.approx(0.5 / (29 / 30), abs=0.01)
+    )
+
+
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        (lambda s: s.replace("JawOpen", "JawOpenWide"),
+         "unknown channel(s) JawOpenWide; expected ARKit blendshape names"),
+        (lambda s: s.replace(",MouthFunnel", ",BlendShapeCount"), "missing channel(s) mouthFunnel"),
+        (lambda s: s.replace("00:00:37:05.000", "37:05"), "line 12: Timecode '37:05'"),
+        (lambda s: s.replace("0.000000", "x", 1), "line 2, column "),
+        (lambda s: s.replace("0.000000", "3.5"), "to 3.5; expected 0-1"),
+    ],
+    ids=["unknown", "missing", "timecode", "not-a-number", "range"],
+)
+def test_unusable_captures_are_refused_in_words(tmp_path: Path, edit, expected: str) -> None:
+    _, w = _truth(60)
+    path = live_link_face_csv(tmp_path / "a.csv", w, fps=60)
+    path.write_text(edit(path.read_text()))
+    with pytest.raises(StageError) as err:
+        read_capture(path)
+    assert str(err.value).startswith(str(path)) and expected in str(err.value)
+
+
+def test_offset_auto_finds_the_recordings_lag() -> None:
+    """A recording that starts 0.37 s after the stimulus audio: the lag is found from the
+    loudness envelopes (speech-like bursts), within one 10 ms hop."""
+    rng = np.random.default_rng(3)
+    rate = 16000
+    stim = np.zeros(rate * 3)
+    for start in (0.2, 0.7, 1.1, 1.8, 2.3):
+        n = int(rng.uniform(0.1, 0.3) * rate)
+        stim[int(start * rate): int(start * rate) + n] = rng.normal(0, 0.3, n)
+    rec = np.concatenate([np.zeros(int(0.37 * rate)), stim])[: len(stim)]
+    rec = rec + rng.normal(0, 0.003, len(rec))
+    lag, r = align_offset_s(rec, rate, stim, rate)
+    assert lag == pytest.approx(0.37, abs=0.011) and r > 0.8
+
+
+KATO = Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml"
+CAPTURED = """  - id: captured
+    label: {ja: キャプチャ, en: Captured (Live Link Face)}
+    method: external_track
+    params: {tracks: captures, offset_ms: OFFSET}
+"""
+
+
+def _vowels_protocol(folder: Path, *, offset: str = "0") -> Path:
+    """kato2021, vowels only, with a fourth condition playing Live Link Face captures."""
+    text = KATO.read_text(encoding="utf-8")
+    text = text[: text.index("  - id: sentences\n    stimulus_set: sentences")] + text[
+        text.index("items:"):
+    ]  # fmt: skip
+    text = text.replace(
+        "practice: {stimulus_set: sentences, stimulus: passage, condition: standard}",
+        "practice: {stimulus_set: vowels, stimulus: aiueo, condition: standard}",
+    )
+    text = text.replace("\nstimulus_sets:", CAPTURED.replace("OFFSET", offset) + "\nstimulus_sets:")
+    path = folder / "captured.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _standard_track(path: Path):
+    """The standard condition's blendshape track of vowels/aiueo and its speech."""
+    from facelab.protocol import load_protocol
+    from facelab.stimuli.render.build import _blendshapes
+    from facelab.stimuli.render.clipspec import ClipJob
+    from facelab.stimuli.render.prepare import speech_for, tracks_for
+    from facelab.stimuli.render.scene import load_avatar
+
+    protocol = load_protocol(path)
+    stim = protocol.stimulus_set("vowels").stimuli[0]
+    speech = speech_for(stim, base_dir=path.parent, sample_rate=48000)
+    avatar = load_avatar(protocol, base_dir=path.parent)
+    job = ClipJob("", "vowels", stim, "standard")
+    bs = _blendshapes(protocol, job, speech, tracks_for(stim, speech), path.parent, avatar)
+    return protocol, stim, speech, avatar, bs
+
+
+def test_a_capture_plays_as_a_condition_validated_and_hashed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A Live Link Face capture of the standard condition's motion at 0.7x, 60 fps, played by
+    a fourth condition: its track is the capture resampled (within 0.01), shifted by
+    offset_ms; validate names a missing or broken file with its path; the clip spec hash
+    follows the file's bytes."""
+    from facelab.experiment.cli import main
+    from facelab.stimuli.render.build import _blendshapes
+    from facelab.stimuli.render.clipspec import ClipJob, clip_spec_hash
+    from facelab.stimuli.render.prepare import tracks_for
+
+    path = _vowels_protocol(tmp_path)
+    assert main(["validate", str(path)]) == 2  # no capture yet
+    err = capsys.readouterr()
+    assert "no track for stimulus vowels/aiueo" in err.out + err.err
+    protocol, stim, speech, avatar, bs = _standard_track(path)
+    fps = 60
+    grid = np.arange(0, bs.times[-1], 1 / fps)
+    arkit = np.stack([np.interp(grid, bs.times, bs.column(n)) if n in bs.names
+                      else np.zeros(len(grid)) for n in ARKIT_NAMES], axis=1)  # fmt: skip
+    capture = live_link_face_csv(tmp_path / "captures" / "vowels" / "aiueo.csv", 0.7 * arkit)
+    assert main(["validate", str(path)]) == 0
+    job = ClipJob("", "vowels", stim, "captured")
+    before = clip_spec_hash(protocol, job, base_dir=tmp_path)
+    played = _blendshapes(protocol, job, speech, tracks_for(stim, speech), tmp_path, avatar)
+    assert played.notes["format"] == "live_link_face" and played.notes["offset_ms"] == 0
+    for name in ("jawOpen", "mouthFunnel", "mouthStretchLeft"):
+        want = 0.7 * bs.column(name)
+        assert np.abs(played.column(name) - want).max() < 0.01, name
+    # shifted by 200 ms: the capture's motion comes 0.2 s later
+    shifted = _vowels_protocol(tmp_path, offset="200")
+    from facelab.protocol import load_protocol
+
+    late = _blendshapes(load_protocol(shifted), job, speech, tracks_for(stim, speech),
+                        tmp_path, avatar)  # fmt: skip
+    k = int(np.argmax(played.column("jawOpen")))
+    j = int(np.argmax(late.column("jawOpen")))
+    assert played.times[j] - played.times[k] == pytest.approx(0.2, abs=0.02)
+    capture.write_text(capture.read_text().replace("0.000000", "0.000001", 1))
+    assert clip_spec_hash(protocol, job, base_dir=tmp_path) != before
+    capture.write_text(capture.read_text().replace("JawOpen", "JawOpenMore"))
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr()
+    assert f"{capture}: unknown channel(s) JawOpenMore" in err.out + err.err
