@@ -22,6 +22,7 @@ import pandas as pd
 
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import load_results
+from facelab.analysis.objective import objective_distances, objective_vs_ratings
 from facelab.analysis.pilot import pilot_items, pilot_sessions
 from facelab.analysis.presentation import (
     exclude_av_offset,
@@ -142,6 +143,7 @@ def run(
     )
     clips = clips or study_root(results, protocol) / "clips"
     _behaviour_tables(protocol, clips, vas, tasks)
+    _objective_tables(protocol, clips, vas, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)
     )
@@ -170,6 +172,33 @@ def run(
         stimulus_checks=summarize_stimulus_checks(clips),
     )
     return AnalysisRun(data=data, check=check, results=study, tasks=tasks, files=files)
+
+
+def _objective_tables(protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks) -> None:
+    """``objective`` (every condition's motion against ``analysis.reference``) and
+    ``objective_vs_ratings`` (beside the ratings), with a note; nothing without a reference."""
+    ref = protocol.analysis.reference
+    if ref is None:
+        return
+    objective = objective_distances(protocol, clips_dir=clips)
+    if objective.empty:
+        tasks.notes.append(f"objective comparison with {ref!r}: no clips of it with tracks in "
+                           f"{clips} (render and check them first)")  # fmt: skip
+        return
+    tasks.tables["objective"] = objective
+    related = objective_vs_ratings(objective, vas)
+    if not related.empty:
+        tasks.tables["objective_vs_ratings"] = related
+    tracked = objective[objective["measure"] == "aperture_correlation"]
+    if tracked.empty:
+        tasks.notes.append(f"objective comparison with {ref!r}: the clips have no face "
+                           "tracking (run facelab check): track channels only")  # fmt: skip
+        return
+    per = tracked.groupby("condition")["value"].mean().sort_values(ascending=False)
+    tasks.notes.append(
+        f"objective comparison with {ref!r} (objective.csv): tracked lip aperture correlation, "
+        "mean over stimuli: " + ", ".join(f"{c} {v:.2f}" for c, v in per.items())
+    )
 
 
 def _behaviour_tables(

@@ -29,11 +29,14 @@ from typing import Any
 
 import numpy as np
 
+from facelab.durable import replace_file
 from facelab.errors import FormatError, StageError
 
 __all__ = [
     "BEHAVIOUR_LOG_SUFFIX",
     "CLIP_COLUMNS",
+    "FACE_TRACKING_COLUMNS",
+    "FACE_TRACKING_NAME",
     "IMPRESSION_FORMAT",
     "LIVE_PLAYBACK_KEYS",
     "MANIFEST_NAME",
@@ -48,10 +51,12 @@ __all__ = [
     "encode_track",
     "impression_header_problems",
     "read_behaviour_log",
+    "read_face_tracking_rows",
     "read_manifest",
     "read_stimulus_checks",
     "read_track",
     "track_path",
+    "write_face_tracking",
     "write_manifest",
 ]
 
@@ -129,6 +134,47 @@ def _read_csv_rows(
     if lacking:
         raise FormatError(f"{path}: no column {', '.join(lacking)}; {remedy}")
     return rows
+
+
+#: the face tracker's per-frame measures of every checked clip, written by the stimulus checks
+#: beside stimulus_checks.csv and read by the analysis' objective comparison: one row per
+#: clip and frame; aperture and width over the face height, NaN where no face was found
+FACE_TRACKING_NAME = "face_tracking.csv"
+FACE_TRACKING_COLUMNS = ("clip", "frame", "time_s", "detection", "aperture", "width",
+                         "face_height")  # fmt: skip
+
+
+def write_face_tracking(
+    clips_dir: Path, frames: Sequence[dict[str, Any]], *, keep_other_clips: bool = True
+) -> Path:
+    """``clips_dir/face_tracking.csv`` (:data:`FACE_TRACKING_COLUMNS`) from ``frames`` (one
+    mapping per clip and frame), atomically; rows of clips not in ``frames`` are kept."""
+    path = Path(clips_dir) / FACE_TRACKING_NAME
+    now = {str(f["clip"]) for f in frames}
+    kept = []
+    if keep_other_clips and path.is_file():
+        kept = [r for r in read_face_tracking_rows(clips_dir) if r["clip"] not in now]
+    lines = [",".join(FACE_TRACKING_COLUMNS)]
+    for row in [*kept, *frames]:
+        lines.append(",".join(_cell(row[c]) for c in FACE_TRACKING_COLUMNS))
+    replace_file(path, "\n".join(lines) + "\n")
+    return path
+
+
+def _cell(value: Any) -> str:
+    if isinstance(value, float):
+        return "" if not np.isfinite(value) else f"{value:.6g}"
+    return str(value)
+
+
+def read_face_tracking_rows(clips_dir: Path) -> list[dict[str, str]]:
+    """The rows of ``clips_dir/face_tracking.csv`` (strings; empty list when there is none).
+    Raises :class:`FormatError` naming the file when it is unreadable or lacks a column."""
+    path = Path(clips_dir) / FACE_TRACKING_NAME
+    if not path.is_file():
+        return []
+    return _read_csv_rows(path, what="of face tracking", need=FACE_TRACKING_COLUMNS,
+                          remedy="run `facelab check` on the clips again")  # fmt: skip
 
 
 def read_stimulus_checks(clips_dir: Path) -> list[dict[str, str]] | None:

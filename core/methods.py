@@ -20,14 +20,18 @@ from pydantic import BaseModel, ConfigDict, Field
 from facelab.formats import impression_header_problems
 
 __all__ = [
+    "BUILTIN_METHODS",
     "BUILTIN_Z",
     "METHODS",
     "ExternalTrackParams",
     "ImpressionParams",
     "MethodSpec",
+    "Params",
     "TextVisemesParams",
     "VisemeBaselineParams",
     "VowelBlendParams",
+    "load_plugin_specs",
+    "method_spec",
     "register_spec",
 ]
 
@@ -37,6 +41,11 @@ BUILTIN_Z: tuple[str, ...] = ("standard", "emphasized")
 
 class _Params(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+#: the base of a method's parameter model (unknown keys are errors, values frozen): a plugin
+#: method's parameters subclass it
+Params = _Params
 
 
 class VisemeBaselineParams(_Params):
@@ -199,6 +208,30 @@ METHODS: dict[str, MethodSpec] = {
         ),
     )
 }
+
+
+#: the methods facelab ships (plugins add to METHODS, never to this)
+BUILTIN_METHODS: tuple[str, ...] = tuple(METHODS)
+
+
+def method_spec(name: str) -> MethodSpec | None:
+    """The spec of method ``name``; a name facelab does not know first loads the installed
+    plugins' specs (entry-point group ``facelab.methods``)."""
+    if name not in METHODS:
+        load_plugin_specs()
+    return METHODS.get(name)
+
+
+def load_plugin_specs() -> None:
+    """Register the protocol specs of the installed method plugins (each entry point names a
+    ``Method`` subclass whose ``spec`` is a :class:`MethodSpec`); a plugin that fails to load
+    is left to ``facelab plugins`` to report."""
+    from facelab.plugins import GROUPS, loaded
+
+    for entry in loaded(GROUPS["methods"]):
+        spec = getattr(entry.obj, "spec", None)
+        if isinstance(spec, MethodSpec) and spec.name == entry.name and spec.name not in METHODS:
+            register_spec(spec)
 
 
 def register_spec(spec: MethodSpec) -> None:

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
-from facelab.methods import METHODS
+from facelab.methods import METHODS, method_spec
 from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
 from facelab.protocol_yaml import read_data
 
@@ -157,7 +157,7 @@ def _conditions(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     yield from _duplicates((c.id for c in protocol.conditions), ("conditions",), "condition")
     for i, cond in enumerate(protocol.conditions):
         where = ("conditions", i)
-        spec = METHODS.get(cond.method)
+        spec = method_spec(cond.method)
         if spec is None:
             yield Issue(
                 (*where, "method"),
@@ -450,6 +450,15 @@ def _practice(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             )
         if practice.condition not in condition_ids:
             yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
+
+
+@_check("analysis", "conditions")
+def _analysis(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """The reference condition is a condition."""
+    ref = protocol.analysis.reference
+    if ref is not None and ref not in {c.id for c in protocol.conditions}:
+        known = ", ".join(c.id for c in protocol.conditions)
+        yield Issue(("analysis", "reference"), f"unknown condition {ref!r}; conditions: {known}")
 
 
 @_check("simulation", "conditions", "items", "stimulus_sets")

@@ -21,7 +21,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
 from facelab.emotions import BEHAVIOUR_MODES, EMOTIONS, emotion_of
-from facelab.methods import METHODS
+from facelab.methods import BUILTIN_METHODS, method_spec
 
 __all__ = [
     "AUDIO_SUFFIXES",
@@ -93,7 +93,8 @@ class Condition(_Model):
 
     id: Id
     label: Localized
-    method: str = Field(description=f"One of: {', '.join(METHODS)}.")
+    method: str = Field(description=f"One of: {', '.join(BUILTIN_METHODS)}, or an installed "
+                        "plugin's method (facelab plugins lists them).")  # fmt: skip
     params: dict[str, Any] = Field(
         default_factory=dict,
         description="Parameters of the method; see facelab.methods.",
@@ -125,7 +126,10 @@ class Condition(_Model):
         Raises ``pydantic.ValidationError`` for parameters the method does not accept and
         ``KeyError`` for an unregistered method; a loaded protocol has neither (its checks
         report both with the file's line)."""
-        return METHODS[self.method].parse(self.params)
+        spec = method_spec(self.method)
+        if spec is None:
+            raise KeyError(self.method)
+        return spec.parse(self.params)
 
     @model_validator(mode="after")
     def _behaviour(self) -> Condition:
@@ -610,6 +614,18 @@ class ArticulationRule(_Model):
     at_least: float = Field(gt=0, le=100, description="e.g. 1.3: 30 % more than relative_to.")
 
 
+class AnalysisOptions(_Model):
+    """How ``facelab analyze`` treats the study beyond its defaults."""
+
+    reference: Id | None = Field(
+        None,
+        description="A condition whose motion the others are measured against (e.g. a "
+        "captured human): objective.csv holds every other condition's distance to it per "
+        "stimulus (mouth channels, timing lag, tracked lip aperture and width), related to "
+        "the ratings in the report.",
+    )
+
+
 class StimulusChecks(_Model):
     """What ``facelab check`` (and every render) holds the clips to beyond its defaults."""
 
@@ -660,6 +676,7 @@ class Protocol(_Model):
         default_factory=StimulusChecks,
         description="The stimulus checks' protocol rules (facelab check).",
     )
+    analysis: AnalysisOptions = Field(default_factory=AnalysisOptions)
     reported_results: ReportedResults | None = None
 
     # -- convenience lookups (the loader guarantees the ids are unique)

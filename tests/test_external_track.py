@@ -209,3 +209,50 @@ def test_a_capture_plays_as_a_condition_validated_and_hashed(
     assert main(["validate", str(path)]) == 2
     err = capsys.readouterr()
     assert f"{capture}: unknown channel(s) JawOpenMore" in err.out + err.err
+
+
+@pytest.mark.slow
+def test_a_captured_reference_is_played_tracked_and_compared(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """kato2021's vowels with a fourth condition playing a Live Link Face capture (the standard
+    motion at 0.7x, 60 fps) as the analysis reference: rendered and checked by the real face
+    tracker (its tracked aperture follows the capture: the standard clip's aperture
+    correlates > 0.9 with it at lag 0), simulated, analysed into objective.csv and
+    objective_vs_ratings.csv."""
+    import csv
+
+    from facelab.experiment.cli import main
+
+    path = _vowels_protocol(tmp_path)
+    path.write_text(path.read_text(encoding="utf-8") + "\nanalysis: {reference: captured}\n",
+                    encoding="utf-8")  # fmt: skip
+    _, _, _, _, bs = _standard_track(path)
+    grid = np.arange(0, bs.times[-1], 1 / 60)
+    arkit = np.stack([np.interp(grid, bs.times, bs.column(n)) if n in bs.names
+                      else np.zeros(len(grid)) for n in ARKIT_NAMES], axis=1)  # fmt: skip
+    live_link_face_csv(tmp_path / "captures" / "vowels" / "aiueo.csv", 0.7 * arkit)
+    clips = tmp_path / "clips"
+    assert main(["render", str(path), "--out", str(clips), "--size", "480x270", "--quiet"]) == 0
+    tracking = list(csv.DictReader((clips / "face_tracking.csv").open(encoding="utf-8")))
+    conditions = ("baseline", "standard", "emphasized", "captured")
+    assert {r["clip"] for r in tracking} == {f"vowels__aiueo__{c}" for c in conditions}
+    results = tmp_path / "results"
+    assert main(["simulate", str(path), "--participants", "4", "--sim-seed", "2",
+                 "--results", str(results)]) == 0  # fmt: skip
+    out = tmp_path / "analysis"
+    assert main(["analyze", str(path), str(results), "--clips", str(clips), "--out", str(out),
+                 "--force"]) == 0  # fmt: skip
+    rows = list(csv.DictReader((out / "objective.csv").open(encoding="utf-8")))
+    value = {(r["condition"], r["measure"], r["channel"]): float(r["value"] or "nan")
+             for r in rows}  # fmt: skip
+    assert {r["reference"] for r in rows} == {"captured"}
+    assert value["standard", "aperture_correlation", "tracked"] > 0.9
+    assert abs(value["standard", "lag_ms", "tracked"]) <= 34  # within a frame at 30 fps
+    assert value["standard", "correlation", "jawOpen"] > 0.99  # the capture is 0.7x standard
+    assert value["standard", "rmse", "jawOpen"] > 0.005
+    assert ("baseline", "correlation", "jawOpen") not in value  # visemes: no shared channel
+    assert ("baseline", "aperture_correlation", "tracked") in value
+    related = list(csv.DictReader((out / "objective_vs_ratings.csv").open(encoding="utf-8")))
+    assert {r["condition"] for r in related} == {"baseline", "standard", "emphasized"}
+    assert "objective comparison with 'captured'" in (out / "report.md").read_text("utf-8")

@@ -97,6 +97,25 @@ def _cmd_schema(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_plugins(args: argparse.Namespace) -> int:
+    """Every plugin installed packages declare, by group, with its package and state."""
+    from facelab.plugins import GROUPS, plugin_entries
+    from facelab.stimuli.methods import load_plugins
+
+    load_plugins()  # checks what each method plugin names, recording problems
+    broken = 0
+    for kind, group in GROUPS.items():
+        entries = plugin_entries(group)
+        print(f"{kind} (entry points {group}): {len(entries) or 'none installed'}")
+        for entry in entries:
+            print(f"  {entry.describe()}")
+            broken += entry.problem is not None
+    if broken:
+        print(f"{broken} plugin(s) could not be used; the rest of facelab works without them",
+              file=sys.stderr)  # fmt: skip
+    return 1 if broken else 0
+
+
 def _cmd_protocols(args: argparse.Namespace) -> int:
     from facelab.protocol import load_protocol
     from facelab.resources import copy_protocol, shipped_protocols
@@ -129,6 +148,9 @@ def register(add: AddCommand) -> None:
     p.add_argument("--seed", type=seed, metavar="N", help="study seed instead of the protocol's")
     p.add_argument("--out", metavar="FILE", help="write the CSV to FILE instead of stdout")
     p.add_argument("--force", action="store_true", help="replace FILE if it exists")
+
+    add("plugins", "list the installed plugins (methods, screen kinds) and their packages",
+        _cmd_plugins)  # fmt: skip
 
     p = add("schema", "print the protocol JSON Schema (as in protocols/schema/)", _cmd_schema)
     p.add_argument("--out", metavar="FILE", help="write to FILE instead of stdout")

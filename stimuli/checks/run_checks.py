@@ -23,7 +23,13 @@ import numpy as np
 
 from facelab.durable import replace_file
 from facelab.errors import StageError
-from facelab.formats import CLIP_COLUMNS, STIMULUS_CHECKS_NAME, read_manifest, read_track
+from facelab.formats import (
+    CLIP_COLUMNS,
+    STIMULUS_CHECKS_NAME,
+    read_manifest,
+    read_track,
+    write_face_tracking,
+)
 from facelab.protocol import Protocol
 from facelab.protocol_checks import CHECK_NAMES
 from facelab.stimuli.checks.avatar_checks import audit_avatar
@@ -262,6 +268,12 @@ def check_clips(
     tracking: dict[str, ClipTracking] = {m["clip_id"]: tracked[str(clips_dir / m["path"])]
                                          for m in manifest}  # fmt: skip
     tracker = next(iter(tracked.values())).tracker if tracked else ""
+    write_face_tracking(clips_dir, [
+        {"clip": m["clip_id"], "frame": k, "time_s": round(k / float(m["fps"]), 6),
+         "detection": float(tr.detection[k]), "aperture": float(tr.aperture[k]),
+         "width": float(tr.width[k]), "face_height": float(tr.face_height[k])}
+        for m in manifest for tr in (tracking[m["clip_id"]],) for k in range(tr.frames)
+    ])  # fmt: skip
     by_stimulus: dict[tuple[str, str], list[dict]] = {}
     for m in manifest:
         by_stimulus.setdefault((m["stimulus_set"], m["stimulus"]), []).append(m)

@@ -20,6 +20,7 @@ from facelab.stimuli.methods.registry import (
     check_playable,
     drive,
     get,
+    load_plugins,
     register,
 )
 from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
@@ -33,5 +34,8 @@ __all__ = [
     "check_playable",
     "drive",
     "get",
+    "load_plugins",
     "register",
 ]
+
+load_plugins()  # installed packages' methods (entry points facelab.methods)

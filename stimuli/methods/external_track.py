@@ -178,6 +178,9 @@ class ExternalTrack(Method):
 
     def playback(self, avatar: Avatar, params: ExternalTrackParams, *,  # type: ignore[override]
                  base_dir: Path = Path(".")) -> Playback:  # fmt: skip
+        if params is None:  # avatar inspect: no folder named yet
+            return Playback(True, "plays tracks made elsewhere (needs the targets their "
+                            "channels name: ARKit or viseme_*)")  # fmt: skip
         names = {n for c in self.captures(params, base_dir=base_dir) for n in c.names}
         missing = sorted(names - set(avatar.targets))
         if not names:

@@ -14,13 +14,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Generic, TypeVar
 
 from facelab.errors import AvatarError, StageError
 from facelab.methods import METHODS, MethodSpec, register_spec
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
 
-__all__ = ["REGISTRY", "Method", "Playback", "drive", "get", "register"]
+__all__ = ["REGISTRY", "Method", "Playback", "drive", "get", "load_plugins", "register"]
 
 
 @dataclass(frozen=True)
@@ -39,9 +40,14 @@ class Playback:
     problem: str | None = None
 
 
-class Method:
-    """One animation method. Subclasses set ``spec`` and define :meth:`drive`; the defaults of
-    the other hooks fit a method that drives a fixed set of targets."""
+P = TypeVar("P")
+
+
+class Method(Generic[P]):
+    """One animation method, generic in its parameter model ``P`` (a subclass of
+    :class:`facelab.methods.Params`): ``class JawOnly(Method[JawOnlyParams])``. Subclasses
+    set ``spec`` and define :meth:`drive`; the defaults of the other hooks fit a method that
+    drives a fixed set of targets."""
 
     spec: MethodSpec
     #: drives ``viseme_*`` targets, which an avatar without them gets from ARKit mixes
@@ -51,7 +57,7 @@ class Method:
     def name(self) -> str:
         return self.spec.name
 
-    def drive(self, inp: DriveInput, params: object) -> BlendshapeTrack:
+    def drive(self, inp: DriveInput, params: P) -> BlendshapeTrack:
         """The blendshape track (T, K) of one clip from its viseme track."""
         raise NotImplementedError
 
@@ -139,8 +145,45 @@ def register(method: Method) -> Method:
     return method
 
 
+def load_plugins() -> None:
+    """Register every installed method plugin (entry-point group ``facelab.methods``: a
+    :class:`Method` subclass, or an instance, whose spec has the entry point's name). One that
+    does not load, names something else, or takes a name already registered is recorded in
+    its entry (``facelab plugins`` says why) and skipped: the rest of facelab works."""
+    from facelab.plugins import GROUPS, loaded
+
+    for entry in loaded(GROUPS["methods"]):
+        obj = entry.obj
+        where = f"plugin {entry.name!r} from package {entry.package!r} ({entry.value})"
+        try:
+            method = obj() if isinstance(obj, type) and issubclass(obj, Method) else obj
+        except Exception:
+            entry.problem = f"{where}: making the method object raised an error"
+            continue
+        if not isinstance(method, Method) or not isinstance(getattr(method, "spec", None),
+                                                              MethodSpec):  # fmt: skip
+            entry.problem = (f"{where} is not a facelab Method subclass with a spec "
+                             "(facelab.methods.MethodSpec)")  # fmt: skip
+            continue
+        if method.spec.name != entry.name:
+            entry.problem = (f"{where}: the entry point is named {entry.name!r} but its "
+                             f"method is {method.spec.name!r}")  # fmt: skip
+            continue
+        current = REGISTRY.get(entry.name)
+        if current is not None:
+            if type(current) is not type(method):
+                entry.problem = f"{where}: a method named {entry.name!r} is registered already"
+            continue
+        if METHODS.get(entry.name, method.spec) is not method.spec:
+            entry.problem = f"{where}: a method named {entry.name!r} is registered already"
+            continue
+        register(method)
+
+
 def get(name: str) -> Method:
     """The registered method called ``name``."""
+    if name not in REGISTRY:
+        load_plugins()
     try:
         return REGISTRY[name]
     except KeyError:

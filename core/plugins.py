@@ -1,0 +1,84 @@
+"""Plugins from installed packages: the entry-point groups facelab reads.
+
+A package adds an animation method by naming a :class:`facelab.stimuli.methods.Method`
+subclass under the entry-point group ``facelab.methods`` (``pyproject.toml``:
+``[project.entry-points."facelab.methods"] jaw_only = "my_package.methods:JawOnly"``) and a
+screen kind by naming a :class:`facelab.experiment.screen_kinds.ScreenKind` subclass under
+``facelab.screens``. Nothing in facelab is edited and no private name is imported.
+
+Loading is lazy (the first time a name facelab does not know is asked for, or ``facelab
+plugins``) and guarded: a plugin that cannot be imported, or names something of the wrong
+kind, is recorded with a sentence saying which package and what went wrong, and the rest of
+facelab goes on working. Standard library only.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as metadata
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["GROUPS", "PluginEntry", "loaded", "plugin_entries"]
+
+#: facelab's entry-point groups, by what they add
+GROUPS = {"methods": "facelab.methods", "screens": "facelab.screens"}
+
+
+@dataclass
+class PluginEntry:
+    """One entry point: its group and name, what it names (``module:attr``), the package that
+    declares it (name and version), the object loaded (None when it failed) and, when it
+    failed, why (one sentence)."""
+
+    group: str
+    name: str
+    value: str
+    package: str
+    version: str
+    obj: Any = None
+    problem: str | None = None
+
+    def describe(self) -> str:
+        state = "ok" if self.problem is None else f"BROKEN: {self.problem}"
+        return f"{self.name:<18} {self.package} {self.version} ({self.value}) - {state}"
+
+
+_CACHE: dict[str, list[PluginEntry]] = {}
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, ModuleNotFoundError) and exc.name:
+        return f"its code needs the module {exc.name!r}, which is not installed"
+    if isinstance(exc, ImportError):
+        return "its module could not be imported"
+    if isinstance(exc, AttributeError):
+        return "the module has no object of that name"
+    if isinstance(exc, SyntaxError):
+        return f"its code has a syntax error (line {exc.lineno})"
+    return "importing it raised an error"
+
+
+def plugin_entries(group: str) -> list[PluginEntry]:
+    """Every entry point of ``group`` (a value of :data:`GROUPS`), loaded once (cached);
+    failures are recorded in the entries, never raised."""
+    if group in _CACHE:
+        return _CACHE[group]
+    entries = []
+    for ep in sorted(metadata.entry_points(group=group), key=lambda e: e.name):
+        dist = getattr(ep, "dist", None)
+        entry = PluginEntry(group, ep.name, ep.value,
+                            dist.metadata["Name"] if dist is not None else "?",
+                            dist.version if dist is not None else "?")  # fmt: skip
+        try:
+            entry.obj = ep.load()
+        except Exception as exc:
+            entry.problem = (f"plugin {ep.name!r} from package {entry.package!r} "
+                             f"({ep.value}) could not be loaded: {_why(exc)}")  # fmt: skip
+        entries.append(entry)
+    _CACHE[group] = entries
+    return entries
+
+
+def loaded(group: str) -> list[PluginEntry]:
+    """The entries of ``group`` that loaded."""
+    return [e for e in plugin_entries(group) if e.problem is None]

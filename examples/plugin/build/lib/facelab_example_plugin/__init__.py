@@ -1,0 +1,1 @@
+"""A template facelab plugin (see README.md): the animation method ``jaw_only``."""
