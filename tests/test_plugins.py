@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -23,11 +24,12 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """examples/plugin installed with pip into a target folder (no network: the build
     backend, setuptools, is in facelab's environment)."""
     target = tmp_path_factory.mktemp("site")
-    build = tmp_path_factory.mktemp("build")
+    source = tmp_path_factory.mktemp("src") / "plugin"  # a copy: the build writes beside it
+    shutil.copytree(ROOT / "examples" / "plugin", source)
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-         "--no-index", "--target", str(target), str(ROOT / "examples" / "plugin")],
-        check=True, cwd=build, capture_output=True,
+         "--no-index", "--target", str(target), str(source)],
+        check=True, capture_output=True,
     )  # fmt: skip
     return target
 

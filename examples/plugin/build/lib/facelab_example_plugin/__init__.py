@@ -1,1 +1,0 @@
-"""A template facelab plugin (see README.md): the animation method ``jaw_only``."""
