@@ -11,7 +11,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import pandas as pd
 
@@ -120,6 +122,53 @@ def bracket_pairs(results: StudyResults, *, item: str, stimulus_set: str) -> pd.
     return sel[["a", "b", col]].rename(columns={col: "p"}).reset_index(drop=True)
 
 
+@dataclass(frozen=True)
+class RatingCell:
+    """One item x stimulus set of the VAS ratings as the primary analysis takes it: ``sub``
+    its ratings (condition categorical in protocol order; None when fewer than two
+    conditions were rated), ``seen`` the conditions rated, ``rm_sub`` the ratings of the
+    participants who rated every one of them (the repeated-measures rows), ``notes`` what
+    was left out and why."""
+
+    item: Any
+    sset: Any
+    where: str
+    sub: pd.DataFrame | None
+    seen: list[str]
+    rm_sub: pd.DataFrame | None
+    notes: tuple[str, ...]
+
+
+def rating_cells(data: pd.DataFrame, protocol: Protocol) -> Iterator[RatingCell]:
+    """Every item x stimulus set with VAS ratings in ``data``, selected as ``facelab analyze``
+    selects them (and ``facelab power --simulate``: one path): VAS screens only, a cell with
+    one condition not analysed, participants lacking a condition left out of the repeated-
+    measures rows (kept in the pooled procedure)."""
+    order = [c.id for c in protocol.conditions]
+    data = data[data["screen"].fillna("vas") == "vas"]
+    for item in protocol.items:
+        for sset in protocol.stimulus_sets:
+            sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
+            if sub.empty:
+                continue
+            where = f"{item.id} / {sset.id}"
+            seen = [c for c in order if c in set(sub["condition"])]
+            if len(seen) < 2:
+                why = f"{where}: responses for {len(seen)} condition(s) only; not analysed."
+                yield RatingCell(item, sset, where, None, seen, None, (why,))
+                continue
+            sub = sub.assign(condition=pd.Categorical(sub["condition"], categories=seen))
+            per = sub.groupby("participant")["condition"].nunique()
+            partial = sorted(per[per < len(seen)].index)
+            notes = (
+                (f"{where}: participant(s) {', '.join(map(str, partial))} lack a condition; "
+                 "left out of the repeated-measures analysis (kept in the pooled procedure).",)
+                if partial else ()
+            )  # fmt: skip
+            yield RatingCell(item, sset, where, sub, seen,
+                             sub[~sub["participant"].isin(partial)], notes)  # fmt: skip
+
+
 def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm") -> StudyResults:
     """Run both procedures for every item x stimulus set present in ``data``.
 
@@ -141,88 +190,75 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
         (t.item, t.stimulus_set): t
         for t in (protocol.reported_results.tests if protocol.reported_results else [])
     }
-    for item in protocol.items:
-        for sset in protocol.stimulus_sets:
-            sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
-            if sub.empty:
-                continue
-            where = f"{item.id} / {sset.id}"
-            seen = [c for c in order if c in set(sub["condition"])]
-            if len(seen) < 2:
-                notes.append(f"{where}: responses for {len(seen)} condition(s) only; not analysed.")
-                continue
-            sub = sub.assign(condition=pd.Categorical(sub["condition"], categories=seen))
-            per = sub.groupby("participant")["condition"].nunique()
-            partial = sorted(per[per < len(seen)].index)
-            if partial:
-                notes.append(
-                    f"{where}: participant(s) {', '.join(map(str, partial))} lack a condition; "
-                    "left out of the repeated-measures analysis (kept in the pooled procedure)."
-                )
-            rm_sub = sub[~sub["participant"].isin(partial)]
-            n_rm = int(rm_sub["participant"].nunique())
-            kw = {"dv": "rating", "within": "condition", "subject": "participant"}
-            estimable = n_rm >= 2
-            reason = (
-                f"not estimable: {n_rm} participant(s) rated every condition; the "
-                "repeated-measures analysis needs 2 or more"
-            )
-            if estimable:
-                try:
-                    wide = stats.cell_means(rm_sub, **kw)
-                    rm = stats.rm_anova(rm_sub, **kw)
-                    pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
-                    fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
-                    lmm = stats.lmm_anova(rm_sub, **kw)
-                except AnalysisError as exc:  # e.g. ratings without any variation
-                    estimable, reason = False, f"not estimable: {exc}"
-                else:
-                    cells = wide.reset_index().melt(
-                        id_vars="s", var_name="condition", value_name="mean"
-                    ).rename(columns={"s": "participant"})
-            if not estimable:  # a pilot: descriptive cells, the inferential rows not estimable
-                notes.append(f"{where}: {reason} (descriptive tables and figures only).")
-                rm = pw = fr = lmm = pd.DataFrame()
-                cells = (
-                    sub.groupby(["participant", "condition"], observed=True)["rating"]
-                    .mean()
-                    .rename("mean")
-                    .reset_index()
-                )
+    for cell in rating_cells(data, protocol):
+        item, sset, where = cell.item, cell.sset, cell.where
+        notes.extend(cell.notes)
+        if cell.sub is None:
+            continue
+        sub, seen, rm_sub = cell.sub, cell.seen, cell.rm_sub
+        n_rm = int(rm_sub["participant"].nunique())
+        kw = {"dv": "rating", "within": "condition", "subject": "participant"}
+        estimable = n_rm >= 2
+        reason = (
+            f"not estimable: {n_rm} participant(s) rated every condition; the "
+            "repeated-measures analysis needs 2 or more"
+        )
+        if estimable:
             try:
-                pa = stats.one_way_anova(sub, dv="rating", between="condition")
-                tk = stats.tukey_hsd(sub, dv="rating", between="condition")
-            except AnalysisError as exc:
-                notes.append(f"{where}: the paper's procedure is not estimable ({exc}).")
-                pa = tk = pd.DataFrame()
-            for key, frame in (
-                ("cells", cells),
-                ("rm", rm),
-                ("pw", pw),
-                ("fr", fr),
-                ("lmm", lmm),
-                ("pa", pa),
-                ("tk", tk),
-            ):
-                out[key].append(_tag(frame, item.id, sset.id))
-            rep = reported.get((item.id, sset.id))
-            rep_pairs = "; ".join(f"{p.a}-{p.b} p={p.p:.4f}" for p in rep.pairs) if rep else ""
-            common = {
-                "item": item.id,
-                "stimulus_set": sset.id,
-                "n_participants": n_rm,
-                "reported_anova_p": rep.anova_p if rep else float("nan"),
-                "reported_pairs": rep_pairs,
-            }
-            rows = [
-                _layout_row(common, procedure="rm", anova=rm, p=rm.p_gg[0], pairs=pw)
-                if estimable
-                else _not_estimable(common, procedure="rm", reason=reason),
-                _layout_row(common, procedure="paper", anova=pa, p=pa.p[0], pairs=tk)
-                if not pa.empty
-                else _not_estimable(common, procedure="paper", reason="not estimable"),
-            ]
-            out["layout"].append(pd.DataFrame(rows))
+                wide = stats.cell_means(rm_sub, **kw)
+                rm = stats.rm_anova(rm_sub, **kw)
+                pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
+                fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
+                lmm = stats.lmm_anova(rm_sub, **kw)
+            except AnalysisError as exc:  # e.g. ratings without any variation
+                estimable, reason = False, f"not estimable: {exc}"
+            else:
+                cells = wide.reset_index().melt(
+                    id_vars="s", var_name="condition", value_name="mean"
+                ).rename(columns={"s": "participant"})
+        if not estimable:  # a pilot: descriptive cells, the inferential rows not estimable
+            notes.append(f"{where}: {reason} (descriptive tables and figures only).")
+            rm = pw = fr = lmm = pd.DataFrame()
+            cells = (
+                sub.groupby(["participant", "condition"], observed=True)["rating"]
+                .mean()
+                .rename("mean")
+                .reset_index()
+            )
+        try:
+            pa = stats.one_way_anova(sub, dv="rating", between="condition")
+            tk = stats.tukey_hsd(sub, dv="rating", between="condition")
+        except AnalysisError as exc:
+            notes.append(f"{where}: the paper's procedure is not estimable ({exc}).")
+            pa = tk = pd.DataFrame()
+        for key, frame in (
+            ("cells", cells),
+            ("rm", rm),
+            ("pw", pw),
+            ("fr", fr),
+            ("lmm", lmm),
+            ("pa", pa),
+            ("tk", tk),
+        ):
+            out[key].append(_tag(frame, item.id, sset.id))
+        rep = reported.get((item.id, sset.id))
+        rep_pairs = "; ".join(f"{p.a}-{p.b} p={p.p:.4f}" for p in rep.pairs) if rep else ""
+        common = {
+            "item": item.id,
+            "stimulus_set": sset.id,
+            "n_participants": n_rm,
+            "reported_anova_p": rep.anova_p if rep else float("nan"),
+            "reported_pairs": rep_pairs,
+        }
+        rows = [
+            _layout_row(common, procedure="rm", anova=rm, p=rm.p_gg[0], pairs=pw)
+            if estimable
+            else _not_estimable(common, procedure="rm", reason=reason),
+            _layout_row(common, procedure="paper", anova=pa, p=pa.p[0], pairs=tk)
+            if not pa.empty
+            else _not_estimable(common, procedure="paper", reason="not estimable"),
+        ]
+        out["layout"].append(pd.DataFrame(rows))
     if not out["layout"]:
         raise AnalysisError(
             "no VAS ratings match the protocol's items and stimulus sets (the logs hold "

@@ -13,7 +13,9 @@ Carlo standard error is ``sqrt(power (1 - power) / sims)``.
 The tests of a protocol (:func:`protocol_tests`):
 
 * ``rm_anova``: per VAS item x stimulus set, the one-way RM ANOVA on participant means
-  over the set's conditions, Greenhouse-Geisser corrected (the primary analysis);
+  over the set's conditions, Greenhouse-Geisser corrected - the primary analysis, on the rows
+  ``facelab analyze`` selects (:func:`facelab.analysis.study.rating_cells`: participants
+  lacking a condition left out);
 * ``identification``: per identify task whose conditions each portray several labels, each
   condition's term of the logistic GEE against the first condition;
 * ``trend``: per item x stimulus set of a graded design, the linear trend contrast.
@@ -40,6 +42,7 @@ import pandas as pd
 
 from facelab.analysis import graded, identification, psychometric, stats
 from facelab.analysis.load import frame_from_rows
+from facelab.analysis.study import rating_cells
 from facelab.analysis.tasks import (
     choice_outcome,
     compares_conditions,
@@ -78,18 +81,16 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
     """``{(test, kind): p}`` for every test the protocol's analysis makes (see the module);
     a test that cannot be computed on ``data`` has p = NaN."""
     out: dict[tuple[str, str], float] = {}
-    rating_blocks = {b.id for b in protocol.blocks if b.task is None}
-    vas = data[(data["screen"].fillna("vas") == "vas") & data["block"].isin(rating_blocks)]
-    vas = vas.dropna(subset=["rating"])
-    for (item, sset), part in vas.groupby(["item", "stimulus_set"], sort=True):
-        if part["condition"].nunique() < 2:
+    for cell in rating_cells(data.dropna(subset=["rating"]), protocol):  # facelab analyze's
+        if cell.rm_sub is None:  # selection: one path, participants lacking a condition out
             continue
         try:
-            rm = stats.rm_anova(part, dv="rating", within="condition", subject="participant")
+            rm = stats.rm_anova(cell.rm_sub, dv="rating", within="condition",
+                                subject="participant")  # fmt: skip
             p = float(rm["p_gg"].iloc[0])
         except AnalysisError:
             p = float("nan")
-        out[(f"{item}/{sset}", "rm_anova")] = p
+        out[(f"{cell.item.id}/{cell.sset.id}", "rm_anova")] = p
     for task in protocol.tasks:
         if not isinstance(task, IdentifyTask):
             continue

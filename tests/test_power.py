@@ -300,3 +300,30 @@ def test_one_participant_effect_size_is_the_spread_over_the_repeat_error() -> No
     assert est["f_pilot"] == pytest.approx((2 * 1800 / 2) / 50)
     with pytest.raises(AnalysisError, match="2 or more ratings of every condition"):
         power.f2_from_one(data.iloc[1:])
+
+
+def test_power_simulate_analyses_a_study_as_facelab_analyze_does(tmp_path: Path) -> None:
+    """One analysis path: a simulated study in which one participant lacks a condition gets
+    the same RM ANOVA p from power --simulate's tests as from facelab analyze's table (that
+    participant left out by both), not a failed fit."""
+    from facelab.analysis.load import frame_from_rows
+    from facelab.analysis.study import analyze_study
+    from facelab.experiment.simulate import simulated_rows
+    from facelab.experiment.simulated_power import protocol_tests
+    from facelab.protocol import load_protocol
+
+    path = tmp_path / "pow.yaml"
+    path.write_text(_TWO_CONDITIONS, encoding="utf-8")
+    protocol = load_protocol(path)
+    rng = np.random.default_rng(11)
+    rows = [r for k, child in enumerate(rng.spawn(8))
+            for r in simulated_rows(protocol, participant=f"P{k}", rng=child)]  # fmt: skip
+    data = frame_from_rows(rows)
+    data = data[~((data["participant"] == "P3") & (data["condition"] == "b"))]  # P3 lacks b
+    tests = protocol_tests(data, protocol)
+    study = analyze_study(data[data["screen"].fillna("vas") == "vas"], protocol)
+    table = study.rm_anova.set_index(["item", "stimulus_set"])
+    p_analyze = float(table.loc[("natural", "s"), "p_gg"])
+    assert np.isfinite(tests[("natural/s", "rm_anova")])
+    assert tests[("natural/s", "rm_anova")] == pytest.approx(p_analyze, rel=1e-12)
+    assert any("P3" in n and "lack a condition" in n for n in study.notes)
