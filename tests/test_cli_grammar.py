@@ -91,3 +91,33 @@ def test_measure_z_capture_rate_is_capture_fps(capsys: pytest.CaptureFixture[str
         main(["measure-z", "--help"])
     text = capsys.readouterr().out
     assert "--capture-fps" in text and "--fps" not in text.replace("--capture-fps", "")
+
+
+def test_errors_name_the_verbs_usage_and_spellings_do_not_conflict(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An unknown option is said with the verb's own usage; the old and the new spelling of
+    one option given together are an error, not "the last one wins"."""
+    with pytest.raises(SystemExit) as info:
+        main(["render", str(kato_path), "--bogus"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "usage: facelab render" in err and "unrecognized arguments: --bogus" in err
+    with pytest.raises(SystemExit):
+        main(["impression", "synth", "--out", "x.csv", "--bogus"])
+    assert "usage: facelab impression synth" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        _simulate(kato_path, tmp_path, "--seed", "3", "--sim-seed", "4")
+    assert info.value.code == 2
+    assert "--seed and --sim-seed are one option" in capsys.readouterr().err
+    assert not (tmp_path / "kato2021").exists()  # nothing written
+
+
+def test_a_shipped_protocol_is_named_by_its_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)  # no kato2021 file here
+    assert main(["validate", "kato2021"]) == 0
+    assert "study 'kato2021'" in capsys.readouterr().out
+    assert main(["design", "kato2021", "--participant", "P01"]) == 0
+    assert main(["validate", "no_such_protocol"]) == 2

@@ -59,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add(name: str, help_text: str, handler: Handler) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.set_defaults(handler=handler)
+        p.set_defaults(handler=handler, verb_parser=p)
         return p
 
     for family in FAMILIES:
@@ -93,9 +93,44 @@ _EXTRA_OF = {
 }
 
 
+def _parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """The arguments, with the errors argparse leaves to the top-level parser said by the
+    verb's own parser (its usage): unknown options, an option given in its old and new
+    spelling at once; a PROTOCOL naming a shipped protocol (``kato2021``) that is not a file
+    here is the shipped file."""
+    given = list(sys.argv[1:] if argv is None else argv)
+    args, extra = parser.parse_known_args(given)
+    verb = getattr(args, "verb_parser", parser)
+    if extra:
+        verb.error(f"unrecognized arguments: {' '.join(extra)}")
+    for old, new in getattr(args, "deprecated_spellings", None) or []:
+        if any(a == new or a.startswith(f"{new}=") for a in given):
+            verb.error(f"{old} and {new} are one option (the old and the new spelling); "
+                       f"give {new} once")  # fmt: skip
+    for name in ("protocol", "protocols"):
+        value = getattr(args, name, None)
+        if isinstance(value, str):
+            setattr(args, name, _shipped_or_given(value))
+        elif isinstance(value, list):
+            setattr(args, name, [_shipped_or_given(v) for v in value])
+    return args
+
+
+def _shipped_or_given(value: str) -> str:
+    """A shipped protocol's file for a bare name that is not a file here, else ``value``."""
+    from pathlib import Path
+
+    from facelab.resources import shipped_protocols
+
+    if Path(value).exists() or "/" in value or value.endswith((".yaml", ".yml")):
+        return value
+    found = shipped_protocols().get(value)
+    return str(found) if found is not None else value
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _parse(parser, argv)
     previous = {}
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGTERM, signal.SIGHUP):

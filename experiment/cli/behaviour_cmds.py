@@ -257,8 +257,8 @@ def register(add: AddCommand) -> None:
     def library(v: argparse.ArgumentParser) -> None:
         v.add_argument("--library", metavar="FILE", help="a behaviour library (default: shipped)")
 
-    def emotions(v: argparse.ArgumentParser, repeat: str) -> None:
-        v.add_argument("--emotion", action="append", metavar="E",
+    def emotions(v: argparse.ArgumentParser, repeat: str, *, required: bool = False) -> None:
+        v.add_argument("--emotion", action="append", metavar="E", required=required,
                        help=f"e.g. joy=0.8 or joy=0.5,surprise=0.3{repeat}")  # fmt: skip
 
     v = verb("fit", "a unit library from an annotation table (eqs. 2-4)")
@@ -300,7 +300,7 @@ def register(add: AddCommand) -> None:
     v = verb("render", "demonstration clips with event logs and timelines")
     library(v)
     check_options(v)
-    emotions(v, " (repeat: one clip per emotion and mode)")
+    emotions(v, " (repeat: one clip per emotion and mode)", required=True)
     v.add_argument("--text", required=True, metavar="TEXT", help="Japanese text (OpenJTalk)")
     v.add_argument("--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",
                    help="behaviour modes per emotion (none gestures_only neutral_composite "

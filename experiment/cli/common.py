@@ -42,7 +42,9 @@ def verbs(parser: argparse.ArgumentParser) -> Callable[[str, str], argparse.Argu
     sub = parser.add_subparsers(dest="action", metavar="VERB", required=True)
 
     def verb(name: str, help_text: str) -> argparse.ArgumentParser:
-        return sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(verb_parser=p)  # errors after parsing name this verb's usage
+        return p
 
     return verb
 
@@ -71,6 +73,8 @@ class _Deprecated(argparse.Action):
             file=sys.stderr,
         )
         setattr(namespace, self.dest, values)
+        used = list(getattr(namespace, "deprecated_spellings", None) or [])
+        namespace.deprecated_spellings = [*used, (option_string, self.new)]
 
 
 def deprecated(
