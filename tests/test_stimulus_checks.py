@@ -247,7 +247,7 @@ def test_contact_sheet_marks_name_failures_and_mark_the_vowel_tiles() -> None:
     ]
     marks = sheet_marks(rows, condition="std", clips=["s__v__std"])
     assert marks.measures["a"] == "aperture 0.05 width 0.3"
-    assert marks.rules["a"] == [("FAILED: a_largest_aperture 0.84 (>= 0.98)", FAILED)]
+    assert marks.rules["a"] == [("\u2717 a_largest_aperture 0.84 (>= 0.98)", FAILED)]
     assert marks.rules["u"][0][1] == PASSED and marks.rules["o"][0][1] == WARNED
     assert "i" not in marks.rules  # the other stimulus's clip is not on this sheet
     text = " ".join(t for t, _ in marks.banner)

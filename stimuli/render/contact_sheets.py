@@ -108,10 +108,10 @@ def sheet_marks(
                 text = f"{kind} {float(r['value']):.3g}"
                 marks.measures[vowel] = " ".join(filter(None, (marks.measures.get(vowel), text)))
             continue
-        word = {FAILED: "FAILED", WARNED: "warning", PASSED: "ok"}[status]
+        word = {FAILED: "\u2717", WARNED: "!", PASSED: "\u2713"}[status]  # ✗ ! ✓
         value = f"{float(r['value']):.2f}" if r.get("value") else "not measured"
         marks.rules.setdefault(vowel, []).append(
-            (f"{word}: {r['measure']} {value} ({r['threshold']})", status)
+            (f"{word} {r['measure']} {value} ({r['threshold']})", status)
         )
     return marks
 
