@@ -79,10 +79,25 @@ def _label(values: pd.Series) -> str:
     return "mixed"
 
 
+def added_items(protocol: Protocol) -> dict[str, str]:
+    """{item: screen kind} of the protocol's added screens (``presentation.added_screens``:
+    installed screen kinds, one answer per trial logged under the kind's item)."""
+    from facelab.plugins import GROUPS, loaded
+
+    kinds = {e.name: e.obj for e in loaded(GROUPS["screens"])}
+    out = {}
+    for spec in protocol.presentation.added_screens:
+        cls = kinds.get(spec.kind)
+        out[(getattr(cls, "item", "") or spec.kind) if cls is not None else spec.kind] = spec.kind
+    return out
+
+
 def expected_responses(protocol: Protocol) -> int:
-    """Responses a complete session logs: per trial every VAS item, or the task's one answer."""
+    """Responses a complete session logs: per trial every VAS item, or the task's one answer,
+    and one answer per added screen."""
+    added = len(protocol.presentation.added_screens)
     return sum(
-        block_trials(protocol, block) * (1 if block.task else len(protocol.items))
+        block_trials(protocol, block) * ((1 if block.task else len(protocol.items)) + added)
         for block in protocol.blocks
     )
 
@@ -112,7 +127,7 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
     }
     # the screen that gave each response: a block's task, or the VAS items
     screen_of = {b.id: (b.task and protocol.task(b.task).type) or "vas" for b in protocol.blocks}
-    expected = data["block"].map(screen_of)
+    expected = data["item"].map(added_items(protocol)).fillna(data["block"].map(screen_of))
     mine = pd.MultiIndex.from_frame(data[["participant", "session"]].astype(object)).isin(
         list(checked)
     )
@@ -122,7 +137,8 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
         raise AnalysisError(
             f"{row['source']}: participant {row['participant']} trial {row['trial_index']} "
             f"item {row['item']!r}: screen is {row['screen']!r} but block {row['block']!r} "
-            f"shows {screen_of[row['block']]!r}; the log was edited or belongs to another protocol"
+            f"shows {expected[wrong].iloc[0]!r}; the log was edited or belongs to another "
+            "protocol"
         )
     logged = data[mine].drop_duplicates(
         ["participant", "session", "trial_index", *(c for c, _ in _TRIAL_FIELDS)]
@@ -183,6 +199,7 @@ def check_data(
     notes: list[str] = []
     conditions = [c.id for c in protocol.conditions]
     items = [i.id for i in protocol.items] + [t.id for t in protocol.tasks]
+    items += list(added_items(protocol))
     stray_c = sorted(set(data["condition"].dropna()) - set(conditions))
     stray_i = sorted(set(data["item"].dropna()) - set(items))
     if stray_c or stray_i:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from facelab.analysis.integrity import DataCheck, check_data
+from facelab.analysis.integrity import DataCheck, added_items, check_data
 from facelab.analysis.load import load_results
 from facelab.analysis.objective import objective_distances, objective_vs_ratings
 from facelab.analysis.pilot import pilot_items, pilot_sessions
@@ -144,6 +144,7 @@ def run(
     clips = clips or study_root(results, protocol) / "clips"
     _behaviour_tables(protocol, clips, vas, tasks)
     _objective_tables(protocol, clips, vas, tasks)
+    _added_screen_tables(protocol, data, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)
     )
@@ -172,6 +173,25 @@ def run(
         stimulus_checks=summarize_stimulus_checks(clips),
     )
     return AnalysisRun(data=data, check=check, results=study, tasks=tasks, files=files)
+
+
+def _added_screen_tables(protocol: Protocol, data: pd.DataFrame, tasks) -> None:
+    """``screen_<kind>`` per added screen kind (presentation.added_screens): per condition
+    the count of each answer and, for numeric answers, their mean."""
+    for item, kind in added_items(protocol).items():
+        rows = data[(data["item"] == item) & (data["screen"] == kind)]
+        if rows.empty:
+            tasks.notes.append(f"added screen {kind!r}: no answers in the logs")
+            continue
+        counts = (rows.groupby(["condition", "response"], observed=True).size()
+                  .rename("n").reset_index())  # fmt: skip
+        counts["share"] = counts["n"] / counts.groupby("condition")["n"].transform("sum")
+        numeric = pd.to_numeric(rows["response"], errors="coerce")
+        if numeric.notna().all():
+            means = rows.assign(value=numeric).groupby("condition", observed=True)["value"]
+            summary = means.agg(mean="mean", sd="std", n="count").reset_index()
+            counts = counts.merge(summary.rename(columns={"n": "n_condition"}), on="condition")
+        tasks.tables[f"screen_{kind}"] = counts.round(6)
 
 
 def _objective_tables(protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks) -> None:

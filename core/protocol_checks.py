@@ -452,6 +452,40 @@ def _practice(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
 
 
+@_check("presentation")
+def _added_screens(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Each added screen names an installed screen kind and gives it options it accepts."""
+    from pydantic import ValidationError
+
+    from facelab.plugins import GROUPS, loaded
+
+    added = protocol.presentation.added_screens
+    if not added:
+        return
+    kinds = {e.name: e.obj for e in loaded(GROUPS["screens"])}
+    for i, spec in enumerate(added):
+        where = ("presentation", "added_screens", i)
+        cls = kinds.get(spec.kind)
+        if cls is None:
+            yield Issue((*where, "kind"), f"unknown screen kind {spec.kind!r}; installed: "
+                        f"{', '.join(kinds) or 'none'} (facelab plugins lists them)")  # fmt: skip
+            continue
+        model = getattr(cls, "Options", None)
+        if model is None:
+            continue
+        try:
+            model.model_validate(dict(spec.options))
+        except ValidationError as exc:
+            for err in exc.errors():
+                loc = clean_loc(err["loc"])
+                msg = ("unknown option" if err["type"] == "extra_forbidden"
+                       else pydantic_message(err))  # fmt: skip
+                yield Issue((*where, "options", *loc), msg)
+    kinds_used = [s.kind for s in added]
+    if len(set(kinds_used)) < len(kinds_used):
+        yield Issue(("presentation", "added_screens"), "a screen kind is added twice")
+
+
 @_check("analysis", "conditions")
 def _analysis(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """The reference condition is a condition."""

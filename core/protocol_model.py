@@ -439,6 +439,16 @@ class VirtualReality(_Model):
     )
 
 
+class AddedScreen(_Model):
+    """A screen kind from an installed package shown in every trial (``facelab plugins``
+    lists the installed kinds; the kind says where in the trial it goes)."""
+
+    kind: str = Field(description="The screen kind's name, e.g. confidence.")
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="The kind's own options (its documentation)."
+    )
+
+
 class Presentation(_Model):
     language: LangCode = Field("ja", description="Language of all participant-facing text.")
     items_layout: Literal["sequential", "together"] = "sequential"
@@ -453,6 +463,11 @@ class Presentation(_Model):
     vr: VirtualReality = Field(default_factory=VirtualReality)
     instructions: Localized | None = None
     practice: Practice | None = None
+    added_screens: list[AddedScreen] = Field(
+        default_factory=list,
+        description="Screens of installed screen kinds added to every trial (after its "
+        "responses or its clip, as the kind declares), logged as the kind's item.",
+    )
     break_text: Localized | None = None
     end_text: Localized | None = None
 

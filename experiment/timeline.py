@@ -619,6 +619,29 @@ def trial_screens(
     ``task`` overrides the block's task (the practice trial uses the first block's)."""
     if trial.condition == PENDING:
         return [AdaptiveTrial(trial=trial, protocol=protocol)]
+    screens = _task_screens(protocol, trial, practice=practice, task=task)
+    if practice or not protocol.presentation.added_screens:
+        return screens
+    from facelab.experiment.screen_kinds import added_screens  # plugin kinds, loaded lazily
+
+    level = protocol.condition(trial.condition).level
+    for placement, screen in added_screens(protocol, trial, level=level):
+        if placement == "after_clip":
+            last_clip = max(i for i, s in enumerate(screens) if isinstance(s, ClipScreen))
+            screens.insert(last_clip + 1, screen)
+        else:
+            screens.append(screen)
+    return screens
+
+
+def _task_screens(
+    protocol: Protocol,
+    trial: Trial,
+    *,
+    practice: bool,
+    task: ChoiceTask | IdentifyTask | None,
+) -> list[Screen]:
+    """The clip(s) and response screen(s) of one trial (see :func:`trial_screens`)."""
     block = next((b for b in protocol.blocks if b.id == trial.block), None)
     if task is None and block is not None:
         task = protocol.block_task(block)

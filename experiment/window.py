@@ -442,6 +442,27 @@ class Window:
         )
         return [IdentifyAnswer(label=ids[index], rt_s=round(rt, 4), timestamp=utc_now())]
 
+    def buttons(self, screen: Any) -> list[Any]:
+        """A screen kind of buttons from a package (``ButtonScreen``): its question and
+        buttons, number keys or a click."""
+        from facelab.experiment.screen_kinds import ButtonAnswer
+
+        choices = screen.choices(self.lang)
+        scripted = None
+        if self.script is not None:
+            chooser = self.script.chooser
+            value = screen.simulate(chooser.rng if chooser is not None else self.script.model.rng)
+            index = [v for v, _ in choices].index(value)
+            scripted = (index, value, screen.trial_index, screen.item_id())
+        index, rt = self._choose(
+            question=screen.question(self.lang),
+            options=[label for _, label in choices],
+            hint=self.ui["label_keys"],
+            shot=None if screen.practice else f"{screen.kind}_screen",
+            scripted=scripted,
+        )
+        return [ButtonAnswer(choices[index][0], round(rt, 4), utc_now())]
+
     # -------------------------------------------------------------------- VAS
 
     def vas(self, screen: VasScreen) -> list[VasAnswer]:

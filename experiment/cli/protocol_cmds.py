@@ -102,7 +102,10 @@ def _cmd_plugins(args: argparse.Namespace) -> int:
     from facelab.plugins import GROUPS, plugin_entries
     from facelab.stimuli.methods import load_plugins
 
-    load_plugins()  # checks what each method plugin names, recording problems
+    load_plugins()  # checks what each plugin names, recording problems
+    from facelab.experiment.screen_kinds import load_screen_plugins
+
+    load_screen_plugins()
     broken = 0
     for kind, group in GROUPS.items():
         entries = plugin_entries(group)

@@ -282,6 +282,22 @@ class FacelabIdentify extends FacelabChoice {
 }
 FacelabIdentify.info = facelabInfo("facelab-identify", { ...FacelabFields.screen, ...FacelabFields.task, labels: "COMPLEX" });
 
+// A screen kind of buttons from an installed package (facelab.experiment.screen_kinds.
+// ButtonScreen, widget "buttons"): its question and choices; the answer posted as "value".
+class FacelabButtons extends FacelabChoice {
+  async run(el, s) {
+    const { value, started } = await this.buttons(el, s, s.kind,
+      s.choices.map((c) => ({ text: c.label, value: c.value })));
+    if (!s.practice) FacelabOutbox.send("/api/response", facelabAnswer(s, s.item, { value }, started));
+    return { value };
+  }
+}
+FacelabButtons.info = facelabInfo("facelab-buttons", { ...FacelabFields.screen, ...FacelabFields.task, widget: "STRING", choices: "COMPLEX" });
+// the plugin of a screen: its kind's own, or the generic buttons plugin of a buttons kind
+function facelabPluginOf(s) {
+  return FacelabPlugins[s.kind] || (s.widget === "buttons" ? FacelabButtons : undefined);
+}
+
 // A staircase trial: once every answer before it is stored, the server says which level it
 // shows (the rule runs there, as in the lab); its screens then run like any others.
 class FacelabAdaptive extends FacelabPlugin {
@@ -301,7 +317,7 @@ class FacelabAdaptive extends FacelabPlugin {
     const shown = [];
     for (const x of screens) {
       el.textContent = "";
-      shown.push(await new FacelabPlugins[x.kind](this.jsPsych).run(el, x));
+      shown.push(await new (facelabPluginOf(x))(this.jsPsych).run(el, x));
     }
     return { adaptive: s.trial_index, screens: shown };
   }

@@ -86,7 +86,7 @@ const FACELAB_UI = {
     timeline.push({ type: jsPsychPreload, video: state.clips.map((c) => "/clips/" + c), message: ui.loading, show_progress_bar: true, max_load_time: 600000 });
   }
   for (const s of state.timeline) {
-    const type = s.kind === "text" && s.role === "end" ? FacelabComplete : FacelabPlugins[s.kind];
+    const type = s.kind === "text" && s.role === "end" ? FacelabComplete : facelabPluginOf(s);
     timeline.push(Object.assign({ type }, s));  // the screen's fields are the plugin's parameters
   }
   document.addEventListener("fullscreenchange", () => {
