@@ -3,7 +3,7 @@
 A package adds an animation method by naming a :class:`facelab.stimuli.methods.Method`
 subclass under the entry-point group ``facelab.methods`` (``pyproject.toml``:
 ``[project.entry-points."facelab.methods"] jaw_only = "my_package.methods:JawOnly"``) and a
-screen kind by naming a :class:`facelab.experiment.screen_kinds.ScreenKind` subclass under
+screen kind by naming a :class:`facelab.experiment.screen_kinds.ButtonScreen` subclass under
 ``facelab.screens``. Nothing in facelab is edited and no private name is imported.
 
 Loading is lazy (the first time a name facelab does not know is asked for, or ``facelab
