@@ -127,7 +127,10 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
     }
     # the screen that gave each response: a block's task, or the VAS items
     screen_of = {b.id: (b.task and protocol.task(b.task).type) or "vas" for b in protocol.blocks}
-    expected = data["item"].map(added_items(protocol)).fillna(data["block"].map(screen_of))
+    added = added_items(protocol)
+    expected = data["block"].map(screen_of).astype(object)
+    is_added = data["item"].isin(list(added))
+    expected[is_added] = data.loc[is_added, "item"].map(added)
     mine = pd.MultiIndex.from_frame(data[["participant", "session"]].astype(object)).isin(
         list(checked)
     )

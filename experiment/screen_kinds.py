@@ -20,14 +20,13 @@ else, so adding one touches only its own package:
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict
 
-from facelab.errors import ProtocolError
 from facelab.experiment.timeline import (
     SCREEN_KINDS,
     AnswerError,
@@ -42,7 +41,6 @@ __all__ = [
     "ButtonAnswer",
     "ButtonScreen",
     "NoOptions",
-    "added_screen_kind",
     "load_screen_plugins",
 ]
 
@@ -158,34 +156,3 @@ def load_screen_plugins() -> list[str]:
         if entry.problem is not None:
             problems.append(entry.problem)
     return problems
-
-
-def added_screen_kind(name: str) -> type[ButtonScreen] | None:
-    """The added-screen kind ``name`` (installed plugins loaded on first use), or None."""
-    if name not in SCREEN_KINDS:
-        load_screen_plugins()
-    cls = SCREEN_KINDS.get(name)
-    return cls if isinstance(cls, type) and issubclass(cls, ButtonScreen) else None
-
-
-def parse_options(cls: type[ButtonScreen], options: Mapping[str, Any]) -> BaseModel:
-    """The kind's options from the protocol (ProtocolError naming the key otherwise)."""
-    try:
-        return cls.Options.model_validate(dict(options))
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
-        raise ProtocolError(f"options.{where}: {err['msg']}") from None
-
-
-def added_screens(protocol: Any, trial: Any, *, level: float | None) -> Sequence[tuple[str, Any]]:
-    """(placement, screen) for every added screen of ``protocol`` in ``trial``."""
-    out = []
-    for spec in protocol.presentation.added_screens:
-        cls = added_screen_kind(spec.kind)
-        if cls is None:
-            raise ProtocolError(f"presentation.added_screens: unknown screen kind {spec.kind!r}")
-        screen = cls(trial=trial, practice=False, level=level,
-                     options=parse_options(cls, spec.options))  # fmt: skip
-        out.append((cls.placement, screen))
-    return out

@@ -622,16 +622,32 @@ def trial_screens(
     screens = _task_screens(protocol, trial, practice=practice, task=task)
     if practice or not protocol.presentation.added_screens:
         return screens
-    from facelab.experiment.screen_kinds import added_screens  # plugin kinds, loaded lazily
-
     level = protocol.condition(trial.condition).level
-    for placement, screen in added_screens(protocol, trial, level=level):
-        if placement == "after_clip":
+    for spec in protocol.presentation.added_screens:
+        cls = _added_kind(spec.kind)
+        options = cls.Options.model_validate(dict(spec.options))  # type: ignore[attr-defined]
+        screen = cls(trial=trial, practice=False, level=level, options=options)  # type: ignore[call-arg]
+        if getattr(cls, "placement", "after_responses") == "after_clip":
             last_clip = max(i for i, s in enumerate(screens) if isinstance(s, ClipScreen))
             screens.insert(last_clip + 1, screen)
         else:
             screens.append(screen)
     return screens
+
+
+def _added_kind(name: str) -> type[Screen]:
+    """The screen kind ``name`` of a protocol's added screen: registered, or an installed
+    package's (entry points ``facelab.screens``, registered here on first use)."""
+    if name not in SCREEN_KINDS:
+        from facelab.plugins import GROUPS, loaded
+
+        for entry in loaded(GROUPS["screens"]):
+            obj = entry.obj
+            if entry.name == name and isinstance(obj, type) and issubclass(obj, ResponseScreen):
+                screen_kind(obj)
+    if name not in SCREEN_KINDS:
+        raise ValueError(f"presentation.added_screens: unknown screen kind {name!r}")
+    return SCREEN_KINDS[name]
 
 
 def _task_screens(
