@@ -6,7 +6,7 @@ the default head, and renders. Nothing outside this file knows the method's name
 from __future__ import annotations
 
 import csv
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -14,13 +14,12 @@ import pytest
 from pydantic import Field
 
 from facelab.errors import ProtocolError
-from facelab.methods import METHODS, MethodSpec
-from facelab.methods import _Params as ParamsBase
+from facelab.methods import METHODS, MethodSpec, Params
 from facelab.protocol import load_protocol
 from facelab.stimuli.methods import REGISTRY, BlendshapeTrack, DriveInput, Method, register
 
 
-class JawParams(ParamsBase):
+class JawParams(Params):
     scale: float = Field(0.8, gt=0, le=1, description="jawOpen at full あ")
 
 
@@ -29,15 +28,21 @@ def _checks(params: JawParams, base_dir: Path) -> Iterator[tuple[tuple[str, ...]
         yield ("params", "scale"), "a jaw opened that far looks broken; use at most 0.95"
 
 
-class ToyJaw(Method):
+class ToyJaw(Method[JawParams]):
     spec = MethodSpec("toy_jaw", JawParams, "jawOpen follows the vowel a", checks=_checks)
 
-    def drive(self, inp: DriveInput, params: JawParams) -> BlendshapeTrack:  # type: ignore[override]
+    def drive(self, inp: DriveInput, params: JawParams) -> BlendshapeTrack:
         jaw = params.scale * inp.track.vowels()[:, :1]
         return BlendshapeTrack(inp.track.times, np.clip(jaw, 0, 1), ("jawOpen",))
 
-    def targets(self, params: object, *, base_dir: Path = Path(".")) -> set[str]:
+    def targets(self, params: JawParams, *, base_dir: Path = Path(".")) -> set[str]:
         return {"jawOpen"}
+
+    def protocol_notes(
+        self, settings: Sequence[JawParams], *, base_dir: Path, has_tasks: bool
+    ) -> list[str]:
+        scales = sorted({p.scale for p in settings})
+        return [f"warning: toy_jaw scales {scales} are one level"] if len(scales) == 1 else []
 
 
 @pytest.fixture
@@ -87,6 +92,24 @@ def test_a_registered_method_is_validated_by_its_own_model_and_checks(
         load_protocol(_protocol(tmp_path, "0.99"))
     with pytest.raises(ProtocolError, match=r"conditions\[0\]\.params\.scale"):
         load_protocol(_protocol(tmp_path, "2"))
+
+
+def test_validate_prints_the_methods_own_notes_on_its_conditions(
+    toy_method: Method, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A method sees all the conditions that use it (Method.protocol_notes): validate prints
+    what it says, and says nothing when it is content."""
+    from facelab.experiment.cli import main
+
+    assert main(["validate", str(_protocol(tmp_path, "0.5"))]) == 0
+    assert "warning: toy_jaw scales [0.5] are one level" in capsys.readouterr().out
+    two = _protocol(tmp_path, "0.5").read_text(encoding="utf-8").replace(
+        "stimulus_sets:",
+        "  - {id: jaw2, label: {en: J2}, method: toy_jaw, params: {scale: 0.7}}\nstimulus_sets:",
+    )
+    (tmp_path / "two.yaml").write_text(two, encoding="utf-8")
+    assert main(["validate", str(tmp_path / "two.yaml")]) == 0
+    assert "toy_jaw scales" not in capsys.readouterr().out
 
 
 def test_an_unregistered_method_is_refused(tmp_path: Path) -> None:

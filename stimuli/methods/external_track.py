@@ -76,12 +76,12 @@ def align_offset_s(
     return best / _ENV_RATE, best_r
 
 
-class ExternalTrack(Method):
+class ExternalTrack(Method[ExternalTrackParams]):
     """A track made elsewhere, one file per stimulus (see the module docstring)."""
 
     spec = METHODS["external_track"]
 
-    def drive(self, inp: DriveInput, params: ExternalTrackParams) -> BlendshapeTrack:  # type: ignore[override]
+    def drive(self, inp: DriveInput, params: ExternalTrackParams) -> BlendshapeTrack:
         path = track_file(params, base_dir=inp.base_dir, stimulus_set=inp.stimulus_set,
                           stimulus_id=inp.stimulus_id)  # fmt: skip
         if path is None:
@@ -123,7 +123,7 @@ class ExternalTrack(Method):
                      alignment_correlation=round(r, 3))  # fmt: skip
         return -offset  # the capture started with its recording: move it back by the lag
 
-    def stimulus_files(self, params: ExternalTrackParams, *, base_dir: Path, stimulus_set: str,  # type: ignore[override]
+    def stimulus_files(self, params: ExternalTrackParams, *, base_dir: Path, stimulus_set: str,
                        stimulus_id: str) -> dict[str, str]:  # fmt: skip
         path = track_file(params, base_dir=base_dir, stimulus_set=stimulus_set,
                           stimulus_id=stimulus_id)  # fmt: skip
@@ -134,7 +134,7 @@ class ExternalTrack(Method):
             files["track_audio"] = str(path.with_suffix(".wav").relative_to(base_dir))
         return files
 
-    def stimulus_problems(self, params: ExternalTrackParams, *, base_dir: Path,  # type: ignore[override]
+    def stimulus_problems(self, params: ExternalTrackParams, *, base_dir: Path,
                           stimulus_set: str, stimulus_id: str) -> Iterator[str]:  # fmt: skip
         path = track_file(params, base_dir=base_dir, stimulus_set=stimulus_set,
                           stimulus_id=stimulus_id)  # fmt: skip
@@ -152,7 +152,7 @@ class ExternalTrack(Method):
             wav = path.with_suffix(".wav")
             yield f"offset_ms auto needs the recording made with the capture: {wav}"
 
-    def input_problems(self, params: ExternalTrackParams, *, base_dir: Path  # type: ignore[override]
+    def input_problems(self, params: ExternalTrackParams, *, base_dir: Path
                        ) -> Iterator[tuple[tuple[str, ...], str]]:  # fmt: skip
         if not (base_dir / params.tracks).is_dir():
             yield ("params", "tracks"), f"the track folder {base_dir / params.tracks} was not found"
@@ -170,13 +170,13 @@ class ExternalTrack(Method):
                         continue
         return out
 
-    def driven_targets(self, avatar: Avatar, params: ExternalTrackParams, *,  # type: ignore[override]
+    def driven_targets(self, avatar: Avatar, params: ExternalTrackParams, *,
                        base_dir: Path = Path(".")) -> set[str]:  # fmt: skip
         moving = {n for c in self.captures(params, base_dir=base_dir)
                   for k, n in enumerate(c.names) if np.ptp(c.weights[:, k]) > 0.05}  # fmt: skip
         return moving & set(avatar.targets)
 
-    def playback(self, avatar: Avatar, params: ExternalTrackParams, *,  # type: ignore[override]
+    def playback(self, avatar: Avatar, params: ExternalTrackParams, *,
                  base_dir: Path = Path(".")) -> Playback:  # fmt: skip
         if params is None:  # avatar inspect: no folder named yet
             return Playback(True, "plays tracks made elsewhere (needs the targets their "
@@ -193,7 +193,7 @@ class ExternalTrack(Method):
             return Playback(False, f"no: lacks {', '.join(missing[:4])}", problem=problem)
         return Playback(True, f"yes ({len(names)} channels of the tracks in {params.tracks})")
 
-    def examples(self) -> tuple[object, ...]:
+    def examples(self) -> tuple[ExternalTrackParams | None, ...]:
         return (None,)
 
 

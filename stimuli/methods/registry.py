@@ -11,10 +11,12 @@ name: rendering, ``avatar inspect``, target checks and protocol checks ask the r
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
+
+from pydantic import BaseModel
 
 from facelab.errors import AvatarError, StageError
 from facelab.methods import METHODS, MethodSpec, register_spec
@@ -61,20 +63,18 @@ class Method(Generic[P]):
         """The blendshape track (T, K) of one clip from its viseme track."""
         raise NotImplementedError
 
-    def targets(self, params: object, *, base_dir: Path = Path(".")) -> set[str]:
+    def targets(self, params: P, *, base_dir: Path = Path(".")) -> set[str]:
         """The avatar targets the method drives (an empty set: known only from a file read
         when the clip is built)."""
         return set()
 
-    def driven_targets(
-        self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")
-    ) -> set[str]:
+    def driven_targets(self, avatar: Avatar, params: P, *, base_dir: Path = Path(".")) -> set[str]:
         """The targets of ``avatar`` the method moves with weight a viewer would see (what the
         stimulus checks' avatar audit measures): by default its :meth:`targets` the avatar
         has."""
         return self.targets(params, base_dir=base_dir) & set(avatar.targets)
 
-    def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
+    def playback(self, avatar: Avatar, params: P, *, base_dir: Path = Path(".")) -> Playback:
         """Whether and how the method plays on ``avatar``."""
         missing = sorted(self.targets(params, base_dir=base_dir) - set(avatar.targets))
         if missing:
@@ -86,34 +86,41 @@ class Method(Generic[P]):
             )
         return Playback(True, "yes")
 
-    def input_files(self, params: object) -> dict[str, str]:
+    def input_files(self, params: P) -> dict[str, str]:
         """The files the parameters name (relative to the protocol's folder), by role: their
         bytes are part of each clip's input hash, so a changed file re-renders its clips."""
         return {}
 
     def stimulus_files(
-        self, params: object, *, base_dir: Path, stimulus_set: str, stimulus_id: str
+        self, params: P, *, base_dir: Path, stimulus_set: str, stimulus_id: str
     ) -> dict[str, str]:
         """The files one stimulus' clip reads besides :meth:`input_files` (a method with one
         file per stimulus), by role, relative to the protocol's folder; hashed like them."""
         return {}
 
     def stimulus_problems(
-        self, params: object, *, base_dir: Path, stimulus_set: str, stimulus_id: str
+        self, params: P, *, base_dir: Path, stimulus_set: str, stimulus_id: str
     ) -> Iterator[str]:
         """Why one stimulus' clip cannot be made (its file missing or unreadable): ``facelab
         validate`` reports them at the condition."""
         return iter(())
 
-    def input_problems(
-        self, params: object, *, base_dir: Path
-    ) -> Iterator[tuple[tuple[str, ...], str]]:
+    def input_problems(self, params: P, *, base_dir: Path) -> Iterator[tuple[tuple[str, ...], str]]:
         """Read the files the parameters name as rendering will: ``(key path under the
         condition, message)`` for each that cannot be used (``facelab validate`` reports them
         with the protocol's line, so "valid" means "will render")."""
         return iter(())
 
-    def examples(self) -> tuple[object, ...]:
+    def protocol_notes(
+        self, settings: Sequence[P], *, base_dir: Path, has_tasks: bool
+    ) -> list[str]:
+        """Warnings on the protocol's conditions that use this method, seen together (one
+        parameter set per condition, in protocol order): what ``validate`` and ``render``
+        print before any clip is made, e.g. levels of one manipulation too close to tell
+        apart. ``has_tasks``: the protocol has forced-choice or identification tasks."""
+        return []
+
+    def examples(self) -> tuple[P | None, ...]:
         """Parameter sets ``facelab avatar inspect`` reports on: the defaults, or None for a
         method with required parameters (its :meth:`playback` then describes what it needs)."""
         try:
@@ -121,7 +128,7 @@ class Method(Generic[P]):
         except ValueError:
             return (None,)
 
-    def drive_on(self, avatar: Avatar, inp: DriveInput, params: object) -> BlendshapeTrack:
+    def drive_on(self, avatar: Avatar, inp: DriveInput, params: P) -> BlendshapeTrack:
         """The track for this avatar (a method with a stand-in overrides this)."""
         return self.drive(inp, params)
 
@@ -130,10 +137,10 @@ def _first(names: list[str], n: int = 6) -> str:
     return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
 
 
-REGISTRY: dict[str, Method] = {}
+REGISTRY: dict[str, Method[Any]] = {}
 
 
-def register(method: Method) -> Method:
+def register(method: Method[Any]) -> Method[Any]:
     """Add ``method`` (and its protocol spec) to the registries; a name is registered once."""
     name = method.spec.name
     if name in REGISTRY:
@@ -180,26 +187,28 @@ def load_plugins() -> None:
         register(method)
 
 
-def get(name: str) -> Method:
+def get(name: str) -> Method[Any]:
     """The registered method called ``name``."""
     if name not in REGISTRY:
         load_plugins()
     try:
         return REGISTRY[name]
     except KeyError:
-        raise StageError(
-            f"unknown method {name!r}; registered: {', '.join(REGISTRY)}"
-        ) from None
+        raise StageError(f"unknown method {name!r}; registered: {', '.join(REGISTRY)}") from None
 
 
-def drive(name: str, inp: DriveInput, params: object) -> BlendshapeTrack:
+def drive(
+    name: str, inp: DriveInput, params: Mapping[str, Any] | BaseModel | None
+) -> BlendshapeTrack:
     """Run a registered method; ``params`` is its typed model or a dict as written in a
     protocol (validated here)."""
     method = get(name)
     return method.drive(inp, method.spec.parse(params))
 
 
-def check_playable(avatar: Avatar, name: str, params: object, *, base_dir: Path) -> Playback:
+def check_playable(
+    avatar: Avatar, name: str, params: Mapping[str, Any] | BaseModel | None, *, base_dir: Path
+) -> Playback:
     """:meth:`Method.playback`, raising the avatar error when the method cannot play."""
     method = get(name)
     playback = method.playback(avatar, method.spec.parse(params), base_dir=base_dir)

@@ -12,22 +12,20 @@ from facelab.methods import METHODS, TextVisemesParams, VisemeBaselineParams
 from facelab.stimuli.arkit import VISEME_TARGETS
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.targets import VISEME_MIXES, vowel_presets_only
-from facelab.stimuli.methods.registry import Method, Playback, register
+from facelab.stimuli.methods.registry import Method, P, Playback, register
 from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
 from facelab.stimuli.speech.track import from_phonemes
 
 __all__ = ["TextVisemes", "VisemeBaseline"]
 
 
-class _VisemeMethod(Method):
+class _VisemeMethod(Method[P]):
     uses_visemes = True
 
-    def targets(self, params: object, *, base_dir: Path = Path(".")) -> set[str]:
+    def targets(self, params: P, *, base_dir: Path = Path(".")) -> set[str]:
         return set(VISEME_TARGETS[1:])
 
-    def driven_targets(
-        self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")
-    ) -> set[str]:
+    def driven_targets(self, avatar: Avatar, params: P, *, base_dir: Path = Path(".")) -> set[str]:
         """The viseme shapes it moves, less those a VRM gets as zero shapes (said by
         :meth:`playback`'s stand-in note instead)."""
         zero = set(avatar.source.get("zero_visemes") or ())
@@ -35,7 +33,7 @@ class _VisemeMethod(Method):
             zero |= set(self.targets(params)) - set(avatar.targets)
         return (self.targets(params) & set(avatar.targets)) - zero
 
-    def playback(self, avatar: Avatar, params: object, *, base_dir: Path = Path(".")) -> Playback:
+    def playback(self, avatar: Avatar, params: P, *, base_dir: Path = Path(".")) -> Playback:
         have = set(avatar.targets)
         kind = avatar.source.get("kind")
         zero = avatar.source.get("zero_visemes")
@@ -52,35 +50,35 @@ class _VisemeMethod(Method):
                 "vowel presets only (the consonant visemes get no shape)",
                 f"{kind}: no shape for {missing} (vowel presets only)",
             )
-        missing = sorted(visemes - have)
-        lacking = sorted({n for v in missing for n in VISEME_MIXES[v]} - have)
+        absent = sorted(visemes - have)
+        lacking = sorted({n for v in absent for n in VISEME_MIXES[v]} - have)
         if not lacking:
             return Playback(True, "via ARKit mixes (viseme_* built from ARKit shapes)")
         return Playback(
             False,
-            f"no: lacks {', '.join(missing[:4])}…",
+            f"no: lacks {', '.join(absent[:4])}…",
             problem=f"avatar {avatar.name!r} lacks targets for method {self.name!r}: "
-            f"{', '.join(missing)} (and the ARKit shapes to build them: {', '.join(lacking)})",
+            f"{', '.join(absent)} (and the ARKit shapes to build them: {', '.join(lacking)})",
         )
 
 
-class VisemeBaseline(_VisemeMethod):
+class VisemeBaseline(_VisemeMethod[VisemeBaselineParams]):
     """The OVR LipSync path: the 15 viseme weights drive the ``viseme_*`` targets."""
 
     spec = METHODS["viseme_baseline"]
 
-    def drive(self, inp: DriveInput, params: VisemeBaselineParams) -> BlendshapeTrack:  # type: ignore[override]
+    def drive(self, inp: DriveInput, params: VisemeBaselineParams) -> BlendshapeTrack:
         return BlendshapeTrack(
             inp.track.times, np.clip(params.gain * inp.track.weights, 0, 1), VISEME_TARGETS
         )
 
 
-class TextVisemes(_VisemeMethod):
+class TextVisemes(_VisemeMethod[TextVisemesParams]):
     """Visemes from the phoneme timing (TTS stimuli), on the audio track's frame times."""
 
     spec = METHODS["text_visemes"]
 
-    def drive(self, inp: DriveInput, params: TextVisemesParams) -> BlendshapeTrack:  # type: ignore[override]
+    def drive(self, inp: DriveInput, params: TextVisemesParams) -> BlendshapeTrack:
         if not inp.phones:
             raise StageError("method text_visemes needs a phoneme timeline (a text stimulus)")
         track = from_phonemes(

@@ -90,25 +90,25 @@ def vowel_shapes(inp: DriveInput, params: VowelBlendParams, z: np.ndarray) -> Bl
     )  # fmt: skip
 
 
-class VowelBlend(Method):
+class VowelBlend(Method[VowelBlendParams]):
     """Y = clip(G * X @ Z.T) over the 52 ARKit targets."""
 
     spec = METHODS["vowel_blend"]
 
-    def drive(self, inp: DriveInput, params: VowelBlendParams) -> BlendshapeTrack:  # type: ignore[override]
+    def drive(self, inp: DriveInput, params: VowelBlendParams) -> BlendshapeTrack:
         z_mat = load_z(params.z, base_dir=inp.base_dir)
         y = np.clip(params.gain * inp.track.vowels() @ z_mat.T, 0.0, 1.0)
         return BlendshapeTrack(inp.track.times, y, ARKIT_NAMES)
 
-    def targets(self, params: VowelBlendParams, *, base_dir: Path = Path(".")) -> set[str]:  # type: ignore[override]
+    def targets(self, params: VowelBlendParams, *, base_dir: Path = Path(".")) -> set[str]:
         """The ARKit rows its Z uses."""
         z = load_z(params.z, base_dir=base_dir)
         return {n for n, row in zip(ARKIT_NAMES, z, strict=True) if np.any(row > 0)}
 
-    def input_files(self, params: VowelBlendParams) -> dict[str, str]:  # type: ignore[override]
+    def input_files(self, params: VowelBlendParams) -> dict[str, str]:
         return {"z": params.z} if params.z.lower().endswith(".csv") else {}
 
-    def input_problems(  # type: ignore[override]
+    def input_problems(
         self, params: VowelBlendParams, *, base_dir: Path, where: tuple[str, ...] = ("params",)
     ) -> Iterator[tuple[tuple[str, ...], str]]:
         try:
@@ -118,7 +118,7 @@ class VowelBlend(Method):
 
     def examples(self) -> tuple[VowelBlendParams, ...]:
         """Both shipped Z matrices."""
-        return tuple(VowelBlendParams(z=z) for z in BUILTIN_Z)
+        return tuple(self.spec.parse({"z": z}) for z in BUILTIN_Z)
 
     def _stand_in(self, avatar: Avatar, params: VowelBlendParams, base_dir: Path) -> str | None:
         """Why the avatar's own vowel shapes must stand in for Z's ARKit targets (None when
@@ -139,13 +139,12 @@ class VowelBlend(Method):
 
     def playback(
         self, avatar: Avatar, params: VowelBlendParams, *, base_dir: Path = Path(".")
-    ) -> Playback:  # type: ignore[override]
+    ) -> Playback:
         why = self._stand_in(avatar, params, base_dir)
         if why is not None:
             return Playback(
                 True,
-                "vowel shapes (the avatar's aa ih ou E oh, Z retargeted onto them: "
-                "Y = G·W·X)",
+                "vowel shapes (the avatar's aa ih ou E oh, Z retargeted onto them: Y = G·W·X)",
                 f"{avatar.source.get('kind')}: {why}; its vowel shapes aa ih ou E oh stand in, "
                 "Z retargeted onto them (Y = G * W * X)",
             )
@@ -156,14 +155,14 @@ class VowelBlend(Method):
 
     def driven_targets(
         self, avatar: Avatar, params: VowelBlendParams, *, base_dir: Path = Path(".")
-    ) -> set[str]:  # type: ignore[override]
+    ) -> set[str]:
         if self._stand_in(avatar, params, base_dir) is not None:
             return set(PRESET_NAMES)
         return mouth_targets(load_z(params.z, base_dir=base_dir))
 
     def drive_on(
         self, avatar: Avatar, inp: DriveInput, params: VowelBlendParams
-    ) -> BlendshapeTrack:  # type: ignore[override]
+    ) -> BlendshapeTrack:
         if self._stand_in(avatar, params, inp.base_dir) is not None:
             return vowel_shapes(inp, params, load_z(params.z, base_dir=inp.base_dir))
         return self.drive(inp, params)

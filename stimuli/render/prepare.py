@@ -3,7 +3,6 @@ inspection (``facelab track``) and the demo."""
 
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,6 @@ from facelab.stimuli.speech.vowels import isolate_vowels
 __all__ = [
     "audio_only_note",
     "find_stimulus",
-    "impression_level_notes",
     "input_notes",
     "speech_for",
     "track_source_text",
@@ -108,45 +106,22 @@ def audio_only_note(protocol: Protocol) -> str | None:
     )
 
 
-def impression_level_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
-    """One line per pair of neighbouring impression levels (same model and expression) whose
-    faces differ by less than :data:`VISIBLE_CHANGE` in the channel that moves most. A
-    protocol with forced-choice or identification tasks is asked only that its lowest and
-    highest levels differ visibly: close levels are what a psychometric design wants."""
-    from facelab.methods import ImpressionParams
-    from facelab.stimuli.impression.model import VISIBLE_CHANGE, ImpressionModel
-
-    levels: dict[tuple[str, str], set[float]] = {}
-    for cond in protocol.conditions:
-        if cond.method == "impression" and isinstance(cond.settings, ImpressionParams):
-            key = (cond.settings.model, cond.settings.expression)
-            levels.setdefault(key, set()).add(float(cond.settings.q))
-    notes = []
-    for (model_file, expression), qs in levels.items():
-        model = ImpressionModel.load_cached(base_dir / model_file)
-        limit = VISIBLE_CHANGE[model.space]
-        unit = "" if model.space == "arkit" else " m"
-        ordered = sorted(qs)
-        ends = [(ordered[0], ordered[-1])] if len(ordered) > 1 else []
-        for lo, hi in ends if protocol.tasks else itertools.pairwise(ordered):
-            change, where = model.level_change(
-                expression, hi, q_from=lo, neutral=np.zeros_like(model.neutral_mean)
-                if model.space == "arkit" else None,
-            )  # fmt: skip
-            if change < limit:
-                notes.append(
-                    f"warning: {model_file} {expression}: levels q={lo:g} and q={hi:g} differ "
-                    f"by {change:.3f}{unit} at most ({where}), below the {limit:g}{unit} taken "
-                    "as visible; raise the levels or refit with 'facelab impression fit --step'"
-                )
-    return notes
-
-
 def input_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
     """What ``validate`` and ``render`` say about the protocol's inputs besides problems:
-    recordings analysed audio-only, impression levels too close to see."""
+    recordings analysed audio-only, and each method's own notes on the conditions that use
+    it (:meth:`Method.protocol_notes`, e.g. impression levels too close to see)."""
+    from facelab.stimuli.methods import get
+
     note = audio_only_note(protocol)
-    return ([note] if note else []) + impression_level_notes(protocol, base_dir=base_dir)
+    notes = [note] if note else []
+    by_method: dict[str, list[object]] = {}
+    for cond in protocol.conditions:
+        by_method.setdefault(cond.method, []).append(cond.settings)
+    for name, settings in by_method.items():
+        notes += get(name).protocol_notes(
+            settings, base_dir=base_dir, has_tasks=bool(protocol.tasks)
+        )
+    return notes
 
 
 def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeTrack | None]:
