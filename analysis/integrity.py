@@ -24,6 +24,7 @@ is, what nobody saw, and whether the responses were given by people.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import pandas as pd
 
@@ -79,12 +80,18 @@ def _label(values: pd.Series) -> str:
     return "mixed"
 
 
+def added_kinds() -> dict[str, Any]:
+    """{kind: class} of the installed screen kinds (entry points ``facelab.screens``) that
+    load."""
+    from facelab.plugins import GROUPS, loaded
+
+    return {e.name: e.obj for e in loaded(GROUPS["screens"])}
+
+
 def added_items(protocol: Protocol) -> dict[str, str]:
     """{item: screen kind} of the protocol's added screens (``presentation.added_screens``:
     installed screen kinds, one answer per trial logged under the kind's item)."""
-    from facelab.plugins import GROUPS, loaded
-
-    kinds = {e.name: e.obj for e in loaded(GROUPS["screens"])}
+    kinds = added_kinds()
     out = {}
     for spec in protocol.presentation.added_screens:
         cls = kinds.get(spec.kind)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from facelab.analysis.integrity import DataCheck, added_items, check_data
+from facelab.analysis.integrity import DataCheck, added_items, added_kinds, check_data
 from facelab.analysis.load import load_results
 from facelab.analysis.objective import objective_distances, objective_vs_ratings
 from facelab.analysis.pilot import pilot_items, pilot_sessions
@@ -38,7 +38,7 @@ from facelab.analysis.presentation import (
 from facelab.analysis.report import ReportFiles, write_report
 from facelab.analysis.stimulus_checks import summarize_stimulus_checks
 from facelab.analysis.study import StudyResults, analyze_study
-from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks
+from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks, answer_counts
 from facelab.errors import AnalysisError
 from facelab.formats import MANIFEST_NAME
 from facelab.protocol import Protocol, protocol_hash
@@ -176,22 +176,23 @@ def run(
 
 
 def _added_screen_tables(protocol: Protocol, data: pd.DataFrame, tasks) -> None:
-    """``screen_<kind>`` per added screen kind (presentation.added_screens): per condition
-    the count of each answer and, for numeric answers, their mean."""
+    """``screen_<kind>`` per added screen kind (presentation.added_screens): the kind's own
+    table of its answers (``AddedScreen.summarise``; by default per condition the count of
+    each answer and, for numeric answers, their mean)."""
+    kinds = added_kinds()
     for item, kind in added_items(protocol).items():
         rows = data[(data["item"] == item) & (data["screen"] == kind)]
         if rows.empty:
             tasks.notes.append(f"added screen {kind!r}: no answers in the logs")
             continue
-        counts = (rows.groupby(["condition", "response"], observed=True).size()
-                  .rename("n").reset_index())  # fmt: skip
-        counts["share"] = counts["n"] / counts.groupby("condition")["n"].transform("sum")
-        numeric = pd.to_numeric(rows["response"], errors="coerce")
-        if numeric.notna().all():
-            means = rows.assign(value=numeric).groupby("condition", observed=True)["value"]
-            summary = means.agg(mean="mean", sd="std", n="count").reset_index()
-            counts = counts.merge(summary.rename(columns={"n": "n_condition"}), on="condition")
-        tasks.tables[f"screen_{kind}"] = counts.round(6)
+        summarise = getattr(kinds.get(kind), "summarise", answer_counts)
+        try:
+            table = summarise(rows.reset_index(drop=True))
+        except Exception:  # a package's code: its failure is named, the analysis goes on
+            tasks.notes.append(f"added screen {kind!r}: the kind's own summary (summarise) "
+                               "failed; the default table is written instead")  # fmt: skip
+            table = answer_counts(rows.reset_index(drop=True))
+        tasks.tables[f"screen_{kind}"] = table.round(6)
 
 
 def _objective_tables(protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks) -> None:

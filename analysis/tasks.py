@@ -433,3 +433,18 @@ def _graded(data: pd.DataFrame, protocol: Protocol, res: TaskResults) -> None:
         res.tables["graded_lmm"] = graded.graded_lmm(vas, by=by)
     else:
         res.notes.append("the random-slope model needs three or more participants: not fitted")
+
+
+def answer_counts(rows: pd.DataFrame) -> pd.DataFrame:
+    """The default table of an added screen's answers (``screen_<kind>.csv``) from its log
+    rows: per condition the count and share of each answer, and mean, sd and n when the
+    answers are numbers."""
+    counts = (rows.groupby(["condition", "response"], observed=True).size()
+              .rename("n").reset_index())  # fmt: skip
+    counts["share"] = counts["n"] / counts.groupby("condition")["n"].transform("sum")
+    numeric = pd.to_numeric(rows["response"], errors="coerce")
+    if numeric.notna().all():
+        means = rows.assign(value=numeric).groupby("condition", observed=True)["value"]
+        summary = means.agg(mean="mean", sd="std", n="count").reset_index()
+        counts = counts.merge(summary.rename(columns={"n": "n_condition"}), on="condition")
+    return counts

@@ -256,16 +256,16 @@ class SimulatedParticipant:
         self.clock += rt
         return [IdentifyAnswer(label, round(rt, 3), self._stamp())]
 
-    def buttons(self, screen: Any) -> list[Any]:
-        """A package's screen of buttons: the kind's own simulated answer
-        (``ButtonScreen.simulate``) with the rating model's response time."""
-        from facelab.experiment.screen_kinds import ButtonAnswer
+    def added_screen(self, screen: Any) -> list[Any]:
+        """A package's added screen: the kind's own simulated answer
+        (``AddedScreen.simulate``) with the rating model's response time."""
+        from facelab.experiment.screen_kinds import AddedAnswer
 
         rng = self.chooser.rng if self.chooser is not None else self.rater.rng
         value = screen.simulate(rng)
         rt = float(rng.lognormal(np.log(self.rater.model.rt_median_s), self.rater.model.rt_log_sd))
         self.clock += rt
-        return [ButtonAnswer(value, round(rt, 3), self._stamp())]
+        return [AddedAnswer(value, round(rt, 3), self._stamp())]
 
     def _stamp(self) -> str:
         return (_CLOCK_START + dt.timedelta(seconds=self.clock)).isoformat()

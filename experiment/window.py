@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -114,7 +115,7 @@ class Window:
 
     # -------------------------------------------------------------------- helpers
 
-    def _textstim(
+    def text_stim(
         self,
         text: str,
         *,
@@ -122,7 +123,10 @@ class Window:
         height: float | None = None,
         width: float | None = None,
         color: str = "white",
-    ):
+    ) -> Any:
+        """A centred text stimulus in the study's font (``y``, ``height``, ``width`` in pixels
+        from the window's centre; lines broken for Japanese too): for screen kinds' ``lab``
+        drawings as for facelab's own screens."""
         return self.visual.TextBox2(
             self.win,
             text=text,
@@ -137,7 +141,7 @@ class Window:
 
     def _check_escape(self, keys: list) -> None:
         if any((k[0] if isinstance(k, tuple) else k) == "escape" for k in keys):
-            prompt = self._textstim(self.ui["quit"])
+            prompt = self.text_stim(self.ui["quit"])
             while True:
                 prompt.draw()
                 self.win.flip()
@@ -169,8 +173,8 @@ class Window:
     # -------------------------------------------------------------------- text
 
     def text(self, screen: TextScreen) -> None:
-        stim = self._textstim(screen.text)
-        hint = self._textstim(
+        stim = self.text_stim(screen.text)
+        hint = self.text_stim(
             self.ui["next"], y=-0.4 * self.size[1], height=0.022 * self.size[1], color="grey"
         )
         self._clear_events()
@@ -197,7 +201,7 @@ class Window:
             end = time.perf_counter() + screen.gap_s
             while time.perf_counter() < end:
                 self.win.flip()
-        label = self._textstim(
+        label = self.text_stim(
             self.ui["interval"].format(n=screen.interval), height=0.06 * self.size[1]
         )
         end = time.perf_counter() + 0.8
@@ -357,7 +361,7 @@ class Window:
             for x in xs
         ]
         labels = [
-            self._textstim(
+            self.text_stim(
                 f"{i + 1}\n{text}" if text != str(i + 1) else text,
                 y=-0.05 * h,
                 height=0.028 * h if n > 2 else 0.05 * h,
@@ -367,24 +371,46 @@ class Window:
         ]
         for stim, x in zip(labels, xs, strict=True):
             stim.pos = (x, -0.05 * h)
-        prompt = self._textstim(question, y=0.2 * h)
-        hint_stim = self._textstim(hint, y=-0.35 * h, height=0.022 * h, color="lightgrey")
+        prompt = self.text_stim(question, y=0.2 * h)
+        hint_stim = self.text_stim(hint, y=-0.35 * h, height=0.022 * h, color="lightgrey")
         keys = {str(i + 1): i for i in range(n)} | {f"num_{i + 1}": i for i in range(n)}
+        script = None
+        if scripted is not None:
+            index, value, trial_index, item = scripted
+            script = (str(index + 1), value, trial_index, item)
+        return self.show(
+            stims=[prompt, *(x for pair in zip(boxes, labels, strict=True) for x in pair),
+                   hint_stim],
+            keys=keys, clickable=list(zip(boxes, range(n), strict=True)), shot=shot,
+            scripted=script,
+        )  # fmt: skip
+
+    def show(
+        self,
+        *,
+        stims: Sequence[Any],
+        keys: Mapping[str, Any],
+        clickable: Sequence[tuple[Any, Any]] = (),
+        shot: str | None = None,
+        scripted: tuple[str, Any, int | None, str] | None = None,
+    ) -> tuple[Any, float]:
+        """Draw ``stims`` (PsychoPy stimuli, in order) each frame until a key of ``keys`` is
+        pressed or a ``clickable`` stimulus clicked; returns (its value, response time in s).
+
+        For screen kinds from packages (``AddedScreen.lab``) as for facelab's own button
+        screens. ``shot``: the screenshot's name (the first frame). ``scripted``: (key, logged
+        value, trial index, item) the scripted participant presses (see
+        :meth:`scripted_value`); Escape quits as everywhere."""
         self._clear_events()
         self.mouse.clickReset()
         onset = time.perf_counter()
         was_down = False
         while True:
             if self.script is not None and scripted is not None:
-                index, value, trial_index, item = scripted
-                self.script.answer_key(
-                    id(boxes), str(index + 1), value, trial_index=trial_index, item=item
-                )
-            prompt.draw()
-            for box, label in zip(boxes, labels, strict=True):
-                box.draw()
-                label.draw()
-            hint_stim.draw()
+                key, value, trial_index, item = scripted
+                self.script.answer_key(id(stims), key, value, trial_index=trial_index, item=item)
+            for stim in stims:
+                stim.draw()
             if shot:
                 self._screenshot(shot)
                 shot = None
@@ -398,9 +424,9 @@ class Window:
                     return keys[key], time.perf_counter() - onset
             down = bool(self.mouse.getPressed()[0])
             if down and not was_down:
-                for i, box in enumerate(boxes):
-                    if box.contains(self.mouse):
-                        return i, time.perf_counter() - onset
+                for stim, value in clickable:
+                    if stim.contains(self.mouse):
+                        return value, time.perf_counter() - onset
             was_down = down
 
     def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
@@ -442,16 +468,28 @@ class Window:
         )
         return [IdentifyAnswer(label=ids[index], rt_s=round(rt, 4), timestamp=utc_now())]
 
-    def buttons(self, screen: Any) -> list[Any]:
-        """A screen kind of buttons from a package (``ButtonScreen``): its question and
-        buttons, number keys or a click."""
-        from facelab.experiment.screen_kinds import ButtonAnswer
+    def added_screen(self, screen: Any) -> list[Any]:
+        """A screen kind from a package (``AddedScreen``): drawn by the kind's ``lab``."""
+        from facelab.experiment.screen_kinds import AddedAnswer
 
+        value, rt = screen.lab(self)
+        return [AddedAnswer(value, round(rt, 4), utc_now())]
+
+    def scripted_value(self, screen: Any) -> Any:
+        """The answer the scripted participant gives to an added screen (its kind's
+        ``simulate``), None without a script."""
+        if self.script is None:
+            return None
+        chooser = self.script.chooser
+        return screen.simulate(chooser.rng if chooser is not None else self.script.model.rng)
+
+    def buttons(self, screen: Any) -> tuple[Any, float]:
+        """A ``ButtonScreen``: its question and buttons, number keys or a click; returns
+        (value, response time in s)."""
         choices = screen.choices(self.lang)
         scripted = None
-        if self.script is not None:
-            chooser = self.script.chooser
-            value = screen.simulate(chooser.rng if chooser is not None else self.script.model.rng)
+        value = self.scripted_value(screen)
+        if value is not None:
             index = [v for v, _ in choices].index(value)
             scripted = (index, value, screen.trial_index, screen.item_id())
         index, rt = self._choose(
@@ -461,7 +499,7 @@ class Window:
             shot=None if screen.practice else f"{screen.kind}_screen",
             scripted=scripted,
         )
-        return [ButtonAnswer(choices[index][0], round(rt, 4), utc_now())]
+        return choices[index][0], rt
 
     # -------------------------------------------------------------------- VAS
 
@@ -479,7 +517,7 @@ class Window:
             )
             state = VasState(geometry=g, onset=self.clock.getTime())
             stims = {
-                "question": self._textstim(
+                "question": self.text_stim(
                     localized(item.question, self.lang), y=g.y_line + 0.16 * h
                 ),
                 "line": self.visual.Line(
@@ -499,10 +537,10 @@ class Window:
                     )
                     for x in (g.x_left, g.x_right)
                 ],
-                "left": self._textstim(
+                "left": self.text_stim(
                     localized(item.left_anchor, self.lang), height=0.026 * h, width=0.3 * w
                 ),
-                "right": self._textstim(
+                "right": self.text_stim(
                     localized(item.right_anchor, self.lang), height=0.026 * h, width=0.3 * w
                 ),
                 "marker": self.visual.Rect(
@@ -521,7 +559,7 @@ class Window:
             lineColor="white",
             lineWidth=2,
         )
-        confirm_label = self._textstim(
+        confirm_label = self.text_stim(
             self.ui["confirm"], y=g0.confirm_centre[1], height=0.03 * h, width=g0.confirm_size[0]
         )
         self._clear_events()

@@ -7,6 +7,7 @@ subprocesses, so nothing of the plugin leaks into this test process."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import shutil
 import subprocess
@@ -105,11 +106,13 @@ def test_a_broken_plugin_is_named_and_facelab_still_works(installed: Path, tmp_p
 
 
 def _with_confidence(folder: Path, *, options: str = "{p_sure: 0.7}", short: bool = False) -> Path:
-    """kato2021 with the plugin's confidence screen in every trial (``short``: two vowels,
+    """kato2021 with the plugin's confidence screen (buttons, after the ratings) and effort
+    screen (its own drawing, right after the clip) in every trial (``short``: two vowels,
     one sentence, one set per block - a session of a few minutes)."""
     text = (ROOT / "protocols" / "kato2021.yaml").read_text(encoding="utf-8")
     text = text.replace("presentation:\n", "presentation:\n  added_screens: [{kind: confidence, "
-                        f"options: {options}}}]\n", 1)  # fmt: skip
+                        f"options: {options}}}, {{kind: effort, options: {{mean: 4.5}}}}]\n",
+                        1)  # fmt: skip
     if short:
         import re
 
@@ -141,10 +144,23 @@ def test_an_installed_screen_kind_is_validated_simulated_and_tabled(
     confidence = [r for r in rows if r["item"] == "confidence"]
     assert len(confidence) == 3 * 18 and {r["screen"] for r in confidence} == {"confidence"}
     assert {r["response"] for r in confidence} <= {"1", "2", "3"}
+    effort = [r for r in rows if r["item"] == "effort"]
+    assert len(effort) == 3 * 18 and {r["screen"] for r in effort} == {"effort"}
+    values = [int(r["response"]) for r in effort]
+    assert set(values) <= set(range(1, 8)) and 3.5 < sum(values) / len(values) < 5.5
+    # effort is placed right after the clip: before the trial's ratings, confidence after
+    first = [r["item"] for r in rows if r["trial_index"] == rows[0]["trial_index"]]
+    assert first[0] == "effort" and first[-1] == "confidence", first
     done = _facelab(installed, "analyze", str(path), str(results), "--out", str(out))
     assert done.returncode == 0, done.stderr
     table = list(csv.DictReader((out / "screen_confidence.csv").open(encoding="utf-8")))
     assert {r["condition"] for r in table} == {"baseline", "standard", "emphasized"}
+    assert sum(int(r["n"]) for r in table) == 3 * 18
+    # the effort kind's own table (its summarise): quartiles per condition
+    table = list(csv.DictReader((out / "screen_effort.csv").open(encoding="utf-8")))
+    assert [r["condition"] for r in table] == ["baseline", "emphasized", "standard"]
+    assert set(table[0]) == {"condition", "n", "median", "q1", "q3", "mean", "share_hard"}
+    assert all(float(r["q1"]) <= float(r["median"]) <= float(r["q3"]) for r in table)
     assert sum(int(r["n"]) for r in table) == 3 * 18
 
 
@@ -164,16 +180,21 @@ def test_an_installed_screen_kind_runs_in_the_lab_window_and_online(
     assert done.returncode == 0, done.stderr
     lab = _facelab(installed, "run", str(path), "--participant", "P01", "--simulate",
                    "--sim-seed", "1", "--clips", str(clips), "--results", str(tmp_path / "lab"),
-                   "--windowed", "--size", "640x360")  # fmt: skip
+                   "--windowed", "--size", "640x360", "--screenshots",
+                   str(tmp_path / "shots"))  # fmt: skip
     assert lab.returncode == 0, lab.stderr
     (tsv,) = (tmp_path / "lab").rglob("*_beh.tsv")
     rows = list(csv.DictReader(tsv.open(encoding="utf-8"), delimiter="\t"))
     trials = {r["trial_index"] for r in rows}
-    confidence = [r for r in rows if r["item"] == "confidence"]
-    assert {r["trial_index"] for r in confidence} == trials and len(confidence) == len(trials)
+    for kind in ("confidence", "effort"):
+        answers = [r for r in rows if r["item"] == kind]
+        assert {r["trial_index"] for r in answers} == trials and len(answers) == len(trials)
+    shots = {p.name for p in (tmp_path / "shots").rglob("*.png")}
+    assert any("effort" in name for name in shots), shots  # the kind's own lab drawing
     online = tmp_path / "online"
     served = _facelab(installed, "serve", str(path), "--clips", str(clips), "--results",
-                      str(online), "--simulate-participants", "1")  # fmt: skip
+                      str(online), "--simulate-participants", "1", "--screenshots",
+                      str(tmp_path / "web"))  # fmt: skip
     assert served.returncode == 0, served.stderr
     (db,) = online.rglob("online.sqlite")
     exported = tmp_path / "exported"
@@ -184,7 +205,43 @@ def test_an_installed_screen_kind_runs_in_the_lab_window_and_online(
     confidence = [r for r in rows if r["item"] == "confidence"]
     assert len(confidence) == len({r["trial_index"] for r in rows})
     assert {r["response"] for r in confidence} <= {"1", "2", "3"}  # the choice's own value
+    effort = [r for r in rows if r["item"] == "effort"]  # through the kind's own plugin
+    assert len(effort) == len(confidence) and {r["response"] for r in effort} <= set("1234567")
     out = tmp_path / "analysis"
     assert _facelab(installed, "analyze", str(path), str(exported), "--out",
                     str(out)).returncode == 0  # fmt: skip
-    assert (out / "screen_confidence.csv").is_file()
+    assert (out / "screen_confidence.csv").is_file() and (out / "screen_effort.csv").is_file()
+
+
+PAYLOAD = """
+import json, sys
+from facelab.design import build_trials
+from facelab.experiment.timeline import BrowserContext, compile_timeline
+from facelab.protocol import load_protocol
+protocol = load_protocol(sys.argv[1])
+trials = build_trials(protocol, participant="P01")
+ctx = BrowserContext(lang="ja", clip_json=lambda key: {})
+added = [s.browser(ctx) for s in compile_timeline(protocol, trials, participant="P01", session=1)
+         if s.kind in ("confidence", "effort")]
+print(json.dumps(added))
+"""
+
+
+def test_the_kinds_own_plugin_declares_what_its_screen_sends(
+    installed: Path, tmp_path: Path
+) -> None:
+    """effort.js (shipped as package data) declares exactly the parameters EffortScreen sends,
+    with their types; confidence uses facelab's generic buttons plugin."""
+    from tests.test_screen_kinds import _meets, plugin_parameters
+
+    env = {**os.environ, "PYTHONPATH": str(installed)}
+    done = subprocess.run([sys.executable, "-c", PAYLOAD, str(_with_confidence(tmp_path))],
+                          env=env, capture_output=True, text=True, check=True)  # fmt: skip
+    payloads = json.loads(done.stdout)
+    assert {p["kind"] for p in payloads} == {"confidence", "effort"}
+    plugin = installed / "facelab_example_plugin" / "effort.js"
+    # a buttons kind is shown by the generic plugin (facelabPluginOf), read under its kind
+    info = plugin_parameters(plugin.read_text(encoding="utf-8"),
+                             "FacelabPlugins.confidence = FacelabButtons;")  # fmt: skip
+    problems = [p for payload in payloads for p in _meets(info, payload)]
+    assert not problems, problems[:5]
