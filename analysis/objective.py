@@ -15,7 +15,12 @@ saw in them (``face_tracking.csv``, written by the stimulus checks):
   for ``width``, over frames where both faces were found.
 
 Pure pandas/numpy on the files; :func:`objective_vs_ratings` relates them to the VAS ratings
-per condition and per (condition, stimulus) cell.
+per condition and per (condition, stimulus) cell, and :func:`objective_covariate` takes a
+tracked measure as a per-stimulus covariate of the ratings: ``rating ~ C(condition) + x +
+(1 | participant)`` per item, where x is the measure of the trial's (condition, stimulus) clip
+(centred), fitted by REML (statsmodels MixedLM). Its slope says whether, within a condition,
+stimuli closer to the reference are rated differently - what the condition means alone
+cannot tell.
 """
 
 from __future__ import annotations
@@ -29,7 +34,13 @@ from facelab.errors import AnalysisError, FormatError
 from facelab.formats import read_face_tracking_rows, read_manifest, read_track
 from facelab.protocol import Protocol
 
-__all__ = ["OBJECTIVE_COLUMNS", "objective_distances", "objective_vs_ratings"]
+__all__ = [
+    "COVARIATE_COLUMNS",
+    "OBJECTIVE_COLUMNS",
+    "objective_covariate",
+    "objective_distances",
+    "objective_vs_ratings",
+]
 
 OBJECTIVE_COLUMNS = ("stimulus_set", "stimulus", "condition", "reference", "measure", "channel",
                      "value", "unit")  # fmt: skip
@@ -156,3 +167,88 @@ def objective_vs_ratings(objective: pd.DataFrame, vas: pd.DataFrame) -> pd.DataF
     out = pd.concat([per_cond, per_stim], ignore_index=True)
     cols = ["item", "condition", "stimulus_set", "stimulus", "mean_rating", "n_ratings", *keep]
     return out[cols].round(6)
+
+
+#: the columns of :func:`objective_covariate`
+COVARIATE_COLUMNS = ("item", "measure", "estimate", "se", "ci_low", "ci_high", "p", "n_ratings",
+                     "n_participants", "n_cells", "x_sd", "procedure", "note")  # fmt: skip
+
+
+def objective_covariate(
+    objective: pd.DataFrame,
+    vas: pd.DataFrame,
+    *,
+    measures: tuple[str, ...] = ("aperture_correlation", "aperture_error"),
+) -> pd.DataFrame:
+    """Per VAS item and tracked measure: the slope of the rating on the measure of the rated
+    clip, with the condition as a factor and a random intercept per participant (REML;
+    Wald 95 % interval and p). Rows whose (condition, stimulus) clip has no measure (the
+    reference itself) are left out. A model that cannot be estimated - the measure does not
+    vary within a condition, fewer than two participants - is a row with ``procedure``
+    ``not estimable`` and the reason in ``note``. Empty without both tables."""
+    if objective.empty or vas.empty or "rating" not in vas:
+        return pd.DataFrame(columns=list(COVARIATE_COLUMNS))
+    tracked = objective[(objective["channel"] == "tracked")
+                        & objective["measure"].isin(measures)]  # fmt: skip
+    if tracked.empty:
+        return pd.DataFrame(columns=list(COVARIATE_COLUMNS))
+    wide = tracked.pivot_table(index=["stimulus_set", "stimulus", "condition"],
+                               columns="measure", values="value").reset_index()  # fmt: skip
+    rows = []
+    for item, ratings in vas.groupby("item", observed=True, sort=False):
+        data = ratings.merge(wide, on=["condition", "stimulus_set", "stimulus"], how="inner")
+        for measure in (m for m in measures if m in wide):
+            frame = data[["participant", "condition", "stimulus", "rating", measure]].dropna()
+            rows.append({"item": item, "measure": measure,
+                         **_covariate_fit(frame, measure)})  # fmt: skip
+    out = pd.DataFrame(rows, columns=list(COVARIATE_COLUMNS))
+    return out.round(6)
+
+
+def _covariate_fit(frame: pd.DataFrame, measure: str) -> dict[str, object]:
+    """The covariate's slope in ``rating ~ C(condition) + x + (1 | participant)``."""
+    import warnings
+
+    from scipy import stats
+
+    n_cells = int(frame[["condition", "stimulus"]].drop_duplicates().shape[0])
+    base = {"n_ratings": len(frame), "n_participants": int(frame["participant"].nunique()),
+            "n_cells": n_cells}  # fmt: skip
+    x = frame[measure].astype(float)
+    within = x - x.groupby(frame["condition"]).transform("mean")
+    base["x_sd"] = float(within.std(ddof=0)) if len(frame) else float("nan")
+    reason = None
+    if base["n_participants"] < 2:
+        reason = "fewer than 2 participants"
+    elif not np.isfinite(base["x_sd"]) or base["x_sd"] < 1e-9:
+        reason = (f"{measure} does not vary between the stimuli of a condition (one stimulus "
+                  "per condition, or identical clips)")  # fmt: skip
+    if reason is not None:
+        return {**base, "procedure": "not estimable", "note": reason}
+    import statsmodels.formula.api as smf
+
+    data = pd.DataFrame({"y": frame["rating"].astype(float), "x": x - x.mean(),
+                         "c": frame["condition"].astype(str),
+                         "s": frame["participant"].astype(str)})  # fmt: skip
+    formula = "y ~ C(c) + x" if data["c"].nunique() > 1 else "y ~ x"
+    fit = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # boundary fits (no participant variance) are valid
+        for method in ("lbfgs", "bfgs", "powell"):
+            try:
+                candidate = smf.mixedlm(formula, data, groups="s").fit(
+                    reml=True, method=method, maxiter=2000
+                )
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            if candidate.converged and np.isfinite(candidate.bse.get("x", np.nan)):
+                fit = candidate
+                break
+    if fit is None:
+        return {**base, "procedure": "not estimable", "note": "the mixed model did not converge"}
+    est, se = float(fit.fe_params["x"]), float(fit.bse["x"])
+    z = est / se if se > 0 else float("nan")
+    return {**base, "estimate": est, "se": se, "ci_low": est - 1.959964 * se,
+            "ci_high": est + 1.959964 * se, "p": float(2 * stats.norm.sf(abs(z))),
+            "procedure": f"mixed model {formula} + (1 | participant), REML, Wald",
+            "note": f"rating change per unit of {measure}, within conditions"}  # fmt: skip

@@ -22,7 +22,11 @@ import pandas as pd
 
 from facelab.analysis.integrity import DataCheck, added_items, added_kinds, check_data
 from facelab.analysis.load import load_results
-from facelab.analysis.objective import objective_distances, objective_vs_ratings
+from facelab.analysis.objective import (
+    objective_covariate,
+    objective_distances,
+    objective_vs_ratings,
+)
 from facelab.analysis.pilot import pilot_items, pilot_sessions
 from facelab.analysis.presentation import (
     exclude_av_offset,
@@ -196,8 +200,10 @@ def _added_screen_tables(protocol: Protocol, data: pd.DataFrame, tasks) -> None:
 
 
 def _objective_tables(protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks) -> None:
-    """``objective`` (every condition's motion against ``analysis.reference``) and
-    ``objective_vs_ratings`` (beside the ratings), with a note; nothing without a reference."""
+    """``objective`` (every condition's motion against ``analysis.reference``),
+    ``objective_vs_ratings`` (beside the ratings) and ``objective_covariate`` (the tracked
+    measures as per-stimulus covariates of the ratings), with notes; nothing without a
+    reference."""
     ref = protocol.analysis.reference
     if ref is None:
         return
@@ -220,6 +226,18 @@ def _objective_tables(protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks)
         f"objective comparison with {ref!r} (objective.csv): tracked lip aperture correlation, "
         "mean over stimuli: " + ", ".join(f"{c} {v:.2f}" for c, v in per.items())
     )
+    covariate = objective_covariate(objective, vas)
+    if covariate.empty:
+        return
+    tasks.tables["objective_covariate"] = covariate
+    for row in covariate[covariate["measure"] == "aperture_correlation"].itertuples():
+        if row.procedure == "not estimable":
+            said = f"not estimable: {row.note}"
+        else:
+            said = (f"{row.estimate:+.2f} per unit (95% CI {row.ci_low:.2f} to "
+                    f"{row.ci_high:.2f}, p = {row.p:.3g}, {row.n_cells} clips)")  # fmt: skip
+        tasks.notes.append(f"objective_covariate.csv: {row.item} rating on the clip's tracked "
+                           f"aperture correlation with {ref!r}, within conditions: {said}")
 
 
 def _behaviour_tables(

@@ -256,3 +256,9 @@ def test_a_captured_reference_is_played_tracked_and_compared(
     related = list(csv.DictReader((out / "objective_vs_ratings.csv").open(encoding="utf-8")))
     assert {r["condition"] for r in related} == {"baseline", "standard", "emphasized"}
     assert "objective comparison with 'captured'" in (out / "report.md").read_text("utf-8")
+    # the tracked measures as per-stimulus covariates: one row per item and measure, a slope
+    # or the reason it cannot be estimated (few simulated participants, two stimuli)
+    covariate = list(csv.DictReader((out / "objective_covariate.csv").open(encoding="utf-8")))
+    assert {r["measure"] for r in covariate} == {"aperture_correlation", "aperture_error"}
+    assert all(r["estimate"] or r["procedure"] == "not estimable" for r in covariate)
+    assert "objective_covariate.csv" in (out / "report.md").read_text("utf-8")
