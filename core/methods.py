@@ -114,6 +114,14 @@ class ExternalTrackParams(_Params):
         None, gt=0, le=1000, description="The timecode's frame rate of a Live Link Face "
         "capture, where the file cannot tell it (a capture shorter than a second).",
     )  # fmt: skip
+    head: bool = Field(
+        True, description="Play a Live Link Face capture's head and eye angles on the avatar's "
+        "head, neck and eye joints (a condition with a behaviour layer keeps that layer's "
+        "head); false: the head stays still.",
+    )  # fmt: skip
+    angle_unit: Literal["radians", "degrees"] = Field(
+        "radians", description="The unit of the capture's head and eye angles.",
+    )  # fmt: skip
 
 
 #: A problem found by a method's protocol check: (key path under the condition, message).

@@ -21,12 +21,13 @@ def pascal(name: str) -> str:
 
 def live_link_face_csv(
     path: Path, weights: np.ndarray, *, fps: int = 60, start_s: int = 37, timecode_fps: int = 30,
-    names: tuple[str, ...] = ARKIT_NAMES,
+    names: tuple[str, ...] = ARKIT_NAMES, angles: np.ndarray | None = None,
 ) -> Path:  # fmt: skip
     """(T, 52) weights captured at ``fps`` as Live Link Face writes them: Timecode
     HH:MM:SS:FF.fff at ``timecode_fps`` (the sub-frame after the dot: a 60 fps capture on a
     30 fps timecode alternates .000 and .500) from ``start_s`` into the hour,
-    BlendShapeCount 61, PascalCase names, nine angles."""
+    BlendShapeCount 61, PascalCase names, nine angles (``angles`` (T, 9) in :data:`ANGLES`
+    order, radians; default a small wobble)."""
     lines = [",".join(["Timecode", "BlendShapeCount", *map(pascal, names), *ANGLES])]
     for k, row in enumerate(weights):
         frames = (start_s + k / fps) * timecode_fps
@@ -35,9 +36,9 @@ def live_link_face_csv(
         sec, ff = divmod(whole, timecode_fps)
         hms = f"{sec // 3600:02d}:{sec // 60 % 60:02d}:{sec % 60:02d}"
         tc = f"{hms}:{ff:02d}.{round(sub * 1000):03d}"
-        angles = [0.01 * np.sin(k / 10)] * len(ANGLES)
+        at = [0.01 * np.sin(k / 10)] * len(ANGLES) if angles is None else angles[k]
         lines.append(",".join([tc, "61", *(f"{v:.6f}" for v in row),
-                               *(f"{a:.5f}" for a in angles)]))  # fmt: skip
+                               *(f"{a:.5f}" for a in at)]))  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path

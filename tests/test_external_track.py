@@ -15,6 +15,7 @@ from facelab.stimuli.arkit import ARKIT_NAMES, VISEME_TARGETS
 from facelab.stimuli.capture.external_tracks import detect_format, read_capture, resample
 from facelab.stimuli.methods.external_track import align_offset_s
 from tests.external_track_files import (
+    ANGLES,
     arkit_json,
     audio2face_json,
     gltf_animation,
@@ -209,6 +210,64 @@ def test_a_capture_plays_as_a_condition_validated_and_hashed(
     assert main(["validate", str(path)]) == 2
     err = capsys.readouterr()
     assert f"{capture}: unknown channel(s) JawOpenMore" in err.out + err.err
+
+
+def test_a_captures_head_and_eye_angles_turn_the_avatar(tmp_path: Path) -> None:
+    """Live Link Face's head and eye angles (radians) play as the clip's head pose in degrees:
+    the head turns the mesh; the eye angles are dropped where the capture's eyeLook shapes
+    already move the eyes; ``head: false`` and an avatar without a skeleton play none, said in
+    the clip's notes."""
+    from dataclasses import replace
+
+    from facelab.protocol import load_protocol
+    from facelab.stimuli.render.build import _blendshapes
+    from facelab.stimuli.render.clip import frame_poses
+    from facelab.stimuli.render.clipspec import ClipJob
+    from facelab.stimuli.render.prepare import tracks_for
+
+    path = _vowels_protocol(tmp_path)
+    protocol, stim, speech, avatar, bs = _standard_track(path)
+    grid = np.arange(0, bs.times[-1], 1 / 60)
+    arkit = np.zeros((len(grid), len(ARKIT_NAMES)))
+    arkit[:, ARKIT_NAMES.index("jawOpen")] = 0.3
+    angles = np.zeros((len(grid), len(ANGLES)))
+    angles[:, ANGLES.index("HeadYaw")] = 0.3 * np.sin(2 * np.pi * grid / 2.0)  # ±17.2°
+    angles[:, ANGLES.index("HeadPitch")] = 0.1  # 5.7° chin down
+    angles[:, ANGLES.index("LeftEyeYaw")] = 0.12
+    angles[:, ANGLES.index("RightEyeYaw")] = 0.08  # the eyes' mean: 0.1 rad
+    capture = tmp_path / "captures" / "vowels" / "aiueo.csv"
+    live_link_face_csv(capture, arkit, angles=angles)
+    job = ClipJob("", "vowels", stim, "captured")
+    tracks = tracks_for(stim, speech)
+    played = _blendshapes(protocol, job, speech, tracks, tmp_path, avatar)
+    assert played.poses is not None and avatar.skeleton is not None
+    yaw, pitch, _roll, eye_yaw, _eye_pitch = played.poses.T
+    want = np.degrees(0.3 * np.sin(2 * np.pi * np.clip(played.times, 0, grid[-1]) / 2.0))
+    assert np.abs(yaw - want).max() < 0.3  # within the 60 fps capture's sampling
+    assert pitch == pytest.approx(np.degrees(0.1), abs=0.01)
+    assert eye_yaw == pytest.approx(np.degrees(0.1), abs=0.01)
+    assert played.notes["angles_played"] and played.notes["angle_unit"] == "radians"
+    # the pose turns the head: at the yaw peak the mesh moves by centimetres
+    poses = frame_poses(played, fps=30, n_frames=90, pad_s=0.0)
+    assert poses is not None
+    k = int(np.argmax([abs(q.yaw) for q in poses]))
+    rest = avatar.deform(np.zeros(len(avatar.target_names), np.float32))
+    turned = avatar.deform(np.zeros(len(avatar.target_names), np.float32), pose=poses[k])
+    assert np.linalg.norm(turned - rest, axis=1).max() > 0.01
+    # eyeLook shapes moving in the capture: the eye angles would turn the eyes twice
+    arkit[:, ARKIT_NAMES.index("eyeLookInLeft")] = 0.2 * (grid > 1.0)
+    live_link_face_csv(capture, arkit, angles=angles)
+    both = _blendshapes(protocol, job, speech, tracks, tmp_path, avatar)
+    assert "eyeLookInLeft" in avatar.targets
+    assert np.all(both.poses[:, 3:] == 0) and "eyeLook" in both.notes["eye_angles"]
+    assert np.abs(both.poses[:, 0] - yaw).max() < 1e-9  # the head still turns
+    # head: false, and an avatar without a skeleton: no pose, and the notes say why
+    off = load_protocol(_vowels_protocol(tmp_path, offset="0, head: false"))
+    still = _blendshapes(off, job, speech, tracks, tmp_path, avatar)
+    assert still.poses is None and still.notes["angles_not_played"] == "head: false"
+    boneless = replace(avatar, skeleton=None)
+    flat = _blendshapes(protocol, job, speech, tracks, tmp_path, boneless)
+    assert flat.poses is None and flat.notes["angles_not_played"] == "the avatar has no skeleton"
 
 
 @pytest.mark.slow

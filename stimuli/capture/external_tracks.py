@@ -5,8 +5,8 @@ Formats (``format: auto`` tells them apart by extension and content):
 
 * ``live_link_face`` - Live Link Face CSV (Epic's iPhone app): ``Timecode`` as
   ``HH:MM:SS:FF`` or ``HH:MM:SS:FF.mmm`` (frame and fraction), ``BlendShapeCount``, the 52
-  ARKit names in PascalCase, then head and eye angles (``HeadYaw`` …, read and reported, not
-  played: facelab's head motion comes from the behaviour layer). ``FF.fff`` is the timecode
+  ARKit names in PascalCase, then head and eye angles (``HeadYaw`` …, kept in ``angles``:
+  ``method: external_track`` plays them as the clip's head pose). ``FF.fff`` is the timecode
   frame and its fraction (a 60 fps capture on a 30 fps timecode: .000 and .500); the
   timecode's rate is read from the frame number before a second rolls over, or given as
   ``fps`` (needed for a capture shorter than a second); the capture's own rate follows;

@@ -14,7 +14,9 @@ clip's spec hash.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +29,31 @@ from facelab.stimuli.capture.external_tracks import CapturedTrack, read_capture,
 from facelab.stimuli.methods.registry import Method, Playback, register
 from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
 
-__all__ = ["ExternalTrack", "align_offset_s", "track_file"]
+__all__ = ["ExternalTrack", "align_offset_s", "capture_poses", "track_file"]
+
+#: a capture's angle columns (lower case) -> HeadPose field (eye angles: both eyes' mean)
+_POSE_COLUMNS = {"headyaw": 0, "headpitch": 1, "headroll": 2, "lefteyeyaw": 3,
+                 "righteyeyaw": 3, "lefteyepitch": 4, "righteyepitch": 4}  # fmt: skip
+
+
+def capture_poses(
+    track: CapturedTrack, times: np.ndarray, *, offset_s: float, unit: str
+) -> np.ndarray:
+    """(len(times), 5) head yaw, pitch, roll and eye yaw, pitch in degrees from a capture's
+    angle columns at ``times`` (the capture shifted by ``offset_s``, held at its ends); eye
+    angles are the two eyes' mean. The capture's signs are taken as facelab's (see
+    :mod:`facelab.stimuli.avatar.rig`)."""
+    t = np.asarray(times, float) - offset_s
+    out = np.zeros((len(t), 5))
+    counts = np.zeros(5)
+    for name, values in track.angles.items():
+        j = _POSE_COLUMNS.get(name.lower())
+        if j is None:
+            continue
+        col = np.interp(t, track.times, np.asarray(values, float))
+        out[:, j] += np.degrees(col) if unit == "radians" else col
+        counts[j] += 1
+    return out / np.maximum(counts, 1)
 
 _SUFFIXES = (".csv", ".json", ".glb", ".gltf")
 #: the loudness envelope's rate for alignment (Hz) and the largest lag searched (s)
@@ -76,6 +102,18 @@ def align_offset_s(
     return best / _ENV_RATE, best_r
 
 
+@functools.lru_cache(maxsize=512)
+def _read_once(
+    path: str, mtime_ns: int, size: int, fmt: str, fps: float | None
+) -> CapturedTrack | None:
+    """A track file read once per version of its bytes (the avatar audit and playability ask
+    for every file of the folder per condition); None when it does not read."""
+    try:
+        return read_capture(Path(path), format=fmt, fps=fps)
+    except FacelabError:
+        return None
+
+
 class ExternalTrack(Method[ExternalTrackParams]):
     """A track made elsewhere, one file per stimulus (see the module docstring)."""
 
@@ -99,9 +137,36 @@ class ExternalTrack(Method[ExternalTrackParams]):
         end = float(track.times[-1]) + offset
         if end < float(times[-1]) - 0.1:
             notes["held_last_frame_s"] = round(float(times[-1]) - end, 3)
-        if track.angles:
-            notes["angles_not_played"] = sorted(track.angles)
-        return BlendshapeTrack(times, weights, track.names, notes)
+        poses = None
+        if track.angles and params.head:
+            poses = capture_poses(track, times, offset_s=offset, unit=params.angle_unit)
+            notes["angles_played"] = sorted(n for n in track.angles if n.lower() in _POSE_COLUMNS)
+            notes["angle_unit"] = params.angle_unit
+        elif track.angles:
+            notes["angles_not_played"] = "head: false"
+        return BlendshapeTrack(times, weights, track.names, notes, poses)
+
+    def drive_on(self, avatar: Avatar, inp: DriveInput, params: ExternalTrackParams
+                 ) -> BlendshapeTrack:  # fmt: skip
+        """The capture on ``avatar``: its angles turn the head only where the avatar has a
+        skeleton, and the eyes only where the capture's eyeLook shapes do not (both say where
+        the eyes look: played twice they would turn twice as far)."""
+        bs = self.drive(inp, params)
+        if bs.poses is None:
+            return bs
+        notes = dict(bs.notes)
+        if avatar.skeleton is None:
+            notes.pop("angles_played", None)
+            notes["angles_not_played"] = "the avatar has no skeleton"
+            return replace(bs, notes=notes, poses=None)
+        looks = [k for k, n in enumerate(bs.names) if n.startswith("eyeLook")
+                 and n in avatar.targets and np.ptp(bs.weights[:, k]) > 0.02]  # fmt: skip
+        if not looks:
+            return bs
+        poses = bs.poses.copy()
+        poses[:, 3:] = 0.0
+        notes["eye_angles"] = "not played: the capture's eyeLook shapes move the eyes"
+        return replace(bs, notes=notes, poses=poses)
 
     def _offset_s(self, params: ExternalTrackParams, path: Path, inp: DriveInput,
                   notes: dict) -> float:  # fmt: skip
@@ -164,10 +229,11 @@ class ExternalTrack(Method[ExternalTrackParams]):
         if folder.is_dir():
             for path in sorted(folder.glob("*/*")):
                 if path.suffix.lower() in _SUFFIXES:
-                    try:
-                        out.append(read_capture(path, format=params.format, fps=params.fps))
-                    except FacelabError:
-                        continue
+                    stat = path.stat()
+                    track = _read_once(str(path), stat.st_mtime_ns, stat.st_size,
+                                       params.format, params.fps)  # fmt: skip
+                    if track is not None:
+                        out.append(track)
         return out
 
     def driven_targets(self, avatar: Avatar, params: ExternalTrackParams, *,

@@ -31,6 +31,10 @@ class BlendshapeTrack:
     weights: np.ndarray
     names: tuple[str, ...]
     notes: dict = field(default_factory=dict, compare=False)  # facts for the clip's JSON
+    #: head and eye angles (T, 5) in degrees on ``times``: yaw, pitch, roll, eye yaw, eye pitch
+    #: (signs as :mod:`facelab.stimuli.avatar.rig`), for a method whose source turns the head
+    #: (a capture); None: the head is left to the behaviour layer
+    poses: np.ndarray | None = field(default=None, compare=False)
 
     def column(self, name: str) -> np.ndarray:
         return self.weights[:, self.names.index(name)]

@@ -36,7 +36,13 @@ from facelab.stimuli.avatar import Avatar
 from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, clip_seed
 from facelab.stimuli.methods import DriveInput, get
 from facelab.stimuli.methods.types import BlendshapeTrack
-from facelab.stimuli.render.clip import frame_weights, padded_audio, sha256_file, weights_at
+from facelab.stimuli.render.clip import (
+    frame_poses,
+    frame_weights,
+    padded_audio,
+    sha256_file,
+    weights_at,
+)
 from facelab.stimuli.render.clipspec import (
     CLIP_COLUMNS,
     RENDER_VERSION,
@@ -76,6 +82,8 @@ def _track_hash(track: BlendshapeTrack) -> str:
     h.update(np.ascontiguousarray(track.times, np.float64).tobytes())
     h.update(np.ascontiguousarray(track.weights, np.float64).tobytes())
     h.update("|".join(track.names).encode())
+    if track.poses is not None:
+        h.update(np.ascontiguousarray(track.poses, np.float64).tobytes())
     return h.hexdigest()
 
 
@@ -221,10 +229,17 @@ def build_clips(
             spec = clip_spec_hash(protocol, job, base_dir=base_dir)
             mp4 = out / f"{job.clip_id}.mp4"
             meta = out / f"{job.clip_id}.json"
+            # the head: the behaviour layer's, else the method's own (a capture's angles)
+            poses = None if behaviour is None else behaviour.poses
+            if poses is None and bs.poses is not None:
+                poses = frame_poses(bs, fps=fps, n_frames=len(weights),
+                                    pad_s=protocol.rendering.pad_s)  # fmt: skip
+            elif bs.poses is not None:
+                bs.notes["angles_not_played"] = "the behaviour layer turns the head"
             track, drawn, poses = clip_track(
                 clip_id=job.clip_id, avatar=avatar, avatar_sha256=avatar_ref.sha256,
                 weights=weights if behaviour is None else behaviour.weights,
-                poses=None if behaviour is None else behaviour.poses, fps=fps,
+                poses=poses, fps=fps,
                 sample_rate=audio.sample_rate, speech_start_s=protocol.rendering.pad_s,
             )  # fmt: skip
             track_file = track_path(out, job.clip_id)

@@ -25,6 +25,7 @@ import numpy as np
 from facelab.errors import StageError
 from facelab.hashing import sha256_file
 from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.avatar.rig import HeadPose
 from facelab.stimuli.methods.types import BlendshapeTrack
 from facelab.stimuli.speech.audio import Speech, write_wav
 
@@ -69,6 +70,18 @@ def frame_weights(
     out[0] = 0.0
     out[-1] = 0.0
     return out
+
+
+def frame_poses(
+    track: BlendshapeTrack, *, fps: int, n_frames: int, pad_s: float
+) -> list[HeadPose] | None:
+    """The track's head and eye angles at frames k / fps (held at the ends; None without
+    poses)."""
+    if track.poses is None:
+        return None
+    t = np.arange(n_frames) / fps - pad_s
+    cols = [np.interp(t, track.times, track.poses[:, j]) for j in range(5)]
+    return [HeadPose(*(float(c[k]) for c in cols)) for k in range(n_frames)]
 
 
 def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarray:
