@@ -78,8 +78,7 @@ def run_demo(
         f"{time.perf_counter() - t:.1f} s -> {clips / 'clips.csv'}"
     )
     run_stimulus_checks(protocol, protocol_path=protocol_path, clips_dir=clips, accept=accept,
-                        say=lambda s: say("      " + s), sheets=True,
-                        settings=settings)  # fmt: skip
+                        say=lambda s: say("      " + s), sheets=True)  # fmt: skip
 
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%d-%H%M%S")
     run_dir = out / f"run-{stamp}"

@@ -22,6 +22,7 @@ from tests.external_track_files import (
     live_link_face_csv,
     viseme_csv,
 )
+from tests.protocol_edits import kato_vowels_only
 
 
 def _truth(fps: float, seconds: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
@@ -135,13 +136,7 @@ CAPTURED = """  - id: captured
 def _vowels_protocol(folder: Path, *, offset: str = "0") -> Path:
     """kato2021, vowels only, with a fourth condition playing Live Link Face captures."""
     text = KATO.read_text(encoding="utf-8")
-    text = text[: text.index("  - id: sentences\n    stimulus_set: sentences")] + text[
-        text.index("items:"):
-    ]  # fmt: skip
-    text = text.replace(
-        "practice: {stimulus_set: sentences, stimulus: passage, condition: standard}",
-        "practice: {stimulus_set: vowels, stimulus: aiueo, condition: standard}",
-    )
+    text = kato_vowels_only(text)
     text = text.replace("\nstimulus_sets:", CAPTURED.replace("OFFSET", offset) + "\nstimulus_sets:")
     path = folder / "captured.yaml"
     path.write_text(text, encoding="utf-8")

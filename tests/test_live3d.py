@@ -10,7 +10,6 @@ from __future__ import annotations
 import base64
 import io
 import json
-import re
 import shutil
 import time
 from dataclasses import replace
@@ -34,6 +33,7 @@ from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.avatar.gltf import live_glb
 from facelab.stimuli.avatar.samples import write_sample
 from facelab.stimuli.render.scene import camera_json, framing, settings_for
+from tests.protocol_edits import kato_short
 
 ROOT = Path(__file__).resolve().parents[1]
 KATO = ROOT / "protocols" / "kato2021.yaml"
@@ -41,10 +41,7 @@ KATO = ROOT / "protocols" / "kato2021.yaml"
 
 def _short(text: str) -> str:
     """kato2021 with one set per block and short sentences (the online tests' study)."""
-    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
-    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
-    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
-    return text.replace("    sets: 2\n", "    sets: 1\n")
+    return kato_short(text)
 
 
 def _load(text: str, folder: Path, name: str = "p.yaml") -> Protocol:

@@ -43,6 +43,7 @@ from facelab.experiment.online.middleware import MAX_BODY_BYTES
 from facelab.experiment.online.serve import BackgroundServer, free_port, prepare_server
 from facelab.protocol import load_protocol, protocol_hash
 from facelab.sessionlog import SessionLog
+from tests.protocol_edits import kato_short
 from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol
 
 pytestmark = pytest.mark.slow
@@ -55,10 +56,7 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The paper's design, one set per block, 1-2 s clips at 320x180, rendered once."""
     root = tmp_path_factory.mktemp("online")
     text = (ROOT / "protocols" / "kato2021.yaml").read_text(encoding="utf-8")
-    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
-    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
-    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
-    text = text.replace("    sets: 2\n", "    sets: 1\n")
+    text = kato_short(text)
     (root / "short.yaml").write_text(text, encoding="utf-8")
     args = ["render", str(root / "short.yaml"), "--out", str(root / "clips")]
     assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.protocol_edits import kato_short, kato_vowels_only
+
 ROOT = Path(__file__).resolve().parents[1]
 FACELAB = Path(sys.executable).parent / "facelab"
 
@@ -44,13 +46,7 @@ def _facelab(site: Path | list[Path], *args: str) -> subprocess.CompletedProcess
 
 def _protocol(folder: Path, gain: float) -> Path:
     text = (ROOT / "protocols" / "kato2021.yaml").read_text(encoding="utf-8")
-    text = text[: text.index("  - id: sentences\n    stimulus_set: sentences")] + text[
-        text.index("items:"):
-    ]  # fmt: skip
-    text = text.replace(
-        "practice: {stimulus_set: sentences, stimulus: passage, condition: standard}",
-        "practice: {stimulus_set: vowels, stimulus: aiueo, condition: standard}",
-    )
+    text = kato_vowels_only(text)
     jaw = (f"  - id: jaw\n    label: {{ja: 顎のみ, en: Jaw only}}\n    method: jaw_only\n"
            f"    params: {{gain: {gain}}}\n")  # fmt: skip
     text = text.replace("\nstimulus_sets:", jaw + "\nstimulus_sets:")
@@ -114,12 +110,7 @@ def _with_confidence(folder: Path, *, options: str = "{p_sure: 0.7}", short: boo
                         f"options: {options}}}, {{kind: effort, options: {{mean: 4.5}}}}]\n",
                         1)  # fmt: skip
     if short:
-        import re
-
-        text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
-        text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
-        text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
-        text = text.replace("    sets: 2\n", "    sets: 1\n")
+        text = kato_short(text)
     path = folder / "confidence.yaml"
     path.write_text(text, encoding="utf-8")
     return path

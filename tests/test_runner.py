@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -19,6 +18,7 @@ import pytest
 from facelab.design import build_trials
 from facelab.experiment.cli import main
 from facelab.protocol import load_protocol
+from tests.protocol_edits import kato_short
 
 pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))
@@ -33,9 +33,7 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     text = (Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml").read_text(
         encoding="utf-8"
     )
-    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
-    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
-    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
+    text = kato_short(text, one_set=False)
     (root / "short.yaml").write_text(text, encoding="utf-8")
     assert (
         main(

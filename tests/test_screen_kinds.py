@@ -43,6 +43,7 @@ from facelab.experiment.walk import walk
 from facelab.protocol import load_protocol
 from facelab.resources import protocol_path, shipped_protocols
 from facelab.sessionlog import SessionContext, SessionLog
+from tests.protocol_edits import kato_short
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGINS = ROOT / "experiment" / "online" / "web" / "static" / "plugins.js"
@@ -281,7 +282,6 @@ def test_a_toy_screen_kind_runs_in_the_lab_walk_online_and_meets_its_plugin(
 def test_a_toy_screen_kind_is_answered_in_chromium(toy_kind: type[Screen], tmp_path: Path) -> None:
     """The browser part: the session page loads the kind's plugin, a simulated participant in
     headless Chromium clicks its buttons, and every answer is stored as the lab would log it."""
-    import re
 
     from sqlalchemy import select
     from sqlalchemy.orm import Session
@@ -292,10 +292,7 @@ def test_a_toy_screen_kind_is_answered_in_chromium(toy_kind: type[Screen], tmp_p
     from facelab.experiment.online.serve import BackgroundServer, prepare_server
 
     text = protocol_path("kato2021").read_text(encoding="utf-8")
-    text = text.replace("        text: あ。い。う。え。お。", "        text: あ。い。")
-    text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
-    text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
-    text = text.replace("    sets: 2\n", "    sets: 1\n")
+    text = kato_short(text)
     path = tmp_path / "short.yaml"
     path.write_text(text, encoding="utf-8")
     argv = ["render", str(path), "--out", str(tmp_path / "clips"), "--size", "160x90"]

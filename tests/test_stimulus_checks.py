@@ -30,6 +30,7 @@ from facelab.stimuli.checks.face_tracker import ClipTracking, tracker_python
 from facelab.stimuli.checks.rows import CHECK_COLUMNS
 from facelab.stimuli.methods import get
 from facelab.stimuli.methods.vowel_blend import PRESET_NAMES, vowel_shape_weights
+from tests.protocol_edits import kato_vowels_only
 
 KATO = protocol_path("kato2021")
 
@@ -186,13 +187,7 @@ def test_identical_conditions_are_refused_with_the_reason_then_accepted_by_name(
     text = KATO.read_text(encoding="utf-8").replace(
         "params: {z: emphasized, gain: 1.0}", "params: {z: standard, gain: 1.0}"
     )
-    text = text[: text.index("  - id: sentences\n    stimulus_set: sentences")] + text[
-        text.index("items:") :
-    ]  # vowels only: a short render
-    text = text.replace(
-        "practice: {stimulus_set: sentences, stimulus: passage, condition: standard}",
-        "practice: {stimulus_set: vowels, stimulus: aiueo, condition: standard}",
-    )
+    text = kato_vowels_only(text)  # a short render
     # kato2021's own rule (emphasized あ 1.3x standard) cannot hold for equal conditions
     text = text.replace("at_least: 1.3}", "at_least: 1.0}")
     proto = tmp_path / "same.yaml"

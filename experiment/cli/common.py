@@ -323,7 +323,7 @@ def say_checks(report, *, say: Callable[[str], None] = print) -> None:
 
 def run_stimulus_checks(
     protocol, *, protocol_path: Path, clips_dir: Path, accept: Sequence[str],
-    say: Callable[[str], None] = print, sheets: bool = False, settings=None,
+    say: Callable[[str], None] = print, sheets: bool = False,
 ):  # fmt: skip
     """The stimulus checks of rendered clips (``facelab check`` and the end of ``render``):
     writes ``stimulus_checks.csv``, marks ``clips.csv``, prints the summary and every
@@ -338,8 +338,7 @@ def run_stimulus_checks(
     record_in_manifest(clips_dir, report)
     say_checks(report, say=say)
     if sheets:
-        drawn = contact_sheets(protocol, protocol_path=protocol_path, out=clips_dir,
-                               settings=settings)  # fmt: skip
+        drawn = contact_sheets(protocol, protocol_path=protocol_path, out=clips_dir)
         report.notes += [f"contact sheet: {p}" for p in drawn]
         say("contact sheets (marked with the checks): " + ", ".join(str(p) for p in drawn))
     if report.failures:

@@ -84,8 +84,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         f"{out / 'clips.csv'} ({time.perf_counter() - t0:.1f} s)"
     )
     run_stimulus_checks(protocol, protocol_path=Path(args.protocol), clips_dir=out,
-                        accept=args.accept_check, sheets=args.contact_sheet,
-                        settings=settings)  # fmt: skip
+                        accept=args.accept_check, sheets=args.contact_sheet)  # fmt: skip
     return 0
 
 

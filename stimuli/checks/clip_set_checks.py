@@ -16,7 +16,6 @@ A failure is an error (exit 2) unless its check is accepted by name (``--accept-
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -87,18 +86,8 @@ def _kept_from_before(path: Path, clips: set[str]) -> list[CheckRow]:
     expression rendered into the same folder keeps its checks, as clips.csv keeps its rows)."""
     if not path.is_file():
         return []
-    kept = []
-    for r in read_checks(path):
-        if not r.get("clip") or r["clip"] in clips:
-            continue
-        value = float(r["value"]) if r.get("value") else math.nan
-        passed = {"true": True, "false": False}.get(r.get("passed", ""))
-        kept.append(CheckRow(
-            r["clip"], r.get("condition", ""), r["check"], r["measure"], value,
-            r.get("threshold", ""), passed, r.get("note", ""), r.get("severity") or "error",
-            r.get("accepted") == "true",
-        ))  # fmt: skip
-    return kept
+    return [CheckRow.from_dict(r) for r in read_checks(path)
+            if r.get("clip") and r["clip"] not in clips]  # fmt: skip
 
 
 def check_clip_set(

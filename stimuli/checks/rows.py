@@ -11,6 +11,7 @@ note says why); ``threshold`` says the comparison in words, e.g. ``>= 0.5``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 from facelab.formats import STIMULUS_CHECK_COLUMNS
@@ -40,6 +41,16 @@ class CheckRow:
 
     def accept(self) -> CheckRow:
         return replace(self, accepted=True) if self.passed is False else self
+
+    @classmethod
+    def from_dict(cls, r: Mapping[str, str]) -> CheckRow:
+        """The row :meth:`as_dict` wrote (read back from ``stimulus_checks.csv``); a value
+        that is not a number raises ValueError."""
+        value = float(r["value"]) if r.get("value") else math.nan
+        passed = {"true": True, "false": False}.get(r.get("passed") or "")
+        return cls(r["clip"], r.get("condition", ""), r["check"], r["measure"], value,
+                   r.get("threshold", ""), passed, r.get("note", ""),
+                   r.get("severity") or "error", r.get("accepted") == "true")  # fmt: skip
 
     def as_dict(self) -> dict:
         value = "" if self.value is None or math.isnan(self.value) else round(self.value, 6)

@@ -378,17 +378,10 @@ def _earlier(clips_dir: Path, key: str) -> list[CheckRow] | None:
         rows = read_checks(clips_dir / CHECKS_NAME)
     except (OSError, ValueError):
         return None
-    out = []
-    for r in rows:
-        try:
-            value = float(r["value"]) if r["value"] != "" else math.nan
-        except ValueError:
-            return None
-        passed = None if r["passed"] == "" else r["passed"] == "true"
-        out.append(CheckRow(r["clip"], r["condition"], r["check"], r["measure"], value,
-                            r["threshold"], passed, r["note"], r["severity"],
-                            r.get("accepted") == "true"))  # fmt: skip
-    return out
+    try:
+        return [CheckRow.from_dict(r) for r in rows]
+    except (KeyError, ValueError):  # an edited or older file: check again
+        return None
 
 
 def _explanations(clips_dir: Path, clips: Sequence[dict]) -> dict[tuple[str, str], str]:

@@ -23,7 +23,7 @@ from facelab.stimuli.render.build import _blendshapes, vowel_peaks
 from facelab.stimuli.render.clip import weights_at
 from facelab.stimuli.render.clipspec import plan
 from facelab.stimuli.render.prepare import speech_for, tracks_for
-from facelab.stimuli.render.renderer import Renderer, RenderSettings
+from facelab.stimuli.render.renderer import Renderer
 from facelab.stimuli.render.scene import face_closeup, load_avatar
 
 __all__ = [
@@ -116,14 +116,11 @@ def sheet_marks(
     return marks
 
 
-def contact_sheets(
-    protocol: Protocol, *, protocol_path: Path, out: Path, settings: RenderSettings | None = None
-) -> list[Path]:
+def contact_sheets(protocol: Protocol, *, protocol_path: Path, out: Path) -> list[Path]:
     """One PNG per condition: the face at the centre of each vowel of the vowel stimulus; a
     protocol without a vowel stimulus gets one PNG of every condition at its strongest frame
     (``contact_conditions.png``). Marked with the checks when ``out`` holds
-    ``stimulus_checks.csv``. ``settings`` is accepted for the caller's render settings; the
-    sheets frame the face themselves."""
+    ``stimulus_checks.csv``. The sheets frame the face themselves (any render size)."""
     from PIL import Image, ImageDraw
 
     base_dir = protocol_path.parent
