@@ -124,9 +124,11 @@ def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
             templates = build_pylipsync_templates(
                 Path(tmp), sentences=train_sentences[:20], variants=TRAIN_VARIANTS
             )
+        # quick: pylipsync (pure Python, ~4 s an utterance) on a few utterances only
         result = evaluate(
-            model, sentences=sentences, variants=variants, pylipsync_templates=templates
-        )
+            model, sentences=sentences, variants=variants, pylipsync_templates=templates,
+            pylipsync_max=2 if quick else None,
+        )  # fmt: skip
         result["per_voice"] = per_voice(
             model,
             sentences=sentences[:3] if quick else sentences[:8],
@@ -134,6 +136,7 @@ def bench_visemes(*, runs: int = 5, quick: bool = False) -> dict:
             if quick
             else HELDOUT_VARIANTS + FAR_VARIANTS + ESPEAK_HELDOUT,
             pylipsync_templates=templates,
+            pylipsync_max=1 if quick else None,
         )
     if templates is None:
         result["pylipsync"] = "not installed (pip install 'facelab[bench]')"

@@ -177,11 +177,12 @@ def test_bench_visemes_runs_and_reports_every_figure() -> None:
     assert ours["streaming"]["max_abs_difference_to_offline"] < 1e-9
     assert ours["streaming"]["algorithmic_latency_ms"] <= 40
     assert "vowel_accuracy_cores" in out["pylipsync"]
+    assert out["pylipsync"]["utterances"] == 2  # quick: pylipsync on two utterances
     voices = out["per_voice"]
     assert len(voices) == 3 and any(k.startswith("espeak") for k in voices)
     for figures in voices.values():
         assert figures["audio_only_uncalibrated"] >= 0.85
-        assert 0 <= figures["pylipsync_same_audio"] <= 1
+        assert 0 <= figures["pylipsync_same_audio"] <= 1 and figures["pylipsync_utterances"] == 1
 
 
 @pytest.mark.parametrize("rate", [8_000, 11_025, 22_050, 44_100])

@@ -496,12 +496,14 @@ def per_voice(
     sentences: Sequence[str],
     variants: Sequence[Voice],
     pylipsync_templates: Path | None = None,
+    pylipsync_max: int | None = None,
 ) -> dict:
     """Per voice: vowel accuracy (all frames) audio-only uncalibrated (warp 1, the default),
     with the per-utterance warp search (``warp="auto"``), after ``calibrate()`` on that voice's
     あ。い。う。え。お。, and from ``align()`` with the text, plus the median vowel-onset error of
     the alignment (ms, vowels matched by :func:`vowel_onset_errors`); with templates, also
-    pylipsync's accuracy on the same audio."""
+    pylipsync's accuracy on the same audio (on the first ``pylipsync_max`` sentences: it is
+    slow; ``pylipsync_utterances`` says on how many)."""
     out = {}
     lipsync = _pylipsync(pylipsync_templates) if pylipsync_templates else None
     for variant in variants:
@@ -517,7 +519,7 @@ def per_voice(
         }
         onsets: list[float] = []
         failures: list[str] = []
-        for text in sentences:
+        for k, text in enumerate(sentences):
             speech = speak(text, variant)
             track = analyze(
                 speech.samples, sample_rate=speech.sample_rate, model=model, warp=1.0
@@ -527,7 +529,7 @@ def per_voice(
                 speech.samples, sample_rate=speech.sample_rate, model=model, warp="auto"
             ).compensated()
             score_track(evs["audio_auto"], t1, t1.times, speech.phones)
-            if lipsync is not None:
+            if lipsync is not None and (pylipsync_max is None or k < pylipsync_max):
                 times, vowels = _pylipsync_vowels(lipsync, speech)
                 score_track(evs["pylipsync"], vowels, times, speech.phones)
             if tuned is not None:
@@ -554,7 +556,10 @@ def per_voice(
             ),
             "aligned_with_text": round(evs["aligned"].all_accuracy, 4),
             **(
-                {"pylipsync_same_audio": round(evs["pylipsync"].all_accuracy, 4)}
+                {
+                    "pylipsync_same_audio": round(evs["pylipsync"].all_accuracy, 4),
+                    "pylipsync_utterances": min(len(sentences), pylipsync_max or len(sentences)),
+                }
                 if lipsync is not None
                 else {}
             ),
@@ -591,14 +596,17 @@ def evaluate(
     sentences: Sequence[str],
     variants: Sequence[Variant],
     pylipsync_templates: Path | None = None,
+    pylipsync_max: int | None = None,
 ) -> dict:
-    """Benchmark numbers (see ``facelab bench visemes``)."""
+    """Benchmark numbers (see ``facelab bench visemes``); pylipsync scored on the first
+    ``pylipsync_max`` utterances (all when None)."""
     ours = Evaluation(np.zeros((5, 5), dtype=int))
     theirs = Evaluation(np.zeros((5, 5), dtype=int)) if pylipsync_templates else None
     audio_s = 0.0
     analyse_s = 0.0
     lags = []
     analyzer = _pylipsync(pylipsync_templates) if pylipsync_templates else None
+    theirs_n = 0
     for text in sentences:
         for variant in variants:
             speech = speak(text, variant)
@@ -609,9 +617,14 @@ def evaluate(
             comp = track.compensated()
             score_track(ours, comp, comp.times, speech.phones)
             lags.append(_vowel_energy_lag(comp, speech.phones))
-            if analyzer is not None and theirs is not None:
+            if (
+                analyzer is not None
+                and theirs is not None
+                and (pylipsync_max is None or theirs_n < pylipsync_max)
+            ):
                 times, vowels = _pylipsync_vowels(analyzer, speech)
                 score_track(theirs, vowels, times, speech.phones)
+                theirs_n += 1
     stream = StreamingAnalyzer(sample_rate=48_000, model=model)
     out = {
         "sentences": len(sentences),
@@ -640,6 +653,7 @@ def evaluate(
             "templates": "built by pylipsync from the same training audio's vowel segments",
             "vowel_accuracy_all_frames": round(theirs.all_accuracy, 4),
             "vowel_accuracy_cores": round(theirs.core_accuracy, 4),
+            "utterances": theirs_n,
             "confusion_rows_true_cols_pred": {
                 "labels": list(VOWELS),
                 "counts": theirs.confusion.tolist(),
