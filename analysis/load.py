@@ -46,20 +46,38 @@ def _read_rows(path: Path) -> list[dict]:
     _check_identity(rows, path)
     for row in rows:
         row["source"] = source
+    # the session file beside the log must read (an export cut short leaves it empty)
+    sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
+    meta = _session_file(sidecar) if sidecar.exists() else None
     # provenance: on every row since facelab 0.2; older logs take it from the session file
-    if any(r["simulated"] is None or r["protocol_sha256"] is None for r in rows):
-        sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
-        if sidecar.exists():
-            try:
-                meta = json.loads(sidecar.read_text(encoding="utf-8"))
-            except json.JSONDecodeError as exc:
-                raise AnalysisError(f"{sidecar}: not valid JSON: {exc}") from None
-            for row in rows:
-                if row["simulated"] is None and "simulated" in meta:
-                    row["simulated"] = bool(meta["simulated"])
-                if row["protocol_sha256"] is None and meta.get("protocol_sha256"):
-                    row["protocol_sha256"] = meta["protocol_sha256"]
+    if meta is not None and any(
+        r["simulated"] is None or r["protocol_sha256"] is None for r in rows
+    ):
+        for row in rows:
+            if row["simulated"] is None and "simulated" in meta:
+                row["simulated"] = bool(meta["simulated"])
+            if row["protocol_sha256"] is None and meta.get("protocol_sha256"):
+                row["protocol_sha256"] = meta["protocol_sha256"]
     return rows
+
+
+def _session_file(path: Path) -> dict:
+    """A session's provenance file, refused in words when it is empty or does not read."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        raise AnalysisError(f"{path}: the session file cannot be read as UTF-8 text; "
+                            "export or copy the session again") from None  # fmt: skip
+    if not text.strip():
+        raise AnalysisError(f"{path}: the session file is empty (an export or copy cut "
+                            "short?); export the session again before analysing")  # fmt: skip
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise AnalysisError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    if not isinstance(meta, dict):
+        raise AnalysisError(f"{path}: expected a JSON object (the session's provenance)")
+    return meta
 
 
 #: what names a response: every row has these (the others may be n/a)

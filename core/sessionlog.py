@@ -252,10 +252,11 @@ def _signals_held() -> Iterator[None]:
 
 
 def _append_line(path: Path, line: str) -> None:
+    data = line.encode("utf-8")  # first: a line that cannot be written leaves the file as it was
     created = not path.exists()
     with _signals_held():
-        with open(path, "a", encoding="utf-8", newline="") as fh:
-            fh.write(line)
+        with open(path, "ab") as fh:
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         if created:
@@ -268,8 +269,9 @@ def append_jsonl(path: Path, record: Mapping[str, Any]) -> None:
 
 
 def _write_new(path: Path, text: str) -> None:
-    with open(path, "x", encoding="utf-8") as fh:  # 'x': never overwrite
-        fh.write(text)
+    data = text.encode("utf-8")  # first: text that cannot be written leaves no empty file
+    with open(path, "xb") as fh:  # 'x': never overwrite
+        fh.write(data)
         fh.flush()
         os.fsync(fh.fileno())
 

@@ -125,6 +125,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         digest = protocol_hash(args.protocol)
     engine = open_engine(args.db)
     notes: list[str] = []
+    quarantine: list[str] = []
     paths = export_sessions(
         engine,
         results=results,
@@ -132,12 +133,19 @@ def _cmd_export(args: argparse.Namespace) -> int:
         protocol=protocol,
         protocol_sha256=digest,
         notes=notes,
+        quarantine=quarantine,
     )
     print(f"exported {len(paths)} online sessions into {results}")
     for p in paths:
         print(f"  {p}")
     for note in notes:
         print(f"  note: {note}")
+    for line in quarantine:
+        print(f"  quarantined: {line}", file=sys.stderr)
+    if quarantine:
+        print(f"facelab export: {len(quarantine)} session(s) quarantined (above); every other "
+              "session was exported (exit 3)", file=sys.stderr)  # fmt: skip
+        return 3
     return 0
 
 

@@ -3,9 +3,10 @@ unknown fields refused)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+import re
+from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
 __all__ = ["AnswerIn", "EventIn", "PlaybackIn"]
 
@@ -14,10 +15,64 @@ ItemId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
 Iso = Annotated[str, StringConstraints(max_length=40)]
 
 
+#: what no text from a browser may hold: lone UTF-16 surrogates (valid JSON escapes, but no
+#: UTF-8 file can hold them - one stopped every later export) and control characters (a tab
+#: or newline would break a TSV row). Free text (an event's detail) may hold tab and newline.
+_BAD_TEXT = re.compile(r"[\ud800-\udfff\x00-\x1f\x7f-\x9f]")
+_BAD_FREE_TEXT = re.compile(r"[\ud800-\udfff\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
+#: bounds of free JSON (an event's detail): nesting, keys, strings and items per container
+MAX_DEPTH, MAX_KEY, MAX_TEXT, MAX_ITEMS = 4, 64, 2000, 200
+
+
+def text_problem(value: Any, *, where: str = "", free: bool = False, depth: int = 0) -> str | None:
+    """The first string in a JSON value (keys too) that holds what no text from a browser
+    may hold, or free JSON over its bounds: ``"<path>: <what>"``; None when all is well."""
+    pattern = _BAD_FREE_TEXT if free else _BAD_TEXT
+    if isinstance(value, str):
+        bad = pattern.search(value)
+        if bad:
+            return (f"{where or 'body'}: text with a control character or a lone surrogate "
+                    f"(U+{ord(bad.group()):04X}); expected plain text")  # fmt: skip
+        if free and len(value) > MAX_TEXT:
+            return f"{where}: text over {MAX_TEXT} characters"
+        return None
+    if isinstance(value, dict | list):
+        if free and depth >= MAX_DEPTH:
+            return f"{where}: nested deeper than {MAX_DEPTH} levels"
+        if free and len(value) > MAX_ITEMS:
+            return f"{where}: more than {MAX_ITEMS} entries"
+        items = value.items() if isinstance(value, dict) else enumerate(value)
+        for key, inner in items:
+            at = f"{where}.{key}" if where else str(key)
+            if isinstance(key, str):
+                if free and len(key) > MAX_KEY:
+                    return f"{at[:80]}: a key over {MAX_KEY} characters"
+                problem = text_problem(key, where=f"{where or 'body'} (a key)", free=free)
+                if problem:
+                    return problem
+            problem = text_problem(inner, where=at, free=free, depth=depth + 1)
+            if problem:
+                return problem
+    return None
+
+
 class _Strict(BaseModel):
     # NaN and infinity are refused everywhere: PostgreSQL's JSON cannot hold them (a 500),
     # and SQLite stored them as numbers no analysis can use
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+    #: fields holding free JSON (bounded, tab and newline allowed in their text)
+    FREE_JSON: ClassVar[frozenset[str]] = frozenset()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _plain_text(cls, data: Any) -> Any:
+        """Every string of the body checked at the door (see :func:`text_problem`)."""
+        if isinstance(data, dict):
+            for key, value in data.items():
+                problem = text_problem(value, where=str(key), free=key in cls.FREE_JSON)
+                if problem:
+                    raise ValueError(problem)
+        return data
 
 
 class AnswerIn(_Strict):
@@ -75,3 +130,5 @@ class PlaybackIn(_Strict):
 class EventIn(_Strict):
     kind: Literal["browser", "play_refused", "fullscreen_exit", "resumed", "error", "display"]
     detail: dict[str, Any] = Field(default_factory=dict)
+
+    FREE_JSON: ClassVar[frozenset[str]] = frozenset({"detail"})

@@ -12,6 +12,7 @@ from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
 from facelab.experiment.online.middleware import IMPORT_MAP, SecurityHeaders
@@ -38,19 +39,25 @@ JOIN_WORDS = {
         "intro": "募集サイトのリンクから来られた方は、下のボタンで実験を始めてください。",
         "start": "実験を始める",
         "busy": "ただいま参加の受付が混み合っています。1分ほど待ってから、もう一度お試しください。",
-        "in_use": "このリンクの実験は、別のブラウザーの画面で進行中です。その画面に戻って続けて"
-        "ください。その画面を閉じてしまった場合は、{minutes}分後にこのリンクから続きを行えます。",
+        "in_use": "このリンクは今は開けません。別の画面やブラウザーで実験を始めている場合は、"
+        "その画面で続けてください。そうでない場合は、{minutes}分後にもう一度このリンクを開いて"
+        "ください。",
     },
     "en": {
         "title": "Study",
         "intro": "If you came through your recruitment platform's link, start the study below.",
         "start": "Start the session",
         "busy": "Many people are joining right now. Please wait a minute and try again.",
-        "in_use": "This study is in progress in another browser window. Please return to that "
-        "window to continue. If you closed it, you can continue here through this link in "
+        "in_use": "This link cannot be opened right now. If you started the study in another "
+        "window or browser, please continue there; otherwise open this link again in "
         "{minutes} minutes.",
     },
 }
+
+
+def client_address(request: Request) -> str:
+    """The client's address (a trusted proxy's X-Forwarded-For already applied by uvicorn)."""
+    return request.client.host if request.client else "?"
 
 
 def create_app(server: StudyServer) -> Any:
@@ -62,10 +69,20 @@ def create_app(server: StudyServer) -> Any:
     async def refused(_request: Request, exc: RefusedError) -> JSONResponse:
         return JSONResponse({"error": exc.message}, status_code=exc.status)
 
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # the framework's own refusals (a body that does not parse, a wrong method) in
+        # facelab's shape, {"error": ...}
+        text = exc.detail if isinstance(exc.detail, str) else "request refused"
+        return JSONResponse({"error": text}, status_code=exc.status_code,
+                            headers=getattr(exc, "headers", None))  # fmt: skip
+
     @app.exception_handler(RequestValidationError)
     async def invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
         problems = [
-            f"{'.'.join(str(x) for x in e.get('loc', ())[1:]) or 'body'}: {e.get('msg')}"
+            str(e.get("msg", "")).removeprefix("Value error, ")
+            if e.get("type") == "value_error" and len(e.get("loc", ())) <= 1
+            else f"{'.'.join(str(x) for x in e.get('loc', ())[1:]) or 'body'}: {e.get('msg')}"
             for e in exc.errors()
         ]
         return JSONResponse({"error": "; ".join(problems)}, status_code=422)
@@ -117,8 +134,7 @@ def create_app(server: StudyServer) -> Any:
         """A new participant (or the returning one): only this deliberate POST creates one
         and takes a Latin-square slot. The form carries the token this browser holds, if
         any (a returning participant's session comes back under it)."""
-        address = request.client.host if request.client else "?"
-        if not server.join_limiter.allow(address):
+        if not server.join_limiter.allow(client_address(request)):
             return study_page(body=f"<p>{words['busy']}</p>", status=429, **{"Retry-After": "60"})
         recruitment, source = recruitment_of(request)
         form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
@@ -129,9 +145,13 @@ def create_app(server: StudyServer) -> Any:
                 server.join, recruitment=recruitment, source=source, previous_token=previous
             )
         except InUseError:
+            # worded (and answered with 200) so that trying someone's id tells nothing about
+            # whether that person is taking part
             minutes = round(server.config.rejoin_idle_s / 60)
-            return study_page(body=f"<p>{words['in_use'].format(minutes=minutes)}</p>", status=409)
-        return RedirectResponse(f"/run#t={token}", status_code=303)
+            return study_page(body=f"<p>{words['in_use'].format(minutes=minutes)}</p>")
+        # the token rides in the fragment of this redirect: never cached
+        return RedirectResponse(f"/run#t={token}", status_code=303,
+                                headers={"Cache-Control": "no-store"})  # fmt: skip
 
     @app.get("/")
     def index() -> HTMLResponse:
@@ -261,7 +281,7 @@ def create_app(server: StudyServer) -> Any:
 
     @app.get("/api/admin/progress")
     def progress(request: Request) -> dict[str, Any]:
-        server.check_admin(request.headers.get(ADMIN_HEADER))
+        server.check_admin(request.headers.get(ADMIN_HEADER), address=client_address(request))
         return {"study": server.study.study, "participants": server.progress()}
 
     return SecurityHeaders(app)

@@ -126,6 +126,9 @@ class PlaybackRecord(Base):
     client_key: Mapped[str] = mapped_column(String(64))
     record: Mapped[dict[str, Any]] = mapped_column(JSON)
     received: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    # the record's trial and its size in bytes (JSON), for the caps on what one stores
+    trial_index: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    bytes: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class Action(Base):
@@ -144,6 +147,7 @@ class Event(Base):
     kind: Mapped[str] = mapped_column(String(32))
     detail: Mapped[dict[str, Any]] = mapped_column(JSON)
     at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    bytes: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class ProtocolFile(Base):

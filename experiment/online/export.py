@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -35,7 +36,7 @@ from sqlalchemy import select
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
-from facelab.errors import ProtocolError, SessionError
+from facelab.errors import ProtocolError, SessionError, StageError
 from facelab.experiment.adaptive import Staircases
 from facelab.experiment.online.db import (
     Action,
@@ -83,6 +84,35 @@ def _exported(record: dict[str, Any]) -> dict[str, Any]:
     )
 
 
+_UNWRITABLE = re.compile(r"[\ud800-\udfff]")
+_UNWRITABLE_TSV = re.compile(r"[\ud800-\udfff\x00-\x1f\x7f]")
+
+
+def escaped(value: Any, *, tsv: bool = False) -> tuple[Any, int]:
+    """``value`` (JSON-like) with what no file can hold written as escapes, and how many
+    strings changed: lone UTF-16 surrogates (valid JSON, but no UTF-8 text) as ``\\udXXX``
+    and, with ``tsv``, control characters (a tab or newline would split a log row) as
+    ``\\xNN``. Data stored before the server refused such text at the door is exported
+    this way rather than stopping the export."""
+    pattern = _UNWRITABLE_TSV if tsv else _UNWRITABLE
+    if isinstance(value, str):
+        if not pattern.search(value):
+            return value, 0
+        return pattern.sub(lambda m: f"\\u{ord(m.group()):04x}" if ord(m.group()) > 0xFF
+                           else f"\\x{ord(m.group()):02x}", value), 1  # fmt: skip
+    if isinstance(value, dict):
+        out, n = {}, 0
+        for k, v in value.items():
+            key, a = escaped(k, tsv=tsv) if isinstance(k, str) else (k, 0)
+            out[key], b = escaped(v, tsv=tsv)
+            n += a + b
+        return out, n
+    if isinstance(value, list | tuple):
+        pairs = [escaped(v, tsv=tsv) for v in value]
+        return [v for v, _ in pairs], sum(n for _, n in pairs)
+    return value, 0
+
+
 def _count_lines(path: Path) -> int:
     if not path.exists():
         return 0
@@ -105,8 +135,13 @@ def export_sessions(
     protocol: Protocol | None = None,
     protocol_sha256: str | None = None,
     notes: list[str] | None = None,
+    quarantine: list[str] | None = None,
 ) -> list[Path]:
     """Write or extend the session folders of every participant (of ``study``, or all).
+
+    One participant's data never stops the export of the others: text no file can hold
+    (stored before the server refused it) is written escaped, and a session that cannot be
+    written at all is skipped; each is a line in ``quarantine`` naming the participant.
 
     The protocol file each session ran (kept by the server under its SHA-256) is written to
     ``<results>/<study>/protocol-<sha256[:12]>.yaml``, and sessions with staircase blocks get
@@ -119,6 +154,7 @@ def export_sessions(
     if protocol is not None and study is not None and study != protocol.study.id:
         raise SessionError(f"--study {study!r} is not the protocol's study {protocol.study.id!r}")
     notes = notes if notes is not None else []
+    quarantine = quarantine if quarantine is not None else []
     known: dict[str, Protocol | None] = {}
     copied: set[str] = set()
     if protocol is not None and protocol_sha256 is not None:
@@ -150,7 +186,18 @@ def export_sessions(
             events = db.scalars(
                 select(Event).where(Event.participant_pk == p.pk).order_by(Event.pk)
             ).all()
-            log = _export_one(p, rows, playback, actions, events, results=results)
+            try:
+                log, changed = _export_one(p, rows, playback, actions, events, results=results)
+            except (UnicodeError, StageError, ValueError, TypeError) as exc:
+                quarantine.append(f"study {p.study} participant {p.participant}: not exported "
+                                  f"({exc}); the database still holds it")  # fmt: skip
+                continue
+            if changed:
+                quarantine.append(
+                    f"study {p.study} participant {p.participant}: {changed} stored text "
+                    "field(s) held characters no file can hold (lone surrogates or control "
+                    "characters); written escaped (\\uXXXX, \\xNN) - check them"
+                )
             out.append(log.paths.tsv)
             if p.protocol_sha256 not in copied:  # once per protocol version
                 copied.add(p.protocol_sha256)
@@ -216,7 +263,9 @@ def _export_one(
     events: Sequence[Event],
     *,
     results: Path,
-) -> SessionLog:
+) -> tuple[SessionLog, int]:
+    """One participant's session folder written or extended; also how many stored text
+    fields had to be written escaped (see :func:`escaped`)."""
     paths = session_paths(results, study=p.study, participant=p.participant, session=p.session)
     provenance = {
         "study": p.study,
@@ -247,6 +296,7 @@ def _export_one(
             if e.kind == "resumed"
         ],
     }
+    provenance, changed = escaped(provenance)
     if paths.tsv.exists():
         log = SessionLog.resume(
             results, study=p.study, participant=p.participant, session=p.session
@@ -275,11 +325,14 @@ def _export_one(
     for r in rows:
         if (r.trial_index, r.item) in have:
             continue
-        log.append(r.row)
-    _append_new(
-        paths.playback,
-        [_exported(rec.record) for rec in playback],
-    )
+        row, n = escaped(r.row, tsv=True)
+        changed += n
+        log.append(row)
+    records, n = escaped([_exported(rec.record) for rec in playback])
+    changed += n
+    _append_new(paths.playback, records)
     if actions:
-        _append_new(paths.actions, [a.record for a in actions])
-    return log
+        records, n = escaped([a.record for a in actions])
+        changed += n
+        _append_new(paths.actions, records)
+    return log, changed

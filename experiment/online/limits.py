@@ -50,6 +50,13 @@ class RateLimiter:
             self._hits[key] = hits  # (re)set: the entry's lifetime restarts
             return True
 
+    def blocked(self, key: str) -> bool:
+        """Whether ``key`` is at its limit now (nothing counted)."""
+        now = self._clock()
+        with self._lock:
+            hits = self._hits.get(key)
+            return hits is not None and sum(now - t < self.window_s for t in hits) >= self.limit
+
     def __len__(self) -> int:
         with self._lock:
             self._hits.expire()

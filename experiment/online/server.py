@@ -41,6 +41,7 @@ import contextlib
 import datetime as dt
 import hashlib
 import hmac
+import json
 import math
 import secrets
 import threading
@@ -108,6 +109,29 @@ EARLIER_TOKEN_HEADER = "X-Facelab-Earlier-Token"
 TOKEN_CACHE_S = 5.0  # a rotated token stops working within this time in other processes
 RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIPANT": "link"}
 
+# What one participant may store besides answers. Sized from real sessions with headroom: a
+# clip's playback record is ~30 bytes a frame in a browser (flip time, frame shown) and ~90
+# in VR (audio time, viewer pose too); a 240 Hz display draws 240 frames a second. So a
+# record may hold 64 kB per second of its clip (3x a 240 Hz VR record) plus 32 kB; a trial
+# at most 8 records (its showing, replays, a reloaded page); a session 32 MB of playback and
+# 1,000 events of at most 4,000 characters each (a session sends a handful).
+PLAYBACK_BYTES_PER_CLIP_S = 64_000
+PLAYBACK_BYTES_BASE = 32_000
+PLAYBACK_RECORDS_PER_TRIAL = 8
+PLAYBACK_BYTES_PER_SESSION = 32_000_000
+EVENTS_PER_SESSION = 1_000
+ADMIN_FAILURES_PER_MIN = 10
+
+#: a session whose protocol version cannot be served now (the experimenter changed the
+#: study under it), as the participant reads it
+PAUSED = {
+    "ja": "実験の準備が変更されたため、今は続けられません。回答はこのブラウザーに保存されており、"
+    "研究者が対応すると送られます。このページを開いたままにするか、後で同じリンクを開いてください。",
+    "en": "The study was changed and cannot continue right now. Your answers are kept in this "
+    "browser and are sent once the researcher has fixed it; keep this page open or open the "
+    "same link later.",
+}
+
 
 def _own_plugin(kind: str) -> Path | None:
     """The jsPsych plugin file a screen kind added to facelab brings (None for the built-in
@@ -169,6 +193,9 @@ class StudyServer:
             limit=int(config.rate_per_s * 4), window_s=4.0, clock=clock
         )  # per token: a burst of 4 s worth
         self.join_limiter = RateLimiter(limit=config.joins_per_min, window_s=60.0, clock=clock)
+        # wrong experimenter secrets per client address: past the limit every try is refused
+        # (429) for a minute, the right secret too - guessing gains nothing
+        self.admin_limiter = RateLimiter(limit=ADMIN_FAILURES_PER_MIN, window_s=60.0, clock=clock)
         self._join_lock = threading.Lock()
         # SQLite has one writer: queue writers here instead of in its busy handler (which
         # sleeps up to 100 ms per retry); PostgreSQL takes concurrent writers itself.
@@ -210,10 +237,13 @@ class StudyServer:
             db.merge(Setting(key="admin_sha256", value=token_sha256(secret)))
             db.commit()
 
-    def check_admin(self, secret: str | None) -> None:
+    def check_admin(self, secret: str | None, *, address: str = "?") -> None:
+        if self.admin_limiter.blocked(address):
+            raise RefusedError(429, "too many wrong experimenter secrets; wait a minute")
         with Session(self.engine) as db:
             row = db.get(Setting, "admin_sha256")
         if row is None or not secret or not hmac.compare_digest(row.value, token_sha256(secret)):
+            self.admin_limiter.allow(address)
             raise RefusedError(401, "experimenter secret missing or wrong")
 
     # -- participants
@@ -331,12 +361,11 @@ class StudyServer:
             raise RefusedError(401, "unknown token (a rejoin gives a new one)")
         version = self._version(p.protocol_sha256)
         if isinstance(version, str):
-            raise RefusedError(
-                409,
-                "the study's protocol changed since this participant started, and the version "
-                f"they started with cannot be served ({version}); the experimenter must serve "
-                "the original protocol to continue this session",
-            )
+            # the participant's browser shows this (and keeps it as a held answer's reason):
+            # in the study's language, without the server's internals; the experimenter's
+            # progress page gives the reason (protocol: "cannot be served: ...")
+            lang = self.study.protocol.presentation.language
+            raise RefusedError(409, PAUSED.get(lang, PAUSED["en"]))
         self._by_token.put(digest, p)
         return p
 
@@ -589,7 +618,11 @@ class StudyServer:
     def _stored(
         self, db: Session, p: Participant, answer: AnswerIn, row: dict[str, Any]
     ) -> dict[str, Any] | None:
-        """A replay's answer (200), or RefusedError(409) for a different value; None if new."""
+        """A replay's answer (200: the same key and value again), or RefusedError(409); None
+        if new. No answer tells anything about the stored value: a new key for an answered
+        trial and item is refused alike whatever its value (else guessing values until one is
+        "a replay" would read a stored answer), and a stored key with another value is a
+        conflict."""
         old = db.scalars(
             select(Response).where(
                 Response.participant_pk == p.pk,
@@ -602,14 +635,18 @@ class StudyServer:
             if other.first() is not None:
                 raise RefusedError(409, "client_key was already used for another response")
             return None
-        new_value, old_value = self._value(row), self._value(old.row)
-        if old.client_key == answer.client_key or _same(old_value, new_value):
-            return {"stored": True, "replay": True, "complete": self._maybe_complete(p)}
-        # the stored value is never shown: whoever holds a token must not learn an earlier answer
+        if old.client_key == answer.client_key:
+            if _same(self._value(old.row), self._value(row)):
+                return {"stored": True, "replay": True, "complete": self._maybe_complete(p)}
+            raise RefusedError(
+                409, "client_key: this key was stored with another answer; it is kept and "
+                "this one is refused",
+            )  # fmt: skip
+        # the stored value is never compared, nor shown: one refusal for every value
         raise RefusedError(
             409,
-            f"trial {answer.trial_index} item {answer.item!r} already has a different "
-            "response; it is kept and this one is refused",
+            f"trial {answer.trial_index} item {answer.item!r} is answered already; the stored "
+            "answer is kept and this one is refused",
         )
 
     def _maybe_complete(self, p: Participant) -> bool:
@@ -626,25 +663,57 @@ class StudyServer:
                 db.commit()
         return True
 
+    def _clip_seconds(self, p: Participant, rendered: str) -> float:
+        """The duration of one of the participant's clips (by the rendered file's hash)."""
+        study = self.study_of(p)
+        return max((float(ref.duration_s) for ref in study.clips.values()
+                    if ref.sha256 == rendered), default=0.0)  # fmt: skip
+
     def store_playback(self, p: Participant, record: PlaybackIn) -> dict[str, Any]:
         known = set(p.clips.values())
         rendered = self.served.original.get(record.clip, record.clip[:-4])
         if rendered not in known:
             raise RefusedError(422, f"clip: {record.clip} is not one of this participant's clips")
+        served_as = {"served_as": record.clip} if rendered != record.clip[:-4] else {}
+        stored = record.model_dump(exclude={"client_key"}) | {"clip": rendered + ".mp4"}
+        stored |= served_as
+        size = len(json.dumps(stored, separators=(",", ":")))
+        limit = PLAYBACK_BYTES_BASE + PLAYBACK_BYTES_PER_CLIP_S * self._clip_seconds(p, rendered)
+        if size > limit:
+            raise RefusedError(413, f"playback record of {size} bytes; a clip of this length "
+                               f"records at most {int(limit)}")  # fmt: skip
         with Session(self.engine) as db:
             if db.scalars(
                 select(PlaybackRecord).where(PlaybackRecord.client_key == record.client_key)
             ).first():
                 return {"stored": True, "replay": True}
+            total = db.scalar(
+                select(func.coalesce(func.sum(PlaybackRecord.bytes), 0)).where(
+                    PlaybackRecord.participant_pk == p.pk
+                )
+            ) or 0
+            if total + size > PLAYBACK_BYTES_PER_SESSION:
+                raise RefusedError(413, f"this session's playback records reached "
+                                   f"{PLAYBACK_BYTES_PER_SESSION} bytes")  # fmt: skip
+            if record.trial_index is not None:
+                per_trial = db.scalar(select(func.count()).where(
+                    PlaybackRecord.participant_pk == p.pk,
+                    PlaybackRecord.trial_index == record.trial_index,
+                ))  # fmt: skip
+                if (per_trial or 0) >= PLAYBACK_RECORDS_PER_TRIAL:
+                    raise RefusedError(
+                        413, f"trial {record.trial_index} has {PLAYBACK_RECORDS_PER_TRIAL} "
+                        "playback records already",
+                    )  # fmt: skip
             db.add(
                 PlaybackRecord(
                     participant_pk=p.pk,
                     client_key=record.client_key,
                     # the rendered clip's hash, as the lab logs it (and the copy shown)
-                    record=record.model_dump(exclude={"client_key"})
-                    | {"clip": rendered + ".mp4"}
-                    | ({"served_as": record.clip} if rendered != record.clip[:-4] else {}),
+                    record=stored,
                     received=utcnow(),
+                    trial_index=record.trial_index,
+                    bytes=size,
                 )
             )
             try:
@@ -660,12 +729,16 @@ class StudyServer:
             raise RefusedError(422, "detail: too large (at most 4000 characters)")
         if not _finite(ev.detail):
             raise RefusedError(422, "detail: numbers must be finite (no NaN or Infinity)")
+        size = len(json.dumps(ev.detail, separators=(",", ":")))
         with self._writes, Session(self.engine) as db:
+            count = db.scalar(select(func.count()).where(Event.participant_pk == p.pk)) or 0
+            if count >= EVENTS_PER_SESSION:
+                raise RefusedError(413, f"this session has {EVENTS_PER_SESSION} events already")
             if ev.kind == "browser":
                 fresh = db.get(Participant, p.pk)
                 assert fresh is not None
                 fresh.browser = ev.detail
-            db.add(Event(participant_pk=p.pk, kind=ev.kind, detail=ev.detail))
+            db.add(Event(participant_pk=p.pk, kind=ev.kind, detail=ev.detail, bytes=size))
             db.commit()
 
     def completion(self, p: Participant) -> dict[str, Any]:
@@ -696,6 +769,20 @@ class StudyServer:
                 .order_by(Participant.number)
             ).all()
             pks = [p.pk for p in people]
+            stored_bytes = dict(db.execute(
+                select(PlaybackRecord.participant_pk,
+                       func.coalesce(func.sum(PlaybackRecord.bytes), 0))
+                .group_by(PlaybackRecord.participant_pk)
+            ).all())  # fmt: skip
+            event_counts = dict(db.execute(
+                select(Event.participant_pk, func.count()).group_by(Event.participant_pk)
+            ).all())  # fmt: skip
+            full_trials = {pk for pk, in db.execute(
+                select(PlaybackRecord.participant_pk)
+                .where(PlaybackRecord.trial_index.is_not(None))
+                .group_by(PlaybackRecord.participant_pk, PlaybackRecord.trial_index)
+                .having(func.count() >= PLAYBACK_RECORDS_PER_TRIAL)
+            ).all()}  # fmt: skip
             errors: dict[int, list[dict[str, Any]]] = {}
             for e in db.scalars(
                 select(Event).where(Event.kind == "error", Event.participant_pk.in_(pks))
@@ -738,9 +825,24 @@ class StudyServer:
                     # the end page waited over its limit with answers unsaved
                     "stuck": p.completed is None
                     and any(d.get("what") == "end page" for d in errors.get(p.pk, [])),
+                    # what the session stored besides answers, and a cap it reached (413s)
+                    "stored_kb": round(stored_bytes.get(p.pk, 0) / 1000, 1),
+                    "at_cap": _at_cap(
+                        stored_bytes.get(p.pk, 0), event_counts.get(p.pk, 0),
+                        p.pk in full_trials,
+                    ),
                 }
             )
         return out
+
+
+def _at_cap(playback_bytes: int, events: int, full_trial: bool) -> str | None:
+    """Which storage cap a session reached (its further records are refused with 413)."""
+    if playback_bytes >= 0.95 * PLAYBACK_BYTES_PER_SESSION:
+        return "playback bytes"
+    if events >= EVENTS_PER_SESSION:
+        return "events"
+    return "playback records of a trial" if full_trial else None
 
 
 def _finite(value: Any) -> bool:

@@ -62,7 +62,9 @@ const FacelabOutbox = (function () {
     const headers = { "X-Facelab-Token": token };
     if (earlier) headers["X-Facelab-Earlier-Token"] = earlier;
     if (body !== undefined) headers["Content-Type"] = "application/json";
-    return fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), cache: "no-store" });
+    // a server that accepts the connection but never answers must not hold the page: 15 s
+    return fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), cache: "no-store",
+                        signal: AbortSignal.timeout(15000) });
   }
 
   // Answers the server refused (409, 422) are never thrown away: they are held under

@@ -333,14 +333,20 @@ class FacelabComplete extends FacelabPlugin {
     const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
     box.appendChild(status); facelabShow(el, box);
     const started = Date.now();
+    const LIMIT_MS = FacelabSession.endLimitMs || 90000;
     for (;;) {
-      await FacelabOutbox.flush();
-      if (Date.now() - started > 90000 && status.dataset.facelab === "saving") {
-        // bounded wait: say what is wrong and what to do, and keep trying in the background
-        status.textContent = FacelabSession.ui.stuck.replace("{n}", String(FacelabOutbox.held()));
+      // the bound holds while the server is down or the browser offline: flush() retries
+      // until its queue is empty, so it is raced against the time left (then every 2 s)
+      const left = LIMIT_MS - (Date.now() - started);
+      await Promise.race([FacelabOutbox.flush(), facelabSleep(Math.max(2000, left))]);
+      if (Date.now() - started > LIMIT_MS && status.dataset.facelab === "saving") {
+        // bounded wait: say what is wrong and what to do, and keep trying in the background;
+        // the answers stay in this browser's outbox (sent on the next visit of the link)
+        const unsaved = FacelabOutbox.held() + FacelabOutbox.pending();
+        status.textContent = FacelabSession.ui.stuck.replace("{n}", String(unsaved));
         status.dataset.facelab = "stuck";
-        // the experimenter's progress page lists this participant
-        FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "end page", unsaved: FacelabOutbox.held() } });
+        // the experimenter's progress page lists this participant (sent when it can be)
+        FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "end page", unsaved } });
       }
       try {
         const r = await FacelabOutbox.request("GET", "/api/complete");

@@ -5,12 +5,12 @@ const FACELAB_UI = {
   ja: { agree: "同意して始める", next: "次へ", saving: "回答を保存しています…", saved: "すべての回答を保存しました。",
         back: "完了ページへ", fullscreen: "全画面表示で行います。", start: "開始", loading: "読み込み中…",
         missing: "このリンクは無効です。募集ページのリンクから開いてください。", resume: "中断したところから再開します。",
-        stuck: "{n}件の回答をまだ保存できていません。このページを閉じずに、募集サイトのメッセージ機能で研究者にご連絡ください。保存できしだい完了コードを表示します。" },
+        stuck: "{n}件の回答をまだ保存できていません。このページを閉じずに、募集サイトのメッセージ機能で研究者にご連絡ください。保存できしだい完了コードを表示します。閉じる場合は、後で同じブラウザで募集ページのリンクを開き直してください。回答はこのブラウザに残っていて、そのときに送られます。" },
   en: { agree: "I agree, start", next: "Next", saving: "Saving your answers…", saved: "All your answers are saved.",
         back: "Back to the recruitment site", fullscreen: "The study runs in full screen.", start: "Start",
         loading: "Loading…", missing: "This link is not valid. Please open the link from the recruitment site.",
         resume: "Continuing where you stopped.", nolive: "This browser cannot show the study's 3D view. Please open the recruitment link again in a current Chrome, Edge or Firefox.",
-        stuck: "{n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. The completion code appears here as soon as they are saved." },
+        stuck: "{n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. The completion code appears here as soon as they are saved. If you must close it, open the recruitment link again later in this browser: your answers are kept here and sent then." },
 };
 
 (async function main() {
