@@ -64,7 +64,10 @@ def pydantic_message(err: Any) -> str:
         return "expected a number (got .nan)"
     got = f" (got {describe(value)})" if "input" in err else ""
     message = err["msg"]
-    if message.startswith("Value error, "):
+    plain = _PLAIN.get(str(err.get("type", "")))
+    if plain is not None:  # the common type errors in words, not the library's
+        message = plain
+    elif message.startswith("Value error, "):
         message = message[len("Value error, ") :]
         got = ""
     elif message.startswith("Input should be"):
@@ -78,6 +81,22 @@ def pydantic_message(err: Any) -> str:
         else:
             got += "; a number in quotes is text: remove the quotes"
     return message + got
+
+
+#: pydantic's type errors as users read them
+_PLAIN = {
+    "dict_type": "expected a mapping (key: value lines)",
+    "model_type": "expected a mapping (key: value lines)",
+    "list_type": "expected a list",
+    "float_type": "expected a number",
+    "float_parsing": "expected a number",
+    "int_type": "expected a whole number",
+    "int_parsing": "expected a whole number",
+    "int_from_float": "expected a whole number",
+    "bool_type": "expected true or false",
+    "bool_parsing": "expected true or false",
+    "string_type": "expected text",
+}
 
 
 def _looks_numeric(text: str) -> bool:
@@ -457,18 +476,25 @@ def _added_screens(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Each added screen names an installed screen kind and gives it options it accepts."""
     from pydantic import ValidationError
 
-    from facelab.plugins import GROUPS, loaded
+    from facelab.plugins import GROUPS, plugin_entries
 
     added = protocol.presentation.added_screens
     if not added:
         return
-    kinds = {e.name: e.obj for e in loaded(GROUPS["screens"])}
+    entries = {e.name: e for e in plugin_entries(GROUPS["screens"])}
+    kinds = {name: e.obj for name, e in entries.items() if e.problem is None}
     for i, spec in enumerate(added):
         where = ("presentation", "added_screens", i)
         cls = kinds.get(spec.kind)
+        if spec.kind in entries and cls is None:  # installed, but facelab plugins calls it broken
+            yield Issue((*where, "kind"), f"screen kind {spec.kind!r} is installed but cannot "
+                        f"be used: {entries[spec.kind].problem}")  # fmt: skip
+            continue
         if cls is None:
+            hint = ("none; a screen kind comes from an installed package (pip install it "
+                    "beside facelab)") if not kinds else ", ".join(kinds)  # fmt: skip
             yield Issue((*where, "kind"), f"unknown screen kind {spec.kind!r}; installed: "
-                        f"{', '.join(kinds) or 'none'} (facelab plugins lists them)")  # fmt: skip
+                        f"{hint} (facelab plugins lists them)")  # fmt: skip
             continue
         model = getattr(cls, "Options", None)
         if model is None:
@@ -478,12 +504,13 @@ def _added_screens(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         except ValidationError as exc:
             for err in exc.errors():
                 loc = clean_loc(err["loc"])
-                msg = ("unknown option" if err["type"] == "extra_forbidden"
+                allowed = ", ".join(model.model_fields) or "none"
+                msg = (f"unknown option; allowed: {allowed}" if err["type"] == "extra_forbidden"
                        else pydantic_message(err))  # fmt: skip
                 yield Issue((*where, "options", *loc), msg)
     kinds_used = [s.kind for s in added]
-    if len(set(kinds_used)) < len(kinds_used):
-        yield Issue(("presentation", "added_screens"), "a screen kind is added twice")
+    for kind in dict.fromkeys(k for k in kinds_used if kinds_used.count(k) > 1):
+        yield Issue(("presentation", "added_screens"), f"screen kind {kind!r} is added twice")
 
 
 @_check("analysis", "conditions")

@@ -40,6 +40,7 @@ from facelab.experiment.timeline import (
     ResponseScreen,
     screen_kind,
 )
+from facelab.plugins import SCREEN_PLACEMENTS
 from facelab.sessionlog import SessionContext
 
 __all__ = [
@@ -52,7 +53,7 @@ __all__ = [
     "load_screen_plugins",
 ]
 
-PLACEMENTS = ("after_responses", "after_clip")
+PLACEMENTS = SCREEN_PLACEMENTS
 
 
 class NoOptions(BaseModel):
@@ -210,18 +211,11 @@ def load_screen_plugins() -> list[str]:
         if entry.problem is not None:
             problems.append(entry.problem)
             continue
+        # the class, name, placement and plugin file are checked when the entry loads
+        # (facelab.plugins); here: a name facelab's own kinds already take
         obj = entry.obj
         where = f"plugin {entry.name!r} from package {entry.package!r} ({entry.value})"
-        if not (isinstance(obj, type) and issubclass(obj, AddedScreen)):
-            entry.problem = (f"{where} is not a facelab screen kind (a subclass of "
-                             "facelab.experiment.screen_kinds.AddedScreen or ButtonScreen)")
-        elif obj.kind != entry.name:
-            entry.problem = (f"{where}: the entry point is named {entry.name!r} but its kind "
-                             f"is {obj.kind!r}")  # fmt: skip
-        elif obj.placement not in PLACEMENTS:
-            entry.problem = (f"{where}: placement {obj.placement!r}; expected "
-                             f"{', '.join(PLACEMENTS)}")  # fmt: skip
-        elif SCREEN_KINDS.get(obj.kind, obj) is not obj:
+        if SCREEN_KINDS.get(obj.kind, obj) is not obj:
             entry.problem = f"{where}: a screen kind named {obj.kind!r} exists already"
         else:
             screen_kind(obj)

@@ -179,7 +179,7 @@ def test_rejoin_through_the_link_in_chromium_keeps_the_session_and_refuses_a_str
             stranger.find_element(By.CSS_SELECTOR, "[data-facelab=join]").click()
             time.sleep(1.0)
             assert "#t=" not in stranger.current_url
-            assert "別のブラウザー" in stranger.find_element(By.TAG_NAME, "body").text
+            assert "別の画面やブラウザー" in stranger.find_element(By.TAG_NAME, "body").text
         finally:
             owner.quit()
             stranger.quit()
@@ -716,9 +716,6 @@ def test_answers_refused_while_the_protocol_was_changed_are_held_and_stored_afte
     # meanwhile the progress page said why the session was refused; the held answers were
     # reported once it was served again, and are stored now
     assert listed["protocol"] == "cannot be served: its clips were rendered for another version"
-    assert all(h["why"].endswith("(its clips were rendered for another version); the "
-                                 "experimenter must serve the original protocol to continue "
-                                 "this session") for h in held)  # fmt: skip
     assert {p["participant"]: p for p in server.progress()}["P0001"]["held"] == 0
 
 

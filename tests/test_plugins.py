@@ -101,6 +101,40 @@ def test_a_broken_plugin_is_named_and_facelab_still_works(installed: Path, tmp_p
     assert ok.returncode == 0, ok.stderr
 
 
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (
+            ('placement: ClassVar[str] = "after_clip"', 'placement: ClassVar[str] = "after_clips"'),
+            "has placement 'after_clips'; expected after_responses, after_clip",
+        ),
+        (
+            ('Path(__file__).with_name("effort.js")', 'Path(__file__).with_name("missing.js")'),
+            "which is not installed (ship it as package data",
+        ),
+    ],
+    ids=["placement", "plugin file"],
+)
+def test_a_broken_screen_kind_is_never_used(
+    installed: Path, tmp_path: Path, edit: tuple[str, str], said: str
+) -> None:
+    """A kind ``facelab plugins`` calls broken (a placement that does not exist, its jsPsych
+    plugin not installed) is not used by any command: validate of a protocol adding it
+    fails naming why, instead of running it silently (found by an outside plugin author)."""
+    site = tmp_path / "site"
+    shutil.copytree(installed, site)
+    effort = site / "facelab_example_plugin" / "effort.py"
+    text = effort.read_text(encoding="utf-8")
+    assert edit[0] in text
+    effort.write_text(text.replace(*edit), encoding="utf-8")
+    listed = _facelab(site, "plugins")
+    assert listed.returncode == 1 and said in listed.stdout, listed.stdout
+    done = _facelab(site, "validate", str(_with_confidence(tmp_path)))
+    assert done.returncode == 2
+    assert "screen kind 'effort' is installed but cannot be used" in done.stderr
+    assert said in done.stderr and "Traceback" not in done.stderr
+
+
 def _with_confidence(folder: Path, *, options: str = "{p_sure: 0.7}", short: bool = False) -> Path:
     """kato2021 with the plugin's confidence screen (buttons, after the ratings) and effort
     screen (its own drawing, right after the clip) in every trial (``short``: two vowels,

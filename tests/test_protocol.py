@@ -95,7 +95,7 @@ BROKEN: list[tuple[str, tuple[str, str], str, list[str]]] = [
             "    sets: two\n    presentations_per_condition: 2",
         ),
         "sets: two",
-        ["blocks[0].sets", "integer", "'two'"],
+        ["blocks[0].sets", "whole number", "'two'"],
     ),
     (
         "missing stimulus file",
@@ -353,7 +353,7 @@ def test_duplicate_keys_types_and_cross_checks_in_one_run(tmp_path: Path, kato_t
         load_protocol(path)
     found = {i.dotted(): i.message for i in info.value.issues}
     assert "duplicate key" in found["rendering.width"]
-    assert "integer" in found["rendering.fps"]
+    assert "whole number" in found["rendering.fps"]
     assert "unknown stimulus set 'sentence'" in found["blocks[1].stimulus_set"]
 
 
