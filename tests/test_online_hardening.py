@@ -6,8 +6,10 @@ the fix (the finding it replays is named)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,11 +23,33 @@ from facelab.experiment.cli import main
 from facelab.experiment.online import server as server_module
 from facelab.experiment.online.app import create_app
 from facelab.experiment.online.db import Event, Participant, PlaybackRecord, Response
+from facelab.experiment.online.load import postgres_cluster
 from facelab.experiment.online.serve import BackgroundServer
 from tests.test_online import _answer, _rows, _server, study  # noqa: F401  (the fixture)
 
 pytestmark = pytest.mark.slow
 SECRET = "experimenter-secret-123"
+
+
+@contextlib.contextmanager
+def _database(tmp_path: Path, database: str) -> Iterator[str]:
+    """A database URL: a SQLite file, or a PostgreSQL server of its own."""
+    if database == "postgresql":
+        with postgres_cluster() as url:
+            yield url
+    else:
+        yield f"sqlite:///{tmp_path / 'db.sqlite'}"
+
+
+def _server_at(study: Path, url: str, results: Path):  # noqa: F811
+    from facelab.experiment.online.serve import prepare_server
+    from facelab.protocol import load_protocol
+
+    server, _ = prepare_server(
+        load_protocol(study / "short.yaml"), protocol_path=study / "short.yaml",
+        clips_dir=study / "clips", db_url=url, results=results, admin_secret=SECRET,
+    )  # fmt: skip
+    return server
 
 
 def _joined(server) -> tuple[Participant, dict[str, str], list[tuple[int, str]]]:
@@ -59,17 +83,25 @@ def _playback(clip: str, key: str, *, trial: int = 1, flips: int = 30) -> dict:
 # --------------------------------------------------------------------------- finding 1
 
 
+@pytest.mark.parametrize("database", ["sqlite", "postgresql"])
 def test_text_no_file_can_hold_is_refused_and_stored_text_never_stops_the_export(
     study: Path,  # noqa: F811
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
+    database: str,
 ) -> None:
     """A lone surrogate posted to /api/event was stored and stopped every later export
     (traceback, 0-byte _session.json, no session after that participant). Now it is 422 at
     the door; text stored before (written here straight into the database) is exported
     escaped with a quarantine line and exit 3, the next participant is exported, and
-    analyze refuses an empty session file."""
-    server = _server(study, tmp_path / "db.sqlite")
+    analyze refuses an empty session file. On SQLite and PostgreSQL."""
+    with _database(tmp_path, database) as url:
+        _surrogates(study, tmp_path, capsys, url)
+
+
+def _surrogates(study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],  # noqa: F811
+                url: str) -> None:  # fmt: skip
+    server = _server_at(study, url, tmp_path)
     client = TestClient(create_app(server))
     first, ok, keys = _joined(server)
     for body in (
@@ -107,7 +139,7 @@ def test_text_no_file_can_hold_is_refused_and_stored_text_never_stops_the_export
         assert client.post("/api/response", json=_answer(*key, 60.0, f"bbbbbbbbbbbb{n:04d}"),
                            headers=ok2).status_code == 200  # fmt: skip
     out = tmp_path / "export"
-    code = main(["export", "--db", f"sqlite:///{tmp_path / 'db.sqlite'}", "--results", str(out)])
+    code = main(["export", "--db", url, "--results", str(out)])
     err = capsys.readouterr().err
     assert code == 3, err
     assert f"participant {first.participant}: 2 stored text field(s)" in err
@@ -120,8 +152,7 @@ def test_text_no_file_can_hold_is_refused_and_stored_text_never_stops_the_export
     tsv = next(sessions[0].parent.glob("*_beh.tsv")).read_text(encoding="utf-8")
     assert "a\\x09b" in tsv and len(tsv.splitlines()) == 1 + 4  # the row kept whole
     # an export run again adds nothing and says the same
-    assert main(["export", "--db", f"sqlite:///{tmp_path / 'db.sqlite'}", "--results",
-                 str(out)]) == 3  # fmt: skip
+    assert main(["export", "--db", url, "--results", str(out)]) == 3
     capsys.readouterr()
     # analyze reads the escaped export; an emptied session file is refused in words
     assert main(["analyze", str(study / "short.yaml"), str(out), "--out",
@@ -165,15 +196,24 @@ def test_an_answered_trial_answers_alike_whatever_the_value(
 # --------------------------------------------------------------------------- finding 3
 
 
+@pytest.mark.parametrize("database", ["sqlite", "postgresql"])
 def test_what_one_participant_stores_is_capped_and_the_admin_page_says_so(
     study: Path,  # noqa: F811
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
+    database: str,
 ) -> None:
     """20 records of 99,999 flips each were accepted for one trial (54 MB in 9 s). Now a
     record is capped by its clip's length, a trial by its number of records, a session by
-    its bytes and events: 413 with a reason, and the progress page's at_cap column."""
-    server = _server(study, tmp_path / "db.sqlite")
+    its bytes and events: 413 with a reason, and the progress page's at_cap column. On
+    SQLite and PostgreSQL (the stored sizes' migration included)."""
+    with _database(tmp_path, database) as url:
+        _caps(study, tmp_path, monkeypatch, url)
+
+
+def _caps(study: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  # noqa: F811
+          url: str) -> None:  # fmt: skip
+    server = _server_at(study, url, tmp_path)
     client = TestClient(create_app(server))
     p, ok, _ = _joined(server)
     clip, seconds = _clip(server, p)
