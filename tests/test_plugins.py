@@ -160,6 +160,9 @@ def test_an_installed_screen_kind_is_validated_simulated_and_tabled(
     missing = _facelab([], "validate", str(_with_confidence(tmp_path)))
     assert missing.returncode == 2 and "unknown screen kind 'confidence'" in missing.stderr
     path = _with_confidence(tmp_path)
+    done = _facelab(installed, "validate", str(path))  # says what comes from packages
+    assert "from packages: screen kind confidence (facelab-example-plugin), screen kind " \
+        "effort (facelab-example-plugin)" in done.stdout, done.stdout
     results, out = tmp_path / "results", tmp_path / "analysis"
     done = _facelab(installed, "simulate", str(path), "--participants", "3", "--sim-seed", "2",
                     "--results", str(results))  # fmt: skip

@@ -41,8 +41,39 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                 else f"{n_trials} trials per participant; tasks: "
                 + ", ".join(f"{t.id} ({t.type})" for t in protocol.tasks)
             )
+            + _plugins_used(protocol)
         )
+        for note in _simulation_notes(protocol):
+            print(f"{path}: note: {note}")
     return 0
+
+
+def _plugins_used(protocol) -> str:
+    """What the protocol takes from installed packages (methods, screen kinds), said so a
+    plugin's use is confirmed."""
+    from facelab.methods import BUILTIN_METHODS
+    from facelab.plugins import GROUPS, plugin_entries
+
+    packages = {e.name: e.package for e in plugin_entries(GROUPS["methods"])}
+    packages |= {e.name: e.package for e in plugin_entries(GROUPS["screens"])}
+    methods = sorted({c.method for c in protocol.conditions} - set(BUILTIN_METHODS))
+    kinds = [s.kind for s in protocol.presentation.added_screens]
+    said = [f"method {m} ({packages.get(m, '?')})" for m in methods]
+    said += [f"screen kind {k} ({packages.get(k, '?')})" for k in kinds]
+    return f"; from packages: {', '.join(said)}" if said else ""
+
+
+def _simulation_notes(protocol) -> list[str]:
+    """Conditions the simulated participants treat as the baseline only because the protocol
+    gives them no effect (``simulation.effects``): said, not assumed silently."""
+    effects = protocol.simulation.effects
+    if not effects:
+        return []
+    missing = [c.id for c in protocol.conditions if c.id not in effects]
+    if not missing:
+        return []
+    return [f"simulation.effects gives no effect for {', '.join(missing)}: simulated "
+            "participants rate them with effect 0 (as the baseline)"]  # fmt: skip
 
 
 def _audit(protocol, *, path) -> None:
