@@ -111,6 +111,13 @@ class Condition(_Model):
         f"{', '.join(BEHAVIOUR_MODES)}, or a behaviour library file (JSON/YAML, relative to "
         "the protocol) planned as composite.",
     )
+    modality: Literal["audiovisual", "visual_only", "audio_only"] = Field(
+        "audiovisual",
+        description="What the clips of this condition give: audiovisual (face and voice), "
+        "visual_only (the face, muted: lip-reading) or audio_only (the voice with a still "
+        "face: the method's animation is not shown; or no face with rendering."
+        "audio_only_face: none).",
+    )
     emotion: dict[str, float] | list[dict[str, float]] | None = Field(
         None,
         description=f"The character's emotion for this condition ({', '.join(EMOTIONS)}: 0..1; "
@@ -519,6 +526,11 @@ class Rendering(_Model):
     )
     background: list[float] = Field(
         default_factory=lambda: [0.5, 0.5, 0.5], min_length=3, max_length=3
+    )
+    audio_only_face: Literal["still", "none"] = Field(
+        "still",
+        description="What an audio_only condition's clips show: the avatar's still neutral "
+        "face, or none (the background only).",
     )
 
 

@@ -109,6 +109,43 @@ def face_visible_rows(tr: ClipTracking, *, clip: str, condition: str) -> list[Ch
     return rows
 
 
+#: a muted clip's loudest sample (-60 dBFS) and a voiced clip's least RMS (-50 dBFS)
+MUTED_PEAK = 1e-3
+VOICED_RMS = 10 ** (-50 / 20)
+#: a still face's tracked lip opening may vary this much (face heights, 5th to 95th centile)
+STILL_APERTURE = 0.01
+
+
+def modality_rows(
+    tr: ClipTracking, sound: np.ndarray, *, modality: str, face: str, clip: str, condition: str
+) -> list[CheckRow]:
+    """What a condition's modality promises, measured on the clip (``check`` modality): a
+    visual_only clip is silent; an audio_only clip has the voice and a face that does not
+    move (``face`` still) or no face at all (``face`` none). Audiovisual: no rows (the
+    face_visible, articulation and av_sync checks cover it)."""
+    kw = {"clip": clip, "condition": condition, "check": "modality"}
+    if modality == "visual_only":
+        peak = float(np.abs(sound).max()) if len(sound) else 0.0
+        return [at_most(MUTED_PEAK, peak, measure="audio_peak", note="visual_only: muted "
+                        "(the loudest sample, full scale 1)", **kw)]  # fmt: skip
+    if modality != "audio_only":
+        return []
+    rms = float(np.sqrt(np.mean(np.square(sound, dtype=np.float64)))) if len(sound) else 0.0
+    rows = [at_least(VOICED_RMS, rms, measure="audio_rms", note="audio_only: the voice is "
+                     "heard", **kw)]  # fmt: skip
+    if face == "none":
+        found = float(tr.detection.max()) if len(tr.detection) else 0.0
+        rows.append(at_most(DETECTION_MIN, found, measure="face_detection_max",
+                            note="audio_only without a face: no face is found", **kw))  # fmt: skip
+        return rows
+    rel = tr.aperture[np.isfinite(tr.aperture)]  # (already in face heights)
+    spread = float(np.percentile(rel, 95) - np.percentile(rel, 5)) if len(rel) else None
+    rows.append(at_most(STILL_APERTURE, spread, measure="aperture_spread",
+                        note="audio_only: the still face's lip opening, 5th to 95th centile, "
+                        "in face heights", **kw))  # fmt: skip
+    return rows
+
+
 def mouth_at_peaks(
     tr: ClipTracking, peaks: Sequence[tuple[str, float]], *, fps: float, offset_s: float
 ) -> dict[str, dict[str, float]]:

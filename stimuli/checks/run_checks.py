@@ -40,6 +40,7 @@ from facelab.stimuli.checks.clip_checks import (
     envelope,
     face_visible_rows,
     level_rows,
+    modality_rows,
     mouth_at_peaks,
     not_measured,
     too_small,
@@ -277,9 +278,18 @@ def check_clips(
     by_stimulus: dict[tuple[str, str], list[dict]] = {}
     for m in manifest:
         by_stimulus.setdefault((m["stimulus_set"], m["stimulus"]), []).append(m)
+    modality = {c.id: c.modality for c in protocol.conditions}
+    face = protocol.rendering.audio_only_face
     for m in manifest:
         tr = tracking[m["clip_id"]]
+        shown = modality[m["condition"]]
+        rows += modality_rows(tr, sounds[m["clip_id"]], modality=shown, face=face,
+                              clip=m["clip_id"], condition=m["condition"])  # fmt: skip
+        if shown == "audio_only" and face == "none":
+            continue  # no face to see, track or synchronise
         rows += face_visible_rows(tr, clip=m["clip_id"], condition=m["condition"])
+        if shown != "audiovisual":
+            continue  # no sound to follow (muted), or no motion to follow it (a still face)
         stim = stimuli.get((m["stimulus_set"], m["stimulus"]))
         small = too_small(tr, clip_height=int(m["height"]))
         if stim is not None and stim.track_source != "silence" and small:
@@ -297,11 +307,16 @@ def check_clips(
             rows += av_sync_rows(tr, sound, track_values=values, intended_sound=want, fps=fps,
                                  clip=m["clip_id"], condition=m["condition"])  # fmt: skip
     levelled = {c.id: c.level for c in protocol.conditions if c.level is not None}
-    for (set_id, stim_id), clips in by_stimulus.items():
-        plain = {m["condition"]: (m["clip_id"], tracking[m["clip_id"]], m["sha256"])
-                 for m in clips if m["condition"] not in levelled}  # fmt: skip
-        rows += difference_rows(plain, equal_groups=protocol.checks.equal_conditions,
-                                explain=_explanations(clips_dir, clips))  # fmt: skip
+    for (set_id, stim_id), all_clips in by_stimulus.items():
+        # the faces of conditions shown alike are compared (a muted clip may look like its
+        # audiovisual twin; audio_only faces do not move, by design)
+        for shown in ("audiovisual", "visual_only"):
+            plain = {m["condition"]: (m["clip_id"], tracking[m["clip_id"]], m["sha256"])
+                     for m in all_clips if m["condition"] not in levelled
+                     and modality[m["condition"]] == shown}  # fmt: skip
+            rows += difference_rows(plain, equal_groups=protocol.checks.equal_conditions,
+                                    explain=_explanations(clips_dir, all_clips))  # fmt: skip
+        clips = [m for m in all_clips if modality[m["condition"]] != "audio_only"]
         graded: dict[str, list] = {}
         for m in clips:
             if m["condition"] in levelled:
@@ -347,7 +362,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 2
+CHECKS_VERSION = 3
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +138,15 @@ def _behaviour(
     )
 
 
+def _modality(protocol: Protocol, cond: Condition) -> str | None:
+    """What of a clip's hashed inputs the modality changes (None: audiovisual, as before)."""
+    if cond.modality == "audiovisual":
+        return None
+    if cond.modality == "audio_only":
+        return f"audio_only/{protocol.rendering.audio_only_face}"
+    return cond.modality
+
+
 def _behaviour_hash(behaviour: ClipBehaviour) -> str:
     """SHA-256 of the plan and of what realising it gave: the weights and poses drawn (so a
     change in how a plan is realised - e.g. the lid limit - re-renders the clip)."""
@@ -202,6 +211,11 @@ def build_clips(
                 bs, avatar, fps=fps, n_frames=n_frames, pad_s=protocol.rendering.pad_s
             )
             behaviour = _behaviour(protocol, job, speech, base_dir, avatar, fps, weights)
+            modality = _modality(protocol, cond)
+            if cond.modality == "audio_only":  # the voice with a still face (or none)
+                weights = np.zeros_like(weights)
+                behaviour = None
+                bs = replace(bs, poses=None)
             key = hashlib.sha256(
                 json.dumps(
                     {
@@ -216,6 +230,7 @@ def build_clips(
                         "fps": fps,
                         "pad_s": protocol.rendering.pad_s,
                         "track_format": TRACK_FORMAT,  # drawn from the track's float32 values
+                        **({"modality": modality} if modality else {}),
                         **(
                             {"behaviour": _behaviour_hash(behaviour)}
                             if behaviour is not None
@@ -295,17 +310,29 @@ def build_clips(
                 "avatar": avatar.name,
                 "avatar_kind": avatar.source.get("kind", "unknown"),
                 "stand_in": note,
+                "modality": cond.modality,
+                **(
+                    {"audio_only_face": protocol.rendering.audio_only_face}
+                    if cond.modality == "audio_only"
+                    else {}
+                ),
                 **({"track_notes": bs.notes} if bs.notes else {}),
                 **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
             }
             waiting[job.clip_id] = (row, about, behaviour)
             pending_tracks[job.clip_id] = track
+            shown_audio = audio
+            if cond.modality == "visual_only":  # muted: the same length, silence
+                shown_audio = Speech(np.zeros_like(audio.samples), audio.sample_rate,
+                                     source="muted")  # fmt: skip
             frames = ClipFrames(
                 clip_id=job.clip_id,
                 weights=drawn,
                 poses=poses,
-                audio=audio,
-                audio_sha256=audio_sha256(audio),
+                audio=shown_audio,
+                audio_sha256=audio_sha256(shown_audio),
+                blank=cond.modality == "audio_only"
+                and protocol.rendering.audio_only_face == "none",
                 fps=fps,
                 settings=settings,
                 framing_sha256=avatar_ref.sha256,

@@ -109,5 +109,9 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         "background": list(r.background),
         "audio_sample_rate": r.audio_sample_rate,
     }
+    if cond.modality != "audiovisual":  # (absent for audiovisual: earlier hashes still hold)
+        spec["modality"] = cond.modality
+        if cond.modality == "audio_only":
+            spec["audio_only_face"] = r.audio_only_face
     text = json.dumps(spec, sort_keys=True, ensure_ascii=False, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

@@ -77,6 +77,7 @@ class ClipFrames:
     settings: RenderSettings
     framing_sha256: str
     drawn_sha256: str
+    blank: bool = False  # no face: every frame the background (an audio_only condition)
 
     @property
     def n_frames(self) -> int:
@@ -207,11 +208,15 @@ def render_clip(job: ClipFrames, framing: Avatar, drawn: Avatar) -> RenderedClip
     renderer = _renderer(framing, job.framing_sha256, job.settings)
     renderer.avatar = drawn  # same vertices and faces as the framing avatar
     try:
-        frames = (
-            renderer.frames(job.weights)
-            if job.poses is None
-            else renderer.frames(job.weights, job.poses)
-        )
+        if job.blank:  # the background as the renderer draws it (its corner pixel)
+            first = next(iter(renderer.frames(job.weights[:1])))
+            plain = np.empty_like(first)
+            plain[...] = first[0, 0]
+            frames = (plain for _ in range(job.n_frames))
+        elif job.poses is None:
+            frames = renderer.frames(job.weights)
+        else:
+            frames = renderer.frames(job.weights, job.poses)
         with tempfile.TemporaryDirectory(prefix="facelab-task-") as scratch:
             info = encode(
                 frames, audio=job.audio, out=Path(scratch) / f"{job.clip_id}.mp4", fps=job.fps,
