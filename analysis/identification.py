@@ -9,6 +9,15 @@ Cohen's kappa is agreement beyond chance between the portrayed and the chosen la
 
     kappa = (p_o - p_e) / (1 - p_e),  p_o = sum_i C_ii / N,  p_e = sum_i (row_i * col_i) / N^2
 
+Relative information transfer (Miller & Nicely, 1955) says how much of the portrayed label's
+uncertainty the answers remove, also crediting consistent confusions (lip-reading ま as ば)::
+
+    T(x; y) = sum_ij p_ij log2(p_ij / (p_i. p_.j)),  H(x) = -sum_i p_i. log2 p_i.,
+    RIT = T(x; y) / H(x)
+
+(maximum-likelihood estimates from the pooled counts; 1 = every label told apart, 0 = answers
+independent of what was shown).
+
 Whether a condition changes how often the portrayed label is named (e.g. composite vs
 gesture-only behaviour, seed 003) is :func:`correct_model`: a logistic GEE of "answer was
 right" on the condition (and covariates), clustered by participant, with small-sample
@@ -35,9 +44,10 @@ __all__ = [
     "confusion_matrix",
     "correct_model",
     "identification_summary",
+    "information_transfer",
 ]
 
-SUMMARY_COLUMNS = ("n", "accuracy", "chance", "kappa")
+SUMMARY_COLUMNS = ("n", "accuracy", "chance", "kappa", "information_transfer")
 MODEL_COLUMNS = (
     "term",
     "estimate",
@@ -89,6 +99,24 @@ def cohen_kappa(matrix: pd.DataFrame | np.ndarray) -> float:
     return float("nan") if p_e >= 1.0 else float((p_o - p_e) / (1.0 - p_e))
 
 
+def information_transfer(matrix: pd.DataFrame | np.ndarray) -> float:
+    """Relative transmitted information T(x; y) / H(x) of a confusion matrix (rows portrayed,
+    columns chosen; see the module docstring); NaN without counts or when one label only was
+    portrayed (H(x) = 0)."""
+    c = np.asarray(matrix, dtype=float)
+    total = c.sum()
+    if total == 0:
+        return float("nan")
+    p = c / total
+    rows, cols = p.sum(axis=1), p.sum(axis=0)
+    h_x = -float(np.sum(rows[rows > 0] * np.log2(rows[rows > 0])))
+    if h_x <= 0:
+        return float("nan")
+    nz = p > 0
+    t = float(np.sum(p[nz] * np.log2(p[nz] / np.outer(rows, cols)[nz])))
+    return max(0.0, t) / h_x
+
+
 def identification_summary(
     trials: pd.DataFrame,
     *,
@@ -99,7 +127,8 @@ def identification_summary(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(summary, recall) per group of ``by`` and pooled (``by`` columns ``"pooled"``).
 
-    ``summary``: ``[*by, n, accuracy, chance, kappa]`` - chance is 1 / number of labels.
+    ``summary``: ``[*by, n, accuracy, chance, kappa, information_transfer]`` - chance is
+    1 / number of labels; information transfer as :func:`information_transfer`.
     ``recall``: ``[*by, label, n, recall, precision]`` - recall = correct / portrayed;
     precision = correct / chosen (NaN when the label was never chosen).
     """
@@ -119,6 +148,7 @@ def identification_summary(
                 "accuracy": float(np.trace(c) / n) if n else float("nan"),
                 "chance": 1.0 / len(labels),
                 "kappa": cohen_kappa(c),
+                "information_transfer": information_transfer(c),
             }
         )
         for i, label in enumerate(labels):

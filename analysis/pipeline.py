@@ -236,8 +236,10 @@ def _objective_tables(protocol: Protocol, clips: Path, vas: pd.DataFrame, tasks)
         else:
             said = (f"{row.estimate:+.2f} per unit (95% CI {row.ci_low:.2f} to "
                     f"{row.ci_high:.2f}, p = {row.p:.3g}, {row.n_cells} clips)")  # fmt: skip
-        tasks.notes.append(f"objective_covariate.csv: {row.item} rating on the clip's tracked "
-                           f"aperture correlation with {ref!r}, within conditions: {said}")
+        tasks.notes.append(
+            f"objective_covariate.csv: {row.item} rating on the clip's tracked "
+            f"aperture correlation with {ref!r}, within conditions: {said}"
+        )
 
 
 def _behaviour_tables(
@@ -296,5 +298,10 @@ def _mode_note(modes: pd.DataFrame) -> str:
             else " (" + ", ".join(f"{d} {n}" for d, n in shown.items()) + ")"
         )
         simulated = int(g["simulated"].sum())
-        parts.append(f"{len(g)} {mode}{how}" + (f", {simulated} simulated" if simulated else ""))
+        of = (
+            ""
+            if mode == "simulated" or not simulated
+            else (", all simulated" if simulated == len(g) else f", {simulated} of them simulated")
+        )
+        parts.append(f"{len(g)} {mode}{how}{of}")
     return "sessions: " + "; ".join(parts)

@@ -542,6 +542,22 @@ def _simulation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 ("simulation", "identifier", "condition_accuracy", cond_id),
                 f"unknown condition {cond_id!r}; conditions: {known_conditions}",
             )
+    labels = {lb.id for t in protocol.tasks if t.type == "identify" for lb in t.labels}
+    tables = [(("simulation", "identifier", "confusion"), sim.identifier.confusion)]
+    for cond_id, table in sim.identifier.condition_confusion.items():
+        where = ("simulation", "identifier", "condition_confusion", cond_id)
+        if cond_id not in condition_ids:
+            yield Issue(where, f"unknown condition {cond_id!r}; conditions: {known_conditions}")
+        tables.append((where, table))
+    for where, table in tables:  # a confusion table names the identify tasks' labels
+        for shown, row in table.items():
+            for label in (shown, *row):
+                if labels and label not in labels:
+                    yield Issue((*where, shown), f"unknown label {label!r}; the identify "
+                                f"tasks' labels: {', '.join(sorted(labels))}")  # fmt: skip
+                    break
+            if row and sum(row.values()) <= 0:
+                yield Issue((*where, shown), "the probabilities sum to 0")
     for oi, override in enumerate(sim.overrides):
         where = ("simulation", "overrides", oi)
         if override.item is not None and override.item not in item_ids:

@@ -575,8 +575,8 @@ class Observer(_Model):
 
 class Identifier(_Model):
     """A simulated identifier: the portrayed label is chosen with probability 'accuracy'
-    (per condition: 'condition_accuracy'; or a row of 'confusion'), otherwise another label
-    uniformly."""
+    (per condition: 'condition_accuracy'; or a row of 'confusion', per condition a row of
+    'condition_confusion'), otherwise another label uniformly."""
 
     accuracy: float = Field(0.7, ge=0, le=1)
     condition_accuracy: dict[Id, Annotated[float, Field(ge=0, le=1)]] = Field(
@@ -586,6 +586,12 @@ class Identifier(_Model):
     confusion: dict[Id, dict[Id, float]] = Field(
         default_factory=dict,
         description="Portrayed label -> {chosen label: probability}; rows replace 'accuracy'.",
+    )
+    condition_confusion: dict[Id, dict[Id, dict[Id, float]]] = Field(
+        default_factory=dict,
+        description="Condition id -> {portrayed label: {chosen label: probability}}: how "
+        "that condition is read (e.g. lip-reading one animation method); its rows replace "
+        "'confusion' there.",
     )
 
 

@@ -186,7 +186,9 @@ class ChoiceModel:
         )
         if target is None:
             return labels[int(self.rng.integers(len(labels)))]
-        row = self.identifier.confusion.get(target)
+        row = self.identifier.condition_confusion.get(screen.trial.condition, {}).get(
+            target
+        ) or self.identifier.confusion.get(target)
         if row:
             probs = np.array([row.get(lb, 0.0) for lb in labels], dtype=float)
             return labels[int(self.rng.choice(len(labels), p=probs / probs.sum()))]

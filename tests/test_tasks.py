@@ -93,6 +93,14 @@ def test_confusion_accuracy_and_kappa_against_sklearn():
     pooled = summary[summary["participant"] == "pooled"].iloc[0]
     assert pooled["kappa"] == pytest.approx(metrics.cohen_kappa_score(target, response))
     assert pooled["accuracy"] == pytest.approx(np.mean(target == response))
+    # relative information transfer: sklearn's mutual information (nats) over the entropy of
+    # what was portrayed (scipy, nats)
+    from scipy.stats import entropy
+
+    h_x = entropy(pd.Series(target).value_counts().to_numpy())
+    rit = metrics.mutual_info_score(target, response) / h_x
+    assert pooled["information_transfer"] == pytest.approx(rit, rel=1e-9)
+    assert 0 < rit < 1
     expected = metrics.recall_score(target, response, labels=labels, average=None)
     got = recall[recall["participant"] == "pooled"].set_index("label").loc[labels, "recall"]
     np.testing.assert_allclose(got.to_numpy(), expected)

@@ -21,7 +21,7 @@ from facelab.formats import read_manifest, read_stimulus_checks
 from facelab.protocol import Protocol
 from facelab.stimuli.render.build import _blendshapes, vowel_peaks
 from facelab.stimuli.render.clip import weights_at
-from facelab.stimuli.render.clipspec import plan
+from facelab.stimuli.render.clipspec import ClipJob, plan
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.renderer import Renderer
 from facelab.stimuli.render.scene import face_closeup, load_avatar
@@ -201,12 +201,15 @@ def _vowel_clips(protocol: Protocol, out: Path) -> dict[str, list[str]]:
 def _peak_sheet(
     protocol: Protocol, *, base_dir: Path, out: Path, checks: Sequence[Mapping[str, str]]
 ) -> Path:
-    """Every condition on the first stimulus its blocks show, at the frame where its
-    blendshape weights sum highest, side by side, each with its checks' banner."""
+    """Every condition on the first stimulus its blocks show, at the frame where its mouth
+    moves most (the sum of its jaw, mouth and viseme weights, silence's viseme left out),
+    side by side, each with its checks' banner."""
     from PIL import Image, ImageDraw
 
     avatar = load_avatar(protocol, base_dir=base_dir)
-    jobs = {job.condition: job for job in plan(protocol)}
+    jobs: dict[str, ClipJob] = {}
+    for job in plan(protocol):
+        jobs.setdefault(job.condition, job)
     font, small = sheet_font(20), sheet_font(13)
     tiles = []
     with Renderer(avatar, face_closeup(avatar, size_px=400)) as renderer:
@@ -220,7 +223,12 @@ def _peak_sheet(
             bs = _blendshapes(
                 protocol, job, speech, tracks_for(job.stimulus, speech), base_dir, avatar
             )
-            peak = float(bs.times[int(np.argmax(bs.weights.sum(axis=1)))])
+            mouth = [
+                k for k, n in enumerate(bs.names)
+                if n.startswith(("jaw", "mouth", "viseme_")) and n != "viseme_sil"
+            ]  # fmt: skip
+            moving = bs.weights[:, mouth] if mouth else bs.weights
+            peak = float(bs.times[int(np.argmax(moving.sum(axis=1)))])
             img = Image.fromarray(renderer.frame(weights_at(bs, avatar, t=peak)))
             draw = ImageDraw.Draw(img)
             draw.text((10, 8), f"{cond.id}  t={peak:.2f}s", fill=(255, 255, 255), font=font)
