@@ -22,18 +22,21 @@ from tests.protocol_edits import kato_short
 
 pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))
+TRIALS, RATINGS = 9, 18  # the short study's session: 9 trials x 2 VAS items
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The paper's design with short texts (1-2 s clips) and small clips, rendered once."""
+    """The paper's design with short texts (1-2 s clips), one set per block (9 trials: the
+    sessions below are whole ones, so their length is the suite's), small clips, rendered
+    once."""
     if not os.environ.get("DISPLAY"):
         pytest.fail("no DISPLAY: run the tests with the README's test command (xvfb-run)")
     root = tmp_path_factory.mktemp("study")
     text = (Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml").read_text(
         encoding="utf-8"
     )
-    text = kato_short(text, one_set=False)
+    text = kato_short(text)
     (root / "short.yaml").write_text(text, encoding="utf-8")
     assert (
         main(
@@ -111,20 +114,20 @@ def test_simulated_session_in_the_real_window(study: Path, tmp_path: Path) -> No
     proc = _run(study, tmp_path / "res", "--participant", "P01", "--screenshots", str(shots))
     out, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-2000:]
-    assert "session complete: 36 ratings" in out
+    assert f"session complete: {RATINGS} ratings" in out
     rows = _rows(tmp_path / "res", "P01")
     assert [(int(r["trial_index"]), r["item"]) for r in rows] == _design(study, "P01")
     assert all(r["rating_start"] == "n/a" for r in rows)  # the marker was hidden: no start value
     assert all(0 <= float(r["rating"]) <= 100 and float(r["rt_s"]) > 0 for r in rows)
     onsets = [float(r["clip_onset"]) for r in rows[::2]]
-    assert onsets == sorted(onsets) and len(set(onsets)) == 18
+    assert onsets == sorted(onsets) and len(set(onsets)) == TRIALS
     import json
 
     plays = [
         json.loads(line)
         for line in next((tmp_path / "res").rglob("*_playback.jsonl")).read_text().splitlines()
     ]
-    assert [p["trial_index"] for p in plays] == list(range(1, 19))
+    assert [p["trial_index"] for p in plays] == list(range(1, TRIALS + 1))
     for p in plays:  # every flip recorded, from the first frame, in time order
         assert p["flip_times"][0] == 0 and p["flip_times"] == sorted(p["flip_times"])
         assert len(p["flip_times"]) == len(p["frames_shown"]) >= p["frames_expected"] // 2
@@ -153,7 +156,7 @@ def test_sigkill_at_random_points_then_resume(study: Path, tmp_path: Path) -> No
     results = tmp_path / "res"
     given: list[str] = []  # ratings the runner reported saved before each kill
     first = True
-    for kill_after in sorted(rng.choice(np.arange(3, 34), size=3, replace=False)):
+    for kill_after in sorted(rng.choice(np.arange(3, RATINGS - 2), size=3, replace=False)):
         proc = _run(study, results, "--participant", "P02", *([] if first else ["--resume"]))
         first = False
         _wait_saved(proc, int(kill_after) - len(given), given)
@@ -161,13 +164,14 @@ def test_sigkill_at_random_points_then_resume(study: Path, tmp_path: Path) -> No
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
         saved = _rows(results, "P02")
-        keys = {f"trial {r['trial_index']}/18 {r['condition']} {r['item']}" for r in saved}
+        keys = {f"trial {r['trial_index']}/{TRIALS} {r['condition']} {r['item']}"
+                for r in saved}  # fmt: skip
         assert set(given) <= keys  # every rating given before the kill is on disk
     proc = _run(study, results, "--participant", "P02", "--resume")
     _out, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-2000:]
     rows = _rows(results, "P02")
-    assert len(rows) == 36
+    assert len(rows) == RATINGS
     assert [(int(r["trial_index"]), r["item"]) for r in rows] == _design(
         study, "P02"
     )  # once each, in order
@@ -191,7 +195,7 @@ def test_sigkill_at_random_points_then_resume(study: Path, tmp_path: Path) -> No
         ]
         assert mine, f"no action before {row['trial_index']}/{row['item']}"
         # within a few pixels of the line: with the suite's four workers on two cores one
-        # rating of 36 landed 0.65 from its click (not root-caused: the window reads the
+        # rating in 36 landed 0.65 from its click (not root-caused: the window reads the
         # pointer on its own frame); a wrong answer differs by tens
         assert abs(mine[-1]["value"] - float(row["rating"])) < 1.0
     # a response asked again after a resume gets a new value, not a replay of the old run's
@@ -214,7 +218,8 @@ def test_sigkill_between_two_item_confirms_loses_nothing(study: Path, tmp_path: 
     while True:
         line = proc.stdout.readline()
         assert line, proc.stderr.read()[-1500:] if proc.stderr else ""
-        if line.startswith("trial 2/18 ") and " naturalness = " in line and "(saved)" in line:
+        saved_first = " naturalness = " in line and "(saved)" in line
+        if line.startswith(f"trial 2/{TRIALS} ") and saved_first:
             break
     proc.send_signal(signal.SIGKILL)  # the second item of trial 2 is on screen, unconfirmed
     proc.wait(timeout=30)
@@ -245,7 +250,7 @@ def test_sigterm_ends_the_session_like_sigint(study: Path, tmp_path: Path) -> No
     proc = _run(study, results, "--participant", "P05", "--resume")
     _out, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-2000:]
-    assert len(_rows(results, "P05")) == 36
+    assert len(_rows(results, "P05")) == RATINGS
 
 
 def test_a_session_has_one_writer(
@@ -336,7 +341,7 @@ def test_stale_and_changed_clips_are_refused(
     assert proc.returncode == 0, err[-2000:]
     meta = json.loads(_session_file(results, "P07", "_session.json").read_text())
     assert meta["resumes"][-1]["changed_clips"]  # which clips changed, was and now
-    assert len(_rows(results, "P07")) == 36
+    assert len(_rows(results, "P07")) == RATINGS
 
 
 def test_checks_before_a_session(
