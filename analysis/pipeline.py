@@ -31,6 +31,7 @@ from facelab.analysis.pilot import pilot_items, pilot_sessions
 from facelab.analysis.presentation import (
     exclude_av_offset,
     exclude_dropped,
+    exclude_trials,
     live_playback,
     live_quality,
     playback_records,
@@ -98,6 +99,7 @@ def run(
     max_dropped_frames: int | None = None,
     max_av_offset_ms: float | None = None,
     sampler: DesignSampler | None = None,
+    exclude_rules: Sequence[str] = (),
 ) -> AnalysisRun:
     """Analyse the study's sessions under ``results`` into ``out`` (created; files in it are
     replaced).
@@ -116,6 +118,9 @@ def run(
         ``av_offset_ms``, head movement and viewing distance as covariates.
     sampler : simulates the protocol's design, to calibrate each participant's psychometric
         intervals (``facelab.experiment.simulate.design_sampler``; None: uncalibrated).
+    exclude_rules : leave out responses to trials whose playback record meets a rule
+        (``"frame_age_max_ms > 100"``: :func:`facelab.analysis.presentation.exclude_trials`);
+        the report says how many per condition and rule.
     """
     data = load_results(results, study=protocol.study.id)
     if exclude:
@@ -134,6 +139,10 @@ def run(
     if max_av_offset_ms is not None:
         data, late, offset_note = exclude_av_offset(data, max_ms=max_av_offset_ms)
         excluded = pd.concat([excluded, late], ignore_index=True) if not late.empty else excluded
+    rule_notes: list[str] = []
+    if exclude_rules:
+        data, ruled, rule_notes = exclude_trials(data, records, rules=exclude_rules)
+        excluded = pd.concat([excluded, ruled], ignore_index=True) if not ruled.empty else excluded
     check = check_data(
         pd.concat([data, excluded], ignore_index=True) if not excluded.empty else data,
         protocol,
@@ -165,7 +174,7 @@ def run(
     if not items.empty:
         tasks.tables["pilot_items"] = items
     tasks.notes.extend(item_notes)
-    tasks.notes.extend(n for n in (dropped_note, offset_note) if n)
+    tasks.notes.extend(n for n in (dropped_note, offset_note, *rule_notes) if n)
     files = write_report(
         results=study,
         data=data,

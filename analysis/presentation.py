@@ -5,24 +5,32 @@ left out of the analysis - with what was left out and why stated in the report."
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
+from facelab.errors import AnalysisError
 from facelab.formats import LIVE_PLAYBACK_KEYS
 
 __all__ = [
+    "FRAME_MEASURES",
     "LIVE_COLUMNS",
     "QUALITY_COLUMNS",
     "exclude_av_offset",
     "exclude_dropped",
+    "exclude_trials",
+    "frame_measures",
     "live_playback",
     "live_quality",
     "playback_records",
     "playback_replays",
     "presentation_quality",
     "session_modes",
+    "trial_playback",
     "trials_shown",
     "with_live_playback",
 ]
@@ -136,7 +144,9 @@ def playback_records(data: pd.DataFrame) -> list[dict[str, Any]]:
         path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
         if not path.is_file():
             continue
-        for line in path.read_text(encoding="utf-8").splitlines():
+        for line in path.read_text(encoding="utf-8").split("\n"):  # (not U+2028 in a string)
+            if not line.strip():
+                continue
             try:
                 record = json.loads(line)
             except json.JSONDecodeError:
@@ -145,18 +155,106 @@ def playback_records(data: pd.DataFrame) -> list[dict[str, Any]]:
     return out
 
 
+#: measures derived from a record's frames (video and live alike), see :func:`frame_measures`
+FRAME_MEASURES = ("frame_age_max_ms", "frames_frozen", "frames_never_shown_share")
+
+
+def frame_measures(record: Mapping[str, Any]) -> dict[str, float | None]:
+    """What a clip's displayed frames say (``flip_times`` s, ``frames_shown`` the clip frame
+    on each, ``frames_expected``): ``frame_age_max_ms`` the longest time one clip frame
+    stayed on screen (from its first flip to the flip that replaced it) - a frozen picture
+    shows here, whatever the A/V offset says; ``frames_frozen`` the flip gaps longer than two
+    clip frame periods; ``frames_never_shown_share`` the clip's frames never on screen. None
+    where the record has no frames."""
+    flips = [float(t) for t in record.get("flip_times") or []]
+    shown = list(record.get("frames_shown") or [])
+    n = int(record.get("frames_expected") or 0)
+    if len(flips) < 2 or len(shown) != len(flips) or n <= 0:
+        return dict.fromkeys(FRAME_MEASURES)
+    duration = float(record.get("media_time_end") or 0) or None
+    period = (duration / n) if duration else float(np.median(np.diff(flips)))
+    age, start = 0.0, flips[0]
+    for t, prev, cur in zip(flips[1:], shown[:-1], shown[1:], strict=True):
+        if cur != prev:
+            age, start = max(age, t - start), t
+    gaps = np.diff(flips)
+    return {
+        "frame_age_max_ms": round(1000 * age, 2),
+        "frames_frozen": int(np.sum(gaps > 2 * period)),
+        "frames_never_shown_share": round(1 - len(set(shown)) / n, 4),
+    }
+
+
+def trial_playback(records: list[dict[str, Any]]) -> pd.DataFrame:
+    """One row per (participant, session, trial_index) shown: every number its last showing
+    recorded (``dropped``, ``av_offset_ms``, ``head_yaw_range_deg``, …) and its
+    :func:`frame_measures` - what ``--exclude-trials`` reads."""
+    rows = []
+    for r in records:
+        if not r.get("trial_index"):
+            continue
+        row = {k: r.get(k) for k in _TRIAL}
+        row |= {k: v for k, v in r.items() if k not in row and isinstance(v, int | float)
+                and not isinstance(v, bool)}  # fmt: skip
+        rows.append(row | frame_measures(r))
+    if not rows:
+        return pd.DataFrame(columns=[*_TRIAL, *FRAME_MEASURES])
+    frame = pd.DataFrame(rows).astype({"trial_index": int})
+    return frame.drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+
+
+_RULE = re.compile(
+    r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(>=|<=|==|!=|>|<)\s*"
+    r"([-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*$"
+)
+_OPS = {">": np.greater, ">=": np.greater_equal, "<": np.less, "<=": np.less_equal,
+        "==": np.equal, "!=": np.not_equal}  # fmt: skip
+
+
+def exclude_trials(
+    data: pd.DataFrame, records: list[dict[str, Any]], *, rules: Sequence[str]
+) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
+    """Responses to trials whose playback record meets any rule left out (``rules``: e.g.
+    ``"head_yaw_range_deg > 30"``, a measure of :func:`trial_playback`, a comparison and a
+    number): ``(kept, excluded, notes)``, a note per rule that left something out (how many
+    per condition). A trial without the measure (not recorded) is kept. An unknown measure
+    or a rule that does not parse is an :class:`AnalysisError` naming what is known."""
+    table = trial_playback(records)
+    known = sorted(set(table.columns) - set(_TRIAL))
+    excluded_all, notes = data.iloc[:0], []
+    for rule in rules:
+        m = _RULE.match(rule)
+        if m is None:
+            raise AnalysisError(f"--exclude-trials {rule!r}: expected MEASURE OP NUMBER, e.g. "
+                                "\"head_yaw_range_deg > 30\" (OP: > >= < <= == !=)")  # fmt: skip
+        measure, op, value = m.group(1), m.group(2), float(m.group(3))
+        if measure not in known:
+            raise AnalysisError(f"--exclude-trials {rule!r}: no playback measure {measure!r}; "
+                                f"the records have: {', '.join(known) or 'none'}")  # fmt: skip
+        merged = data[list(_TRIAL)].merge(table[[*_TRIAL, measure]], on=list(_TRIAL),
+                                          how="left")  # fmt: skip
+        values = pd.to_numeric(merged[measure], errors="coerce").to_numpy(float)
+        over = pd.Series(_OPS[op](values, value) & ~np.isnan(values), index=data.index)
+        data, excluded, note = _exclude(data, over, f"trials where {measure} {op} {value:g} "
+                                        "(--exclude-trials)")  # fmt: skip
+        if note:
+            notes.append(note)
+            excluded_all = pd.concat([excluded_all, excluded], ignore_index=True)
+    return data, excluded_all, notes
+
+
 def live_playback(records: list[dict[str, Any]]) -> pd.DataFrame:
     """One row per (participant, session, trial_index) shown live: the measures of the
     trial's last showing (a replay after a resume is what the answer followed), from the
     :func:`playback_records`. Empty when no clip was drawn live (video studies, lab
     sessions)."""
     rows = [
-        {k: r.get(k) for k in (*_TRIAL, *LIVE_COLUMNS)}
+        {k: r.get(k) for k in (*_TRIAL, *LIVE_COLUMNS)} | frame_measures(r)
         for r in records
         if r.get("display") in ("live3d", "webxr") and r.get("trial_index")
     ]
     if not rows:
-        return pd.DataFrame(columns=[*_TRIAL, *LIVE_COLUMNS])
+        return pd.DataFrame(columns=[*_TRIAL, *LIVE_COLUMNS, *FRAME_MEASURES])
     frame = pd.DataFrame(rows).astype({"trial_index": int})
     return frame.drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
 
@@ -203,15 +301,16 @@ def with_live_playback(data: pd.DataFrame, live: pd.DataFrame) -> pd.DataFrame:
     keys = data[_TRIAL].astype({"session": int, "trial_index": int})
     merged = keys.merge(live, on=_TRIAL, how="left")
     out = data.copy()
-    for col in LIVE_COLUMNS:
+    for col in (*LIVE_COLUMNS, *FRAME_MEASURES):
         out[col] = merged[col].to_numpy()
     return out
 
 
 def live_quality(data: pd.DataFrame) -> pd.DataFrame:
     """Per stimulus set and condition, for trials shown live: trials, the display that ran,
-    the median and largest |A/V offset| (ms), frames late, and in VR the median head yaw and
-    pitch ranges (deg) and viewing distance (m)."""
+    the median and largest |A/V offset| (ms), frames late, in VR the median head yaw and
+    pitch ranges (deg) and viewing distance (m), and the largest frame age (ms), the freezes
+    and the median share of frames never shown (:func:`frame_measures`)."""
     if "av_offset_ms" not in data.columns:
         return pd.DataFrame()
     trials = data.drop_duplicates(_TRIAL)
@@ -234,9 +333,27 @@ def live_quality(data: pd.DataFrame) -> pd.DataFrame:
                     float(num["head_pitch_range_deg"].median()), 2
                 ),
                 "median_avatar_distance_m": round(float(num["avatar_distance_m"].median()), 3),
+                # a frozen picture the A/V offset cannot see (frame_measures)
+                "max_frame_age_ms": _largest(part, "frame_age_max_ms"),
+                "frames_frozen": int(_numbers(part, "frames_frozen").fillna(0).sum()),
+                "median_frames_never_shown_share": _median(part, "frames_never_shown_share"),
             }
         )
     return pd.DataFrame(rows)
+
+
+def _numbers(part: pd.DataFrame, column: str) -> pd.Series:
+    if column not in part.columns:
+        return pd.Series(np.nan, index=part.index)
+    return pd.to_numeric(part[column], errors="coerce")
+
+
+def _largest(part: pd.DataFrame, column: str) -> float:
+    return round(float(_numbers(part, column).max()), 2)
+
+
+def _median(part: pd.DataFrame, column: str) -> float:
+    return round(float(_numbers(part, column).median()), 4)
 
 
 def exclude_av_offset(

@@ -522,7 +522,7 @@ def _analysis(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         yield Issue(("analysis", "reference"), f"unknown condition {ref!r}; conditions: {known}")
 
 
-@_check("simulation", "conditions", "items", "stimulus_sets")
+@_check("simulation", "conditions", "items", "stimulus_sets", "tasks")
 def _simulation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Simulated effects name real conditions, items and sets."""
     condition_ids = {c.id for c in protocol.conditions}

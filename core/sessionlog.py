@@ -489,12 +489,12 @@ class SessionLog:
                 f"{session}); nothing was overwritten. Use --resume to continue it, or choose "
                 "another --session"
             )
+        about = json.dumps(dict(provenance), indent=2, ensure_ascii=False) + "\n"
+        about.encode("utf-8")  # text no file can hold fails here, before anything is written
         paths.folder.mkdir(parents=True, exist_ok=True)
         fsync_dir(paths.folder.parent)
         _write_new(paths.dictionary, json.dumps(COLUMN_DESCRIPTIONS, indent=2) + "\n")
-        _write_new(
-            paths.provenance, json.dumps(dict(provenance), indent=2, ensure_ascii=False) + "\n"
-        )
+        _write_new(paths.provenance, about)
         _write_new(paths.tsv, "\t".join(LOG_COLUMNS) + "\n")
         fsync_dir(paths.folder)
         return cls(paths=paths)

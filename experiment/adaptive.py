@@ -70,7 +70,9 @@ class Staircases:
         if self.record is None or not self.record.exists():
             return {}
         out: dict[tuple[str, int], dict[str, Any]] = {}
-        for line in self.record.read_text(encoding="utf-8").splitlines():
+        for line in self.record.read_text(encoding="utf-8").split("\n"):
+            if not line.strip():
+                continue
             try:
                 entry = json.loads(line)
             except json.JSONDecodeError:

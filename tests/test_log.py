@@ -198,3 +198,20 @@ def test_log_identity_reads_back_what_session_paths_names(tmp_path) -> None:
     assert log_identity(paths.tsv) == {"participant": "P07", "session": 12, "study": "my_study-2"}
     assert log_identity(paths.playback) is None
     assert log_identity(tmp_path / "notes.tsv") is None
+
+
+def test_text_no_file_can_hold_leaves_no_half_written_file(tmp_path: Path) -> None:
+    """A lone surrogate in a session's provenance or a JSON line fails before the file is
+    opened: no empty _session.json (an export once left one), the JSON lines file as it was."""
+    from facelab.sessionlog import append_jsonl
+
+    with pytest.raises(UnicodeEncodeError):
+        SessionLog.create(tmp_path, study="s", participant="P01", session=1,
+                          provenance={"browser": {"ua": "\ud800"}})  # fmt: skip
+    paths = session_paths(tmp_path, study="s", participant="P01", session=1)
+    assert not paths.folder.exists()  # nothing written: a second try starts clean
+    lines = tmp_path / "x.jsonl"
+    append_jsonl(lines, {"a": 1})
+    with pytest.raises(UnicodeEncodeError):
+        append_jsonl(lines, {"a": "\udfff"})
+    assert lines.read_text(encoding="utf-8") == '{"a": 1}\n'

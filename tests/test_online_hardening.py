@@ -111,6 +111,7 @@ def _surrogates(study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
         {"kind": "error", "detail": {"m": "bell\x07"}},
         {"kind": "error", "detail": {"a": {"b": {"c": {"d": {"e": 1}}}}}},
         {"kind": "error", "detail": {"m": "x" * 2001}},
+        {"kind": "error", "detail": {"m": "line\u2028separator"}},
     ):
         r = _post(client, "/api/event", body, ok)
         assert r.status_code == 422, body
@@ -127,9 +128,14 @@ def _surrogates(study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
     for n, key in enumerate(keys[:4]):
         assert client.post("/api/response", json=_answer(*key, 40.0 + n, f"aaaaaaaaaaab{n:04d}"),
                            headers=ok).status_code == 200  # fmt: skip
-    # data from before the door was closed: a surrogate in an event, a tab in a stored row
+    # data from before the door was closed: a surrogate in an event, a tab in a stored row,
+    # a U+2028 (a line break to Python's splitlines) in a playback record
+    clip, _ = _clip(server, first)
     with Session(server.engine) as db:
         db.add(Event(participant_pk=first.pk, kind="error", detail={"m": "\ud800 lone"}))
+        separated = _playback(clip, "x") | {"play_refused": "a\u2028b"}
+        db.add(PlaybackRecord(participant_pk=first.pk, client_key="sep000000000",
+                              trial_index=1, record=separated))  # fmt: skip
         row = db.scalars(select(Response).where(Response.participant_pk == first.pk)).first()
         assert row is not None
         row.row = {**row.row, "response": "a\tb"}
@@ -142,7 +148,7 @@ def _surrogates(study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
     code = main(["export", "--db", url, "--results", str(out)])
     err = capsys.readouterr().err
     assert code == 3, err
-    assert f"participant {first.participant}: 2 stored text field(s)" in err
+    assert f"participant {first.participant}: 3 stored text field(s)" in err
     assert "Traceback" not in err and "UnicodeEncodeError" not in err
     sessions = sorted(out.rglob("*_session.json"))
     assert len(sessions) == 2  # the participant after the quarantined one is exported
@@ -151,12 +157,18 @@ def _surrogates(study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                "\\\\ud800" in json.dumps(e.get("detail", {})) for e in saved["events"])  # fmt: skip
     tsv = next(sessions[0].parent.glob("*_beh.tsv")).read_text(encoding="utf-8")
     assert "a\\x09b" in tsv and len(tsv.splitlines()) == 1 + 4  # the row kept whole
-    # an export run again adds nothing and says the same
+    playback = next(sessions[0].parent.glob("*_playback.jsonl"))
+    assert len(playback.read_text(encoding="utf-8").split("\n")) == 2  # one record, one line
+    # one more record arrives; an export run again adds exactly it (a raw U+2028 once made
+    # the export count two records and skip the new one)
+    assert client.post("/api/playback", json=_playback(clip, "later0000000", trial=2),
+                       headers=ok).status_code == 200  # fmt: skip
     assert main(["export", "--db", url, "--results", str(out)]) == 3
+    assert len(playback.read_text(encoding="utf-8").strip().split("\n")) == 2
     capsys.readouterr()
     # analyze reads the escaped export; an emptied session file is refused in words
     assert main(["analyze", str(study / "short.yaml"), str(out), "--out",
-                 str(tmp_path / "analysis"), "--force"]) in (0, 2)  # fmt: skip
+                 str(tmp_path / "analysis"), "--force"]) == 0  # fmt: skip
     capsys.readouterr()
     sessions[1].write_text("", encoding="utf-8")
     assert main(["analyze", str(study / "short.yaml"), str(out), "--out",
@@ -220,21 +232,35 @@ def _caps(study: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  # noqa:
     flood = client.post("/api/playback", json=_playback(clip, "flood0000000", flips=99_999),
                         headers=ok)  # fmt: skip
     assert flood.status_code == 413 and "bytes" in flood.json()["error"], flood.text
-    # a real record of this clip at 240 Hz passes
+    # a real record of this clip at 240 Hz passes, and a VR one at 90 Hz with poses
     real = _playback(clip, "real00000000", flips=int(240 * seconds) + 1)
     assert client.post("/api/playback", json=real, headers=ok).status_code == 200
-    for n in range(1, server_module.PLAYBACK_RECORDS_PER_TRIAL):
+    vr = _playback(clip, "vrrecord0000", flips=int(90 * seconds) + 1)
+    vr |= {"display": "webxr", "audio_times": [round(t, 4) for t in vr["flip_times"]],
+           "viewer_poses": [[round(t, 4), 0.0123, 1.6012, 0.3034, -12.3456, 4.5678, 0.1234]
+                            for t in vr["flip_times"]]}  # fmt: skip
+    assert client.post("/api/playback", json=vr, headers=ok).status_code == 200
+    # a trial the participant does not have is refused; the practice trial (null) is capped
+    bogus = client.post("/api/playback", json=_playback(clip, "bogus0000000", trial=90_000),
+                        headers=ok)  # fmt: skip
+    assert bogus.status_code == 422 and "not one of this participant's trials" in bogus.text
+    for n in range(server_module.PLAYBACK_RECORDS_PER_TRIAL):
+        r = client.post("/api/playback", json={**_playback(clip, f"practice{n:04d}"),
+                                               "trial_index": None}, headers=ok)  # fmt: skip
+        assert r.status_code == 200
+    r = client.post("/api/playback", json={**_playback(clip, "practice9999"),
+                                           "trial_index": None}, headers=ok)  # fmt: skip
+    assert r.status_code == 413
+    for n in range(2, server_module.PLAYBACK_RECORDS_PER_TRIAL):
         assert client.post("/api/playback", json=_playback(clip, f"again{n:07d}"),
                            headers=ok).status_code == 200  # fmt: skip
     full = client.post("/api/playback", json=_playback(clip, "onemore00000"), headers=ok)
-    assert full.status_code == 413 and "trial 1 has 8 playback records" in full.json()["error"]
+    assert full.status_code == 413 and "trial 1 has 16 playback records" in full.json()["error"]
     assert client.post("/api/playback", json=_playback(clip, "trial2000000", trial=2),
                        headers=ok).status_code == 200  # another trial is not held back
     # session caps (lowered here so the test stores little; the logic is the one that runs)
-    with Session(server.engine) as db:  # the server's own events count too ("joined")
-        own = db.scalar(select(func.count()).select_from(Event).where(
-            Event.participant_pk == p.pk)) or 0  # fmt: skip
-    monkeypatch.setattr(server_module, "EVENTS_PER_SESSION", own + 5)
+    # (the server's own events - joined, rejoin refused - are not the participant's to count)
+    monkeypatch.setattr(server_module, "EVENTS_PER_SESSION", 5)
     codes = [client.post("/api/event", json={"kind": "error", "detail": {"n": n}},
                          headers=ok).status_code for n in range(7)]  # fmt: skip
     assert codes == [200] * 5 + [413] * 2
@@ -266,6 +292,19 @@ def test_the_smaller_findings(study: Path, tmp_path: Path) -> None:  # noqa: F81
     joined = client.post("/join", follow_redirects=False)
     assert joined.status_code == 303 and joined.headers["cache-control"] == "no-store"
     token = joined.headers["location"].split("=", 1)[1]
+    # someone trying a participant's id while their session runs cannot fill its events
+    pid = {"PROLIFIC_PID": "5f0c0ffee0ddba11"}
+    first = client.post("/join", params=pid, follow_redirects=False)
+    assert first.status_code == 303
+    owner = first.headers["location"].split("=", 1)[1]
+    assert client.post("/api/event", json={"kind": "browser", "detail": {"ua": "x"}},
+                       headers={"X-Facelab-Token": owner}).status_code == 200  # fmt: skip
+    for _ in range(25):
+        assert client.post("/join", params=pid, follow_redirects=False).status_code == 200
+    with Session(server.engine) as db:
+        refused = db.scalar(select(func.count()).select_from(Event).where(
+            Event.kind == "rejoin_refused"))  # fmt: skip
+    assert refused == server_module.REJOIN_REFUSALS_LOGGED
     deep = "[" * 100_000 + "]" * 100_000
     r = client.post("/api/event", content=deep, headers={"X-Facelab-Token": token,
                                                           "Content-Type": "application/json"})
@@ -327,6 +366,43 @@ def test_the_end_page_bound_holds_with_the_server_down(
     finally:
         driver.quit()
     assert _rows(server, "P0001") == []
+
+
+def test_a_refused_413_never_holds_back_the_answers_after_it(
+    study: Path,  # noqa: F811
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """outbox.js retried anything but 409/422 at the head of its queue: one event refused
+    with 413 (a cap) kept every later answer unsent. Now a 413 is held like a 409, and the
+    answer behind it is stored (headless Chromium, the real page and server)."""
+    from facelab.experiment.online.browser import chromium
+
+    server = _server(study, tmp_path / "db.sqlite")
+    _p, ok, keys = _joined(server)
+    monkeypatch.setattr(server_module, "EVENTS_PER_SESSION", 1)
+    driver = chromium()
+    try:
+        with BackgroundServer(server) as bg:
+            driver.get(f"{bg.url}/run#t={ok['X-Facelab-Token']}")
+            deadline = time.monotonic() + 30
+            while not driver.execute_script("return !!document.querySelector('#app *')"):
+                assert time.monotonic() < deadline, "the session page did not start"
+                time.sleep(0.2)
+            driver.execute_script(
+                "FacelabOutbox.send('/api/event', {kind: 'error', detail: {n: 1}});"
+                "FacelabOutbox.send('/api/event', {kind: 'error', detail: {n: 2}});"
+                "FacelabOutbox.send('/api/response', arguments[0]);",
+                _answer(*keys[0], 42.0, "eeeeeeeeeeee0001"),
+            )
+            deadline = time.monotonic() + 20
+            while not _rows(server, "P0001") and time.monotonic() < deadline:
+                time.sleep(0.25)
+            held = driver.execute_script("return FacelabOutbox.held()")
+    finally:
+        driver.quit()
+    assert [r["rating"] for r in _rows(server, "P0001")] == [42.0]
+    assert held >= 1  # the refused event waits in the browser, reported, not lost
 
 
 # --------------------------------------------------------------------------- item 6: fuzz

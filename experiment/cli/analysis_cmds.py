@@ -53,6 +53,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         max_dropped_frames=args.max_dropped_frames,
         max_av_offset_ms=args.max_av_offset_ms,
         sampler=design_sampler(protocol),
+        exclude_rules=args.exclude_trials or (),
     )
     data, check = done.data, done.check
     kind = {"simulated": "SIMULATED ", "mixed": "MIXED (simulated and real) ", "unknown": ""}
@@ -475,6 +476,15 @@ def register(add: AddCommand) -> None:
         help="leave out responses to trials drawn live (display live3d/webxr) whose picture and "
         "sound were more than MS apart (av_offset_ms of the playback record; the report says "
         "how many per condition; default: keep all, and table the live measures)",
+    )
+    p.add_argument(
+        "--exclude-trials",
+        action="append",
+        metavar="RULE",
+        help="leave out responses to trials whose playback record meets RULE, a measure, a "
+        "comparison and a number (repeatable): e.g. \"head_yaw_range_deg > 30\", "
+        "\"frame_age_max_ms > 100\", \"avatar_distance_m < 0.8\", \"dropped > 2\"; the "
+        "report says how many per condition and rule",
     )
     force_option(p)
 

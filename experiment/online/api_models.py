@@ -18,8 +18,10 @@ Iso = Annotated[str, StringConstraints(max_length=40)]
 #: what no text from a browser may hold: lone UTF-16 surrogates (valid JSON escapes, but no
 #: UTF-8 file can hold them - one stopped every later export) and control characters (a tab
 #: or newline would break a TSV row). Free text (an event's detail) may hold tab and newline.
-_BAD_TEXT = re.compile(r"[\ud800-\udfff\x00-\x1f\x7f-\x9f]")
-_BAD_FREE_TEXT = re.compile(r"[\ud800-\udfff\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
+_BAD_TEXT = re.compile(r"[\ud800-\udfff\x00-\x1f\x7f-\x9f\u2028\u2029]")
+_BAD_FREE_TEXT = re.compile(
+    r"[\ud800-\udfff\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u2028\u2029]"
+)  # (U+2028/9 too: line separators to Python's splitlines)
 #: bounds of free JSON (an event's detail): nesting, keys, strings and items per container
 MAX_DEPTH, MAX_KEY, MAX_TEXT, MAX_ITEMS = 4, 64, 2000, 200
 

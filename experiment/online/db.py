@@ -34,6 +34,7 @@ from sqlalchemy import (
     Boolean,
     DateTime,
     ForeignKey,
+    Index,
     Integer,
     LargeBinary,
     String,
@@ -120,7 +121,10 @@ class Response(Base):
 
 class PlaybackRecord(Base):
     __tablename__ = "playback"
-    __table_args__ = (UniqueConstraint("client_key", name="uq_playback_key"),)
+    __table_args__ = (
+        UniqueConstraint("client_key", name="uq_playback_key"),
+        Index("ix_playback_participant_trial", "participant_pk", "trial_index"),
+    )
     pk: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     participant_pk: Mapped[int] = mapped_column(ForeignKey("participants.pk"), index=True)
     client_key: Mapped[str] = mapped_column(String(64))

@@ -64,7 +64,7 @@ _LAB_KEYS = (
     "frames_shown",
 )
 #: the keys of an exported record's top level: the lab's, then the live 3D / VR views'
-_PLAYBACK_KEYS = (*_LAB_KEYS, *LIVE_PLAYBACK_KEYS)
+_PLAYBACK_KEYS = (*_LAB_KEYS, *LIVE_PLAYBACK_KEYS, "audio_times", "viewer_poses")
 #: the fields only the live 3D / VR views fill (left out of a video record's export)
 _LIVE_ONLY = frozenset(LIVE_PLAYBACK_KEYS) | {"audio_times", "viewer_poses"}
 
@@ -84,8 +84,8 @@ def _exported(record: dict[str, Any]) -> dict[str, Any]:
     )
 
 
-_UNWRITABLE = re.compile(r"[\ud800-\udfff]")
-_UNWRITABLE_TSV = re.compile(r"[\ud800-\udfff\x00-\x1f\x7f]")
+_UNWRITABLE = re.compile(r"[\ud800-\udfff\u2028\u2029]")  # (U+2028/9: line breaks to readers)
+_UNWRITABLE_TSV = re.compile(r"[\ud800-\udfff\x00-\x1f\x7f\u2028\u2029]")
 
 
 def escaped(value: Any, *, tsv: bool = False) -> tuple[Any, int]:
@@ -116,7 +116,8 @@ def escaped(value: Any, *, tsv: bool = False) -> tuple[Any, int]:
 def _count_lines(path: Path) -> int:
     if not path.exists():
         return 0
-    return sum(1 for line in path.read_text(encoding="utf-8").splitlines() if line.strip())
+    # records are separated by "\n" only (a U+2028 inside a stored string is not a break)
+    return sum(1 for line in path.read_text(encoding="utf-8").split("\n") if line.strip())
 
 
 def _append_new(path: Path, records: Sequence[dict[str, Any]]) -> int:
@@ -188,7 +189,7 @@ def export_sessions(
             ).all()
             try:
                 log, changed = _export_one(p, rows, playback, actions, events, results=results)
-            except (UnicodeError, StageError, ValueError, TypeError) as exc:
+            except (UnicodeError, StageError, ValueError, TypeError, RecursionError) as exc:
                 quarantine.append(f"study {p.study} participant {p.participant}: not exported "
                                   f"({exc}); the database still holds it")  # fmt: skip
                 continue

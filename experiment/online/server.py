@@ -113,14 +113,18 @@ RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIP
 # clip's playback record is ~30 bytes a frame in a browser (flip time, frame shown) and ~90
 # in VR (audio time, viewer pose too); a 240 Hz display draws 240 frames a second. So a
 # record may hold 64 kB per second of its clip (3x a 240 Hz VR record) plus 32 kB; a trial
-# at most 8 records (its showing, replays, a reloaded page); a session 32 MB of playback and
-# 1,000 events of at most 4,000 characters each (a session sends a handful).
+# at most 16 records (a pair trial records both clips of each showing: its showing, replays,
+# reloaded pages); a session 32 MB of playback and 1,000 events it posted, of at most 4,000
+# characters each (a session sends a handful; the server's own events are not counted).
 PLAYBACK_BYTES_PER_CLIP_S = 64_000
 PLAYBACK_BYTES_BASE = 32_000
-PLAYBACK_RECORDS_PER_TRIAL = 8
+PLAYBACK_RECORDS_PER_TRIAL = 16
 PLAYBACK_BYTES_PER_SESSION = 32_000_000
 EVENTS_PER_SESSION = 1_000
 ADMIN_FAILURES_PER_MIN = 10
+#: refused rejoins logged per session (someone trying the participant's id cannot fill the
+#: database through them)
+REJOIN_REFUSALS_LOGGED = 20
 
 #: a session whose protocol version cannot be served now (the experimenter changed the
 #: study under it), as the participant reads it
@@ -288,9 +292,14 @@ class StudyServer:
                     return existing, previous_token  # type: ignore[return-value]
                 idle = (utcnow() - self._last_seen(db, existing)).total_seconds()
                 if not simulated and idle < self.config.rejoin_idle_s:
-                    db.add(Event(participant_pk=existing.pk, kind="rejoin_refused",
-                                 detail={"idle_s": round(idle, 1)}))  # fmt: skip
-                    db.commit()
+                    refused = db.scalar(select(func.count()).where(
+                        Event.participant_pk == existing.pk,
+                        Event.kind == "rejoin_refused",
+                    ))  # fmt: skip
+                    if (refused or 0) < REJOIN_REFUSALS_LOGGED:  # others' tries fill nothing
+                        db.add(Event(participant_pk=existing.pk, kind="rejoin_refused",
+                                     detail={"idle_s": round(idle, 1)}))  # fmt: skip
+                        db.commit()
                     raise InUseError(existing.participant)
                 self._by_token.drop(lambda p: p.pk != existing.pk)
                 # the retired token's hash is kept: answers a browser saved under it are
@@ -669,6 +678,10 @@ class StudyServer:
         return max((float(ref.duration_s) for ref in study.clips.values()
                     if ref.sha256 == rendered), default=0.0)  # fmt: skip
 
+    def _trial_indices(self, p: Participant) -> set[int]:
+        """The trial indices of the participant's design (their answers' and clips')."""
+        return {t for t, _ in self.study_of(p).planned(p.participant)}
+
     def store_playback(self, p: Participant, record: PlaybackIn) -> dict[str, Any]:
         known = set(p.clips.values())
         rendered = self.served.original.get(record.clip, record.clip[:-4])
@@ -695,16 +708,19 @@ class StudyServer:
             if total + size > PLAYBACK_BYTES_PER_SESSION:
                 raise RefusedError(413, f"this session's playback records reached "
                                    f"{PLAYBACK_BYTES_PER_SESSION} bytes")  # fmt: skip
-            if record.trial_index is not None:
-                per_trial = db.scalar(select(func.count()).where(
-                    PlaybackRecord.participant_pk == p.pk,
-                    PlaybackRecord.trial_index == record.trial_index,
-                ))  # fmt: skip
-                if (per_trial or 0) >= PLAYBACK_RECORDS_PER_TRIAL:
-                    raise RefusedError(
-                        413, f"trial {record.trial_index} has {PLAYBACK_RECORDS_PER_TRIAL} "
-                        "playback records already",
-                    )  # fmt: skip
+            if record.trial_index is not None and record.trial_index not in self._trial_indices(p):
+                raise RefusedError(422, f"trial_index: {record.trial_index} is not one of this "
+                                   "participant's trials")  # fmt: skip
+            # the practice trial (trial_index null) is capped like any other
+            same = (PlaybackRecord.trial_index.is_(None) if record.trial_index is None
+                    else PlaybackRecord.trial_index == record.trial_index)  # fmt: skip
+            per_trial = db.scalar(select(func.count()).where(
+                PlaybackRecord.participant_pk == p.pk, same))  # fmt: skip
+            if (per_trial or 0) >= PLAYBACK_RECORDS_PER_TRIAL:
+                raise RefusedError(
+                    413, f"trial {record.trial_index} has {PLAYBACK_RECORDS_PER_TRIAL} "
+                    "playback records already",
+                )  # fmt: skip
             db.add(
                 PlaybackRecord(
                     participant_pk=p.pk,
@@ -731,7 +747,8 @@ class StudyServer:
             raise RefusedError(422, "detail: numbers must be finite (no NaN or Infinity)")
         size = len(json.dumps(ev.detail, separators=(",", ":")))
         with self._writes, Session(self.engine) as db:
-            count = db.scalar(select(func.count()).where(Event.participant_pk == p.pk)) or 0
+            count = db.scalar(select(func.count()).where(  # what this session posted
+                Event.participant_pk == p.pk, Event.bytes.is_not(None))) or 0  # fmt: skip
             if count >= EVENTS_PER_SESSION:
                 raise RefusedError(413, f"this session has {EVENTS_PER_SESSION} events already")
             if ev.kind == "browser":

@@ -64,10 +64,10 @@ const FacelabOutbox = (function () {
     if (body !== undefined) headers["Content-Type"] = "application/json";
     // a server that accepts the connection but never answers must not hold the page: 15 s
     return fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), cache: "no-store",
-                        signal: AbortSignal.timeout(15000) });
+                        signal: typeof AbortSignal.timeout === "function" ? AbortSignal.timeout(15000) : undefined });
   }
 
-  // Answers the server refused (409, 422) are never thrown away: they are held under
+  // Answers the server refused (409, 413, 422) are never thrown away: they are held under
   // facelab.held.<token> with the reason, reported once as an event (the experimenter sees
   // it), and put back in the queue after HOLD_MS - so a refusal whose reason goes away (a
   // protocol edited and restored under a running session) is stored in the end.
@@ -100,7 +100,7 @@ const FacelabOutbox = (function () {
         try {
           const r = await request("POST", item.url, item.body, item.earlier);
           if (r.ok) { drop = true; delay = 500; }
-          else if (r.status === 409 || r.status === 422) {
+          else if (r.status === 409 || r.status === 413 || r.status === 422) {
             const why = ((await r.json().catch(() => ({}))).error || String(r.status)).slice(0, 300);
             const tries = (item.tries || 0) + 1;
             saveHeld(loadHeld().concat([{ url: item.url, body: item.body, why, tries, at: Date.now(), earlier: item.earlier }]));
