@@ -64,6 +64,15 @@ def _post(client: TestClient, url: str, body: object, headers: dict[str, str]):
                        headers={**headers, "Content-Type": "application/json"})  # fmt: skip
 
 
+def _open_session(driver, url: str, headers: dict[str, str]) -> None:
+    """The participant's session page in ``driver``, once its first screen is up."""
+    driver.get(f"{url}/run#t={headers['X-Facelab-Token']}")
+    deadline = time.monotonic() + 30
+    while not driver.execute_script("return !!document.querySelector('#app *')"):
+        assert time.monotonic() < deadline, "the session page did not start"
+        time.sleep(0.2)
+
+
 def _clip(server, p: Participant) -> tuple[str, float]:
     """One of the participant's clips as the browser names it, and its duration (s)."""
     rendered = next(iter(p.clips.values()))
@@ -326,15 +335,10 @@ def test_the_end_page_bound_holds_with_the_server_down(
 
     server = _server(study, tmp_path / "db.sqlite")
     _p, ok, keys = _joined(server)
-    token = ok["X-Facelab-Token"]
     driver = chromium()
     try:
         with BackgroundServer(server) as bg:
-            driver.get(f"{bg.url}/run#t={token}")
-            deadline = time.monotonic() + 30
-            while not driver.execute_script("return !!document.querySelector('#app *')"):
-                assert time.monotonic() < deadline, "the session page did not start"
-                time.sleep(0.2)
+            _open_session(driver, bg.url, ok)
         # the server is down now: an answer given, then the end page with a 3 s bound
         driver.execute_script(
             "FacelabOutbox.send('/api/response', arguments[0]);"
@@ -384,11 +388,7 @@ def test_a_refused_413_never_holds_back_the_answers_after_it(
     driver = chromium()
     try:
         with BackgroundServer(server) as bg:
-            driver.get(f"{bg.url}/run#t={ok['X-Facelab-Token']}")
-            deadline = time.monotonic() + 30
-            while not driver.execute_script("return !!document.querySelector('#app *')"):
-                assert time.monotonic() < deadline, "the session page did not start"
-                time.sleep(0.2)
+            _open_session(driver, bg.url, ok)
             driver.execute_script(
                 "FacelabOutbox.send('/api/event', {kind: 'error', detail: {n: 1}});"
                 "FacelabOutbox.send('/api/event', {kind: 'error', detail: {n: 2}});"
