@@ -207,6 +207,48 @@ def psychometric_figure(
         return fig
 
 
+def timing_figure(
+    counts: pd.DataFrame,
+    curves: pd.DataFrame,
+    *,
+    labels: Mapping[str, str],
+    title: str,
+    ylabel: str,
+    caption: str = "",
+) -> Figure:
+    """Audio-visual timing: per condition series the pooled proportion at each offset (area
+    proportional to n) and the function at the participants' median parameters.
+
+    Parameters
+    ----------
+    counts : ``condition, offset_ms, n, k`` (any participants; pooled here).
+    curves : ``condition, offset_ms, p`` on a fine grid.
+    labels : series id -> its name in the legend.
+    """
+    pooled = counts.groupby(["condition", "offset_ms"], sort=False)[["n", "k"]].sum().reset_index()
+    colours = plt.get_cmap("tab10").colors
+    with plt.rc_context(_rc()):
+        fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=150, layout="constrained")
+        for i, series in enumerate(dict.fromkeys(pooled["condition"])):
+            colour = colours[i % len(colours)]
+            one = pooled[pooled["condition"] == series]
+            line = curves[curves["condition"] == series]
+            ax.plot(line["offset_ms"], line["p"], color=colour, lw=2.0,
+                    label=labels.get(series, series))  # fmt: skip
+            size = 160.0 * one["n"] / pooled["n"].max()
+            ax.scatter(one["offset_ms"], one["k"] / one["n"], s=size, color=colour, alpha=0.7,
+                       edgecolor="white", zorder=3)  # fmt: skip
+        ax.axvline(0, color="0.5", lw=0.8, ls=":")
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel("audio offset (ms; negative: the voice first)"
+                      + (f"\n{caption}" if caption else ""), fontsize=9)  # fmt: skip
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=10)
+        fig.legend(fontsize=7, loc="outside lower center", ncol=3, frameon=False)
+        ax.spines[["top", "right"]].set_visible(False)
+        return fig
+
+
 def staircase_figure(
     track: pd.DataFrame,
     thresholds: pd.DataFrame,

@@ -15,9 +15,11 @@ from pathlib import Path
 from typing import Any
 
 import jinja2
+import numpy as np
 import pandas as pd
 
 import facelab.analysis.figures as figures
+import facelab.analysis.timing as timing
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import session_summary
 from facelab.analysis.stimulus_checks import StimulusCheckSummary
@@ -322,6 +324,13 @@ _TASK_HEADINGS = {
     "identification_covariates": "Identification with behaviour counts as covariates "
     "(logistic GEE, odds ratios; the counts tested between clips, quasi-binomial GLM of each "
     "clip's answers, df = clips - terms)",
+    "sync_window": "Audio-visual timing: each participant's window per condition series "
+    "(PSS and width in ms, 95 % profile-likelihood intervals; simultaneity: a Gaussian, width "
+    "= full width at half its peak; temporal order: a cumulative Gaussian, width = 25-75 %)",
+    "sync_summary": "Audio-visual timing: the participants' mean PSS and width per condition "
+    "series (95 % t intervals; windows not fully determined left out)",
+    "sync_tests": "Audio-visual timing: the series compared within participants (RM ANOVA, "
+    "Greenhouse-Geisser p, as a = b = all; paired t tests, Holm)",
     "behaviour_counts": "Behaviour: events per clip, per layer and unit, and motion energy "
     "(from the clips' event logs)",
     "behaviour_covariates": "Behaviour counts as covariates: rating ~ condition + events per "
@@ -361,6 +370,8 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "identification_summary",
         "identification_by_condition",
         "identification_condition_model",
+        "sync_summary",
+        "sync_tests",
         "trend_contrast",
         "graded_lmm",
         "presentation_quality",
@@ -420,6 +431,17 @@ def _task_figures(
         paths = figures.save(fig, out / f"fig_confusion_{task.id}")
         blocks.append((f"confusion: {task.id}", paths[0]))
     conditions = {c.id: c for c in protocol.conditions}
+    for task, counts, windows in tasks.timing:
+        assert task.timing is not None
+        grid = np.linspace(counts["offset_ms"].min(), counts["offset_ms"].max(), 161)
+        fig = figures.timing_figure(
+            counts, timing.window_curves(windows, offsets=grid), labels={},
+            title=_text(task.question, language),
+            ylabel="P(in sync)" if task.timing.judgment == "simultaneity" else "P(voice first)",
+            caption="lines: the function at the participants' median PSS and width" + tag,
+        )  # fmt: skip
+        paths = figures.save(fig, out / f"fig_timing_{task.id}")
+        blocks.append((f"timing: {task.id}", paths[0]))
     for task, matrices in tasks.confusion_by_condition:
         labels = [_text(lb.text, language) for lb in task.labels]
         panels = {_text(conditions[c].label, language): m for c, m in matrices.items()}

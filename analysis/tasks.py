@@ -17,6 +17,10 @@
   several labels (e.g. emotions under two behaviour conditions), also accuracy and kappa per
   condition, a confusion matrix per condition, and a logistic GEE of a right answer on the
   condition;
+* audio-visual timing (an identify task with ``timing``): each participant's window of
+  simultaneity or temporal-order function per condition series over the conditions'
+  ``audio_offset_ms`` (``sync_window``), the series' means and their within-participant
+  comparison (``sync_summary``, ``sync_tests``; :mod:`facelab.analysis.timing`);
 * graded VAS designs (every condition of the item's block has a level): the linear trend
   contrast and the random-slope mixed model (:mod:`facelab.analysis.graded`).
 
@@ -37,6 +41,7 @@ import facelab.analysis.graded as graded
 import facelab.analysis.identification as identification
 import facelab.analysis.psychometric as psychometric
 import facelab.analysis.stats as stats
+import facelab.analysis.timing as timing
 from facelab.errors import AnalysisError
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
 from facelab.staircase import new_staircase
@@ -68,6 +73,8 @@ class TaskResults:
     confusion_by_condition: list[tuple[IdentifyTask, dict[str, pd.DataFrame]]] = field(
         default_factory=list
     )
+    # (task, counts per participant x series x offset, windows) per timing task
+    timing: list[tuple[IdentifyTask, pd.DataFrame, pd.DataFrame]] = field(default_factory=list)
     # task id -> its scored identification answers (target and correct columns added)
     identification_trials: dict[str, pd.DataFrame] = field(default_factory=dict)
     # (task, block id, track, thresholds) per staircase block
@@ -302,6 +309,8 @@ def analyze_tasks(
             counts = psychometric.count_responses(trials, x="level", y="y")
             curves = _curves(fits, counts["level"].to_numpy(dtype=float))
             res.psychometric.append((task, counts, curves, gamma))
+        elif task.timing is not None:  # a synchrony task: windows over the audio offsets
+            _timing_tables(rows, protocol, task, res)
         else:
             labels = [lb.id for lb in task.labels]
             if not task.answers:
@@ -348,6 +357,33 @@ def analyze_tasks(
         res.tables["identification_condition_model"] = pd.concat(id_models, ignore_index=True)
     _graded(data, protocol, res)
     return res
+
+
+def _timing_tables(
+    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask, res: TaskResults
+) -> None:
+    """``sync_window`` (each participant's window per condition series), ``sync_summary``
+    and ``sync_tests`` (:mod:`facelab.analysis.timing`)."""
+    windows = timing.window_table(rows, protocol, task)
+    if windows.empty:
+        res.notes.append(f"task {task.id!r}: no participant answered at three offsets of a "
+                         "series; no window fitted")  # fmt: skip
+        return
+    windows = windows.assign(task=task.id)
+    summary, tests = timing.window_tests(windows)
+    for name, frame in (("sync_window", windows), ("sync_summary", summary.assign(task=task.id)),
+                        ("sync_tests", tests.assign(task=task.id))):  # fmt: skip
+        if name in res.tables:
+            frame = pd.concat([res.tables[name], frame], ignore_index=True)
+        res.tables[name] = frame
+    undetermined = windows[windows["note"].fillna("").astype(str).ne("")]
+    if len(undetermined):
+        res.notes.append(
+            f"task {task.id!r}: {len(undetermined)} of {len(windows)} windows are not fully "
+            "determined (sync_window.csv's note); they are left out of sync_tests"
+        )
+    counts = timing.timing_counts(rows, protocol, task)
+    res.timing.append((task, counts, windows))
 
 
 def score_identification(rows: pd.DataFrame, task: IdentifyTask) -> pd.DataFrame:

@@ -426,6 +426,50 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             )
 
 
+@_check("conditions", "rendering")
+def _audio_offsets(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """An offset moves the voice within the clip's padding (no speech is cut) and needs a
+    voice and a face to shift against each other."""
+    pad_ms = protocol.rendering.pad_s * 1000.0
+    for i, cond in enumerate(protocol.conditions):
+        where = ("conditions", i, "audio_offset_ms")
+        if cond.audio_offset_ms == 0:
+            continue
+        if abs(cond.audio_offset_ms) > pad_ms + 1e-9:
+            yield Issue(where, f"an offset of {cond.audio_offset_ms:g} ms would cut the speech: "
+                        f"at most rendering.pad_s ({pad_ms:g} ms); raise pad_s")  # fmt: skip
+        if cond.modality != "audiovisual":
+            yield Issue(where, f"an audio offset needs voice and face: this condition is "
+                        f"{cond.modality}")  # fmt: skip
+
+
+@_check("tasks", "conditions", "blocks")
+def _timing_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """A timing task names one of its labels and is shown at three or more offsets of a
+    series (else no window can be fitted)."""
+    conditions = {c.id: c for c in protocol.conditions}
+    for ti, task in enumerate(protocol.tasks):
+        if task.type != "identify" or task.timing is None:
+            continue
+        where = ("tasks", ti, "timing")
+        labels = [lb.id for lb in task.labels]
+        if task.timing.label not in labels:
+            yield Issue((*where, "label"), f"unknown label {task.timing.label!r}; labels: "
+                        f"{', '.join(labels)}")  # fmt: skip
+        offsets: dict[str, set[float]] = {}
+        for block in protocol.blocks:
+            if block.task == task.id:
+                for c in protocol.block_conditions(block):
+                    if c in conditions:
+                        cond = conditions[c]
+                        offsets.setdefault(cond.series_id, set()).add(cond.audio_offset_ms)
+        few = [s for s, values in offsets.items() if len(values) < 3]
+        if few or not offsets:
+            which = ", ".join(few) or "no block shows it"
+            yield Issue(where, "a timing task needs three or more audio_offset_ms values per "
+                        f"condition series; {which} has fewer")  # fmt: skip
+
+
 @_check("items")
 def _items(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Unique item ids; VAS ranges inside 0..100."""
@@ -558,6 +602,11 @@ def _simulation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     break
             if row and sum(row.values()) <= 0:
                 yield Issue((*where, shown), "the probabilities sum to 0")
+    series = {c.series_id for c in protocol.conditions}
+    for name in sim.timing:
+        if name not in series:
+            yield Issue(("simulation", "timing", name), f"unknown condition series {name!r}; "
+                        f"series: {', '.join(sorted(series))}")  # fmt: skip
     for oi, override in enumerate(sim.overrides):
         where = ("simulation", "overrides", oi)
         if override.item is not None and override.item not in item_ids:

@@ -38,6 +38,8 @@ __all__ = [
     "StaircaseRule",
     "Stimulus",
     "StimulusSet",
+    "TimingJudgment",
+    "TimingObserver",
     "VasItem",
     "json_schema",
     "schema_json_text",
@@ -118,6 +120,22 @@ class Condition(_Model):
         "face: the method's animation is not shown; or no face with rendering."
         "audio_only_face: none).",
     )
+    audio_offset_ms: float = Field(
+        0.0,
+        ge=-2000,
+        le=2000,
+        description="The voice's offset against the face, ms: negative = the voice comes "
+        "first, positive = it follows the mouth (audio-visual synchrony tasks). Conditions "
+        "alike but for this offset share one rendered video, the sound shifted and re-muxed; "
+        "at most rendering.pad_s, so no speech is cut.",
+    )
+    series: Id | None = Field(
+        None,
+        description="The conditions analysed together as one function of audio_offset_ms - "
+        "e.g. one animation method at every offset of a synchrony task: the timing analysis "
+        "fits one window per participant and series (sync_window.csv's 'condition'). "
+        "Default: the condition's own id.",
+    )
     emotion: dict[str, float] | list[dict[str, float]] | None = Field(
         None,
         description=f"The character's emotion for this condition ({', '.join(EMOTIONS)}: 0..1; "
@@ -125,6 +143,11 @@ class Condition(_Model):
         "the clip, linearly interpolated, held before the first and after the last key); "
         "omitted: the stimulus's emotion, else neutral.",
     )
+
+    @property
+    def series_id(self) -> str:
+        """The series this condition belongs to (its own id unless ``series`` names one)."""
+        return self.series or self.id
 
     @cached_property
     def settings(self) -> Any:
@@ -282,6 +305,23 @@ class ChoiceTask(_Model):
     )
 
 
+class TimingJudgment(_Model):
+    """What an identify task's answers say about audio-visual timing, for the timing analysis
+    over the conditions' ``audio_offset_ms``."""
+
+    judgment: Literal["simultaneity", "temporal_order"] = Field(
+        description="simultaneity: 'were voice and mouth in sync?' (the window of "
+        "simultaneity: a Gaussian over the offset, its centre the point of subjective "
+        "simultaneity, its full width at half its peak the window); temporal_order: 'which "
+        "came first?' (a cumulative Gaussian: its 50 % point the PSS, the distance between "
+        "its 25 % and 75 % points the width)."
+    )
+    label: Id = Field(
+        description="simultaneity: the label meaning 'in sync'; temporal_order: the label "
+        "meaning 'the voice came first'."
+    )
+
+
 class IdentifyTask(_Model):
     """One clip, then a choice among labels (e.g. the seven emotions)."""
 
@@ -293,6 +333,13 @@ class IdentifyTask(_Model):
         default_factory=dict,
         description="Condition id or stimulus id -> the label it portrays (a condition's "
         "entry wins); scores answers as correct.",
+    )
+
+    timing: TimingJudgment | None = Field(
+        None,
+        description="The answers judge audio-visual timing (a synchrony task): the analysis "
+        "fits each participant's window per condition series over audio_offset_ms "
+        "(sync_window.csv).",
     )
 
     def target(self, *, condition: str, stimulus: str | None = None) -> str | None:
@@ -595,6 +642,20 @@ class Identifier(_Model):
     )
 
 
+class TimingObserver(_Model):
+    """A simulated observer of audio-visual timing (one condition series). Simultaneity:
+    P(in sync) = peak * exp(-(x - pss)^2 / (2 sigma^2)), width = 2 sqrt(2 ln 2) sigma (full
+    width at half the peak). Temporal order: P(voice first) = lapse/2 + (1 - lapse) *
+    Phi((pss - x) / sigma), width = 2 * 0.6745 sigma (25 % to 75 %). x: the offset in ms."""
+
+    pss_ms: float = Field(0.0, ge=-1000, le=1000, description="Point of subjective simultaneity.")
+    width_ms: float = Field(300.0, gt=0, le=4000, description="Width of the window (see above).")
+    peak: float = Field(0.95, gt=0, le=1, description="Simultaneity: P(in sync) at the PSS.")
+    lapse: float = Field(0.02, ge=0, le=0.5, description="Temporal order: lapse rate.")
+    pss_sd_ms: float = Field(0.0, ge=0, description="SD of participants' PSS.")
+    width_sd_ms: float = Field(0.0, ge=0, description="SD of participants' widths.")
+
+
 class Simulation(_Model):
     """How ``facelab simulate`` generates answers; never presented as data."""
 
@@ -605,6 +666,11 @@ class Simulation(_Model):
     overrides: list[EffectOverride] = Field(default_factory=list)
     observer: Observer = Field(default_factory=Observer)
     identifier: Identifier = Field(default_factory=Identifier)
+    timing: dict[Id, TimingObserver] = Field(
+        default_factory=dict,
+        description="Condition series -> how a simulated participant judges its timing "
+        "(tasks with 'timing'); series not named here: the default observer.",
+    )
 
 
 class ReportedPair(_Model):

@@ -49,7 +49,7 @@ def run_demo(
     from facelab.experiment.cli.analysis_cmds import print_layout
     from facelab.experiment.cli.common import run_stimulus_checks
     from facelab.experiment.simulate import design_sampler, simulate_study
-    from facelab.stimuli.render.build import build_clips, plan, settings_for
+    from facelab.stimuli.render.build import build_clips, clip_counts, plan, settings_for
 
     t0 = time.perf_counter()
     protocol = load_protocol(protocol_path)
@@ -71,9 +71,8 @@ def run_demo(
         progress=progress,
         log=lambda s: None,
     )
-    fresh = sum(r["status"] == "rendered" for r in rows)
     say(
-        f"[2/4] {len(rows)} clips ({fresh} rendered, {len(rows) - fresh} reused) at "
+        f"[2/4] {clip_counts(rows)} at "
         f"{settings.width}x{settings.height}, {fps or protocol.rendering.fps} fps in "
         f"{time.perf_counter() - t:.1f} s -> {clips / 'clips.csv'}"
     )

@@ -47,6 +47,7 @@ from facelab.experiment.timeline import (
 )
 from facelab.experiment.walk import walk
 from facelab.protocol import Protocol, protocol_hash
+from facelab.protocol_model import TimingObserver
 from facelab.sessionlog import (
     SessionContext,
     SessionLock,
@@ -54,6 +55,7 @@ from facelab.sessionlog import (
     SessionPaths,
     session_paths,
 )
+from facelab.timing_function import p_timing
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -159,6 +161,7 @@ class ChoiceModel:
             else sim.observer.midpoint
         )
         self.rt = sim.model
+        self._timing: dict[str, tuple[float, float]] = {}
 
     def p_comparison(self, *, level: float, scored: bool) -> float:
         gamma = 0.5 if scored else 0.0
@@ -178,9 +181,38 @@ class ChoiceModel:
         position = screen.trial.position or 1
         return position if comparison else 3 - position
 
+    def timing_truth(self, series: str) -> tuple[float, float]:
+        """This participant's (PSS, width) in ms for a condition series: the stated truth
+        (``simulation.timing``), drawn once per series when it varies between people."""
+        if series not in self._timing:
+            truth = self.protocol.simulation.timing.get(series, TimingObserver())
+            pss = truth.pss_ms + (self.rng.normal(0, truth.pss_sd_ms) if truth.pss_sd_ms else 0)
+            width = truth.width_ms
+            if truth.width_sd_ms:
+                width = max(1.0, width + self.rng.normal(0, truth.width_sd_ms))
+            self._timing[series] = (float(pss), float(width))
+        return self._timing[series]
+
+    def p_timing(self, *, judgment: str, series: str, offset_ms: float) -> float:
+        """P(the task's timing label) at an offset: P(in sync) for simultaneity, P(voice
+        first) for temporal order (:class:`~facelab.protocol_model.TimingObserver`)."""
+        truth = self.protocol.simulation.timing.get(series, TimingObserver())
+        pss, width = self.timing_truth(series)
+        third = truth.peak if judgment == "simultaneity" else truth.lapse
+        return float(p_timing(judgment, offset_ms, pss=pss, width=width, third=third))
+
     def identify(self, screen: IdentifyScreen) -> str:
         assert screen.trial is not None and screen.task is not None
         labels = [lb.id for lb in screen.task.labels]
+        timing = screen.task.timing
+        if timing is not None:  # a synchrony judgment: the label, else another one
+            cond = self.protocol.condition(screen.trial.condition)
+            p = self.p_timing(judgment=timing.judgment, series=cond.series_id,
+                              offset_ms=cond.audio_offset_ms)  # fmt: skip
+            if self.rng.random() < p:
+                return timing.label
+            others = [lb for lb in labels if lb != timing.label]
+            return others[int(self.rng.integers(len(others)))]
         target = screen.task.target(
             condition=screen.trial.condition, stimulus=screen.trial.stimulus
         )

@@ -18,7 +18,10 @@ The tests of a protocol (:func:`protocol_tests`):
   lacking a condition left out);
 * ``identification``: per identify task whose conditions each portray several labels, each
   condition's term of the logistic GEE against the first condition;
-* ``trend``: per item x stimulus set of a graded design, the linear trend contrast.
+* ``trend``: per item x stimulus set of a graded design, the linear trend contrast;
+* ``timing``: per timing task, the RM ANOVA of the participants' PSS and of their window
+  widths over the condition series (Greenhouse-Geisser; windows the data do not determine
+  left out).
 
 A run whose fit fails (e.g. every answer in a condition right) counts as not significant
 and is counted in ``failed``.
@@ -27,7 +30,8 @@ Forced-choice tasks (constant stimuli or staircases) estimate a threshold rather
 a difference, so for them the question is precision (:func:`protocol_estimates`): the
 pooled psychometric midpoint of each simulated study, summarised per n as its mean, its SD
 across studies (the standard error a study of that size will have) and its root mean
-squared error against the simulated observer's midpoint.
+squared error against the simulated observer's midpoint. Timing tasks add each series'
+mean PSS and window width against ``simulation.timing``.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from facelab.analysis import graded, identification, psychometric, stats
+from facelab.analysis import graded, identification, psychometric, stats, timing
 from facelab.analysis.load import frame_from_rows
 from facelab.analysis.study import rating_cells
 from facelab.analysis.tasks import (
@@ -54,11 +58,13 @@ from facelab.errors import AnalysisError, StageError
 from facelab.experiment.simulate import check_effects, simulated_rows
 from facelab.grid import Cluster, GridTask, run_grid
 from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
+from facelab.protocol_model import TimingObserver
 
 __all__ = [
     "POWER_COLUMNS",
     "PRECISION_COLUMNS",
     "ProtocolSimulation",
+    "estimate_truths",
     "protocol_estimates",
     "protocol_tests",
     "simulated_power",
@@ -106,6 +112,15 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
         for c in present[1:]:
             p = p_of.get(f"C(condition)[T.{c}]", float("nan"))
             out[(f"{task.id}: {c} vs {present[0]}", "identification")] = float(p)
+    for task, windows in _timing_windows(data, protocol):  # PSS and width between series
+        clean = windows[windows["note"] == ""]
+        if clean["condition"].nunique() < 2:
+            continue
+        _, tests = timing.window_tests(windows)
+        for measure in ("pss_ms", "width_ms"):
+            row = tests[(tests["measure"] == measure) & (tests["a"] == "all")]
+            p = float(row["p_adj"].iloc[0]) if len(row) else float("nan")
+            out[(f"{task.id}: {measure} between series", "timing")] = p
     graded_vas = graded_ratings(data, protocol)
     if not graded_vas.empty:
         trend = graded.trend_contrast(graded_vas, by=("item", "stimulus_set"))
@@ -114,10 +129,46 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
     return out
 
 
+def _timing_windows(
+    data: pd.DataFrame, protocol: Protocol
+) -> list[tuple[IdentifyTask, pd.DataFrame]]:
+    """Each timing task's windows (point estimates only: no intervals are needed here)."""
+    out = []
+    for task in protocol.tasks:
+        if isinstance(task, IdentifyTask) and task.timing is not None:
+            rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
+            if not rows.empty:
+                windows = timing.window_table(rows, protocol, task, intervals=False)
+                out.append((task, windows.assign(note=windows["note"].fillna(""))))
+    return out
+
+
+def estimate_truths(protocol: Protocol) -> dict[str, float]:
+    """The simulated truth of each estimate :func:`protocol_estimates` names."""
+    out = {f"{t.id} midpoint": protocol.simulation.observer.midpoint
+           for t in protocol.tasks if isinstance(t, ChoiceTask)}  # fmt: skip
+    for task in protocol.tasks:
+        if isinstance(task, IdentifyTask) and task.timing is not None:
+            for series in dict.fromkeys(c.series_id for c in protocol.conditions):
+                truth = protocol.simulation.timing.get(series, TimingObserver())
+                out[f"{task.id} {series} pss_ms"] = truth.pss_ms
+                out[f"{task.id} {series} width_ms"] = truth.width_ms
+    return out
+
+
 def protocol_estimates(data: pd.DataFrame, protocol: Protocol) -> dict[str, float]:
     """``{"<task> midpoint": value}``: each forced-choice task's pooled psychometric midpoint
-    (maximum likelihood, the task's guess rate, logistic); NaN when the fit fails."""
+    (maximum likelihood, the task's guess rate, logistic); NaN when the fit fails. For a
+    timing task, ``"<task> <series> pss_ms"`` and ``"… width_ms"``: the mean of the
+    participants' windows (those the data determine)."""
     out: dict[str, float] = {}
+    for task, windows in _timing_windows(data, protocol):
+        clean = windows[windows["note"] == ""]
+        for series in dict.fromkeys(windows["condition"]):
+            mine = clean[clean["condition"] == series]
+            for measure in ("pss_ms", "width_ms"):
+                value = float(mine[measure].mean()) if len(mine) else float("nan")
+                out[f"{task.id} {series} {measure}"] = value
     for task in protocol.tasks:
         if not isinstance(task, ChoiceTask):
             continue
@@ -196,7 +247,7 @@ def simulated_power(
     if jobs < 1:
         raise StageError(f"--jobs must be at least 1, got {jobs}")
     check_effects(protocol, effects)
-    truth = protocol.simulation.observer.midpoint
+    truths = estimate_truths(protocol)
     power_rows, precision_rows = [], []
     for n in n_values:
         started = time.perf_counter()
@@ -237,6 +288,7 @@ def simulated_power(
         for name, values in estimates.items():
             arr = np.asarray(values, dtype=float)
             ok = arr[np.isfinite(arr)]
+            truth = truths.get(name, float("nan"))
             precision_rows.append(
                 {
                     "estimate": name,

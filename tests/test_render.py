@@ -160,7 +160,7 @@ def test_render_stage_writes_clips_csv_and_reuses_unchanged_clips(
     mtimes = {r["path"]: (out / r["path"]).stat().st_mtime_ns for r in rows}
     capsys.readouterr()
     assert main(argv) == 0
-    assert "(0 rendered, 3 unchanged and reused)" in capsys.readouterr().out
+    assert "(0 rendered, 3 reused)" in capsys.readouterr().out
     assert {r["path"]: (out / r["path"]).stat().st_mtime_ns for r in rows} == mtimes
     # a changed method parameter re-renders only that condition's clip
     proto.write_text(

@@ -404,11 +404,15 @@ def _simulated_power(args: argparse.Namespace) -> int:
               f"(at most {0.5 / sims**0.5:.3f})")  # fmt: skip
     precision = result.precision
     if not precision.empty:
-        print(
-            f"precision of the pooled psychometric midpoint (true midpoint "
-            f"{sim.observer.midpoint:g}, slope {sim.observer.slope:g}, participants' SD "
-            f"{sim.observer.midpoint_sd:g}): SD across studies (RMSE)"
-        )
+        if precision["estimate"].str.endswith(" midpoint").any():
+            print(
+                f"precision of the pooled psychometric midpoint (true midpoint "
+                f"{sim.observer.midpoint:g}, slope {sim.observer.slope:g}, participants' SD "
+                f"{sim.observer.midpoint_sd:g}): SD across studies (RMSE)"
+            )
+        if precision["estimate"].str.endswith(("pss_ms", "width_ms")).any():
+            print("precision of the mean window per condition series (truths: the protocol's "
+                  "simulation.timing): SD across studies (RMSE), ms")  # fmt: skip
         print(f"  {'estimate':<60}{head}")
         for name, part in precision.groupby("estimate", sort=False):
             part = part.sort_values("n")

@@ -44,7 +44,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     import time
 
     from facelab.protocol import load_protocol
-    from facelab.stimuli.render.build import build_clips, plan
+    from facelab.stimuli.render.build import build_clips, clip_counts, plan
     from facelab.stimuli.render.prepare import input_notes
 
     protocol = load_protocol(args.protocol)
@@ -78,9 +78,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
         )
     finally:
         progress.close()
-    fresh = sum(r["status"] == "rendered" for r in rows)
     print(
-        f"{len(rows)} clips ({fresh} rendered, {len(rows) - fresh} unchanged and reused) listed in "
+        f"{clip_counts(rows)} listed in "
         f"{out / 'clips.csv'} ({time.perf_counter() - t0:.1f} s)"
     )
     run_stimulus_checks(protocol, protocol_path=Path(args.protocol), clips_dir=out,

@@ -54,6 +54,8 @@ FACE_HEIGHT_MIN = 0.15
 FACE_DIFFERENCE = 2.0
 #: the mouth may lag or lead the sound by at most this many frames
 MAX_LAG_FRAMES = 1.0
+#: lags searched by cross-correlation either side (beyond a clip's intended offset)
+MAX_SEARCH_FRAMES = 8
 #: frames either side of a vowel's peak that are measured (±0.1 s at 30 fps)
 PEAK_HALF_WINDOW_S = 0.1
 #: the lips are read only on faces at least this tall (forehead to chin, pixels of the clip as
@@ -311,7 +313,7 @@ SOUND_LEADS_MS, SOUND_LAGS_MS = 45.0, 125.0
 
 def av_sync_rows(
     tr: ClipTracking, sound: np.ndarray, *, track_values: np.ndarray, intended_sound: np.ndarray,
-    fps: float, clip: str, condition: str,
+    fps: float, clip: str, condition: str, intended_offset_ms: float = 0.0,
 ) -> list[CheckRow]:  # fmt: skip
     """Audio-visual sync of one clip, measured on what it delivers:
 
@@ -320,15 +322,22 @@ def av_sync_rows(
       the animation track (:func:`picture_lag`: tracked mouth opening vs the track's channels)
       less the sound's lag behind the intended audio (decoded envelope ``sound`` vs
       ``intended_sound``, the stimulus' own audio). A clip muxed or drawn out of step fails.
+      With ``intended_offset_ms`` (a synchrony task's offset: positive, the voice follows) the
+      sound must lag by that much: the row measures the departure from it.
     * ``mouth_lag_ms``: the tracked mouth opening's lag behind the sound's level by
       cross-correlation (positive: the mouth follows), a warning outside ITU-R BT.1359's
-      detectability window (sound at most 45 ms before, 125 ms after the picture).
+      detectability window (sound at most 45 ms before, 125 ms after the picture); with an
+      intended offset, the lag beyond the one intended.
     """
     kw = {"clip": clip, "condition": condition, "check": "av_sync"}
     frame_ms = 1000.0 / fps
-    lag, corr = sync_lag(sound, tr.aperture)
+    shift = intended_offset_ms / frame_ms  # frames the sound is meant to follow
+    reach = MAX_SEARCH_FRAMES + math.ceil(abs(shift))
+    lag, corr = sync_lag(sound, tr.aperture, max_lag=reach)
+    lag = lag + shift if not math.isnan(lag) else lag
     picture, fit = picture_lag(track_values, tr.aperture)
-    audio, audio_corr = sync_lag(intended_sound, sound)
+    audio, audio_corr = sync_lag(intended_sound, sound, max_lag=reach)
+    audio = audio - shift if not math.isnan(audio) else audio
     offset = picture - audio if not (math.isnan(picture) or math.isnan(audio)) else None
     loose = offset is not None and fit < MIN_FIT_R2
     rows = [
@@ -336,7 +345,8 @@ def av_sync_rows(
                 measure="av_offset_frames",
                 note=(f"picture {picture:+.2f} frames behind its animation track (fit R² "
                       f"{fit:.2f}), sound {audio:+.2f} frames behind the stimulus audio "
-                      f"(correlation {audio_corr:.2f})"
+                      + (f"shifted {intended_offset_ms:+g} ms as intended " if shift else "")
+                      + f"(correlation {audio_corr:.2f})"
                       + ("; the tracked mouth follows the track too loosely to time it"
                          if loose else "")) if offset is not None
                 else "too few frames with a tracked mouth",
@@ -349,7 +359,9 @@ def av_sync_rows(
         **kw, measure="mouth_lag_ms", value=lag_ms,
         threshold=f">= -{SOUND_LAGS_MS:g} and <= {SOUND_LEADS_MS:g} ms", passed=inside,
         note=f"tracked mouth opening vs the sound's level, correlation {corr:.2f} (positive: "
-        "the mouth follows the sound; ITU-R BT.1359 detectability)", severity="warning",
+        "the mouth follows the sound; ITU-R BT.1359 detectability)"
+        + (f"; beyond the intended offset of {intended_offset_ms:+g} ms" if shift else ""),
+        severity="warning",
     ))  # fmt: skip
     return rows
 
@@ -385,26 +397,30 @@ def difference_rows(
     clips: Mapping[str, tuple[str, ClipTracking, str]],
     *,
     equal_groups: Sequence[Sequence[str]] = (),
+    shared_picture: Sequence[Sequence[str]] = (),
     explain: Mapping[tuple[str, str], str] | None = None,
 ) -> list[CheckRow]:
     """``clips`` {condition: (clip id, tracking, sha256)} of one stimulus: every pair of
     conditions differs over the face (:data:`FACE_DIFFERENCE`), unless a group of
-    ``equal_groups`` holds both - then they must not. ``explain`` {(a, b): why} is added to
-    a failure's note."""
+    ``equal_groups`` (declared) or ``shared_picture`` (one picture for several audio offsets)
+    holds both - then they must not. ``explain`` {(a, b): why} is added to a failure's note."""
     rows = []
     explain = explain or {}
     for ca, cb in itertools.combinations(sorted(clips), 2):
         ida, ta, sha = clips[ca]
         idb, tb, shb = clips[cb]
         value = 0.0 if sha == shb else face_difference(ta, tb)
-        same = any(ca in g and cb in g for g in equal_groups)
+        declared = any(ca in g and cb in g for g in equal_groups)
+        shared = any(ca in g and cb in g for g in shared_picture)
+        same = declared or shared
         measure = f"face_difference_p95:{ca}~{cb}"
         kw = {"clip": f"{ida}~{idb}", "condition": f"{ca}~{cb}", "check": "conditions_differ",
               "measure": measure}  # fmt: skip
         byte_note = "byte-identical clips" if sha == shb else ""
         if same:
-            row = at_most(FACE_DIFFERENCE, value, note="declared equal (checks.equal_conditions)",
-                          **kw)  # fmt: skip
+            why = ("declared equal (checks.equal_conditions)" if declared else
+                   "one picture, the voice at another offset (audio_offset_ms)")  # fmt: skip
+            row = at_most(FACE_DIFFERENCE, value, note=why, **kw)
         else:
             row = at_least(FACE_DIFFERENCE, value, **kw)
             if not row.passed:

@@ -279,6 +279,8 @@ def check_clips(
     for m in manifest:
         by_stimulus.setdefault((m["stimulus_set"], m["stimulus"]), []).append(m)
     modality = {c.id: c.modality for c in protocol.conditions}
+    offsets = {c.id: c.audio_offset_ms for c in protocol.conditions}
+    twins = offset_twins(protocol)
     face = protocol.rendering.audio_only_face
     for m in manifest:
         tr = tracking[m["clip_id"]]
@@ -305,7 +307,8 @@ def check_clips(
                             n_frames=tr.frames)  # fmt: skip
             values = read_track(clips_dir / m["track_file"]).values
             rows += av_sync_rows(tr, sound, track_values=values, intended_sound=want, fps=fps,
-                                 clip=m["clip_id"], condition=m["condition"])  # fmt: skip
+                                 clip=m["clip_id"], condition=m["condition"],
+                                 intended_offset_ms=offsets[m["condition"]])  # fmt: skip
     levelled = {c.id: c.level for c in protocol.conditions if c.level is not None}
     for (set_id, stim_id), all_clips in by_stimulus.items():
         # the faces of conditions shown alike are compared (a muted clip may look like its
@@ -315,6 +318,7 @@ def check_clips(
                      for m in all_clips if m["condition"] not in levelled
                      and modality[m["condition"]] == shown}  # fmt: skip
             rows += difference_rows(plain, equal_groups=protocol.checks.equal_conditions,
+                                    shared_picture=twins,
                                     explain=_explanations(clips_dir, all_clips))  # fmt: skip
         clips = [m for m in all_clips if modality[m["condition"]] != "audio_only"]
         graded: dict[str, list] = {}
@@ -361,8 +365,19 @@ def check_clips(
     return report
 
 
+def offset_twins(protocol: Protocol) -> list[list[str]]:
+    """Groups of conditions alike but for their ``audio_offset_ms``: their clips share one
+    picture by design, so the face must not differ between them (it is checked equal)."""
+    groups: dict[str, list[str]] = {}
+    for c in protocol.conditions:
+        alike = c.model_dump(exclude={"id", "label", "audio_offset_ms", "level"})
+        groups.setdefault(json.dumps(alike, sort_keys=True, default=str), []).append(c.id)
+    return [ids for ids in groups.values() if len(ids) > 1
+            and len({protocol.condition(i).audio_offset_ms for i in ids}) > 1]  # fmt: skip
+
+
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 3
+CHECKS_VERSION = 4
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 

@@ -6,6 +6,9 @@ where the stimulus asks for it) into a blendshape track, which is rendered to
 ``<out>/<set>__<stimulus>__<condition>.mp4``. A clip is re-rendered only when the hash of its
 inputs - audio, blendshape track, avatar, method and parameters, renderer settings - changes;
 the hash is kept in a JSON file beside the clip. ``clips.csv`` lists every clip (DESIGN.md).
+Clips whose pictures are drawn from the same inputs - conditions alike but for their
+``audio_offset_ms`` - are rendered once: the others copy that clip's video stream and get
+their own (shifted) sound (:func:`~facelab.stimuli.render.clip.remux`).
 
 The clip list and each clip's spec hash (checked by ``facelab run``) are in
 :mod:`facelab.stimuli.render.clipspec`.
@@ -37,10 +40,13 @@ from facelab.stimuli.behaviour.clip import ClipBehaviour, behaviour_for_clip, cl
 from facelab.stimuli.methods import DriveInput, get
 from facelab.stimuli.methods.types import BlendshapeTrack
 from facelab.stimuli.render.clip import (
+    ClipInfo,
     frame_poses,
     frame_weights,
     padded_audio,
+    remux,
     sha256_file,
+    shifted_audio,
     weights_at,
 )
 from facelab.stimuli.render.clipspec import (
@@ -71,6 +77,7 @@ from facelab.stimuli.speech.vowels import vowel_segments
 __all__ = [
     "VowelPeak",
     "build_clips",
+    "clip_counts",
     "load_avatar",
     "settings_for",
     "vowel_peaks",
@@ -189,6 +196,8 @@ def build_clips(
     waiting: dict[str, tuple[dict, dict, ClipBehaviour | None]] = {}
     cache: dict[str, tuple[Speech, tuple[VisemeTrack, VisemeTrack | None]]] = {}
     pending_tracks: dict[str, bytes] = {}
+    videos: dict[str, str] = {}  # picture key -> the clip whose video it is
+    remuxed: list[tuple[dict, dict, ClipBehaviour | None, bytes, Speech, str, int]] = []
     reused = 0
 
     def tasks() -> Iterator[GridTask]:
@@ -241,6 +250,11 @@ def build_clips(
                     default=str,
                 ).encode()
             ).hexdigest()
+            video_key = key  # what the picture is drawn from: clips alike but for an offset
+            offset_ms = cond.audio_offset_ms
+            if offset_ms:  # the same picture, the voice moved
+                moved = f"{video_key} audio_offset_ms={offset_ms!r}"
+                key = hashlib.sha256(moved.encode()).hexdigest()
             spec = clip_spec_hash(protocol, job, base_dir=base_dir)
             mp4 = out / f"{job.clip_id}.mp4"
             meta = out / f"{job.clip_id}.json"
@@ -255,7 +269,8 @@ def build_clips(
                 clip_id=job.clip_id, avatar=avatar, avatar_sha256=avatar_ref.sha256,
                 weights=weights if behaviour is None else behaviour.weights,
                 poses=poses, fps=fps,
-                sample_rate=audio.sample_rate, speech_start_s=protocol.rendering.pad_s,
+                sample_rate=audio.sample_rate,
+                speech_start_s=protocol.rendering.pad_s + offset_ms / 1000.0,
             )  # fmt: skip
             track_file = track_path(out, job.clip_id)
             row = {
@@ -275,6 +290,7 @@ def build_clips(
                 "track_sha256": hashlib.sha256(track).hexdigest(),
             }
             rows.append(row)
+            video_source = videos.setdefault(video_key, job.clip_id)
             if mp4.exists() and meta.exists():
                 saved = json.loads(meta.read_text())
                 if (
@@ -316,15 +332,21 @@ def build_clips(
                     if cond.modality == "audio_only"
                     else {}
                 ),
+                **({"audio_offset_ms": offset_ms} if offset_ms else {}),
                 **({"track_notes": bs.notes} if bs.notes else {}),
                 **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
             }
-            waiting[job.clip_id] = (row, about, behaviour)
-            pending_tracks[job.clip_id] = track
-            shown_audio = audio
+            shown_audio = shifted_audio(audio, offset_ms=offset_ms)
             if cond.modality == "visual_only":  # muted: the same length, silence
                 shown_audio = Speech(np.zeros_like(audio.samples), audio.sample_rate,
                                      source="muted")  # fmt: skip
+            if video_source != job.clip_id:  # its picture is another clip's: re-muxed later
+                about["video_from"] = video_source
+                remuxed.append((row, about, behaviour, track, shown_audio, video_source,
+                                len(drawn)))  # fmt: skip
+                continue
+            waiting[job.clip_id] = (row, about, behaviour)
+            pending_tracks[job.clip_id] = track
             frames = ClipFrames(
                 clip_id=job.clip_id,
                 weights=drawn,
@@ -344,6 +366,12 @@ def build_clips(
         row, about, behaviour = waiting.pop(clip_id)
         replace_file(out / row["track_file"], pending_tracks.pop(clip_id))
         info = write_clip(rendered, out=out / row["path"])
+        written(row, about, behaviour, info)
+        note = about["stand_in"]
+        log(f"  rendered {clip_id} ({info.frames} frames)" + (f"; {note}" if note else ""))
+
+    def written(row: dict, about: dict, behaviour: ClipBehaviour | None, info: ClipInfo) -> None:
+        clip_id = row["clip_id"]
         row.update(duration_s=round(info.duration_s, 6), sha256=info.sha256)
         _write_json(
             out / f"{clip_id}.json",
@@ -361,13 +389,34 @@ def build_clips(
         )
         if behaviour is not None:
             _write_json(behaviour_log_path(out, clip_id), behaviour.log())
-        note = about["stand_in"]
-        log(f"  rendered {clip_id} ({info.frames} frames)" + (f"; {note}" if note else ""))
 
     report = render_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
+    for row, about, behaviour, track, shown_audio, source, n_frames in remuxed:
+        if source in report.failed:
+            report.failed[row["clip_id"]] = f"its picture is {source}'s, which failed"
+            continue
+        try:
+            info = remux(video=out / f"{source}.mp4", audio=shown_audio, out=out / row["path"],
+                         fps=fps, n_frames=n_frames)  # fmt: skip
+        except StageError as exc:
+            report.failed[row["clip_id"]] = str(exc)
+            continue
+        replace_file(out / row["track_file"], track)
+        written(row, about, behaviour, info)
+        row["status"] = "remuxed"
+        log(f"  re-muxed {row['clip_id']} (the picture of {source}, the voice "
+            f"{about.get('audio_offset_ms', 0.0):+g} ms)")
     finish_grid(report, rows=rows, out=out, log=log)
     write_manifest(out, rows, columns=(*CLIP_COLUMNS, *TRACK_COLUMNS))
     return rows
+
+
+def clip_counts(rows: list[dict]) -> str:
+    """How the clips of a render came about, for the command's summary line."""
+    n = {k: sum(r["status"] == k for r in rows) for k in ("rendered", "remuxed", "unchanged")}
+    remuxed = f"{n['remuxed']} re-muxed (another clip's picture, the voice shifted), " if n[
+        "remuxed"] else ""  # fmt: skip
+    return f"{len(rows)} clips ({n['rendered']} rendered, {remuxed}{n['unchanged']} reused)"
 
 
 @dataclass(frozen=True)

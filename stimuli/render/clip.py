@@ -29,7 +29,16 @@ from facelab.stimuli.avatar.rig import HeadPose
 from facelab.stimuli.methods.types import BlendshapeTrack
 from facelab.stimuli.speech.audio import Speech, write_wav
 
-__all__ = ["ClipInfo", "encode", "frame_weights", "padded_audio", "sha256_file", "weights_at"]
+__all__ = [
+    "ClipInfo",
+    "encode",
+    "frame_weights",
+    "padded_audio",
+    "remux",
+    "sha256_file",
+    "shifted_audio",
+    "weights_at",
+]
 
 
 @dataclass(frozen=True)
@@ -49,6 +58,23 @@ def padded_audio(speech: Speech, *, pad_s: float) -> Speech:
     return Speech(
         np.concatenate([pad, speech.samples, pad]), speech.sample_rate, speech.phones, speech.source
     )
+
+
+def shifted_audio(audio: Speech, *, offset_ms: float) -> Speech:
+    """``audio`` moved by ``offset_ms`` within its own length: negative earlier (the voice
+    before the face), positive later; what leaves one end is silence entering the other
+    (the caller keeps the shift within the padding: :func:`padded_audio`)."""
+    n = round(abs(offset_ms) * audio.sample_rate / 1000.0)
+    if n == 0:
+        return audio
+    x = audio.samples
+    silence = np.zeros(min(n, len(x)), dtype=x.dtype)
+    if offset_ms < 0:
+        moved = np.concatenate([x[n:], silence])
+    else:
+        moved = np.concatenate([silence, x[: len(x) - n]])
+    source = f"{audio.source} shifted {offset_ms:+g} ms"
+    return Speech(moved, audio.sample_rate, audio.phones, source)
 
 
 def frame_weights(
@@ -245,6 +271,35 @@ def encode(
                 f"ffmpeg failed for {out.name} (exit {code}, {written}/{n_frames} frames): "
                 f"{err.strip()[-400:]}"
             )
+        part.replace(out)
+    return ClipInfo(out, duration, fps, width, height, n_frames, sha256_file(out))
+
+
+def remux(*, video: Path, audio: Speech, out: Path, fps: int, n_frames: int) -> ClipInfo:
+    """A clip with ``video``'s picture - its stream copied, not decoded or encoded again -
+    and ``audio`` encoded as :func:`encode` does (AAC); atomic write. Clips that differ only
+    in their sound (an audio offset) share one rendering this way."""
+    info = probe(video)
+    stream = next((s for s in info.get("streams", []) if s.get("codec_type") == "video"), None)
+    if stream is None:
+        raise StageError(f"{video.name}: no video stream to reuse")
+    width, height = int(stream["width"]), int(stream["height"])
+    duration = n_frames / fps
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="facelab-remux-", dir=out.parent) as tmp:
+        wav = Path(tmp) / "audio.wav"
+        write_wav(wav, audio)
+        part = Path(tmp) / out.name
+        cmd = [
+            _ffmpeg(), "-hide_banner", "-loglevel", "error", "-y",
+            "-i", str(video), "-i", str(wav), "-map", "0:v:0", "-map", "1:a",
+            "-c:v", "copy", "-c:a", "aac", "-b:a", "192k", "-ar", str(audio.sample_rate),
+            "-t", f"{duration:.6f}", "-movflags", "+faststart", str(part),
+        ]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, check=False)
+        if done.returncode != 0:
+            raise StageError(f"ffmpeg could not put the new sound on {video.name}: "
+                             f"{done.stderr.decode(errors='replace').strip()[-300:]}")  # fmt: skip
         part.replace(out)
     return ClipInfo(out, duration, fps, width, height, n_frames, sha256_file(out))
 

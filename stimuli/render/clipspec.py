@@ -109,6 +109,8 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         "background": list(r.background),
         "audio_sample_rate": r.audio_sample_rate,
     }
+    if cond.audio_offset_ms:  # (absent when 0: earlier hashes still hold)
+        spec["audio_offset_ms"] = cond.audio_offset_ms
     if cond.modality != "audiovisual":  # (absent for audiovisual: earlier hashes still hold)
         spec["modality"] = cond.modality
         if cond.modality == "audio_only":

@@ -1,0 +1,322 @@
+"""Audio-visual timing: each participant's window of simultaneity (or temporal-order function)
+per condition series, fitted over the conditions' ``audio_offset_ms``.
+
+An identify task with ``timing`` (:class:`~facelab.protocol_model.TimingJudgment`) is scored as
+"yes" when the answer is its ``label`` - in sync (simultaneity) or the voice first (temporal
+order). The answers of one participant and one condition series (:attr:`Condition.series_id`,
+e.g. one animation method at every offset) are counted per offset and fitted by maximum
+likelihood with :func:`facelab.timing_function.p_timing`:
+
+* simultaneity: ``peak * exp(-(x - pss)^2 / (2 sigma^2))``, width = full width at half the
+  peak;
+* temporal order: ``lapse / 2 + (1 - lapse) Phi((pss - x) / sigma)``, width = the distance
+  between the 25 % and 75 % points.
+
+Intervals are profile-likelihood intervals (the values whose likelihood ratio against the
+best fit is within the chi-square(1) quantile, the other parameters re-fitted at each value).
+The search is bounded - the PSS within one tested range beyond the offsets tested, sigma from
+a tenth of the smallest step to four ranges, the peak in [0.02, 1], the lapse in [0, 0.2];
+an interval end that would pass a bound is reported as that bound's side infinite (``-inf`` /
+``inf``) and named in ``note``, as is an estimate on a bound.
+
+:func:`window_tests` compares the series within participants: a repeated-measures ANOVA and
+Holm-adjusted paired t tests of the PSS and the width, over participants whose every window
+was determined.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, stats
+
+import facelab.analysis.stats as fstats
+from facelab.errors import AnalysisError
+from facelab.protocol import IdentifyTask, Protocol
+from facelab.timing_function import FWHM_PER_SIGMA, IQR_PER_SIGMA, p_timing
+
+__all__ = [
+    "WINDOW_COLUMNS",
+    "TimingFit",
+    "fit_window",
+    "timing_counts",
+    "window_curves",
+    "window_table",
+    "window_tests",
+]
+
+#: sync_window.csv (the contract of issue 52): one row per participant and condition series
+WINDOW_COLUMNS = (
+    "participant", "condition", "judgment", "n", "pss_ms", "pss_ci_low", "pss_ci_high",
+    "width_ms", "width_ci_low", "width_ci_high", "peak", "lapse", "deviance", "deviance_df",
+    "note",
+)  # fmt: skip
+_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class TimingFit:
+    """One window: estimates, profile intervals at ``level`` and what the fit ran into."""
+
+    judgment: str
+    n: int
+    pss_ms: float
+    pss_ci_low: float
+    pss_ci_high: float
+    width_ms: float
+    width_ci_low: float
+    width_ci_high: float
+    peak: float  # simultaneity: P(in sync) at the PSS (NaN for temporal order)
+    lapse: float  # temporal order (NaN for simultaneity)
+    deviance: float  # against the saturated model (a proportion per offset)
+    deviance_df: int
+    note: str
+
+
+def timing_counts(rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask) -> pd.DataFrame:
+    """``participant, condition (the series), offset_ms, n, k`` of a timing task's answer rows
+    (``k``: answers naming the task's timing label)."""
+    if task.timing is None:
+        raise AnalysisError(f"task {task.id!r} has no 'timing'")
+    conds = {c.id: c for c in protocol.conditions}
+    known = rows[rows["condition"].isin(list(conds))]
+    frame = pd.DataFrame({
+        "participant": known["participant"].astype(str).to_numpy(),
+        "condition": [conds[c].series_id for c in known["condition"]],
+        "offset_ms": [conds[c].audio_offset_ms for c in known["condition"]],
+        "y": (known["response"].astype(str) == task.timing.label).astype(int).to_numpy(),
+    })  # fmt: skip
+    out = (
+        frame.groupby(["participant", "condition", "offset_ms"], sort=True)["y"]
+        .agg(n="size", k="sum")
+        .reset_index()
+    )
+    return out.astype({"n": int, "k": int})
+
+
+def _per_sigma(judgment: str) -> float:
+    return FWHM_PER_SIGMA if judgment == "simultaneity" else IQR_PER_SIGMA
+
+
+def _loglik(theta: np.ndarray, judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray) -> float:
+    pss, log_sigma, third = theta
+    width = math.exp(log_sigma) * _per_sigma(judgment)
+    p = np.clip(p_timing(judgment, x, pss=pss, width=width, third=third), _EPS, 1 - _EPS)
+    return float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+
+
+def _bounds(judgment: str, x: np.ndarray) -> list[tuple[float, float]]:
+    levels = np.unique(x)
+    span = float(levels[-1] - levels[0])
+    step = float(np.min(np.diff(levels)))
+    third = (0.02, 1.0) if judgment == "simultaneity" else (0.0, 0.2)
+    return [
+        (float(levels[0]) - span, float(levels[-1]) + span),
+        (math.log(step / 10.0), math.log(4.0 * span)),
+        third,
+    ]
+
+
+def _best(
+    judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray, bounds: list[tuple[float, float]],
+    fixed: dict[int, float] | None = None, warm: np.ndarray | None = None,
+) -> tuple[np.ndarray, float]:  # fmt: skip
+    """The maximum-likelihood parameters (with ``fixed`` {index: value} held) and the
+    log-likelihood there: from ``warm`` alone when given (a profile's neighbouring fit),
+    else from several starts."""
+    fixed = fixed or {}
+    free = [i for i in range(3) if i not in fixed]
+    if warm is not None:
+        starts = [warm]
+    else:
+        p = k / np.maximum(n, 1)
+        centre = float(np.sum(x * p) / np.sum(p)) if np.sum(p) > 0 else float(np.mean(x))
+        span = float(np.ptp(x)) or 1.0
+        third0 = 0.9 if judgment == "simultaneity" else 0.02
+        starts = [
+            np.array([c, math.log(s), third0])
+            for c in (centre, float(np.median(x)))
+            for s in (span / 6.0, span / 2.0)
+        ]
+
+    def full(free_values: np.ndarray) -> np.ndarray:
+        theta = np.empty(3)
+        theta[free] = free_values
+        for i, v in fixed.items():
+            theta[i] = v
+        return theta
+
+    best_theta, best_ll = None, -math.inf
+    for start in starts:
+        s = np.clip(start[free], [bounds[i][0] for i in free], [bounds[i][1] for i in free])
+        res = optimize.minimize(
+            lambda f: -_loglik(full(f), judgment, x, n, k), s, method="L-BFGS-B",
+            bounds=[bounds[i] for i in free],
+        )  # fmt: skip
+        if -res.fun > best_ll:
+            best_theta, best_ll = full(res.x), float(-res.fun)
+    assert best_theta is not None
+    return best_theta, best_ll
+
+
+def _profile_interval(
+    judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray, bounds: list[tuple[float, float]],
+    *, index: int, theta: np.ndarray, ll: float, cutoff: float,
+) -> tuple[float, float]:  # fmt: skip
+    """Profile-likelihood interval of parameter ``index``; an end beyond the search bound is
+    returned as -inf / inf."""
+
+    def drop(value: float) -> float:
+        if value == theta[index]:
+            return -cutoff
+        _, ll_v = _best(judgment, x, n, k, bounds, fixed={index: value}, warm=theta)
+        return 2.0 * (ll - ll_v) - cutoff
+
+    lo_b, hi_b = bounds[index]
+    ends = []
+    at = float(theta[index])
+    for bound in (lo_b, hi_b):
+        if abs(bound - at) < 1e-9 or drop(bound) < 0:
+            ends.append(-math.inf if bound == lo_b else math.inf)
+            continue
+        ends.append(optimize.brentq(drop, min(at, bound), max(at, bound), xtol=1e-3))
+    return ends[0], ends[1]
+
+
+def fit_window(
+    counts: pd.DataFrame, *, judgment: str, level: float = 0.95, intervals: bool = True
+) -> TimingFit:
+    """Fit one window to ``counts`` (``offset_ms, n, k``); see the module. Without
+    ``intervals`` (power simulations) the interval columns are NaN."""
+    counts = counts.groupby("offset_ms", sort=True)[["n", "k"]].sum().reset_index()
+    x = counts["offset_ms"].to_numpy(dtype=float)
+    n = counts["n"].to_numpy(dtype=float)
+    k = counts["k"].to_numpy(dtype=float)
+    if len(x) < 3:
+        raise AnalysisError(f"a timing window needs answers at three or more offsets, got {len(x)}")
+    bounds = _bounds(judgment, x)
+    theta, ll = _best(judgment, x, n, k, bounds)
+    cutoff = float(stats.chi2.ppf(level, 1))
+    per = _per_sigma(judgment)
+    pss_lo = pss_hi = ls_lo = ls_hi = math.nan
+    if intervals:
+        pss_lo, pss_hi = _profile_interval(judgment, x, n, k, bounds, index=0, theta=theta,
+                                           ll=ll, cutoff=cutoff)  # fmt: skip
+        ls_lo, ls_hi = _profile_interval(judgment, x, n, k, bounds, index=1, theta=theta,
+                                         ll=ll, cutoff=cutoff)  # fmt: skip
+    notes = []
+    names = ("the PSS", "the width", "the peak" if judgment == "simultaneity" else "the lapse")
+    for i, name in enumerate(names):
+        lo, hi = bounds[i]
+        if i == 2 and judgment == "simultaneity" and theta[i] >= hi - 1e-6:
+            continue  # a peak of 1 (never "out of sync" at the PSS) is a fine answer
+        if i == 2 and judgment == "temporal_order" and theta[i] <= lo + 1e-6:
+            continue  # no lapses
+        if theta[i] <= lo + 1e-6 or theta[i] >= hi - 1e-6:
+            notes.append(f"{name} ends on its search bound")
+    if math.isinf(pss_lo) or math.isinf(pss_hi):
+        notes.append("the PSS interval reaches beyond the offsets searched")
+    if math.isinf(ls_lo) or math.isinf(ls_hi):
+        notes.append("the width interval reaches beyond the widths searched")
+    p_hat = np.clip(p_timing(judgment, x, pss=theta[0], width=math.exp(theta[1]) * per,
+                             third=theta[2]), _EPS, 1 - _EPS)  # fmt: skip
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sat = np.where(k > 0, k * np.log(k / n), 0) + np.where(
+            n - k > 0, (n - k) * np.log1p(-k / n), 0
+        )
+    model = k * np.log(p_hat) + (n - k) * np.log1p(-p_hat)
+    width = math.exp(theta[1]) * per
+
+    def w(v: float) -> float:
+        return math.exp(v) * per if math.isfinite(v) else v
+
+    return TimingFit(
+        judgment=judgment, n=int(n.sum()), pss_ms=float(theta[0]), pss_ci_low=pss_lo,
+        pss_ci_high=pss_hi, width_ms=width, width_ci_low=w(ls_lo) if ls_lo != -math.inf else 0.0,
+        width_ci_high=w(ls_hi),
+        peak=float(theta[2]) if judgment == "simultaneity" else math.nan,
+        lapse=float(theta[2]) if judgment == "temporal_order" else math.nan,
+        deviance=float(2.0 * np.sum(sat - model)), deviance_df=len(x) - 3,
+        note="; ".join(notes),
+    )  # fmt: skip
+
+
+def window_table(
+    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask, *, level: float = 0.95,
+    intervals: bool = True,
+) -> pd.DataFrame:  # fmt: skip
+    """``sync_window.csv``: :data:`WINDOW_COLUMNS`, one row per participant and condition
+    series, series in protocol order."""
+    assert task.timing is not None
+    counts = timing_counts(rows, protocol, task)
+    order = list(dict.fromkeys(c.series_id for c in protocol.conditions))
+    out = []
+    for (pid, series), part in counts.groupby(["participant", "condition"], sort=True):
+        if part["offset_ms"].nunique() < 3:
+            continue
+        fit = fit_window(part, judgment=task.timing.judgment, level=level, intervals=intervals)
+        out.append({"participant": pid, "condition": series, **asdict(fit)})
+    frame = pd.DataFrame(out, columns=list(WINDOW_COLUMNS))
+    rank = {s: i for i, s in enumerate(order)}
+    frame = frame.sort_values(["participant", "condition"], key=lambda c: c.map(rank)
+                              if c.name == "condition" else c, kind="stable")  # fmt: skip
+    return frame.reset_index(drop=True)
+
+
+def window_curves(windows: pd.DataFrame, *, offsets: np.ndarray) -> pd.DataFrame:
+    """``condition, offset_ms, p``: each series' function at the participants' median
+    parameters (for figures)."""
+    rows = []
+    for series, part in windows.groupby("condition", sort=False):
+        judgment = str(part["judgment"].iloc[0])
+        third = part["peak" if judgment == "simultaneity" else "lapse"].median()
+        p = p_timing(judgment, offsets, pss=part["pss_ms"].median(),
+                     width=part["width_ms"].median(), third=third)  # fmt: skip
+        rows += [{"condition": series, "offset_ms": float(o), "p": float(v)}
+                 for o, v in zip(offsets, p, strict=True)]  # fmt: skip
+    return pd.DataFrame(rows, columns=["condition", "offset_ms", "p"])
+
+
+def window_tests(windows: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(summary, tests): per series the participants' mean PSS and width with 95 % t
+    intervals; and per measure a repeated-measures ANOVA over the series and Holm-adjusted
+    paired t tests (``measure, a, b, t, df, p_unc, p_adj, d_z``; the ANOVA as a = b =
+    ``all``). Participants with an undetermined window (a note) are left out of both."""
+    clean = windows[windows["note"].fillna("").astype(str).eq("")]
+    summary = []
+    for series, part in windows.groupby("condition", sort=False):
+        kept = clean[clean["condition"] == series]
+        row: dict = {"condition": series, "participants": len(part), "determined": len(kept)}
+        for measure in ("pss_ms", "width_ms"):
+            v = kept[measure].to_numpy(dtype=float)
+            mean = float(v.mean()) if len(v) else math.nan
+            half = (float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+                    if len(v) > 1 else math.nan)  # fmt: skip
+            row |= {f"{measure}_mean": mean, f"{measure}_ci_low": mean - half,
+                    f"{measure}_ci_high": mean + half}  # fmt: skip
+        summary.append(row)
+    tests = []
+    series = list(dict.fromkeys(windows["condition"]))
+    complete = clean.groupby("participant")["condition"].nunique()
+    kept = clean[clean["participant"].isin(complete[complete == len(series)].index)]
+    if len(series) >= 2 and kept["participant"].nunique() >= 3:
+        for measure in ("pss_ms", "width_ms"):
+            try:
+                anova = fstats.rm_anova(kept, dv=measure, within="condition", subject="participant")
+                pairs = fstats.pairwise_paired(kept, dv=measure, within="condition",
+                                               subject="participant")  # fmt: skip
+            except AnalysisError:
+                continue
+            a = anova.iloc[0]
+            tests.append({"measure": measure, "a": "all", "b": "all", "t": math.nan,
+                          "f": a["f"], "df": a["df1"], "df2": a["df2"], "p_unc": a["p_gg"],
+                          "p_adj": a["p_gg"], "d_z": math.nan,
+                          "participants": kept["participant"].nunique()})  # fmt: skip
+            tests += [{"measure": measure, **r, "f": math.nan, "df2": math.nan,
+                       "participants": kept["participant"].nunique()}
+                      for r in pairs.to_dict("records")]  # fmt: skip
+    columns = ["measure", "a", "b", "f", "t", "df", "df2", "p_unc", "p_adj", "d_z", "participants"]
+    return pd.DataFrame(summary), pd.DataFrame(tests, columns=columns)
