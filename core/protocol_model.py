@@ -791,6 +791,16 @@ class Protocol(_Model):
     def block_task(self, block: Block) -> ChoiceTask | IdentifyTask | None:
         return None if block.task is None else self.task(block.task)
 
+    def offset_twins(self) -> list[list[str]]:
+        """Groups of condition ids alike but for their ``audio_offset_ms``: their clips show
+        one picture (rendered once, the others re-muxed with the voice moved)."""
+        groups: dict[str, list[str]] = {}
+        for c in self.conditions:
+            alike = c.model_dump(exclude={"id", "label", "audio_offset_ms", "level"})
+            groups.setdefault(json.dumps(alike, sort_keys=True, default=str), []).append(c.id)
+        offsets = {c.id: c.audio_offset_ms for c in self.conditions}
+        return [ids for ids in groups.values() if len({offsets[i] for i in ids}) > 1]
+
     def block_conditions(self, block: Block) -> list[str]:
         if block.conditions:
             return list(block.conditions)

@@ -217,6 +217,12 @@ def test_offset_clips_share_one_picture_and_deliver_their_offset(tmp_path, capsy
                                    and "one picture" in r["note"] for r in twins)  # fmt: skip
     assert main(args) == 0
     assert "3 clips (0 rendered, 3 reused)" in capsys.readouterr().out
+    from PIL import Image
+
+    from facelab.stimuli.render.contact_sheets import contact_sheets
+
+    (sheet,) = contact_sheets(load_protocol(path), protocol_path=path, out=out)
+    assert Image.open(sheet).size == (400, 400)  # one picture: one tile for the three offsets
 
 
 @pytest.mark.slow

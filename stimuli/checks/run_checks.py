@@ -280,7 +280,7 @@ def check_clips(
         by_stimulus.setdefault((m["stimulus_set"], m["stimulus"]), []).append(m)
     modality = {c.id: c.modality for c in protocol.conditions}
     offsets = {c.id: c.audio_offset_ms for c in protocol.conditions}
-    twins = offset_twins(protocol)
+    twins = protocol.offset_twins()
     face = protocol.rendering.audio_only_face
     for m in manifest:
         tr = tracking[m["clip_id"]]
@@ -363,17 +363,6 @@ def check_clips(
     saved = {"inputs": key, "tracker": tracker, "seconds": round(report.seconds, 2)}
     replace_file(clips_dir / CHECKS_KEY_NAME, json.dumps(saved) + "\n")
     return report
-
-
-def offset_twins(protocol: Protocol) -> list[list[str]]:
-    """Groups of conditions alike but for their ``audio_offset_ms``: their clips share one
-    picture by design, so the face must not differ between them (it is checked equal)."""
-    groups: dict[str, list[str]] = {}
-    for c in protocol.conditions:
-        alike = c.model_dump(exclude={"id", "label", "audio_offset_ms", "level"})
-        groups.setdefault(json.dumps(alike, sort_keys=True, default=str), []).append(c.id)
-    return [ids for ids in groups.values() if len(ids) > 1
-            and len({protocol.condition(i).audio_offset_ms for i in ids}) > 1]  # fmt: skip
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again

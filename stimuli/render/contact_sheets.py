@@ -198,6 +198,10 @@ def _vowel_clips(protocol: Protocol, out: Path) -> dict[str, list[str]]:
     return shown
 
 
+#: tiles per row of ``contact_conditions.png``
+SHEET_COLUMNS = 6
+
+
 def _peak_sheet(
     protocol: Protocol, *, base_dir: Path, out: Path, checks: Sequence[Mapping[str, str]]
 ) -> Path:
@@ -212,11 +216,15 @@ def _peak_sheet(
         jobs.setdefault(job.condition, job)
     font, small = sheet_font(20), sheet_font(13)
     tiles = []
+    twin_of = {i: g for g in protocol.offset_twins() for i in g}  # one picture: one tile
+    drawn: set[str] = set()
     with Renderer(avatar, face_closeup(avatar, size_px=400)) as renderer:
         for cond in protocol.conditions:
             job = jobs.get(cond.id)
-            if job is None:
+            if job is None or cond.id in drawn:
                 continue
+            twins = [i for i in twin_of.get(cond.id, [cond.id]) if i in jobs]
+            drawn.update(twins)
             speech = speech_for(
                 job.stimulus, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate
             )
@@ -231,17 +239,25 @@ def _peak_sheet(
             peak = float(bs.times[int(np.argmax(moving.sum(axis=1)))])
             img = Image.fromarray(renderer.frame(weights_at(bs, avatar, t=peak)))
             draw = ImageDraw.Draw(img)
-            draw.text((10, 8), f"{cond.id}  t={peak:.2f}s", fill=(255, 255, 255), font=font)
-            banner = sheet_marks(checks, condition=cond.id, clips=()).banner if checks else []
+            name = cond.id if len(twins) == 1 else (
+                f"{cond.series_id}: {len(twins)} audio offsets")  # fmt: skip
+            draw.text((10, 8), f"{name}  t={peak:.2f}s", fill=(255, 255, 255), font=font)
+            banner: list = []
+            for c in twins if checks else []:  # each twin's lines once, at most six
+                banner += sheet_marks(checks, condition=c, clips=()).banner
+            banner = list(dict.fromkeys(banner))[:6]
             for k, (text, colour) in enumerate(banner):
                 draw.text((10, img.height - 20 * (len(banner) - k) - 6), text[:60], fill=colour,
                           font=small)  # fmt: skip
             tiles.append(img)
     if not tiles:
         raise StageError("no condition is shown by any block: nothing to draw")
-    sheet = Image.new("RGB", (sum(t.width for t in tiles), tiles[0].height), (40, 40, 40))
+    per_row = min(len(tiles), SHEET_COLUMNS)
+    rows = -(-len(tiles) // per_row)
+    w, h = tiles[0].width, tiles[0].height
+    sheet = Image.new("RGB", (per_row * w, rows * h), (40, 40, 40))
     for i, t in enumerate(tiles):
-        sheet.paste(t, (i * t.width, 0))
+        sheet.paste(t, ((i % per_row) * w, (i // per_row) * h))
     out.mkdir(parents=True, exist_ok=True)
     path = out / "contact_conditions.png"
     sheet.save(path)
