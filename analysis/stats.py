@@ -46,6 +46,7 @@ __all__ = [
     "require",
     "rm_anova",
     "rm_sums_of_squares",
+    "series_comparison",
     "tukey_hsd",
 ]
 
@@ -654,3 +655,57 @@ def _posterior_row(
         "estimate": "posterior",
         "note": "; ".join(notes),
     }
+
+
+def series_comparison(
+    table: pd.DataFrame,
+    *,
+    measures: Sequence[str],
+    series: str = "condition",
+    subject: str = "participant",
+    note: str = "note",
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Per-participant estimates (one row per participant and series, e.g. each one's
+    window or threshold per animation method) summarised and compared within participants.
+
+    Returns ``(summary, tests)``: per series the participants' mean of each measure with a
+    95 % t interval (``<measure>_mean``, ``_ci_low``, ``_ci_high``; ``participants``, and
+    ``determined`` - rows without a ``note``); per measure a repeated-measures ANOVA over the
+    series (Greenhouse-Geisser p, as ``a = b = "all"``) and Holm-adjusted paired t tests
+    (``measure, a, b, f, t, df, df2, p_unc, p_adj, d_z, participants``), over participants
+    with every series determined (three or more needed). Rows with a ``note`` (an estimate
+    the data do not determine) are left out of both."""
+    clean = table[table[note].fillna("").astype(str).eq("")] if note in table else table
+    summary = []
+    for name, part in table.groupby(series, sort=False):
+        kept = clean[clean[series] == name]
+        row: dict = {series: name, "participants": len(part), "determined": len(kept)}
+        for measure in measures:
+            v = kept[measure].to_numpy(dtype=float)
+            v = v[np.isfinite(v)]
+            mean = float(v.mean()) if len(v) else np.nan
+            half = (float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / np.sqrt(len(v)))
+                    if len(v) > 1 else np.nan)  # fmt: skip
+            row |= {f"{measure}_mean": mean, f"{measure}_ci_low": mean - half,
+                    f"{measure}_ci_high": mean + half}  # fmt: skip
+        summary.append(row)
+    tests = []
+    names = list(dict.fromkeys(table[series]))
+    complete = clean.groupby(subject)[series].nunique()
+    kept = clean[clean[subject].isin(complete[complete == len(names)].index)]
+    people = kept[subject].nunique()
+    if len(names) >= 2 and people >= 3:
+        for measure in measures:
+            try:
+                anova = rm_anova(kept, dv=measure, within=series, subject=subject)
+                pairs = pairwise_paired(kept, dv=measure, within=series, subject=subject)
+            except AnalysisError:
+                continue
+            a = anova.iloc[0]
+            tests.append({"measure": measure, "a": "all", "b": "all", "f": a["f"], "t": np.nan,
+                          "df": a["df1"], "df2": a["df2"], "p_unc": a["p_gg"],
+                          "p_adj": a["p_gg"], "d_z": np.nan, "participants": people})  # fmt: skip
+            tests += [{"measure": measure, **r, "f": np.nan, "df2": np.nan,
+                       "participants": people} for r in pairs.to_dict("records")]  # fmt: skip
+    columns = ["measure", "a", "b", "f", "t", "df", "df2", "p_unc", "p_adj", "d_z", "participants"]
+    return pd.DataFrame(summary), pd.DataFrame(tests, columns=columns)

@@ -31,9 +31,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import optimize, stats
 
 import facelab.analysis.stats as fstats
+from facelab.analysis.profile_likelihood import (
+    best_fit,
+    chi2_cutoff,
+    on_bound,
+    profile_interval,
+)
 from facelab.errors import AnalysisError
 from facelab.protocol import IdentifyTask, Protocol
 from facelab.timing_function import FWHM_PER_SIGMA, IQR_PER_SIGMA, p_timing
@@ -120,70 +125,16 @@ def _bounds(judgment: str, x: np.ndarray) -> list[tuple[float, float]]:
     ]
 
 
-def _best(
-    judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray, bounds: list[tuple[float, float]],
-    fixed: dict[int, float] | None = None, warm: np.ndarray | None = None,
-) -> tuple[np.ndarray, float]:  # fmt: skip
-    """The maximum-likelihood parameters (with ``fixed`` {index: value} held) and the
-    log-likelihood there: from ``warm`` alone when given (a profile's neighbouring fit),
-    else from several starts."""
-    fixed = fixed or {}
-    free = [i for i in range(3) if i not in fixed]
-    if warm is not None:
-        starts = [warm]
-    else:
-        p = k / np.maximum(n, 1)
-        centre = float(np.sum(x * p) / np.sum(p)) if np.sum(p) > 0 else float(np.mean(x))
-        span = float(np.ptp(x)) or 1.0
-        third0 = 0.9 if judgment == "simultaneity" else 0.02
-        starts = [
-            np.array([c, math.log(s), third0])
-            for c in (centre, float(np.median(x)))
-            for s in (span / 6.0, span / 2.0)
-        ]
-
-    def full(free_values: np.ndarray) -> np.ndarray:
-        theta = np.empty(3)
-        theta[free] = free_values
-        for i, v in fixed.items():
-            theta[i] = v
-        return theta
-
-    best_theta, best_ll = None, -math.inf
-    for start in starts:
-        s = np.clip(start[free], [bounds[i][0] for i in free], [bounds[i][1] for i in free])
-        res = optimize.minimize(
-            lambda f: -_loglik(full(f), judgment, x, n, k), s, method="L-BFGS-B",
-            bounds=[bounds[i] for i in free],
-        )  # fmt: skip
-        if -res.fun > best_ll:
-            best_theta, best_ll = full(res.x), float(-res.fun)
-    assert best_theta is not None
-    return best_theta, best_ll
-
-
-def _profile_interval(
-    judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray, bounds: list[tuple[float, float]],
-    *, index: int, theta: np.ndarray, ll: float, cutoff: float,
-) -> tuple[float, float]:  # fmt: skip
-    """Profile-likelihood interval of parameter ``index``; an end beyond the search bound is
-    returned as -inf / inf."""
-
-    def drop(value: float) -> float:
-        if value == theta[index]:
-            return -cutoff
-        _, ll_v = _best(judgment, x, n, k, bounds, fixed={index: value}, warm=theta)
-        return 2.0 * (ll - ll_v) - cutoff
-
-    lo_b, hi_b = bounds[index]
-    ends = []
-    at = float(theta[index])
-    for bound in (lo_b, hi_b):
-        if abs(bound - at) < 1e-9 or drop(bound) < 0:
-            ends.append(-math.inf if bound == lo_b else math.inf)
-            continue
-        ends.append(optimize.brentq(drop, min(at, bound), max(at, bound), xtol=1e-3))
-    return ends[0], ends[1]
+def _starts(judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray) -> list[np.ndarray]:
+    p = k / np.maximum(n, 1)
+    centre = float(np.sum(x * p) / np.sum(p)) if np.sum(p) > 0 else float(np.mean(x))
+    span = float(np.ptp(x)) or 1.0
+    third0 = 0.9 if judgment == "simultaneity" else 0.02
+    return [
+        np.array([c, math.log(s), third0])
+        for c in (centre, float(np.median(x)))
+        for s in (span / 6.0, span / 2.0)
+    ]
 
 
 def fit_window(
@@ -198,15 +149,19 @@ def fit_window(
     if len(x) < 3:
         raise AnalysisError(f"a timing window needs answers at three or more offsets, got {len(x)}")
     bounds = _bounds(judgment, x)
-    theta, ll = _best(judgment, x, n, k, bounds)
-    cutoff = float(stats.chi2.ppf(level, 1))
+
+    def loglik(theta: np.ndarray) -> float:
+        return _loglik(theta, judgment, x, n, k)
+
+    theta, ll = best_fit(loglik, bounds=bounds, starts=_starts(judgment, x, n, k))
+    cutoff = chi2_cutoff(level)
     per = _per_sigma(judgment)
     pss_lo = pss_hi = ls_lo = ls_hi = math.nan
     if intervals:
-        pss_lo, pss_hi = _profile_interval(judgment, x, n, k, bounds, index=0, theta=theta,
-                                           ll=ll, cutoff=cutoff)  # fmt: skip
-        ls_lo, ls_hi = _profile_interval(judgment, x, n, k, bounds, index=1, theta=theta,
-                                         ll=ll, cutoff=cutoff)  # fmt: skip
+        pss_lo, pss_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
+                                          cutoff=cutoff)  # fmt: skip
+        ls_lo, ls_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=1,
+                                        cutoff=cutoff)  # fmt: skip
     notes = []
     names = ("the PSS", "the width", "the peak" if judgment == "simultaneity" else "the lapse")
     for i, name in enumerate(names):
@@ -215,7 +170,7 @@ def fit_window(
             continue  # a peak of 1 (never "out of sync" at the PSS) is a fine answer
         if i == 2 and judgment == "temporal_order" and theta[i] <= lo + 1e-6:
             continue  # no lapses
-        if theta[i] <= lo + 1e-6 or theta[i] >= hi - 1e-6:
+        if on_bound(theta[i], bounds[i]):
             notes.append(f"{name} ends on its search bound")
     if math.isinf(pss_lo) or math.isinf(pss_hi):
         notes.append("the PSS interval reaches beyond the offsets searched")
@@ -281,42 +236,6 @@ def window_curves(windows: pd.DataFrame, *, offsets: np.ndarray) -> pd.DataFrame
 
 
 def window_tests(windows: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """(summary, tests): per series the participants' mean PSS and width with 95 % t
-    intervals; and per measure a repeated-measures ANOVA over the series and Holm-adjusted
-    paired t tests (``measure, a, b, t, df, p_unc, p_adj, d_z``; the ANOVA as a = b =
-    ``all``). Participants with an undetermined window (a note) are left out of both."""
-    clean = windows[windows["note"].fillna("").astype(str).eq("")]
-    summary = []
-    for series, part in windows.groupby("condition", sort=False):
-        kept = clean[clean["condition"] == series]
-        row: dict = {"condition": series, "participants": len(part), "determined": len(kept)}
-        for measure in ("pss_ms", "width_ms"):
-            v = kept[measure].to_numpy(dtype=float)
-            mean = float(v.mean()) if len(v) else math.nan
-            half = (float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
-                    if len(v) > 1 else math.nan)  # fmt: skip
-            row |= {f"{measure}_mean": mean, f"{measure}_ci_low": mean - half,
-                    f"{measure}_ci_high": mean + half}  # fmt: skip
-        summary.append(row)
-    tests = []
-    series = list(dict.fromkeys(windows["condition"]))
-    complete = clean.groupby("participant")["condition"].nunique()
-    kept = clean[clean["participant"].isin(complete[complete == len(series)].index)]
-    if len(series) >= 2 and kept["participant"].nunique() >= 3:
-        for measure in ("pss_ms", "width_ms"):
-            try:
-                anova = fstats.rm_anova(kept, dv=measure, within="condition", subject="participant")
-                pairs = fstats.pairwise_paired(kept, dv=measure, within="condition",
-                                               subject="participant")  # fmt: skip
-            except AnalysisError:
-                continue
-            a = anova.iloc[0]
-            tests.append({"measure": measure, "a": "all", "b": "all", "t": math.nan,
-                          "f": a["f"], "df": a["df1"], "df2": a["df2"], "p_unc": a["p_gg"],
-                          "p_adj": a["p_gg"], "d_z": math.nan,
-                          "participants": kept["participant"].nunique()})  # fmt: skip
-            tests += [{"measure": measure, **r, "f": math.nan, "df2": math.nan,
-                       "participants": kept["participant"].nunique()}
-                      for r in pairs.to_dict("records")]  # fmt: skip
-    columns = ["measure", "a", "b", "f", "t", "df", "df2", "p_unc", "p_adj", "d_z", "participants"]
-    return pd.DataFrame(summary), pd.DataFrame(tests, columns=columns)
+    """(summary, tests) of the PSS and the width between condition series
+    (:func:`facelab.analysis.stats.series_comparison`; windows with a note left out)."""
+    return fstats.series_comparison(windows, measures=("pss_ms", "width_ms"))

@@ -1,0 +1,95 @@
+"""Bounded maximum likelihood with profile-likelihood intervals, for the small parametric
+fits of the objective tasks (audio-visual timing windows, speech reception thresholds).
+
+A model is its log-likelihood ``loglik(theta) -> float`` over a parameter vector with box
+``bounds``. :func:`best_fit` maximises it from several starts (L-BFGS-B); with ``fixed``
+parameters held it is the profile. :func:`profile_interval` finds where twice the drop of the
+profile log-likelihood from the maximum reaches the chi-square(1) quantile, re-fitting the
+other parameters at each value (from the best fit: the profile is continuous there); an end
+that would pass the parameter's bound is returned as ``-inf`` / ``inf``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from scipy import optimize, stats
+
+__all__ = ["Bounds", "LogLik", "best_fit", "chi2_cutoff", "on_bound", "profile_interval"]
+
+LogLik = Callable[[np.ndarray], float]
+Bounds = Sequence[tuple[float, float]]
+
+
+def chi2_cutoff(level: float) -> float:
+    """Twice the log-likelihood drop of a ``level`` profile interval (one parameter)."""
+    return float(stats.chi2.ppf(level, 1))
+
+
+def best_fit(
+    loglik: LogLik,
+    *,
+    bounds: Bounds,
+    starts: Sequence[np.ndarray],
+    fixed: dict[int, float] | None = None,
+) -> tuple[np.ndarray, float]:
+    """The parameters (``fixed`` {index: value} held) maximising ``loglik`` within
+    ``bounds`` from the best of ``starts``, and the log-likelihood there."""
+    fixed = fixed or {}
+    k = len(bounds)
+    free = [i for i in range(k) if i not in fixed]
+    lo = np.array([bounds[i][0] for i in free])
+    hi = np.array([bounds[i][1] for i in free])
+
+    def full(free_values: np.ndarray) -> np.ndarray:
+        theta = np.empty(k)
+        theta[free] = free_values
+        for i, v in fixed.items():
+            theta[i] = v
+        return theta
+
+    best_theta, best_ll = None, -math.inf
+    for start in starts:
+        s = np.clip(np.asarray(start, dtype=float)[free], lo, hi)
+        res = optimize.minimize(lambda f: -loglik(full(f)), s, method="L-BFGS-B",
+                                bounds=[bounds[i] for i in free])  # fmt: skip
+        if -res.fun > best_ll:
+            best_theta, best_ll = full(res.x), float(-res.fun)
+    assert best_theta is not None
+    return best_theta, best_ll
+
+
+def profile_interval(
+    loglik: LogLik,
+    *,
+    bounds: Bounds,
+    theta: np.ndarray,
+    ll: float,
+    index: int,
+    cutoff: float,
+) -> tuple[float, float]:
+    """The profile-likelihood interval of parameter ``index`` around the maximum ``theta``
+    (log-likelihood ``ll``); ``-inf`` / ``inf`` for an end beyond the search bound."""
+
+    def drop(value: float) -> float:
+        if value == theta[index]:
+            return -cutoff
+        _, ll_v = best_fit(loglik, bounds=bounds, starts=[theta], fixed={index: value})
+        return 2.0 * (ll - ll_v) - cutoff
+
+    lo_b, hi_b = bounds[index]
+    at = float(theta[index])
+    ends = []
+    for bound in (lo_b, hi_b):
+        if abs(bound - at) < 1e-9 or drop(bound) < 0:
+            ends.append(-math.inf if bound == lo_b else math.inf)
+            continue
+        ends.append(optimize.brentq(drop, min(at, bound), max(at, bound), xtol=1e-3))
+    return ends[0], ends[1]
+
+
+def on_bound(value: float, bound: tuple[float, float], *, tol: float = 1e-6) -> bool:
+    """True when an estimate sits on either end of its search bound."""
+    return value <= bound[0] + tol or value >= bound[1] - tol
