@@ -214,10 +214,12 @@ def timing_figure(
     labels: Mapping[str, str],
     title: str,
     ylabel: str,
+    xlabel: str = "audio offset (ms; negative: the voice first)",
     caption: str = "",
 ) -> Figure:
-    """Audio-visual timing: per condition series the pooled proportion at each offset (area
-    proportional to n) and the function at the participants' median parameters.
+    """Audio-visual timing (or words in noise over the SNR): per condition series the pooled
+    proportion at each offset (area proportional to n) and the function at the
+    participants' median parameters.
 
     Parameters
     ----------
@@ -229,7 +231,7 @@ def timing_figure(
     colours = plt.get_cmap("tab10").colors
     with plt.rc_context(_rc()):
         fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=150, layout="constrained")
-        for i, series in enumerate(dict.fromkeys(pooled["condition"])):
+        for i, series in enumerate(dict.fromkeys([*curves["condition"], *pooled["condition"]])):
             colour = colours[i % len(colours)]
             one = pooled[pooled["condition"] == series]
             line = curves[curves["condition"] == series]
@@ -238,10 +240,12 @@ def timing_figure(
             size = 160.0 * one["n"] / pooled["n"].max()
             ax.scatter(one["offset_ms"], one["k"] / one["n"], s=size, color=colour, alpha=0.7,
                        edgecolor="white", zorder=3)  # fmt: skip
-        ax.axvline(0, color="0.5", lw=0.8, ls=":")
+        if "offset" in xlabel:
+            ax.axvline(0, color="0.5", lw=0.8, ls=":")
+        else:
+            ax.axhline(0.5, color="0.5", lw=0.8, ls=":")
         ax.set_ylim(-0.03, 1.03)
-        ax.set_xlabel("audio offset (ms; negative: the voice first)"
-                      + (f"\n{caption}" if caption else ""), fontsize=9)  # fmt: skip
+        ax.set_xlabel(xlabel + (f"\n{caption}" if caption else ""), fontsize=9)
         ax.set_ylabel(ylabel)
         ax.set_title(title, fontsize=10)
         fig.legend(fontsize=7, loc="outside lower center", ncol=3, frameon=False)

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 import facelab.analysis.figures as figures
+import facelab.analysis.srt as srt
 import facelab.analysis.timing as timing
 from facelab.analysis.integrity import DataCheck, check_data
 from facelab.analysis.load import session_summary
@@ -331,6 +332,14 @@ _TASK_HEADINGS = {
     "series (95 % t intervals; windows not fully determined left out)",
     "sync_tests": "Audio-visual timing: the series compared within participants (RM ANOVA, "
     "Greenhouse-Geisser p, as a = b = all; paired t tests, Holm)",
+    "srt": "Speech in noise: each participant's speech reception threshold per condition "
+    "series (SNR of 50 % right answers, 95 % profile-likelihood interval; guess rate 1/k), the "
+    "benefit against audio alone in dB (Wald interval) and Sumby-Pollack's visual enhancement "
+    "at the audio-only SRT",
+    "srt_summary": "Speech in noise: the participants' mean SRT, benefit and enhancement per "
+    "series (95 % t intervals; thresholds not fully determined left out)",
+    "srt_tests": "Speech in noise: the series compared within participants (RM ANOVA, "
+    "Greenhouse-Geisser p, as a = b = all; paired t tests, Holm)",
     "behaviour_counts": "Behaviour: events per clip, per layer and unit, and motion energy "
     "(from the clips' event logs)",
     "behaviour_covariates": "Behaviour counts as covariates: rating ~ condition + events per "
@@ -370,6 +379,8 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "identification_summary",
         "identification_by_condition",
         "identification_condition_model",
+        "srt_summary",
+        "srt_tests",
         "sync_summary",
         "sync_tests",
         "trend_contrast",
@@ -431,6 +442,21 @@ def _task_figures(
         paths = figures.save(fig, out / f"fig_confusion_{task.id}")
         blocks.append((f"confusion: {task.id}", paths[0]))
     conditions = {c.id: c for c in protocol.conditions}
+    for task, trials, table in tasks.srt:
+        grid = np.linspace(trials["snr_db"].min(), trials["snr_db"].max(), 161)
+        counts = (trials.rename(columns={"snr_db": "offset_ms"})
+                  .groupby(["condition", "offset_ms"], sort=False)["correct"]
+                  .agg(n="size", k="sum").reset_index())  # fmt: skip
+        order = list(dict.fromkeys(table["condition"]))
+        curves = srt.srt_curves(trials, guess=1 / len(task.labels), snr=grid,
+                                order=order).rename(columns={"snr_db": "offset_ms"})  # fmt: skip
+        fig = figures.timing_figure(
+            counts, curves, labels={}, title=_text(task.question, language),
+            ylabel="P(right word)", xlabel="SNR (dB)",
+            caption="lines: fitted to everyone's answers pooled; dotted: 50 % (the SRT)" + tag,
+        )  # fmt: skip
+        paths = figures.save(fig, out / f"fig_srt_{task.id}")
+        blocks.append((f"speech in noise: {task.id}", paths[0]))
     for task, counts, windows in tasks.timing:
         assert task.timing is not None
         grid = np.linspace(counts["offset_ms"].min(), counts["offset_ms"].max(), 161)

@@ -691,11 +691,12 @@ def series_comparison(
         summary.append(row)
     tests = []
     names = list(dict.fromkeys(table[series]))
-    complete = clean.groupby(subject)[series].nunique()
-    kept = clean[clean[subject].isin(complete[complete == len(names)].index)]
-    people = kept[subject].nunique()
-    if len(names) >= 2 and people >= 3:
-        for measure in measures:
+    for measure in measures if len(names) >= 2 else ():
+        known = clean[np.isfinite(clean[measure].to_numpy(dtype=float))]
+        complete = known.groupby(subject)[series].nunique()
+        kept = known[known[subject].isin(complete[complete == len(names)].index)]
+        people = kept[subject].nunique()
+        if people >= 3:
             try:
                 anova = rm_anova(kept, dv=measure, within=series, subject=subject)
                 pairs = pairwise_paired(kept, dv=measure, within=series, subject=subject)

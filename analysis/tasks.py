@@ -21,6 +21,10 @@
   simultaneity or temporal-order function per condition series over the conditions'
   ``audio_offset_ms`` (``sync_window``), the series' means and their within-participant
   comparison (``sync_summary``, ``sync_tests``; :mod:`facelab.analysis.timing`);
+* speech in noise (an identify task with answers on conditions with ``noise``): each
+  participant's speech reception threshold per condition series, the audio-visual benefit
+  against the audio-only series and Sumby-Pollack's visual enhancement (``srt``), the series'
+  means and comparison (``srt_summary``, ``srt_tests``; :mod:`facelab.analysis.srt`);
 * graded VAS designs (every condition of the item's block has a level): the linear trend
   contrast and the random-slope mixed model (:mod:`facelab.analysis.graded`).
 
@@ -40,6 +44,7 @@ import pandas as pd
 import facelab.analysis.graded as graded
 import facelab.analysis.identification as identification
 import facelab.analysis.psychometric as psychometric
+import facelab.analysis.srt as srt
 import facelab.analysis.stats as stats
 import facelab.analysis.timing as timing
 from facelab.errors import AnalysisError
@@ -73,6 +78,8 @@ class TaskResults:
     confusion_by_condition: list[tuple[IdentifyTask, dict[str, pd.DataFrame]]] = field(
         default_factory=list
     )
+    # (task, trials per participant x series x SNR, SRT table) per speech-in-noise task
+    srt: list[tuple[IdentifyTask, pd.DataFrame, pd.DataFrame]] = field(default_factory=list)
     # (task, counts per participant x series x offset, windows) per timing task
     timing: list[tuple[IdentifyTask, pd.DataFrame, pd.DataFrame]] = field(default_factory=list)
     # task id -> its scored identification answers (target and correct columns added)
@@ -312,6 +319,9 @@ def analyze_tasks(
         elif task.timing is not None:  # a synchrony task: windows over the audio offsets
             _timing_tables(rows, protocol, task, res)
         else:
+            in_noise = srt.is_noise_task(protocol, task)
+            if in_noise:  # words in noise: thresholds per series (not per-condition models)
+                _srt_tables(rows, protocol, task, res)
             labels = [lb.id for lb in task.labels]
             if not task.answers:
                 res.notes.append(
@@ -327,7 +337,7 @@ def analyze_tasks(
                 long = matrix.stack().rename("count").reset_index()
                 id_matrix.append(long.assign(task=task.id))
                 res.confusion.append((task, matrix))
-                if compares_conditions(scored):
+                if compares_conditions(scored) and not in_noise:
                     parts = in_protocol_order(scored, protocol)
                     by_cond, cond_model = _identification_by_condition(scored, parts, task, res)
                     id_by_condition.append(by_cond)
@@ -384,6 +394,36 @@ def _timing_tables(
         )
     counts = timing.timing_counts(rows, protocol, task)
     res.timing.append((task, counts, windows))
+
+
+def _srt_tables(
+    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask, res: TaskResults
+) -> None:
+    """``srt`` (each participant's SRT per condition series, the benefit against audio
+    alone), ``srt_summary`` and ``srt_tests`` (:mod:`facelab.analysis.srt`)."""
+    table = srt.srt_table(rows, protocol, task)
+    if table.empty:
+        res.notes.append(f"task {task.id!r}: no participant answered at two SNRs of a series; "
+                         "no SRT fitted")  # fmt: skip
+        return
+    reference = srt.audio_only_series(protocol)
+    if reference is None:
+        res.notes.append(f"task {task.id!r}: no (single) audio-only series in noise: SRTs "
+                         "without the audio-visual benefit")  # fmt: skip
+    summary, tests = srt.srt_tests(table, reference=reference)
+    for name, frame in (("srt", table.assign(task=task.id)),
+                        ("srt_summary", summary.assign(task=task.id)),
+                        ("srt_tests", tests.assign(task=task.id))):  # fmt: skip
+        if name in res.tables:
+            frame = pd.concat([res.tables[name], frame], ignore_index=True)
+        res.tables[name] = frame
+    undetermined = table[table["note"].fillna("").astype(str).ne("")]
+    if len(undetermined):
+        res.notes.append(
+            f"task {task.id!r}: {len(undetermined)} of {len(table)} SRTs are not fully "
+            "determined (srt.csv's note); they are left out of srt_tests"
+        )
+    res.srt.append((task, srt.noise_trials(rows, protocol, task), table))
 
 
 def score_identification(rows: pd.DataFrame, task: IdentifyTask) -> pd.DataFrame:

@@ -409,13 +409,18 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             ) or (
                 task is not None
                 and task.type == "identify"
-                and all(c in task.answers for c in block_conds)
-            )
+                and (
+                    all(c in task.answers for c in block_conds)
+                    or all(st.id in task.answers for s in protocol.stimulus_sets
+                           if s.id == block.stimulus_set for st in s.stimuli)
+                )
+            )  # fmt: skip
             if not scorable:
                 yield Issue(
                     (*where, "task"),
                     "a staircase adapts on correct answers: use a choice_2afc task with "
-                    "correct: comparison, or an identify task with an answer for every condition",
+                    "correct: comparison, or an identify task with an answer for every condition "
+                    "or every stimulus of the block (e.g. the word said in noise)",
                 )
         elif block.staircase is not None:
             yield Issue((*where, "staircase"), f"a staircase rule on a {block.design!r} block")
@@ -429,7 +434,7 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
 @_check("conditions", "rendering")
 def _audio_offsets(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """An offset moves the voice within the clip's padding (no speech is cut) and needs a
-    voice and a face to shift against each other."""
+    voice and a face to shift against each other; noise needs a voice and its file."""
     pad_ms = protocol.rendering.pad_s * 1000.0
     for i, cond in enumerate(protocol.conditions):
         where = ("conditions", i, "audio_offset_ms")
@@ -441,6 +446,20 @@ def _audio_offsets(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         if cond.modality != "audiovisual":
             yield Issue(where, f"an audio offset needs voice and face: this condition is "
                         f"{cond.modality}")  # fmt: skip
+    for i, cond in enumerate(protocol.conditions):
+        if cond.noise is None:
+            continue
+        where = ("conditions", i, "noise")
+        if cond.modality == "visual_only":
+            yield Issue(where, "noise is mixed with the voice: this condition is visual_only "
+                        "(muted)")  # fmt: skip
+        source = cond.noise.source
+        if source != "speech_shaped":
+            if not source.lower().endswith(AUDIO_SUFFIXES):
+                yield Issue((*where, "source"), f"{source!r}: use speech_shaped or a noise file "
+                            f"ending in {' or '.join(AUDIO_SUFFIXES)}")  # fmt: skip
+            elif not (base_dir / source).is_file():
+                yield Issue((*where, "source"), f"noise file not found: {base_dir / source}")
 
 
 @_check("tasks", "conditions", "blocks")
@@ -603,6 +622,10 @@ def _simulation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             if row and sum(row.values()) <= 0:
                 yield Issue((*where, shown), "the probabilities sum to 0")
     series = {c.series_id for c in protocol.conditions}
+    for name in sim.srt:
+        if name not in series:
+            yield Issue(("simulation", "srt", name), f"unknown condition series {name!r}; "
+                        f"series: {', '.join(sorted(series))}")  # fmt: skip
     for name in sim.timing:
         if name not in series:
             yield Issue(("simulation", "timing", name), f"unknown condition series {name!r}; "

@@ -33,8 +33,10 @@ __all__ = [
     "Condition",
     "IdentifyTask",
     "Label",
+    "Noise",
     "Protocol",
     "Rendering",
+    "SrtListener",
     "StaircaseRule",
     "Stimulus",
     "StimulusSet",
@@ -90,6 +92,32 @@ class Study(_Model):
     notes: str = ""
 
 
+class Noise(_Model):
+    """Noise mixed with a condition's voice (speech-in-noise tasks). The speech is set to
+    ``speech_level_dbfs`` (its active level: the RMS of its 20 ms frames within 40 dB of the
+    loudest) in every clip, so loudness does not cue the SNR; the noise's RMS (over the clip,
+    its fades left out) is ``snr_db`` below it. Each stimulus gets its own noise token, the
+    same for every method at one SNR (the methods differ only in the face)."""
+
+    snr_db: float = Field(ge=-40, le=40, description="Speech level minus noise level, dB.")
+    source: str = Field(
+        "speech_shaped",
+        description="speech_shaped: Gaussian noise with the long-term average spectrum of the "
+        "stimulus set's speech; or a noise file (WAV/FLAC, relative to the protocol; looped, "
+        "a seeded stretch per clip).",
+    )
+    speech_level_dbfs: float = Field(
+        -35.0,
+        ge=-60,
+        le=-6,
+        description="The speech's active level in every clip, dBFS: low enough that the noise "
+        "of the lowest SNR does not clip (Gaussian noise peaks about 13 dB above its RMS).",
+    )
+    ramp_s: float = Field(
+        0.05, ge=0, le=1, description="Raised-cosine fade of the noise at the clip's ends."
+    )
+
+
 class Condition(_Model):
     """One animation condition: a registered method and its parameters."""
 
@@ -129,6 +157,12 @@ class Condition(_Model):
         "alike but for this offset share one rendered video, the sound shifted and re-muxed; "
         "at most rendering.pad_s, so no speech is cut.",
     )
+    noise: Noise | None = Field(
+        None,
+        description="Noise mixed with the voice at an SNR (speech in noise); its snr_db is the "
+        "condition's level unless 'level' is given. Conditions alike but for their noise share "
+        "one rendered picture.",
+    )
     series: Id | None = Field(
         None,
         description="The conditions analysed together as one function of audio_offset_ms - "
@@ -143,6 +177,17 @@ class Condition(_Model):
         "the clip, linearly interpolated, held before the first and after the last key); "
         "omitted: the stimulus's emotion, else neutral.",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _level_from_snr(cls, data: Any) -> Any:
+        """A noise condition's level is its SNR unless the protocol gives one."""
+        if isinstance(data, dict) and data.get("level") is None:
+            noise = data.get("noise")
+            snr = noise.get("snr_db") if isinstance(noise, dict) else None
+            if isinstance(snr, int | float) and not isinstance(snr, bool):
+                data = {**data, "level": float(snr)}
+        return data
 
     @property
     def series_id(self) -> str:
@@ -656,6 +701,20 @@ class TimingObserver(_Model):
     width_sd_ms: float = Field(0.0, ge=0, description="SD of participants' widths.")
 
 
+class SrtListener(_Model):
+    """A simulated listener of speech in noise (one condition series): a right answer with
+    P = guess + (1 - guess - lapse) * logistic(...) through 1/2 at ``srt_db`` with
+    ``slope`` per dB there (guess: 1/k for k labels)."""
+
+    srt_db: float = Field(ge=-40, le=40, description="SNR of 50 % right answers.")
+    slope: float = Field(0.1, gt=0, le=1, description="Proportion correct per dB at the SRT.")
+    lapse: float = Field(0.02, ge=0, le=0.2, description="Lapse rate.")
+    srt_sd_db: float = Field(
+        0.0, ge=0, le=20, description="SD of participants' SRTs (one draw per participant, "
+        "shared by the series: a good listener is good in every series)."
+    )
+
+
 class Simulation(_Model):
     """How ``facelab simulate`` generates answers; never presented as data."""
 
@@ -666,6 +725,11 @@ class Simulation(_Model):
     overrides: list[EffectOverride] = Field(default_factory=list)
     observer: Observer = Field(default_factory=Observer)
     identifier: Identifier = Field(default_factory=Identifier)
+    srt: dict[Id, SrtListener] = Field(
+        default_factory=dict,
+        description="Condition series -> how a simulated participant hears words in noise "
+        "(identify tasks with answers on conditions with noise); other series: 'identifier'.",
+    )
     timing: dict[Id, TimingObserver] = Field(
         default_factory=dict,
         description="Condition series -> how a simulated participant judges its timing "
@@ -792,14 +856,15 @@ class Protocol(_Model):
         return None if block.task is None else self.task(block.task)
 
     def offset_twins(self) -> list[list[str]]:
-        """Groups of condition ids alike but for their ``audio_offset_ms``: their clips show
-        one picture (rendered once, the others re-muxed with the voice moved)."""
+        """Groups of condition ids alike but for their sound (``audio_offset_ms``,
+        ``noise``): their clips show one picture (rendered once, the others re-muxed with
+        their own sound)."""
         groups: dict[str, list[str]] = {}
         for c in self.conditions:
-            alike = c.model_dump(exclude={"id", "label", "audio_offset_ms", "level"})
+            alike = c.model_dump(exclude={"id", "label", "audio_offset_ms", "noise", "level"})
             groups.setdefault(json.dumps(alike, sort_keys=True, default=str), []).append(c.id)
-        offsets = {c.id: c.audio_offset_ms for c in self.conditions}
-        return [ids for ids in groups.values() if len({offsets[i] for i in ids}) > 1]
+        sound = {c.id: (c.audio_offset_ms, repr(c.noise)) for c in self.conditions}
+        return [ids for ids in groups.values() if len({sound[i] for i in ids}) > 1]
 
     def block_conditions(self, block: Block) -> list[str]:
         if block.conditions:

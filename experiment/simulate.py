@@ -46,6 +46,7 @@ from facelab.experiment.timeline import (
     compile_timeline,
 )
 from facelab.experiment.walk import walk
+from facelab.intelligibility_function import p_correct
 from facelab.protocol import Protocol, protocol_hash
 from facelab.protocol_model import TimingObserver
 from facelab.sessionlog import (
@@ -162,6 +163,7 @@ class ChoiceModel:
         )
         self.rt = sim.model
         self._timing: dict[str, tuple[float, float]] = {}
+        self._listener: float | None = None  # N(0, 1): how well this participant hears
 
     def p_comparison(self, *, level: float, scored: bool) -> float:
         gamma = 0.5 if scored else 0.0
@@ -193,6 +195,15 @@ class ChoiceModel:
             self._timing[series] = (float(pss), float(width))
         return self._timing[series]
 
+    def srt_of(self, series: str) -> float:
+        """This participant's SRT (dB) in a condition series: the stated truth
+        (``simulation.srt``) moved by ``srt_sd_db`` times one draw per participant - a
+        listener better or worse than most is so in every series."""
+        if self._listener is None:
+            self._listener = float(self.rng.normal())
+        truth = self.protocol.simulation.srt[series]
+        return truth.srt_db + truth.srt_sd_db * self._listener
+
     def p_timing(self, *, judgment: str, series: str, offset_ms: float) -> float:
         """P(the task's timing label) at an offset: P(in sync) for simultaneity, P(voice
         first) for temporal order (:class:`~facelab.protocol_model.TimingObserver`)."""
@@ -217,6 +228,15 @@ class ChoiceModel:
             condition=screen.trial.condition, stimulus=screen.trial.stimulus
         )
         if target is None:
+            return labels[int(self.rng.integers(len(labels)))]
+        cond = self.protocol.condition(screen.trial.condition)
+        listener = self.protocol.simulation.srt.get(cond.series_id)
+        if cond.noise is not None and listener is not None:  # a word heard in noise
+            p = p_correct(cond.noise.snr_db, srt=self.srt_of(cond.series_id),
+                          slope=listener.slope, guess=1 / len(labels),
+                          lapse=listener.lapse)  # fmt: skip
+            if self.rng.random() < (p - 1 / len(labels)) / (1 - 1 / len(labels)):
+                return target  # heard it; otherwise a guess among all the labels
             return labels[int(self.rng.integers(len(labels)))]
         row = self.identifier.condition_confusion.get(screen.trial.condition, {}).get(
             target

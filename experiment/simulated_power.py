@@ -19,6 +19,8 @@ The tests of a protocol (:func:`protocol_tests`):
 * ``identification``: per identify task whose conditions each portray several labels, each
   condition's term of the logistic GEE against the first condition;
 * ``trend``: per item x stimulus set of a graded design, the linear trend contrast;
+* ``srt``: per speech-in-noise task, the RM ANOVA of the participants' SRTs over the
+  condition series and of their benefit against audio alone over the audio-visual series;
 * ``timing``: per timing task, the RM ANOVA of the participants' PSS and of their window
   widths over the condition series (Greenhouse-Geisser; windows the data do not determine
   left out).
@@ -31,7 +33,8 @@ a difference, so for them the question is precision (:func:`protocol_estimates`)
 pooled psychometric midpoint of each simulated study, summarised per n as its mean, its SD
 across studies (the standard error a study of that size will have) and its root mean
 squared error against the simulated observer's midpoint. Timing tasks add each series'
-mean PSS and window width against ``simulation.timing``.
+mean PSS and window width against ``simulation.timing``, and speech-in-noise tasks each
+series' mean SRT and benefit against ``simulation.srt``.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from facelab.analysis import graded, identification, psychometric, stats, timing
+from facelab.analysis import graded, identification, psychometric, srt, stats, timing
 from facelab.analysis.load import frame_from_rows
 from facelab.analysis.study import rating_cells
 from facelab.analysis.tasks import (
@@ -102,8 +105,8 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
             continue
         rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
         scored = score_identification(rows, task)
-        if scored.empty or not compares_conditions(scored):
-            continue
+        if scored.empty or not compares_conditions(scored) or srt.is_noise_task(protocol, task):
+            continue  # (words in noise: compared by their thresholds, below)
         present = [c for c, _ in in_protocol_order(scored, protocol)]
         try:
             p_of = identification.correct_model(scored, conditions=present).set_index("term")["p"]
@@ -112,6 +115,13 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
         for c in present[1:]:
             p = p_of.get(f"C(condition)[T.{c}]", float("nan"))
             out[(f"{task.id}: {c} vs {present[0]}", "identification")] = float(p)
+    for task, table in _srt_tables(data, protocol):  # thresholds between series
+        _, tests = srt.srt_tests(table, reference=srt.audio_only_series(protocol))
+        for measure in ("srt_db", "benefit_db"):
+            row = tests[(tests["measure"] == measure) & (tests["a"] == "all")]
+            if measure == "srt_db" or table["benefit_db"].notna().any():
+                p = float(row["p_adj"].iloc[0]) if len(row) else float("nan")
+                out[(f"{task.id}: {measure} between series", "srt")] = p
     for task, windows in _timing_windows(data, protocol):  # PSS and width between series
         clean = windows[windows["note"] == ""]
         if clean["condition"].nunique() < 2:
@@ -143,11 +153,30 @@ def _timing_windows(
     return out
 
 
+def _srt_tables(data: pd.DataFrame, protocol: Protocol) -> list[tuple[IdentifyTask, pd.DataFrame]]:
+    """Each speech-in-noise task's SRTs (point estimates only)."""
+    out = []
+    for task in protocol.tasks:
+        if isinstance(task, IdentifyTask) and srt.is_noise_task(protocol, task):
+            rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
+            if not rows.empty:
+                table = srt.srt_table(rows, protocol, task, intervals=False)
+                out.append((task, table.assign(note=table["note"].fillna(""))))
+    return out
+
+
 def estimate_truths(protocol: Protocol) -> dict[str, float]:
     """The simulated truth of each estimate :func:`protocol_estimates` names."""
     out = {f"{t.id} midpoint": protocol.simulation.observer.midpoint
            for t in protocol.tasks if isinstance(t, ChoiceTask)}  # fmt: skip
+    reference = srt.audio_only_series(protocol)
     for task in protocol.tasks:
+        if isinstance(task, IdentifyTask) and srt.is_noise_task(protocol, task):
+            for series, truth in protocol.simulation.srt.items():
+                out[f"{task.id} {series} srt_db"] = truth.srt_db
+                if reference in protocol.simulation.srt and series != reference:
+                    base = protocol.simulation.srt[reference].srt_db
+                    out[f"{task.id} {series} benefit_db"] = base - truth.srt_db
         if isinstance(task, IdentifyTask) and task.timing is not None:
             for series in dict.fromkeys(c.series_id for c in protocol.conditions):
                 truth = protocol.simulation.timing.get(series, TimingObserver())
@@ -162,6 +191,15 @@ def protocol_estimates(data: pd.DataFrame, protocol: Protocol) -> dict[str, floa
     timing task, ``"<task> <series> pss_ms"`` and ``"… width_ms"``: the mean of the
     participants' windows (those the data determine)."""
     out: dict[str, float] = {}
+    for task, table in _srt_tables(data, protocol):
+        clean = table[table["note"] == ""]
+        for series in dict.fromkeys(table["condition"]):
+            mine = clean[clean["condition"] == series]
+            for measure in ("srt_db", "benefit_db"):
+                values = mine[measure].dropna()
+                if measure == "srt_db" or len(values):
+                    out[f"{task.id} {series} {measure}"] = (
+                        float(values.mean()) if len(values) else float("nan"))
     for task, windows in _timing_windows(data, protocol):
         clean = windows[windows["note"] == ""]
         for series in dict.fromkeys(windows["condition"]):

@@ -410,6 +410,9 @@ def _simulated_power(args: argparse.Namespace) -> int:
                 f"{sim.observer.midpoint:g}, slope {sim.observer.slope:g}, participants' SD "
                 f"{sim.observer.midpoint_sd:g}): SD across studies (RMSE)"
             )
+        if precision["estimate"].str.endswith(("srt_db", "benefit_db")).any():
+            print("precision of the mean SRT and benefit per condition series (truths: the "
+                  "protocol's simulation.srt): SD across studies (RMSE), dB")  # fmt: skip
         if precision["estimate"].str.endswith(("pss_ms", "width_ms")).any():
             print("precision of the mean window per condition series (truths: the protocol's "
                   "simulation.timing): SD across studies (RMSE), ms")  # fmt: skip

@@ -35,8 +35,11 @@ __all__ = [
     "envelope",
     "face_difference",
     "face_visible_rows",
+    "lag_is_identifiable",
     "level_rows",
+    "mix_lag",
     "mouth_at_peaks",
+    "noise_rows",
     "not_measured",
     "picture_lag",
     "sync_lag",
@@ -304,6 +307,36 @@ def picture_lag(
     return lag, r2
 
 
+def lag_is_identifiable(
+    track_values: np.ndarray, mouth: np.ndarray, *, lag: float, max_lag: int = 8
+) -> bool:
+    """False when the track fits the tracked opening at least as well at a shift two or more
+    frames from ``lag`` (R² of the same fit): e.g. a short word whose one mouth opening any of
+    several viseme channels can be slid onto - the picture's timing cannot be read there."""
+    m = np.asarray(mouth, float)
+    x = np.asarray(track_values, float)
+    n = min(len(m), len(x))
+    m, x = m[:n], x[:n]
+    ok = np.isfinite(m)
+    if math.isnan(lag) or x.ndim != 2 or ok.sum() < 20:
+        return False
+    x = x - x.mean(axis=0)
+    u, sv, _ = np.linalg.svd(x, full_matrices=False)
+    keep = int(min(3, (sv > 1e-6 * max(sv.max(), 1e-12)).sum()))
+    design = np.column_stack([u[:, :keep] * sv[:keep], np.ones(n)])
+
+    def r2(shift: int) -> float:
+        d = np.roll(design, shift, axis=0)
+        use = ok.copy()
+        use[: max(shift, 0)] = use[n + min(shift, 0) :] = False
+        coef, *_ = np.linalg.lstsq(d[use], m[use], rcond=None)
+        return float(1 - np.var(m[use] - d[use] @ coef) / max(np.var(m[use]), 1e-18))
+
+    at = round(lag)
+    chosen = r2(at)
+    return all(r2(k) < chosen for k in range(-max_lag, max_lag + 1) if abs(k - at) >= 2)
+
+
 #: the tracked mouth must follow the animation track this closely (R² of the fit) for its lag
 #: to be trusted; below it the offset is a warning
 MIN_FIT_R2 = 0.5
@@ -314,6 +347,7 @@ SOUND_LEADS_MS, SOUND_LAGS_MS = 45.0, 125.0
 def av_sync_rows(
     tr: ClipTracking, sound: np.ndarray, *, track_values: np.ndarray, intended_sound: np.ndarray,
     fps: float, clip: str, condition: str, intended_offset_ms: float = 0.0,
+    sound_lag_frames: float | None = None,
 ) -> list[CheckRow]:  # fmt: skip
     """Audio-visual sync of one clip, measured on what it delivers:
 
@@ -328,6 +362,10 @@ def av_sync_rows(
       cross-correlation (positive: the mouth follows), a warning outside ITU-R BT.1359's
       detectability window (sound at most 45 ms before, 125 ms after the picture); with an
       intended offset, the lag beyond the one intended.
+
+    A voice in noise (``sound_lag_frames`` given: the mix found in the decoded sound, see
+    :func:`mix_lag`) is timed by that lag instead of the sound's level, which the noise
+    blurs; the mouth-against-level row is then left out.
     """
     kw = {"clip": clip, "condition": condition, "check": "av_sync"}
     frame_ms = 1000.0 / fps
@@ -336,10 +374,14 @@ def av_sync_rows(
     lag, corr = sync_lag(sound, tr.aperture, max_lag=reach)
     lag = lag + shift if not math.isnan(lag) else lag
     picture, fit = picture_lag(track_values, tr.aperture)
-    audio, audio_corr = sync_lag(intended_sound, sound, max_lag=reach)
-    audio = audio - shift if not math.isnan(audio) else audio
+    if sound_lag_frames is None:
+        audio, audio_corr = sync_lag(intended_sound, sound, max_lag=reach)
+        audio = audio - shift if not math.isnan(audio) else audio
+    else:  # the mix's own place (the noise is part of what was put there)
+        audio, audio_corr = sound_lag_frames, 1.0
     offset = picture - audio if not (math.isnan(picture) or math.isnan(audio)) else None
-    loose = offset is not None and fit < MIN_FIT_R2
+    unique = offset is not None and lag_is_identifiable(track_values, tr.aperture, lag=picture)
+    loose = offset is not None and (fit < MIN_FIT_R2 or not unique)
     rows = [
         at_most(MAX_LAG_FRAMES, abs(offset) if offset is not None else None,
                 measure="av_offset_frames",
@@ -348,11 +390,16 @@ def av_sync_rows(
                       + (f"shifted {intended_offset_ms:+g} ms as intended " if shift else "")
                       + f"(correlation {audio_corr:.2f})"
                       + ("; the tracked mouth follows the track too loosely to time it"
-                         if loose else "")) if offset is not None
+                         if fit < MIN_FIT_R2 else "")
+                      + ("; the track fits the tracked mouth as well at another lag two or "
+                         "more frames away: the picture's timing cannot be read on this clip"
+                         if not unique else "")) if offset is not None
                 else "too few frames with a tracked mouth",
                 severity="warning" if loose or offset is None else "error", **kw),
         info(offset, measure="av_offset_signed_frames", note="positive: the picture is late", **kw),
     ]  # fmt: skip
+    if sound_lag_frames is not None:
+        return rows
     lag_ms = lag * frame_ms if not math.isnan(lag) else math.nan
     inside = not math.isnan(lag_ms) and -SOUND_LAGS_MS <= lag_ms <= SOUND_LEADS_MS
     rows.append(CheckRow(
@@ -364,6 +411,67 @@ def av_sync_rows(
         severity="warning",
     ))  # fmt: skip
     return rows
+
+
+#: a clip's measured SNR and speech level may differ from those asked by this much (dB)
+NOISE_TOLERANCE_DB = 1.0
+
+
+def mix_lag(sound: np.ndarray, intended: np.ndarray, *, sample_rate: int) -> int:
+    """Samples by which ``intended`` (a clip's sound as made) follows in the decoded ``sound``
+    (negative: it comes early), the peak of their cross-correlation within ±100 ms."""
+    n = min(len(sound), len(intended))
+    d, m = np.asarray(sound[:n], np.float64), np.asarray(intended[:n], np.float64)
+    if n < 2:
+        return 0
+    reach = min(round(0.1 * sample_rate), n - 1)
+    corr = np.fft.irfft(np.fft.rfft(d, 2 * n) * np.conj(np.fft.rfft(m, 2 * n)))
+    lags = np.r_[np.arange(0, reach + 1), np.arange(-reach, 0)]  # circular: negative at the end
+    return int(lags[np.argmax(corr[lags % (2 * n)])])
+
+
+def noise_rows(
+    sound: np.ndarray, intended: np.ndarray, *, quiet: np.ndarray, sample_rate: int,
+    snr_db: float, noise_dbfs: float, fps: float, clip: str, condition: str,
+) -> list[CheckRow]:  # fmt: skip
+    """A speech-in-noise clip's sound, measured (``check`` noise). ``intended`` is the mix
+    as made (:func:`facelab.stimuli.render.sound.clip_sound`), ``quiet`` marks its samples
+    where the voice is silent and the noise steady (between its fades).
+
+    * ``speech_lag_ms``: the intended mix found in the decoded sound by cross-correlation, at
+      most one frame from where it was put;
+    * ``mix_error_db``: what the decoded sound holds besides the intended mix, relative to it
+      (at most -20 dB: the file carries this mix, at its level - not another SNR's);
+    * ``noise_level_error``: the noise's RMS where the voice is silent, measured blind on the
+      decoded sound, within :data:`NOISE_TOLERANCE_DB` of the level asked (the speech level
+      minus the SNR; the speech level itself cannot be read blind under noise: its share
+      of a mix at -18 dB SNR moves the least-squares estimate by several dB).
+    """
+    from facelab.stimuli.speech.noise import rms_db
+
+    kw = {"clip": clip, "condition": condition, "check": "noise"}
+    n = min(len(sound), len(intended), len(quiet))
+    d, m = np.asarray(sound[:n], np.float64), np.asarray(intended[:n], np.float64)
+    if n == 0 or not np.any(m):
+        return [at_most(-20.0, None, measure="mix_error_db", note="no sound to measure", **kw)]
+    lag = mix_lag(d, m, sample_rate=sample_rate)
+    m = np.roll(m, lag)
+    error = rms_db(d - m) - rms_db(m)
+    steady = np.asarray(quiet[:n], bool)
+    noise = rms_db(d[steady]) if steady.sum() >= 0.05 * sample_rate else None
+    return [
+        at_most(1000.0 / fps, abs(1000.0 * lag / sample_rate), measure="speech_lag_ms",
+                note="the mix's place in the clip against where it was put", unit="ms", **kw),
+        at_most(-20.0, error, measure="mix_error_db",
+                note=f"the decoded sound against the mix made for {snr_db:+g} dB SNR",
+                unit="dB", **kw),
+        at_most(NOISE_TOLERANCE_DB, abs(noise - noise_dbfs) if noise is not None else None,
+                measure="noise_level_error",
+                note=(f"noise at {noise:.2f} dBFS where the voice is silent, asked "
+                      f"{noise_dbfs:.2f}" if noise is not None
+                      else "too little of the clip without the voice to measure the noise"),
+                unit="dB", **kw),
+    ]  # fmt: skip
 
 
 def face_difference(a: ClipTracking, b: ClipTracking, *, blocks: int = 8) -> float:

@@ -40,18 +40,22 @@ from facelab.stimuli.checks.clip_checks import (
     envelope,
     face_visible_rows,
     level_rows,
+    mix_lag,
     modality_rows,
     mouth_at_peaks,
+    noise_rows,
     not_measured,
     too_small,
 )
 from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
 from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, info
 from facelab.stimuli.render.build import vowel_peak_times
-from facelab.stimuli.render.clip import padded_audio
+from facelab.stimuli.render.clip import padded_audio, shifted_audio
+from facelab.stimuli.render.clipspec import ClipJob
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.scene import load_avatar
-from facelab.stimuli.speech.audio import Speech
+from facelab.stimuli.render.sound import clip_sound
+from facelab.stimuli.speech.audio import Speech, resample
 from facelab.stimuli.speech.track import VisemeTrack
 
 __all__ = [
@@ -280,6 +284,8 @@ def check_clips(
         by_stimulus.setdefault((m["stimulus_set"], m["stimulus"]), []).append(m)
     modality = {c.id: c.modality for c in protocol.conditions}
     offsets = {c.id: c.audio_offset_ms for c in protocol.conditions}
+    spectra: dict[str, np.ndarray] = {}  # the noise's spectrum per stimulus set
+    heard: dict[str, float] = {}  # clip in noise -> frames its mix follows where it was put
     twins = protocol.offset_twins()
     face = protocol.rendering.audio_only_face
     for m in manifest:
@@ -290,9 +296,34 @@ def check_clips(
         if shown == "audio_only" and face == "none":
             continue  # no face to see, track or synchronise
         rows += face_visible_rows(tr, clip=m["clip_id"], condition=m["condition"])
+        stim = stimuli.get((m["stimulus_set"], m["stimulus"]))
+        cond = protocol.condition(m["condition"])
+        if cond.noise is not None and stim is not None:  # the mix, measured
+            key_stim = (m["stimulus_set"], m["stimulus"])
+            padded = padded_audio(speech_of(key_stim), pad_s=protocol.rendering.pad_s)
+            mix, _ = clip_sound(protocol, ClipJob(m["clip_id"], m["stimulus_set"], stim,
+                                                  m["condition"]),
+                                padded, base_dir=base_dir, spectra=spectra,
+                                speech_of=lambda sid, st: speech_of((sid, st.id)))  # fmt: skip
+            voice = shifted_audio(padded, offset_ms=cond.audio_offset_ms).samples
+            ramp = round(cond.noise.ramp_s * padded.sample_rate)
+            quiet = voice == 0
+            quiet[:ramp], quiet[len(quiet) - ramp:] = False, False
+
+            def at_rate(x: np.ndarray, rate: int = padded.sample_rate) -> np.ndarray:
+                return resample(x, rate_in=rate, rate_out=AUDIO_RATE)
+
+            heard[m["clip_id"]] = (mix_lag(sounds[m["clip_id"]], at_rate(mix.samples),
+                                           sample_rate=AUDIO_RATE)
+                                   / AUDIO_RATE * float(m["fps"]))  # fmt: skip
+            rows += noise_rows(sounds[m["clip_id"]], at_rate(mix.samples),
+                               quiet=at_rate(quiet.astype(np.float32)) > 0.999,
+                               sample_rate=AUDIO_RATE, snr_db=cond.noise.snr_db,
+                               noise_dbfs=cond.noise.speech_level_dbfs - cond.noise.snr_db,
+                               fps=float(m["fps"]), clip=m["clip_id"],
+                               condition=m["condition"])  # fmt: skip
         if shown != "audiovisual":
             continue  # no sound to follow (muted), or no motion to follow it (a still face)
-        stim = stimuli.get((m["stimulus_set"], m["stimulus"]))
         small = too_small(tr, clip_height=int(m["height"]))
         if stim is not None and stim.track_source != "silence" and small:
             rows.append(not_measured(clip=m["clip_id"], condition=m["condition"],
@@ -308,8 +339,11 @@ def check_clips(
             values = read_track(clips_dir / m["track_file"]).values
             rows += av_sync_rows(tr, sound, track_values=values, intended_sound=want, fps=fps,
                                  clip=m["clip_id"], condition=m["condition"],
-                                 intended_offset_ms=offsets[m["condition"]])  # fmt: skip
-    levelled = {c.id: c.level for c in protocol.conditions if c.level is not None}
+                                 intended_offset_ms=offsets[m["condition"]],
+                                 sound_lag_frames=heard.get(m["clip_id"]))  # fmt: skip
+    twin = {i for g in twins for i in g}  # one picture: their faces are checked equal instead
+    levelled = {c.id: c.level for c in protocol.conditions
+                if c.level is not None and c.id not in twin}  # fmt: skip
     for (set_id, stim_id), all_clips in by_stimulus.items():
         # the faces of conditions shown alike are compared (a muted clip may look like its
         # audiovisual twin; audio_only faces do not move, by design)
@@ -317,9 +351,15 @@ def check_clips(
             plain = {m["condition"]: (m["clip_id"], tracking[m["clip_id"]], m["sha256"])
                      for m in all_clips if m["condition"] not in levelled
                      and modality[m["condition"]] == shown}  # fmt: skip
-            rows += difference_rows(plain, equal_groups=protocol.checks.equal_conditions,
-                                    shared_picture=twins,
+            # one picture's twins are checked equal among themselves; the others see one of
+            # them (the first) - not every twin against every other condition
+            alike = [[c for c in g if c in plain] for g in twins]
+            others = {c for g in alike for c in g[1:]}
+            rows += difference_rows({c: v for c, v in plain.items() if c not in others},
+                                    equal_groups=protocol.checks.equal_conditions,
                                     explain=_explanations(clips_dir, all_clips))  # fmt: skip
+            for group in alike:
+                rows += difference_rows({c: plain[c] for c in group}, shared_picture=[group])
         clips = [m for m in all_clips if modality[m["condition"]] != "audio_only"]
         graded: dict[str, list] = {}
         for m in clips:
@@ -366,7 +406,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 4
+CHECKS_VERSION = 6
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 

@@ -46,7 +46,6 @@ from facelab.stimuli.render.clip import (
     padded_audio,
     remux,
     sha256_file,
-    shifted_audio,
     weights_at,
 )
 from facelab.stimuli.render.clipspec import (
@@ -59,6 +58,7 @@ from facelab.stimuli.render.clipspec import (
 from facelab.stimuli.render.prepare import speech_for, track_source_text, tracks_for
 from facelab.stimuli.render.renderer import RenderSettings
 from facelab.stimuli.render.scene import load_avatar, settings_for
+from facelab.stimuli.render.sound import clip_sound
 from facelab.stimuli.render.task import (
     ClipFrames,
     RenderedClip,
@@ -200,18 +200,21 @@ def build_clips(
     remuxed: list[tuple[dict, dict, ClipBehaviour | None, bytes, Speech, str, int]] = []
     reused = 0
 
+    spectra: dict[str, np.ndarray] = {}  # stimulus set -> its speech's long-term spectrum
+
+    def speech_of(set_id: str, stim: Stimulus) -> Speech:
+        key_stim = f"{set_id}/{stim.id}"
+        if key_stim not in cache:
+            speech = speech_for(stim, base_dir=base_dir,
+                                sample_rate=protocol.rendering.audio_sample_rate)  # fmt: skip
+            cache[key_stim] = (speech, tracks_for(stim, speech))
+        return cache[key_stim][0]
+
     def tasks() -> Iterator[GridTask]:
         nonlocal reused
         for job in plan(protocol):
-            key_stim = f"{job.stimulus_set}/{job.stimulus.id}"
-            if key_stim not in cache:
-                speech = speech_for(
-                    job.stimulus,
-                    base_dir=base_dir,
-                    sample_rate=protocol.rendering.audio_sample_rate,
-                )
-                cache[key_stim] = (speech, tracks_for(job.stimulus, speech))
-            speech, tracks = cache[key_stim]
+            speech_of(job.stimulus_set, job.stimulus)
+            speech, tracks = cache[f"{job.stimulus_set}/{job.stimulus.id}"]
             bs = _blendshapes(protocol, job, speech, tracks, base_dir, avatar)
             cond = protocol.condition(job.condition)
             audio = padded_audio(speech, pad_s=protocol.rendering.pad_s)
@@ -250,11 +253,13 @@ def build_clips(
                     default=str,
                 ).encode()
             ).hexdigest()
-            video_key = key  # what the picture is drawn from: clips alike but for an offset
+            video_key = key  # what the picture is drawn from: clips alike but for their sound
             offset_ms = cond.audio_offset_ms
-            if offset_ms:  # the same picture, the voice moved
-                moved = f"{video_key} audio_offset_ms={offset_ms!r}"
-                key = hashlib.sha256(moved.encode()).hexdigest()
+            shown_audio, mix = clip_sound(protocol, job, audio, base_dir=base_dir,
+                                          spectra=spectra, speech_of=speech_of)  # fmt: skip
+            if offset_ms or mix is not None:  # the same picture, its own sound
+                heard = f"{video_key} sound={audio_sha256(shown_audio)}"
+                key = hashlib.sha256(heard.encode()).hexdigest()
             spec = clip_spec_hash(protocol, job, base_dir=base_dir)
             mp4 = out / f"{job.clip_id}.mp4"
             meta = out / f"{job.clip_id}.json"
@@ -333,13 +338,10 @@ def build_clips(
                     else {}
                 ),
                 **({"audio_offset_ms": offset_ms} if offset_ms else {}),
+                **({"noise": mix.to_json()} if mix is not None else {}),
                 **({"track_notes": bs.notes} if bs.notes else {}),
                 **({"behaviour": behaviour.summary()} if behaviour is not None else {}),
             }
-            shown_audio = shifted_audio(audio, offset_ms=offset_ms)
-            if cond.modality == "visual_only":  # muted: the same length, silence
-                shown_audio = Speech(np.zeros_like(audio.samples), audio.sample_rate,
-                                     source="muted")  # fmt: skip
             if video_source != job.clip_id:  # its picture is another clip's: re-muxed later
                 about["video_from"] = video_source
                 remuxed.append((row, about, behaviour, track, shown_audio, video_source,

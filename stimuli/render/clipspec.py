@@ -111,6 +111,15 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
     }
     if cond.audio_offset_ms:  # (absent when 0: earlier hashes still hold)
         spec["audio_offset_ms"] = cond.audio_offset_ms
+    if cond.noise is not None:  # the mix, its noise file's bytes, the set's spectrum's texts
+        spec["noise"] = cond.noise.model_dump()
+        if cond.noise.source != "speech_shaped":
+            files["noise"] = _file_sha256(base_dir / cond.noise.source)
+        else:
+            spec["noise_spectrum_of"] = [
+                [st.text, st.audio, st.tts.model_dump()]
+                for st in protocol.stimulus_set(job.stimulus_set).stimuli
+            ]
     if cond.modality != "audiovisual":  # (absent for audiovisual: earlier hashes still hold)
         spec["modality"] = cond.modality
         if cond.modality == "audio_only":

@@ -1,0 +1,243 @@
+"""Speech in noise: each participant's speech reception threshold (SRT) per condition series,
+the audio-visual benefit against audio alone, and the comparison of the methods.
+
+The answers of an identify task with answers (the word said) on conditions with ``noise``
+are scored right or wrong and fitted per participant and series (:attr:`Condition.series_id`,
+e.g. one animation method at every SNR) by maximum likelihood with
+:func:`facelab.intelligibility_function.p_correct`: the guess rate 1/k of the task's k labels,
+the SRT (50 % right), the slope at the SRT (per dB, in [0.005, 1]) and a lapse rate in
+[0, 0.1]. The SRT's interval is a profile-likelihood interval
+(:mod:`facelab.analysis.profile_likelihood`; the slope and lapse re-fitted along it); ``note``
+names an SRT the answers do not determine (on its bound, or its interval open), and such
+rows are left out of the comparisons. The
+SNRs may come from a staircase (one per block) or from constant stimuli.
+
+Against the series whose conditions are ``audio_only`` (the voice with a still face or none):
+
+* ``benefit_db`` - the audio-only SRT minus the series' SRT (positive: the face lowers the
+  threshold), with a Wald interval from the two profile intervals' half-widths;
+* ``visual_enhancement`` - Sumby & Pollack's (1954) ``(P_AV - P_A) / (1 - P_A)`` at the
+  participant's audio-only SRT, where ``P_A`` is 1/2 by definition and ``P_AV`` the series'
+  fitted P there.
+
+:func:`srt_tests` summarises the series and compares them within participants
+(:func:`facelab.analysis.stats.series_comparison`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+import facelab.analysis.stats as fstats
+from facelab.analysis.profile_likelihood import (
+    best_fit,
+    chi2_cutoff,
+    on_bound,
+    profile_interval,
+)
+from facelab.errors import AnalysisError
+from facelab.intelligibility_function import p_correct
+from facelab.protocol import IdentifyTask, Protocol
+
+__all__ = [
+    "SRT_COLUMNS",
+    "SrtFit",
+    "audio_only_series",
+    "fit_srt",
+    "is_noise_task",
+    "noise_trials",
+    "srt_curves",
+    "srt_table",
+    "srt_tests",
+]
+
+#: srt.csv (the contract of issue 52): one row per participant and condition series
+SRT_COLUMNS = (
+    "participant", "condition", "n", "srt_db", "srt_ci_low", "srt_ci_high", "slope_per_db",
+    "lapse", "benefit_db", "benefit_ci_low", "benefit_ci_high", "visual_enhancement",
+    "deviance", "deviance_df", "note",
+)  # fmt: skip
+_EPS = 1e-9
+LAPSE_BOUND = (0.0, 0.1)
+#: proportion correct per dB at the SRT; an estimate on a bound says only that the function is
+#: steeper (or shallower) than the SNRs tested can show - the SRT's interval still holds
+SLOPE_BOUND = (0.005, 1.0)
+
+
+@dataclass(frozen=True)
+class SrtFit:
+    """One participant's threshold in one series."""
+
+    n: int
+    srt_db: float
+    srt_ci_low: float
+    srt_ci_high: float
+    slope_per_db: float
+    lapse: float
+    deviance: float
+    deviance_df: int
+    note: str
+
+
+def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask) -> pd.DataFrame:
+    """``participant, condition (the series), snr_db, correct`` of an identify task's answer
+    rows on conditions with noise and a portrayed label."""
+    conds = {c.id: c for c in protocol.conditions if c.noise is not None}
+    known = rows[rows["condition"].isin(list(conds))]
+    target = [task.target(condition=c, stimulus=s)
+              for c, s in zip(known["condition"], known["stimulus"], strict=True)]  # fmt: skip
+    frame = pd.DataFrame({
+        "participant": known["participant"].astype(str).to_numpy(),
+        "condition": [conds[c].series_id for c in known["condition"]],
+        "snr_db": [conds[c].noise.snr_db for c in known["condition"]],  # type: ignore[union-attr]
+        "target": target,
+        "response": known["response"].astype(str).to_numpy(),
+    })  # fmt: skip
+    frame = frame.dropna(subset=["target"])
+    frame["correct"] = (frame["response"] == frame["target"]).astype(int)
+    return frame.drop(columns=["target", "response"]).reset_index(drop=True)
+
+
+def is_noise_task(protocol: Protocol, task: IdentifyTask) -> bool:
+    """An identify task scored on words heard in noise: it has answers, judges no timing, and
+    the protocol mixes noise into some condition's voice (analysed by thresholds)."""
+    return bool(task.answers) and task.timing is None and any(
+        c.noise is not None for c in protocol.conditions
+    )
+
+
+def audio_only_series(protocol: Protocol) -> str | None:
+    """The one series of audio-only conditions with noise (the benefit's reference), if any."""
+    names = {c.series_id for c in protocol.conditions
+             if c.modality == "audio_only" and c.noise is not None}  # fmt: skip
+    return next(iter(names)) if len(names) == 1 else None
+
+
+def fit_srt(
+    trials: pd.DataFrame, *, guess: float, level: float = 0.95, intervals: bool = True
+) -> SrtFit:
+    """Fit one participant's SRT to ``trials`` (``snr_db, correct``); see the module."""
+    counts = trials.groupby("snr_db", sort=True)["correct"].agg(n="size", k="sum").reset_index()
+    x = counts["snr_db"].to_numpy(dtype=float)
+    n = counts["n"].to_numpy(dtype=float)
+    k = counts["k"].to_numpy(dtype=float)
+    if len(x) < 2:
+        raise AnalysisError(f"an SRT needs answers at two or more SNRs, got {len(x)}")
+    span = float(x[-1] - x[0])
+    bounds = [(float(x[0]) - span, float(x[-1]) + span),
+              (math.log(SLOPE_BOUND[0]), math.log(SLOPE_BOUND[1])), LAPSE_BOUND]  # fmt: skip
+
+    def loglik(theta: np.ndarray) -> float:
+        p = p_correct(x, srt=theta[0], slope=math.exp(theta[1]), guess=guess, lapse=theta[2])
+        p = np.clip(p, _EPS, 1 - _EPS)
+        return float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+
+    share = k / n
+    above = x[share >= 0.5]
+    start = float(above.min()) if len(above) else float(x[-1])
+    starts = [np.array([c, math.log(s), 0.02]) for c in (start, float(np.median(x)))
+              for s in (0.05, 0.15)]  # fmt: skip
+    theta, ll = best_fit(loglik, bounds=bounds, starts=starts)
+    lo = hi = math.nan
+    if intervals:
+        lo, hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
+                                  cutoff=chi2_cutoff(level))  # fmt: skip
+    notes = []
+    if on_bound(theta[0], bounds[0]):
+        notes.append("the SRT ends on its search bound (outside the SNRs tested)")
+    if math.isinf(lo) or math.isinf(hi):
+        notes.append("the SRT interval reaches beyond the SNRs searched")
+    p_hat = np.clip(p_correct(x, srt=theta[0], slope=math.exp(theta[1]), guess=guess,
+                              lapse=theta[2]), _EPS, 1 - _EPS)  # fmt: skip
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sat = np.where(k > 0, k * np.log(k / n), 0.0) + np.where(
+            n > k, (n - k) * np.log1p(-k / n), 0.0
+        )
+    model = k * np.log(p_hat) + (n - k) * np.log1p(-p_hat)
+    return SrtFit(
+        n=int(n.sum()), srt_db=float(theta[0]), srt_ci_low=lo, srt_ci_high=hi,
+        slope_per_db=math.exp(theta[1]), lapse=float(theta[2]),
+        deviance=float(2.0 * np.sum(sat - model)), deviance_df=max(0, len(x) - 3),
+        note="; ".join(notes),
+    )  # fmt: skip
+
+
+def srt_table(
+    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask, *, level: float = 0.95,
+    intervals: bool = True,
+) -> pd.DataFrame:  # fmt: skip
+    """``srt.csv``: :data:`SRT_COLUMNS`, one row per participant and series (protocol order);
+    the benefit columns against :func:`audio_only_series` (NaN without one, and on its own
+    rows)."""
+    trials = noise_trials(rows, protocol, task)
+    guess = 1.0 / len(task.labels)
+    order = list(dict.fromkeys(c.series_id for c in protocol.conditions if c.noise is not None))
+    out = []
+    fits: dict[tuple[str, str], SrtFit] = {}
+    for (pid, series), part in trials.groupby(["participant", "condition"], sort=True):
+        if part["snr_db"].nunique() < 2:
+            continue
+        fits[(str(pid), str(series))] = fit_srt(part, guess=guess, level=level,
+                                                intervals=intervals)  # fmt: skip
+    reference = audio_only_series(protocol)
+    z = float(stats.norm.ppf(0.5 + level / 2))
+    for (pid, series), fit in fits.items():
+        row = {"participant": pid, "condition": series, **asdict(fit),
+               "benefit_db": math.nan, "benefit_ci_low": math.nan, "benefit_ci_high": math.nan,
+               "visual_enhancement": math.nan}  # fmt: skip
+        ref = fits.get((pid, reference)) if reference is not None else None
+        if ref is not None and ref.note:  # the audio-only SRT is not determined: no benefit
+            ref = None
+        if ref is not None and series != reference:
+            benefit = ref.srt_db - fit.srt_db
+            se = math.sqrt(sum(((f.srt_ci_high - f.srt_ci_low) / (2 * z)) ** 2
+                               for f in (fit, ref)))  # fmt: skip
+            p_av = float(p_correct(ref.srt_db, srt=fit.srt_db, slope=fit.slope_per_db,
+                                   guess=guess, lapse=fit.lapse))  # fmt: skip
+            row |= {"benefit_db": benefit, "benefit_ci_low": benefit - z * se,
+                    "benefit_ci_high": benefit + z * se,
+                    "visual_enhancement": (p_av - 0.5) / 0.5}  # fmt: skip
+        out.append(row)
+    frame = pd.DataFrame(out, columns=list(SRT_COLUMNS))
+    rank = {s: i for i, s in enumerate(order)}
+    frame = frame.sort_values(["participant", "condition"], key=lambda c: c.map(rank)
+                              if c.name == "condition" else c, kind="stable")  # fmt: skip
+    return frame.reset_index(drop=True)
+
+
+def srt_tests(table: pd.DataFrame, *, reference: str | None) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(summary, tests): the series' mean SRT (and benefit) with 95 % t intervals, and the
+    within-participant comparisons of the SRT over all series and of the benefit over the
+    audio-visual series (participants with a note on a series left out)."""
+    summary, tests = fstats.series_comparison(table, measures=("srt_db",))
+    visual = table[table["condition"] != reference] if reference is not None else table.iloc[:0]
+    if not visual.empty:
+        more, more_tests = fstats.series_comparison(
+            visual, measures=("benefit_db", "visual_enhancement"))
+        summary = summary.merge(more.drop(columns=["participants", "determined"]),
+                                on="condition", how="left")  # fmt: skip
+        tests = pd.concat([tests, more_tests], ignore_index=True)
+    return summary, tests
+
+
+def srt_curves(
+    trials: pd.DataFrame, *, guess: float, snr: np.ndarray, order: list[str]
+) -> pd.DataFrame:
+    """``condition, snr_db, p``: each series' function fitted to everyone's answers pooled
+    (for figures; the participants' own fits are noisier than their sum), series in
+    ``order``."""
+    rows = []
+    for series in order:
+        part = trials[trials["condition"] == series]
+        if part["snr_db"].nunique() < 2:
+            continue
+        fit = fit_srt(part, guess=guess, intervals=False)
+        p = p_correct(snr, srt=fit.srt_db, slope=fit.slope_per_db, guess=guess, lapse=fit.lapse)
+        rows += [{"condition": series, "snr_db": float(s), "p": float(v)}
+                 for s, v in zip(snr, p, strict=True)]  # fmt: skip
+    return pd.DataFrame(rows, columns=["condition", "snr_db", "p"])
