@@ -260,3 +260,50 @@ def test_noisy_clips_share_one_picture_and_carry_their_mix(tmp_path, capsys) -> 
     checks = [r for r in csv.DictReader((out / "stimulus_checks.csv").open(encoding="utf-8"))
               if r["check"] == "noise" and "__inu__" in r["clip"]]  # fmt: skip
     assert len(checks) == 3 * 6 and all(r["passed"] == "true" for r in checks)
+
+
+@pytest.mark.slow
+def test_a_words_in_noise_session_online_in_chromium_is_exported_and_thresholded(
+    tmp_path,
+) -> None:
+    """The words-in-noise task served in headless Chromium (the voice alone and one method,
+    three SNRs, two words): every trial answered with a word, exported as the lab's files and
+    analysed into srt.csv."""
+    import json
+
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from facelab.experiment.cli import main
+    from facelab.experiment.online.browser import SimulatedBrowser
+    from facelab.experiment.online.db import Response
+    from facelab.experiment.online.serve import BackgroundServer, prepare_server
+    from tests.task_protocols import short_task_protocol
+
+    edits = {r"    task: word\n": "    task: word\n    conditions: [audio_m12, audio_m6, audio_0, "
+             "standard_m12, standard_m6, standard_0]\n",
+             r"      - \{id: (saru|ushi|kuma|shika), text: \S+。\}\n": "",
+             r"answers: \{.*\}": "answers: {inu: inu, neko: neko}"}  # fmt: skip
+    path = short_task_protocol("kato2021_srt", tmp_path, edits)
+    protocol = load_protocol(path)
+    server, _ = prepare_server(
+        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
+    assert (shots / "identify.png").exists()
+    with Session(server.engine) as db:
+        rows = [r.row for r in db.scalars(select(Response))]
+    assert len(rows) == 12 == len(server.study.planned("P0001"))
+    assert all(r["correct"] in (0, 1) for r in rows)
+    out = tmp_path / "results"
+    assert main(["export", "--db", f"sqlite:///{tmp_path / 'db.sqlite'}", "--results",
+                 str(out)]) == 0  # fmt: skip
+    assert json.loads(next(out.rglob("*_session.json")).read_text())["mode"] == "online"
+    report = tmp_path / "report"
+    assert main(["analyze", str(path), str(out), "--force", "--out", str(report)]) == 0
+    table = pd.read_csv(report / "srt.csv")
+    assert list(table["condition"]) == ["audio", "standard"] and (table["n"] == 6).all()
+    assert (report / "fig_srt_word.png").exists()

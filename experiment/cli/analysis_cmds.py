@@ -584,6 +584,44 @@ def register(add: AddCommand) -> None:
     force_option(p)
     p.add_argument("--json", action="store_true", help="print JSON")
 
+    p = add("score-typed", "score typed answers against what was said, as pronounced "
+            "(morae and keywords)", _cmd_score_typed)  # fmt: skip
+    p.add_argument("answers", metavar="CSV", help="columns target, response [, keywords]")
+    p.add_argument("--strict", action="store_true",
+                   help="a keyword counts only when every mora is right (default: one wrong "
+                   "mora allowed in keywords of three or more)")  # fmt: skip
+    p.add_argument("--out", metavar="CSV", help="write the scored table here (default: stdout)")
+    force_option(p)
+
+
+def _cmd_score_typed(args: argparse.Namespace) -> int:
+    """Score typed answers against what was said (as pronounced: kana and kanji variants,
+    long vowels; morae and keywords)."""
+    import pandas as pd
+
+    from facelab.analysis.typed_scoring import score_table
+    from facelab.stimuli.speech.reading import morae, pronunciation
+
+    path = Path(args.answers)
+    if not path.is_file():
+        raise FacelabError(f"{path}: file not found (a CSV with columns target, response)")
+    try:
+        pairs = pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8")
+    except (UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError):
+        raise FacelabError(f"{path}: not a UTF-8 CSV file with a header line") from None
+    missing = [c for c in ("target", "response") if c not in pairs.columns]
+    if missing:
+        raise FacelabError(f"{path}: missing column(s) {', '.join(missing)}; expected target, "
+                           "response and optionally keywords (space-separated)")  # fmt: skip
+    table = score_table(pairs, reader=pronunciation, split=morae, tolerant=not args.strict)
+    if args.out:
+        out = output_file(args.out, option="--out", force=args.force)
+        table.to_csv(out, index=False)
+        print(f"wrote {len(table)} scored answers to {out}", file=sys.stderr)
+    else:
+        table.to_csv(sys.stdout, index=False, lineterminator="\n")
+    return 0
+
 
 def _milliseconds(text: str) -> float:
     """A finite, non-negative number of milliseconds (for --max-av-offset-ms)."""

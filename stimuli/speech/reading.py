@@ -1,0 +1,57 @@
+"""How Japanese text is pronounced, for scoring typed answers: the OpenJTalk front end's
+reading in katakana (kanji, hiragana and katakana spellings of a word read alike; long vowels
+as ``ー``: おかあさん, おかーさん and お母さん are all オカーサン), split into morae."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import re
+import unicodedata
+
+from facelab.errors import SpeechError
+
+__all__ = ["morae", "pronunciation"]
+
+_SMALL = set("ャュョァィゥェォヮ")
+_DROP = re.compile(r"[\s、。，．,.!?！？「」『』（）()・…〜~\-]+")
+
+
+@functools.cache
+def _frontend():
+    """pyopenjtalk's g2p, imported once with its import-time notices kept off the console."""
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        try:
+            import pyopenjtalk
+        except ImportError:
+            raise SpeechError("pyopenjtalk-plus is not installed (pip install "
+                              "'facelab[stimuli]')") from None  # fmt: skip
+    return pyopenjtalk.g2p
+
+
+def _katakana(text: str) -> str:
+    return "".join(chr(ord(c) + 0x60) if "ぁ" <= c <= "ゖ" else c for c in text)
+
+
+@functools.lru_cache(maxsize=4096)
+def pronunciation(text: str) -> str:
+    """The katakana pronunciation of ``text`` (NFKC-normalised; punctuation and spaces
+    dropped; kana read as written, kanji by the dictionary)."""
+    plain = _DROP.sub("", unicodedata.normalize("NFKC", text))
+    if not plain:
+        return ""
+    kana = _frontend()(plain, kana=True)
+    return _DROP.sub("", _katakana(str(kana)))
+
+
+def morae(kana: str) -> list[str]:
+    """Katakana split into morae: a small ャュョァィゥェォ joins the mora before it; ッ, ン
+    and ー are morae of their own."""
+    out: list[str] = []
+    for c in kana:
+        if c in _SMALL and out:
+            out[-1] += c
+        else:
+            out.append(c)
+    return out

@@ -1,0 +1,61 @@
+"""Typed answers scored as pronounced (issue 52.2): the tricky inputs of
+``tests/reference/typed_answers.csv`` - kana and kanji variants, long vowels, typos, extra and
+missing words - and ``facelab score-typed``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from facelab.analysis.typed_scoring import score_table, score_typed
+from facelab.experiment.cli import main
+from facelab.stimuli.speech.reading import morae, pronunciation
+
+TRICKY = Path(__file__).parent / "reference" / "typed_answers.csv"
+#: (mora score, keyword score, exact) each case must get - worked out by hand
+EXPECTED = {
+    "hiragana for kanji": (1.0, 1.0, 1),
+    "katakana for kanji": (1.0, 1.0, 1),
+    "kanji for hiragana": (1.0, 1.0, 1),
+    "long vowel spelled out": (1.0, 1.0, 1),
+    "long vowel as a bar": (1.0, 1.0, 1),
+    "long vowel missing": (0.8, 0.0, 0),
+    "an extra word": (1.0, 1.0, 0),
+    "one mora wrong": (0.5, 0.0, 0),
+    "a sentence in kana": (1.0, 1.0, 1),
+    "a particle left out": (5 / 6, 1.0, 0),
+    "a typo in a keyword": (5 / 6, 1.0, 0),
+    "other words": (2 / 6, 0.0, 0),
+    "a homophone (鹿 and しか read alike)": (1.0, 1.0, 1),
+    "full-width katakana": (1.0, 1.0, 1),
+    "half-width katakana": (1.0, 1.0, 1),
+}
+
+
+def test_tricky_inputs_are_scored_as_pronounced() -> None:
+    table = score_table(pd.read_csv(TRICKY, dtype=str, keep_default_na=False),
+                        reader=pronunciation, split=morae)  # fmt: skip
+    assert set(table["case"]) == set(EXPECTED)
+    for r in table.itertuples():
+        want = EXPECTED[r.case]
+        assert (r.mora_score, r.keyword_score, r.exact) == pytest.approx(want), r
+
+
+def test_a_keyword_typo_counts_only_when_tolerated() -> None:
+    kw = {"reader": pronunciation, "split": morae, "keywords": ["走る"]}
+    assert score_typed("猫が走る", "ねこがはしろ", tolerant=True, **kw).keyword_score == 1.0
+    assert score_typed("猫が走る", "ねこがはしろ", tolerant=False, **kw).keyword_score == 0.0
+    assert morae("キャット") == ["キャ", "ッ", "ト"]
+
+
+def test_score_typed_command_writes_the_table(tmp_path, capsys) -> None:
+    out = tmp_path / "scored.csv"
+    assert main(["score-typed", str(TRICKY), "--out", str(out)]) == 0
+    scored = pd.read_csv(out)
+    assert len(scored) == len(EXPECTED) and {"mora_score", "keywords"} <= set(scored.columns)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("said,typed\nx,y\n", encoding="utf-8")
+    assert main(["score-typed", str(bad)]) == 2
+    assert "missing column(s) target, response" in capsys.readouterr().err
