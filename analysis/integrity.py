@@ -81,11 +81,11 @@ def _label(values: pd.Series) -> str:
 
 
 def added_kinds() -> dict[str, Any]:
-    """{kind: class} of the installed screen kinds (entry points ``facelab.screens``) that
-    load."""
-    from facelab.plugins import GROUPS, loaded
+    """{kind: class} of the installed screen kinds that load
+    (:func:`facelab.plugins.screen_kinds`)."""
+    from facelab.plugins import screen_kinds
 
-    return {e.name: e.obj for e in loaded(GROUPS["screens"])}
+    return screen_kinds()
 
 
 def added_items(protocol: Protocol) -> dict[str, str]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -185,22 +185,31 @@ def frame_measures(record: Mapping[str, Any]) -> dict[str, float | None]:
     }
 
 
+def _last_showings(
+    records: list[dict[str, Any]], *, fields: Callable[[dict[str, Any]], dict[str, Any]],
+    columns: Sequence[str],
+) -> pd.DataFrame:  # fmt: skip
+    """One row per (participant, session, trial_index) of ``records``: ``fields(record)``
+    and its :func:`frame_measures`, the trial's last showing kept (a replay after a resume
+    is what the answer followed); ``columns`` when there is none."""
+    rows = [{k: r.get(k) for k in _TRIAL} | fields(r) | frame_measures(r)
+            for r in records if r.get("trial_index")]  # fmt: skip
+    if not rows:
+        return pd.DataFrame(columns=list(columns))
+    frame = pd.DataFrame(rows).astype({"trial_index": int})
+    return frame.drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+
+
 def trial_playback(records: list[dict[str, Any]]) -> pd.DataFrame:
     """One row per (participant, session, trial_index) shown: every number its last showing
     recorded (``dropped``, ``av_offset_ms``, ``head_yaw_range_deg``, …) and its
     :func:`frame_measures` - what ``--exclude-trials`` reads."""
-    rows = []
-    for r in records:
-        if not r.get("trial_index"):
-            continue
-        row = {k: r.get(k) for k in _TRIAL}
-        row |= {k: v for k, v in r.items() if k not in row and isinstance(v, int | float)
+
+    def numbers(r: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in r.items() if k not in _TRIAL and isinstance(v, int | float)
                 and not isinstance(v, bool)}  # fmt: skip
-        rows.append(row | frame_measures(r))
-    if not rows:
-        return pd.DataFrame(columns=[*_TRIAL, *FRAME_MEASURES])
-    frame = pd.DataFrame(rows).astype({"trial_index": int})
-    return frame.drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+
+    return _last_showings(records, fields=numbers, columns=[*_TRIAL, *FRAME_MEASURES])
 
 
 _RULE = re.compile(
@@ -248,15 +257,9 @@ def live_playback(records: list[dict[str, Any]]) -> pd.DataFrame:
     trial's last showing (a replay after a resume is what the answer followed), from the
     :func:`playback_records`. Empty when no clip was drawn live (video studies, lab
     sessions)."""
-    rows = [
-        {k: r.get(k) for k in (*_TRIAL, *LIVE_COLUMNS)} | frame_measures(r)
-        for r in records
-        if r.get("display") in ("live3d", "webxr") and r.get("trial_index")
-    ]
-    if not rows:
-        return pd.DataFrame(columns=[*_TRIAL, *LIVE_COLUMNS, *FRAME_MEASURES])
-    frame = pd.DataFrame(rows).astype({"trial_index": int})
-    return frame.drop_duplicates(_TRIAL, keep="last").reset_index(drop=True)
+    live = [r for r in records if r.get("display") in ("live3d", "webxr")]
+    return _last_showings(live, fields=lambda r: {k: r.get(k) for k in LIVE_COLUMNS},
+                          columns=[*_TRIAL, *LIVE_COLUMNS, *FRAME_MEASURES])  # fmt: skip
 
 
 def playback_replays(records: list[dict[str, Any]]) -> pd.DataFrame:

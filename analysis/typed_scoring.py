@@ -6,9 +6,9 @@ variants read alike, long vowels normalised), split into morae. Scores:
 
 * ``morae_correct`` / ``mora_score`` - the target's morae the answer reproduced in order
   (their longest common subsequence) and their share of the target's;
-* ``keywords_correct`` of ``keywords_total`` / ``keyword_score`` - the target's keywords (by default its words as
-  given, e.g. ``猫 走る``) found in the answer's pronunciation; with ``tolerant`` a keyword of
-  three or more morae also counts with one mora wrong (a typo);
+* ``keywords_correct`` of ``keywords_total`` / ``keyword_score`` - the target's keywords (by
+  default its words as given, e.g. ``猫 走る``) found in the answer's pronunciation; with
+  ``tolerant`` a keyword of three or more morae also counts with one mora wrong (a typo);
 * ``exact`` - the whole pronunciation equal (extra words make it 0; the mora score is not
   lowered by them, the usual convention of open-set scoring).
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["GROUPS", "SCREEN_PLACEMENTS", "PluginEntry", "loaded", "plugin_entries"]
+__all__ = ["GROUPS", "SCREEN_PLACEMENTS", "PluginEntry", "loaded", "plugin_entries", "screen_kinds"]
 
 #: facelab's entry-point groups, by what they add
 GROUPS = {"methods": "facelab.methods", "screens": "facelab.screens"}
@@ -115,3 +115,9 @@ def _screen_kind_problem(obj: Any, name: str) -> str | None:
 def loaded(group: str) -> list[PluginEntry]:
     """The entries of ``group`` that loaded."""
     return [e for e in plugin_entries(group) if e.problem is None]
+
+
+def screen_kinds() -> dict[str, Any]:
+    """{kind: class} of the installed screen kinds (entry points ``facelab.screens``) that
+    load (the broken ones are named by ``facelab plugins`` and the protocol checks)."""
+    return {e.name: e.obj for e in loaded(GROUPS["screens"])}

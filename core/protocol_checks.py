@@ -539,13 +539,13 @@ def _added_screens(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Each added screen names an installed screen kind and gives it options it accepts."""
     from pydantic import ValidationError
 
-    from facelab.plugins import GROUPS, plugin_entries
+    from facelab.plugins import GROUPS, plugin_entries, screen_kinds
 
     added = protocol.presentation.added_screens
     if not added:
         return
     entries = {e.name: e for e in plugin_entries(GROUPS["screens"])}
-    kinds = {name: e.obj for name, e in entries.items() if e.problem is None}
+    kinds = screen_kinds()
     for i, spec in enumerate(added):
         where = ("presentation", "added_screens", i)
         cls = kinds.get(spec.kind)

@@ -222,12 +222,13 @@ def build_clips(
             weights = frame_weights(
                 bs, avatar, fps=fps, n_frames=n_frames, pad_s=protocol.rendering.pad_s
             )
-            behaviour = _behaviour(protocol, job, speech, base_dir, avatar, fps, weights)
             modality = _modality(protocol, cond)
+            behaviour = None
             if cond.modality == "audio_only":  # the voice with a still face (or none)
                 weights = np.zeros_like(weights)
-                behaviour = None
                 bs = replace(bs, poses=None)
+            else:
+                behaviour = _behaviour(protocol, job, speech, base_dir, avatar, fps, weights)
             key = hashlib.sha256(
                 json.dumps(
                     {
