@@ -17,7 +17,17 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from scipy import optimize, stats
 
-__all__ = ["Bounds", "LogLik", "best_fit", "chi2_cutoff", "on_bound", "profile_interval"]
+from facelab.errors import AnalysisError
+
+__all__ = [
+    "Bounds",
+    "LogLik",
+    "best_fit",
+    "binomial_deviance",
+    "chi2_cutoff",
+    "on_bound",
+    "profile_interval",
+]
 
 LogLik = Callable[[np.ndarray], float]
 Bounds = Sequence[tuple[float, float]]
@@ -57,7 +67,9 @@ def best_fit(
                                 bounds=[bounds[i] for i in free])  # fmt: skip
         if -res.fun > best_ll:
             best_theta, best_ll = full(res.x), float(-res.fun)
-    assert best_theta is not None
+    if best_theta is None:
+        raise AnalysisError("the model could not be fitted from any start (its likelihood is "
+                            "not finite there)")  # fmt: skip
     return best_theta, best_ll
 
 
@@ -93,3 +105,15 @@ def profile_interval(
 def on_bound(value: float, bound: tuple[float, float], *, tol: float = 1e-6) -> bool:
     """True when an estimate sits on either end of its search bound."""
     return value <= bound[0] + tol or value >= bound[1] - tol
+
+
+def binomial_deviance(k: np.ndarray, n: np.ndarray, p: np.ndarray) -> float:
+    """Deviance of fitted proportions ``p`` against the saturated model (one proportion per
+    level) for ``k`` of ``n`` "yes" answers; ``p`` kept inside (0, 1)."""
+    p = np.clip(p, 1e-9, 1 - 1e-9)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sat = np.where(k > 0, k * np.log(k / n), 0.0) + np.where(
+            n > k, (n - k) * np.log1p(-k / n), 0.0
+        )
+    return float(2.0 * np.sum(sat - (k * np.log(p) + (n - k) * np.log1p(-p))))
+

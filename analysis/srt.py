@@ -36,6 +36,7 @@ from scipy import stats
 import facelab.analysis.stats as fstats
 from facelab.analysis.profile_likelihood import (
     best_fit,
+    binomial_deviance,
     chi2_cutoff,
     on_bound,
     profile_interval,
@@ -104,11 +105,20 @@ def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask) -> 
 
 
 def is_noise_task(protocol: Protocol, task: IdentifyTask) -> bool:
-    """An identify task scored on words heard in noise: it has answers, judges no timing, and
-    the protocol mixes noise into some condition's voice (analysed by thresholds)."""
-    return bool(task.answers) and task.timing is None and any(
-        c.noise is not None for c in protocol.conditions
-    )
+    """An identify task scored on words heard in noise at several SNRs (analysed by its
+    thresholds): it has answers, judges no timing, and a block showing it has a condition
+    series in noise at two or more SNRs. A fixed-SNR design is compared per condition."""
+    if not task.answers or task.timing is not None or len(task.labels) < 3:
+        return False
+    conds = {c.id: c for c in protocol.conditions}
+    snrs: dict[str, set[float]] = {}
+    for block in protocol.blocks:
+        if block.task == task.id:
+            for c in protocol.block_conditions(block):
+                noise = conds[c].noise if c in conds else None
+                if noise is not None:
+                    snrs.setdefault(conds[c].series_id, set()).add(noise.snr_db)
+    return any(len(v) >= 2 for v in snrs.values())
 
 
 def audio_only_series(protocol: Protocol) -> str | None:
@@ -152,17 +162,11 @@ def fit_srt(
         notes.append("the SRT ends on its search bound (outside the SNRs tested)")
     if math.isinf(lo) or math.isinf(hi):
         notes.append("the SRT interval reaches beyond the SNRs searched")
-    p_hat = np.clip(p_correct(x, srt=theta[0], slope=math.exp(theta[1]), guess=guess,
-                              lapse=theta[2]), _EPS, 1 - _EPS)  # fmt: skip
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sat = np.where(k > 0, k * np.log(k / n), 0.0) + np.where(
-            n > k, (n - k) * np.log1p(-k / n), 0.0
-        )
-    model = k * np.log(p_hat) + (n - k) * np.log1p(-p_hat)
+    p_hat = p_correct(x, srt=theta[0], slope=math.exp(theta[1]), guess=guess, lapse=theta[2])
     return SrtFit(
         n=int(n.sum()), srt_db=float(theta[0]), srt_ci_low=lo, srt_ci_high=hi,
         slope_per_db=math.exp(theta[1]), lapse=float(theta[2]),
-        deviance=float(2.0 * np.sum(sat - model)), deviance_df=max(0, len(x) - 3),
+        deviance=binomial_deviance(k, n, p_hat), deviance_df=max(0, len(x) - 3),
         note="; ".join(notes),
     )  # fmt: skip
 

@@ -35,6 +35,7 @@ import pandas as pd
 import facelab.analysis.stats as fstats
 from facelab.analysis.profile_likelihood import (
     best_fit,
+    binomial_deviance,
     chi2_cutoff,
     on_bound,
     profile_interval,
@@ -176,13 +177,7 @@ def fit_window(
         notes.append("the PSS interval reaches beyond the offsets searched")
     if math.isinf(ls_lo) or math.isinf(ls_hi):
         notes.append("the width interval reaches beyond the widths searched")
-    p_hat = np.clip(p_timing(judgment, x, pss=theta[0], width=math.exp(theta[1]) * per,
-                             third=theta[2]), _EPS, 1 - _EPS)  # fmt: skip
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sat = np.where(k > 0, k * np.log(k / n), 0) + np.where(
-            n - k > 0, (n - k) * np.log1p(-k / n), 0
-        )
-    model = k * np.log(p_hat) + (n - k) * np.log1p(-p_hat)
+    p_hat = p_timing(judgment, x, pss=theta[0], width=math.exp(theta[1]) * per, third=theta[2])
     width = math.exp(theta[1]) * per
 
     def w(v: float) -> float:
@@ -194,7 +189,7 @@ def fit_window(
         width_ci_high=w(ls_hi),
         peak=float(theta[2]) if judgment == "simultaneity" else math.nan,
         lapse=float(theta[2]) if judgment == "temporal_order" else math.nan,
-        deviance=float(2.0 * np.sum(sat - model)), deviance_df=len(x) - 3,
+        deviance=binomial_deviance(k, n, p_hat), deviance_df=len(x) - 3,
         note="; ".join(notes),
     )  # fmt: skip
 

@@ -462,6 +462,39 @@ def _audio_offsets(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 yield Issue((*where, "source"), f"noise file not found: {base_dir / source}")
 
 
+@_check("tasks", "conditions", "blocks", "rendering")
+def _noise_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """Words in noise: a threshold at 50 % right needs a guess rate below 1/2 (three or more
+    labels); speech-shaped noise must not clip; the clip's padding must hold noise without
+    the voice beyond the fades (the noise check measures it there)."""
+    conditions = {c.id: c for c in protocol.conditions}
+    for ti, task in enumerate(protocol.tasks):
+        if task.type != "identify" or not task.answers or task.timing is not None:
+            continue
+        noisy = [c for b in protocol.blocks if b.task == task.id
+                 for c in protocol.block_conditions(b)
+                 if c in conditions and conditions[c].noise is not None]  # fmt: skip
+        if noisy and len(task.labels) < 3:
+            yield Issue(("tasks", ti, "labels"), "words in noise need three or more labels: "
+                        "with two, guessing alone gives 50 % right and no threshold can be "
+                        "fitted")  # fmt: skip
+    pad = protocol.rendering.pad_s
+    for i, cond in enumerate(protocol.conditions):
+        noise = cond.noise
+        if noise is None:
+            continue
+        where = ("conditions", i, "noise")
+        rms = noise.speech_level_dbfs - noise.snr_db
+        if noise.source == "speech_shaped" and rms > -13.0:
+            yield Issue(where, f"the noise would be at {rms:g} dBFS RMS and clip (Gaussian noise "
+                        "peaks about 13 dB above its RMS): lower speech_level_dbfs or raise "
+                        "snr_db")  # fmt: skip
+        if pad < noise.ramp_s + 0.1:
+            yield Issue(where, f"rendering.pad_s ({pad:g} s) leaves no noise without the voice "
+                        f"beyond the {noise.ramp_s:g} s fades to measure: make pad_s at least "
+                        f"{noise.ramp_s + 0.1:g} s")  # fmt: skip
+
+
 @_check("tasks", "conditions", "blocks")
 def _timing_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """A timing task names one of its labels and is shown at three or more offsets of a

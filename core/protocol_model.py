@@ -708,7 +708,7 @@ class SrtListener(_Model):
 
     srt_db: float = Field(ge=-40, le=40, description="SNR of 50 % right answers.")
     slope: float = Field(0.1, gt=0, le=1, description="Proportion correct per dB at the SRT.")
-    lapse: float = Field(0.02, ge=0, le=0.2, description="Lapse rate.")
+    lapse: float = Field(0.02, ge=0, le=0.1, description="Lapse rate (the fit's bound).")
     srt_sd_db: float = Field(
         0.0, ge=0, le=20, description="SD of participants' SRTs (one draw per participant, "
         "shared by the series: a good listener is good in every series)."

@@ -115,13 +115,16 @@ def protocol_tests(data: pd.DataFrame, protocol: Protocol) -> dict[tuple[str, st
         for c in present[1:]:
             p = p_of.get(f"C(condition)[T.{c}]", float("nan"))
             out[(f"{task.id}: {c} vs {present[0]}", "identification")] = float(p)
-    for task, table in _srt_tables(data, protocol):  # thresholds between series
-        _, tests = srt.srt_tests(table, reference=srt.audio_only_series(protocol))
-        for measure in ("srt_db", "benefit_db"):
+    for task, table in _srt_estimates(data, protocol):  # thresholds between series
+        reference = srt.audio_only_series(protocol)
+        _, tests = srt.srt_tests(table, reference=reference)
+        visual = {c.series_id for c in protocol.conditions if c.noise is not None} - {reference}
+        for measure in ("srt_db", "benefit_db"):  # a benefit is compared between two or more
+            if measure == "benefit_db" and (reference is None or len(visual) < 2):
+                continue  # audio-visual series (with one, there is nothing to compare)
             row = tests[(tests["measure"] == measure) & (tests["a"] == "all")]
-            if measure == "srt_db" or table["benefit_db"].notna().any():
-                p = float(row["p_adj"].iloc[0]) if len(row) else float("nan")
-                out[(f"{task.id}: {measure} between series", "srt")] = p
+            p = float(row["p_adj"].iloc[0]) if len(row) else float("nan")
+            out[(f"{task.id}: {measure} between series", "srt")] = p
     for task, windows in _timing_windows(data, protocol):  # PSS and width between series
         clean = windows[windows["note"] == ""]
         if clean["condition"].nunique() < 2:
@@ -153,7 +156,9 @@ def _timing_windows(
     return out
 
 
-def _srt_tables(data: pd.DataFrame, protocol: Protocol) -> list[tuple[IdentifyTask, pd.DataFrame]]:
+def _srt_estimates(
+    data: pd.DataFrame, protocol: Protocol
+) -> list[tuple[IdentifyTask, pd.DataFrame]]:
     """Each speech-in-noise task's SRTs (point estimates only)."""
     out = []
     for task in protocol.tasks:
@@ -191,7 +196,7 @@ def protocol_estimates(data: pd.DataFrame, protocol: Protocol) -> dict[str, floa
     timing task, ``"<task> <series> pss_ms"`` and ``"… width_ms"``: the mean of the
     participants' windows (those the data determine)."""
     out: dict[str, float] = {}
-    for task, table in _srt_tables(data, protocol):
+    for task, table in _srt_estimates(data, protocol):
         clean = table[table["note"] == ""]
         for series in dict.fromkeys(table["condition"]):
             mine = clean[clean["condition"] == series]

@@ -135,6 +135,38 @@ def test_noise_the_clips_cannot_carry_is_refused_with_its_key(tmp_path) -> None:
     assert "unknown condition series 'standard_m6'" in _problems(truth, tmp_path)
 
 
+def test_noise_no_threshold_or_clip_could_come_from_is_refused(tmp_path) -> None:
+    text = _text()
+    two = re.sub(r"      - \{id: (saru|ushi|kuma|shika), text: \{ja: .*\n", "", text)
+    two = re.sub(r"      - \{id: (saru|ushi|kuma|shika), text: \S+。\}\n", "", two)
+    two = re.sub(r"      - \{id: neko, text: \{ja: .*\n", "", two)
+    two = re.sub(r"answers: \{.*\}", "answers: {inu: inu, neko: inu}", two)
+    two = two.replace("      - {id: inu, text: {ja: いぬ, en: inu}}\n",
+                      "      - {id: inu, text: {ja: いぬ, en: inu}}\n"
+                      "      - {id: other, text: {ja: ほか, en: other}}\n")  # fmt: skip
+    assert "words in noise need three or more labels" in _problems(two, tmp_path)
+    loud = text.replace("noise: {snr_db: -18}, method: viseme_baseline,",
+                        "noise: {snr_db: -30}, method: viseme_baseline,")  # fmt: skip
+    assert "the noise would be at -5 dBFS RMS and clip" in _problems(loud, tmp_path)
+    short = text.replace("rendering: {width: 640, height: 360, fps: 30}",
+                         "rendering: {width: 640, height: 360, fps: 30, pad_s: 0.1}")  # fmt: skip
+    assert "leaves no noise without the voice beyond the 0.05 s fades" in _problems(short, tmp_path)
+
+
+def test_a_fixed_snr_design_is_compared_per_condition_not_thresholded(tmp_path) -> None:
+    """One SNR per series: no threshold can be fitted, so the task keeps the identification
+    models (per-condition accuracy and the GEE) instead of an SRT."""
+    block = "    task: word\n"
+    text = _text().replace(block, block + "    conditions: [audio_m9, standard_m9, "
+                           "emphasized_m9]\n")  # fmt: skip
+    path = tmp_path / "fixed.yaml"
+    path.write_text(text, encoding="utf-8")
+    protocol = load_protocol_text(text, path=path, base_dir=tmp_path)
+    assert not srt.is_noise_task(protocol, protocol.tasks[0])
+    assert srt.is_noise_task(load_protocol(protocol_path("kato2021_srt")),
+                             load_protocol(protocol_path("kato2021_srt")).tasks[0])  # fmt: skip
+
+
 def test_a_threshold_is_recovered_from_answers_drawn_from_it() -> None:
     x = np.repeat(SNRS, 300)
     p = p_correct(x, srt=-8.0, slope=0.1, guess=1 / 6, lapse=0.02)

@@ -31,6 +31,8 @@ EXPECTED = {
     "a homophone (鹿 and しか read alike)": (1.0, 1.0, 1),
     "full-width katakana": (1.0, 1.0, 1),
     "half-width katakana": (1.0, 1.0, 1),
+    "e+i in kana for a long e in kanji": (1.0, 1.0, 1),
+    "e+i in kana for a long e in kanji (2)": (1.0, 1.0, 1),
 }
 
 

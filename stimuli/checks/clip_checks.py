@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -269,29 +269,27 @@ def sync_lag(sound: np.ndarray, mouth: np.ndarray, *, max_lag: int = 8) -> tuple
     return float(lags[k] + shift), float(c[k])
 
 
-def picture_lag(
-    track_values: np.ndarray, mouth: np.ndarray, *, max_lag: int = 8
-) -> tuple[float, float]:
-    """(lag, R²): how many frames the tracked mouth opening follows the animation track. The
-    track's channels (n, K) are reduced to their first three principal components, fitted to
-    the opening by least squares (R² of that fit), and the fitted opening is cross-correlated
-    with the tracked one (:func:`sync_lag`). NaN without enough tracked frames."""
+def _track_fit(
+    track_values: np.ndarray, mouth: np.ndarray
+) -> tuple[np.ndarray, Callable[[int], tuple[np.ndarray, float]]] | None:
+    """(the tracked opening, fit(shift) -> (fitted opening, R²)): the track's channels (n, K)
+    reduced to their first three principal components and fitted by least squares to the
+    opening with the picture ``shift`` frames behind. None without enough tracked frames."""
     m = np.asarray(mouth, float)
     x = np.asarray(track_values, float)
     n = min(len(m), len(x))
     m, x = m[:n], x[:n]
     ok = np.isfinite(m)
     if x.ndim != 2 or ok.sum() < 20:
-        return math.nan, math.nan
+        return None
     x = x - x.mean(axis=0)
     u, sv, _ = np.linalg.svd(x, full_matrices=False)
     keep = int(min(3, (sv > 1e-6 * max(sv.max(), 1e-12)).sum()))
     if keep == 0:
-        return math.nan, math.nan
+        return None
     design = np.column_stack([u[:, :keep] * sv[:keep], np.ones(n)])
 
     def fit(shift: int) -> tuple[np.ndarray, float]:
-        """The fitted opening with the picture ``shift`` frames behind, and its R²."""
         d = np.roll(design, shift, axis=0)
         use = ok.copy()
         use[: max(shift, 0)] = use[n + min(shift, 0) :] = False
@@ -299,6 +297,20 @@ def picture_lag(
         r2 = 1 - np.var(m[use] - d[use] @ coef) / max(np.var(m[use]), 1e-18)
         return design @ coef, float(r2)
 
+    return m, fit
+
+
+def picture_lag(
+    track_values: np.ndarray, mouth: np.ndarray, *, max_lag: int = 8
+) -> tuple[float, float]:
+    """(lag, R²): how many frames the tracked mouth opening follows the animation track. The
+    track's channels (n, K) are reduced to their first three principal components, fitted to
+    the opening by least squares (R² of that fit), and the fitted opening is cross-correlated
+    with the tracked one (:func:`sync_lag`). NaN without enough tracked frames."""
+    found = _track_fit(track_values, mouth)
+    if found is None:
+        return math.nan, math.nan
+    m, fit = found
     fitted, _ = fit(0)
     lag, _ = sync_lag(fitted, m, max_lag=max_lag)
     if math.isnan(lag):
@@ -313,28 +325,13 @@ def lag_is_identifiable(
     """False when the track fits the tracked opening at least as well at a shift two or more
     frames from ``lag`` (R² of the same fit): e.g. a short word whose one mouth opening any of
     several viseme channels can be slid onto - the picture's timing cannot be read there."""
-    m = np.asarray(mouth, float)
-    x = np.asarray(track_values, float)
-    n = min(len(m), len(x))
-    m, x = m[:n], x[:n]
-    ok = np.isfinite(m)
-    if math.isnan(lag) or x.ndim != 2 or ok.sum() < 20:
+    found = _track_fit(track_values, mouth)
+    if found is None or math.isnan(lag):
         return False
-    x = x - x.mean(axis=0)
-    u, sv, _ = np.linalg.svd(x, full_matrices=False)
-    keep = int(min(3, (sv > 1e-6 * max(sv.max(), 1e-12)).sum()))
-    design = np.column_stack([u[:, :keep] * sv[:keep], np.ones(n)])
-
-    def r2(shift: int) -> float:
-        d = np.roll(design, shift, axis=0)
-        use = ok.copy()
-        use[: max(shift, 0)] = use[n + min(shift, 0) :] = False
-        coef, *_ = np.linalg.lstsq(d[use], m[use], rcond=None)
-        return float(1 - np.var(m[use] - d[use] @ coef) / max(np.var(m[use]), 1e-18))
-
+    _, fit = found
     at = round(lag)
-    chosen = r2(at)
-    return all(r2(k) < chosen for k in range(-max_lag, max_lag + 1) if abs(k - at) >= 2)
+    chosen = fit(at)[1]
+    return all(fit(k)[1] < chosen for k in range(-max_lag, max_lag + 1) if abs(k - at) >= 2)
 
 
 #: the tracked mouth must follow the animation track this closely (R² of the fit) for its lag
@@ -442,10 +439,11 @@ def noise_rows(
       most one frame from where it was put;
     * ``mix_error_db``: what the decoded sound holds besides the intended mix, relative to it
       (at most -20 dB: the file carries this mix, at its level - not another SNR's);
-    * ``noise_level_error``: the noise's RMS where the voice is silent, measured blind on the
-      decoded sound, within :data:`NOISE_TOLERANCE_DB` of the level asked (the speech level
-      minus the SNR; the speech level itself cannot be read blind under noise: its share
-      of a mix at -18 dB SNR moves the least-squares estimate by several dB).
+    * ``noise_level_error``: the noise's RMS where the voice is silent, measured on the
+      decoded sound, within :data:`NOISE_TOLERANCE_DB` of the mix made in the same samples
+      (a noise file's level wanders: the clip's padding need not hold the level set over the
+      clip; the speech level itself cannot be read blind under noise: its share of a mix at
+      -18 dB SNR moves the least-squares estimate by several dB).
     """
     from facelab.stimuli.speech.noise import rms_db
 
@@ -458,7 +456,9 @@ def noise_rows(
     m = np.roll(m, lag)
     error = rms_db(d - m) - rms_db(m)
     steady = np.asarray(quiet[:n], bool)
-    noise = rms_db(d[steady]) if steady.sum() >= 0.05 * sample_rate else None
+    enough = steady.sum() >= 0.05 * sample_rate
+    noise = rms_db(d[steady]) if enough else None
+    noise_dbfs = rms_db(m[steady]) if enough else noise_dbfs  # the mix made, same samples
     return [
         at_most(1000.0 / fps, abs(1000.0 * lag / sample_rate), measure="speech_lag_ms",
                 note="the mix's place in the clip against where it was put", unit="ms", **kw),

@@ -293,9 +293,6 @@ def check_clips(
         shown = modality[m["condition"]]
         rows += modality_rows(tr, sounds[m["clip_id"]], modality=shown, face=face,
                               clip=m["clip_id"], condition=m["condition"])  # fmt: skip
-        if shown == "audio_only" and face == "none":
-            continue  # no face to see, track or synchronise
-        rows += face_visible_rows(tr, clip=m["clip_id"], condition=m["condition"])
         stim = stimuli.get((m["stimulus_set"], m["stimulus"]))
         cond = protocol.condition(m["condition"])
         if cond.noise is not None and stim is not None:  # the mix, measured
@@ -322,6 +319,9 @@ def check_clips(
                                noise_dbfs=cond.noise.speech_level_dbfs - cond.noise.snr_db,
                                fps=float(m["fps"]), clip=m["clip_id"],
                                condition=m["condition"])  # fmt: skip
+        if shown == "audio_only" and face == "none":
+            continue  # no face to see, track or synchronise
+        rows += face_visible_rows(tr, clip=m["clip_id"], condition=m["condition"])
         if shown != "audiovisual":
             continue  # no sound to follow (muted), or no motion to follow it (a still face)
         small = too_small(tr, clip_height=int(m["height"]))
@@ -342,8 +342,8 @@ def check_clips(
                                  intended_offset_ms=offsets[m["condition"]],
                                  sound_lag_frames=heard.get(m["clip_id"]))  # fmt: skip
     twin = {i for g in twins for i in g}  # one picture: their faces are checked equal instead
-    levelled = {c.id: c.level for c in protocol.conditions
-                if c.level is not None and c.id not in twin}  # fmt: skip
+    levelled = {c.id: c.level for c in protocol.conditions  # (an SNR is no face's level)
+                if c.level is not None and c.id not in twin and c.noise is None}  # fmt: skip
     for (set_id, stim_id), all_clips in by_stimulus.items():
         # the faces of conditions shown alike are compared (a muted clip may look like its
         # audiovisual twin; audio_only faces do not move, by design)
@@ -406,7 +406,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 6
+CHECKS_VERSION = 7
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 

@@ -417,7 +417,7 @@ def build_clips(
 def clip_counts(rows: list[dict]) -> str:
     """How the clips of a render came about, for the command's summary line."""
     n = {k: sum(r["status"] == k for r in rows) for k in ("rendered", "remuxed", "unchanged")}
-    remuxed = f"{n['remuxed']} re-muxed (another clip's picture, the voice shifted), " if n[
+    remuxed = f"{n['remuxed']} re-muxed (another clip's picture, their own sound), " if n[
         "remuxed"] else ""  # fmt: skip
     return f"{len(rows)} clips ({n['rendered']} rendered, {remuxed}{n['unchanged']} reused)"
 

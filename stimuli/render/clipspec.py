@@ -113,13 +113,15 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         spec["audio_offset_ms"] = cond.audio_offset_ms
     if cond.noise is not None:  # the mix, its noise file's bytes, the set's spectrum's texts
         spec["noise"] = cond.noise.model_dump()
+        spec["noise_token_of"] = protocol.study.id  # (seeds the noise with set, word, SNR)
         if cond.noise.source != "speech_shaped":
             files["noise"] = _file_sha256(base_dir / cond.noise.source)
         else:
             spec["noise_spectrum_of"] = [
-                [st.text, st.audio, st.tts.model_dump()]
+                [st.text, _file_sha256(base_dir / st.audio) if st.audio else None,
+                 st.tts.model_dump()]
                 for st in protocol.stimulus_set(job.stimulus_set).stimuli
-            ]
+            ]  # fmt: skip
     if cond.modality != "audiovisual":  # (absent for audiovisual: earlier hashes still hold)
         spec["modality"] = cond.modality
         if cond.modality == "audio_only":

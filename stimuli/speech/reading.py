@@ -1,6 +1,7 @@
 """How Japanese text is pronounced, for scoring typed answers: the OpenJTalk front end's
 reading in katakana (kanji, hiragana and katakana spellings of a word read alike; long vowels
-as ``ー``: おかあさん, おかーさん and お母さん are all オカーサン), split into morae."""
+as ``ー``: おかあさん, おかーさん and お母さん are all オカーサン, せんせい and 先生 センセー),
+split into morae."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ from facelab.errors import SpeechError
 __all__ = ["morae", "pronunciation"]
 
 _SMALL = set("ャュョァィゥェォヮ")
+#: an e-row mora and イ: the dictionary reads kanji as a long vowel (先生 センセー) and kana as
+#: written (せんせい センセイ); both are read long
+_E_I = re.compile("([エケセテネヘメレゲゼデベペェ])イ")
 _DROP = re.compile(r"[\s、。，．,.!?！？「」『』（）()・…〜~\-]+")
 
 
@@ -41,8 +45,8 @@ def pronunciation(text: str) -> str:
     plain = _DROP.sub("", unicodedata.normalize("NFKC", text))
     if not plain:
         return ""
-    kana = _frontend()(plain, kana=True)
-    return _DROP.sub("", _katakana(str(kana)))
+    kana = _DROP.sub("", _katakana(str(_frontend()(plain, kana=True))))
+    return _E_I.sub(r"\1ー", kana)  # 先生 センセー, but kana せんせい comes back センセイ
 
 
 def morae(kana: str) -> list[str]:
