@@ -408,7 +408,12 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     print("yaw per logged frame, per clip:",
           [[round(pose[4], 1) for pose in rec["viewer_poses"]] for rec in records])  # fmt: skip
     assert max(yaws) - min(yaws) > 30, (min(yaws), max(yaws))
-    assert sum(rec["head_yaw_range_deg"] > 10 for rec in records) >= len(records) // 3
+    # each clip's yaw range is that of the poses it logged (how many frames a clip gets - and
+    # so how much of the turn it holds - depends on the machine's load: one frame per clip was
+    # seen under the full suite, so no per-clip amount of turning is asserted)
+    for rec in records:
+        logged = [pose[4] for pose in rec["viewer_poses"]]
+        assert rec["head_yaw_range_deg"] == pytest.approx(max(logged) - min(logged), abs=0.02)
     out = tmp_path / "results"
     export_sessions(server.engine, results=out)
     session = json.loads(next(out.rglob("*_session.json")).read_text("utf-8"))
