@@ -381,19 +381,30 @@ def _timing_tables(
         return
     windows = windows.assign(task=task.id)
     summary, tests = timing.window_tests(windows)
-    for name, frame in (("sync_window", windows), ("sync_summary", summary.assign(task=task.id)),
-                        ("sync_tests", tests.assign(task=task.id))):  # fmt: skip
+    _add_estimates(res, task, ("sync_window", "sync_summary", "sync_tests"), windows, summary,
+                   tests, what="windows")  # fmt: skip
+    counts = timing.timing_counts(rows, protocol, task)
+    res.timing.append((task, counts, windows))
+
+
+def _add_estimates(
+    res: TaskResults, task: IdentifyTask, names: tuple[str, str, str], estimates: pd.DataFrame,
+    summary: pd.DataFrame, tests: pd.DataFrame, *, what: str,
+) -> None:  # fmt: skip
+    """Append one task's per-participant ``estimates``, their ``summary`` and ``tests`` to the
+    tables ``names``; a note names how many estimates the data leave undetermined."""
+    main, _, tested = names
+    for name, frame in zip(names, (estimates, summary.assign(task=task.id),
+                                   tests.assign(task=task.id)), strict=True):  # fmt: skip
         if name in res.tables:
             frame = pd.concat([res.tables[name], frame], ignore_index=True)
         res.tables[name] = frame
-    undetermined = windows[windows["note"].fillna("").astype(str).ne("")]
+    undetermined = estimates[estimates["note"].fillna("").astype(str).ne("")]
     if len(undetermined):
         res.notes.append(
-            f"task {task.id!r}: {len(undetermined)} of {len(windows)} windows are not fully "
-            "determined (sync_window.csv's note); they are left out of sync_tests"
+            f"task {task.id!r}: {len(undetermined)} of {len(estimates)} {what} are not fully "
+            f"determined ({main}.csv's note); they are left out of {tested}"
         )
-    counts = timing.timing_counts(rows, protocol, task)
-    res.timing.append((task, counts, windows))
 
 
 def _srt_tables(
@@ -411,18 +422,8 @@ def _srt_tables(
         res.notes.append(f"task {task.id!r}: no (single) audio-only series in noise: SRTs "
                          "without the audio-visual benefit")  # fmt: skip
     summary, tests = srt.srt_tests(table, reference=reference)
-    for name, frame in (("srt", table.assign(task=task.id)),
-                        ("srt_summary", summary.assign(task=task.id)),
-                        ("srt_tests", tests.assign(task=task.id))):  # fmt: skip
-        if name in res.tables:
-            frame = pd.concat([res.tables[name], frame], ignore_index=True)
-        res.tables[name] = frame
-    undetermined = table[table["note"].fillna("").astype(str).ne("")]
-    if len(undetermined):
-        res.notes.append(
-            f"task {task.id!r}: {len(undetermined)} of {len(table)} SRTs are not fully "
-            "determined (srt.csv's note); they are left out of srt_tests"
-        )
+    _add_estimates(res, task, ("srt", "srt_summary", "srt_tests"), table.assign(task=task.id),
+                   summary, tests, what="SRTs")  # fmt: skip
     res.srt.append((task, srt.noise_trials(rows, protocol, task), table))
 
 
