@@ -24,6 +24,7 @@ from facelab.experiment.cli import (
     behaviour_cmds,
     demo_cmd,
     impression_cmds,
+    live_cmds,
     online_cmds,
     protocol_cmds,
     session_cmds,
@@ -42,6 +43,7 @@ FAMILIES = (
     behaviour_cmds,
     session_cmds,
     online_cmds,
+    live_cmds,
     analysis_cmds,
     demo_cmd,
 )

@@ -48,10 +48,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from facelab.stimuli.render.prepare import input_notes
 
     protocol = load_protocol(args.protocol)
-    out = output_dir(
-        args.out or Path("results") / protocol.study.id / "clips",
-        option="--out",
-    )
+    default_out = Path("results") / protocol.study.id / "clips"
+    if args.turn:  # recorded live turns as the stimuli, under every condition
+        from facelab.experiment.live_dialogue.turn import turns_protocol
+
+        protocol = turns_protocol(Path(args.protocol), [Path(t) for t in args.turn])
+        default_out = Path("results") / protocol.study.id / "live_clips"
+    out = output_dir(args.out or default_out, option="--out")
     settings = _render_overrides(args, protocol)
     cluster = cluster_of(args)
     progress = GridProgress(quiet=args.quiet, prefix="render")
@@ -254,6 +257,10 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument("protocol", metavar="PROTOCOL")
     p.add_argument("--out", metavar="DIR", help="clip folder (default results/<study>/clips)")
+    p.add_argument("--turn", action="append", metavar="DIR",
+                   help="a turn recorded by facelab live (repeatable): render it instead of the "
+                   "protocol's stimuli, under every condition (default --out "
+                   "results/<study>/live_clips)")  # fmt: skip
     p.add_argument("--contact-sheet", action="store_true", help="also write one PNG per condition")
     p.add_argument("--size", metavar="WxH", help="override the protocol's resolution")
     p.add_argument("--fps", type=whole(lo=1, hi=240), help="override the protocol's frame rate")

@@ -16,7 +16,7 @@ import hashlib
 import hmac
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,8 +49,9 @@ def simulated_token(server: StudyServer, k: int) -> str:
     ).hexdigest()
 
 
-def chromium(*, size: tuple[int, int] = (1280, 800)) -> Any:
-    """A headless Chromium under Selenium, sound muted, autoplay allowed (no person to click)."""
+def chromium(*, size: tuple[int, int] = (1280, 800), extra_args: Sequence[str] = ()) -> Any:
+    """A headless Chromium under Selenium, sound muted, autoplay allowed (no person to click);
+    ``extra_args``: more command-line switches (e.g. a fake microphone)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -75,6 +76,7 @@ def chromium(*, size: tuple[int, int] = (1280, 800)) -> Any:
         # when asked (no GPU here; frame times measured this way are not device figures)
         "--enable-unsafe-swiftshader",
         "--use-angle=swiftshader",
+        *extra_args,
     ):
         opts.add_argument(arg)
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})

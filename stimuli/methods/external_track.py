@@ -118,6 +118,7 @@ class ExternalTrack(Method[ExternalTrackParams]):
     """A track made elsewhere, one file per stimulus (see the module docstring)."""
 
     spec = METHODS["external_track"]
+    live_problem = "it plays an animation made beforehand, one file per stimulus"
 
     def drive(self, inp: DriveInput, params: ExternalTrackParams) -> BlendshapeTrack:
         path = track_file(params, base_dir=inp.base_dir, stimulus_set=inp.stimulus_set,

@@ -27,6 +27,7 @@ class Impression(Method[ImpressionParams]):
     the stimulus); optionally plus the vowel-driven speech track, clipped to [0, 1]."""
 
     spec = METHODS["impression"]
+    live_problem = "its expression's onset, hold and offset are timed against the whole clip"
 
     def drive(self, inp: DriveInput, params: ImpressionParams) -> BlendshapeTrack:
         model = ImpressionModel.load_cached(inp.base_dir / params.model)

@@ -11,7 +11,7 @@ name: rendering, ``avatar inspect``, target checks and protocol checks ask the r
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -54,6 +54,10 @@ class Method(Generic[P]):
     spec: MethodSpec
     #: drives ``viseme_*`` targets, which an avatar without them gets from ARKit mixes
     uses_visemes: bool = False
+    #: why the method cannot drive an avatar from streaming audio (``facelab live``), None
+    #: when it can: each frame then depends only on the viseme track up to that frame. A
+    #: method that says None is still checked (chunked and whole drives must agree).
+    live_problem: str | None = "it does not say it can run on streaming audio"
 
     @property
     def name(self) -> str:
@@ -131,6 +135,14 @@ class Method(Generic[P]):
     def drive_on(self, avatar: Avatar, inp: DriveInput, params: P) -> BlendshapeTrack:
         """The track for this avatar (a method with a stand-in overrides this)."""
         return self.drive(inp, params)
+
+    def prepared(
+        self, avatar: Avatar, params: P, *, base_dir: Path
+    ) -> Callable[[DriveInput], BlendshapeTrack]:
+        """:meth:`drive_on` for one avatar and parameter set, called many times on short
+        tracks (a live stream): a method whose per-avatar decisions are costly makes them
+        once here."""
+        return lambda inp: self.drive_on(avatar, inp, params)
 
 
 def _first(names: list[str], n: int = 6) -> str:

@@ -66,6 +66,7 @@ class VisemeBaseline(_VisemeMethod[VisemeBaselineParams]):
     """The OVR LipSync path: the 15 viseme weights drive the ``viseme_*`` targets."""
 
     spec = METHODS["viseme_baseline"]
+    live_problem = None
 
     def drive(self, inp: DriveInput, params: VisemeBaselineParams) -> BlendshapeTrack:
         return BlendshapeTrack(
@@ -77,6 +78,7 @@ class TextVisemes(_VisemeMethod[TextVisemesParams]):
     """Visemes from the phoneme timing (TTS stimuli), on the audio track's frame times."""
 
     spec = METHODS["text_visemes"]
+    live_problem = "it needs the words' phoneme timing, which live speech does not come with"
 
     def drive(self, inp: DriveInput, params: TextVisemesParams) -> BlendshapeTrack:
         if not inp.phones:

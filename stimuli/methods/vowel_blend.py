@@ -18,7 +18,7 @@ avatar's mouth by different amounts, as they do on an ARKit avatar.
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +32,7 @@ from facelab.stimuli.avatar.vrm import VOWEL_PRESET_TARGETS
 from facelab.stimuli.capture.zmatrix import load_z
 from facelab.stimuli.methods.registry import Method, Playback, register
 from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
+from facelab.stimuli.speech.track import VisemeTrack
 
 __all__ = ["MOUTH_WEIGHT", "VowelBlend", "mouth_targets", "vowel_shape_weights", "vowel_shapes"]
 
@@ -79,10 +80,12 @@ def vowel_shape_weights(z: np.ndarray) -> np.ndarray:
     return _shape_weights(np.ascontiguousarray(z, np.float64).tobytes())
 
 
-def vowel_shapes(inp: DriveInput, params: VowelBlendParams, z: np.ndarray) -> BlendshapeTrack:
+def vowel_shapes(
+    inp: DriveInput, params: VowelBlendParams, z: np.ndarray, w: np.ndarray | None = None
+) -> BlendshapeTrack:
     """Z retargeted onto an avatar's five vowel shapes: Y = clip(G * X @ W.T), W from
-    :func:`vowel_shape_weights`."""
-    w = vowel_shape_weights(z)
+    :func:`vowel_shape_weights` (pass it when driving many short tracks)."""
+    w = vowel_shape_weights(z) if w is None else w
     y = np.clip(params.gain * inp.track.vowels() @ w.T, 0.0, 1.0)
     return BlendshapeTrack(
         inp.track.times, y, PRESET_NAMES,
@@ -90,15 +93,20 @@ def vowel_shapes(inp: DriveInput, params: VowelBlendParams, z: np.ndarray) -> Bl
     )  # fmt: skip
 
 
+def _blend(track: VisemeTrack, gain: float, z_mat: np.ndarray) -> BlendshapeTrack:
+    """Y (T, 52) = clip(G * X (T, 5) @ Z.T, 0, 1) on the track's times."""
+    y = np.clip(gain * track.vowels() @ z_mat.T, 0.0, 1.0)
+    return BlendshapeTrack(track.times, y, ARKIT_NAMES)
+
+
 class VowelBlend(Method[VowelBlendParams]):
     """Y = clip(G * X @ Z.T) over the 52 ARKit targets."""
 
     spec = METHODS["vowel_blend"]
+    live_problem = None
 
     def drive(self, inp: DriveInput, params: VowelBlendParams) -> BlendshapeTrack:
-        z_mat = load_z(params.z, base_dir=inp.base_dir)
-        y = np.clip(params.gain * inp.track.vowels() @ z_mat.T, 0.0, 1.0)
-        return BlendshapeTrack(inp.track.times, y, ARKIT_NAMES)
+        return _blend(inp.track, params.gain, load_z(params.z, base_dir=inp.base_dir))
 
     def targets(self, params: VowelBlendParams, *, base_dir: Path = Path(".")) -> set[str]:
         """The ARKit rows its Z uses."""
@@ -163,9 +171,17 @@ class VowelBlend(Method[VowelBlendParams]):
     def drive_on(
         self, avatar: Avatar, inp: DriveInput, params: VowelBlendParams
     ) -> BlendshapeTrack:
-        if self._stand_in(avatar, params, inp.base_dir) is not None:
-            return vowel_shapes(inp, params, load_z(params.z, base_dir=inp.base_dir))
-        return self.drive(inp, params)
+        return self.prepared(avatar, params, base_dir=inp.base_dir)(inp)
+
+    def prepared(
+        self, avatar: Avatar, params: VowelBlendParams, *, base_dir: Path
+    ) -> Callable[[DriveInput], BlendshapeTrack]:
+        """Whether the vowel shapes stand in and Z, decided and read once."""
+        z_mat = load_z(params.z, base_dir=base_dir)
+        if self._stand_in(avatar, params, base_dir) is not None:
+            w = vowel_shape_weights(z_mat)
+            return lambda inp: vowel_shapes(inp, params, z_mat, w)
+        return lambda inp: _blend(inp.track, params.gain, z_mat)
 
 
 register(VowelBlend())

@@ -1,0 +1,122 @@
+"""``facelab live --simulate FILE.wav``: the talker and the viewer in headless Chromium, the
+file as the talker's microphone (Chromium's fake media-stream capture), one turn recorded and
+its latency reported. The server runs in a thread of this process."""
+
+from __future__ import annotations
+
+import base64
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from facelab.errors import SessionError
+from facelab.experiment.live_dialogue.app import LiveConfig, LiveHub, create_live_app
+
+__all__ = ["simulate_live"]
+
+
+class _Server:
+    """uvicorn serving the live app in a thread."""
+
+    def __init__(self, hub: LiveHub) -> None:
+        import uvicorn
+
+        from facelab.experiment.online.serve import free_port
+
+        self.port = free_port()
+        config = uvicorn.Config(create_live_app(hub), host="127.0.0.1", port=self.port,
+                                log_level="warning")  # fmt: skip
+        self.uv = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.uv.run, daemon=True)
+
+    def __enter__(self) -> _Server:
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.uv.started:
+            if time.monotonic() > deadline or not self.thread.is_alive():
+                raise SessionError("the live server did not start")
+            time.sleep(0.05)
+        return self
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __exit__(self, *exc: Any) -> None:
+        self.uv.should_exit = True
+        self.thread.join(timeout=10)
+
+
+def _wait(driver, script: str, *, timeout_s: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = driver.execute_script(script)
+        if value:
+            return value
+        time.sleep(0.1)
+    raise SessionError(f"simulated live session: {what} (waited {timeout_s:.0f} s)")
+
+
+def simulate_live(
+    config: LiveConfig, *, wav: Path, screenshot: Path | None = None, timeout_s: float = 120.0
+) -> dict[str, Any]:
+    """Run one simulated turn of ``wav`` (any rate; sent to Chromium as 16-bit 48 kHz PCM)
+    and return its turn.json (with ``recording``, the turn's folder, and ``screenshot``)."""
+    import soundfile as sf
+
+    from facelab.experiment.online.browser import chromium
+    from facelab.stimuli.speech.audio import load_audio
+
+    speech = load_audio(wav, sample_rate=48_000)
+    duration = len(speech.samples) / speech.sample_rate
+    hub = LiveHub.open(config)
+    snapped = None
+    with tempfile.TemporaryDirectory(prefix="facelab-live-") as tmp:
+        fake = Path(tmp) / "talker.wav"
+        sf.write(str(fake), speech.samples, speech.sample_rate, subtype="PCM_16")
+        with _Server(hub) as server:
+            driver = chromium(size=(1100, 760), extra_args=(
+                "--use-fake-ui-for-media-stream",
+                "--use-fake-device-for-media-stream",
+                f"--use-file-for-fake-audio-capture={fake}%noloop",
+            ))  # fmt: skip
+            try:
+                driver.get(server.url + "/")
+                _wait(driver, "return window.FacelabDialogue && "
+                      "window.FacelabDialogue.state === 'waiting'",
+                      timeout_s=60, what="the viewer page did not load its avatar")  # fmt: skip
+                viewer = driver.current_window_handle
+                driver.switch_to.new_window("window")
+                driver.get(server.url + f"/talk?auto=1&seconds={duration + 0.3:.2f}")
+                _wait(driver, "return window.FacelabDialogue && ['talking', 'refused']"
+                      ".includes(window.FacelabDialogue.state) && window.FacelabDialogue.state",
+                      timeout_s=30, what="the talker page did not start")  # fmt: skip
+                driver.switch_to.window(viewer)
+                if screenshot is not None:  # mid-sentence: a third in, the mouth open
+                    driver.execute_script("window.FacelabDialogue.snap = arguments[0]",
+                                          {"after_s": duration / 3, "peak": 0.25})
+                    shot = _wait(driver, "return window.FacelabDialogue.snapshot",
+                                 timeout_s=duration + 30, what="the viewer never opened the mouth")
+                    Path(screenshot).write_bytes(base64.b64decode(shot.split(",", 1)[1]))
+                    snapped = driver.execute_script("return window.FacelabDialogue.snapped")
+                deadline = time.monotonic() + duration + timeout_s
+                while not hub.turns:
+                    if time.monotonic() > deadline:
+                        raise SessionError("simulated live session: no turn was recorded")
+                    time.sleep(0.2)
+                lost = driver.execute_script("return window.FacelabDialogue.lateAudio")
+            finally:
+                driver.quit()
+    record = dict(hub.turns[0])
+    record["recording"] = record.pop("folder")
+    record["late_audio_chunks"] = lost
+    record["talker_file"] = str(wav)
+    record["talker_file_s"] = round(duration, 3)
+    if screenshot is not None:
+        record["screenshot"] = str(screenshot)
+        record["screenshot_frame"] = snapped
+    return record
+
+

@@ -1,0 +1,328 @@
+"""Live dialogue (issue 53): the condition's method run on streaming audio gives the frames the
+offline chain gives the same recording; methods that cannot run live say so; a turn is
+recorded (audio, the track as sent, the viewers' frame log, latency) and never overwritten;
+the server's sockets stream a talker to viewers; ``facelab live --simulate`` runs talker and
+viewer in headless Chromium with a file as the microphone, and ``facelab render --turn``
+renders the recorded turn under every condition."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from facelab.errors import FacelabError, SessionError, StageError
+from facelab.experiment.cli import main
+from facelab.experiment.live_dialogue.turn import (
+    BUDGET_BEHIND_MS,
+    Turn,
+    latency_summary,
+    next_turn_dir,
+    turns_protocol,
+)
+from facelab.formats import read_manifest, read_track
+from facelab.methods import METHODS
+from facelab.protocol import load_protocol
+from facelab.resources import package_file
+from facelab.stimuli.arkit import VISEME_TARGETS
+from facelab.stimuli.avatar.samples import write_sample
+from facelab.stimuli.methods import get
+from facelab.stimuli.methods.live_drive import LiveDriver, _columns, live_problem
+from facelab.stimuli.methods.registry import Method
+from facelab.stimuli.methods.types import BlendshapeTrack, DriveInput
+from facelab.stimuli.render.scene import load_avatar
+from facelab.stimuli.speech.analyser import analyze
+from facelab.stimuli.speech.tts import synthesize
+
+KATO = Path(package_file("facelab.protocols", "kato2021.yaml"))
+
+
+@pytest.fixture(scope="module")
+def speech():
+    return synthesize("はい、そうです。", sample_rate=16_000)
+
+
+@pytest.fixture(scope="module")
+def kato():
+    protocol = load_protocol(KATO)
+    return protocol, load_avatar(protocol, base_dir=KATO.parent)
+
+
+def offline_frames(samples, *, method, params, avatar, names, base_dir):
+    """The offline chain on the same samples: analyse at warp 1, compensate, drive."""
+    track = analyze(samples, sample_rate=16_000, warp=1.0).compensated()
+    out = get(method).drive_on(avatar, DriveInput(track=track, base_dir=base_dir), params)
+    return np.clip(_columns(out, names), 0, 1)
+
+
+def stream(driver: LiveDriver, samples, *, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    got, k, expect = [], 0, 0
+    while k < len(samples):
+        n = int(rng.integers(1, 500))
+        frames = driver.feed(samples[k : k + n])
+        k += n
+        assert frames.start == expect  # no frame skipped or repeated
+        expect += len(frames)
+        got.append(frames.weights)
+    got.append(driver.flush().weights)
+    return np.vstack(got)
+
+
+@pytest.mark.parametrize("condition", ["baseline", "standard", "emphasized"])
+def test_streamed_frames_are_the_offline_frames(kato, speech, condition) -> None:
+    protocol, avatar = kato
+    cond = protocol.condition(condition)
+    driver = LiveDriver(method_name=cond.method, params=cond.settings, avatar=avatar,
+                        sample_rate=16_000, base_dir=KATO.parent)  # fmt: skip
+    live = stream(driver, speech.samples, seed=3)
+    ref = offline_frames(speech.samples, method=cond.method, params=cond.settings,
+                         avatar=avatar, names=driver.names, base_dir=KATO.parent)  # fmt: skip
+    assert live.shape == ref.shape == (len(ref), len(driver.names))
+    assert np.abs(live - ref).max() < 1e-9
+    assert live.max() > 0.2  # the mouth moves
+    # a frame waits for the analysis window's half and the next analysis frame
+    assert 0.02 < driver.latency_s < 0.045
+
+
+def test_a_vrm_with_vowel_presets_runs_live_through_its_stand_in(tmp_path, speech) -> None:
+    from facelab.stimuli.avatar import load
+
+    avatar = load(write_sample(tmp_path / "v.vrm", kind="vrm1", vroid=True))
+    params = METHODS["vowel_blend"].parse({"z": "standard"})
+    driver = LiveDriver(method_name="vowel_blend", params=params, avatar=avatar,
+                        sample_rate=16_000)  # fmt: skip
+    assert set(driver.names) <= set(avatar.targets)
+    live = stream(driver, speech.samples, seed=5)
+    ref = offline_frames(speech.samples, method="vowel_blend", params=params, avatar=avatar,
+                         names=driver.names, base_dir=Path("."))  # fmt: skip
+    assert np.abs(live - ref).max() < 1e-9 and live.max() > 0.2
+
+
+def test_methods_that_cannot_run_live_say_why(kato) -> None:
+    _, avatar = kato
+    said = {
+        name: live_problem(name, get(name).examples()[0], avatar=avatar)
+        for name in ("text_visemes", "external_track", "impression")
+    }
+    assert "phoneme timing" in said["text_visemes"]
+    assert "made beforehand" in said["external_track"]
+    assert "whole clip" in said["impression"]
+
+
+class _Running(Method):
+    """A method that claims to run live but whose frame depends on later frames."""
+
+    spec = METHODS["viseme_baseline"]
+    live_problem = None
+
+    def drive(self, inp, params):
+        w = inp.track.weights  # every frame the mean of the whole track
+        return BlendshapeTrack(inp.track.times, np.repeat(w.mean(axis=0, keepdims=True),
+                                                          len(w), axis=0), VISEME_TARGETS)
+
+
+def test_a_method_claiming_to_run_live_is_checked(kato, monkeypatch) -> None:
+    from facelab.stimuli.methods import registry
+
+    _, avatar = kato
+    monkeypatch.setitem(registry.REGISTRY, "viseme_baseline", _Running())
+    said = live_problem("viseme_baseline", METHODS["viseme_baseline"].parse({}), avatar=avatar)
+    assert said is not None and "depends on frames after it" in said
+    with pytest.raises(StageError, match="depends on frames after it"):
+        LiveDriver(method_name="viseme_baseline", params=METHODS["viseme_baseline"].parse({}),
+                   avatar=avatar, sample_rate=16_000)  # fmt: skip
+
+
+def test_a_rate_the_analyser_cannot_frame_is_refused(kato) -> None:
+    protocol, avatar = kato
+    cond = protocol.condition("standard")
+    with pytest.raises(StageError, match="22050 Hz"):
+        LiveDriver(method_name=cond.method, params=cond.settings, avatar=avatar,
+                   sample_rate=22_050)  # fmt: skip
+
+
+# --------------------------------------------------------------------------- a recorded turn
+
+
+def rows(latencies_ms, *, late=()):
+    return [{"viewer": 1, "page_ms": 16.7 * i, "heard_s": 0.1 + i * 0.0167,
+             "frame": 0, "wanted": 0, "latency_ms": v, "late": int(i in late)}
+            for i, v in enumerate(latencies_ms)]  # fmt: skip
+
+
+def test_latency_summary_counts_frames_and_checks_the_budget() -> None:
+    good = latency_summary(rows([2.0] * 90 + [8.0] * 10, late=(3,)), n_frames=400)
+    assert good["frames_shown"] == 100 and good["frames_late"] == 1
+    assert good["latency_ms_median"] == 2.0 and good["within_budget"] is True
+    assert good["frame_interval_ms_median"] == pytest.approx(16.7)
+    slow = latency_summary(rows([BUDGET_BEHIND_MS + 5] * 20), n_frames=400)
+    assert slow["within_budget"] is False
+    ahead = latency_summary(rows([2.0] * 19 + [-60.0]), n_frames=400)
+    assert ahead["ahead_ms_max"] == 60.0 and ahead["within_budget"] is False
+    after_end = latency_summary(rows([2.0] * 20), n_frames=5)  # heard after 0.05 s: none
+    assert after_end["frames_shown"] == 0 and after_end["within_budget"] is None
+
+
+def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
+    session = tmp_path / "s"
+    session.mkdir()
+    turn = Turn(sample_rate=16_000, names=("jawOpen", "mouthFunnel"))
+    rng = np.random.default_rng(1)
+    audio = rng.uniform(-0.5, 0.5, 16_000).astype(np.float32)
+    turn.add_audio(audio[:8000])
+    turn.add_audio(audio[8000:])
+    turn.add_frames(rng.uniform(0, 1, (60, 2)))
+    turn.add_frames(rng.uniform(0, 1, (40, 2)))
+    turn.add_viewer_log(1, [[10.0, 0.105, 10, 10], [26.7, 0.121, 11, 12], [30, float("nan"), 0, 0]])
+    folder = next_turn_dir(session)
+    assert folder.name == "turn-001"
+    record = turn.save(folder, clip_id="live__t", avatar_sha256="a" * 64, info={"x": 1},
+                       playout_ms=120)  # fmt: skip
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "audio.wav", "frames.csv", "track.bin", "turn.json"]  # fmt: skip
+    saved, rate = sf.read(folder / "audio.wav", dtype="float32")
+    assert rate == 16_000 and np.array_equal(saved, audio)  # exactly what was analysed
+    track = read_track(folder / "track.bin")
+    assert track.header["fps"] == 100 and track.names == ["jawOpen", "mouthFunnel"]
+    assert np.allclose(track.values, turn.weights)
+    assert record["frames_shown"] == 2 and record["frames_late"] == 1
+    assert record["latency_ms_max"] == pytest.approx(11.0)
+    assert json.loads((folder / "turn.json").read_text())["duration_s"] == 1.0
+    with pytest.raises(SessionError, match="never overwritten"):
+        turn.save(folder, clip_id="live__t", avatar_sha256="a" * 64, info={}, playout_ms=120)
+    assert next_turn_dir(session).name == "turn-002"
+
+
+def test_turns_become_a_protocol_s_stimuli(tmp_path) -> None:
+    for name in ("turn-001", "turn-002"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "turn.json").write_text("{}")
+        sf.write(tmp_path / name / "audio.wav", np.zeros(1600, np.float32), 16_000)
+    protocol = turns_protocol(KATO, [tmp_path / "turn-001", tmp_path / "turn-002"])
+    (sset,) = protocol.stimulus_sets
+    assert sset.id == "live" and [s.id for s in sset.stimuli] == ["turn-001", "turn-002"]
+    assert all(b.stimulus_set == "live" for b in protocol.blocks)
+    assert [c.id for c in protocol.conditions] == ["baseline", "standard", "emphasized"]
+    with pytest.raises(SessionError, match="not a recorded live turn"):
+        turns_protocol(KATO, [tmp_path])
+
+
+# --------------------------------------------------------------------------- the server
+
+
+def test_a_file_talker_streams_to_a_viewer_socket(tmp_path) -> None:
+    from starlette.testclient import TestClient
+
+    from facelab.experiment.live_dialogue.app import LiveConfig, LiveHub, create_live_app
+
+    wav = tmp_path / "talk.wav"
+    x = synthesize("はい。", sample_rate=16_000).samples
+    sf.write(wav, x, 16_000, subtype="FLOAT")
+    config = LiveConfig(protocol=load_protocol(KATO), protocol_path=KATO, condition="standard",
+                        session=tmp_path / "session", talker=wav)  # fmt: skip
+    config.session.mkdir()
+    hub = LiveHub.open(config)
+    audio, frames = {}, {}
+    with TestClient(create_live_app(hub)) as client:
+        assert client.get("/live.json").json()["names"] == list(hub.driver.names)
+        with client.websocket_connect("/ws/view") as ws:
+            assert "turn" in ws.receive_json()
+            while True:
+                msg = ws.receive()
+                if msg.get("text"):
+                    end = json.loads(msg["text"])["end"]
+                    break
+                data = msg["bytes"]
+                kind, start, count, width = np.frombuffer(data[:16], "<u4")
+                values = np.frombuffer(data[16:], "<f4").reshape(count, width)
+                (audio if kind == 1 else frames)[int(start)] = values
+            ws.send_text(json.dumps({"log": [[0.0, 0.05, 5, 5], [16.7, 0.066, 5, 6]]}))
+            for _ in range(200):
+                if hub.turns:
+                    break
+                time.sleep(0.05)
+    got = np.concatenate([audio[k].ravel() for k in sorted(audio)])
+    assert end == len(x) and np.allclose(got, x, atol=1e-7)
+    sent = np.vstack([frames[k] for k in sorted(frames)])
+    (record,) = hub.turns
+    track = read_track(Path(record["folder"]) / "track.bin")
+    assert np.array_equal(track.values, sent.astype(np.float32))  # recorded = what was sent
+    assert record["frames_shown"] == 2 and record["frames_late"] == 1
+
+
+def test_live_refuses_what_it_cannot_do(tmp_path, capsys) -> None:
+    assert main(["live", str(KATO), "--condition", "nope"]) == 2
+    assert "conditions are baseline, standard, emphasized" in capsys.readouterr().err
+    assert main(["live", str(KATO), "--condition", "standard", "--display", "window"]) == 2
+    assert "lab window cannot show a live avatar" in capsys.readouterr().err
+    proto = tmp_path / "p.yaml"
+    proto.write_text(KATO.read_text().replace("method: viseme_baseline", "method: text_visemes"))
+    assert main(["live", str(proto), "--condition", "baseline", "--session",
+                 str(tmp_path / "s")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "cannot run live" in err and "phoneme timing" in err and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------- in Chromium
+
+
+@pytest.mark.slow
+def test_a_simulated_live_turn_in_chromium(tmp_path) -> None:
+    """The talker's page captures a file through Chromium's fake microphone; the viewer's
+    page plays it and draws the face; the turn is recorded within the latency budget, its
+    track is the offline chain's on its audio, and it renders under two conditions."""
+    talk = tmp_path / "talk.wav"
+    spoken = synthesize("はい、わかりました。すぐに行きます。", sample_rate=24_000)
+    sf.write(talk, spoken.samples, 24_000, subtype="PCM_16")
+    out, shot = tmp_path / "live.json", tmp_path / "viewer.png"
+    code = main(["live", str(KATO), "--condition", "emphasized", "--simulate", str(talk),
+                 "--json", str(out), "--screenshot", str(shot), "--session",
+                 str(tmp_path / "session")])  # fmt: skip
+    assert code == 0
+    record = json.loads(out.read_text())
+    for key in ("latency_ms_median", "latency_ms_p95", "frames_shown", "frames_late",
+                "recording"):  # fmt: skip
+        assert key in record
+    assert record["frames_shown"] >= 8  # SwiftShader draws a 1280x720 face at ~5-10 fps
+    assert record["frames_late"] <= record["frames_shown"] // 4
+    assert record["within_budget"] is True, record
+    assert record["late_audio_chunks"] == 0
+    folder = Path(record["recording"])
+    audio, rate = sf.read(folder / "audio.wav", dtype="float32")
+    assert rate == 16_000 and abs(len(audio) / rate - spoken.duration_s) < 0.6
+    # the captured audio is the file's speech (Chromium resampled it): same envelope
+    ref = synthesize("はい、わかりました。すぐに行きます。", sample_rate=16_000).samples
+    env = lambda s: np.convolve(np.abs(s), np.ones(160) / 160, "same")[::160]  # noqa: E731
+    a, b = env(audio), env(ref)
+    n = min(len(a), len(b))
+    best = max(np.corrcoef(a[lag:n], b[: n - lag])[0, 1] for lag in range(0, 40))
+    assert best > 0.8
+    # the track shown is the offline chain on the recorded audio
+    protocol = load_protocol(KATO)
+    avatar = load_avatar(protocol, base_dir=KATO.parent)
+    track = read_track(folder / "track.bin")
+    cond = protocol.condition("emphasized")
+    ref_frames = offline_frames(audio.astype(np.float64), method=cond.method,
+                                params=cond.settings, avatar=avatar,
+                                names=tuple(track.names), base_dir=KATO.parent)  # fmt: skip
+    assert track.values.shape == ref_frames.shape
+    assert np.abs(track.values - ref_frames).max() < 1e-5
+    # the viewer's still: the canvas at the offline size, drawn at a frame with the mouth moved
+    from PIL import Image
+
+    assert Image.open(shot).size == (1280, 720)
+    assert record["screenshot_frame"]["peak"] >= 0.25
+    # the recorded turn rendered under two conditions
+    clips = tmp_path / "clips"
+    assert main(["render", str(KATO), "--turn", str(folder), "--out", str(clips),
+                 "--size", "320x180", "--quiet"]) == 0  # fmt: skip
+    rows = read_manifest(clips)
+    assert {r["condition"] for r in rows} == {"baseline", "standard", "emphasized"}
+    assert {r["stimulus"] for r in rows} == {folder.name}
+    with pytest.raises(FacelabError):
+        turns_protocol(KATO, [tmp_path / "nowhere"])
