@@ -9,7 +9,8 @@ Pages and sockets (same origin, one talker at a time, any number of viewers)::
     GET  /turns       the turns recorded so far (their turn.json)
     WS   /ws/talk     talker -> server: {"sample_rate": 16000}, then float32 chunks, {"end": 1}
     WS   /ws/view     server -> viewer: binary messages (below); viewer -> server at the end of
-                      a turn: {"log": [[page_ms, heard_s, frame, wanted], ...]}
+                      a turn: {"log": [[page_ms, heard_s, frame, wanted], ...],
+                      "arrivals": [[first frame, s of audio playing when it arrived], ...]}
 
 A binary message is four little-endian uint32 - kind (1 audio, 2 frames), start (sample or
 frame index), count, width (1, or the number of channels) - then count x width float32. A
@@ -83,6 +84,7 @@ class LiveHub:
     driver: Any = None
     turns: list[dict[str, Any]] = field(default_factory=list)
     logs: dict[int, list] = field(default_factory=dict)
+    arrivals: dict[int, list] = field(default_factory=dict)
     _next_viewer: int = 1
     busy: bool = False
 
@@ -161,7 +163,7 @@ class LiveHub:
         self.busy = True
         driver = self.new_driver()
         self.turn = Turn(sample_rate=LIVE_RATE, names=driver.names)
-        self.logs = {}
+        self.logs, self.arrivals = {}, {}
         self.turn_started = time.time()
         await self.broadcast(json.dumps({"turn": len(self.turns) + 1}))
 
@@ -190,7 +192,7 @@ class LiveHub:
             waiting &= set(self.viewers) | set(self.logs)
             await asyncio.sleep(0.05)
         for vid, log in sorted(self.logs.items()):
-            turn.add_viewer_log(vid, log)
+            turn.add_viewer_log(vid, log, arrivals=self.arrivals.get(vid, []))
         self.turn = None
         self.busy = False
         if not len(turn.samples):
@@ -299,6 +301,9 @@ def create_live_app(hub: LiveHub):
                 except ValueError:
                     continue
                 if isinstance(msg, dict) and isinstance(msg.get("log"), list):
+                    arrivals = msg.get("arrivals") if isinstance(msg.get("arrivals"), list) else []
+                    hub.arrivals[vid] = [row for row in arrivals[:200_000]
+                                         if isinstance(row, list) and len(row) == 2]  # fmt: skip
                     hub.logs[vid] = [row for row in msg["log"][:200_000]
                                      if isinstance(row, list) and len(row) == 4]  # fmt: skip
         except WebSocketDisconnect:

@@ -72,13 +72,21 @@ def next_turn_dir(session: Path) -> Path:
 
 
 def latency_summary(
-    rows: list[dict[str, Any]], *, n_frames: int, fps: int = 100, playout_ms: float = 0.0
+    rows: list[dict[str, Any]],
+    *,
+    n_frames: int,
+    fps: int = 100,
+    playout_ms: float = 0.0,
+    margins_ms: list[float] = (),
 ) -> dict[str, Any]:
     """The turn's figures from the viewers' frame rows (:data:`FRAME_COLUMNS`): drawn
     frames while the talker's audio was heard (0 <= heard_s < n_frames / fps), how many
     showed an older frame than the sound wanted (late: the frame had not arrived), the mouth's
     lag behind the sound (median, 95th percentile, largest), its largest lead, and whether
-    both are within the budget."""
+    both are within the budget. ``margins_ms``: how long before it was due each frames
+    message arrived; the smallest says how much shorter the playout delay could have been
+    (``playout_ms_needed``: the delay at which the latest message would just have been in
+    time)."""
     end = n_frames / fps
     during = [r for r in rows if 0.0 <= float(r["heard_s"]) < end]
     lat = np.array([float(r["latency_ms"]) for r in during])
@@ -91,6 +99,11 @@ def latency_summary(
         "ahead_ms_max": None,
         "frame_interval_ms_median": None,
         "playout_ms": round(float(playout_ms), 1),
+        "frame_margin_ms_min": round(min(margins_ms), 1) if len(margins_ms) else None,
+        "frame_margin_ms_median": round(float(np.median(margins_ms)), 1)
+        if len(margins_ms) else None,
+        "playout_ms_needed": round(float(playout_ms) - min(margins_ms), 1)
+        if len(margins_ms) else None,
         "budget": {
             "behind_ms_p95": BUDGET_BEHIND_MS,
             "ahead_ms_max": BUDGET_AHEAD_MS,
@@ -126,6 +139,8 @@ class Turn:
     audio: list[np.ndarray] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)
     rows: list[dict[str, Any]] = field(default_factory=list)
+    #: per frames message a viewer got: how long before its first frame was due it arrived, ms
+    margins_ms: list[float] = field(default_factory=list)
 
     def add_audio(self, chunk: np.ndarray) -> None:
         self.audio.append(np.asarray(chunk, np.float32).ravel())
@@ -134,8 +149,14 @@ class Turn:
         if len(weights):
             self.frames.append(np.asarray(weights, np.float32))
 
-    def add_viewer_log(self, viewer: int, log: list[list[float]]) -> None:
-        """A viewer's drawn frames, each ``[page_ms, heard_s, frame, wanted]``."""
+    def add_viewer_log(
+        self, viewer: int, log: list[list[float]], *, arrivals: list[list[float]] = ()
+    ) -> None:
+        """A viewer's drawn frames, each ``[page_ms, heard_s, frame, wanted]``, and when its
+        frame messages arrived, each ``[first frame, audio time then playing (s)]``."""
+        for frame, at in arrivals:
+            if math.isfinite(float(frame)) and math.isfinite(float(at)):
+                self.margins_ms.append(round((int(frame) / self.fps - float(at)) * 1000, 2))
         for page_ms, heard_s, frame, wanted in log:
             if not all(math.isfinite(float(v)) for v in (page_ms, heard_s, frame, wanted)):
                 continue
@@ -168,7 +189,7 @@ class Turn:
             raise SessionError(f"{folder} exists already: a recorded turn is never overwritten")
         weights = self.weights
         summary = latency_summary(self.rows, n_frames=len(weights), fps=self.fps,
-                                  playout_ms=playout_ms)  # fmt: skip
+                                  playout_ms=playout_ms, margins_ms=self.margins_ms)  # fmt: skip
         record = {
             **info,
             "turn": folder.name,

@@ -110,6 +110,7 @@ async function viewer() {
   const K = cfg.names.length, ctx = stage.audio;
   const channels = cfg.names.map((name) => ({ name, kind: "blendshape" }));
   let values = new Float32Array(K * 1024), have = -1, t0 = null, endS = null, log = [], sent = true;
+  let arrivals = [];  // [first frame, audio context time it arrived] per frames message
   api.lateAudio = 0; api.turns = 0;
   const frameTrack = { header: { channels }, channels: K, values: null };
 
@@ -133,7 +134,8 @@ async function viewer() {
     if (typeof e.data === "string") {
       const msg = JSON.parse(e.data);
       if ("turn" in msg) {  // a new turn: forget the last one's frames and clock
-        have = -1; t0 = null; endS = null; log = []; sent = false; api.state = "turn"; api.turns += 1;
+        have = -1; t0 = null; endS = null; log = []; arrivals = []; sent = false;
+        api.state = "turn"; api.turns += 1;
         status.textContent = "";
       }
       if ("end" in msg) endS = msg.end / cfg.sample_rate;
@@ -156,6 +158,7 @@ async function viewer() {
       if (need > values.length) { const v = new Float32Array(Math.max(need, 2 * values.length)); v.set(values); values = v; }
       values.set(data, start * K);
       have = Math.max(have, start + count - 1);
+      if (t0 !== null && arrivals.length < MAX_LOG) arrivals.push([start, ctx.currentTime - t0]);
     }
   };
 
@@ -177,7 +180,7 @@ async function viewer() {
     if (!sent && log.length < MAX_LOG) log.push([time, heard, k, wanted]);
     if (!sent && endS !== null && heard > endS + 0.2) {
       sent = true;
-      ws.send(JSON.stringify({ log }));
+      ws.send(JSON.stringify({ log, arrivals }));
       api.state = "done"; api.lastLog = log.length;
     }
   };
