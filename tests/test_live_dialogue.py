@@ -52,9 +52,9 @@ def kato():
     return protocol, load_avatar(protocol, base_dir=KATO.parent)
 
 
-def offline_frames(samples, *, method, params, avatar, names, base_dir):
-    """The offline chain on the same samples: analyse at warp 1, compensate, drive."""
-    track = analyze(samples, sample_rate=16_000, warp=1.0).compensated()
+def offline_frames(samples, *, method, params, avatar, names, base_dir, warp=1.0):
+    """The offline chain on the same samples: analyse at ``warp``, compensate, drive."""
+    track = analyze(samples, sample_rate=16_000, warp=warp).compensated()
     out = get(method).drive_on(avatar, DriveInput(track=track, base_dir=base_dir), params)
     return np.clip(_columns(out, names), 0, 1)
 
@@ -78,7 +78,7 @@ def test_streamed_frames_are_the_offline_frames(kato, speech, condition) -> None
     protocol, avatar = kato
     cond = protocol.condition(condition)
     driver = LiveDriver(method_name=cond.method, params=cond.settings, avatar=avatar,
-                        sample_rate=16_000, base_dir=KATO.parent)  # fmt: skip
+                        sample_rate=16_000, base_dir=KATO.parent, warp=1.0)  # fmt: skip
     live = stream(driver, speech.samples, seed=3)
     ref = offline_frames(speech.samples, method=cond.method, params=cond.settings,
                          avatar=avatar, names=driver.names, base_dir=KATO.parent)  # fmt: skip
@@ -95,12 +95,39 @@ def test_a_vrm_with_vowel_presets_runs_live_through_its_stand_in(tmp_path, speec
     avatar = load(write_sample(tmp_path / "v.vrm", kind="vrm1", vroid=True))
     params = METHODS["vowel_blend"].parse({"z": "standard"})
     driver = LiveDriver(method_name="vowel_blend", params=params, avatar=avatar,
-                        sample_rate=16_000)  # fmt: skip
+                        sample_rate=16_000, warp=1.0)  # fmt: skip
     assert set(driver.names) <= set(avatar.targets)
     live = stream(driver, speech.samples, seed=5)
     ref = offline_frames(speech.samples, method="vowel_blend", params=params, avatar=avatar,
                          names=driver.names, base_dir=Path("."))  # fmt: skip
     assert np.abs(live - ref).max() < 1e-9 and live.max() > 0.2
+
+
+def test_the_live_warp_follows_a_longer_vocal_tract(kato) -> None:
+    """Speech read at 0.8 of its rate (formants 20 % lower, as a longer vocal tract): the
+    live analysis moves its mel-filter warp below 0.9 within the first second, and after its
+    last change its frames are the offline analysis at that warp."""
+    from facelab.stimuli.speech.audio import resample
+    from facelab.stimuli.speech.training import corpus
+
+    protocol, avatar = kato
+    _, held = corpus()
+    x = np.concatenate([synthesize(t, sample_rate=16_000).samples for t in held[:2]])
+    low = resample(x.astype(np.float32), rate_in=16_000, rate_out=20_000).astype(np.float64)
+    cond = protocol.condition("standard")
+    driver = LiveDriver(method_name=cond.method, params=cond.settings, avatar=avatar,
+                        sample_rate=16_000, base_dir=KATO.parent)  # fmt: skip
+    live = stream(driver, low, seed=9)
+    changes = driver.stream.warps
+    assert changes[0] == (0, 1.0) and len(changes) >= 2
+    assert changes[1][0] <= 16_500 and changes[1][1] < 0.9, changes  # ~1 s (+ a chunk)
+    at, warp = changes[-1]
+    track = analyze(low, sample_rate=16_000, warp=warp).compensated()
+    out = get(cond.method).drive_on(avatar, DriveInput(track=track, base_dir=KATO.parent),
+                                    cond.settings)  # fmt: skip
+    ref = np.clip(_columns(out, driver.names), 0, 1)
+    after = at // 160 + 1  # frames whose analysis and next frame both come after the change
+    assert np.abs(live[after:] - ref[after:]).max() < 1e-9
 
 
 def test_methods_that_cannot_run_live_say_why(kato) -> None:
@@ -178,11 +205,15 @@ def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
     turn.add_audio(audio[8000:])
     turn.add_frames(rng.uniform(0, 1, (60, 2)))
     turn.add_frames(rng.uniform(0, 1, (40, 2)))
-    turn.add_viewer_log(1, [[10.0, 0.105, 10, 10], [26.7, 0.121, 11, 12], [30, float("nan"), 0, 0]])
-    folder = next_turn_dir(session)
-    assert folder.name == "turn-001"
-    record = turn.save(folder, clip_id="live__t", avatar_sha256="a" * 64, info={"x": 1},
-                       playout_ms=120)  # fmt: skip
+    # the page's own 'wanted' (last column) is not trusted: computed from heard_s
+    turn.add_viewer_log(1, [[10.0, 0.105, 10, 99], [26.7, 0.121, 11, 0]],
+                        arrivals=[[12, 0.02], [30, 0.29]])  # fmt: skip
+    assert next_turn_dir(session).name == "turn-001"
+    (session / ".turn-crashed").mkdir()  # a save that died half-way: not a turn
+    record = turn.save_new(session, condition="c", avatar_sha256="a" * 64, info={"x": 1},
+                           playout_ms=120)  # fmt: skip
+    folder = Path(record["folder"])
+    assert folder.name == "turn-001" and record["turn"] == "turn-001"
     assert sorted(p.name for p in folder.iterdir()) == [
         "audio.wav", "frames.csv", "track.bin", "turn.json"]  # fmt: skip
     saved, rate = sf.read(folder / "audio.wav", dtype="float32")
@@ -192,10 +223,14 @@ def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
     assert np.allclose(track.values, turn.weights)
     assert record["frames_shown"] == 2 and record["frames_late"] == 1
     assert record["latency_ms_max"] == pytest.approx(11.0)
+    assert record["frame_margin_ms_min"] == pytest.approx(10.0)  # frame 30 due 0.30, at 0.29
+    assert record["playout_ms_needed"] == pytest.approx(110.0)
     assert json.loads((folder / "turn.json").read_text())["duration_s"] == 1.0
-    with pytest.raises(SessionError, match="never overwritten"):
-        turn.save(folder, clip_id="live__t", avatar_sha256="a" * 64, info={}, playout_ms=120)
-    assert next_turn_dir(session).name == "turn-002"
+    first = {p.name: p.read_bytes() for p in folder.iterdir()}
+    again = turn.save_new(session, condition="c", avatar_sha256="a" * 64, info={},
+                          playout_ms=120)  # fmt: skip
+    assert Path(again["folder"]).name == "turn-002"  # the first turn is untouched
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == first
 
 
 def test_turns_become_a_protocol_s_stimuli(tmp_path) -> None:
@@ -255,11 +290,64 @@ def test_a_file_talker_streams_to_a_viewer_socket(tmp_path) -> None:
     assert record["frames_shown"] == 2 and record["frames_late"] == 1
 
 
+def test_a_microphone_talker_over_its_socket(tmp_path) -> None:
+    """The /talk socket: a turn starts at 16 kHz, bad messages are ignored (not-an-object
+    JSON, NaN samples become silence, a viewer's malformed log), a second talker is refused
+    in words, and a talker that disconnects without 'end' still gets its turn saved."""
+    from starlette.testclient import TestClient
+
+    from facelab.experiment.live_dialogue.app import LiveConfig, LiveHub, create_live_app
+
+    config = LiveConfig(protocol=load_protocol(KATO), protocol_path=KATO, condition="baseline",
+                        session=tmp_path / "session")  # fmt: skip
+    hub = LiveHub.open(config)
+    x = synthesize("はい。", sample_rate=16_000).samples.astype(np.float32)
+    x[800:810] = np.nan
+    with TestClient(create_live_app(hub)) as client, \
+            client.websocket_connect("/ws/view") as viewer:  # fmt: skip
+        with client.websocket_connect("/ws/talk") as talker:
+            talker.send_text("[1, 2]")
+            talker.send_text(json.dumps({"sample_rate": 44_100}))
+            assert "16000 Hz" in talker.receive_json()["error"]
+            talker.send_text(json.dumps({"sample_rate": 16_000}))
+            assert talker.receive_json() == {"started": True}
+            assert "turn" in viewer.receive_json()
+            with client.websocket_connect("/ws/talk") as second:
+                second.send_text(json.dumps({"sample_rate": 16_000}))
+                assert "another talker" in second.receive_json()["error"]
+            for k in range(0, len(x), 160):
+                talker.send_bytes(x[k : k + 160].tobytes())
+        # the talker left without 'end': the turn ends; the viewer's log has junk in it
+        while True:
+            msg = viewer.receive()
+            if msg.get("text") and "end" in json.loads(msg["text"]):
+                break
+        viewer.send_text(json.dumps({"log": [["x", 1, 2, 3], [1.0, 0.05, 5, 5], None],
+                                     "arrivals": "no"}))  # fmt: skip
+        for _ in range(200):
+            if hub.turns:
+                break
+            time.sleep(0.05)
+    (record,) = hub.turns
+    assert not hub.busy and record["frames_shown"] == 1
+    audio, _ = sf.read(Path(record["folder"]) / "audio.wav", dtype="float32")
+    assert len(audio) == len(x) and np.all(audio[800:810] == 0)  # silence, timing kept
+    assert np.array_equal(audio[:800], x[:800])
+
+
 def test_live_refuses_what_it_cannot_do(tmp_path, capsys) -> None:
     assert main(["live", str(KATO), "--condition", "nope"]) == 2
     assert "conditions are baseline, standard, emphasized" in capsys.readouterr().err
     assert main(["live", str(KATO), "--condition", "standard", "--display", "window"]) == 2
     assert "lab window cannot show a live avatar" in capsys.readouterr().err
+    assert main(["live", str(KATO), "--condition", "standard", "--json", "x.json"]) == 2
+    assert "--json goes with --simulate" in capsys.readouterr().err
+    bad = tmp_path / "bad.wav"
+    bad.write_bytes(b"RIFF0000WAVEjunk")
+    assert main(["live", str(KATO), "--condition", "standard", "--input", str(bad),
+                 "--session", str(tmp_path / "never")]) == 2  # fmt: skip
+    assert "bad.wav" in capsys.readouterr().err
+    assert not (tmp_path / "never").exists()  # nothing made for a session that cannot run
     proto = tmp_path / "p.yaml"
     proto.write_text(KATO.read_text().replace("method: viseme_baseline", "method: text_visemes"))
     assert main(["live", str(proto), "--condition", "baseline", "--session",
@@ -280,9 +368,11 @@ def test_a_simulated_live_turn_in_chromium(tmp_path) -> None:
     spoken = synthesize("はい、わかりました。すぐに行きます。", sample_rate=24_000)
     sf.write(talk, spoken.samples, 24_000, subtype="PCM_16")
     out, shot = tmp_path / "live.json", tmp_path / "viewer.png"
+    # a playout long enough for a machine loaded by the rest of the suite (the default 120 ms
+    # is what `facelab live` measures by itself; the test asserts the mechanism, not speed)
     code = main(["live", str(KATO), "--condition", "emphasized", "--simulate", str(talk),
                  "--json", str(out), "--screenshot", str(shot), "--session",
-                 str(tmp_path / "session")])  # fmt: skip
+                 str(tmp_path / "session"), "--playout-ms", "400"])  # fmt: skip
     assert code == 0
     record = json.loads(out.read_text())
     for key in ("latency_ms_median", "latency_ms_p95", "frames_shown", "frames_late",
@@ -291,7 +381,7 @@ def test_a_simulated_live_turn_in_chromium(tmp_path) -> None:
     assert record["frames_shown"] >= 8  # SwiftShader draws a 1280x720 face at ~5-10 fps
     assert record["frames_late"] <= record["frames_shown"] // 4
     assert record["within_budget"] is True, record
-    assert record["late_audio_chunks"] == 0
+    assert record["audio_chunks_late"] == 0
     folder = Path(record["recording"])
     audio, rate = sf.read(folder / "audio.wav", dtype="float32")
     assert rate == 16_000 and abs(len(audio) / rate - spoken.duration_s) < 0.6
@@ -302,16 +392,28 @@ def test_a_simulated_live_turn_in_chromium(tmp_path) -> None:
     n = min(len(a), len(b))
     best = max(np.corrcoef(a[lag:n], b[: n - lag])[0, 1] for lag in range(0, 40))
     assert best > 0.8
-    # the track shown is the offline chain on the recorded audio
+    # the track shown is the offline chain on the recorded audio, at the warp the live
+    # analysis had reached: each stretch between two warp changes is that warp's analysis
     protocol = load_protocol(KATO)
     avatar = load_avatar(protocol, base_dir=KATO.parent)
     track = read_track(folder / "track.bin")
     cond = protocol.condition("emphasized")
-    ref_frames = offline_frames(audio.astype(np.float64), method=cond.method,
-                                params=cond.settings, avatar=avatar,
-                                names=tuple(track.names), base_dir=KATO.parent)  # fmt: skip
-    assert track.values.shape == ref_frames.shape
-    assert np.abs(track.values - ref_frames).max() < 1e-5
+    changes = record["analysis_warps"]
+    assert changes[0] == [0.0, 1.0]
+    # a change after n samples: frames up to about n/160 - 3 were made at the old warp, the
+    # next one mixes the two (the lag compensation's next frame), later ones the new warp
+    ends = [round(at * 100) - 3 for at, _ in changes[1:]] + [len(track.values)]
+    checked = 0
+    for (at, warp), stop in zip(changes, ends, strict=True):
+        start = 0 if at == 0 else round(at * 100) - 1
+        ref = offline_frames(audio.astype(np.float64), method=cond.method,
+                             params=cond.settings, avatar=avatar, names=tuple(track.names),
+                             base_dir=KATO.parent, warp=warp)  # fmt: skip
+        assert ref.shape == track.values.shape
+        if stop > start:
+            assert np.abs(track.values[start:stop] - ref[start:stop]).max() < 1e-5, (at, warp)
+            checked += stop - start
+    assert checked > 0.9 * len(track.values)
     # the viewer's still: the canvas at the offline size, drawn at a frame with the mouth moved
     from PIL import Image
 

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, output_file, real, whole
+from facelab.experiment.cli.common import AddCommand, output_file, real, whole
 
 
 def _config(args: argparse.Namespace):
@@ -29,10 +29,9 @@ def _config(args: argparse.Namespace):
         talker = Path(args.input)
         if not talker.is_file():
             raise FacelabError(f"--input {talker}: no such audio file (or give 'mic')")
-    session = output_dir(
-        args.session or Path("results") / protocol.study.id / "live" / args.condition,
-        option="--session",
-    )
+    session = Path(args.session or Path("results") / protocol.study.id / "live" / args.condition)
+    if session.exists() and not session.is_dir():
+        raise FacelabError(f"--session {session}: is a file, not a folder")
     return LiveConfig(
         protocol=protocol, protocol_path=Path(args.protocol), condition=args.condition,
         session=session, talker=talker, display=args.display, playout_ms=args.playout_ms,
@@ -40,6 +39,10 @@ def _config(args: argparse.Namespace):
 
 
 def _cmd_live(args: argparse.Namespace) -> int:
+    for option, value in (("--json", args.json), ("--screenshot", args.screenshot)):
+        if value and not args.simulate:
+            raise FacelabError(f"{option} goes with --simulate FILE.wav (a served session "
+                               "records each turn's figures in its turn.json)")  # fmt: skip
     if args.simulate:
         from facelab.experiment.live_dialogue.simulate import simulate_live
 

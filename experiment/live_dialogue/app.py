@@ -26,8 +26,11 @@ time once a viewer is connected.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
+import math
 import struct
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,11 +40,13 @@ import numpy as np
 from fastapi import FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
-from facelab.errors import SessionError
-from facelab.experiment.live_dialogue.turn import Turn, next_turn_dir
+from facelab.errors import FacelabError, SessionError
+from facelab.experiment.live_dialogue.turn import Turn
 from facelab.experiment.online.middleware import IMPORT_MAP
 from facelab.experiment.online.server import THREE_FILES, WEB
 from facelab.protocol import Protocol
+from facelab.stimuli.avatar.mesh import Avatar
+from facelab.stimuli.methods.live_drive import LIVE_FPS, LiveDriver
 
 __all__ = ["LIVE_RATE", "LiveConfig", "LiveHub", "create_live_app"]
 
@@ -74,28 +79,39 @@ class LiveConfig:
 
 @dataclass
 class LiveHub:
-    """The running state: the scene, the viewers' sockets, the turn being recorded."""
+    """The running state: the scene, the viewers' sockets, the turn being recorded. One
+    event loop drives it (the server's); a turn's save runs in a thread, one at a time."""
 
     config: LiveConfig
-    scene: Any = None  # experiment.online.live.LiveScene-like: avatar_glb, avatar_name, camera
-    avatar: Any = None
-    viewers: dict[int, Any] = field(default_factory=dict)
+    avatar: Avatar
+    scene: dict[str, Any]  # glb (bytes), name, camera, avatar_sha256
+    driver: LiveDriver | None = None
+    viewers: dict[int, WebSocket] = field(default_factory=dict)
     turn: Turn | None = None
-    driver: Any = None
     turns: list[dict[str, Any]] = field(default_factory=list)
+    #: the viewers that were sent this turn's start: the end of the turn waits for their logs
+    turn_viewers: set[int] = field(default_factory=set)
     logs: dict[int, list] = field(default_factory=dict)
     arrivals: dict[int, list] = field(default_factory=dict)
-    _next_viewer: int = 1
+    late_audio: dict[int, int] = field(default_factory=dict)  # chunks a viewer got too late
+    turn_started: float = 0.0
     busy: bool = False
+    #: the warp the last turn's analysis settled on: the same talker's next turn starts there
+    last_warp: float = 1.0
+    talker_audio: np.ndarray | None = None  # a file talker's samples at LIVE_RATE
+    stream_task: asyncio.Task | None = None
+    problems: list[str] = field(default_factory=list)  # what went wrong, said to the operator
+    next_viewer: int = 1
+    saving: asyncio.Lock = field(default_factory=asyncio.Lock)  # one save at a time
 
     @classmethod
     def open(cls, config: LiveConfig) -> LiveHub:
-        """Load the avatar and check that the condition's method can run live (SessionError
-        naming it otherwise)."""
-        from facelab.errors import FacelabError
+        """Load the avatar (and a file talker's audio) and check that the condition's method
+        can run live: SessionError naming what cannot."""
         from facelab.stimuli.avatar.gltf import live_glb
         from facelab.stimuli.methods.live_drive import live_problem
         from facelab.stimuli.render.scene import camera_json, load_avatar, settings_for
+        from facelab.stimuli.speech.audio import load_audio
 
         protocol, base = config.protocol, config.protocol_path.parent
         cond = protocol.condition(config.condition)
@@ -104,28 +120,27 @@ class LiveHub:
         if problem is not None:
             raise SessionError(f"condition {config.condition!r}: {problem}")
         glb = live_glb(avatar)
-        import hashlib
-
-        hub = cls(config=config, avatar=avatar)
-        hub.scene = {
+        scene = {
             "glb": glb,
             "name": hashlib.sha256(glb).hexdigest() + ".glb",
             "camera": camera_json(avatar, settings_for(protocol)),
             "avatar_sha256": avatar.content_hash(),
         }
+        hub = cls(config=config, avatar=avatar, scene=scene)
         try:
             hub.new_driver()
+            if config.talker != "mic":
+                hub.talker_audio = load_audio(Path(config.talker), sample_rate=LIVE_RATE).samples
         except FacelabError as exc:
             raise SessionError(f"condition {config.condition!r}: {exc}") from None
         return hub
 
-    def new_driver(self):
-        from facelab.stimuli.methods.live_drive import LiveDriver
-
+    def new_driver(self) -> LiveDriver:
         cond = self.config.protocol.condition(self.config.condition)
         self.driver = LiveDriver(
             method_name=cond.method, params=cond.settings, avatar=self.avatar,
             sample_rate=LIVE_RATE, base_dir=self.config.protocol_path.parent,
+            start_warp=self.last_warp,
         )  # fmt: skip
         return self.driver
 
@@ -134,7 +149,7 @@ class LiveHub:
         return {
             "scene": {"avatar": "/avatar/" + self.scene["name"], "camera": self.scene["camera"]},
             "names": list(self.driver.names),
-            "fps": 100,
+            "fps": LIVE_FPS,
             "sample_rate": LIVE_RATE,
             "chunk": CHUNK,
             "playout_ms": self.config.playout_ms,
@@ -145,10 +160,28 @@ class LiveHub:
             "vr": p.presentation.vr.model_dump(),
         }
 
-    # -- a turn
+    # -- viewers
 
-    async def broadcast(self, message: bytes | str) -> None:
+    def add_viewer(self, ws: WebSocket) -> int:
+        vid = self.next_viewer
+        self.next_viewer += 1
+        self.viewers[vid] = ws
+        return vid
+
+    def viewer_log(self, vid: int, msg: Any) -> None:
+        """A viewer's end-of-turn message: its drawn frames and frame arrivals, kept only as
+        finite numbers (anything else in them is dropped)."""
+        if not isinstance(msg, dict) or vid not in self.turn_viewers:
+            return
+        self.logs[vid] = _numeric_rows(msg.get("log"), width=4)
+        self.arrivals[vid] = _numeric_rows(msg.get("arrivals"), width=2)
+        late = msg.get("late_audio")
+        self.late_audio[vid] = int(late) if isinstance(late, int) and late >= 0 else 0
+
+    async def broadcast(self, message: bytes | str, *, to: set[int] | None = None) -> None:
         for vid, ws in list(self.viewers.items()):
+            if to is not None and vid not in to:
+                continue
             try:
                 if isinstance(message, bytes):
                     await ws.send_bytes(message)
@@ -157,52 +190,65 @@ class LiveHub:
             except Exception:  # a viewer gone mid-turn: the others go on
                 self.viewers.pop(vid, None)
 
+    async def join_turn(self, vid: int) -> None:
+        """A viewer connecting while a turn runs: it gets the turn's start (and is waited for
+        at its end); it hears the talker from the next chunk on."""
+        if self.turn is not None and vid not in self.turn_viewers:
+            self.turn_viewers.add(vid)
+            await self.broadcast(json.dumps({"turn": len(self.turns) + 1}), to={vid})
+
+    # -- a turn
+
     async def start_turn(self) -> None:
+        """SessionError when a turn is being recorded already (one talker at a time)."""
         if self.busy:
-            raise SessionError("a turn is being recorded already (one talker at a time)")
-        self.busy = True
+            raise SessionError("another talker is speaking (one talker at a time)")
         driver = self.new_driver()
+        self.busy = True
         self.turn = Turn(sample_rate=LIVE_RATE, names=driver.names)
-        self.logs, self.arrivals = {}, {}
+        self.logs, self.arrivals, self.late_audio = {}, {}, {}
         self.turn_started = time.time()
+        self.turn_viewers = set(self.viewers)
         await self.broadcast(json.dumps({"turn": len(self.turns) + 1}))
 
     async def audio(self, chunk: np.ndarray) -> None:
+        """Relay a talker's chunk to the viewers at once, then analyse it (in a thread, so the
+        server keeps relaying while the analysis runs) and send the frames it completes."""
         turn, driver = self.turn, self.driver
         start = driver.samples_in
-        frames = driver.feed(chunk)
         turn.add_audio(chunk)
-        await self.broadcast(pack(AUDIO, start, chunk))
+        await self.broadcast(pack(AUDIO, start, chunk), to=self.turn_viewers)
+        frames = await asyncio.to_thread(driver.feed, chunk)
         if len(frames):
             turn.add_frames(frames.weights)
-            await self.broadcast(pack(FRAMES, frames.start, frames.weights))
+            await self.broadcast(pack(FRAMES, frames.start, frames.weights), to=self.turn_viewers)
 
     async def end_turn(self) -> dict[str, Any] | None:
+        """Flush the analysis, collect the viewers' logs and save the turn (None when it had
+        no audio). The hub is free for the next talker whatever happens; a turn that cannot
+        be saved is said in ``problems`` and raised."""
         turn, driver = self.turn, self.driver
         if turn is None:
             return None
-        frames = driver.flush()
-        if len(frames):
-            turn.add_frames(frames.weights)
-            await self.broadcast(pack(FRAMES, frames.start, frames.weights))
-        waiting = set(self.viewers)
-        await self.broadcast(json.dumps({"end": driver.samples_in}))
-        deadline = time.monotonic() + VIEWER_LOG_WAIT_S
-        while waiting - set(self.logs) and time.monotonic() < deadline:
-            waiting &= set(self.viewers) | set(self.logs)
-            await asyncio.sleep(0.05)
-        for vid, log in sorted(self.logs.items()):
-            turn.add_viewer_log(vid, log, arrivals=self.arrivals.get(vid, []))
-        self.turn = None
-        self.busy = False
-        if not len(turn.samples):
-            return None
-        cond = self.config.protocol.condition(self.config.condition)
-        folder = next_turn_dir(self.config.session)
-        record = await asyncio.to_thread(
-            turn.save, folder, clip_id=f"live__{folder.name}__{self.config.condition}",
-            avatar_sha256=self.scene["avatar_sha256"], playout_ms=self.config.playout_ms,
-            info={
+        try:
+            frames = driver.flush()
+            self.last_warp = driver.stream.warp
+            if len(frames):
+                turn.add_frames(frames.weights)
+                await self.broadcast(pack(FRAMES, frames.start, frames.weights),
+                                     to=self.turn_viewers)  # fmt: skip
+            await self.broadcast(json.dumps({"end": driver.samples_in}), to=self.turn_viewers)
+            deadline = time.monotonic() + VIEWER_LOG_WAIT_S
+            while time.monotonic() < deadline and (
+                (self.turn_viewers & set(self.viewers)) - set(self.logs)
+            ):
+                await asyncio.sleep(0.05)
+            for vid, log in sorted(self.logs.items()):
+                turn.add_viewer_log(vid, log, arrivals=self.arrivals.get(vid, []))
+            if not len(turn.samples):
+                return None
+            cond = self.config.protocol.condition(self.config.condition)
+            info = {
                 "protocol": str(self.config.protocol_path),
                 "study": self.config.protocol.study.id,
                 "condition": self.config.condition,
@@ -211,26 +257,63 @@ class LiveHub:
                 "talker": "microphone (browser page)" if self.config.talker == "mic"
                 else str(self.config.talker),
                 "analysis_latency_ms": round(driver.latency_s * 1000, 1),
+                "analysis_warps": [[round(n / LIVE_RATE, 3), w]
+                                   for n, w in getattr(driver.stream, "warps", ())],
                 "behaviour": "not run live (the mouth only: the condition's method)",
-            },
-        )  # fmt: skip
-        record["folder"] = str(folder)
-        self.turns.append(record)
-        return record
+                "audio_chunks_late": sum(self.late_audio.values()),
+            }  # fmt: skip
+            async with self.saving:
+                try:
+                    record = await asyncio.to_thread(
+                        turn.save_new, self.config.session, condition=self.config.condition,
+                        avatar_sha256=self.scene["avatar_sha256"],
+                        playout_ms=self.config.playout_ms, info=info,
+                    )  # fmt: skip
+                except (OSError, FacelabError) as exc:
+                    why = exc if isinstance(exc, FacelabError) else exc.strerror or "write error"
+                    self.problems.append(f"a turn could not be saved in "
+                                         f"{self.config.session}: {why}")  # fmt: skip
+                    raise SessionError(self.problems[-1]) from None
+            self.turns.append(record)
+            return record
+        finally:
+            self.turn = None
+            self.turn_viewers = set()
+            self.busy = False
 
-    async def stream_file(self, path: Path) -> None:
-        """Be the talker: stream ``path`` in real time, 10 ms a chunk."""
-        from facelab.stimuli.speech.audio import load_audio
+    def start_file_talker(self) -> None:
+        """Be the talker (``--input FILE``): the first time a viewer connects, stream the
+        file in real time, 10 ms a chunk."""
+        if self.stream_task is None and self.talker_audio is not None:
+            self.stream_task = asyncio.create_task(self._stream_file())
 
-        x = (await asyncio.to_thread(load_audio, path, sample_rate=LIVE_RATE)).samples
-        await self.start_turn()
-        t0 = time.monotonic()
-        for k in range(0, len(x), CHUNK):
-            await self.audio(x[k : k + CHUNK])
-            delay = t0 + (k + CHUNK) / LIVE_RATE - time.monotonic()
-            if delay > 0:
-                await asyncio.sleep(delay)
-        await self.end_turn()
+    async def _stream_file(self) -> None:
+        x = self.talker_audio
+        try:
+            await self.start_turn()
+            t0 = time.monotonic()
+            for k in range(0, len(x), CHUNK):
+                await self.audio(x[k : k + CHUNK])
+                delay = t0 + (k + CHUNK) / LIVE_RATE - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            await self.end_turn()
+        except FacelabError as exc:
+            self.problems.append(str(exc))
+            print(f"facelab live: {exc}", file=sys.stderr)
+
+
+def _numeric_rows(rows: Any, *, width: int, limit: int = 200_000) -> list[list[float]]:
+    """The rows of ``width`` finite numbers among ``rows`` (a client's JSON), at most
+    ``limit``."""
+    out: list[list[float]] = []
+    for row in rows[:limit] if isinstance(rows, list) else ():
+        if isinstance(row, list) and len(row) == width and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            for v in row
+        ):
+            out.append([float(v) for v in row])
+    return out
 
 
 def create_live_app(hub: LiveHub):
@@ -288,24 +371,18 @@ def create_live_app(hub: LiveHub):
     @app.websocket("/ws/view")
     async def view(ws: WebSocket) -> None:
         await ws.accept()
-        vid = hub._next_viewer
-        hub._next_viewer += 1
-        hub.viewers[vid] = ws
-        if hub.config.talker != "mic" and not hub.busy and not hub.turns:
-            hub.stream_task = asyncio.create_task(hub.stream_file(Path(hub.config.talker)))
+        vid = hub.add_viewer(ws)
+        await hub.join_turn(vid)
+        hub.start_file_talker()
         try:
             while True:
-                text = await ws.receive_text()
+                msg = await ws.receive()
+                if msg.get("type") == "websocket.disconnect":
+                    break
                 try:
-                    msg = json.loads(text)
+                    hub.viewer_log(vid, json.loads(msg.get("text") or ""))
                 except ValueError:
                     continue
-                if isinstance(msg, dict) and isinstance(msg.get("log"), list):
-                    arrivals = msg.get("arrivals") if isinstance(msg.get("arrivals"), list) else []
-                    hub.arrivals[vid] = [row for row in arrivals[:200_000]
-                                         if isinstance(row, list) and len(row) == 2]  # fmt: skip
-                    hub.logs[vid] = [row for row in msg["log"][:200_000]
-                                     if isinstance(row, list) and len(row) == 4]  # fmt: skip
         except WebSocketDisconnect:
             pass
         finally:
@@ -314,10 +391,13 @@ def create_live_app(hub: LiveHub):
     @app.websocket("/ws/talk")
     async def talk(ws: WebSocket) -> None:
         await ws.accept()
-        if hub.busy or hub.config.talker != "mic":
-            await ws.send_text(json.dumps({"error": "another talker is speaking"
-                                           if hub.busy else "this session's talker is a file"}))
+
+        async def refuse(why: str) -> None:
+            await ws.send_text(json.dumps({"error": why}))
             await ws.close()
+
+        if hub.config.talker != "mic":
+            await refuse("this session's talker is a file")
             return
         started = False
         try:
@@ -329,35 +409,42 @@ def create_live_app(hub: LiveHub):
                     data = msg["bytes"]
                     if not started or len(data) % 4 or len(data) > 4 * LIVE_RATE:
                         continue
-                    chunk = np.frombuffer(data, dtype="<f4").astype(np.float64)
-                    if np.all(np.isfinite(chunk)):
-                        await hub.audio(np.clip(chunk, -1.0, 1.0))
+                    # a sample that is not a number becomes silence: the timing is kept
+                    chunk = np.nan_to_num(np.frombuffer(data, dtype="<f4").astype(np.float64),
+                                          nan=0.0, posinf=0.0, neginf=0.0)  # fmt: skip
+                    await hub.audio(np.clip(chunk, -1.0, 1.0))
                     continue
                 try:
                     control = json.loads(msg.get("text") or "")
                 except ValueError:
                     continue
+                if not isinstance(control, dict):
+                    continue
                 if not started and control.get("sample_rate") == LIVE_RATE:
-                    await hub.start_turn()
+                    try:
+                        await hub.start_turn()
+                    except SessionError as exc:
+                        await refuse(str(exc))
+                        return
                     started = True
                     await ws.send_text(json.dumps({"started": True}))
                 elif started and control.get("end"):
                     break
                 elif not started:
                     await ws.send_text(json.dumps({"error": f"capture at {LIVE_RATE} Hz"}))
+        except WebSocketDisconnect:
+            pass
         finally:
-            if started:
-                record = await hub.end_turn()
+            if started:  # a talker gone without saying so ends its turn too (shielded: a
+                try:  # handler cancelled on a lost connection still saves the turn)
+                    record = await asyncio.shield(hub.end_turn())
+                    reply = {"saved": record and record["folder"]}
+                except SessionError as exc:
+                    reply = {"error": str(exc)}
                 try:
-                    await ws.send_text(json.dumps({"saved": record and record["folder"]}))
+                    await ws.send_text(json.dumps(reply))
                     await ws.close()
-                except Exception:
+                except Exception:  # the talker's page is gone: the turn is saved anyway
                     pass
 
     return app
-
-
-def free_port() -> int:
-    from facelab.experiment.online.serve import free_port as _free
-
-    return _free()

@@ -90,9 +90,15 @@ def simulate_live(
                 viewer = driver.current_window_handle
                 driver.switch_to.new_window("window")
                 driver.get(server.url + f"/talk?auto=1&seconds={duration + 0.3:.2f}")
-                _wait(driver, "return window.FacelabDialogue && ['talking', 'refused']"
-                      ".includes(window.FacelabDialogue.state) && window.FacelabDialogue.state",
-                      timeout_s=30, what="the talker page did not start")  # fmt: skip
+                state = _wait(driver, "return window.FacelabDialogue && ['talking', 'refused']"
+                              ".includes(window.FacelabDialogue.state) && "
+                              "window.FacelabDialogue.state",
+                              timeout_s=30, what="the talker page did not start")  # fmt: skip
+                if state == "refused":
+                    raise SessionError("simulated live session: the server refused the talker: "
+                                       + str(driver.execute_script(
+                                           "return document.querySelector("
+                                           "'[data-facelab=live-status]').textContent")))
                 driver.switch_to.window(viewer)
                 if screenshot is not None:  # mid-sentence: a third in, the mouth open
                     driver.execute_script("window.FacelabDialogue.snap = arguments[0]",
@@ -106,12 +112,10 @@ def simulate_live(
                     if time.monotonic() > deadline:
                         raise SessionError("simulated live session: no turn was recorded")
                     time.sleep(0.2)
-                lost = driver.execute_script("return window.FacelabDialogue.lateAudio")
             finally:
                 driver.quit()
     record = dict(hub.turns[0])
     record["recording"] = record.pop("folder")
-    record["late_audio_chunks"] = lost
     record["talker_file"] = str(wav)
     record["talker_file_s"] = round(duration, 3)
     if screenshot is not None:

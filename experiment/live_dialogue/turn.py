@@ -1,14 +1,15 @@
 """One live turn: what the talker said, the frames the viewer was sent, and what the viewer
 showed when - kept in a folder, and its latency summarised. Pure but for :meth:`Turn.save`.
 
-A turn's folder (``<session>/turn-001`` …, never overwritten)::
+A turn's folder (``<session>/turn-001`` …, never overwritten; :meth:`Turn.save_new`)::
 
     audio.wav    the talker's audio as analysed (32-bit float WAV, the stream's rate)
     track.bin    the frames exactly as sent and shown (facelab-track-1, 100 fps: frame k is
                  the face at k / 100 s of audio.wav)
-    frames.csv   per drawn display frame of each viewer: page_ms, heard_s (the audio time the
-                 viewer was hearing), frame (the track frame drawn), wanted (the frame for
-                 heard_s), latency_ms (heard_s - frame / 100: mouth behind sound, ms), late
+    frames.csv   per drawn display frame of each viewer: viewer, page_ms, heard_s (the audio
+                 time the viewer was hearing), frame (the track frame drawn), wanted (the
+                 frame for heard_s), latency_ms (heard_s - frame / 100: mouth behind sound, ms; an
+                 on-time frame reads 0-10 ms, the track's own frame step), late
     turn.json    protocol, condition, method, avatar, rates, the latency summary, what a
                  browser cannot measure
 
@@ -22,11 +23,12 @@ it by more than :data:`BUDGET_AHEAD_MS`.
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import json
 import math
 import os
-import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -77,7 +79,7 @@ def latency_summary(
     n_frames: int,
     fps: int = 100,
     playout_ms: float = 0.0,
-    margins_ms: list[float] = (),
+    margins_ms: list[float] | None = None,
 ) -> dict[str, Any]:
     """The turn's figures from the viewers' frame rows (:data:`FRAME_COLUMNS`): drawn
     frames while the talker's audio was heard (0 <= heard_s < n_frames / fps), how many
@@ -99,11 +101,9 @@ def latency_summary(
         "ahead_ms_max": None,
         "frame_interval_ms_median": None,
         "playout_ms": round(float(playout_ms), 1),
-        "frame_margin_ms_min": round(min(margins_ms), 1) if len(margins_ms) else None,
-        "frame_margin_ms_median": round(float(np.median(margins_ms)), 1)
-        if len(margins_ms) else None,
-        "playout_ms_needed": round(float(playout_ms) - min(margins_ms), 1)
-        if len(margins_ms) else None,
+        "frame_margin_ms_min": round(min(margins_ms), 1) if margins_ms else None,
+        "frame_margin_ms_median": round(float(np.median(margins_ms)), 1) if margins_ms else None,
+        "playout_ms_needed": round(float(playout_ms) - min(margins_ms), 1) if margins_ms else None,
         "budget": {
             "behind_ms_p95": BUDGET_BEHIND_MS,
             "ahead_ms_max": BUDGET_AHEAD_MS,
@@ -150,22 +150,21 @@ class Turn:
             self.frames.append(np.asarray(weights, np.float32))
 
     def add_viewer_log(
-        self, viewer: int, log: list[list[float]], *, arrivals: list[list[float]] = ()
+        self, viewer: int, log: list[list[float]], *, arrivals: list[list[float]] | None = None
     ) -> None:
-        """A viewer's drawn frames, each ``[page_ms, heard_s, frame, wanted]``, and when its
-        frame messages arrived, each ``[first frame, audio time then playing (s)]``."""
-        for frame, at in arrivals:
-            if math.isfinite(float(frame)) and math.isfinite(float(at)):
-                self.margins_ms.append(round((int(frame) / self.fps - float(at)) * 1000, 2))
-        for page_ms, heard_s, frame, wanted in log:
-            if not all(math.isfinite(float(v)) for v in (page_ms, heard_s, frame, wanted)):
-                continue
+        """A viewer's drawn frames, each ``[page_ms, heard_s, frame, _]`` (finite numbers),
+        and when its frame messages arrived, each ``[first frame, audio time then playing
+        (s)]``. The frame the sound wanted (``wanted``) and ``late`` are computed here from
+        ``heard_s``, not taken from the page."""
+        for frame, at in arrivals or ():
+            self.margins_ms.append(round((int(frame) / self.fps - float(at)) * 1000, 2))
+        for page_ms, heard_s, frame, _ in log:
+            wanted = math.floor(float(heard_s) * self.fps + 1e-9)
             self.rows.append({
                 "viewer": viewer, "page_ms": round(float(page_ms), 2),
-                "heard_s": round(float(heard_s), 5), "frame": int(frame),
-                "wanted": int(wanted),
+                "heard_s": round(float(heard_s), 5), "frame": int(frame), "wanted": wanted,
                 "latency_ms": round((float(heard_s) - int(frame) / self.fps) * 1000, 2),
-                "late": int(int(frame) < int(wanted)),
+                "late": int(int(frame) < wanted),
             })  # fmt: skip
 
     @property
@@ -177,22 +176,29 @@ class Turn:
         return (np.vstack(self.frames) if self.frames
                 else np.zeros((0, len(self.names)), np.float32))  # fmt: skip
 
-    def save(self, folder: Path, *, clip_id: str, avatar_sha256: str, info: dict[str, Any],
-             playout_ms: float) -> dict[str, Any]:  # fmt: skip
-        """Write the turn into ``folder`` (which must not exist: a turn is never
-        overwritten); all four files appear at once (written into a scratch folder beside it,
-        then renamed). Returns turn.json's content."""
+    def save_new(
+        self,
+        session: Path,
+        *,
+        condition: str,
+        avatar_sha256: str,
+        info: dict[str, Any],
+        playout_ms: float,
+    ) -> dict[str, Any]:
+        """Write the turn as the next free ``turn-NNN`` of ``session`` (made if missing) and
+        return turn.json's content with ``folder``. The four files are written (and synced)
+        into a scratch folder ``.turn-*`` beside it, which is then renamed to the first free
+        name - a rename never replaces a turn, so two savers cannot overwrite each other, and a
+        crash leaves a hidden scratch folder, never a turn that looks whole."""
         import soundfile as sf
 
-        folder = Path(folder)
-        if folder.exists():
-            raise SessionError(f"{folder} exists already: a recorded turn is never overwritten")
+        session = Path(session)
+        session.mkdir(parents=True, exist_ok=True)
         weights = self.weights
         summary = latency_summary(self.rows, n_frames=len(weights), fps=self.fps,
                                   playout_ms=playout_ms, margins_ms=self.margins_ms)  # fmt: skip
         record = {
             **info,
-            "turn": folder.name,
             "sample_rate": self.sample_rate,
             "duration_s": round(len(self.samples) / self.sample_rate, 3),
             "fps": self.fps,
@@ -201,25 +207,36 @@ class Turn:
             **summary,
             "not_measured": NOT_MEASURED,
         }
-        scratch = folder.with_name(f".{folder.name}.partial")
-        shutil.rmtree(scratch, ignore_errors=True)
-        scratch.mkdir(parents=True)
-        sf.write(str(scratch / "audio.wav"), self.samples, self.sample_rate, subtype="FLOAT")
+        stamp = str(info.get("started", "")).replace("-", "").replace(":", "")
+        scratch = Path(tempfile.mkdtemp(prefix=".turn-", dir=session))
+        wav = io.BytesIO()
+        sf.write(wav, self.samples, self.sample_rate, format="WAV", subtype="FLOAT")
+        replace_file(scratch / "audio.wav", wav.getvalue())
         replace_file(scratch / "track.bin", encode_track(
-            clip_id=clip_id, fps=self.fps, blendshapes=list(self.names), weights=weights,
-            poses=None, sample_rate=self.sample_rate, speech_start_s=0.0,
-            avatar_sha256=avatar_sha256,
+            clip_id=f"live__{condition}__{stamp or 'turn'}", fps=self.fps,
+            blendshapes=list(self.names), weights=weights, poses=None,
+            sample_rate=self.sample_rate, speech_start_s=0.0, avatar_sha256=avatar_sha256,
         ))  # fmt: skip
         text = io.StringIO()
         writer = csv.DictWriter(text, fieldnames=FRAME_COLUMNS, lineterminator="\n")
         writer.writeheader()
         writer.writerows(self.rows)
         replace_file(scratch / "frames.csv", text.getvalue())
-        replace_file(scratch / "turn.json",
-                     json.dumps(record, ensure_ascii=False, indent=2) + "\n")  # fmt: skip
-        os.rename(scratch, folder)
-        fsync_dir(folder.parent)
-        return record
+        for _ in range(10_000):
+            folder = next_turn_dir(session)
+            record["turn"] = folder.name
+            replace_file(scratch / "turn.json",
+                         json.dumps(record, ensure_ascii=False, indent=2) + "\n")  # fmt: skip
+            try:
+                os.rename(scratch, folder)  # fails when another saver took the name
+            except OSError as exc:
+                if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
+                    raise
+                continue
+            fsync_dir(session)
+            record["folder"] = str(folder)
+            return record
+        raise SessionError(f"{session}: no free turn-NNN name")
 
 
 def turns_protocol(protocol_path: Path, turns: list[Path]):

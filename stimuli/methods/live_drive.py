@@ -1,13 +1,14 @@
 """A condition's method driven from streaming audio (``facelab live``): audio chunks in, the
 avatar's frames out, causally - each frame as soon as the audio it depends on has arrived.
 
-The chain is the offline one (:func:`facelab.stimuli.speech.analyser.analyze` at a fixed warp,
+The chain is the offline one (:func:`facelab.stimuli.speech.analyser.analyze`,
 ``compensated()``, the method's ``drive_on``) cut into chunks: the analyser streams
-(:class:`~facelab.stimuli.speech.analyser.StreamingAnalyzer`), the smoothing lag is removed by
+(:class:`~facelab.stimuli.speech.analyser.WarpAdaptingAnalyzer`: the mel-filter warp chosen
+as offline, on the audio heard so far; or a fixed warp), the smoothing lag is removed by
 interpolating between an analysis frame and the next one (so frame k waits for analysis frame
 k + 1), and the method drives each new stretch of frames. Frame k is the avatar's face at
-k / :data:`LIVE_FPS` s of the talker's audio, the same values the offline chain gives the
-recording (``tests/test_live_dialogue.py`` checks it).
+k / :data:`LIVE_FPS` s of the talker's audio, the same values the offline chain at the same
+warp gives the recording (``tests/test_live_dialogue.py`` checks it).
 
 A method runs live when it says so (:attr:`Method.live_problem` is None) and when driving a
 track in pieces gives what driving it whole gives (:func:`live_problem`): a method whose frame
@@ -27,7 +28,12 @@ from facelab.errors import FacelabError, StageError
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.methods.registry import get
 from facelab.stimuli.methods.types import DriveInput
-from facelab.stimuli.speech.analyser import StreamingAnalyzer, VisemeModel, default_model
+from facelab.stimuli.speech.analyser import (
+    StreamingAnalyzer,
+    VisemeModel,
+    WarpAdaptingAnalyzer,
+    default_model,
+)
 from facelab.stimuli.speech.track import VISEMES, VisemeTrack
 
 __all__ = ["LIVE_FPS", "LiveDriver", "LiveFrames", "live_problem"]
@@ -111,7 +117,8 @@ class LiveDriver:
         sample_rate: int,
         base_dir: Path = Path("."),
         model: VisemeModel | None = None,
-        warp: float = 1.0,
+        warp: float | str = "auto",
+        start_warp: float = 1.0,
     ) -> None:
         problem = live_problem(method_name, params, avatar=avatar, base_dir=base_dir)
         if problem is not None:
@@ -124,10 +131,18 @@ class LiveDriver:
         self.avatar = avatar
         self.base_dir = Path(base_dir)
         self.sample_rate = sample_rate
-        self.stream = StreamingAnalyzer(
-            sample_rate=sample_rate, model=model or default_model(), warp=warp
-        )
+        model = model or default_model()
+        if warp == "auto":  # the talker's vocal-tract length, judged as the audio comes
+            self.stream = WarpAdaptingAnalyzer(sample_rate=sample_rate, model=model,
+                                               warp=start_warp)  # fmt: skip
+        elif isinstance(warp, str):
+            raise StageError(f"warp {warp!r}: use 'auto' or a number")
+        else:
+            self.stream = StreamingAnalyzer(sample_rate=sample_rate, model=model, warp=warp)
         self.lag_frames = self.stream.model.lag_s / _HOP_S  # fraction of a frame
+        if not 0 <= self.lag_frames < 1:
+            raise StageError(f"the analyser's smoothing lag ({self.stream.model.lag_s * 1000:.1f} "
+                             "ms) must be under one 10 ms frame to run live")  # fmt: skip
         self._drive = self.method.prepared(avatar, params, base_dir=self.base_dir)
         whole = self._drive(DriveInput(track=_probe_track(4), base_dir=self.base_dir))
         missing = [n for n in whole.names if n not in avatar.targets]

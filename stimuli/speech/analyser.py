@@ -82,6 +82,7 @@ MODEL_FORMAT = "facelab-viseme-mlp-1"
 __all__ = [
     "StreamingAnalyzer",
     "VisemeModel",
+    "WarpAdaptingAnalyzer",
     "analyze",
     "choose_warp",
     "default_model",
@@ -332,6 +333,76 @@ class StreamingAnalyzer:
             self._zi = -self._smooth_a[1] * start
         out, self._zi = signal.lfilter(self._smooth_b, self._smooth_a, raw, axis=0, zi=self._zi)
         return np.clip(out, 0.0, 1.0)
+
+
+class WarpAdaptingAnalyzer:
+    """:class:`StreamingAnalyzer` whose mel-filter warp follows the talker (the live path's
+    vocal-tract-length normalisation): every :attr:`RECHOOSE_S` of audio, until
+    :data:`WARP_SELECT_S` have been heard, :func:`choose_warp` judges the audio so far - the
+    offline criterion, applied causally. When it picks another warp, a new analyser at that
+    warp is fed the audio so far again (no frame is emitted twice: the next frame continues
+    the sequence), so from then on the frames are the offline analysis at the chosen warp.
+    Starts at ``warp`` (1, or what an earlier turn of the same talker settled on).
+    ``warps``: (sample index, warp) of each change. A calibrated model keeps its warp, as
+    :func:`analyze` keeps warp 1.
+    """
+
+    RECHOOSE_S = 0.5
+
+    def __init__(
+        self, *, sample_rate: int, model: VisemeModel | None = None, warp: float = 1.0
+    ) -> None:
+        self.model = model or default_model()
+        self.sample_rate = sample_rate
+        self.stream = StreamingAnalyzer(sample_rate=sample_rate, model=self.model, warp=warp)
+        self._heard: list[np.ndarray] = []  # the audio so far, until the warp is settled
+        self._n_heard = 0
+        self._next_choice = round(self.RECHOOSE_S * sample_rate)
+        self._emitted = 0  # frames handed out
+        self.warps: list[tuple[int, float]] = [(0, self.stream.warp)]
+        self._fixed = "calibrated" in self.model.info
+
+    @property
+    def warp(self) -> float:
+        return self.stream.warp
+
+    @property
+    def latency_s(self) -> float:
+        return self.stream.latency_s
+
+    def feed(self, chunk: np.ndarray) -> VisemeTrack:
+        chunk = np.asarray(chunk, dtype=np.float64).ravel()
+        if not self._fixed:
+            self._heard.append(chunk)
+        self._n_heard += chunk.size
+        out = self.stream.feed(chunk)
+        if not self._fixed and self._n_heard >= self._next_choice:
+            self._next_choice += round(self.RECHOOSE_S * self.sample_rate)
+            heard = np.concatenate(self._heard)
+            self._heard = [heard]
+            limit = round(WARP_SELECT_S * self.sample_rate)
+            warp = choose_warp(heard[:limit], sample_rate=self.sample_rate, model=self.model)
+            if warp != self.stream.warp:
+                # a new analyser at the chosen warp, fed the audio so far: it has as many
+                # frames ready as the old one; those not yet handed out, and all later
+                # frames, come from it
+                self.stream = StreamingAnalyzer(sample_rate=self.sample_rate, model=self.model,
+                                                warp=warp)  # fmt: skip
+                replay = self.stream.feed(heard)
+                done = self._emitted
+                out = VisemeTrack(times=replay.times[done:], weights=replay.weights[done:],
+                                  latency_s=replay.latency_s, warp=warp)  # fmt: skip
+                self.warps.append((self._n_heard, warp))
+            if self._n_heard >= limit:  # the warp is settled
+                self._heard = []
+                self._fixed = True
+        self._emitted += len(out.times)
+        return out
+
+    def flush(self) -> VisemeTrack:
+        out = self.stream.flush()
+        self._emitted += len(out.times)
+        return out
 
 
 _ANALYSIS_RATE = 16_000  # what other rates are resampled to

@@ -134,7 +134,7 @@ async function viewer() {
     if (typeof e.data === "string") {
       const msg = JSON.parse(e.data);
       if ("turn" in msg) {  // a new turn: forget the last one's frames and clock
-        have = -1; t0 = null; endS = null; log = []; arrivals = []; sent = false;
+        have = -1; t0 = null; endS = null; log = []; arrivals = []; sent = false; api.lateAudio = 0;
         api.state = "turn"; api.turns += 1;
         status.textContent = "";
       }
@@ -180,7 +180,7 @@ async function viewer() {
     if (!sent && log.length < MAX_LOG) log.push([time, heard, k, wanted]);
     if (!sent && endS !== null && heard > endS + 0.2) {
       sent = true;
-      ws.send(JSON.stringify({ log, arrivals }));
+      ws.send(JSON.stringify({ log, arrivals, late_audio: api.lateAudio }));
       api.state = "done"; api.lastLog = log.length;
     }
   };
