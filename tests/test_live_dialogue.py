@@ -224,7 +224,6 @@ def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
     assert record["frames_shown"] == 2 and record["frames_late"] == 1
     assert record["latency_ms_max"] == pytest.approx(11.0)
     assert record["frame_margin_ms_min"] == pytest.approx(10.0)  # frame 30 due 0.30, at 0.29
-    assert record["playout_ms_needed"] == pytest.approx(110.0)
     assert json.loads((folder / "turn.json").read_text())["duration_s"] == 1.0
     first = {p.name: p.read_bytes() for p in folder.iterdir()}
     again = turn.save_new(session, condition="c", avatar_sha256="a" * 64, info={},

@@ -100,18 +100,29 @@ def simulate_live(
                                            "return document.querySelector("
                                            "'[data-facelab=live-status]').textContent")))
                 driver.switch_to.window(viewer)
-                if screenshot is not None:  # mid-sentence: a third in, the mouth open
-                    driver.execute_script("window.FacelabDialogue.snap = arguments[0]",
-                                          {"after_s": duration / 3, "peak": 0.25})
-                    shot = _wait(driver, "return window.FacelabDialogue.snapshot",
-                                 timeout_s=duration + 30, what="the viewer never opened the mouth")
-                    Path(screenshot).write_bytes(base64.b64decode(shot.split(",", 1)[1]))
-                    snapped = driver.execute_script("return window.FacelabDialogue.snapped")
+                if screenshot is not None:  # mid-sentence: a third in, the mouth open (or
+                    driver.execute_script(  # the most open face drawn, for a short turn)
+                        "window.FacelabDialogue.snap = arguments[0]",
+                        {"after_s": duration / 3, "peak": 0.25},
+                    )
                 deadline = time.monotonic() + duration + timeout_s
+                while not hub.turns and not (screenshot is not None and driver.execute_script(
+                        "return !!window.FacelabDialogue.snapshot")):  # fmt: skip
+                    if time.monotonic() > deadline:
+                        raise SessionError("simulated live session: no turn was recorded")
+                    time.sleep(0.2)
                 while not hub.turns:
                     if time.monotonic() > deadline:
                         raise SessionError("simulated live session: no turn was recorded")
                     time.sleep(0.2)
+                if screenshot is not None:
+                    shot, snapped = driver.execute_script(
+                        "const a = window.FacelabDialogue; return a.snapshot ? "
+                        "[a.snapshot, a.snapped] : [a.bestShot || null, a.best || null]")
+                    if shot is None:
+                        raise SessionError("simulated live session: the viewer drew no frame "
+                                           "of the turn")  # fmt: skip
+                    Path(screenshot).write_bytes(base64.b64decode(shot.split(",", 1)[1]))
             finally:
                 driver.quit()
     record = dict(hub.turns[0])

@@ -497,8 +497,8 @@ def analyze(
     warp : ``"auto"`` (default) chooses the mel-filter warp per utterance by
     :func:`choose_warp` (vocal-tract-length normalisation; a calibrated model always runs at
     warp 1); a number fixes it, 1 = the filters the model was trained with. The track's
-    ``warp`` says which was used. (:class:`StreamingAnalyzer`, for live audio, runs at a
-    given warp, 1 unless told.)
+    ``warp`` says which was used. (Live audio: :class:`StreamingAnalyzer` runs at a given
+    warp; :class:`WarpAdaptingAnalyzer` chooses it as it streams, as this does.)
     Returns frames at t = 0, 0.01, … up to the last sample; each frame's window is centred
     on its time, and ``latency_s`` is the smoothing lag (``compensated()`` removes it).
     """

@@ -166,6 +166,7 @@ async function viewer() {
     // a requested still (api.snap = {after_s, peak}): the canvas as last drawn, once it drew a
     // frame past after_s whose largest weight reached peak
     if (api.snapDue) { api.snapshot = stage.renderer.domElement.toDataURL("image/png"); api.snapDue = false; }
+    if (api.bestDue) { api.bestShot = stage.renderer.domElement.toDataURL("image/png"); api.bestDue = false; }
     if (t0 === null || have < 0) return;
     const heard = stage.heardAt(time) - t0;  // s of the talker's audio being heard now
     if (heard < 0) return;
@@ -176,6 +177,10 @@ async function viewer() {
     api.shown = { frame: k, heard, peak: Math.max(...frameTrack.values) };
     if (api.snap && !api.snapshot && heard > api.snap.after_s && api.shown.peak >= api.snap.peak) {
       api.snapDue = true; api.snap = null; api.snapped = api.shown;
+    } else if (api.snap && !api.snapshot && heard >= 0 && (!api.best || api.shown.peak > api.best.peak)) {
+      // the most moved face drawn so far, kept in case no frame reaches the wanted one (a short
+      // turn on a page that draws a few frames a second)
+      api.bestDue = true; api.best = api.shown;
     }
     if (!sent && log.length < MAX_LOG) log.push([time, heard, k, wanted]);
     if (!sent && endS !== null && heard > endS + 0.2) {
