@@ -431,3 +431,25 @@ def test_a_simulated_live_turn_in_chromium(tmp_path) -> None:
     assert {r["stimulus"] for r in rows} == {folder.name}
     with pytest.raises(FacelabError):
         turns_protocol(KATO, [tmp_path / "nowhere"])
+
+
+@pytest.mark.slow
+def test_a_simulated_live_turn_in_an_emulated_headset(tmp_path) -> None:
+    """--display webxr: the viewer enters VR in an emulated headset (IWER) and the turn is
+    drawn in the immersive session, within the budget; the viewer says it showed VR."""
+    talk = tmp_path / "talk.wav"
+    sf.write(talk, synthesize("ええ、そうですね。", sample_rate=24_000).samples, 24_000,
+             subtype="PCM_16")  # fmt: skip
+    out, shot = tmp_path / "live.json", tmp_path / "vr.png"
+    assert main(["live", str(KATO), "--condition", "standard", "--display", "webxr",
+                 "--simulate", str(talk), "--json", str(out), "--screenshot", str(shot),
+                 "--session", str(tmp_path / "session"), "--playout-ms", "400"]) == 0  # fmt: skip
+    record = json.loads(out.read_text())
+    assert record["viewer_displays"] == {"1": "webxr"}
+    assert record["frames_shown"] >= 3 and record["frames_late"] <= 1
+    assert record["within_budget"] is True, record
+    from PIL import Image
+
+    picture = np.asarray(Image.open(shot).convert("L"), float)
+    left, right = picture[:, : picture.shape[1] // 2], picture[:, picture.shape[1] // 2 :]
+    assert left.std() > 10 and right.std() > 10  # both eyes' views show the avatar

@@ -94,6 +94,7 @@ class LiveHub:
     logs: dict[int, list] = field(default_factory=dict)
     arrivals: dict[int, list] = field(default_factory=dict)
     late_audio: dict[int, int] = field(default_factory=dict)  # chunks a viewer got too late
+    displays: dict[int, str] = field(default_factory=dict)  # how each viewer showed the turn
     turn_started: float = 0.0
     busy: bool = False
     #: the warp the last turn's analysis settled on: the same talker's next turn starts there
@@ -177,6 +178,8 @@ class LiveHub:
         self.arrivals[vid] = _numeric_rows(msg.get("arrivals"), width=2)
         late = msg.get("late_audio")
         self.late_audio[vid] = int(late) if isinstance(late, int) and late >= 0 else 0
+        shown = msg.get("display")
+        self.displays[vid] = shown if shown in ("live3d", "webxr") else "unknown"
 
     async def broadcast(self, message: bytes | str, *, to: set[int] | None = None) -> None:
         for vid, ws in list(self.viewers.items()):
@@ -206,7 +209,7 @@ class LiveHub:
         driver = self.new_driver()
         self.busy = True
         self.turn = Turn(sample_rate=LIVE_RATE, names=driver.names)
-        self.logs, self.arrivals, self.late_audio = {}, {}, {}
+        self.logs, self.arrivals, self.late_audio, self.displays = {}, {}, {}, {}
         self.turn_started = time.time()
         self.turn_viewers = set(self.viewers)
         await self.broadcast(json.dumps({"turn": len(self.turns) + 1}))
@@ -261,6 +264,7 @@ class LiveHub:
                                    for n, w in getattr(driver.stream, "warps", ())],
                 "behaviour": "not run live (the mouth only: the condition's method)",
                 "audio_chunks_late": sum(self.late_audio.values()),
+                "viewer_displays": {str(v): d for v, d in sorted(self.displays.items())},
             }  # fmt: skip
             async with self.saving:
                 try:

@@ -83,10 +83,22 @@ def simulate_live(
                 f"--use-file-for-fake-audio-capture={fake}%noloop",
             ))  # fmt: skip
             try:
+                if config.display == "webxr":  # an emulated headset (IWER), turning its head
+                    from facelab.experiment.online.browser import emulator_js
+
+                    driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
+                                           {"source": emulator_js()})  # fmt: skip
                 driver.get(server.url + "/")
                 _wait(driver, "return window.FacelabDialogue && "
                       "window.FacelabDialogue.state === 'waiting'",
                       timeout_s=60, what="the viewer page did not load its avatar")  # fmt: skip
+                if config.display == "webxr":  # the participant enters VR with a click
+                    _wait(driver, "return !!document.querySelector('[data-facelab=enter_vr]')",
+                          timeout_s=30, what="the viewer offered no VR session")
+                    driver.execute_script("document.querySelector('[data-facelab=enter_vr]')"
+                                          ".click()")  # fmt: skip
+                    _wait(driver, "return window.FacelabLive.inVR()", timeout_s=30,
+                          what="the viewer did not enter VR")
                 viewer = driver.current_window_handle
                 driver.switch_to.new_window("window")
                 driver.get(server.url + f"/talk?auto=1&seconds={duration + 0.3:.2f}")
@@ -110,12 +122,18 @@ def simulate_live(
                         "return !!window.FacelabDialogue.snapshot")):  # fmt: skip
                     if time.monotonic() > deadline:
                         raise SessionError("simulated live session: no turn was recorded")
-                    time.sleep(0.2)
+                    time.sleep(0.05)
+                in_vr = config.display == "webxr"
+                if screenshot is not None and in_vr:  # the XR layer is not the canvas' own
+                    driver.save_screenshot(str(screenshot))  # buffer: the page as shown now
                 while not hub.turns:
                     if time.monotonic() > deadline:
                         raise SessionError("simulated live session: no turn was recorded")
                     time.sleep(0.2)
-                if screenshot is not None:
+                if screenshot is not None and in_vr:
+                    snapped = driver.execute_script(
+                        "const a = window.FacelabDialogue; return a.snapped || a.best || null")
+                elif screenshot is not None:
                     shot, snapped = driver.execute_script(
                         "const a = window.FacelabDialogue; return a.snapshot ? "
                         "[a.snapshot, a.snapped] : [a.bestShot || null, a.best || null]")

@@ -125,7 +125,11 @@ async function viewer() {
   if (cfg.display === "webxr" && await stage.supported()) {
     const b = el("button", "facelab-button", words.enter); b.dataset.facelab = "enter_vr";
     main.append(b);
-    b.onclick = async () => { b.remove(); await stage.enterVR(); };
+    b.onclick = async () => {
+      b.remove();
+      await stage.enterVR();
+      for (const c of stage.controllers || []) c.visible = false;  // no panel to point at here
+    };
   }
 
   const ws = new WebSocket(wsUrl("/ws/view"));
@@ -185,7 +189,7 @@ async function viewer() {
     if (!sent && log.length < MAX_LOG) log.push([time, heard, k, wanted]);
     if (!sent && endS !== null && heard > endS + 0.2) {
       sent = true;
-      ws.send(JSON.stringify({ log, arrivals, late_audio: api.lateAudio }));
+      ws.send(JSON.stringify({ log, arrivals, late_audio: api.lateAudio, display: stage.inVR() ? "webxr" : "live3d" }));
       api.state = "done"; api.lastLog = log.length;
     }
   };
