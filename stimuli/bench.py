@@ -13,7 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from facelab.errors import StageError
-from facelab.stimuli.speech.analyser import StreamingAnalyzer, analyze, default_model
+from facelab.stimuli.speech.analyser import (
+    StreamingAnalyzer,
+    analyze,
+    analyze_streamed,
+    default_model,
+)
 from facelab.stimuli.speech.training import (
     ESPEAK_HELDOUT,
     FAR_VARIANTS,
@@ -34,7 +39,7 @@ _UNSCORED = {"core_accuracy": None, "per_vowel": {}, "frames": 0, "clips": 0, "c
 
 
 def natural_voice_row(voice: str, *, sentences: dict, searched: dict, syllables: dict,
-                      with_text: dict) -> dict:  # fmt: skip
+                      with_text: dict, live: dict | None = None) -> dict:  # fmt: skip
     """One voice's bench row from :func:`~facelab.stimuli.speech.natural.score_natural`'s
     results (a voice missing from one: nothing scored there - 0 clips, accuracy None)."""
     from facelab.stimuli.speech.natural import NATURAL_HELDOUT
@@ -56,6 +61,11 @@ def natural_voice_row(voice: str, *, sentences: dict, searched: dict, syllables:
         "syllables_aligned_with_text": text["core_accuracy"],
         "syllables_frames": syl["frames"],
         "syllables_confusion": syl["confusion"],
+        **{
+            f"live_{name}{suffix}": (part.get(voice) or _UNSCORED)[key]
+            for name, part in (live or {}).items()
+            for suffix, key in (("", "core_accuracy"), ("_per_vowel", "per_vowel"))
+        },
     }
 
 
@@ -72,6 +82,7 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
     from facelab.stimuli.speech.natural import (
         NATURAL_HELDOUT,
         NATURAL_TRAIN,
+        joined,
         natural_sentences,
         natural_syllables,
         score_natural,
@@ -94,8 +105,18 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
         return from_phonemes(found.phones, duration_s=len(syl.samples) / syl.sample_rate)
 
     with_text = score_natural(syllables, tracks={s: aligned(s) for s in syllables})
+    # the live path (facelab live): 10 ms chunks, the warp found as the audio comes; each
+    # sentence alone, and each voice's sentences / syllables as one conversation
+    streamed = lambda x, rate: analyze_streamed(x, sample_rate=rate, model=model)  # noqa: E731
+    live = {
+        "sentences_alone": score_natural(sentences, analyse=streamed),
+        "sentences_conversation": score_natural(
+            [joined([c for c in sentences if c.voice == v]) for v in voices], analyse=streamed),
+        "syllables_conversation": score_natural(
+            [joined([c for c in syllables if c.voice == v]) for v in voices], analyse=streamed),
+    }
     parts = {"sentences": in_sentences, "searched": searched, "syllables": alone,
-             "with_text": with_text}  # fmt: skip
+             "with_text": with_text, "live": live}  # fmt: skip
     rows = {voice: natural_voice_row(voice, **parts) for voice in voices}
     return {
         "voices": rows,
@@ -106,7 +127,10 @@ def natural_voice_rows(model, *, quick: bool = False) -> dict:
         "sentences at speed 1.0, vowels timed by "
         "alignment with the text (a sentence the aligner refuses is not scored: sentences_scored "
         "counts those that were). Syllables: spoken alone (Kokoro chooses its style by the "
-        "input's length and articulates one-syllable inputs poorly in some voices). Trained on: "
+        "input's length and articulates one-syllable inputs poorly in some voices). live_*: "
+        "the live path (analyze_streamed: 10 ms chunks, the warp found as the audio comes), "
+        "each sentence alone and each voice's sentences or syllables joined into one "
+        "conversation (0.3 s pauses). Trained on: "
         f"{', '.join(NATURAL_TRAIN)} (their training sentences, never these); held out (never "
         f"in training or tuning): {', '.join(NATURAL_HELDOUT)}",
     }

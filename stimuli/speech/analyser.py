@@ -84,6 +84,7 @@ __all__ = [
     "VisemeModel",
     "WarpAdaptingAnalyzer",
     "analyze",
+    "analyze_streamed",
     "choose_warp",
     "default_model",
     "features",
@@ -406,6 +407,27 @@ class WarpAdaptingAnalyzer:
 
 
 _ANALYSIS_RATE = 16_000  # what other rates are resampled to
+
+
+def analyze_streamed(
+    samples: np.ndarray, *, sample_rate: int, model: VisemeModel | None = None
+) -> VisemeTrack:
+    """What the live path hears: ``samples`` fed in 10 ms chunks to a
+    :class:`WarpAdaptingAnalyzer` (the warp found as the audio comes), then flushed; the
+    smoothing lag removed as :func:`analyze`'s tracks are by ``compensated()``. For
+    measuring the live analysis offline (``facelab bench visemes``)."""
+    samples, sample_rate = analysis_input(samples, sample_rate=sample_rate)
+    stream = WarpAdaptingAnalyzer(sample_rate=sample_rate, model=model)
+    hop = round(HOP_S * sample_rate)
+    x = np.asarray(samples, dtype=np.float64)
+    parts = [stream.feed(x[k : k + hop]) for k in range(0, len(x), hop)]
+    parts.append(stream.flush())
+    return VisemeTrack(
+        times=np.concatenate([p.times for p in parts]),
+        weights=np.vstack([p.weights for p in parts]),
+        latency_s=stream.model.lag_s,
+        warp=stream.warp,
+    ).compensated()
 
 
 def analysis_input(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, int]:

@@ -40,6 +40,7 @@ __all__ = [
     "TRAIN_SYLLABLES",
     "NaturalClip",
     "core_frames",
+    "joined",
     "natural_sentences",
     "natural_syllables",
     "score_natural",
@@ -191,6 +192,23 @@ def natural_sentences(
                     vowel_cores(found.phones),
                     labelled_by="alignment",
                 )
+
+
+def joined(clips: Sequence[NaturalClip], *, gap_s: float = 0.3, rate: int = 16_000) -> NaturalClip:
+    """The clips of one voice as one utterance (resampled to ``rate``, ``gap_s`` of silence
+    after each), their cores moved with them: a talker's turns as a live analyser hears them
+    in a conversation."""
+    from facelab.stimuli.speech.audio import resample
+
+    gap = np.zeros(round(gap_s * rate), np.float32)
+    parts, cores, t = [], [], 0.0
+    for clip in clips:
+        x = resample(clip.samples, rate_in=clip.sample_rate, rate_out=rate)
+        cores += [(lo + t, hi + t, v) for lo, hi, v in clip.cores]
+        parts += [x, gap]
+        t += (len(x) + len(gap)) / rate
+    return NaturalClip("+".join(c.text for c in clips), clips[0].voice, clips[0].speed,
+                       np.concatenate(parts), rate, tuple(cores), "joined")  # fmt: skip
 
 
 def core_frames(times: np.ndarray, clip: NaturalClip) -> tuple[np.ndarray, np.ndarray]:
