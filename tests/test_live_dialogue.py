@@ -203,8 +203,10 @@ def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
     audio = rng.uniform(-0.5, 0.5, 16_000).astype(np.float32)
     turn.add_audio(audio[:8000])
     turn.add_audio(audio[8000:])
-    turn.add_frames(rng.uniform(0, 1, (60, 2)))
-    turn.add_frames(rng.uniform(0, 1, (40, 2)))
+    turn.add_frames(0, rng.uniform(0, 1, (60, 2)))
+    turn.add_frames(60, rng.uniform(0, 1, (40, 2)))
+    with pytest.raises(SessionError, match="would not line up"):
+        turn.add_frames(99, rng.uniform(0, 1, (1, 2)))
     # the page's own 'wanted' (last column) is not trusted: computed from heard_s
     turn.add_viewer_log(1, [[10.0, 0.105, 10, 99], [26.7, 0.121, 11, 0]],
                         arrivals=[[12, 0.02], [30, 0.29]])  # fmt: skip
@@ -225,11 +227,56 @@ def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
     assert record["latency_ms_max"] == pytest.approx(11.0)
     assert record["frame_margin_ms_min"] == pytest.approx(10.0)  # frame 30 due 0.30, at 0.29
     assert json.loads((folder / "turn.json").read_text())["duration_s"] == 1.0
+    assert folder.stat().st_mode & 0o777 == 0o755
     first = {p.name: p.read_bytes() for p in folder.iterdir()}
     again = turn.save_new(session, condition="c", avatar_sha256="a" * 64, info={},
                           playout_ms=120)  # fmt: skip
     assert Path(again["folder"]).name == "turn-002"  # the first turn is untouched
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == first
+
+
+def test_a_turn_name_taken_meanwhile_is_not_overwritten(tmp_path, monkeypatch) -> None:
+    """Another saver takes turn-001 between the name's choice and the rename: the turn goes
+    to the next free name, the other's files untouched; numbering goes past 999."""
+    import facelab.experiment.live_dialogue.turn as turn_module
+
+    session = tmp_path / "s"
+    (session / "turn-001").mkdir(parents=True)
+    (session / "turn-001" / "turn.json").write_text("theirs")
+    names = iter([session / "turn-001", session / "turn-002"])
+    monkeypatch.setattr(turn_module, "next_turn_dir", lambda _: next(names))
+    turn = Turn(sample_rate=16_000, names=("jawOpen",))
+    turn.add_audio(np.zeros(160, np.float32))
+    record = turn.save_new(session, condition="c", avatar_sha256="a" * 64, info={},
+                           playout_ms=120)  # fmt: skip
+    assert Path(record["folder"]).name == "turn-002"
+    assert (session / "turn-001" / "turn.json").read_text() == "theirs"
+    assert not list(session.glob(".turn-*"))  # no scratch folder left behind
+    monkeypatch.undo()
+    (session / "turn-999").mkdir()
+    (session / "turn-1000").mkdir()
+    assert next_turn_dir(session).name == "turn-1001"
+
+
+def test_the_live_warp_survives_silence_and_calibration(kato) -> None:
+    """A turn that starts with silence keeps the warp the talker's last turn settled on (too
+    little speech to judge is no reason to change it); a calibrated model runs at warp 1."""
+    from facelab.stimuli.speech.analyser import WarpAdaptingAnalyzer, default_model
+
+    quiet = WarpAdaptingAnalyzer(sample_rate=16_000, warp=0.88)
+    for _ in range(120):  # 1.2 s of silence in 10 ms chunks
+        quiet.feed(np.zeros(160))
+    assert quiet.warps == [(0, 0.88)] and quiet.warp == 0.88
+    from dataclasses import replace
+
+    model = default_model()
+    calibrated = WarpAdaptingAnalyzer(
+        sample_rate=16_000, warp=0.8,
+        model=replace(model, info={**model.info, "calibrated": "x"}),
+    )  # fmt: skip
+    speech = synthesize("こんにちは、今日はいい天気ですね。", sample_rate=16_000).samples
+    calibrated.feed(speech)
+    assert calibrated.warp == 1.0 and calibrated.warps == [(0, 1.0)]
 
 
 def test_turns_become_a_protocol_s_stimuli(tmp_path) -> None:

@@ -54,6 +54,7 @@ LIVE_RATE = 16_000  # the talker page captures at this rate (the analyser's own)
 CHUNK = 160  # samples per streamed chunk: 10 ms
 AUDIO, FRAMES = 1, 2
 VIEWER_LOG_WAIT_S = 15.0  # after a turn ends, how long the viewers' logs are waited for
+SEND_TIMEOUT_S = 2.0  # a viewer that takes no message for this long is dropped
 
 
 def pack(kind: int, start: int, values: np.ndarray) -> bytes:
@@ -103,7 +104,8 @@ class LiveHub:
     stream_task: asyncio.Task | None = None
     problems: list[str] = field(default_factory=list)  # what went wrong, said to the operator
     next_viewer: int = 1
-    saving: asyncio.Lock = field(default_factory=asyncio.Lock)  # one save at a time
+    feeding: asyncio.Future | None = None  # the analysis of the latest chunk
+    ending: bool = False  # the turn is ending: its viewers' logs are awaited
 
     @classmethod
     def open(cls, config: LiveConfig) -> LiveHub:
@@ -187,18 +189,18 @@ class LiveHub:
                 continue
             try:
                 if isinstance(message, bytes):
-                    await ws.send_bytes(message)
+                    await asyncio.wait_for(ws.send_bytes(message), SEND_TIMEOUT_S)
                 else:
-                    await ws.send_text(message)
-            except Exception:  # a viewer gone mid-turn: the others go on
+                    await asyncio.wait_for(ws.send_text(message), SEND_TIMEOUT_S)
+            except Exception:  # a viewer gone or not reading: the others go on without it
                 self.viewers.pop(vid, None)
 
     async def join_turn(self, vid: int) -> None:
         """A viewer connecting while a turn runs: it gets the turn's start (and is waited for
         at its end); it hears the talker from the next chunk on."""
-        if self.turn is not None and vid not in self.turn_viewers:
-            self.turn_viewers.add(vid)
+        if self.turn is not None and not self.ending and vid not in self.turn_viewers:
             await self.broadcast(json.dumps({"turn": len(self.turns) + 1}), to={vid})
+            self.turn_viewers.add(vid)  # after its start: no chunk overtakes it
 
     # -- a turn
 
@@ -216,15 +218,23 @@ class LiveHub:
 
     async def audio(self, chunk: np.ndarray) -> None:
         """Relay a talker's chunk to the viewers at once, then analyse it (in a thread, so the
-        server keeps relaying while the analysis runs) and send the frames it completes."""
+        server keeps relaying while the analysis runs) and send the frames it completes. The
+        analysis records its frames itself and is shielded: a talker's handler cancelled
+        meanwhile loses nothing, and the end of the turn waits for it."""
         turn, driver = self.turn, self.driver
         start = driver.samples_in
         turn.add_audio(chunk)
         await self.broadcast(pack(AUDIO, start, chunk), to=self.turn_viewers)
-        frames = await asyncio.to_thread(driver.feed, chunk)
+        self.feeding = asyncio.ensure_future(asyncio.to_thread(self._feed, turn, driver, chunk))
+        frames = await asyncio.shield(self.feeding)
         if len(frames):
-            turn.add_frames(frames.weights)
             await self.broadcast(pack(FRAMES, frames.start, frames.weights), to=self.turn_viewers)
+
+    @staticmethod
+    def _feed(turn: Turn, driver: LiveDriver, chunk: np.ndarray):
+        frames = driver.feed(chunk)
+        turn.add_frames(frames.start, frames.weights)
+        return frames
 
     async def end_turn(self) -> dict[str, Any] | None:
         """Flush the analysis, collect the viewers' logs and save the turn (None when it had
@@ -233,11 +243,16 @@ class LiveHub:
         turn, driver = self.turn, self.driver
         if turn is None:
             return None
+        self.ending = True  # a viewer connecting now is not waited for
         try:
+            if self.feeding is not None:  # the last chunk's analysis, if still running
+                await asyncio.wait({self.feeding})
             frames = driver.flush()
             self.last_warp = driver.stream.warp
+            if not len(turn.samples):
+                return None
             if len(frames):
-                turn.add_frames(frames.weights)
+                turn.add_frames(frames.start, frames.weights)
                 await self.broadcast(pack(FRAMES, frames.start, frames.weights),
                                      to=self.turn_viewers)  # fmt: skip
             await self.broadcast(json.dumps({"end": driver.samples_in}), to=self.turn_viewers)
@@ -248,8 +263,6 @@ class LiveHub:
                 await asyncio.sleep(0.05)
             for vid, log in sorted(self.logs.items()):
                 turn.add_viewer_log(vid, log, arrivals=self.arrivals.get(vid, []))
-            if not len(turn.samples):
-                return None
             cond = self.config.protocol.condition(self.config.condition)
             info = {
                 "protocol": str(self.config.protocol_path),
@@ -266,24 +279,23 @@ class LiveHub:
                 "audio_chunks_late": sum(self.late_audio.values()),
                 "viewer_displays": {str(v): d for v, d in sorted(self.displays.items())},
             }  # fmt: skip
-            async with self.saving:
-                try:
-                    record = await asyncio.to_thread(
-                        turn.save_new, self.config.session, condition=self.config.condition,
-                        avatar_sha256=self.scene["avatar_sha256"],
-                        playout_ms=self.config.playout_ms, info=info,
-                    )  # fmt: skip
-                except (OSError, FacelabError) as exc:
-                    why = exc if isinstance(exc, FacelabError) else exc.strerror or "write error"
-                    self.problems.append(f"a turn could not be saved in "
-                                         f"{self.config.session}: {why}")  # fmt: skip
-                    raise SessionError(self.problems[-1]) from None
+            try:
+                record = await asyncio.to_thread(
+                    turn.save_new, self.config.session, condition=self.config.condition,
+                    avatar_sha256=self.scene["avatar_sha256"],
+                    playout_ms=self.config.playout_ms, info=info,
+                )  # fmt: skip
+            except (OSError, FacelabError) as exc:
+                why = exc if isinstance(exc, FacelabError) else exc.strerror or "write error"
+                self.problems.append(f"a turn could not be saved in "
+                                     f"{self.config.session}: {why}")  # fmt: skip
+                raise SessionError(self.problems[-1]) from None
             self.turns.append(record)
             return record
         finally:
-            self.turn = None
+            self.turn, self.feeding = None, None
             self.turn_viewers = set()
-            self.busy = False
+            self.busy = self.ending = False
 
     def start_file_talker(self) -> None:
         """Be the talker (``--input FILE``): the first time a viewer connects, stream the
@@ -295,16 +307,23 @@ class LiveHub:
         x = self.talker_audio
         try:
             await self.start_turn()
+        except FacelabError as exc:
+            self.problems.append(str(exc))
+            print(f"facelab live: {exc}", file=sys.stderr)
+            return
+        try:
             t0 = time.monotonic()
             for k in range(0, len(x), CHUNK):
                 await self.audio(x[k : k + CHUNK])
                 delay = t0 + (k + CHUNK) / LIVE_RATE - time.monotonic()
                 if delay > 0:
                     await asyncio.sleep(delay)
-            await self.end_turn()
-        except FacelabError as exc:
-            self.problems.append(str(exc))
-            print(f"facelab live: {exc}", file=sys.stderr)
+        finally:  # the turn is saved (or said to have failed) however the stream ended
+            try:
+                await asyncio.shield(self.end_turn())
+            except FacelabError as exc:
+                self.problems.append(str(exc))
+                print(f"facelab live: {exc}", file=sys.stderr)
 
 
 def _numeric_rows(rows: Any, *, width: int, limit: int = 200_000) -> list[list[float]]:
@@ -312,11 +331,15 @@ def _numeric_rows(rows: Any, *, width: int, limit: int = 200_000) -> list[list[f
     ``limit``."""
     out: list[list[float]] = []
     for row in rows[:limit] if isinstance(rows, list) else ():
-        if isinstance(row, list) and len(row) == width and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            for v in row
-        ):
-            out.append([float(v) for v in row])
+        if not isinstance(row, list) or len(row) != width:
+            continue
+        try:
+            values = [float(v) for v in row if isinstance(v, (int, float))
+                      and not isinstance(v, bool)]  # fmt: skip
+        except OverflowError:  # an integer too large for a float
+            continue
+        if len(values) == width and all(math.isfinite(v) for v in values):
+            out.append(values)
     return out
 
 
@@ -385,7 +408,7 @@ def create_live_app(hub: LiveHub):
                     break
                 try:
                     hub.viewer_log(vid, json.loads(msg.get("text") or ""))
-                except ValueError:
+                except (ValueError, RecursionError):  # not JSON, or nested beyond reason
                     continue
         except WebSocketDisconnect:
             pass
@@ -420,7 +443,7 @@ def create_live_app(hub: LiveHub):
                     continue
                 try:
                     control = json.loads(msg.get("text") or "")
-                except ValueError:
+                except (ValueError, RecursionError):
                     continue
                 if not isinstance(control, dict):
                     continue

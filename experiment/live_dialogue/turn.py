@@ -68,7 +68,7 @@ NOT_MEASURED = (
 
 def next_turn_dir(session: Path) -> Path:
     """The next free ``turn-NNN`` folder in ``session`` (not made)."""
-    taken = [int(p.name[5:]) for p in Path(session).glob("turn-[0-9][0-9][0-9]")
+    taken = [int(p.name[5:]) for p in Path(session).glob("turn-*")
              if p.name[5:].isdigit()]  # fmt: skip
     return Path(session) / f"turn-{max(taken, default=0) + 1:03d}"
 
@@ -137,15 +137,21 @@ class Turn:
     audio: list[np.ndarray] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)
     rows: list[dict[str, Any]] = field(default_factory=list)
+    n_frames: int = 0
     #: per frames message a viewer got: how long before its first frame was due it arrived, ms
     margins_ms: list[float] = field(default_factory=list)
 
     def add_audio(self, chunk: np.ndarray) -> None:
         self.audio.append(np.asarray(chunk, np.float32).ravel())
 
-    def add_frames(self, weights: np.ndarray) -> None:
+    def add_frames(self, start: int, weights: np.ndarray) -> None:
+        """Frames ``start`` .. ``start + len(weights) - 1``; they must follow the last ones."""
+        if start != self.n_frames:
+            raise SessionError(f"live frames from {start} after {self.n_frames} frames: the "
+                               "track would not line up with the audio")  # fmt: skip
         if len(weights):
             self.frames.append(np.asarray(weights, np.float32))
+            self.n_frames += len(weights)
 
     def add_viewer_log(
         self, viewer: int, log: list[list[float]], *, arrivals: list[list[float]] | None = None
@@ -228,9 +234,10 @@ class Turn:
             try:
                 os.rename(scratch, folder)  # fails when another saver took the name
             except OSError as exc:
-                if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY):
+                if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR):
                     raise
                 continue
+            os.chmod(folder, 0o755)  # mkdtemp made it private
             fsync_dir(session)
             record["folder"] = str(folder)
             return record

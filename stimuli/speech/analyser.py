@@ -343,9 +343,10 @@ class WarpAdaptingAnalyzer:
     offline criterion, applied causally. When it picks another warp, a new analyser at that
     warp is fed the audio so far again (no frame is emitted twice: the next frame continues
     the sequence), so from then on the frames are the offline analysis at the chosen warp.
-    Starts at ``warp`` (1, or what an earlier turn of the same talker settled on).
-    ``warps``: (sample index, warp) of each change. A calibrated model keeps its warp, as
-    :func:`analyze` keeps warp 1.
+    Starts at ``warp`` (1, or what an earlier turn of the same talker settled on) and keeps
+    it until there is speech enough to judge (leading silence changes nothing).
+    ``warps``: (sample index, warp) of each change. A calibrated model runs at warp 1, as in
+    :func:`analyze`.
     """
 
     RECHOOSE_S = 0.5
@@ -355,13 +356,14 @@ class WarpAdaptingAnalyzer:
     ) -> None:
         self.model = model or default_model()
         self.sample_rate = sample_rate
-        self.stream = StreamingAnalyzer(sample_rate=sample_rate, model=self.model, warp=warp)
+        self._fixed = "calibrated" in self.model.info  # a calibrated model runs at warp 1
+        self.stream = StreamingAnalyzer(sample_rate=sample_rate, model=self.model,
+                                        warp=1.0 if self._fixed else warp)  # fmt: skip
         self._heard: list[np.ndarray] = []  # the audio so far, until the warp is settled
         self._n_heard = 0
         self._next_choice = round(self.RECHOOSE_S * sample_rate)
         self._emitted = 0  # frames handed out
         self.warps: list[tuple[int, float]] = [(0, self.stream.warp)]
-        self._fixed = "calibrated" in self.model.info
 
     @property
     def warp(self) -> float:
@@ -382,8 +384,9 @@ class WarpAdaptingAnalyzer:
             heard = np.concatenate(self._heard)
             self._heard = [heard]
             limit = round(WARP_SELECT_S * self.sample_rate)
-            warp = choose_warp(heard[:limit], sample_rate=self.sample_rate, model=self.model)
-            if warp != self.stream.warp:
+            warp = choose_warp(heard[:limit], sample_rate=self.sample_rate, model=self.model,
+                               undecided=None)  # too little speech yet: keep the warp
+            if warp is not None and warp != self.stream.warp:
                 # a new analyser at the chosen warp, fed the audio so far: it has as many
                 # frames ready as the old one; those not yet handed out, and all later
                 # frames, come from it
@@ -456,8 +459,12 @@ WARP_SELECT_S = 8.0  # at most this much audio chooses the warp
 
 
 def choose_warp(
-    samples: np.ndarray, *, sample_rate: int, model: VisemeModel | None = None
-) -> float:
+    samples: np.ndarray,
+    *,
+    sample_rate: int,
+    model: VisemeModel | None = None,
+    undecided: float | None = 1.0,
+) -> float | None:
     """Vocal-tract-length normalisation: the mel-filter warp (from :data:`WARP_GRID`, every
     other one first, then the best one's neighbours) under which the model is most confident
     about the utterance's loud frames - the mean log posterior of each frame's best class.
@@ -481,7 +488,7 @@ def choose_warp(
     power, energy = frame_power(padded, sparse, 0, count)  # one FFT pass for every warp
     loud = energy > model.gate_db[1] - 5
     if loud.sum() < 10:
-        return 1.0  # too little speech to judge
+        return undecided  # too little speech to judge
     lags = [c // stride for c in CONTEXT]
     scores: dict[float, float] = {}
 
