@@ -6,47 +6,15 @@ from __future__ import annotations
 
 import base64
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from facelab.errors import SessionError
 from facelab.experiment.live_dialogue.app import LiveConfig, LiveHub, create_live_app
+from facelab.experiment.online.serve import BackgroundServer
 
 __all__ = ["simulate_live"]
-
-
-class _Server:
-    """uvicorn serving the live app in a thread."""
-
-    def __init__(self, hub: LiveHub) -> None:
-        import uvicorn
-
-        from facelab.experiment.online.serve import free_port
-
-        self.port = free_port()
-        config = uvicorn.Config(create_live_app(hub), host="127.0.0.1", port=self.port,
-                                log_level="warning")  # fmt: skip
-        self.uv = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.uv.run, daemon=True)
-
-    def __enter__(self) -> _Server:
-        self.thread.start()
-        deadline = time.monotonic() + 20
-        while not self.uv.started:
-            if time.monotonic() > deadline or not self.thread.is_alive():
-                raise SessionError("the live server did not start")
-            time.sleep(0.05)
-        return self
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def __exit__(self, *exc: Any) -> None:
-        self.uv.should_exit = True
-        self.thread.join(timeout=10)
 
 
 def _wait(driver, script: str, *, timeout_s: float, what: str) -> Any:
@@ -76,7 +44,7 @@ def simulate_live(
     with tempfile.TemporaryDirectory(prefix="facelab-live-") as tmp:
         fake = Path(tmp) / "talker.wav"
         sf.write(str(fake), speech.samples, speech.sample_rate, subtype="PCM_16")
-        with _Server(hub) as server:
+        with BackgroundServer(None, app=create_live_app(hub)) as server:
             driver = chromium(size=(1100, 760), extra_args=(
                 "--use-fake-ui-for-media-stream",
                 "--use-fake-device-for-media-stream",

@@ -106,12 +106,14 @@ def proxy_options(forwarded_allow_ips: str | None) -> dict[str, Any]:
 
 @dataclass
 class BackgroundServer:
-    """uvicorn serving ``server`` in a thread (for simulated participants and tests)."""
+    """uvicorn serving ``server`` in a thread (for simulated participants and tests); or
+    another ASGI ``app`` (the live-dialogue server) when ``server`` is None."""
 
-    server: StudyServer
+    server: StudyServer | None
     host: str = "127.0.0.1"
     port: int = 0
     forwarded_allow_ips: str | None = None
+    app: Any = None
 
     def __enter__(self) -> BackgroundServer:
         import uvicorn
@@ -119,8 +121,8 @@ class BackgroundServer:
         if self.port == 0:
             self.port = free_port(self.host)
         config = uvicorn.Config(
-            create_app(self.server), host=self.host, port=self.port, log_level="warning",
-            **proxy_options(self.forwarded_allow_ips),
+            self.app if self.server is None else create_app(self.server), host=self.host,
+            port=self.port, log_level="warning", **proxy_options(self.forwarded_allow_ips),
         )  # fmt: skip
         self._uv = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._uv.run, daemon=True)
