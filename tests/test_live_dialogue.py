@@ -463,7 +463,7 @@ def test_a_simulated_live_turn_in_chromium(tmp_path) -> None:
     assert rate == 16_000 and len(audio) / rate >= 0.8 * spoken.duration_s
     frames = audio[: len(audio) // 160 * 160].reshape(-1, 160)
     level = 10 * np.log10(np.mean(frames.astype(np.float64) ** 2, axis=1) + 1e-12)
-    assert level.max() > -30 and np.mean(level > -45) > 0.3  # speech, not silence
+    assert level.max() > -30 and np.mean(level > -45) > 0.15  # speech (0.43 idle), not silence
     # the track shown is the offline chain on the recorded audio, at the warp the live
     # analysis had reached: each stretch between two warp changes is that warp's analysis
     protocol = load_protocol(KATO)
