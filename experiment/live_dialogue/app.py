@@ -45,7 +45,6 @@ from facelab.experiment.live_dialogue.turn import Turn
 from facelab.experiment.online.middleware import IMPORT_MAP
 from facelab.experiment.online.server import THREE_FILES, WEB
 from facelab.protocol import Protocol
-from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.methods.live_drive import LIVE_FPS, LiveDriver
 
 __all__ = ["LIVE_RATE", "LiveConfig", "LiveHub", "create_live_app"]
@@ -84,9 +83,8 @@ class LiveHub:
     event loop drives it (the server's); a turn's save runs in a thread, one at a time."""
 
     config: LiveConfig
-    avatar: Avatar
     scene: dict[str, Any]  # glb (bytes), name, camera, avatar_sha256
-    driver: LiveDriver | None = None
+    driver: LiveDriver
     viewers: dict[int, WebSocket] = field(default_factory=dict)
     turn: Turn | None = None
     turns: list[dict[str, Any]] = field(default_factory=list)
@@ -112,16 +110,20 @@ class LiveHub:
         """Load the avatar (and a file talker's audio) and check that the condition's method
         can run live: SessionError naming what cannot."""
         from facelab.stimuli.avatar.gltf import live_glb
-        from facelab.stimuli.methods.live_drive import live_problem
         from facelab.stimuli.render.scene import camera_json, load_avatar, settings_for
         from facelab.stimuli.speech.audio import load_audio
 
         protocol, base = config.protocol, config.protocol_path.parent
         cond = protocol.condition(config.condition)
         avatar = load_avatar(protocol, base_dir=base)
-        problem = live_problem(cond.method, cond.settings, avatar=avatar, base_dir=base)
-        if problem is not None:
-            raise SessionError(f"condition {config.condition!r}: {problem}")
+        try:  # the method checked (it must run live on this avatar) and prepared, once
+            driver = LiveDriver(method_name=cond.method, params=cond.settings, avatar=avatar,
+                                sample_rate=LIVE_RATE, base_dir=base)  # fmt: skip
+            talker_audio = None
+            if config.talker != "mic":
+                talker_audio = load_audio(Path(config.talker), sample_rate=LIVE_RATE).samples
+        except FacelabError as exc:
+            raise SessionError(f"condition {config.condition!r}: {exc}") from None
         glb = live_glb(avatar)
         scene = {
             "glb": glb,
@@ -129,23 +131,8 @@ class LiveHub:
             "camera": camera_json(avatar, settings_for(protocol)),
             "avatar_sha256": avatar.content_hash(),
         }
-        hub = cls(config=config, avatar=avatar, scene=scene)
-        try:
-            hub.new_driver()
-            if config.talker != "mic":
-                hub.talker_audio = load_audio(Path(config.talker), sample_rate=LIVE_RATE).samples
-        except FacelabError as exc:
-            raise SessionError(f"condition {config.condition!r}: {exc}") from None
-        return hub
-
-    def new_driver(self) -> LiveDriver:
-        cond = self.config.protocol.condition(self.config.condition)
-        self.driver = LiveDriver(
-            method_name=cond.method, params=cond.settings, avatar=self.avatar,
-            sample_rate=LIVE_RATE, base_dir=self.config.protocol_path.parent,
-            start_warp=self.last_warp,
-        )  # fmt: skip
-        return self.driver
+        return cls(config=config, scene=scene, driver=driver,
+                   talker_audio=talker_audio)  # fmt: skip
 
     def live_json(self) -> dict[str, Any]:
         p = self.config.protocol
@@ -208,9 +195,9 @@ class LiveHub:
         """SessionError when a turn is being recorded already (one talker at a time)."""
         if self.busy:
             raise SessionError("another talker is speaking (one talker at a time)")
-        driver = self.new_driver()
+        self.driver.restart(start_warp=self.last_warp)
         self.busy = True
-        self.turn = Turn(sample_rate=LIVE_RATE, names=driver.names)
+        self.turn = Turn(sample_rate=LIVE_RATE, names=self.driver.names)
         self.logs, self.arrivals, self.late_audio, self.displays = {}, {}, {}, {}
         self.turn_started = time.time()
         self.turn_viewers = set(self.viewers)

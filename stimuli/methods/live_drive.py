@@ -105,7 +105,8 @@ class LiveDriver:
 
     sample_rate : Hz, >= 16 kHz and a multiple of 100 (the analyser's framing; a browser's
     capture runs at 16 kHz). ``names``: the avatar targets the method moves, the columns of
-    every :class:`LiveFrames`. Not thread-safe: one talker per driver.
+    every :class:`LiveFrames`. The method is checked and prepared once; :meth:`restart` begins
+    the next turn's stream. Not thread-safe: one talker per driver.
     """
 
     def __init__(
@@ -126,30 +127,34 @@ class LiveDriver:
         if sample_rate < 16_000 or sample_rate % 100:
             raise StageError(f"live audio at {sample_rate} Hz: expected a rate of at least "
                              "16000 Hz that is a multiple of 100")  # fmt: skip
-        self.method = get(method_name)
-        self.params = params
-        self.avatar = avatar
+        if isinstance(warp, str) and warp != "auto":
+            raise StageError(f"warp {warp!r}: use 'auto' or a number")
         self.base_dir = Path(base_dir)
         self.sample_rate = sample_rate
-        model = model or default_model()
-        if warp == "auto":  # the talker's vocal-tract length, judged as the audio comes
-            self.stream = WarpAdaptingAnalyzer(sample_rate=sample_rate, model=model,
-                                               warp=start_warp)  # fmt: skip
-        elif isinstance(warp, str):
-            raise StageError(f"warp {warp!r}: use 'auto' or a number")
-        else:
-            self.stream = StreamingAnalyzer(sample_rate=sample_rate, model=model, warp=warp)
-        self.lag_frames = self.stream.model.lag_s / _HOP_S  # fraction of a frame
+        self.model = model or default_model()
+        self.warp = warp
+        self.lag_frames = self.model.lag_s / _HOP_S  # fraction of a frame
         if not 0 <= self.lag_frames < 1:
-            raise StageError(f"the analyser's smoothing lag ({self.stream.model.lag_s * 1000:.1f} "
+            raise StageError(f"the analyser's smoothing lag ({self.model.lag_s * 1000:.1f} "
                              "ms) must be under one 10 ms frame to run live")  # fmt: skip
-        self._drive = self.method.prepared(avatar, params, base_dir=self.base_dir)
+        self._drive = get(method_name).prepared(avatar, params, base_dir=self.base_dir)
         whole = self._drive(DriveInput(track=_probe_track(4), base_dir=self.base_dir))
         missing = [n for n in whole.names if n not in avatar.targets]
         if missing:
             raise StageError(f"avatar {avatar.name!r} lacks targets the method drives: "
                              f"{', '.join(missing[:8])}")  # fmt: skip
         self.names: tuple[str, ...] = tuple(whole.names)
+        self.restart(start_warp=start_warp)
+
+    def restart(self, *, start_warp: float = 1.0) -> None:
+        """Begin a new stream (a new turn): frame 0 at its first sample; with ``warp="auto"``
+        the analysis starts at ``start_warp`` (where the talker's last turn settled)."""
+        if self.warp == "auto":  # the talker's vocal-tract length, judged as the audio comes
+            self.stream: StreamingAnalyzer | WarpAdaptingAnalyzer = WarpAdaptingAnalyzer(
+                sample_rate=self.sample_rate, model=self.model, warp=start_warp)  # fmt: skip
+        else:
+            self.stream = StreamingAnalyzer(sample_rate=self.sample_rate, model=self.model,
+                                            warp=float(self.warp))  # fmt: skip
         self._last: np.ndarray | None = None  # the previous analysis frame's weights
         self._next = 0  # the next live frame's index
         self.samples_in = 0
@@ -158,7 +163,7 @@ class LiveDriver:
     def latency_s(self) -> float:
         """Audio a frame waits for beyond its own time: the analysis window's half and the
         next analysis frame (the lag compensation), at most one chunk more."""
-        return self.stream.latency_s - self.stream.model.lag_s + 2 * _HOP_S
+        return self.stream.latency_s - self.model.lag_s + 2 * _HOP_S
 
     def feed(self, chunk: np.ndarray) -> LiveFrames:
         """The frames the chunk (n,) float samples in [-1, 1] completes."""

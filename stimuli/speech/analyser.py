@@ -424,13 +424,19 @@ def analyze_streamed(
     hop = round(HOP_S * sample_rate)
     x = np.asarray(samples, dtype=np.float64)
     parts = [stream.feed(x[k : k + hop]) for k in range(0, len(x), hop)]
-    parts.append(stream.flush())
+    return _whole_track([*parts, stream.flush()], stream).compensated()
+
+
+def _whole_track(
+    parts: list[VisemeTrack], stream: StreamingAnalyzer | WarpAdaptingAnalyzer
+) -> VisemeTrack:
+    """The tracks a stream emitted, one after the other, as one (its lag and final warp)."""
     return VisemeTrack(
         times=np.concatenate([p.times for p in parts]),
         weights=np.vstack([p.weights for p in parts]),
         latency_s=stream.model.lag_s,
         warp=stream.warp,
-    ).compensated()
+    )
 
 
 def analysis_input(samples: np.ndarray, *, sample_rate: int) -> tuple[np.ndarray, int]:
@@ -542,13 +548,7 @@ def analyze(
     elif isinstance(warp, str):
         raise VisemeError(f"warp {warp!r}: use 'auto' or a number")
     stream = StreamingAnalyzer(sample_rate=sample_rate, model=model, warp=float(warp))
-    head, tail = stream.feed(samples), stream.flush()
-    return VisemeTrack(
-        times=np.concatenate([head.times, tail.times]),
-        weights=np.vstack([head.weights, tail.weights]),
-        latency_s=stream.model.lag_s,
-        warp=stream.warp,
-    )
+    return _whole_track([stream.feed(samples), stream.flush()], stream)
 
 
 def raw_features(
