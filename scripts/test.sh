@@ -11,5 +11,9 @@ bash "$ROOT/scripts/setup.sh"
 cd "$ROOT"
 .venv/bin/ruff check .
 export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-egl}"
+# One BLAS/OpenMP thread per process: the workers already fill the cores, and OpenBLAS's idle
+# threads spin - the profile-likelihood coverage tests burned a second core each for nothing.
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+export MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
 exec xvfb-run -a -s "-screen 0 1280x1024x24" .venv/bin/python -m pytest \
   -n "${FACELAB_TEST_WORKERS:-4}" --dist worksteal "$@"
