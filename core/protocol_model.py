@@ -521,20 +521,58 @@ class VirtualReality(_Model):
         1.0,
         gt=0.2,
         le=10.0,
-        description="From the seated participant's eyes (at the session's start) to the "
-        "avatar's face, in metres.",
+        description="From the seated participant's eyes (where they are when the avatar is "
+        "placed) to the avatar's eyes, straight ahead, in metres.",
     )
     avatar_height_m: float = Field(
         0.0,
         ge=-1.0,
         le=1.0,
-        description="The avatar's eyes above (+) or below (-) the participant's eyes at the "
-        "session's start, in metres (0: eye to eye).",
+        description="The avatar's eyes above (+) or below (-) the participant's eyes (where "
+        "they are when the avatar is placed: at the recentre step), in metres (0: eye to "
+        "eye).",
     )
     fallback: Literal["none", "live3d"] = Field(
         "none",
         description="Without a headset: 'live3d' runs the session on the screen (the session "
         "file says which ran); 'none' asks for a headset and runs nothing.",
+    )
+    room: Literal["room", "floor", "none"] = Field(
+        "room",
+        description="What surrounds the participant in VR: 'room' a neutral room (floor, "
+        "walls, ceiling), 'floor' a floor under the background colour, 'none' the background "
+        "colour alone.",
+    )
+    fade_ms: int = Field(
+        250,
+        ge=0,
+        le=2000,
+        description="Each new screen or clip in VR fades in from black over this time (0: cut).",
+    )
+    recentre: bool = Field(
+        True,
+        description="On entering VR the participant looks straight ahead and confirms; the "
+        "avatar is placed at their eye height and facing direction then (and again from the "
+        "recentre button every panel shows). Off: placed at the first frame's pose.",
+    )
+    spatial_audio: bool = Field(
+        True,
+        description="The voice comes from the avatar's mouth (an HRTF panner that follows the "
+        "head); off: the same sound in both ears, as in the video display.",
+    )
+    instructions: Localized | None = Field(
+        None,
+        description="The instructions as shown in VR (answers there are given with a "
+        "controller or by gaze, not keys or mouse clicks); omitted: presentation.instructions.",
+    )
+    break_text: Localized | None = Field(
+        None,
+        description="The break text in VR; omitted: facelab's own, which names no key.",
+    )
+    end_text: Localized | None = Field(
+        None,
+        description="The end text in VR (the participant is then asked to remove the "
+        "headset); omitted: presentation.end_text.",
     )
 
 

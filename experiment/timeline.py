@@ -67,6 +67,8 @@ __all__ = [
     "remaining",
     "screen_kind",
     "trial_screens",
+    "vr_texts",
+    "vr_wording_notes",
 ]
 
 #: (stimulus set, stimulus, condition): one rendered clip.
@@ -83,6 +85,7 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "resume": "中断したところから再開します。\n\nスペースキーで続けます。",
         "next": "スペースキーで次へ",
         "break": "休憩です。準備ができたらスペースキーを押してください。",
+        "break_vr": "休憩です。準備ができたら「次へ」を選んでください。",
         "end": "終了です。ありがとうございました。",
         "interval": "{n} つ目",
         "left": "左",
@@ -98,6 +101,7 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "resume": "Continuing where the session stopped.\n\nPress space.",
         "next": "Press space to continue",
         "break": "Take a break. Press space when you are ready.",
+        "break_vr": "Take a break. Select Next when you are ready.",
         "end": "This is the end. Thank you.",
         "interval": "Clip {n}",
         "left": "Left",
@@ -148,6 +152,8 @@ class BrowserContext:
     # the practice trial's clip as the browser fetches it (online: a copy of its own, so it
     # cannot be matched to the main trial showing the same clip); default clip_json
     practice_json: Callable[[ClipKey], dict[str, Any]] | None = None
+    # display webxr: the texts of text screens (by role) as VR shows them (:func:`vr_texts`)
+    vr_texts: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def texts(self) -> dict[str, str]:
@@ -202,14 +208,16 @@ class Screen:
 @screen_kind
 @dataclass(frozen=True)
 class TextScreen(Screen):
-    """A text the participant reads and dismisses with the space bar."""
+    """A text the participant reads and dismisses with the space bar (online: a button; in
+    VR: a panel's button, and the text as :func:`vr_texts` words it)."""
 
     kind: ClassVar[str] = "text"
     role: str  # welcome | instructions | practice | resume | break | end
     text: str
 
     def browser(self, ctx: BrowserContext) -> dict[str, Any]:
-        return {"kind": self.kind, "role": self.role, "text": self.text}
+        return {"kind": self.kind, "role": self.role, "text": self.text,
+                "vr_text": ctx.vr_texts.get(self.role, "")}  # fmt: skip
 
 
 @screen_kind
@@ -730,6 +738,49 @@ def compile_timeline(
             screens.append(TextScreen(role="break", text=text))
     screens.append(TextScreen(role="end", text=localized(pres.end_text, lang, texts["end"])))
     return screens
+
+
+#: words of the keyboard and mouse: a text naming them needs its own VR wording
+_DESK_WORDS = ("スペース", "キー", "クリック", "マウス", "space", "key", "click", "mouse")
+
+
+def vr_texts(protocol: Protocol) -> dict[str, str]:
+    """Role -> the text a text screen shows in VR (``display: webxr``), where answers are given
+    with a controller or by gaze: ``presentation.vr``'s own texts; a break without one gets
+    facelab's VR wording (the 2D default names the space key). Empty for other displays."""
+    pres = protocol.presentation
+    if pres.display != "webxr":
+        return {}
+    lang, vr = pres.language, pres.vr
+    out = {"break": localized(vr.break_text, lang, ui(lang)["break_vr"])}
+    if vr.instructions:
+        out["instructions"] = localized(vr.instructions, lang)
+    if vr.end_text:
+        out["end"] = localized(vr.end_text, lang)
+    return out
+
+
+def vr_wording_notes(protocol: Protocol) -> list[str]:
+    """Notes on a VR protocol's texts that speak of keys or mouse clicks with no VR wording
+    of their own (``facelab validate`` prints them)."""
+    pres = protocol.presentation
+    if pres.display != "webxr":
+        return []
+    notes = []
+    for key in ("instructions", "break_text", "end_text"):
+        text = getattr(pres, key)
+        if not text or getattr(pres.vr, key) is not None:
+            continue
+        words = sorted({w for t in text.values() for w in _DESK_WORDS if w in t.lower()})
+        if words:
+            shown = ("facelab's VR break text is shown instead" if key == "break_text"
+                     else "it is shown as it is")  # fmt: skip
+            notes.append(
+                f"presentation.{key} speaks of the keyboard or mouse ({', '.join(words)}), but "
+                f"in VR participants answer with a controller or their gaze - {shown}; give "
+                f"presentation.vr.{key} for VR"
+            )
+    return notes
 
 
 def needed_clips(screens: Sequence[Screen]) -> set[ClipKey]:

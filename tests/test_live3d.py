@@ -23,7 +23,12 @@ from sqlalchemy.orm import Session
 
 from facelab.errors import ProtocolError, SessionError
 from facelab.experiment.cli import main
-from facelab.experiment.online.browser import SimulatedBrowser, chromium, simulated_token
+from facelab.experiment.online.browser import (
+    RECENTRE_YAW_DEG,
+    SimulatedBrowser,
+    chromium,
+    simulated_token,
+)
 from facelab.experiment.online.db import Action, Event, Participant, PlaybackRecord, Response
 from facelab.experiment.online.export import export_sessions
 from facelab.experiment.online.serve import BackgroundServer, prepare_server
@@ -109,6 +114,56 @@ def test_the_live_camera_is_the_offline_framing() -> None:
     assert cam["target"] == pytest.approx(centre.tolist(), abs=1e-6)
     assert cam["eye"][2] - cam["target"][2] == pytest.approx(distance, abs=1e-6)
     assert (cam["width"], cam["height"], cam["fov_deg"]) == (1280, 720, 30.0)
+
+
+def test_vr_anchors_at_the_avatars_eyes_and_voices_at_its_mouth() -> None:
+    """The points a VR view places and hears: between the eye joints (the default head's
+    eyes), the middle of the inner lips; an avatar without eyes falls back to the aim point."""
+    head = default_head()
+    cam = camera_json(head, settings_for(load_protocol(KATO)))
+    sk = head.skeleton
+    assert sk is not None
+    eyes = 0.5 * (sk.pivots[sk.roles["eye_left"]] + sk.pivots[sk.roles["eye_right"]])
+    assert cam["eyes"] == pytest.approx(eyes.tolist(), abs=1e-6)
+    assert cam["eyes"][1] - cam["target"][1] > 0.02  # the face centre is below the eyes
+    lips = head.neutral[[head.landmarks[k] for k in ("upper_lip", "lower_lip")]]
+    assert cam["mouth"][1] == pytest.approx(float(lips[:, 1].mean()), abs=0.005)
+    assert cam["mouth"][1] < cam["eyes"][1] - 0.05
+    blind = replace(head, skeleton=None, landmarks={
+        k: v for k, v in head.landmarks.items() if "lid" not in k})  # fmt: skip
+    assert camera_json(blind, settings_for(load_protocol(KATO)))["eyes"] is None
+
+
+def test_vr_texts_name_no_keys_and_validate_says_which_do(tmp_path: Path, capsys) -> None:
+    """kato2021 in VR: its instructions speak of clicking and its break of the space key;
+    validate says so, the break gets facelab's VR wording, and the protocol's own VR wording
+    replaces the instructions (sent beside the 2D text: the page picks it in the headset)."""
+    from facelab.experiment.timeline import BrowserContext, TextScreen, vr_texts
+
+    text = KATO.read_text(encoding="utf-8")
+    path = tmp_path / "vr.yaml"
+    path.write_text(_with_display(text, "  display: webxr\n"), encoding="utf-8")
+    assert main(["validate", str(path)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "speaks of" in line]
+    assert len(notes) == 2
+    assert "presentation.instructions" in notes[0] and "クリック" in notes[0]
+    assert "presentation.break_text" in notes[1] and "スペース" in notes[1]
+    protocol = load_protocol(path)
+    texts = vr_texts(protocol)
+    assert set(texts) == {"break"} and "スペース" not in texts["break"]
+    own = "コントローラーで線を指して回答してください。"
+    vr_block = f"  display: webxr\n  vr:\n    instructions: {{ja: {own}, en: Point at the line.}}\n"
+    path.write_text(_with_display(text, vr_block), encoding="utf-8")
+    assert main(["validate", str(path)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "speaks of" in line]
+    assert len(notes) == 1 and "break_text" in notes[0]
+    texts = vr_texts(load_protocol(path))
+    assert texts["instructions"] == own
+    ctx = BrowserContext(lang="ja", clip_json=dict, vr_texts=texts)
+    shown = TextScreen(role="instructions", text="2D").browser(ctx)
+    assert shown == {"kind": "text", "role": "instructions", "text": "2D", "vr_text": own}
+    assert TextScreen(role="practice", text="2D").browser(ctx)["vr_text"] == ""  # the 2D one
+    assert vr_texts(load_protocol(KATO)) == {}  # the video display has no VR texts
 
 
 # --------------------------------------------------------------------------- Chromium
@@ -367,6 +422,34 @@ def _head_poses_match(d, folder: Path) -> list[float]:
     return out
 
 
+def _every_screen_is_a_whole_vr_panel(protocol_file: Path, shots: Path) -> None:
+    """Each VR screen of the session was shot with its panel's layout: the recentre step, the
+    instructions, the practice notice, the ratings and the end (take off the headset); every
+    text on a panel is drawn whole (its lines join to the text) and inside the panel - the
+    VAS end labels too, however long."""
+    protocol = load_protocol(protocol_file)
+    layouts = {
+        p.name.removesuffix(".panel.json"): json.loads(p.read_text("utf-8"))
+        for p in shots.glob("*.panel.json")
+    }
+    rated = {f"vr-vas-{item.id}" for item in protocol.items}  # items_layout: sequential
+    assert {"vr-recentre", "vr-text-instructions", "vr-text-practice", "vr-end"} | rated <= set(
+        layouts
+    ), sorted(layouts)
+    for name, lay in layouts.items():
+        assert not lay["overflow"], name
+        for block in lay["blocks"]:
+            drawn = "".join(block["lines"]).replace(" ", "")
+            assert drawn == "".join(block["source"].split()), (name, block)
+    for item in protocol.items:  # the question and both end labels, whole
+        sources = {b["source"] for b in layouts[f"vr-vas-{item.id}"]["blocks"]}
+        assert {item.question["ja"], item.left_anchor["ja"], item.right_anchor["ja"]} <= sources
+    instructions = {b["source"] for b in layouts["vr-text-instructions"]["blocks"]}
+    assert protocol.presentation.instructions["ja"] in instructions
+    end = {b["source"] for b in layouts["vr-end"]["blocks"]}
+    assert "ヘッドセットを外して、パソコンの画面をご覧ください。" in end
+
+
 @slow
 def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     study: Path, tmp_path: Path
@@ -379,7 +462,7 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
             "--db", f"sqlite:///{db}", "--results", str(tmp_path), "--port", "0",
             "--simulate-participants", "1", "--screenshots", str(shots)]  # fmt: skip
     assert main(args) == 0
-    assert {"enter_vr.png", "vr-vas.png", "complete.png"} <= {
+    assert {"enter_vr.png", "vr-vas-naturalness.png", "complete.png"} <= {
         p.name for p in shots.glob("*.png")
     }
     server = _server(study, "vr.yaml", db)
@@ -387,7 +470,24 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     with Session(server.engine) as s:
         records = [r.record for r in s.scalars(select(PlaybackRecord))]
         shown = [e.detail for e in s.scalars(select(Event).where(Event.kind == "display"))]
+        recentred = [e.detail for e in s.scalars(select(Event).where(Event.kind == "recentre"))]
     assert shown and all(e["ran"] == "webxr" for e in shown)
+    assert all(e["input"] == "controller" and e["reference_space"] for e in shown)
+    _every_screen_is_a_whole_vr_panel(study / "vr.yaml", shots)
+    # the recentre step: the emulated participant sat turned 15 deg to the left; the avatar's
+    # eyes were placed 1.2 m (vr.yaml) along that direction, at their eye height
+    start = [e for e in recentred if e["why"] == "start"]
+    assert len(start) == 1 and start[0]["yaw_deg"] == pytest.approx(RECENTRE_YAW_DEG, abs=0.5)
+    ahead = np.array(start[0]["avatar_eyes_m"]) - np.array(start[0]["viewer_m"])
+    assert np.hypot(ahead[0], ahead[2]) == pytest.approx(1.2, abs=0.005)
+    assert np.degrees(np.arctan2(-ahead[0], -ahead[2])) == pytest.approx(RECENTRE_YAW_DEG, abs=0.5)
+    assert ahead[1] == pytest.approx(0.0, abs=0.002)
+    for rec in records:  # the voice from the avatar's mouth, a little below its eyes
+        assert rec["spatial_audio"] is True
+        mouth = np.array(rec["audio_source_m"])
+        viewer = np.array(rec["viewer_poses"][0][1:4])
+        assert np.linalg.norm(mouth - viewer) == pytest.approx(1.2, abs=0.1)
+        assert mouth[1] < start[0]["avatar_eyes_m"][1] - 0.03
     assert len(records) == 9
     for rec in records:
         assert rec["display"] == "webxr" and rec["frames_expected"] > 0
@@ -410,6 +510,11 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     print("yaw per logged frame, per clip:",
           [[round(pose[4], 1) for pose in rec["viewer_poses"]] for rec in records])  # fmt: skip
     assert max(yaws) - min(yaws) > 30, (min(yaws), max(yaws))
+    # and it moves in six degrees of freedom: nods, tilts, leans
+    every = np.array([pose for rec in records for pose in rec["viewer_poses"]])
+    spread = np.ptp(every[:, 1:], axis=0)  # x, y, z (m), yaw, pitch, roll (deg)
+    print("pose ranges x, y, z, yaw, pitch, roll:", spread.round(3).tolist())
+    assert spread[4] > 5 and spread[5] > 2 and spread[2] > 0.01, spread
     # each clip's yaw range is that of the poses it logged (how many frames a clip gets - and
     # so how much of the turn it holds - depends on the machine's load: one frame per clip was
     # seen under the full suite, so no per-clip amount of turning is asserted)

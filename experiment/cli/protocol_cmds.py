@@ -13,6 +13,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from facelab.design import count_trials
+    from facelab.experiment.timeline import vr_wording_notes
     from facelab.protocol import load_protocol, refuse
 
     try:
@@ -43,7 +44,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             )
             + _plugins_used(protocol)
         )
-        for note in _simulation_notes(protocol):
+        for note in _simulation_notes(protocol) + vr_wording_notes(protocol):
             print(f"{path}: note: {note}")
     return 0
 

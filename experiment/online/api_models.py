@@ -127,10 +127,16 @@ class PlaybackIn(_Strict):
     viewer_poses: list[Annotated[list[float], Field(min_length=7, max_length=7)]] | None = Field(
         None, max_length=100_000
     )
+    # VR: whether the voice came from the avatar's mouth (an HRTF panner) and where that was
+    # (x, y, z m, the reference space's axes)
+    spatial_audio: bool | None = None
+    audio_source_m: Annotated[list[float], Field(min_length=3, max_length=3)] | None = None
 
 
 class EventIn(_Strict):
-    kind: Literal["browser", "play_refused", "fullscreen_exit", "resumed", "error", "display"]
+    kind: Literal[
+        "browser", "play_refused", "fullscreen_exit", "resumed", "error", "display", "recentre"
+    ]
     detail: dict[str, Any] = Field(default_factory=dict)
 
     FREE_JSON: ClassVar[frozenset[str]] = frozenset({"detail"})

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import json
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -84,8 +85,10 @@ def chromium(*, size: tuple[int, int] = (1280, 800), extra_args: Sequence[str] =
 
 
 #: the emulated headset (Meta's IWER from npm, never served to participants): installed in the
-#: page before its scripts run; while a clip plays it turns the head (yaw +-HEAD_TURN_DEG, one
-#: cycle every 2 s) as a seated participant might, and faces ahead again for the panels. The
+#: page before its scripts run; while a clip plays it moves the head as a seated participant
+#: watching might - turns (yaw +-HEAD_TURN_DEG, one cycle every 2 s), nods (pitch +-0.4 of
+#: that), tilts (roll +-0.2), sways 2 cm and leans in up to 4 cm - and sits back facing
+#: ahead for the panels. The
 #: head moves inside the session's own frame loop (after each XR frame's callbacks, for the
 #: next frame), not on a page timer: a busy page starves its timers while it draws, and the
 #: head then stood still. A sparse frame advances the turn by at most an eighth of a cycle, and
@@ -99,11 +102,19 @@ _EMULATOR_JS = """
   device.installRuntime({ forceInstall: true });
   window.facelabXRDevice = device;
   const turn = %(turn)s;
+  const rest = { x: device.position.x, y: device.position.y, z: device.position.z };
   let phase = 0, last = null;
-  const face = (yaw) => {
-    const h = yaw * Math.PI / 360;
-    device.quaternion.set(0, Math.sin(h), 0, Math.cos(h));
+  // the head at (yaw, pitch, roll) degrees (R = Ry Rx Rz, the rig's order) leaning
+  // (dx, dy, dz) metres from where it sat
+  const pose = (yaw, pitch, roll, dx, dy, dz) => {
+    const r = Math.PI / 360, [cy, sy] = [Math.cos(yaw * r), Math.sin(yaw * r)];
+    const [cx, sx] = [Math.cos(pitch * r), Math.sin(pitch * r)];
+    const [cz, sz] = [Math.cos(roll * r), Math.sin(roll * r)];
+    device.quaternion.set(cy * sx * cz + sy * cx * sz, sy * cx * cz - cy * sx * sz,
+                          cy * cx * sz - sy * sx * cz, cy * cx * cz + sy * sx * sz);
+    device.position.set(rest.x + dx, rest.y + dy, rest.z + dz);
   };
+  window.facelabFace = (yaw) => pose(yaw, 0, 0, 0, 0, 0);
   const frameLoop = IWER.XRSession.prototype.requestAnimationFrame;
   IWER.XRSession.prototype.requestAnimationFrame = function (callback) {
     return frameLoop.call(this, function (time, frame) {
@@ -113,14 +124,24 @@ _EMULATOR_JS = """
         const now = performance.now();
         phase += last === null ? 1 / 8 : Math.min((now - last) / 2000, 1 / 8);
         last = now;
-        face(turn * Math.sin(2 * Math.PI * phase));
-      } else if (last !== null) {  // a panel: face ahead; the turn goes on with the next clip
-        last = null; face(0);
+        const w = 2 * Math.PI * phase;  // a person watching: turns, nods, tilts and leans in
+        pose(turn * Math.sin(w), 0.4 * turn * Math.sin(1.7 * w + 1),
+             0.2 * turn * Math.sin(0.6 * w + 2), 0.02 * Math.sin(0.8 * w),
+             0.01 * Math.sin(1.3 * w), -0.02 * (1 - Math.cos(0.5 * w)));
+      } else if (last !== null) {  // a panel: sit back, face ahead (the motion goes on later)
+        last = null; pose(0, 0, 0, 0, 0, 0);
       }
       return result;
     });
   };
 })();
+"""
+#: the yaw (deg, + to the left) the emulated participant faces when they recentre
+RECENTRE_YAW_DEG = 15.0
+_FACE_JS = "window.facelabFace(arguments[0]);"
+_ON_PANEL_JS = """
+const el = document.querySelector(arguments[0]);
+return !!(el && window.FacelabLive && window.FacelabLive.target(el));
 """
 
 # Point the emulated right controller at a DOM element's place on the VR panel (a VAS line at
@@ -214,10 +235,21 @@ class SimulatedBrowser:
             db.commit()
 
     def _shot(self, name: str) -> None:
+        """A screenshot of the page as ``name``.png, once per name; in VR also the panel's
+        layout as ``name``.panel.json (each text line drawn and where, whether any fell
+        outside the panel)."""
         if self.screenshots is not None and name not in self.shots:
             self.shots.add(name)
             self.screenshots.mkdir(parents=True, exist_ok=True)
             self.driver.save_screenshot(str(self.screenshots / f"{name}.png"))
+            layout = self.driver.execute_script(
+                "const s = window.FacelabLive;"
+                "return s && s.inVR() && s.panel ? s.panel.laidOut : null"
+            )
+            if layout:
+                (self.screenshots / f"{name}.panel.json").write_text(
+                    json.dumps(layout, ensure_ascii=False), encoding="utf-8"
+                )
 
     def run(self, *, timeout_s: float = 900.0) -> str:
         """Walk the session; returns "complete" or "stopped" (``stop_after`` reached)."""
@@ -273,6 +305,12 @@ class SimulatedBrowser:
             if problem:
                 raise SessionError(f"simulated participant {self.k}: {problem}")
 
+        def wait_for(selector: str, timeout_s: float = 10.0) -> None:
+            """Until the VR panel shows the element ``selector`` (it is drawn as it appears)."""
+            until = time.monotonic() + timeout_s
+            while not d.execute_script(_ON_PANEL_JS, selector) and time.monotonic() < until:
+                time.sleep(0.1)
+
         try:
             d.get(f"{self.base_url}/run#t={token}")
             deadline = time.monotonic() + timeout_s
@@ -286,6 +324,8 @@ class SimulatedBrowser:
                     or key in done_screens
                 ):
                     if kind in ("clip", "clip_pair"):
+                        if in_vr() and d.execute_script("return !!FacelabLive.onFrame"):
+                            self._shot("vr-clip")  # the avatar talking, in the room
                         self._shot(kind)
                     time.sleep(0.1)
                     continue
@@ -295,6 +335,13 @@ class SimulatedBrowser:
                         f"{d.find_element(By.CSS_SELECTOR, '[data-facelab=error]').text!r}"
                     )
                 if kind == "complete":
+                    if in_vr():  # the end panel: take off the headset, then Exit
+                        wait_for("[data-facelab=exit_vr]")
+                        self._shot("vr-end")
+                        xr_select("[data-facelab=exit_vr]")
+                        until = time.monotonic() + 10
+                        while in_vr() and time.monotonic() < until:
+                            time.sleep(0.1)
                     self._shot("complete")
                     return "complete"
                 if (
@@ -307,6 +354,14 @@ class SimulatedBrowser:
                     self._shot("enter_vr")
                     d.find_element(By.CSS_SELECTOR, "[data-facelab=enter_vr] button").click()
                     time.sleep(0.5)
+                    continue
+                if kind == "recentre" and in_vr():
+                    # a participant sitting a little turned: "ahead" is where they look
+                    d.execute_script(_FACE_JS, RECENTRE_YAW_DEG)
+                    wait_for("[data-facelab=recentre_ok]")
+                    self._shot("vr-recentre")
+                    xr_select("[data-facelab=recentre_ok]")
+                    time.sleep(0.2)
                     continue
                 if kind == "consent":
                     self._shot("consent")
@@ -324,7 +379,7 @@ class SimulatedBrowser:
                     shown = d.find_element(By.CSS_SELECTOR, "#app [data-facelab=text]")
                     self.texts[str(state.get("role"))] = shown.get_attribute("textContent")
                     if in_vr():
-                        self._shot("vr-text")
+                        self._shot(f"vr-text-{state.get('role')}")
                         xr_select("[data-facelab=next]")
                     else:
                         d.find_element(By.CSS_SELECTOR, "[data-facelab=next]").click()
@@ -354,8 +409,8 @@ class SimulatedBrowser:
                         width = line.size["width"]
                         dx = round((value - lo) / (hi - lo) * (width - 1) - (width - 1) / 2)
                         ActionChains(d).move_to_element_with_offset(line, dx, 0).click().perform()
-                    if in_vr():
-                        self._shot("vr-vas")
+                    if in_vr():  # one shot per item (or set of items shown together)
+                        self._shot(f"vr-vas-{state.get('item')}")
                         xr_select("[data-facelab=confirm]")
                     else:
                         self._shot("vas")

@@ -38,6 +38,7 @@ from facelab.experiment.timeline import (
     needed_clips,
     number,
     remaining,
+    vr_texts,
 )
 from facelab.protocol import Protocol
 from facelab.sessionlog import SessionContext
@@ -193,6 +194,7 @@ class OnlineStudy:
             clip_json=self._clip_json,
             shown_before=frozenset(shown_before),
             practice_json=lambda key: self._clip_json(key, practice=True),
+            vr_texts=vr_texts(self.protocol),
         )
         return s.browser(ctx)
 

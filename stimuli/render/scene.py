@@ -27,10 +27,12 @@ __all__ = [
     "RenderSettings",
     "camera_json",
     "camera_placement",
+    "eye_midpoint",
     "face_box",
     "face_closeup",
     "framing",
     "load_avatar",
+    "mouth_centre",
     "settings_for",
 ]
 
@@ -224,7 +226,35 @@ def camera_json(avatar: Avatar, settings: RenderSettings) -> dict[str, Any]:
         "background": list(settings.background),
         "lights": [{"direction": list(d), "intensity": i} for d, i in LIGHTS],
         "ambient": {"sky": AMBIENT + AMBIENT_UP, "ground": AMBIENT - AMBIENT_UP},
+        "eyes": _rounded(eye_midpoint(avatar)),
+        "mouth": _rounded(mouth_centre(avatar)),
     }
+
+
+def _rounded(point: np.ndarray | None) -> list[float] | None:
+    return None if point is None else [round(float(v), 6) for v in point]
+
+
+def eye_midpoint(avatar: Avatar) -> np.ndarray | None:
+    """(3,) m: between the eyes at rest - the eye joints' pivots when the skeleton has both,
+    else the middle of the four eyelid landmarks; None when the avatar has neither (a VR
+    view then anchors the aim point instead)."""
+    sk = avatar.skeleton
+    if sk is not None and {"eye_left", "eye_right"} <= set(sk.roles):
+        return 0.5 * (sk.pivots[sk.roles["eye_left"]] + sk.pivots[sk.roles["eye_right"]])
+    lids = ("upper_lid_left", "lower_lid_left", "upper_lid_right", "lower_lid_right")
+    if all(k in avatar.landmarks for k in lids):
+        return avatar.neutral[[avatar.landmarks[k] for k in lids]].astype(float).mean(axis=0)
+    return None
+
+
+def mouth_centre(avatar: Avatar) -> np.ndarray | None:
+    """(3,) m: the middle of the inner lip contour's four landmarks at rest (where a VR view
+    puts the voice); None for an avatar without them (a VR view then uses the aim point)."""
+    lips = ("upper_lip", "lower_lip", "mouth_left", "mouth_right")
+    if not all(k in avatar.landmarks for k in lips):
+        return None
+    return avatar.neutral[[avatar.landmarks[k] for k in lips]].astype(float).mean(axis=0)
 
 
 def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:

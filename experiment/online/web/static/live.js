@@ -5,21 +5,36 @@
 // audio clock has reached: frames follow the sound even when frames are dropped. The animation
 // methods never run here.
 //
-// In VR the same jsPsych screens run; their DOM is mirrored on a panel in front of the
-// participant (a canvas texture) and answered with a controller ray or gaze-and-select, which
-// clicks the very DOM buttons a mouse would - one answer path, the same logging.
+// In VR the same jsPsych screens run, from the instructions to the end; their DOM is mirrored
+// on a panel in front of the participant (a canvas texture, its text wrapped and scaled to
+// fit) and answered with a controller ray or gaze-and-select, which clicks the very DOM
+// buttons a mouse would - one answer path, the same logging. The participant sits in a
+// neutral room (vr.room), each screen fades in (vr.fade_ms), rays are hidden while a clip
+// plays, the avatar's eyes are placed where the recentre step measured the participant's
+// (vr.recentre) and its voice comes from its mouth (vr.spatial_audio).
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 
 const WORDS = {
   ja: { enter: "VRを開始", enter_note: "ヘッドセットを着けて、下のボタンを押してください。",
         needs: "この実験にはVRヘッドセットが必要です。WebXRに対応したブラウザーとヘッドセットで、募集ページのリンクから開き直してください。",
-        play: "再生" },
+        play: "再生",
+        recentre_note: "椅子に深く座り、まっすぐ前を向いてください。準備ができたら「ここを正面に」を選んでください。",
+        recentre: "ここを正面に", recentre_short: "正面に戻す",
+        hint_controller: "コントローラーで指して、トリガーを引いて選びます。",
+        hint_gaze: "選びたいものを見つめて、選択ボタンを押します。",
+        remove: "ヘッドセットを外して、パソコンの画面をご覧ください。", exit: "VRを終了" },
   en: { enter: "Enter VR", enter_note: "Put on the headset, then press the button below.",
         needs: "This study needs a VR headset. Please open the recruitment link again in a WebXR browser with a headset connected.",
-        play: "Play" },
+        play: "Play",
+        recentre_note: "Sit back in the chair and look straight ahead. When you are ready, select \"This is ahead\".",
+        recentre: "This is ahead", recentre_short: "Recentre",
+        hint_controller: "Point with the controller and pull the trigger to select.",
+        hint_gaze: "Look at what you want to select and press the select button.",
+        remove: "Please take off the headset and look at the computer screen.", exit: "Exit VR" },
 };
 const MAX_FRAMES_LOGGED = 20000; // per clip (a 10-min clip at 30 fps); the API refuses more
+const SEATED_EYE_HEIGHT_M = 1.2;  // the floor below the eyes when the runtime gives no floor
 
 function deg(rad) { return rad * 180 / Math.PI; }
 function median(xs) { if (!xs.length) return null; const s = [...xs].sort((a, b) => a - b); const m = s.length >> 1; return s.length % 2 ? s[m] : 0.5 * (s[m - 1] + s[m]); }
@@ -38,6 +53,9 @@ export class Stage {
     this.session = null;                      // the immersive session, while it runs
     this.panel = null;
     this.onFrame = null;                      // the clip being played, called every frame
+    this.yaw = 0;                             // the facing direction the avatar was placed at
+    this.lastPose = null;                     // the viewer's pose at the last XR frame
+    this.fadeStart = null;
   }
 
   async init() {
@@ -154,7 +172,15 @@ export class Stage {
   // -- the frame loop: live3d draws while a clip plays; VR draws every frame of the session
 
   tick(time, xrFrame) {
-    if (this.session && !this.origin && xrFrame) this.place(xrFrame);
+    if (this.session && xrFrame) {
+      const pose = xrFrame.getViewerPose(this.renderer.xr.getReferenceSpace());
+      if (pose) {
+        this.lastPose = pose.transform;
+        if (!this.origin) this.placeAt(pose.transform);
+        this.hear(pose.transform);
+      }
+      this.fading();
+    }
     if (this.onFrame) this.onFrame(time, xrFrame);
     if (this.panel) this.panel.hover(this);
     if (this.onFrame || this.session) this.renderer.render(this.scene, this.camera);
@@ -194,10 +220,14 @@ export class Stage {
     }
     this.rest();
     this.avatar.visible = true;
+    this.showRays(false);  // nothing drawn over the face while it talks
+    this.fadeIn();
     const fps = track.header.fps, n = track.frames, duration = n / fps;
     const frames = [];
     const src = this.audio.createBufferSource();
-    src.buffer = audio; src.connect(this.audio.destination);
+    src.buffer = audio;
+    const source = this.voiceOutput();
+    src.connect(source.node);
     const start = this.audio.currentTime + 0.15;
     src.start(start);
     const ended = new Promise((res) => { src.onended = res; });
@@ -211,7 +241,8 @@ export class Stage {
       };
     });
     await ended;
-    return this.record(s, frames, { fps, n, refused, duration });
+    this.showRays(true);
+    return this.record(s, frames, { fps, n, refused, duration, source });
   }
 
   // The clip's presentation record: the lab/video keys (onset, frames expected, dropped,
@@ -219,7 +250,7 @@ export class Stage {
   // (a frame interval over 1.5x the median), av_offset_ms (median of the shown frame's
   // centre time minus the heard audio time: + picture ahead of sound), and in VR the viewer's
   // head movement and distance to the avatar's face.
-  record(s, frames, { fps, n, refused }) {
+  record(s, frames, { fps, n, refused, source }) {
     const shown = frames.map((f) => f[1]);
     const times = frames.map((f) => f[0]);
     const gaps = times.slice(1).map((t, i) => t - times[i]);
@@ -228,7 +259,7 @@ export class Stage {
     // the last track frame: it says nothing about sync, so it is not in the offset
     const offsets = frames.filter((f) => f[2] * fps < n).map((f) => 1000 * ((f[1] + 0.5) / fps - f[2]));
     const poses = frames.map((f) => f[3]).filter((p) => p);
-    const face = this.facePosition();
+    const eyes = this.eyesPosition();
     const rec = {
       client_key: FacelabOutbox.newKey(), trial_index: s.practice ? null : s.trial_index,
       clip: s.clip, replay: !!s.replay,
@@ -243,13 +274,44 @@ export class Stage {
       av_offset_ms: offsets.length ? round(median(offsets), 2) : null,
       head_yaw_range_deg: poses.length ? round(range(poses.map((p) => p[3])), 2) : null,
       head_pitch_range_deg: poses.length ? round(range(poses.map((p) => p[4])), 2) : null,
-      avatar_distance_m: poses.length ? round(median(poses.map((p) => Math.hypot(p[0] - face.x, p[1] - face.y, p[2] - face.z))), 3) : null,
+      avatar_distance_m: poses.length ? round(median(poses.map((p) => Math.hypot(p[0] - eyes.x, p[1] - eyes.y, p[2] - eyes.z))), 3) : null,
       viewer_poses: poses.length ? frames.filter((f) => f[3]).map((f) => [round(f[0] / 1000, 4), ...f[3].map((v) => round(v, 4))]) : null,
+      spatial_audio: !!(source && source.at),
+      audio_source_m: source && source.at ? source.at.map((v) => round(v, 4)) : null,
     };
     return rec;
   }
 
-  facePosition() { return new THREE.Vector3(...this.camera_json.target).applyMatrix4(this.avatar.matrixWorld); }
+  // between the avatar's eyes (its aim point when the avatar file gives no eyes)
+  eyesPosition() { return new THREE.Vector3(...(this.camera_json.eyes || this.camera_json.target)).applyMatrix4(this.avatar.matrixWorld); }
+  mouthPosition() { return new THREE.Vector3(...(this.camera_json.mouth || this.camera_json.target)).applyMatrix4(this.avatar.matrixWorld); }
+
+  // Where the voice goes: in VR with vr.spatial_audio an HRTF panner at the avatar's mouth
+  // (its level at the avatar's distance that of the plain output); else the output itself.
+  voiceOutput() {
+    if (!this.session || this.vr.spatial_audio === false || typeof PannerNode === "undefined") {
+      return { node: this.audio.destination, at: null };
+    }
+    const m = this.mouthPosition();
+    const panner = new PannerNode(this.audio, {
+      panningModel: "HRTF", distanceModel: "inverse", refDistance: this.vr.avatar_distance_m || 1,
+      rolloffFactor: 1, positionX: m.x, positionY: m.y, positionZ: m.z,
+    });
+    panner.connect(this.audio.destination);
+    return { node: panner, at: [m.x, m.y, m.z] };
+  }
+
+  // the listener at the viewer's head, facing where it faces (every XR frame)
+  hear(t) {
+    const L = this.audio.listener, p = t.position, o = t.orientation;
+    const q = new THREE.Quaternion(o.x, o.y, o.z, o.w);
+    const f = new THREE.Vector3(0, 0, -1).applyQuaternion(q), u = new THREE.Vector3(0, 1, 0).applyQuaternion(q);
+    if (L.positionX) {
+      L.positionX.value = p.x; L.positionY.value = p.y; L.positionZ.value = p.z;
+      L.forwardX.value = f.x; L.forwardY.value = f.y; L.forwardZ.value = f.z;
+      L.upX.value = u.x; L.upY.value = u.y; L.upZ.value = u.z;
+    } else { L.setPosition(p.x, p.y, p.z); L.setOrientation(f.x, f.y, f.z, u.x, u.y, u.z); }
+  }
 
   // -- live3d: the canvas inside a clip screen
 
@@ -266,39 +328,128 @@ export class Stage {
     catch (e) { return false; }
   }
 
-  // Enter the immersive session (call from a click). The avatar's face stands
-  // vr.avatar_distance_m in front of the participant's eyes, vr.avatar_height_m above them.
+  // Enter the immersive session (call from a click). The avatar is placed at the first frame
+  // (see placeAt) and again at the recentre step.
   async enterVR() {
     const session = await navigator.xr.requestSession("immersive-vr", { optionalFeatures: ["local-floor"] });
+    // the floor is known when the runtime gives local-floor; else it is put a seated eye
+    // height below the eyes
+    let space = "local";
+    try { await session.requestReferenceSpace("local-floor"); space = "local-floor"; } catch (e) { /* local */ }
+    this.renderer.xr.setReferenceSpaceType(space);
+    this.referenceSpace = space;
     await this.renderer.xr.setSession(session);
     this.session = session;
-    session.addEventListener("end", () => { this.session = null; if (this.panel) this.panel.remove(); this.panel = null; });
-    this.origin = null;  // placed at the first frame's head position (place)
-    this.controllers = [0, 1].map((i) => {
-      const c = this.renderer.xr.getController(i);
-      const ray = new THREE.Line(new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(), new THREE.Vector3(0, 0, -1)]),
-        new THREE.LineBasicMaterial({ color: 0xffffff }));
-      ray.scale.z = 2; c.add(ray);
-      c.addEventListener("select", () => { if (this.panel) this.panel.select(c); });
-      this.scene.add(c);
-      return c;
+    session.addEventListener("end", () => {
+      this.session = null; this.lastPose = null;
+      if (this.panel) this.panel.remove();
+      this.panel = null;
+      if (this.room) { this.scene.remove(this.room); this.room = null; }
     });
+    this.origin = null;  // placed at the first frame's head pose (placeAt)
+    if (!this.controllers) {
+      this.controllers = [0, 1].map((i) => {
+        const c = this.renderer.xr.getController(i);
+        const ray = new THREE.Line(new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(), new THREE.Vector3(0, 0, -1)]),
+          new THREE.LineBasicMaterial({ color: 0xffffff }));
+        ray.scale.z = 2; ray.name = "ray"; c.add(ray);
+        c.addEventListener("select", () => { if (this.panel) this.panel.select(c); });
+        this.scene.add(c);
+        return c;
+      });
+    }
+    if (!this.fader) {  // a black sphere around the head: screens fade in from it
+      this.fader = new THREE.Mesh(new THREE.SphereGeometry(0.25, 24, 12), new THREE.MeshBasicMaterial({
+        color: 0x000000, side: THREE.BackSide, transparent: true, opacity: 0, depthTest: false, depthWrite: false }));
+      this.fader.renderOrder = 1e6; this.fader.visible = false; this.fader.frustumCulled = false;
+      this.scene.add(this.fader);
+    }
     for (let i = 0; i < 200 && this.session && !this.origin; i++) await new Promise((r) => setTimeout(r, 50));
-    FacelabOutbox.send("/api/event", { kind: "display", detail: { requested: this.display, ran: "webxr", vr: this.vr } });
+    FacelabOutbox.send("/api/event", { kind: "display", detail: { requested: this.display, ran: "webxr", vr: this.vr, reference_space: space, input: this.device() } });
   }
 
-  // The avatar's face vr.avatar_distance_m straight ahead of where the participant's eyes
-  // are at the session's first frame, vr.avatar_height_m above them, facing them.
-  place(xrFrame) {
-    const pose = xrFrame.getViewerPose(this.renderer.xr.getReferenceSpace());
-    if (!pose) return;
-    const p = pose.transform.position;
+  // The avatar's eyes vr.avatar_distance_m straight ahead of the viewer's eyes at pose `t`
+  // (an XRRigidTransform), vr.avatar_height_m above them, facing the viewer; the room around.
+  placeAt(t) {
+    const p = t.position, o = t.orientation;
+    const e = new THREE.Euler().setFromQuaternion(new THREE.Quaternion(o.x, o.y, o.z, o.w), "YXZ");
+    this.yaw = e.y;
     this.origin = new THREE.Vector3(p.x, p.y, p.z);
-    const t = this.camera_json.target;
-    this.avatar.position.set(p.x - t[0], p.y + (this.vr.avatar_height_m || 0) - t[1],
-      p.z - (this.vr.avatar_distance_m || 1) - t[2]);
+    const ahead = new THREE.Vector3(-Math.sin(this.yaw), 0, -Math.cos(this.yaw));
+    const anchor = this.origin.clone().addScaledVector(ahead, this.vr.avatar_distance_m || 1);
+    anchor.y += this.vr.avatar_height_m || 0;
+    this.avatar.rotation.set(0, this.yaw, 0);
+    const eyes = new THREE.Vector3(...(this.camera_json.eyes || this.camera_json.target)).applyEuler(this.avatar.rotation);
+    this.avatar.position.copy(anchor.sub(eyes));
     this.avatar.updateMatrixWorld(true);
+    this.placeRoom();
     if (this.panel) this.panel.place();
+  }
+
+  // The recentre step and button: the avatar (and panel, room) placed again from where the
+  // participant's eyes are and face now; logged.
+  recentre(why) {
+    if (!this.lastPose) return false;
+    this.placeAt(this.lastPose);
+    const eyes = this.eyesPosition();
+    FacelabOutbox.send("/api/event", { kind: "recentre", detail: {
+      why, yaw_deg: round(deg(this.yaw), 2), eye_height_m: round(this.eyeHeight(), 3),
+      viewer_m: this.origin.toArray().map((v) => round(v, 4)), avatar_eyes_m: eyes.toArray().map((v) => round(v, 4)) } });
+    return true;
+  }
+
+  // the floor's height in the reference space, and the eyes' height above it
+  floorY() { return this.referenceSpace === "local-floor" ? 0 : (this.origin ? this.origin.y : 0) - SEATED_EYE_HEIGHT_M; }
+  eyeHeight() { return this.origin ? this.origin.y - this.floorY() : null; }
+
+  // vr.room: a neutral room (floor, walls, ceiling), a floor, or nothing around the viewer
+  placeRoom() {
+    const kind = this.vr.room || "room";
+    if (kind === "none") return;
+    if (!this.room) {
+      const g = new THREE.Group(); g.name = "room";
+      const floor = new THREE.Mesh(new THREE.CircleGeometry(4, 64), new THREE.MeshLambertMaterial({ color: 0x8c8984 }));
+      floor.rotation.x = -Math.PI / 2; g.add(floor);
+      const grid = new THREE.PolarGridHelper(4, 8, 8, 64, 0x7a7772, 0x7a7772); grid.position.y = 0.003; g.add(grid);
+      if (kind === "room") {
+        const walls = new THREE.Mesh(new THREE.CylinderGeometry(4, 4, 3, 64, 1, true),
+          new THREE.MeshLambertMaterial({ color: 0xcbc7c0, side: THREE.BackSide }));
+        walls.position.y = 1.5; g.add(walls);
+        const ceiling = new THREE.Mesh(new THREE.CircleGeometry(4, 64), new THREE.MeshLambertMaterial({ color: 0xe2dfda }));
+        ceiling.rotation.x = Math.PI / 2; ceiling.position.y = 3; g.add(ceiling);
+      }
+      // a backdrop: drawn first and writing no depth, so the avatar, the panels and the rays
+      // are always in front of it (the room's parts do not overlap in view)
+      g.traverse((o) => { o.renderOrder = -10; if (o.material) o.material.depthWrite = false; });
+      this.room = g; this.scene.add(g);
+    }
+    this.room.position.set(this.origin.x, this.floorY(), this.origin.z);
+    this.room.updateMatrixWorld(true);
+  }
+
+  showRays(on) {
+    for (const c of this.controllers || []) { const r = c.getObjectByName("ray"); if (r) r.visible = on; }
+  }
+
+  // the next screen or clip fades in from black over vr.fade_ms (VR only)
+  fadeIn() {
+    if (!this.session || !this.fader || !(this.vr.fade_ms > 0)) return;
+    this.fadeStart = performance.now();
+    this.fading();
+  }
+
+  fading() {
+    if (!this.fader) return;
+    if (this.lastPose) { const p = this.lastPose.position; this.fader.position.set(p.x, p.y, p.z); }
+    const a = this.fadeStart === null ? 0 : 1 - (performance.now() - this.fadeStart) / this.vr.fade_ms;
+    if (a <= 0) { this.fadeStart = null; this.fader.visible = false; return; }
+    this.fader.visible = true; this.fader.material.opacity = a;
+  }
+
+  // how the participant selects: "controller" (a tracked pointer) or "gaze"
+  device() {
+    const modes = this.session ? [...this.session.inputSources].map((s) => s.targetRayMode) : [];
+    return modes.includes("tracked-pointer") ? "controller" : "gaze";
   }
 
   inVR() { return !!this.session && !!this.origin; }
@@ -319,6 +470,7 @@ export class Stage {
     if (!this.session || !box) return null;
     this.avatar.visible = false;  // a screen to answer: the panel alone
     this.panel = new Panel(this, box);
+    this.fadeIn();
     return this.panel;
   }
 
@@ -329,33 +481,64 @@ export class Stage {
   }
 }
 
+// Text broken into lines of at most `maxW` pixels for canvas context `g` (its font set):
+// Latin words are kept whole where they fit, CJK text breaks between characters, closing
+// punctuation never starts a line (it hangs into the margin instead), "\n" breaks.
+function wrapLines(g, text, maxW) {
+  const out = [];
+  for (const para of String(text).split("\n")) {
+    const tokens = para.match(/[A-Za-z0-9\u00C0-\u024F'’.,:;!?%()\-"“”]+|\s+|./gu) || [];
+    let line = "";
+    for (const tok of tokens) {
+      if (/^\s+$/.test(tok)) { if (line) line += " "; continue; }
+      if (!line || g.measureText(line + tok).width <= maxW) { line += tok; continue; }
+      if (/^[、。，．,.)\]）」』】〕！？!?ー…・:;]$/u.test(tok)) { line += tok; continue; }
+      out.push(line.trimEnd()); line = tok;
+    }
+    // a word longer than the line is broken between characters
+    const pieces = [];
+    for (const l of (line ? [...out.splice(0), line.trimEnd()] : out.splice(0))) {
+      if (g.measureText(l).width <= maxW * 1.08) { pieces.push(l); continue; }
+      let cur = "";
+      for (const ch of l) { if (cur && g.measureText(cur + ch).width > maxW) { pieces.push(cur); cur = ch; } else cur += ch; }
+      if (cur) pieces.push(cur);
+    }
+    out.push(...(pieces.length ? pieces : [""]));
+  }
+  return out.filter((l, i, all) => l !== "" || all.length === 1);
+}
+
 // A DOM screen drawn on a canvas in front of the participant. Regions map canvas pixels back
 // to the DOM element they show; a selection clicks that element (or, on a VAS line, places
-// the marker at the fraction hit through the line's facelabPlace hook).
+// the marker at the fraction hit through the line's facelabPlace hook). The text is laid out
+// at the largest scale (1 down to 0.6) at which it fits a 1024 x 640 canvas; taller content
+// makes the panel taller (up to 1024). `layout` says what was drawn where (for tests).
 class Panel {
   constructor(stage, box) {
     this.stage = stage; this.box = box;
-    this.w = 1024; this.h = 640;
-    this.canvas = document.createElement("canvas"); this.canvas.width = this.w; this.canvas.height = this.h;
-    this.texture = new THREE.CanvasTexture(this.canvas);
-    this.texture.colorSpace = THREE.SRGBColorSpace;
-    const width_m = 0.8, height_m = width_m * this.h / this.w;
-    this.mesh = new THREE.Mesh(new THREE.PlaneGeometry(width_m, height_m), new THREE.MeshBasicMaterial({ map: this.texture }));
-    this.place();
-    this.cursor = new THREE.Mesh(new THREE.RingGeometry(0.006, 0.01, 24), new THREE.MeshBasicMaterial({ color: 0x1565c0 }));
+    this.w = 1024; this.h = 0; this.width_m = 0.8;
+    // a panel is drawn over everything, whatever the depth buffer (the avatar is hidden)
+    this.mesh = new THREE.Mesh(new THREE.PlaneGeometry(1, 1), new THREE.MeshBasicMaterial({ depthTest: false }));
+    this.mesh.renderOrder = 10;
+    this.cursor = new THREE.Mesh(new THREE.RingGeometry(0.006, 0.01, 24), new THREE.MeshBasicMaterial({ color: 0x1565c0, depthTest: false }));
+    this.cursor.renderOrder = 11;
     this.cursor.visible = false;
     stage.scene.add(this.mesh); stage.scene.add(this.cursor);
     this.regions = [];
     this.draw();
+    this.place();
     this.observer = new MutationObserver(() => this.draw());
     this.observer.observe(box, { subtree: true, attributes: true, childList: true, characterData: true });
   }
 
-  // below the avatar's face, nearer, turned towards the eyes, so the face stays in view
+  // below the avatar's eyes, nearer, turned towards the eyes, so the face stays in view
   place() {
-    const o = this.stage.origin || new THREE.Vector3();
-    const d = Math.min(0.9, (this.stage.vr.avatar_distance_m || 1) * 0.8);
-    this.mesh.position.set(o.x, o.y + (this.stage.vr.avatar_height_m || 0) - 0.32, o.z - d);
+    const st = this.stage, o = st.origin || new THREE.Vector3();
+    const d = Math.min(0.9, (st.vr.avatar_distance_m || 1) * 0.8);
+    const ahead = new THREE.Vector3(-Math.sin(st.yaw), 0, -Math.cos(st.yaw));
+    const h_m = this.width_m * this.h / this.w;
+    this.mesh.position.copy(o).addScaledVector(ahead, d);
+    this.mesh.position.y += (st.vr.avatar_height_m || 0) - 0.12 - h_m / 2;
     this.mesh.lookAt(o);
     this.mesh.updateMatrixWorld(true);
   }
@@ -363,58 +546,119 @@ class Panel {
   remove() {
     this.observer.disconnect();
     this.stage.scene.remove(this.mesh); this.stage.scene.remove(this.cursor);
-    this.texture.dispose();
+    if (this.texture) this.texture.dispose();
   }
 
-  draw() {
-    const g = this.canvas.getContext("2d"), W = this.w;
-    g.fillStyle = "#f5f5f5"; g.fillRect(0, 0, W, this.h);
-    g.fillStyle = "#111"; g.textAlign = "center"; g.textBaseline = "middle";
-    const font = (px) => `${px}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`;
-    this.regions = [];
-    let y = 70;
-    const wrap = (text, px, maxW) => {
+  // the drawing of the box at `scale`: operations, regions, lines, height (px)
+  layout(scale) {
+    const g = this.scratch || (this.scratch = document.createElement("canvas").getContext("2d"));
+    const W = this.w, M = 56, st = this.stage, words = st.words;
+    const font = (px) => `${Math.round(px)}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`;
+    const ops = [], regions = [], lines = [], blocks = [];
+    let y = 84 * Math.max(scale, 0.8);
+    const text = (str, px, { x = W / 2, align = "center", maxW = W - 2 * M, color = "#111", source = null } = {}) => {
       g.font = font(px);
-      const lines = []; let line = "";
-      for (const ch of text) {
-        if (ch === "\n" || g.measureText(line + ch).width > maxW) { lines.push(line); line = ch === "\n" ? "" : ch; }
-        else line += ch;
+      const got = wrapLines(g, str, maxW);
+      for (const l of got) {
+        const w = g.measureText(l).width;
+        const x0 = align === "center" ? x - w / 2 : align === "left" ? x : x - w;
+        ops.push({ t: "text", s: l, x, y: y + px * 0.5, px, align, color });
+        lines.push({ text: l, x0, x1: x0 + w, y0: y, y1: y + px * 1.2 });
+        y += px * 1.35;
       }
-      if (line) lines.push(line);
-      for (const l of lines) { g.fillText(l, W / 2, y); y += px * 1.35; }
+      if (source !== null) blocks.push({ source, lines: got });
+      return got.length;
     };
-    const texts = this.box.querySelectorAll(".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
+    // the recentre button (every panel but the recentre step's own)
+    if (st.vr.recentre !== false && !this.box.querySelector("[data-facelab=recentre_ok]")) {
+      g.font = font(22);
+      const bw = Math.max(150, g.measureText(words.recentre_short).width + 32), bh = 44;
+      const r = { el: "recentre", kind: "recentre", x: W - M - bw, y: 14, w: bw, h: bh };
+      ops.push({ t: "rect", x: r.x, y: r.y, w: bw, h: bh, color: "#e0e0e0" });
+      ops.push({ t: "text", s: words.recentre_short, x: r.x + bw / 2, y: r.y + bh / 2, px: 22, align: "center", color: "#333" });
+      regions.push(r);
+    }
+    const sources = this.box.querySelectorAll(".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
     const items = this.box.querySelectorAll(".facelab-vas-item");
-    if (!items.length) for (const t of texts) { wrap(t.textContent, 40, W - 120); y += 14; }
+    if (!items.length) for (const t of sources) { text(t.textContent, 40 * scale, { source: t.textContent }); y += 14 * scale; }
     for (const item of items) {
-      wrap(item.querySelector(".facelab-question").textContent, 34, W - 120);
+      const q = item.querySelector(".facelab-question").textContent;
+      text(q, 34 * scale, { source: q });
       const line = item.querySelector("[data-facelab=line]");
-      const x0 = 200, x1 = W - 200, ly = y + 20;
-      g.font = font(24); g.textAlign = "right"; g.fillText(item.querySelector(".facelab-anchor.left").textContent, x0 - 16, ly);
-      g.textAlign = "left"; g.fillText(item.querySelector(".facelab-anchor.right").textContent, x1 + 16, ly);
-      g.textAlign = "center";
-      g.fillStyle = "#333"; g.fillRect(x0, ly - 3, x1 - x0, 6);
+      const x0 = M + 40, x1 = W - M - 40, ly = y + 26 * scale;
+      ops.push({ t: "rect", x: x0, y: ly - 3, w: x1 - x0, h: 6, color: "#333" });
+      for (const [x, y1] of [[x0, ly], [x1, ly]]) ops.push({ t: "rect", x: x - 2, y: y1 - 14, w: 4, h: 28, color: "#333" });
       const marker = line.querySelector(".facelab-marker");
       if (marker && marker.classList.contains("shown")) {
         const frac = parseFloat(marker.style.left) / 100;
-        g.fillStyle = "#c62828"; g.fillRect(x0 + frac * (x1 - x0) - 5, ly - 24, 10, 48);
+        ops.push({ t: "rect", x: x0 + frac * (x1 - x0) - 5, y: ly - 24, w: 10, h: 48, color: "#c62828" });
       }
-      g.fillStyle = "#111";
-      this.regions.push({ el: line, kind: "line", x: x0, y: ly - 30, w: x1 - x0, h: 60 });
-      y = ly + 60;
+      regions.push({ el: line, kind: "line", x: x0, y: ly - 30, w: x1 - x0, h: 60 });
+      // the end labels under the line's ends, each wrapped within half the line
+      const half = (x1 - x0) / 2 - 16, top = ly + 26;
+      const left = item.querySelector(".facelab-anchor.left").textContent;
+      const right = item.querySelector(".facelab-anchor.right").textContent;
+      y = top; text(left, 26 * scale, { x: x0 - 8, align: "left", maxW: half, color: "#333", source: left });
+      const yl = y;
+      y = top; text(right, 26 * scale, { x: x1 + 8, align: "right", maxW: half, color: "#333", source: right });
+      y = Math.max(y, yl) + 26 * scale;
     }
     const buttons = [...this.box.querySelectorAll("button")];
     if (buttons.length) {
-      y = Math.max(y + 10, this.h - 130);
-      const bw = Math.min(300, (W - 80) / buttons.length - 20), bh = 80;
-      let x = (W - buttons.length * (bw + 20) + 20) / 2;
-      for (const b of buttons) {
-        g.fillStyle = b.disabled ? "#bdbdbd" : "#1565c0"; g.fillRect(x, y, bw, bh);
-        g.fillStyle = "#fff"; g.font = font(30); g.fillText(b.textContent, x + bw / 2, y + bh / 2);
-        this.regions.push({ el: b, kind: "button", x, y, w: bw, h: bh });
-        x += bw + 20;
+      y += 10;
+      const perRow = buttons.length <= 3 ? buttons.length : Math.ceil(buttons.length / Math.ceil(buttons.length / 3));
+      const gap = 20, bw = Math.min(320, (W - 2 * M - (perRow - 1) * gap) / perRow), bh = 78 * Math.max(scale, 0.8);
+      for (let r = 0; r * perRow < buttons.length; r++) {
+        const row = buttons.slice(r * perRow, (r + 1) * perRow);
+        let x = (W - row.length * (bw + gap) + gap) / 2;
+        for (const b of row) {
+          ops.push({ t: "rect", x, y, w: bw, h: bh, color: b.disabled ? "#bdbdbd" : "#1565c0" });
+          let px = 30 * Math.max(scale, 0.8);
+          g.font = font(px);
+          while (px > 16 && g.measureText(b.textContent).width > bw - 16) { px -= 1; g.font = font(px); }
+          const w = g.measureText(b.textContent).width;
+          ops.push({ t: "text", s: b.textContent, x: x + bw / 2, y: y + bh / 2, px, align: "center", color: "#fff" });
+          lines.push({ text: b.textContent, x0: x + bw / 2 - w / 2, x1: x + bw / 2 + w / 2, y0: y, y1: y + bh });
+          blocks.push({ source: b.textContent, lines: [b.textContent] });
+          regions.push({ el: b, kind: "button", x, y, w: bw, h: bh });
+          x += bw + gap;
+        }
+        y += bh + gap;
       }
     }
+    y += 6;
+    text(st.device() === "controller" ? words.hint_controller : words.hint_gaze, 22, { color: "#666" });
+    return { ops, regions, lines, blocks, height: Math.ceil(y + 18), scale };
+  }
+
+  draw() {
+    let lay = null;
+    for (const scale of [1, 0.9, 0.8, 0.7, 0.6]) { lay = this.layout(scale); if (lay.height <= 640) break; }
+    const h = Math.min(1024, Math.max(640, lay.height));
+    if (h !== this.h) {  // a new size: a new canvas, texture and plane
+      this.h = h;
+      this.canvas = document.createElement("canvas"); this.canvas.width = this.w; this.canvas.height = h;
+      if (this.texture) this.texture.dispose();
+      this.texture = new THREE.CanvasTexture(this.canvas);
+      this.texture.colorSpace = THREE.SRGBColorSpace;
+      this.mesh.material.map = this.texture; this.mesh.material.needsUpdate = true;
+      this.mesh.geometry.dispose();
+      this.mesh.geometry = new THREE.PlaneGeometry(this.width_m, this.width_m * h / this.w);
+      if (this.stage.origin) this.place();
+    }
+    const g = this.canvas.getContext("2d");
+    g.fillStyle = "#f5f5f5"; g.fillRect(0, 0, this.w, h);
+    g.textBaseline = "middle";
+    for (const op of lay.ops) {
+      g.fillStyle = op.color;
+      if (op.t === "rect") { g.fillRect(op.x, op.y, op.w, op.h); continue; }
+      g.font = `${Math.round(op.px)}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`; g.textAlign = op.align;
+      g.fillText(op.s, op.x, op.y);
+    }
+    this.regions = lay.regions;
+    const outside = lay.lines.filter((l) => l.x0 < 0 || l.x1 > this.w || l.y1 > h);
+    this.laidOut = { scale: lay.scale, width: this.w, height: h, lines: lay.lines, blocks: lay.blocks,
+                     overflow: outside.length > 0 || lay.height > h };
     this.texture.needsUpdate = true;
   }
 
@@ -445,6 +689,7 @@ class Panel {
     if (!r) return;
     if (r.kind === "button" && !r.el.disabled) r.el.click();
     if (r.kind === "line" && r.el.facelabPlace) r.el.facelabPlace(Math.min(1, Math.max(0, (h.x - r.x) / r.w)));
+    if (r.kind === "recentre") this.stage.recentre("button");
   }
 
   target(el, frac) {

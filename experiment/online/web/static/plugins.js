@@ -65,14 +65,26 @@ class FacelabPlugin {
   constructor(jsPsych) { this.jsPsych = jsPsych; }
   trial(el, trial) {
     el.textContent = "";
-    this.run(el, trial).then((data) => { el.textContent = ""; this.jsPsych.finishTrial(data || {}); });
+    facelabReady(el, trial)
+      .then(() => this.run(el, trial))
+      .then((data) => { el.textContent = ""; this.jsPsych.finishTrial(data || {}); });
   }
+}
+// display webxr: every screen runs in the headset, so the immersive session is entered (or
+// entered again after the headset was taken off) before the screen is shown - but not for
+// the end page alone (its code is read on the screen)
+async function facelabReady(el, trial) {
+  const stage = FacelabSession.stage;
+  if (!stage || stage.ran !== "webxr" || stage.inVR()) return;
+  if (trial && trial.kind === "text" && trial.role === "end" && stage.origin) return;
+  await facelabEnterVR(el);
 }
 
 class FacelabText extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-text", "text", s); box.dataset.role = s.role;
-    box.appendChild(facelabEl("p", "", s.text));
+    const stage = FacelabSession.stage;
+    box.appendChild(facelabEl("p", "", stage && stage.inVR() && s.vr_text ? s.vr_text : s.text));
     const next = facelabEl("button", "facelab-button", FacelabSession.ui.next);
     next.dataset.facelab = "next";
     box.appendChild(next); facelabShow(el, box);
@@ -80,7 +92,7 @@ class FacelabText extends FacelabPlugin {
     return { role: s.role };
   }
 }
-FacelabText.info = facelabInfo("facelab-text", { kind: "STRING", role: "STRING", text: "STRING" });
+FacelabText.info = facelabInfo("facelab-text", { kind: "STRING", role: "STRING", text: "STRING", vr_text: "STRING" });
 
 // One <video> of a clip screen, with the frames requestVideoFrameCallback reports.
 function facelabVideo(clip, muted) {
@@ -163,7 +175,8 @@ class FacelabClip extends FacelabPlugin {
 FacelabClip.info = facelabInfo("facelab-clip", { ...FacelabFields.screen, ...FacelabFields.clip });
 
 // The button that starts (or, after the headset was taken off, restarts) the immersive
-// session: entering VR needs a click.
+// session: entering VR needs a click. Then, with vr.recentre, the recentre step: the
+// participant looks straight ahead and selects; the avatar is placed from there.
 async function facelabEnterVR(parent) {
   const stage = FacelabSession.stage;
   const box = facelabEl("div", "facelab-text"); box.dataset.facelab = "enter_vr";
@@ -176,6 +189,30 @@ async function facelabEnterVR(parent) {
     catch (e) { FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "enter VR", error: String(e.name || e) } }); }
   }
   box.remove();
+  if (stage.vr.recentre === false || !stage.inVR()) return;
+  const step = facelabEl("div", "facelab-text"); step.dataset.facelab = "recentre";
+  step.appendChild(facelabEl("p", "", stage.words.recentre_note));
+  const ok = facelabEl("button", "facelab-button", stage.words.recentre); ok.dataset.facelab = "recentre_ok";
+  step.appendChild(ok); facelabShow(parent, step);
+  await new Promise((res) => ok.addEventListener("click", res, { once: true }));
+  stage.recentre("start");
+  stage.mirror(null);
+  step.remove();
+}
+
+// The end in VR: once every answer is stored the panel asks the participant to take off the
+// headset (the completion code is on the page) and VR ends when they select Exit (or after a
+// minute, or when they take it off).
+async function facelabLeaveVR(box) {
+  const stage = FacelabSession.stage;
+  if (!stage || !stage.session) return;
+  const note = facelabEl("p", "", stage.words.remove); note.dataset.facelab = "remove_headset";
+  const exit = facelabEl("button", "facelab-button", stage.words.exit); exit.dataset.facelab = "exit_vr";
+  box.appendChild(note); box.appendChild(exit);
+  const ended = new Promise((res) => stage.session.addEventListener("end", res, { once: true }));
+  await Promise.race([new Promise((res) => exit.addEventListener("click", res, { once: true })), ended, facelabSleep(60000)]);
+  if (stage.session) await stage.session.end().catch(() => {});
+  exit.remove();
 }
 
 // Two clips at once, left and right; only the clip on side s.sound has its sound.
@@ -329,7 +366,8 @@ FacelabAdaptive.info = facelabInfo("facelab-adaptive", { kind: "STRING", trial_i
 class FacelabComplete extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-text", "end", s);
-    box.appendChild(facelabEl("p", "", s.text));
+    const stage = FacelabSession.stage;
+    box.appendChild(facelabEl("p", "", stage && stage.inVR() && s.vr_text ? s.vr_text : s.text));
     const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
     box.appendChild(status); facelabShow(el, box);
     const started = Date.now();
@@ -355,8 +393,7 @@ class FacelabComplete extends FacelabPlugin {
           status.textContent = FacelabSession.ui.saved;
           status.dataset.facelab = "complete";
           if (c.code) box.appendChild(facelabEl("p", "facelab-code", c.code));
-          const stage = FacelabSession.stage;
-          if (stage && stage.session) stage.session.end().catch(() => {});  // the code is on the screen
+          await facelabLeaveVR(box);  // in VR: take off the headset, then VR ends
           if (c.redirect) {
             const a = facelabEl("a", "facelab-button", FacelabSession.ui.back);
             a.href = c.redirect; a.dataset.facelab = "redirect"; box.appendChild(a);
@@ -369,7 +406,7 @@ class FacelabComplete extends FacelabPlugin {
     }
   }
 }
-FacelabComplete.info = facelabInfo("facelab-complete", { kind: "STRING", role: "STRING", text: "STRING" });
+FacelabComplete.info = facelabInfo("facelab-complete", { kind: "STRING", role: "STRING", text: "STRING", vr_text: "STRING" });
 
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
 const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,
