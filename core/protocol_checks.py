@@ -141,6 +141,8 @@ def _localized(protocol: Protocol) -> Iterator[tuple[tuple[str | int, ...], dict
     for key in ("instructions", "break_text", "end_text"):
         if getattr(pres, key) is not None:
             yield ("presentation", key), getattr(pres, key)
+        if getattr(pres.vr, key) is not None:
+            yield ("presentation", "vr", key), getattr(pres.vr, key)
 
 
 #: (top-level sections a check reads, the check). A check runs only when every section it

@@ -30,6 +30,7 @@ practice trial are not repeated; a "continuing" screen is shown instead.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -83,6 +84,7 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "practice": "練習試行です。",
         "quit": "実験を中断しますか？  y: 中断 / n: 続ける",
         "resume": "中断したところから再開します。\n\nスペースキーで続けます。",
+        "resume_vr": "中断したところから再開します。",
         "next": "スペースキーで次へ",
         "break": "休憩です。準備ができたらスペースキーを押してください。",
         "break_vr": "休憩です。準備ができたら「次へ」を選んでください。",
@@ -99,6 +101,7 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "practice": "Practice trial.",
         "quit": "Quit the session?  y: quit / n: continue",
         "resume": "Continuing where the session stopped.\n\nPress space.",
+        "resume_vr": "Continuing where the session stopped.",
         "next": "Press space to continue",
         "break": "Take a break. Press space when you are ready.",
         "break_vr": "Take a break. Select Next when you are ready.",
@@ -741,18 +744,29 @@ def compile_timeline(
 
 
 #: words of the keyboard and mouse: a text naming them needs its own VR wording
-_DESK_WORDS = ("スペース", "キー", "クリック", "マウス", "space", "key", "click", "mouse")
+_DESK_WORDS = re.compile(
+    r"スペース|キーを|キーで|キーボード|数字キー|クリック|マウス"
+    r"|\b(?:space(?:bar)?|keys?|keyboard|click(?:ing|s)?|mouse)\b",
+    re.IGNORECASE,
+)
+
+
+def _desk_words(text: Mapping[str, str]) -> list[str]:
+    return sorted({m.group(0).lower() for t in text.values() for m in _DESK_WORDS.finditer(t)})
 
 
 def vr_texts(protocol: Protocol) -> dict[str, str]:
     """Role -> the text a text screen shows in VR (``display: webxr``), where answers are given
     with a controller or by gaze: ``presentation.vr``'s own texts; a break without one gets
-    facelab's VR wording (the 2D default names the space key). Empty for other displays."""
+    facelab's VR wording when the 2D text names keys or clicks (facelab's own does), the
+    resume notice always. Empty for other displays."""
     pres = protocol.presentation
     if pres.display != "webxr":
         return {}
     lang, vr = pres.language, pres.vr
-    out = {"break": localized(vr.break_text, lang, ui(lang)["break_vr"])}
+    out = {"resume": ui(lang)["resume_vr"]}
+    if vr.break_text or not pres.break_text or _desk_words(pres.break_text):
+        out["break"] = localized(vr.break_text, lang, ui(lang)["break_vr"])
     if vr.instructions:
         out["instructions"] = localized(vr.instructions, lang)
     if vr.end_text:
@@ -767,11 +781,14 @@ def vr_wording_notes(protocol: Protocol) -> list[str]:
     if pres.display != "webxr":
         return []
     notes = []
+    if pres.vr.instructions is not None and pres.instructions is None:
+        notes.append("presentation.vr.instructions is not shown: the session shows "
+                     "instructions only when presentation.instructions is given")  # fmt: skip
     for key in ("instructions", "break_text", "end_text"):
         text = getattr(pres, key)
         if not text or getattr(pres.vr, key) is not None:
             continue
-        words = sorted({w for t in text.values() for w in _DESK_WORDS if w in t.lower()})
+        words = _desk_words(text)
         if words:
             shown = ("facelab's VR break text is shown instead" if key == "break_text"
                      else "it is shown as it is")  # fmt: skip

@@ -150,7 +150,7 @@ def test_vr_texts_name_no_keys_and_validate_says_which_do(tmp_path: Path, capsys
     assert "presentation.break_text" in notes[1] and "スペース" in notes[1]
     protocol = load_protocol(path)
     texts = vr_texts(protocol)
-    assert set(texts) == {"break"} and "スペース" not in texts["break"]
+    assert set(texts) == {"break", "resume"} and "スペース" not in texts["break"] + texts["resume"]
     own = "コントローラーで線を指して回答してください。"
     vr_block = f"  display: webxr\n  vr:\n    instructions: {{ja: {own}, en: Point at the line.}}\n"
     path.write_text(_with_display(text, vr_block), encoding="utf-8")
@@ -164,6 +164,11 @@ def test_vr_texts_name_no_keys_and_validate_says_which_do(tmp_path: Path, capsys
     assert shown == {"kind": "text", "role": "instructions", "text": "2D", "vr_text": own}
     assert TextScreen(role="practice", text="2D").browser(ctx)["vr_text"] == ""  # the 2D one
     assert vr_texts(load_protocol(KATO)) == {}  # the video display has no VR texts
+    # a break text that names no key (a monkey is not a key) is the protocol's own in VR too
+    calm = text.replace("準備ができたらスペースキーを押してください。", "猿（monkey）を見ます。")
+    calm = calm.replace("Press space when you are ready.", "Look at a monkey.")
+    path.write_text(_with_display(calm, vr_block), encoding="utf-8")
+    assert "break" not in vr_texts(load_protocol(path))
 
 
 # --------------------------------------------------------------------------- Chromium

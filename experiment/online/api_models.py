@@ -130,7 +130,10 @@ class PlaybackIn(_Strict):
     # VR: whether the voice came from the avatar's mouth (an HRTF panner) and where that was
     # (x, y, z m, the reference space's axes)
     spatial_audio: bool | None = None
-    audio_source_m: Annotated[list[float], Field(min_length=3, max_length=3)] | None = None
+    audio_source_m: (
+        Annotated[list[Annotated[float, Field(ge=-1e4, le=1e4)]], Field(min_length=3, max_length=3)]
+        | None
+    ) = None
 
 
 class EventIn(_Strict):

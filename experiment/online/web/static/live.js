@@ -228,7 +228,9 @@ export class Stage {
     src.buffer = audio;
     const source = this.voiceOutput();
     src.connect(source.node);
-    const start = this.audio.currentTime + 0.15;
+    // the voice starts once the face has faded in (the frames before show the rest face)
+    const lead = this.fadeStart !== null ? Math.max(0.15, this.vr.fade_ms / 1000) : 0.15;
+    const start = this.audio.currentTime + lead;
     src.start(start);
     const ended = new Promise((res) => { src.onended = res; });
     await new Promise((res) => {
@@ -241,6 +243,7 @@ export class Stage {
       };
     });
     await ended;
+    if (source.at) source.node.disconnect();
     this.showRays(true);
     return this.record(s, frames, { fps, n, refused, duration, source });
   }
@@ -287,14 +290,17 @@ export class Stage {
   mouthPosition() { return new THREE.Vector3(...(this.camera_json.mouth || this.camera_json.target)).applyMatrix4(this.avatar.matrixWorld); }
 
   // Where the voice goes: in VR with vr.spatial_audio an HRTF panner at the avatar's mouth
-  // (its level at the avatar's distance that of the plain output); else the output itself.
+  // (no distance attenuation where the participant sits at the clip's start; the HRTF
+  // filters colour it as a voice from that direction); else the output itself.
   voiceOutput() {
     if (!this.session || this.vr.spatial_audio === false || typeof PannerNode === "undefined") {
       return { node: this.audio.destination, at: null };
     }
     const m = this.mouthPosition();
+    const p = this.lastPose ? this.lastPose.position : null;
+    const d = p ? Math.hypot(m.x - p.x, m.y - p.y, m.z - p.z) : (this.vr.avatar_distance_m || 1);
     const panner = new PannerNode(this.audio, {
-      panningModel: "HRTF", distanceModel: "inverse", refDistance: this.vr.avatar_distance_m || 1,
+      panningModel: "HRTF", distanceModel: "inverse", refDistance: Math.max(0.1, d),
       rolloffFactor: 1, positionX: m.x, positionY: m.y, positionZ: m.z,
     });
     panner.connect(this.audio.destination);
@@ -332,6 +338,15 @@ export class Stage {
   // (see placeAt) and again at the recentre step.
   async enterVR() {
     const session = await navigator.xr.requestSession("immersive-vr", { optionalFeatures: ["local-floor"] });
+    session.addEventListener("end", () => {
+      if (this.session === session) this.session = null;
+      this.lastPose = null;
+      if (this.panel) this.panel.remove();
+      this.panel = null;
+      if (this.room) { this.scene.remove(this.room); this.room = null; }
+    });
+    // controllers may connect after the session starts: the panel's hint follows them
+    session.addEventListener("inputsourceschange", () => { if (this.panel) this.panel.draw(); });
     // the floor is known when the runtime gives local-floor; else it is put a seated eye
     // height below the eyes
     let space = "local";
@@ -340,12 +355,6 @@ export class Stage {
     this.referenceSpace = space;
     await this.renderer.xr.setSession(session);
     this.session = session;
-    session.addEventListener("end", () => {
-      this.session = null; this.lastPose = null;
-      if (this.panel) this.panel.remove();
-      this.panel = null;
-      if (this.room) { this.scene.remove(this.room); this.room = null; }
-    });
     this.origin = null;  // placed at the first frame's head pose (placeAt)
     if (!this.controllers) {
       this.controllers = [0, 1].map((i) => {
@@ -406,21 +415,24 @@ export class Stage {
   placeRoom() {
     const kind = this.vr.room || "room";
     if (kind === "none") return;
-    if (!this.room) {
+    if (!this.room) {  // 4 m around the participant, or 1.5 m beyond a farther avatar
+      const R = Math.max(4, (this.vr.avatar_distance_m || 1) + 1.5), H = Math.max(3, R * 0.75);
       const g = new THREE.Group(); g.name = "room";
-      const floor = new THREE.Mesh(new THREE.CircleGeometry(4, 64), new THREE.MeshLambertMaterial({ color: 0x8c8984 }));
+      const floor = new THREE.Mesh(new THREE.CircleGeometry(R, 64), new THREE.MeshLambertMaterial({ color: 0x8c8984 }));
       floor.rotation.x = -Math.PI / 2; g.add(floor);
-      const grid = new THREE.PolarGridHelper(4, 8, 8, 64, 0x7a7772, 0x7a7772); grid.position.y = 0.003; g.add(grid);
+      const grid = new THREE.PolarGridHelper(R, 8, Math.round(R * 2), 64, 0x7a7772, 0x7a7772); grid.position.y = 0.003; g.add(grid);
       if (kind === "room") {
-        const walls = new THREE.Mesh(new THREE.CylinderGeometry(4, 4, 3, 64, 1, true),
+        const walls = new THREE.Mesh(new THREE.CylinderGeometry(R, R, H, 64, 1, true),
           new THREE.MeshLambertMaterial({ color: 0xcbc7c0, side: THREE.BackSide }));
-        walls.position.y = 1.5; g.add(walls);
-        const ceiling = new THREE.Mesh(new THREE.CircleGeometry(4, 64), new THREE.MeshLambertMaterial({ color: 0xe2dfda }));
-        ceiling.rotation.x = Math.PI / 2; ceiling.position.y = 3; g.add(ceiling);
+        walls.position.y = H / 2; g.add(walls);
+        const ceiling = new THREE.Mesh(new THREE.CircleGeometry(R, 64), new THREE.MeshLambertMaterial({ color: 0xe2dfda }));
+        ceiling.rotation.x = Math.PI / 2; ceiling.position.y = H; g.add(ceiling);
       }
       // a backdrop: drawn first and writing no depth, so the avatar, the panels and the rays
-      // are always in front of it (the room's parts do not overlap in view)
+      // are always in front of it (the room's parts do not overlap in view; the grid after
+      // the floor it lies on)
       g.traverse((o) => { o.renderOrder = -10; if (o.material) o.material.depthWrite = false; });
+      grid.renderOrder = -9;
       this.room = g; this.scene.add(g);
     }
     this.room.position.set(this.origin.x, this.floorY(), this.origin.z);
@@ -482,37 +494,56 @@ export class Stage {
 }
 
 // Text broken into lines of at most `maxW` pixels for canvas context `g` (its font set):
-// Latin words are kept whole where they fit, CJK text breaks between characters, closing
-// punctuation never starts a line (it hangs into the margin instead), "\n" breaks.
+// Latin words are kept whole where they fit, CJK text breaks between characters (graphemes:
+// emoji and combining marks stay whole), closing punctuation never starts a line (it hangs
+// into the margin) nor an opening bracket ends one, "\n" breaks (an empty line stays).
+// Spaces at a break are dropped.
+const CLOSERS = /^[、。，．,.)\]）」』】〕！？!?ー…・:;]+$/u;
+const LATIN = /^[A-Za-z0-9\u00C0-\u024F'’.,:;!?%()\-"“”]$/u;
+function graphemes(text) {
+  if (typeof Intl !== "undefined" && Intl.Segmenter) return [...new Intl.Segmenter(undefined, { granularity: "grapheme" }).segment(text)].map((x) => x.segment);
+  return [...text];
+}
 function wrapLines(g, text, maxW) {
   const out = [];
   for (const para of String(text).split("\n")) {
-    const tokens = para.match(/[A-Za-z0-9\u00C0-\u024F'’.,:;!?%()\-"“”]+|\s+|./gu) || [];
+    // tokens: runs of Latin word characters, runs of spaces, single graphemes; closing
+    // punctuation joined to the grapheme before it
+    const tokens = [];
+    for (const ch of graphemes(para)) {
+      const last = tokens.length ? tokens[tokens.length - 1] : null;
+      if (last !== null && ((LATIN.test(ch) && [...last].every((c) => LATIN.test(c)))
+          || (/^\s$/u.test(ch) && /^\s+$/u.test(last)) || CLOSERS.test(ch)
+          || (/[「『（【〔“]$/u.test(last) && !/^\s$/u.test(ch)))) tokens[tokens.length - 1] = last + ch;
+      else tokens.push(ch);
+    }
+    const width = (t) => g.measureText(t.replace(/[、。，．,.)\]）」』】〕！？!?ー…・:;]+$/u, "")).width;
     let line = "";
     for (const tok of tokens) {
-      if (/^\s+$/.test(tok)) { if (line) line += " "; continue; }
-      if (!line || g.measureText(line + tok).width <= maxW) { line += tok; continue; }
-      if (/^[、。，．,.)\]）」』】〕！？!?ー…・:;]$/u.test(tok)) { line += tok; continue; }
+      if (/^\s+$/u.test(tok)) { if (line) line += tok; continue; }
+      if (!line || width(line.trimEnd() + tok) <= maxW) { line += tok; continue; }
       out.push(line.trimEnd()); line = tok;
+      // a word longer than the line is broken between graphemes
+      while (width(line) > maxW) {
+        let cur = "";
+        const gs = graphemes(line);
+        let i = 0;
+        for (; i < gs.length; i++) { if (cur && width(cur + gs[i]) > maxW && !CLOSERS.test(gs[i])) break; cur += gs[i]; }
+        if (i >= gs.length) break;
+        out.push(cur); line = gs.slice(i).join("");
+      }
     }
-    // a word longer than the line is broken between characters
-    const pieces = [];
-    for (const l of (line ? [...out.splice(0), line.trimEnd()] : out.splice(0))) {
-      if (g.measureText(l).width <= maxW * 1.08) { pieces.push(l); continue; }
-      let cur = "";
-      for (const ch of l) { if (cur && g.measureText(cur + ch).width > maxW) { pieces.push(cur); cur = ch; } else cur += ch; }
-      if (cur) pieces.push(cur);
-    }
-    out.push(...(pieces.length ? pieces : [""]));
+    out.push(line.trimEnd());
   }
-  return out.filter((l, i, all) => l !== "" || all.length === 1);
+  return out;
 }
 
 // A DOM screen drawn on a canvas in front of the participant. Regions map canvas pixels back
 // to the DOM element they show; a selection clicks that element (or, on a VAS line, places
 // the marker at the fraction hit through the line's facelabPlace hook). The text is laid out
 // at the largest scale (1 down to 0.6) at which it fits a 1024 x 640 canvas; taller content
-// makes the panel taller (up to 1024). `layout` says what was drawn where (for tests).
+// makes the panel taller (up to 1280, at scales down to 0.4; more is logged as an error).
+// `laidOut` says what was drawn where (for tests).
 class Panel {
   constructor(stage, box) {
     this.stage = stage; this.box = box;
@@ -632,9 +663,11 @@ class Panel {
   }
 
   draw() {
+    // the largest scale that fits 640 px; else the smallest scale that fits the tallest panel
     let lay = null;
     for (const scale of [1, 0.9, 0.8, 0.7, 0.6]) { lay = this.layout(scale); if (lay.height <= 640) break; }
-    const h = Math.min(1024, Math.max(640, lay.height));
+    for (const scale of [0.5, 0.45, 0.4]) { if (lay.height <= 1280) break; lay = this.layout(scale); }
+    const h = Math.min(1280, Math.max(640, lay.height));
     if (h !== this.h) {  // a new size: a new canvas, texture and plane
       this.h = h;
       this.canvas = document.createElement("canvas"); this.canvas.width = this.w; this.canvas.height = h;
@@ -659,6 +692,10 @@ class Panel {
     const outside = lay.lines.filter((l) => l.x0 < 0 || l.x1 > this.w || l.y1 > h);
     this.laidOut = { scale: lay.scale, width: this.w, height: h, lines: lay.lines, blocks: lay.blocks,
                      overflow: outside.length > 0 || lay.height > h };
+    if (this.laidOut.overflow && !this.reported) {  // too much for one panel: said, once
+      this.reported = true;
+      FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "VR panel overflow", screen: this.box.dataset.facelab || "", height_px: lay.height } });
+    }
     this.texture.needsUpdate = true;
   }
 
