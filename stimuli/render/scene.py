@@ -216,8 +216,8 @@ def camera_json(avatar: Avatar, settings: RenderSettings) -> dict[str, Any]:
     height (the point a VR view places at the protocol's distance)."""
     cam = camera_placement(avatar, settings)
     return {
-        "eye": [round(float(v), 6) for v in cam.eye],
-        "target": [round(float(v), 6) for v in cam.target],
+        "eye": _rounded(cam.eye),
+        "target": _rounded(cam.target),
         "fov_deg": settings.fov_deg,
         "near": cam.near,
         "far": cam.far,
@@ -242,19 +242,22 @@ def eye_midpoint(avatar: Avatar) -> np.ndarray | None:
     sk = avatar.skeleton
     if sk is not None and {"eye_left", "eye_right"} <= set(sk.roles):
         return 0.5 * (sk.pivots[sk.roles["eye_left"]] + sk.pivots[sk.roles["eye_right"]])
-    lids = ("upper_lid_left", "lower_lid_left", "upper_lid_right", "lower_lid_right")
-    if all(k in avatar.landmarks for k in lids):
-        return avatar.neutral[[avatar.landmarks[k] for k in lids]].astype(float).mean(axis=0)
-    return None
+    return _landmark_mean(
+        avatar, ("upper_lid_left", "lower_lid_left", "upper_lid_right", "lower_lid_right")
+    )
 
 
 def mouth_centre(avatar: Avatar) -> np.ndarray | None:
     """(3,) m: the middle of the inner lip contour's four landmarks at rest (where a VR view
     puts the voice); None for an avatar without them (a VR view then uses the aim point)."""
-    lips = ("upper_lip", "lower_lip", "mouth_left", "mouth_right")
-    if not all(k in avatar.landmarks for k in lips):
+    return _landmark_mean(avatar, ("upper_lip", "lower_lip", "mouth_left", "mouth_right"))
+
+
+def _landmark_mean(avatar: Avatar, names: tuple[str, ...]) -> np.ndarray | None:
+    """(3,) m: the mean rest position of landmarks ``names``; None unless it has them all."""
+    if not all(k in avatar.landmarks for k in names):
         return None
-    return avatar.neutral[[avatar.landmarks[k] for k in lips]].astype(float).mean(axis=0)
+    return avatar.neutral[[avatar.landmarks[k] for k in names]].astype(float).mean(axis=0)
 
 
 def load_avatar(protocol: Protocol, *, base_dir: Path) -> Avatar:

@@ -39,6 +39,8 @@ const SEATED_EYE_HEIGHT_M = 1.2;  // the floor below the eyes when the runtime g
 function deg(rad) { return rad * 180 / Math.PI; }
 function median(xs) { if (!xs.length) return null; const s = [...xs].sort((a, b) => a - b); const m = s.length >> 1; return s.length % 2 ? s[m] : 0.5 * (s[m - 1] + s[m]); }
 function range(xs) { return xs.length ? Math.max(...xs) - Math.min(...xs) : null; }
+// yaw, pitch, roll (radians; R = Ry Rx Rz, the rig's order) of an XR orientation
+function eulerOf(o) { return new THREE.Euler().setFromQuaternion(new THREE.Quaternion(o.x, o.y, o.z, o.w), "YXZ"); }
 function round(x, d = 3) { return x === null || x === undefined ? null : Math.round(x * 10 ** d) / 10 ** d; }
 
 export class Stage {
@@ -175,7 +177,7 @@ export class Stage {
     if (this.session && xrFrame) {
       const pose = xrFrame.getViewerPose(this.renderer.xr.getReferenceSpace());
       if (pose) {
-        this.lastPose = pose.transform;
+        this.lastPose = pose.transform; this.lastPoseFrame = xrFrame;
         if (!this.origin) this.placeAt(pose.transform);
         this.hear(pose.transform);
       }
@@ -193,12 +195,10 @@ export class Stage {
     return this.audio.currentTime - (this.audio.outputLatency || 0);
   }
 
+  // [x, y, z, yaw, pitch, roll] of the viewer at XR frame `xrFrame` (the pose tick read)
   viewer(xrFrame) {
-    if (!xrFrame) return null;
-    const pose = xrFrame.getViewerPose(this.renderer.xr.getReferenceSpace());
-    if (!pose) return null;
-    const p = pose.transform.position, o = pose.transform.orientation;
-    const e = new THREE.Euler().setFromQuaternion(new THREE.Quaternion(o.x, o.y, o.z, o.w), "YXZ");
+    if (!xrFrame || this.lastPoseFrame !== xrFrame) return null;
+    const p = this.lastPose.position, e = eulerOf(this.lastPose.orientation);
     return [p.x, p.y, p.z, deg(e.y), deg(e.x), deg(e.z)];
   }
 
@@ -285,9 +285,11 @@ export class Stage {
     return rec;
   }
 
-  // between the avatar's eyes (its aim point when the avatar file gives no eyes)
-  eyesPosition() { return new THREE.Vector3(...(this.camera_json.eyes || this.camera_json.target)).applyMatrix4(this.avatar.matrixWorld); }
-  mouthPosition() { return new THREE.Vector3(...(this.camera_json.mouth || this.camera_json.target)).applyMatrix4(this.avatar.matrixWorld); }
+  // a point of the avatar at rest ("eyes", "mouth"; its aim point when the file has none),
+  // in its own frame, and where it is now
+  point(name) { return new THREE.Vector3(...(this.camera_json[name] || this.camera_json.target)); }
+  eyesPosition() { return this.point("eyes").applyMatrix4(this.avatar.matrixWorld); }
+  mouthPosition() { return this.point("mouth").applyMatrix4(this.avatar.matrixWorld); }
 
   // Where the voice goes: in VR with vr.spatial_audio an HRTF panner at the avatar's mouth
   // (no distance attenuation where the participant sits at the clip's start; the HRTF
@@ -380,20 +382,21 @@ export class Stage {
   // The avatar's eyes vr.avatar_distance_m straight ahead of the viewer's eyes at pose `t`
   // (an XRRigidTransform), vr.avatar_height_m above them, facing the viewer; the room around.
   placeAt(t) {
-    const p = t.position, o = t.orientation;
-    const e = new THREE.Euler().setFromQuaternion(new THREE.Quaternion(o.x, o.y, o.z, o.w), "YXZ");
-    this.yaw = e.y;
+    const p = t.position;
+    this.yaw = eulerOf(t.orientation).y;
     this.origin = new THREE.Vector3(p.x, p.y, p.z);
-    const ahead = new THREE.Vector3(-Math.sin(this.yaw), 0, -Math.cos(this.yaw));
-    const anchor = this.origin.clone().addScaledVector(ahead, this.vr.avatar_distance_m || 1);
+    const anchor = this.origin.clone().addScaledVector(this.ahead(), this.vr.avatar_distance_m || 1);
     anchor.y += this.vr.avatar_height_m || 0;
     this.avatar.rotation.set(0, this.yaw, 0);
-    const eyes = new THREE.Vector3(...(this.camera_json.eyes || this.camera_json.target)).applyEuler(this.avatar.rotation);
+    const eyes = this.point("eyes").applyEuler(this.avatar.rotation);
     this.avatar.position.copy(anchor.sub(eyes));
     this.avatar.updateMatrixWorld(true);
     this.placeRoom();
     if (this.panel) this.panel.place();
   }
+
+  // the horizontal direction the avatar was placed in (the viewer's facing, -z turned by yaw)
+  ahead() { return new THREE.Vector3(-Math.sin(this.yaw), 0, -Math.cos(this.yaw)); }
 
   // The recentre step and button: the avatar (and panel, room) placed again from where the
   // participant's eyes are and face now; logged.
@@ -498,8 +501,11 @@ export class Stage {
 // emoji and combining marks stay whole), closing punctuation never starts a line (it hangs
 // into the margin) nor an opening bracket ends one, "\n" breaks (an empty line stays).
 // Spaces at a break are dropped.
-const CLOSERS = /^[、。，．,.)\]）」』】〕！？!?ー…・:;]+$/u;
+const CLOSING = "、。，．,.)\\]）」』】〕！？!?ー…・:;";  // never at a line's start
+const CLOSERS = new RegExp(`^[${CLOSING}]+$`, "u");
+const TRAILING_CLOSERS = new RegExp(`[${CLOSING}]+$`, "u");
 const LATIN = /^[A-Za-z0-9\u00C0-\u024F'’.,:;!?%()\-"“”]$/u;
+function panelFont(px) { return `${Math.round(px)}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`; }
 function graphemes(text) {
   if (typeof Intl !== "undefined" && Intl.Segmenter) return [...new Intl.Segmenter(undefined, { granularity: "grapheme" }).segment(text)].map((x) => x.segment);
   return [...text];
@@ -517,7 +523,7 @@ function wrapLines(g, text, maxW) {
           || (/[「『（【〔“]$/u.test(last) && !/^\s$/u.test(ch)))) tokens[tokens.length - 1] = last + ch;
       else tokens.push(ch);
     }
-    const width = (t) => g.measureText(t.replace(/[、。，．,.)\]）」』】〕！？!?ー…・:;]+$/u, "")).width;
+    const width = (t) => g.measureText(t.replace(TRAILING_CLOSERS, "")).width;  // they hang
     let line = "";
     for (const tok of tokens) {
       if (/^\s+$/u.test(tok)) { if (line) line += tok; continue; }
@@ -556,8 +562,7 @@ class Panel {
     this.cursor.visible = false;
     stage.scene.add(this.mesh); stage.scene.add(this.cursor);
     this.regions = [];
-    this.draw();
-    this.place();
+    this.draw();  // sizes and places the panel
     this.observer = new MutationObserver(() => this.draw());
     this.observer.observe(box, { subtree: true, attributes: true, childList: true, characterData: true });
   }
@@ -566,9 +571,8 @@ class Panel {
   place() {
     const st = this.stage, o = st.origin || new THREE.Vector3();
     const d = Math.min(0.9, (st.vr.avatar_distance_m || 1) * 0.8);
-    const ahead = new THREE.Vector3(-Math.sin(st.yaw), 0, -Math.cos(st.yaw));
     const h_m = this.width_m * this.h / this.w;
-    this.mesh.position.copy(o).addScaledVector(ahead, d);
+    this.mesh.position.copy(o).addScaledVector(st.ahead(), d);
     this.mesh.position.y += (st.vr.avatar_height_m || 0) - 0.12 - h_m / 2;
     this.mesh.lookAt(o);
     this.mesh.updateMatrixWorld(true);
@@ -584,7 +588,7 @@ class Panel {
   layout(scale) {
     const g = this.scratch || (this.scratch = document.createElement("canvas").getContext("2d"));
     const W = this.w, M = 56, st = this.stage, words = st.words;
-    const font = (px) => `${Math.round(px)}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`;
+    const font = panelFont;
     const ops = [], regions = [], lines = [], blocks = [];
     let y = 84 * Math.max(scale, 0.8);
     const text = (str, px, { x = W / 2, align = "center", maxW = W - 2 * M, color = "#111", source = null } = {}) => {
@@ -677,7 +681,7 @@ class Panel {
       this.mesh.material.map = this.texture; this.mesh.material.needsUpdate = true;
       this.mesh.geometry.dispose();
       this.mesh.geometry = new THREE.PlaneGeometry(this.width_m, this.width_m * h / this.w);
-      if (this.stage.origin) this.place();
+      this.place();
     }
     const g = this.canvas.getContext("2d");
     g.fillStyle = "#f5f5f5"; g.fillRect(0, 0, this.w, h);
@@ -685,7 +689,7 @@ class Panel {
     for (const op of lay.ops) {
       g.fillStyle = op.color;
       if (op.t === "rect") { g.fillRect(op.x, op.y, op.w, op.h); continue; }
-      g.font = `${Math.round(op.px)}px "Noto Sans CJK JP", "Noto Sans JP", sans-serif`; g.textAlign = op.align;
+      g.font = panelFont(op.px); g.textAlign = op.align;
       g.fillText(op.s, op.x, op.y);
     }
     this.regions = lay.regions;

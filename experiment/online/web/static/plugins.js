@@ -80,11 +80,16 @@ async function facelabReady(el, trial) {
   await facelabEnterVR(el);
 }
 
+// a text screen's words: in the headset its VR wording when the protocol (or facelab) has one
+function facelabTextOf(s) {
+  const stage = FacelabSession.stage;
+  return stage && stage.inVR() && s.vr_text ? s.vr_text : s.text;
+}
+
 class FacelabText extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-text", "text", s); box.dataset.role = s.role;
-    const stage = FacelabSession.stage;
-    box.appendChild(facelabEl("p", "", stage && stage.inVR() && s.vr_text ? s.vr_text : s.text));
+    box.appendChild(facelabEl("p", "", facelabTextOf(s)));
     const next = facelabEl("button", "facelab-button", FacelabSession.ui.next);
     next.dataset.facelab = "next";
     box.appendChild(next); facelabShow(el, box);
@@ -366,8 +371,7 @@ FacelabAdaptive.info = facelabInfo("facelab-adaptive", { kind: "STRING", trial_i
 class FacelabComplete extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-text", "end", s);
-    const stage = FacelabSession.stage;
-    box.appendChild(facelabEl("p", "", stage && stage.inVR() && s.vr_text ? s.vr_text : s.text));
+    box.appendChild(facelabEl("p", "", facelabTextOf(s)));
     const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
     box.appendChild(status); facelabShow(el, box);
     const started = Date.now();
