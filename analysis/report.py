@@ -444,15 +444,17 @@ def _task_figures(
     conditions = {c.id: c for c in protocol.conditions}
     for task, trials, table in tasks.srt:
         grid = np.linspace(trials["snr_db"].min(), trials["snr_db"].max(), 161)
-        counts = (trials.rename(columns={"snr_db": "offset_ms"})
-                  .groupby(["condition", "offset_ms"], sort=False)["correct"]
-                  .agg(n="size", k="sum").reset_index())  # fmt: skip
+        counts = (trials.rename(columns={"snr_db": "offset_ms", "units": "n", "hits": "k"})
+                  .groupby(["condition", "offset_ms"], sort=False)[["n", "k"]].sum()
+                  .reset_index())  # fmt: skip
         order = list(dict.fromkeys(table["condition"]))
-        curves = srt.srt_curves(trials, guess=1 / len(task.labels), snr=grid,
+        curves = srt.srt_curves(trials, guess=srt.guess_rate(task), snr=grid,
                                 order=order).rename(columns={"snr_db": "offset_ms"})  # fmt: skip
         fig = figures.timing_figure(
             counts, curves, labels={}, title=_text(task.question, language),
-            ylabel="P(right word)", xlabel="SNR (dB)",
+            ylabel=("P(right word)" if srt.guess_rate(task) > 0
+                    else f"P({getattr(task, 'scoring', 'word')[:-1]} right)"),
+            xlabel="SNR (dB)",
             caption="lines: fitted to everyone's answers pooled; dotted: 50 % (the SRT)" + tag,
         )  # fmt: skip
         paths = figures.save(fig, out / f"fig_srt_{task.id}")

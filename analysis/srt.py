@@ -2,9 +2,14 @@
 the audio-visual benefit against audio alone, and the comparison of the methods.
 
 The answers of an identify task with answers (the word said) on conditions with ``noise``
-are scored right or wrong and fitted per participant and series (:attr:`Condition.series_id`,
+are scored right or wrong; a typed task's answers count each scoring unit (keyword or mora of
+what was said, :attr:`TypedTask.scoring`) right or wrong - a sentence of four keywords with
+three understood is 3 of 4 (the units of one sentence are taken as independent, as matrix
+tests' word scoring does; they are not quite, so intervals from sentences are somewhat
+narrow). They are fitted per participant and series (:attr:`Condition.series_id`,
 e.g. one animation method at every SNR) by maximum likelihood with
-:func:`facelab.intelligibility_function.p_correct`: the guess rate 1/k of the task's k labels,
+:func:`facelab.intelligibility_function.p_correct`: the guess rate 1/k of the task's k labels
+(0 for typed answers: an open set),
 the SRT (50 % right), the slope at the SRT (per dB, in [0.005, 1]) and a lapse rate in
 [0, 0.1]. The SRT's interval is a profile-likelihood interval
 (:mod:`facelab.analysis.profile_likelihood`; the slope and lapse re-fitted along it); ``note``
@@ -43,15 +48,17 @@ from facelab.analysis.profile_likelihood import (
 )
 from facelab.errors import AnalysisError
 from facelab.intelligibility_function import p_correct
-from facelab.protocol import IdentifyTask, Protocol
+from facelab.protocol import IdentifyTask, Protocol, TypedTask
 
 __all__ = [
     "SRT_COLUMNS",
     "SrtFit",
     "audio_only_series",
     "fit_srt",
+    "guess_rate",
     "is_noise_task",
     "noise_trials",
+    "scoring_units",
     "srt_curves",
     "srt_table",
     "srt_tests",
@@ -85,11 +92,51 @@ class SrtFit:
     note: str
 
 
-def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask) -> pd.DataFrame:
-    """``participant, condition (the series), snr_db, correct`` of an identify task's answer
-    rows on conditions with noise and a portrayed label."""
+NoiseTask = IdentifyTask | TypedTask
+
+
+def guess_rate(task: NoiseTask) -> float:
+    """P(right) by guessing: 1/k for k labels, 0 for typed answers (an open set)."""
+    return 0.0 if isinstance(task, TypedTask) else 1.0 / len(task.labels)
+
+
+def scoring_units(protocol: Protocol, task: TypedTask) -> dict[str, int]:
+    """Stimulus id -> how many units a typed answer to it is scored on (its keywords, or
+    the morae of what was said)."""
+    out = {}
+    for stimulus_set in protocol.stimulus_sets:
+        for st in stimulus_set.stimuli:
+            said = task.said(st)
+            if said is None:
+                continue
+            if task.scoring == "morae":
+                from facelab.japanese_reading import morae, pronunciation
+
+                out[st.id] = len(morae(pronunciation(said)))
+            else:
+                out[st.id] = len(task.keywords_of(st) or said.split() or [said])
+    return out
+
+
+def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: NoiseTask) -> pd.DataFrame:
+    """``participant, condition (the series), snr_db, correct, units, hits`` of a task's
+    answer rows on conditions with noise: an identify task's rows with a portrayed label
+    (``units`` 1, ``hits`` = ``correct``), a typed task's rows with ``units`` the stimulus'
+    scoring units and ``hits`` those the answer reproduced (``score`` x ``units``)."""
     conds = {c.id: c for c in protocol.conditions if c.noise is not None}
     known = rows[rows["condition"].isin(list(conds))]
+    if isinstance(task, TypedTask):
+        units = scoring_units(protocol, task)
+        n = known["stimulus"].map(units).astype(float)
+        frame = pd.DataFrame({
+            "participant": known["participant"].astype(str).to_numpy(),
+            "condition": [conds[c].series_id for c in known["condition"]],
+            "snr_db": [conds[c].noise.snr_db for c in known["condition"]],  # type: ignore[union-attr]
+            "correct": known["correct"].to_numpy(),
+            "units": n.to_numpy(),
+            "hits": (known["score"].astype(float) * n).round().to_numpy(),
+        })  # fmt: skip
+        return frame.dropna(subset=["units", "hits"]).reset_index(drop=True)
     target = [task.target(condition=c, stimulus=s)
               for c, s in zip(known["condition"], known["stimulus"], strict=True)]  # fmt: skip
     frame = pd.DataFrame({
@@ -101,14 +148,18 @@ def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask) -> 
     })  # fmt: skip
     frame = frame.dropna(subset=["target"])
     frame["correct"] = (frame["response"] == frame["target"]).astype(int)
+    frame["units"], frame["hits"] = 1.0, frame["correct"].astype(float)
     return frame.drop(columns=["target", "response"]).reset_index(drop=True)
 
 
-def is_noise_task(protocol: Protocol, task: IdentifyTask) -> bool:
-    """An identify task scored on words heard in noise at several SNRs (analysed by its
-    thresholds): it has answers, judges no timing, and a block showing it has a condition
-    series in noise at two or more SNRs. A fixed-SNR design is compared per condition."""
-    if not task.answers or task.timing is not None or len(task.labels) < 3:
+def is_noise_task(protocol: Protocol, task: NoiseTask) -> bool:
+    """A task scored on words heard in noise at several SNRs (analysed by its thresholds):
+    typed answers, or an identify task with answers judging no timing; and a block showing
+    it has a condition series in noise at two or more SNRs. A fixed-SNR design is compared
+    per condition."""
+    if isinstance(task, IdentifyTask) and (
+        not task.answers or task.timing is not None or len(task.labels) < 3
+    ):
         return False
     conds = {c.id: c for c in protocol.conditions}
     snrs: dict[str, set[float]] = {}
@@ -131,8 +182,14 @@ def audio_only_series(protocol: Protocol) -> str | None:
 def fit_srt(
     trials: pd.DataFrame, *, guess: float, level: float = 0.95, intervals: bool = True
 ) -> SrtFit:
-    """Fit one participant's SRT to ``trials`` (``snr_db, correct``); see the module."""
-    counts = trials.groupby("snr_db", sort=True)["correct"].agg(n="size", k="sum").reset_index()
+    """Fit one participant's SRT to ``trials`` (``snr_db, correct``, or ``snr_db, units,
+    hits``); see the module."""
+    if "units" in trials:
+        counts = (trials.groupby("snr_db", sort=True)[["units", "hits"]].sum()
+                  .rename(columns={"units": "n", "hits": "k"}).reset_index())  # fmt: skip
+    else:
+        counts = (trials.groupby("snr_db", sort=True)["correct"].agg(n="size", k="sum")
+                  .reset_index())  # fmt: skip
     x = counts["snr_db"].to_numpy(dtype=float)
     n = counts["n"].to_numpy(dtype=float)
     k = counts["k"].to_numpy(dtype=float)
@@ -172,14 +229,14 @@ def fit_srt(
 
 
 def srt_table(
-    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask, *, level: float = 0.95,
+    rows: pd.DataFrame, protocol: Protocol, task: NoiseTask, *, level: float = 0.95,
     intervals: bool = True,
 ) -> pd.DataFrame:  # fmt: skip
     """``srt.csv``: :data:`SRT_COLUMNS`, one row per participant and series (protocol order);
     the benefit columns against :func:`audio_only_series` (NaN without one, and on its own
     rows)."""
     trials = noise_trials(rows, protocol, task)
-    guess = 1.0 / len(task.labels)
+    guess = guess_rate(task)
     order = list(dict.fromkeys(c.series_id for c in protocol.conditions if c.noise is not None))
     out = []
     fits: dict[tuple[str, str], SrtFit] = {}

@@ -21,7 +21,10 @@
   simultaneity or temporal-order function per condition series over the conditions'
   ``audio_offset_ms`` (``sync_window``), the series' means and their within-participant
   comparison (``sync_summary``, ``sync_tests``; :mod:`facelab.analysis.timing`);
-* speech in noise (an identify task with answers on conditions with ``noise``): each
+* typed answers (a ``typed`` task): every answer beside what was said with its score
+  (``typed_answers``) and the mean score per condition (``typed_summary``);
+* speech in noise (an identify task with answers, or a typed task, on conditions with
+  ``noise``): each
   participant's speech reception threshold per condition series, the audio-visual benefit
   against the audio-only series and Sumby-Pollack's visual enhancement (``srt``), the series'
   means and comparison (``srt_summary``, ``srt_tests``; :mod:`facelab.analysis.srt`);
@@ -40,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from scipy import stats as scipy_stats
 
 import facelab.analysis.graded as graded
 import facelab.analysis.identification as identification
@@ -48,7 +52,7 @@ import facelab.analysis.srt as srt
 import facelab.analysis.stats as stats
 import facelab.analysis.timing as timing
 from facelab.errors import AnalysisError
-from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
+from facelab.protocol import ChoiceTask, IdentifyTask, Protocol, TypedTask
 from facelab.staircase import new_staircase
 
 __all__ = [
@@ -79,7 +83,9 @@ class TaskResults:
         default_factory=list
     )
     # (task, trials per participant x series x SNR, SRT table) per speech-in-noise task
-    srt: list[tuple[IdentifyTask, pd.DataFrame, pd.DataFrame]] = field(default_factory=list)
+    srt: list[tuple[IdentifyTask | TypedTask, pd.DataFrame, pd.DataFrame]] = field(
+        default_factory=list
+    )
     # (task, counts per participant x series x offset, windows) per timing task
     timing: list[tuple[IdentifyTask, pd.DataFrame, pd.DataFrame]] = field(default_factory=list)
     # task id -> its scored identification answers (target and correct columns added)
@@ -130,11 +136,13 @@ def _staircase_tables(
     for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
         state = new_staircase(protocol, block_id)
         try:
+            scores = part["score"] if "score" in part else pd.Series(None, index=part.index)
             steps = state.replay(
                 zip(
                     part["trial_index"],
                     part["condition"],
                     part["correct"].astype(bool),
+                    [None if pd.isna(v) else float(v) for v in scores],
                     strict=True,
                 )
             )
@@ -150,6 +158,7 @@ def _staircase_tables(
                 "trial_index": st["trial_index"],
                 "level": st["level"],
                 "correct": int(st["correct"]),
+                "score": st["score"],
                 "reversal": bool(st["reversal"]),
                 "threshold": st["threshold"],
             }
@@ -316,6 +325,10 @@ def analyze_tasks(
             counts = psychometric.count_responses(trials, x="level", y="y")
             curves = _curves(fits, counts["level"].to_numpy(dtype=float))
             res.psychometric.append((task, counts, curves, gamma))
+        elif isinstance(task, TypedTask):  # typed answers: scores, thresholds in noise
+            _typed_tables(rows, protocol, task, res)
+            if srt.is_noise_task(protocol, task):
+                _srt_tables(rows, protocol, task, res)
         elif task.timing is not None:  # a synchrony task: windows over the audio offsets
             _timing_tables(rows, protocol, task, res)
         else:
@@ -408,7 +421,7 @@ def _add_estimates(
 
 
 def _srt_tables(
-    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask, res: TaskResults
+    rows: pd.DataFrame, protocol: Protocol, task: IdentifyTask | TypedTask, res: TaskResults
 ) -> None:
     """``srt`` (each participant's SRT per condition series, the benefit against audio
     alone), ``srt_summary`` and ``srt_tests`` (:mod:`facelab.analysis.srt`)."""
@@ -425,6 +438,36 @@ def _srt_tables(
     _add_estimates(res, task, ("srt", "srt_summary", "srt_tests"), table.assign(task=task.id),
                    summary, tests, what="SRTs")  # fmt: skip
     res.srt.append((task, srt.noise_trials(rows, protocol, task), table))
+
+
+def _typed_tables(
+    rows: pd.DataFrame, protocol: Protocol, task: TypedTask, res: TaskResults
+) -> None:
+    """``typed_answers`` (every typed answer beside what was said, its score and whether
+    all of it was right) and ``typed_summary`` (per condition: answers, participants, the
+    mean score with a 95 % t interval over participants' means, the share all right)."""
+    said = {st.id: task.said(st) for s in protocol.stimulus_sets for st in s.stimuli}
+    answers = pd.DataFrame({
+        "task": task.id, "participant": rows["participant"].astype(str),
+        "trial_index": rows["trial_index"], "condition": rows["condition"],
+        "stimulus": rows["stimulus"], "said": rows["stimulus"].map(said),
+        "response": rows["response"], "score": rows["score"].astype(float),
+        "correct": rows["correct"],
+    }).reset_index(drop=True)  # fmt: skip
+    out = []
+    for cond, part in in_protocol_order(answers, protocol):
+        means = part.groupby("participant")["score"].mean()
+        k = len(means)
+        half = (float(scipy_stats.t.ppf(0.975, k - 1) * means.std(ddof=1) / np.sqrt(k))
+                if k >= 2 else float("nan"))  # fmt: skip
+        out.append({"task": task.id, "condition": cond, "answers": len(part),
+                    "participants": k, "mean_score": float(means.mean()),
+                    "ci_low": float(means.mean()) - half, "ci_high": float(means.mean()) + half,
+                    "all_right": float(part["correct"].astype(float).mean())})  # fmt: skip
+    for name, frame in (("typed_answers", answers), ("typed_summary", pd.DataFrame(out))):
+        if name in res.tables:
+            frame = pd.concat([res.tables[name], frame], ignore_index=True)
+        res.tables[name] = frame
 
 
 def score_identification(rows: pd.DataFrame, task: IdentifyTask) -> pd.DataFrame:

@@ -1,7 +1,7 @@
 """Scoring typed answers to speech (words or sentences heard in noise) against what was said.
 
 Both are compared as pronounced, not as spelled: a ``reader`` turns text into its katakana
-pronunciation (:func:`facelab.stimuli.speech.reading.pronunciation` - kana and kanji
+pronunciation (:func:`facelab.japanese_reading.pronunciation` - kana and kanji
 variants read alike, long vowels normalised), split into morae. Scores:
 
 * ``morae_correct`` / ``mora_score`` - the target's morae the answer reproduced in order

@@ -25,6 +25,7 @@ from facelab.protocol_checks import clean_loc, cross_check, describe, pydantic_m
 from facelab.protocol_model import (
     ID_PATTERN,
     SCHEMA_VERSION,
+    AnyTask,
     Block,
     ChoiceTask,
     Condition,
@@ -34,6 +35,7 @@ from facelab.protocol_model import (
     StaircaseRule,
     Stimulus,
     StimulusSet,
+    TypedTask,
     VasItem,
     json_schema,
     schema_json_text,
@@ -42,6 +44,7 @@ from facelab.protocol_yaml import Locator, YamlRefusedError, gc_paused, read_yam
 
 __all__ = [
     "SCHEMA_VERSION",
+    "AnyTask",
     "Block",
     "ChoiceTask",
     "Condition",
@@ -51,6 +54,7 @@ __all__ = [
     "StaircaseRule",
     "Stimulus",
     "StimulusSet",
+    "TypedTask",
     "VasItem",
     "json_schema",
     "load_protocol",

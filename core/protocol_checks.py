@@ -34,7 +34,7 @@ def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
     return tuple(out)
 
 
-_TASK_TAGS = {"choice_2afc", "identify"}
+_TASK_TAGS = {"choice_2afc", "identify", "typed"}
 
 
 _TYPE_TAGS = {
@@ -293,8 +293,13 @@ def _blocks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     )
 
 
-_UP_DOWN_KEYS = ("up", "down", "step")
-_QUEST_KEYS = ("sigmoid", "threshold_points", "slopes", "lapse_rates")
+#: each rule's own keys of a staircase rule (the others: every rule's)
+_RULE_KEYS = {
+    "up_down": ("up", "down", "step"),
+    "quest_plus": ("sigmoid", "threshold_points", "slopes", "lapse_rates"),
+    "brand_kollmeier": ("target_score", "assumed_slope", "step_start", "step_decay", "step_min"),
+}
+_SHARED_RULE_KEYS = {"rule", "start", "trials", "easier"}
 
 
 def _staircase_rule(
@@ -302,17 +307,17 @@ def _staircase_rule(
 ) -> Iterator[Issue]:
     """The keys of a staircase rule fit its kind (each rule's own keys only)."""
     where = (*where, "staircase")
-    own, other = (
-        (_UP_DOWN_KEYS, _QUEST_KEYS) if rule.rule == "up_down" else (_QUEST_KEYS, _UP_DOWN_KEYS)
-    )
-    for key in sorted(set(other) & rule.model_fields_set):
+    own = _RULE_KEYS[rule.rule]
+    for key in sorted(rule.model_fields_set - set(own) - _SHARED_RULE_KEYS):
+        owner = next(name for name, keys in _RULE_KEYS.items() if key in keys)
         yield Issue(
             (*where, key),
-            f"{key!r} belongs to rule {'quest_plus' if key in _QUEST_KEYS else 'up_down'}, "
-            f"not {rule.rule!r} (this rule's keys: {', '.join(own)})",
+            f"{key!r} belongs to rule {owner}, not {rule.rule!r} (this rule's keys: "
+            f"{', '.join(own)})",
         )
-    if rule.rule == "up_down" and rule.start is None:
-        yield Issue((*where, "start"), "rule 'up_down' needs a 'start' condition (an easy one)")
+    if rule.rule in ("up_down", "brand_kollmeier") and rule.start is None:
+        yield Issue((*where, "start"), f"rule {rule.rule!r} needs a 'start' condition (an "
+                    "easy one)")  # fmt: skip
     if rule.rule == "quest_plus" and not any(lp > 0 for lp in rule.lapse_rates):
         yield Issue(
             (*where, "lapse_rates"),
@@ -333,7 +338,7 @@ def _staircase_rule(
             )
 
 
-@_check("tasks", "blocks", "conditions", "items", "stimulus_sets")
+@_check("tasks", "blocks", "conditions", "items", "stimulus_sets", "presentation")
 def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Tasks are used consistently: references exist, graded designs have levels, a
     staircase has a correct answer to adapt on and a start in its grid."""
@@ -367,6 +372,8 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                         (*where, "answers", cond_id),
                         f"unknown label {label!r}; labels: {', '.join(sorted(labels))}",
                     )
+        if task.type == "typed":
+            yield from _typed_task(protocol, task, where)
     for bi, block in enumerate(protocol.blocks):
         where = ("blocks", bi)
         task = tasks.get(block.task) if block.task else None
@@ -406,9 +413,13 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     )
             if len(block_conds) < 2:
                 yield Issue((*where, "conditions"), "a staircase needs two or more levels")
+            if (rule is not None and rule.rule == "brand_kollmeier" and task is not None
+                    and task.type == "choice_2afc"):
+                yield Issue((*where, "staircase", "rule"), "brand_kollmeier adapts on the share "
+                            "of words understood: use a typed or identify task")  # fmt: skip
             scorable = (
                 task is not None and task.type == "choice_2afc" and task.correct == "comparison"
-            ) or (
+            ) or (task is not None and task.type == "typed") or (
                 task is not None
                 and task.type == "identify"
                 and (
@@ -421,8 +432,9 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 yield Issue(
                     (*where, "task"),
                     "a staircase adapts on correct answers: use a choice_2afc task with "
-                    "correct: comparison, or an identify task with an answer for every condition "
-                    "or every stimulus of the block (e.g. the word said in noise)",
+                    "correct: comparison, an identify task with an answer for every condition "
+                    "or every stimulus of the block (e.g. the word said in noise), or a typed "
+                    "task",
                 )
         elif block.staircase is not None:
             yield Issue((*where, "staircase"), f"a staircase rule on a {block.design!r} block")
@@ -431,6 +443,29 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 (*where, "conditions"),
                 f"the task's standard {task.standard!r} is also a comparison of the block",
             )
+
+
+def _typed_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Iterator[Issue]:
+    """A typed task knows what was said in every stimulus it is shown with, its answers and
+    keywords name stimuli, and it is not shown in VR (a keyboard is needed)."""
+    stimuli = {st.id: st for s in protocol.stimulus_sets for st in s.stimuli}
+    for key in ("answers", "keywords"):
+        for sid in getattr(task, key):
+            if sid not in stimuli:
+                yield Issue((*where, key, sid), f"unknown stimulus {sid!r}")
+    sets = {b.stimulus_set for b in protocol.blocks if b.task == task.id}
+    for stimulus_set in protocol.stimulus_sets:
+        if stimulus_set.id not in sets:
+            continue
+        for st in stimulus_set.stimuli:
+            if st.silence_s is None and task.said(st) is None:
+                yield Issue((*where, "answers"), f"stimulus {st.id!r} of set "
+                            f"{stimulus_set.id!r} has no text or transcript: give what it "
+                            "says under answers")  # fmt: skip
+    if sets and protocol.presentation.display == "webxr":
+        yield Issue((*where, "type"), "typed answers need a keyboard, which a participant "
+                    "in a headset cannot use: use an identify task (a closed set of words) "
+                    "with display: webxr")  # fmt: skip
 
 
 @_check("conditions", "rendering")

@@ -28,6 +28,7 @@ __all__ = [
     "AVATAR_SUFFIXES",
     "ID_PATTERN",
     "SCHEMA_VERSION",
+    "AnyTask",
     "Block",
     "ChoiceTask",
     "Condition",
@@ -42,6 +43,7 @@ __all__ = [
     "StimulusSet",
     "TimingJudgment",
     "TimingObserver",
+    "TypedTask",
     "VasItem",
     "json_schema",
     "schema_json_text",
@@ -394,18 +396,64 @@ class IdentifyTask(_Model):
         return self.answers.get(stimulus) if stimulus is not None else None
 
 
-Task = Annotated[ChoiceTask | IdentifyTask, Field(discriminator="type")]
+class TypedTask(_Model):
+    """One clip, then the participant types what was said (open-set speech recognition, e.g.
+    words or sentences in noise). The answer is stored as typed (``response``) and scored as
+    pronounced (:mod:`facelab.analysis.typed_scoring`): ``score`` is the share of the scoring
+    units reproduced, ``correct`` 1 when all were. Needs a keyboard: not in VR."""
+
+    id: Id
+    type: Literal["typed"]
+    question: Localized = Field(description="e.g. {ja: 聞こえた言葉を入力してください}.")
+    scoring: Literal["keywords", "morae"] = Field(
+        "keywords",
+        description="keywords: the share of the stimulus' keywords found in the answer (as "
+        "pronounced; with tolerant, one wrong mora in a keyword of three or more morae); "
+        "morae: the share of the said morae the answer reproduces in order.",
+    )
+    answers: dict[Id, Text] = Field(
+        default_factory=dict,
+        description="Stimulus id -> what was said, when not the stimulus' text or transcript.",
+    )
+    keywords: dict[Id, list[Text]] = Field(
+        default_factory=dict,
+        description="Stimulus id -> its keywords (scoring: keywords); default the words of "
+        "what was said, split at spaces (a text without spaces is one keyword).",
+    )
+    tolerant: bool = Field(
+        True, description="A keyword of three or more morae also counts with one mora wrong."
+    )
+    max_length: int = Field(
+        80, ge=1, le=200, description="Characters the answer field takes."
+    )
+
+    def said(self, stimulus: Stimulus) -> str | None:
+        """What the participant heard in ``stimulus``: the task's answer, else the text."""
+        return self.answers.get(stimulus.id) or stimulus.text or stimulus.transcript
+
+    def keywords_of(self, stimulus: Stimulus) -> list[str] | None:
+        """The keywords an answer to ``stimulus`` is scored on (None: the words said)."""
+        words = self.keywords.get(stimulus.id)
+        return list(words) if words else None
+
+
+Task = Annotated[ChoiceTask | IdentifyTask | TypedTask, Field(discriminator="type")]
+AnyTask = ChoiceTask | IdentifyTask | TypedTask
 
 
 class StaircaseRule(_Model):
     """An adaptive rule over the block's conditions ordered by level: a transformed up-down
     staircase, or QUEST+ (Watson, 2017) over a grid of psychometric functions."""
 
-    rule: Literal["up_down", "quest_plus"] = Field(
+    rule: Literal["up_down", "quest_plus", "brand_kollmeier"] = Field(
         "up_down",
         description="up_down: after 'down' correct answers in a row one step harder, after "
         "'up' wrong answers one step easier; quest_plus: each trial at the level that "
-        "minimises the expected entropy of the posterior over (threshold, slope, lapse).",
+        "minimises the expected entropy of the posterior over (threshold, slope, lapse); "
+        "brand_kollmeier: the level moves by -f(i) (score - target_score) / assumed_slope "
+        "after each sentence, score the share of its words understood, f(i) = step_start "
+        "step_decay^-i after i reversals (Brand & Kollmeier 2002), shown at the nearest "
+        "grid level.",
     )
     start: Id | None = Field(
         None,
@@ -448,6 +496,23 @@ class StaircaseRule(_Model):
         max_length=20,
         description="quest_plus: lapse-rate (lambda) values.",
     )
+    target_score: float = Field(
+        0.5, gt=0, lt=1, description="brand_kollmeier: the share of words right it tracks."
+    )
+    assumed_slope: float = Field(
+        0.15,
+        gt=0,
+        le=1,
+        description="brand_kollmeier: the intelligibility function's slope at the target "
+        "(proportion per level unit, e.g. per dB), which turns a score's distance from the "
+        "target into a level change.",
+    )
+    step_start: float = Field(1.5, gt=0, le=10, description="brand_kollmeier: f before the "
+                              "first reversal.")  # fmt: skip
+    step_decay: float = Field(1.41, ge=1, le=4, description="brand_kollmeier: f is divided by "
+                              "this at each reversal.")  # fmt: skip
+    step_min: float = Field(0.1, ge=0, le=10, description="brand_kollmeier: the smallest f "
+                            "(0: none).")  # fmt: skip
 
 
 class Block(_Model):
@@ -887,10 +952,10 @@ class Protocol(_Model):
     def stimulus_set(self, set_id: str) -> StimulusSet:
         return next(s for s in self.stimulus_sets if s.id == set_id)
 
-    def task(self, task_id: str) -> ChoiceTask | IdentifyTask:
+    def task(self, task_id: str) -> AnyTask:
         return next(t for t in self.tasks if t.id == task_id)
 
-    def block_task(self, block: Block) -> ChoiceTask | IdentifyTask | None:
+    def block_task(self, block: Block) -> AnyTask | None:
         return None if block.task is None else self.task(block.task)
 
     def offset_twins(self) -> list[list[str]]:

@@ -30,7 +30,9 @@ Rules:
 * every row carries its provenance: ``simulated`` and ``protocol_sha256``.
 
 Missing values are written ``n/a``, as BIDS does. Logs written by facelab 0.1 (17 columns,
-no provenance columns) are read (:data:`LOG_COLUMNS_V1`) but not continued.
+no provenance columns) are read (:data:`LOG_COLUMNS_V1`) but not continued; logs begun before
+typed answers (:data:`LOG_COLUMNS_V2`, no ``score``) are read and continued in their own
+columns (an answer with a score is refused there).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ __all__ = [
     "COLUMN_DESCRIPTIONS",
     "LOG_COLUMNS",
     "LOG_COLUMNS_V1",
+    "LOG_COLUMNS_V2",
     "MAX_SESSION",
     "SessionContext",
     "SessionLock",
@@ -96,8 +99,8 @@ LOG_COLUMNS_V1: tuple[str, ...] = (
     "timestamp",
 )
 
-#: The columns written today: DESIGN.md's contract first, then the task and provenance columns.
-LOG_COLUMNS: tuple[str, ...] = (
+#: The columns of facelab logs before typed answers (no ``score``): read and continued.
+LOG_COLUMNS_V2: tuple[str, ...] = (
     *LOG_COLUMNS_V1,
     "screen",
     "response",
@@ -107,6 +110,13 @@ LOG_COLUMNS: tuple[str, ...] = (
     "position",
     "simulated",
     "protocol_sha256",
+)
+
+#: The columns written today: DESIGN.md's contract first, then the task and provenance columns.
+LOG_COLUMNS: tuple[str, ...] = (
+    *LOG_COLUMNS_V2[: LOG_COLUMNS_V2.index("correct") + 1],
+    "score",
+    *LOG_COLUMNS_V2[LOG_COLUMNS_V2.index("correct") + 1 :],
 )
 
 COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
@@ -142,11 +152,18 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     "screen": {"Description": "Screen type that took the response: vas, choice_2afc, identify."},
     "response": {
         "Description": "Choice screens: the chosen condition id (2AFC) or label id (identify); "
-        "n/a on VAS screens."
+        "typed screens: the text as typed (n/a when nothing was typed); n/a on VAS "
+        "screens."
     },
     "correct": {
         "Description": "1 when the response is the correct one (2AFC: the test condition was "
-        "chosen; identify: the true label), 0 when not, n/a when the task has no correct answer."
+        "chosen; identify: the true label; typed: every scoring unit reproduced), 0 when "
+        "not, n/a when the task has no correct answer."
+    },
+    "score": {
+        "Description": "Typed answers: the share of the scoring units (keywords or morae of "
+        "what was said) the answer reproduced, as pronounced; n/a on other screens.",
+        "Units": "proportion (0..1)",
     },
     "level": {"Description": "The stimulus level of the condition (a graded dimension), or n/a."},
     "comparison": {"Description": "2AFC: the standard condition the test was compared with."},
@@ -164,7 +181,7 @@ _INT_COLUMNS = {
     "correct",
     "position",
 }
-_FLOAT_COLUMNS = {"rating", "rating_start", "rt_s", "clip_onset", "level"}
+_FLOAT_COLUMNS = {"rating", "rating_start", "rt_s", "clip_onset", "level", "score"}
 _BOOL_COLUMNS = {"simulated"}
 NA = "n/a"
 _HELD_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
@@ -330,7 +347,7 @@ def parse_log_text(text: str, *, source: str) -> tuple[list[dict[str, Any]], str
     """Parse a session TSV. Returns (rows, cut_tail) where cut_tail is a final line that
     has no newline and does not parse as a complete row (None if there is none).
 
-    Every row has all of :data:`LOG_COLUMNS`; in a facelab 0.1 log the newer ones are None.
+    Every row has all of :data:`LOG_COLUMNS`; in an older log the newer ones are None.
     """
     _columns, rows, cut = _parse(text, source=source)
     return rows, cut
@@ -344,7 +361,7 @@ def _parse(text: str, *, source: str) -> tuple[tuple[str, ...], list[dict[str, A
             return LOG_COLUMNS, [], tail  # even the header was cut off
         raise StageError(f"{source}: empty log file (no header)")
     header = tuple(lines[0].split("\t"))
-    if header not in (LOG_COLUMNS, LOG_COLUMNS_V1):
+    if header not in (LOG_COLUMNS, LOG_COLUMNS_V2, LOG_COLUMNS_V1):
         raise StageError(
             f"{source}:1: unexpected header; expected columns {', '.join(LOG_COLUMNS)}"
         )
@@ -375,6 +392,7 @@ def response_row(
     rating_start: float | None = None,
     response: str | None = None,
     correct: int | None = None,
+    score: float | None = None,
     level: float | None = None,
 ) -> dict[str, Any]:
     """One log row for a response to ``trial`` (a :class:`facelab.design.Trial`)."""
@@ -399,6 +417,7 @@ def response_row(
         "screen": screen,
         "response": response,
         "correct": correct,
+        "score": score,
         "level": level,
         "comparison": getattr(trial, "standard", None),
         "position": getattr(trial, "position", None),
@@ -464,6 +483,8 @@ class SessionLog:
     paths: SessionPaths
     rows: list[dict[str, Any]] = field(default_factory=list)
     repaired: list[str] = field(default_factory=list)
+    #: the columns of this file (a log begun before typed answers goes on without ``score``)
+    columns: tuple[str, ...] = LOG_COLUMNS
     _keys: set[tuple[int, str]] = field(default_factory=set, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -509,12 +530,12 @@ class SessionLog:
             raise SessionError(f"nothing to resume: no log at {paths.tsv}")
         text = paths.tsv.read_bytes().decode("utf-8", errors="replace")
         header, rows, cut = _parse(text, source=str(paths.tsv))
-        if header != LOG_COLUMNS:
+        if header == LOG_COLUMNS_V1:
             raise SessionError(
                 f"{paths.tsv} was written by facelab 0.1 (no provenance columns); finish that "
                 "session with the facelab version that started it (it can still be analysed)"
             )
-        log = cls(paths=paths, rows=rows)
+        log = cls(paths=paths, rows=rows, columns=header)
         if cut is not None or (text and not text.endswith("\n")):
             log._repair(text, cut)
         log._check_unique()
@@ -526,7 +547,7 @@ class SessionLog:
             _append_line(self.paths.repairs, cut + "\n")
             self.repaired.append(cut)
         if not keep.strip():
-            keep = "\t".join(LOG_COLUMNS) + "\n"
+            keep = "\t".join(self.columns) + "\n"
         replace_file(self.paths.tsv, keep)
 
     def _check_unique(self) -> None:
@@ -542,13 +563,22 @@ class SessionLog:
     # -- writing
 
     def append(self, row: Mapping[str, Any]) -> None:
-        """Write one response and force it to disk (write + fsync) before returning."""
+        """Write one response and force it to disk (write + fsync) before returning. A row
+        without the columns added after :data:`LOG_COLUMNS_V2` has them missing (n/a)."""
+        row = {**{c: None for c in LOG_COLUMNS if c not in LOG_COLUMNS_V2}, **row}
         missing = [c for c in LOG_COLUMNS if c not in row]
         extra = [c for c in row if c not in LOG_COLUMNS]
         if missing or extra:
             raise StageError(f"log row has missing {missing} / unknown {extra} columns")
-        line = "\t".join(_format(row[c]) for c in LOG_COLUMNS) + "\n"
-        parsed = _parse_row(line[:-1].split("\t"), LOG_COLUMNS, where=str(self.paths.tsv))
+        lost = [c for c in LOG_COLUMNS if c not in self.columns and row[c] is not None]
+        if lost:
+            raise SessionError(
+                f"{self.paths.tsv} was begun by an earlier facelab without the column(s) "
+                f"{', '.join(lost)} this answer needs; nothing was written - finish the session "
+                "with that version, or start a new session"
+            )
+        line = "\t".join(_format(row[c]) for c in self.columns) + "\n"
+        parsed = _parse_row(line[:-1].split("\t"), self.columns, where=str(self.paths.tsv))
         key = (parsed["trial_index"], parsed["item"])
         if key in self._keys:  # a set: appending stays O(1) however long the session
             raise SessionError(

@@ -7,6 +7,14 @@ Two rules, one interface (``condition``, ``level``, ``record``, ``replay``, ``es
   answers in a row ``step`` steps towards easier; it stays inside the grid. 1-up-2-down
   converges on 70.7 % correct, 1-up-3-down on 79.4 %. Its estimate is the mean level of the
   last reversals.
+* :class:`BrandKollmeierStaircase` - the procedure of matrix sentence tests (Brand &
+  Kollmeier, 2002, J. Acoust. Soc. Am. 111(6):2801-2810): after each sentence the level moves
+  by ``-f(i) * (score - target) / slope``, ``score`` the share of the sentence's words
+  understood (not just right or wrong), ``slope`` the intelligibility function's assumed slope
+  at the target (per level unit), ``f(i) = f_start * f_decay**-i`` after ``i`` reversals of
+  the level's direction (floored at ``f_min``). The tracked level is continuous; each trial
+  shows the grid level nearest to it. Its estimate is the mean level of the last
+  :data:`LAST_TRIALS` trials (the analysis fits the function to every answer).
 * :class:`QuestPlusStaircase` - QUEST+ (Watson, 2017, J. Vision 17(3):10): a posterior over a
   grid of psychometric functions ``P = gamma + (1 - gamma - lambda) F(x; alpha, beta)``
   (:mod:`facelab.psychometric_function`), uniform at the start and multiplied by the
@@ -28,6 +36,7 @@ and the replay is checked against it.
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,6 +47,7 @@ from facelab.protocol import ChoiceTask, Protocol
 from facelab.psychometric_function import midpoint, predict
 
 __all__ = [
+    "BrandKollmeierStaircase",
     "QuestPlusStaircase",
     "Staircase",
     "UpDownStaircase",
@@ -49,6 +59,8 @@ __all__ = [
 
 #: Reversals averaged for the up-down estimate.
 LAST_REVERSALS = 6
+#: Trials whose levels the Brand-Kollmeier estimate averages.
+LAST_TRIALS = 10
 
 
 def convergence_probability(*, up: int, down: int) -> float:
@@ -89,20 +101,26 @@ class _Rule(abc.ABC):
             raise ValueError("a staircase needs two or more grid points, each with a level")
 
     @abc.abstractmethod
-    def _move(self, correct: bool) -> int:
+    def _move(self, correct: bool, score: float) -> int:
         """Apply an answer at the current level and return the next grid index."""
 
     @abc.abstractmethod
     def estimate(self) -> dict[str, Any]:
         """The rule's threshold estimate (level units) so far."""
 
-    def update(self, correct: bool) -> bool:
-        """Apply one answer at the current level; returns whether the direction of the level
+    def _direction(self, shown: int) -> int:
+        """+1 when the last answer made the level harder, -1 easier, 0 neither."""
+        return int(np.sign(self.index - shown))
+
+    def update(self, correct: bool, score: float | None = None) -> bool:
+        """Apply one answer at the current level (``score``: the share of its units right,
+        1 or 0 by ``correct`` when not given); returns whether the direction of the level
         reversed (harder -> easier or back)."""
         self.trials += 1
         shown = self.index
-        self.index = self._move(bool(correct))
-        move = int(np.sign(self.index - shown))
+        score = float(bool(correct)) if score is None else float(score)
+        self.index = self._move(bool(correct), score)
+        move = self._direction(shown)
         reversal = False
         if move:
             if self.direction and move != self.direction:
@@ -111,15 +129,18 @@ class _Rule(abc.ABC):
             self.direction = move
         return reversal
 
-    def record(self, *, trial_index: int, condition: str, correct: bool) -> dict[str, Any]:
+    def record(
+        self, *, trial_index: int, condition: str, correct: bool, score: float | None = None
+    ) -> dict[str, Any]:
         """Apply an answer and return the line for ``_staircase.jsonl``."""
         level = self.levels[self.grid.index(condition)]
-        reversal = self.update(correct)
+        reversal = self.update(correct, score)
         return {
             "trial_index": trial_index,
             "condition": condition,
             "level": level,
             "correct": bool(correct),
+            "score": float(bool(correct)) if score is None else float(score),
             "reversal": reversal,
             "reversals": len(self.reversals),
             "next_condition": self.condition,
@@ -128,18 +149,21 @@ class _Rule(abc.ABC):
             **self.estimate(),
         }
 
-    def replay(self, answers: Iterable[tuple[int, str, bool]]) -> list[dict[str, Any]]:
-        """Apply logged (trial index, condition, correct) answers in order, checking each was
-        the one due; returns the :meth:`record` of every step."""
+    def replay(
+        self, answers: Iterable[tuple[int, str, bool, float | None]]
+    ) -> list[dict[str, Any]]:
+        """Apply logged (trial index, condition, correct, score) answers in order, checking
+        each was the one due; returns the :meth:`record` of every step."""
         steps = []
-        for trial_index, condition, correct in answers:
+        for trial_index, condition, correct, score in answers:
             if condition != self.condition:
                 raise ValueError(
                     f"the log shows condition {condition!r} at trial {trial_index} where the "
                     f"staircase was at {self.condition!r}: the log does not belong to this "
                     "staircase"
                 )
-            steps.append(self.record(trial_index=trial_index, condition=condition, correct=correct))
+            steps.append(self.record(trial_index=trial_index, condition=condition,
+                                     correct=correct, score=score))  # fmt: skip
         return steps
 
 
@@ -166,7 +190,7 @@ class UpDownStaircase(_Rule):
         if self.index < 0:
             self.index = self.start
 
-    def _move(self, correct: bool) -> int:
+    def _move(self, correct: bool, score: float) -> int:
         move = 0
         if correct:
             self.correct_run += 1
@@ -254,7 +278,7 @@ class QuestPlusStaircase(_Rule):
     def _best(self) -> int:
         return int(np.argmin(np.round(self.expected_entropy(), ENTROPY_DECIMALS)))
 
-    def _move(self, correct: bool) -> int:
+    def _move(self, correct: bool, score: float) -> int:
         lik = self.likelihood[self.index]
         joint = self.posterior * (lik if correct else 1.0 - lik)
         total = joint.sum()
@@ -283,8 +307,67 @@ class QuestPlusStaircase(_Rule):
         }
 
 
-#: Either rule.
-Staircase = UpDownStaircase | QuestPlusStaircase
+@dataclass
+class BrandKollmeierStaircase(_Rule):
+    """State of one Brand & Kollmeier (2002) track over ``grid`` (easiest first) at
+    ``levels``; ``sign`` is +1 when a higher level is easier. ``value`` is the tracked level
+    (continuous, kept inside the grid's range); the grid point nearest to it is shown."""
+
+    grid: tuple[str, ...]
+    levels: tuple[float, ...]
+    start: int
+    target: float = 0.5
+    slope: float = 0.15
+    f_start: float = 1.5
+    f_decay: float = 1.41
+    f_min: float = 0.1
+    sign: int = 1
+    index: int = -1
+    value: float = math.nan
+    moved: int = 0  # the sign of the tracked level's last change (+1 harder)
+    direction: int = 0
+    trials: int = 0
+    reversals: list[float] = field(default_factory=list)
+    shown: list[float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._check_grid()
+        if not 0.0 < self.target < 1.0 or self.slope <= 0 or self.f_start <= 0:
+            raise ValueError("Brand-Kollmeier needs 0 < target < 1, slope > 0 and f_start > 0")
+        if self.index < 0:
+            self.index = self.start
+        if math.isnan(self.value):
+            self.value = self.levels[self.index]
+
+    def step_factor(self) -> float:
+        """f(i) after the reversals so far."""
+        return max(self.f_min, self.f_start * self.f_decay ** -len(self.reversals))
+
+    def _move(self, correct: bool, score: float) -> int:
+        self.shown.append(self.levels[self.index])
+        # a score above the target makes it harder: a lower level when higher is easier
+        change = -self.step_factor() * (score - self.target) / self.slope * self.sign
+        low, high = min(self.levels), max(self.levels)
+        value = float(np.clip(self.value + change, low, high))
+        self.moved = int(np.sign(-(value - self.value) * self.sign))
+        self.value = value
+        return int(np.argmin(np.abs(np.asarray(self.levels) - value)))
+
+    def _direction(self, shown: int) -> int:
+        return self.moved
+
+    def estimate(self) -> dict[str, Any]:
+        last = self.shown[-LAST_TRIALS:]
+        return {
+            "estimate": f"mean level of the last {LAST_TRIALS} trials",
+            "threshold": float(np.mean(last)) if last else float("nan"),
+            "tracked_level": self.value,
+            "step_factor": self.step_factor(),
+        }
+
+
+#: Any rule.
+Staircase = UpDownStaircase | QuestPlusStaircase | BrandKollmeierStaircase
 
 
 def guess_rate(protocol: Protocol, block_id: str) -> float:
@@ -319,6 +402,14 @@ def new_staircase(protocol: Protocol, block_id: str) -> Staircase:
             down=rule.down,
             step=rule.step,
         )
+    if rule.rule == "brand_kollmeier":
+        if start is None:
+            raise ValueError(f"block {block_id!r}: rule brand_kollmeier needs a start")
+        return BrandKollmeierStaircase(
+            grid=tuple(conditions), levels=levels, start=start, target=rule.target_score,
+            slope=rule.assumed_slope, f_start=rule.step_start, f_decay=rule.step_decay,
+            f_min=rule.step_min, sign=1 if rule.easier == "higher" else -1,
+        )  # fmt: skip
     low, high = min(levels), max(levels)
     span = high - low
     if rule.slopes is not None:

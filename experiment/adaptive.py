@@ -48,7 +48,8 @@ class Staircases:
             rows.sort(key=lambda r: int(r["trial_index"]))
             try:
                 steps = self.state[block_id].replay(
-                    (int(r["trial_index"]), r["condition"], bool(r["correct"])) for r in rows
+                    (int(r["trial_index"]), r["condition"], bool(r["correct"]), r.get("score"))
+                    for r in rows
                 )
             except ValueError as exc:
                 raise SessionError(f"staircase of block {block_id!r}: {exc}") from None
@@ -89,7 +90,8 @@ class Staircases:
         staircase = self.state[trial.block]
         (row,) = rows
         entry = staircase.record(
-            trial_index=trial.trial_index, condition=trial.condition, correct=bool(row["correct"])
-        )
+            trial_index=trial.trial_index, condition=trial.condition,
+            correct=bool(row["correct"]), score=row.get("score"),
+        )  # fmt: skip
         if self.record is not None:
             append_jsonl(self.record, {"block": trial.block, **entry})

@@ -196,10 +196,15 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
 
         def saved_line(row: dict[str, Any]) -> None:
             drops.row(row)
-            value = row["rating"] if row["rating"] is not None else row["response"]
+            if row["rating"] is not None:
+                value = format(row["rating"], ".2f")
+            elif row.get("score") is not None:  # typed: the text and its score
+                value = f"{row['response'] or ''!r} (score {row['score']:.2f})"
+            else:
+                value = str(row["response"])
             print(
                 f"trial {row['trial_index']}/{len(trials)} {row['condition']} {row['item']} = "
-                f"{value if isinstance(value, str) else format(value, '.2f')} (saved)",
+                f"{value} (saved)",
                 flush=True,
             )
 

@@ -43,6 +43,7 @@ class ScriptedParticipant:
     # stalled) sends the same answer again, so a late click of the first plan agrees with it
     chosen: dict[int, Any] = field(default_factory=dict)
     chooser: ChoiceModel | None = None  # answers forced choices and identifications
+    typing: list[subprocess.Popen] = field(default_factory=list)  # xdotool type, running
 
     def __post_init__(self) -> None:
         self.exe = shutil.which("xdotool")
@@ -57,6 +58,11 @@ class ScriptedParticipant:
         return round(ox + w / 2 + x), round(oy + h / 2 - y)
 
     def _run(self, args: list[str]) -> None:
+        if args[0] == "type":  # seconds long: typed while the window goes on drawing
+            self.typing.append(subprocess.Popen([self.exe, *args], stdout=subprocess.DEVNULL,
+                                                stderr=subprocess.DEVNULL))  # fmt: skip
+            self.typing = [t for t in self.typing if t.poll() is None]
+            return
         subprocess.run([self.exe, *args], check=False, capture_output=True)
 
     def schedule(self, delay: float, args: list[str], *, state: int | None = None) -> None:
@@ -90,6 +96,21 @@ class ScriptedParticipant:
         value, key = self._replan(key_id, (value, key))
         self.record(trial_index=trial_index, item=item, value=value)
         self.schedule(0.4, ["key", key], state=key_id)
+
+    def answer_text(
+        self, field_id: int, text: str, *, trial_index: int | None, item: str
+    ) -> None:
+        """Type ``text`` into a typed screen's field, one character every 0.15 s (X key
+        events; a character the keyboard map lacks, e.g. kana, gets a keycode mapped for it
+        while one xdotool types the whole text), then press Return (recorded first, once per
+        screen: a field is never typed into twice)."""
+        if field_id in self.planned:
+            return
+        self.planned[field_id] = time.perf_counter()
+        self.record(trial_index=trial_index, item=item, value=text)
+        if text:
+            self.schedule(0.4, ["type", "--delay", "150", "--", text], state=field_id)
+        self.schedule(0.4 + 0.15 * len(text) + 0.8, ["key", "Return"], state=field_id)
 
     def record(self, *, trial_index: int | None, item: str, value: float | str) -> None:
         """Write the action about to be taken to the actions file (fsync'd)."""

@@ -41,6 +41,8 @@ from facelab.experiment.timeline import (
     PairPlayback,
     Playback,
     TextScreen,
+    TypedAnswer,
+    TypedScreen,
     VasAnswer,
     VasScreen,
     compile_timeline,
@@ -212,6 +214,27 @@ class ChoiceModel:
         third = truth.peak if judgment == "simultaneity" else truth.lapse
         return float(p_timing(judgment, offset_ms, pss=pss, width=width, third=third))
 
+    def typed(self, screen: TypedScreen) -> str:
+        """A typed answer: each scoring unit of what was said (keyword, or mora of its
+        reading) heard with P(SNR) of the series' listener (``simulation.srt``, no guessing
+        in an open set), else with the identifier's accuracy; the units heard, in order."""
+        assert screen.trial is not None and screen.task is not None
+        cond = self.protocol.condition(screen.trial.condition)
+        listener = self.protocol.simulation.srt.get(cond.series_id)
+        if cond.noise is not None and listener is not None:
+            p = float(p_correct(cond.noise.snr_db, srt=self.srt_of(cond.series_id),
+                                slope=listener.slope, guess=0.0, lapse=listener.lapse))  # fmt: skip
+        else:
+            p = self.identifier.condition_accuracy.get(screen.trial.condition,
+                                                       self.identifier.accuracy)  # fmt: skip
+        if screen.task.scoring == "morae":
+            from facelab.japanese_reading import morae, pronunciation
+
+            units, sep = morae(pronunciation(screen.said)), ""
+        else:
+            units, sep = list(screen.keywords or screen.said.split() or [screen.said]), " "
+        return sep.join(u for u in units if self.rng.random() < p)
+
     def identify(self, screen: IdentifyScreen) -> str:
         assert screen.trial is not None and screen.task is not None
         labels = [lb.id for lb in screen.task.labels]
@@ -309,6 +332,14 @@ class SimulatedParticipant:
         rt = self.chooser.response_time()
         self.clock += rt
         return [IdentifyAnswer(label, round(rt, 3), self._stamp())]
+
+    def typed(self, screen: TypedScreen) -> list[TypedAnswer]:
+        if screen.trial is None or screen.practice or self.chooser is None:
+            return [TypedAnswer(screen.said, 1.0, self._stamp())]
+        text = self.chooser.typed(screen)
+        rt = self.chooser.response_time()
+        self.clock += rt
+        return [TypedAnswer(text, round(rt, 3), self._stamp())]
 
     def added_screen(self, screen: Any) -> list[Any]:
         """A package's added screen: the kind's own simulated answer

@@ -60,7 +60,7 @@ from facelab.analysis.tasks import (
 from facelab.errors import AnalysisError, StageError
 from facelab.experiment.simulate import check_effects, simulated_rows
 from facelab.grid import Cluster, GridTask, run_grid
-from facelab.protocol import ChoiceTask, IdentifyTask, Protocol
+from facelab.protocol import ChoiceTask, IdentifyTask, Protocol, TypedTask
 from facelab.protocol_model import TimingObserver
 
 __all__ = [
@@ -158,11 +158,11 @@ def _timing_windows(
 
 def _srt_estimates(
     data: pd.DataFrame, protocol: Protocol
-) -> list[tuple[IdentifyTask, pd.DataFrame]]:
+) -> list[tuple[IdentifyTask | TypedTask, pd.DataFrame]]:
     """Each speech-in-noise task's SRTs (point estimates only)."""
     out = []
     for task in protocol.tasks:
-        if isinstance(task, IdentifyTask) and srt.is_noise_task(protocol, task):
+        if isinstance(task, IdentifyTask | TypedTask) and srt.is_noise_task(protocol, task):
             rows = data[(data["item"] == task.id) & (data["screen"] == task.type)]
             if not rows.empty:
                 table = srt.srt_table(rows, protocol, task, intervals=False)
@@ -176,7 +176,7 @@ def estimate_truths(protocol: Protocol) -> dict[str, float]:
            for t in protocol.tasks if isinstance(t, ChoiceTask)}  # fmt: skip
     reference = srt.audio_only_series(protocol)
     for task in protocol.tasks:
-        if isinstance(task, IdentifyTask) and srt.is_noise_task(protocol, task):
+        if isinstance(task, IdentifyTask | TypedTask) and srt.is_noise_task(protocol, task):
             for series, truth in protocol.simulation.srt.items():
                 out[f"{task.id} {series} srt_db"] = truth.srt_db
                 if reference in protocol.simulation.srt and series != reference:

@@ -31,13 +31,14 @@ from __future__ import annotations
 
 import math
 import re
+import unicodedata
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from facelab.design import PENDING, Trial
-from facelab.protocol import ChoiceTask, IdentifyTask, Protocol, VasItem
+from facelab.protocol import AnyTask, ChoiceTask, IdentifyTask, Protocol, TypedTask, VasItem
 from facelab.sessionlog import SessionContext, response_row
 
 __all__ = [
@@ -59,6 +60,8 @@ __all__ = [
     "Screen",
     "TaskScreen",
     "TextScreen",
+    "TypedAnswer",
+    "TypedScreen",
     "VasAnswer",
     "VasScreen",
     "compile_timeline",
@@ -94,6 +97,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "right": "右",
         "choice_keys": "1 か 2 のキー、またはクリックで答えてください",
         "label_keys": "数字キー、またはクリックで答えてください",
+        "typed_keys": "聞こえたとおりに入力し、Enter キーか「決定」で答えてください"
+        "（聞き取れなければ空欄のまま）",
     },
     "en": {
         "welcome": "Participant {pid} (session {ses})\n\nPress space to start.",
@@ -111,6 +116,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "right": "Right",
         "choice_keys": "Press 1 or 2, or click",
         "label_keys": "Press a number key, or click",
+        "typed_keys": "Type what you heard, then press Enter or click Confirm (leave it "
+        "empty if you heard nothing)",
     },
 }
 
@@ -451,7 +458,7 @@ class VasScreen(ResponseScreen):
 class TaskScreen(ResponseScreen):
     """A screen that collects a task's one answer per trial (forced choice, identification)."""
 
-    task: ChoiceTask | IdentifyTask | None = None
+    task: AnyTask | None = None
 
     def response_keys(self) -> tuple[tuple[int, str], ...]:
         if self.practice or self.trial is None or self.task is None:
@@ -580,6 +587,90 @@ class IdentifyScreen(TaskScreen):
         )
 
 
+@dataclass(frozen=True)
+class TypedAnswer:
+    """A typed answer: the text as typed (whitespace runs made one space, Unicode NFC)."""
+
+    text: str
+    rt_s: float
+    timestamp: str
+
+
+def typed_text(raw: str) -> str:
+    """A typed answer as the log stores it: NFC, every run of whitespace (tabs, newlines,
+    ideographic spaces) one space, no space at either end."""
+    return " ".join(unicodedata.normalize("NFC", raw).split())
+
+
+def typed_score(*, said: str, text: str, task: TypedTask, keywords: Sequence[str] | None) -> float:
+    """The share of ``said``'s scoring units ``text`` reproduces, as pronounced (OpenJTalk's
+    reading, :mod:`facelab.analysis.typed_scoring`)."""
+    from facelab.analysis.typed_scoring import score_typed
+    from facelab.japanese_reading import morae, pronunciation
+
+    if not text:
+        return 0.0
+    score = score_typed(said, text, reader=pronunciation, split=morae, keywords=keywords,
+                        tolerant=task.tolerant)  # fmt: skip
+    value = score.keyword_score if task.scoring == "keywords" else score.mora_score
+    return 0.0 if math.isnan(value) else round(float(value), 6)
+
+
+@screen_kind
+@dataclass(frozen=True)
+class TypedScreen(TaskScreen):
+    """Type what was said: a text field and a confirm button (Return confirms). ``said`` and
+    ``keywords`` are what the answer is scored against (the stimulus' text, or the task's)."""
+
+    kind: ClassVar[str] = "typed"
+    task: TypedTask | None = None
+    said: str = ""
+    keywords: tuple[str, ...] | None = None
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        assert self.task is not None
+        return super().browser(ctx) | {
+            "max_length": self.task.max_length,
+            "confirm": ctx.texts["confirm"],
+            "hint": ctx.texts["typed_keys"],
+        }
+
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> TypedAnswer:
+        assert self.task is not None
+        raw = posted.get("text")
+        if not isinstance(raw, str):
+            raise AnswerError(f"text: expected the typed text, got {raw!r}")
+        text = typed_text(raw)
+        if len(text) > self.task.max_length:
+            raise AnswerError(f"text: {len(text)} characters, at most {self.task.max_length}")
+        return TypedAnswer(text=text, rt_s=rt_s, timestamp=timestamp)
+
+    def posted(self, answer: TypedAnswer) -> dict[str, Any]:
+        return {"text": answer.text}
+
+    def score(self, text: str) -> float:
+        """The share of the scoring units ``text`` reproduces."""
+        assert self.task is not None
+        return typed_score(said=self.said, text=text, task=self.task, keywords=self.keywords)
+
+    def row(
+        self, item: str, answer: TypedAnswer, *, context: SessionContext, playback: Playback | None
+    ) -> dict[str, Any]:
+        score = self.score(answer.text)
+        return self._row(
+            context=context,
+            playback=playback,
+            item=item,
+            rt_s=answer.rt_s,
+            timestamp=answer.timestamp,
+            response=answer.text or None,
+            correct=int(score >= 1.0),
+            score=score,
+        )
+
+
 @screen_kind
 @dataclass(frozen=True)
 class AdaptiveTrial(ResponseScreen):
@@ -623,7 +714,7 @@ def trial_screens(
     trial: Trial,
     *,
     practice: bool = False,
-    task: ChoiceTask | IdentifyTask | None = None,
+    task: AnyTask | None = None,
 ) -> list[Screen]:
     """The screens of one trial: its clip(s), then its response screen(s).
 
@@ -666,7 +757,7 @@ def _task_screens(
     trial: Trial,
     *,
     practice: bool,
-    task: ChoiceTask | IdentifyTask | None,
+    task: AnyTask | None,
 ) -> list[Screen]:
     """The clip(s) and response screen(s) of one trial (see :func:`trial_screens`)."""
     block = next((b for b in protocol.blocks if b.id == trial.block), None)
@@ -685,6 +776,16 @@ def _task_screens(
             ClipScreen(trial=shown, clip=clip, practice=practice),
             IdentifyScreen(trial=shown, practice=practice, level=level, task=task),
         ]
+    if isinstance(task, TypedTask):
+        stimulus = next(st for st in protocol.stimulus_set(trial.stimulus_set).stimuli
+                        if st.id == trial.stimulus)  # fmt: skip
+        keywords = task.keywords_of(stimulus)
+        return [
+            ClipScreen(trial=shown, clip=clip, practice=practice),
+            TypedScreen(trial=shown, practice=practice, level=level, task=task,
+                        said=task.said(stimulus) or "",
+                        keywords=None if keywords is None else tuple(keywords)),
+        ]  # fmt: skip
     standard = (trial.stimulus_set, trial.stimulus, trial.standard or task.standard)
     first, second = (clip, standard) if (trial.position or 1) == 1 else (standard, clip)
     if task.layout == "side_by_side":  # position: the comparison's side, 1 left, 2 right

@@ -27,6 +27,8 @@ from facelab.experiment.timeline import (
     ResponseScreen,
     Screen,
     TextScreen,
+    TypedAnswer,
+    TypedScreen,
     VasAnswer,
     VasScreen,
 )
@@ -44,6 +46,7 @@ class Presenter(Protocol):
     def vas(self, screen: VasScreen) -> list[VasAnswer]: ...
     def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]: ...
     def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]: ...
+    def typed(self, screen: TypedScreen) -> list[TypedAnswer]: ...
 
 
 def walk(

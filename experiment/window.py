@@ -39,9 +39,12 @@ from facelab.experiment.timeline import (
     PairPlayback,
     Playback,
     TextScreen,
+    TypedAnswer,
+    TypedScreen,
     VasAnswer,
     VasScreen,
     localized,
+    typed_text,
     ui,
 )
 from facelab.experiment.vas import VasGeometry, VasState
@@ -467,6 +470,62 @@ class Window:
             scripted=scripted,
         )
         return [IdentifyAnswer(label=ids[index], rt_s=round(rt, 4), timestamp=utc_now())]
+
+    def typed(self, screen: TypedScreen) -> list[TypedAnswer]:
+        """Type what was said: a text field (the system's input method, e.g. a Japanese IME,
+        composes into it), confirmed by Return or a click on the confirm button."""
+        assert screen.task is not None
+        w, h = self.size
+        limit = screen.task.max_length
+        prompt = self.text_stim(localized(screen.task.question, self.lang), y=0.2 * h)
+        field = self.visual.TextBox2(
+            self.win, text="", font=self.font, letterHeight=0.045 * h, pos=(0, 0),
+            size=(0.7 * w, 0.1 * h), editable=True, color="white", borderColor="white",
+            fillColor=(-0.45, -0.45, -0.45), alignment="left", lineBreaking="uax14",
+        )  # fmt: skip
+        field.hasFocus = True  # the window sends typed text to its current editable only
+        confirm_box = self.visual.Rect(
+            self.win, width=0.2 * w, height=0.08 * h, pos=(0, -0.18 * h), lineColor="white",
+            lineWidth=2, fillColor=(0.1, 0.45, 0.25),
+        )  # fmt: skip
+        confirm_label = self.text_stim(self.ui["confirm"], y=-0.18 * h, height=0.03 * h,
+                                       width=0.2 * w)  # fmt: skip
+        hint = self.text_stim(self.ui["typed_keys"], y=-0.35 * h, height=0.022 * h,
+                              color="lightgrey")  # fmt: skip
+        if self.script is not None:
+            chooser = self.script.chooser
+            practice = screen.trial is None or screen.practice or chooser is None
+            text = screen.said if practice else chooser.typed(screen)  # type: ignore[union-attr]
+            trial_index = None if practice else screen.trial_index
+            self.script.answer_text(id(field), text, item=screen.task.id, trial_index=trial_index)
+        self._clear_events()
+        self.mouse.clickReset()
+        onset = time.perf_counter()
+        shot = None if screen.practice else "typed_screen"
+        was_down = False
+        while True:
+            if len(field.text) > limit:
+                field.text = field.text[:limit]
+            for stim in (prompt, field, confirm_box, confirm_label, hint):
+                stim.draw()
+            self.win.flip()
+            if self.script:
+                self.script.tick()
+            keys = self.event.getKeys()
+            self._check_escape(keys)
+            down = bool(self.mouse.getPressed()[0])
+            clicked = down and not was_down and confirm_box.contains(self.mouse)
+            was_down = down
+            if clicked or any(k in ("return", "num_enter") for k in keys):
+                rt = time.perf_counter() - onset
+                if shot:  # the answer as confirmed
+                    for stim in (prompt, field, confirm_box, confirm_label, hint):
+                        stim.draw()
+                    self._screenshot(shot)
+                    self.win.clearBuffer()
+                text = typed_text(str(field.text))[:limit]
+                self.win.removeEditable(field)  # the next screen's field gets the keys
+                return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
 
     def added_screen(self, screen: Any) -> list[Any]:
         """A screen kind from a package (``AddedScreen``): drawn by the kind's ``lab``."""

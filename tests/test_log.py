@@ -119,7 +119,7 @@ def test_resume_without_a_session_and_corrupt_middle_lines(tmp_path: Path) -> No
     log.append(_row(1, "a"))
     with open(log.paths.tsv, "a", encoding="utf-8") as fh:
         fh.write("garbage line\n")
-    with pytest.raises(StageError, match=r"_beh.tsv:3: expected 25 tab-separated fields"):
+    with pytest.raises(StageError, match=r"_beh.tsv:3: expected 26 tab-separated fields"):
         SessionLog.resume(tmp_path, study="s1", participant="P01", session=1)
 
 

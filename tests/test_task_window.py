@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -172,3 +173,31 @@ def test_side_by_side_choice_in_the_window(tmp_path: Path) -> None:
     for half in (shot[h // 4 : 3 * h // 4, : w // 2], shot[h // 4 : 3 * h // 4, w // 2 :]):
         assert half.std() > 10  # a face on each side, not a blank or a black square
     assert (tmp_path / "shots" / "choice_2afc_screen.png").exists()
+
+
+def test_typed_answers_in_the_window(tmp_path: Path) -> None:
+    """Typed sentences (issue 52.2): the scripted participant types each answer into the
+    window's field with real X key events (Japanese characters, one every 0.15 s, then
+    Return); every logged response is the text typed, scored, and the Brand-Kollmeier
+    staircase moved by those scores."""
+    from tests.test_typed_answers import SHORT
+
+    path = short_task_protocol("kato2021_srt_sentences", tmp_path, SHORT)
+    proc = _run(path, tmp_path)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-1500:]
+    study = "kato2021_srt_sentences"
+    rows = _beh_rows(tmp_path, study)
+    actions = [json.loads(x) for x in _session(tmp_path, study, "_actions.jsonl").read_text(
+        encoding="utf-8").splitlines()]  # fmt: skip
+    typed = {a["trial_index"]: a["value"] for a in actions if a["trial_index"] is not None}
+    assert len(rows) == 4 == len(typed)
+    for r in rows:
+        shown = "" if r["response"] == "n/a" else r["response"]
+        assert shown == typed[int(r["trial_index"])], (r, typed)
+        assert r["screen"] == "typed" and 0.0 <= float(r["score"]) <= 1.0
+    assert any(re.search(r"[\u3040-\u30ff\u4e00-\u9fff]", v) for v in typed.values())
+    steps = [json.loads(x) for x in _session(tmp_path, study, "_staircase.jsonl").read_text(
+        encoding="utf-8").splitlines()]  # fmt: skip
+    assert [s["score"] for s in steps] == [float(r["score"]) for r in rows]
+    assert (tmp_path / "shots" / "typed_screen.png").exists()

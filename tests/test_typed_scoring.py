@@ -11,7 +11,7 @@ import pytest
 
 from facelab.analysis.typed_scoring import score_table, score_typed
 from facelab.experiment.cli import main
-from facelab.stimuli.speech.reading import morae, pronunciation
+from facelab.japanese_reading import morae, pronunciation
 
 TRICKY = Path(__file__).parent / "reference" / "typed_answers.csv"
 #: (mora score, keyword score, exact) each case must get - worked out by hand

@@ -600,7 +600,7 @@ def _cmd_score_typed(args: argparse.Namespace) -> int:
     import pandas as pd
 
     from facelab.analysis.typed_scoring import score_table
-    from facelab.stimuli.speech.reading import morae, pronunciation
+    from facelab.japanese_reading import morae, pronunciation
 
     path = Path(args.answers)
     if not path.is_file():

@@ -87,6 +87,8 @@ class AnswerIn(_Strict):
     rating: float | None = Field(None, ge=-1e6, le=1e6)
     choice: int | None = Field(None, ge=1, le=2)
     label: ItemId | None = None
+    # a typed answer (as typed; the screen normalises its whitespace and checks its length)
+    text: Annotated[str, StringConstraints(max_length=400)] | None = None
     # the answer of a screen kind added to facelab (its Screen.answer reads and checks it)
     value: (
         Annotated[float, Field(ge=-1e6, le=1e6)]

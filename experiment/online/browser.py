@@ -347,7 +347,7 @@ class SimulatedBrowser:
                 if (
                     self.stop_after is not None
                     and self.given >= self.stop_after
-                    and kind in ("vas", "choice_2afc", "identify")
+                    and kind in ("vas", "choice_2afc", "identify", "typed")
                 ):
                     return "stopped"
                 if kind == "enter_vr":
@@ -416,6 +416,22 @@ class SimulatedBrowser:
                         self._shot("vas")
                         d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
                     self.given += screen is not None  # practice answers are not counted
+                elif kind == "typed":  # type the answer into the field, then Enter
+                    trial = state["trial"]
+                    screen = screen_for(trial, kind)
+                    if screen is None:  # the practice trial: what was said
+                        text = "れんしゅう"
+                    else:
+                        (answer,) = screen.present(sim)
+                        text = screen.posted(answer)["text"]
+                        self._record(p, trial_index=trial, item=state.get("item") or "",
+                                     value=text)  # fmt: skip
+                    field = d.find_element(By.CSS_SELECTOR, "[data-facelab=answer]")
+                    if text:
+                        field.send_keys(text)
+                    self._shot(kind)
+                    field.send_keys("\n")
+                    self.given += screen is not None
                 elif d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]"):
                     # a screen answered by one of its option buttons: 2AFC, identification
                     # and any kind added to facelab that draws them

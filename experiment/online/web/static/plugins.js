@@ -324,6 +324,33 @@ class FacelabIdentify extends FacelabChoice {
 }
 FacelabIdentify.info = facelabInfo("facelab-identify", { ...FacelabFields.screen, ...FacelabFields.task, labels: "COMPLEX" });
 
+// Type what was said: a text field (the participant's input method composes into it; Enter
+// while composing finishes the composition, not the answer), Enter or Confirm answers.
+class FacelabTyped extends FacelabPlugin {
+  async run(el, s) {
+    const started = performance.now();
+    const box = facelabBox("facelab-choice facelab-typed", "typed", s); box.dataset.item = s.item;
+    box.appendChild(facelabEl("div", "facelab-question", s.question));
+    const field = facelabEl("input", "facelab-field"); field.type = "text";
+    field.maxLength = s.max_length; field.lang = document.documentElement.lang || "";
+    field.autocomplete = "off"; field.spellcheck = false; field.dataset.facelab = "answer";
+    const confirm = facelabEl("button", "facelab-button", s.confirm); confirm.dataset.facelab = "confirm";
+    box.appendChild(field); box.appendChild(confirm);
+    box.appendChild(facelabEl("p", "facelab-note", s.hint));
+    facelabShow(el, box); field.focus();
+    await new Promise((res) => {
+      confirm.addEventListener("click", res, { once: true });
+      field.addEventListener("keydown", (ev) => {
+        if (ev.key === "Enter" && !ev.isComposing && ev.keyCode !== 229) { ev.preventDefault(); res(); }
+      });
+    });
+    const text = field.value.replace(/\s+/g, " ").trim().slice(0, s.max_length);
+    if (!s.practice) FacelabOutbox.send("/api/response", facelabAnswer(s, s.item, { text }, started));
+    return { text };
+  }
+}
+FacelabTyped.info = facelabInfo("facelab-typed", { ...FacelabFields.screen, ...FacelabFields.task, max_length: "INT", confirm: "STRING", hint: "STRING" });
+
 // A screen kind of buttons from an installed package (facelab.experiment.screen_kinds.
 // ButtonScreen, widget "buttons"): its question and choices; the answer posted as "value".
 class FacelabButtons extends FacelabChoice {
@@ -414,4 +441,5 @@ FacelabComplete.info = facelabInfo("facelab-complete", { kind: "STRING", role: "
 
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
 const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,
-                         choice_2afc: FacelabChoice, identify: FacelabIdentify, adaptive: FacelabAdaptive };
+                         choice_2afc: FacelabChoice, identify: FacelabIdentify, typed: FacelabTyped,
+                         adaptive: FacelabAdaptive };
