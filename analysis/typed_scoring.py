@@ -7,8 +7,11 @@ variants read alike, long vowels normalised), split into morae. Scores:
 * ``morae_correct`` / ``mora_score`` - the target's morae the answer reproduced in order
   (their longest common subsequence) and their share of the target's;
 * ``keywords_correct`` of ``keywords_total`` / ``keyword_score`` - the target's keywords (by
-  default its words as given, e.g. ``猫 走る``) found in the answer's pronunciation; with
-  ``tolerant`` a keyword of three or more morae also counts with one mora wrong (a typo);
+  default its words as given, e.g. ``猫 走る``) found in the answer's pronunciation, in the
+  order said, each in its own part of the answer (the most keywords so placed): a keyword
+  heard inside another one's reading does not count twice (箱 ハコ is in 運んだ ハコンダ:
+  "大きな 運んだ" is 2 of 大きな 箱 運んだ, not 3); with ``tolerant`` a keyword of three or
+  more morae also counts with one mora wrong (a typo);
 * ``exact`` - the whole pronunciation equal (extra words make it 0; the mora score is not
   lowered by them, the usual convention of open-set scoring).
 
@@ -50,15 +53,25 @@ def _lcs(a: Sequence[str], b: Sequence[str]) -> int:
     return row[-1]
 
 
-def _contains(hay: list[str], needle: list[str], *, tolerant: bool) -> bool:
-    k = len(needle)
-    if k == 0:
-        return True
-    allowed = 1 if tolerant and k >= 3 else 0
-    for i in range(len(hay) - k + 1):
-        if sum(a != b for a, b in zip(hay[i : i + k], needle, strict=True)) <= allowed:
-            return True
-    return False
+def _matches(window: Sequence[str], needle: Sequence[str], *, tolerant: bool) -> bool:
+    allowed = 1 if tolerant and len(needle) >= 3 else 0
+    return sum(a != b for a, b in zip(window, needle, strict=True)) <= allowed
+
+
+def _keywords_found(hay: list[str], keys: list[list[str]], *, tolerant: bool) -> int:
+    """The most keywords found in ``hay`` in order, each on morae of its own (dynamic
+    programming over keywords x answer morae)."""
+    m = len(hay)
+    best = [0] * (m + 1)  # best[j]: keywords placed so far within hay[:j]
+    for key in keys:
+        k = len(key)
+        nxt = best[:]
+        for j in range(1, m + 1):
+            nxt[j] = max(nxt[j], nxt[j - 1])
+            if k and j >= k and _matches(hay[j - k : j], key, tolerant=tolerant):
+                nxt[j] = max(nxt[j], best[j - k] + 1)
+        best = nxt
+    return best[m] + sum(1 for key in keys if not key)
 
 
 def score_typed(
@@ -70,7 +83,7 @@ def score_typed(
     want_m, got_m = split(want), split(got)
     words = list(keywords) if keywords is not None else (target.split() or [target])
     keys = [split(reader(w)) for w in words if reader(w)]
-    found = sum(_contains(got_m, k, tolerant=tolerant) for k in keys)
+    found = _keywords_found(got_m, keys, tolerant=tolerant)
     hit = _lcs(want_m, got_m)
     return TypedScore(
         target_reading=want, response_reading=got, morae=len(want_m), morae_correct=hit,

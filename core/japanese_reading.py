@@ -41,8 +41,16 @@ def _katakana(text: str) -> str:
 @functools.lru_cache(maxsize=4096)
 def pronunciation(text: str) -> str:
     """The katakana pronunciation of ``text`` (NFKC-normalised; punctuation and spaces
-    dropped; kana read as written, kanji by the dictionary)."""
-    plain = _DROP.sub("", unicodedata.normalize("NFKC", text))
+    dropped; kana read as written, kanji by the dictionary). Parts apart by spaces are read
+    apart, as the writer parted them: 朝 雨 is アサアメ, where 朝雨 would be read as one
+    word."""
+    parts = unicodedata.normalize("NFKC", text).split()
+    return "".join(_reading(part) for part in parts)
+
+
+@functools.lru_cache(maxsize=4096)
+def _reading(part: str) -> str:
+    plain = _DROP.sub("", part)
     if not plain:
         return ""
     kana = _DROP.sub("", _katakana(str(_frontend()(plain, kana=True))))

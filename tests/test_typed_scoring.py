@@ -1,6 +1,7 @@
 """Typed answers scored as pronounced (issue 52.2): the tricky inputs of
 ``tests/reference/typed_answers.csv`` - kana and kanji variants, long vowels, typos, extra and
-missing words - and ``facelab score-typed``."""
+missing words, keywords inside other words, spaced words, keywords out of order - and
+``facelab score-typed``."""
 
 from __future__ import annotations
 
@@ -33,6 +34,13 @@ EXPECTED = {
     "half-width katakana": (1.0, 1.0, 1),
     "e+i in kana for a long e in kanji": (1.0, 1.0, 1),
     "e+i in kana for a long e in kanji (2)": (1.0, 1.0, 1),
+    # オーキナハコオハコンダ (11) against オーキナハコンダ: オーキナ + ハコンダ in order; the
+    # keywords 大きな and 運んだ each on morae of their own (箱 only inside 運んだ)
+    "a keyword inside another's reading (箱 ハコ in 運んだ ハコンダ)": (8 / 11, 2 / 3, 0),
+    # アシタノアサワアメ (9) against アサアメ: アサ, アメ
+    "words apart read apart (朝 雨 not as one word)": (4 / 9, 2 / 3, 0),
+    # ネコガハシル (6) against ハシルネコ: ハシル; keywords in the order said: one of two
+    "keywords out of the order said": (3 / 6, 1 / 2, 0),
 }
 
 
