@@ -7,8 +7,10 @@ order). The answers of one participant and one condition series (:attr:`Conditio
 e.g. one animation method at every offset) are counted per offset and fitted by maximum
 likelihood with :func:`facelab.timing_function.p_timing`:
 
-* simultaneity: ``peak * exp(-(x - pss)^2 / (2 sigma^2))``, width = full width at half the
-  peak;
+* simultaneity: ``floor + (peak - floor) * exp(-(x - pss)^2 / (2 sigma^2))``, width = the
+  Gaussian's full width at half its height; the floor ("in sync" said far outside the window:
+  guesses, a bias to say yes) is fitted as a share of the peak in [0, 0.6] unless the task's
+  ``floor`` is ``none`` (then 0: such answers widen the window);
 * temporal order: ``lapse / 2 + (1 - lapse) Phi((pss - x) / sigma)``, width = the distance
   between the 25 % and 75 % points.
 
@@ -57,8 +59,8 @@ __all__ = [
 #: sync_window.csv (the contract of issue 52): one row per participant and condition series
 WINDOW_COLUMNS = (
     "participant", "condition", "judgment", "n", "pss_ms", "pss_ci_low", "pss_ci_high",
-    "width_ms", "width_ci_low", "width_ci_high", "peak", "lapse", "deviance", "deviance_df",
-    "note",
+    "width_ms", "width_ci_low", "width_ci_high", "peak", "floor", "lapse", "deviance",
+    "deviance_df", "note",
 )  # fmt: skip
 _EPS = 1e-9
 
@@ -76,6 +78,7 @@ class TimingFit:
     width_ci_low: float
     width_ci_high: float
     peak: float  # simultaneity: P(in sync) at the PSS (NaN for temporal order)
+    floor: float  # simultaneity: P(in sync) far outside the window (NaN for temporal order)
     lapse: float  # temporal order (NaN for simultaneity)
     deviance: float  # against the saturated model (a proportion per offset)
     deviance_df: int
@@ -107,14 +110,24 @@ def _per_sigma(judgment: str) -> float:
     return FWHM_PER_SIGMA if judgment == "simultaneity" else IQR_PER_SIGMA
 
 
+#: the largest floor a simultaneity fit allows, as a share of its peak
+FLOOR_SHARE_BOUND = 0.6
+
+
+def _p(theta: np.ndarray, judgment: str, x: np.ndarray) -> np.ndarray:
+    """P(the label) at ``x`` for parameters ``theta`` (pss, log sigma, peak or lapse[, floor
+    as a share of the peak])."""
+    floor = theta[2] * theta[3] if len(theta) > 3 else 0.0
+    width = math.exp(theta[1]) * _per_sigma(judgment)
+    return p_timing(judgment, x, pss=theta[0], width=width, third=theta[2], floor=floor)
+
+
 def _loglik(theta: np.ndarray, judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray) -> float:
-    pss, log_sigma, third = theta
-    width = math.exp(log_sigma) * _per_sigma(judgment)
-    p = np.clip(p_timing(judgment, x, pss=pss, width=width, third=third), _EPS, 1 - _EPS)
+    p = np.clip(_p(theta, judgment, x), _EPS, 1 - _EPS)
     return float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
 
 
-def _bounds(judgment: str, x: np.ndarray) -> list[tuple[float, float]]:
+def _bounds(judgment: str, x: np.ndarray, *, floor: bool) -> list[tuple[float, float]]:
     levels = np.unique(x)
     span = float(levels[-1] - levels[0])
     step = float(np.min(np.diff(levels)))
@@ -123,38 +136,51 @@ def _bounds(judgment: str, x: np.ndarray) -> list[tuple[float, float]]:
         (float(levels[0]) - span, float(levels[-1]) + span),
         (math.log(step / 10.0), math.log(4.0 * span)),
         third,
+        *([(0.0, FLOOR_SHARE_BOUND)] if floor else []),
     ]
 
 
-def _starts(judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray) -> list[np.ndarray]:
+def _starts(
+    judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray, *, floor: bool
+) -> list[np.ndarray]:
     p = k / np.maximum(n, 1)
-    centre = float(np.sum(x * p) / np.sum(p)) if np.sum(p) > 0 else float(np.mean(x))
+    base = float(np.min(p)) if floor else 0.0  # the floor's level, taken off the centre's weights
+    w = np.clip(p - base, 0.0, None)
+    centre = float(np.sum(x * w) / np.sum(w)) if np.sum(w) > 0 else float(np.mean(x))
     span = float(np.ptp(x)) or 1.0
     third0 = 0.9 if judgment == "simultaneity" else 0.02
+    shares = (0.02, min(FLOOR_SHARE_BOUND - 0.01, base / third0 + 0.01)) if floor else (None,)
     return [
-        np.array([c, math.log(s), third0])
+        np.array([c, math.log(s), third0, *(() if f is None else (f,))])
         for c in (centre, float(np.median(x)))
         for s in (span / 6.0, span / 2.0)
+        for f in shares
     ]
 
 
 def fit_window(
-    counts: pd.DataFrame, *, judgment: str, level: float = 0.95, intervals: bool = True
-) -> TimingFit:
+    counts: pd.DataFrame, *, judgment: str, level: float = 0.95, intervals: bool = True,
+    floor: bool = True,
+) -> TimingFit:  # fmt: skip
     """Fit one window to ``counts`` (``offset_ms, n, k``); see the module. Without
-    ``intervals`` (power simulations) the interval columns are NaN."""
+    ``intervals`` (power simulations) the interval columns are NaN; ``floor`` (simultaneity):
+    fit the floor, else hold it at 0."""
+    floor = floor and judgment == "simultaneity"
     counts = counts.groupby("offset_ms", sort=True)[["n", "k"]].sum().reset_index()
     x = counts["offset_ms"].to_numpy(dtype=float)
     n = counts["n"].to_numpy(dtype=float)
     k = counts["k"].to_numpy(dtype=float)
     if len(x) < 3:
         raise AnalysisError(f"a timing window needs answers at three or more offsets, got {len(x)}")
-    bounds = _bounds(judgment, x)
+    if len(x) < 3 + floor:
+        raise AnalysisError(f"a simultaneity window with a floor needs answers at four or "
+                            f"more offsets, got {len(x)}")  # fmt: skip
+    bounds = _bounds(judgment, x, floor=floor)
 
     def loglik(theta: np.ndarray) -> float:
         return _loglik(theta, judgment, x, n, k)
 
-    theta, ll = best_fit(loglik, bounds=bounds, starts=_starts(judgment, x, n, k))
+    theta, ll = best_fit(loglik, bounds=bounds, starts=_starts(judgment, x, n, k, floor=floor))
     cutoff = chi2_cutoff(level)
     per = _per_sigma(judgment)
     pss_lo = pss_hi = ls_lo = ls_hi = math.nan
@@ -164,9 +190,12 @@ def fit_window(
         ls_lo, ls_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=1,
                                         cutoff=cutoff)  # fmt: skip
     notes = []
-    names = ("the PSS", "the width", "the peak" if judgment == "simultaneity" else "the lapse")
+    names = ("the PSS", "the width", "the peak" if judgment == "simultaneity" else "the lapse",
+             *(("the floor",) if floor else ()))  # fmt: skip
     for i, name in enumerate(names):
         lo, hi = bounds[i]
+        if i == 3 and theta[i] <= lo + 1e-6:
+            continue  # no "in sync" answers far outside the window
         if i == 2 and judgment == "simultaneity" and theta[i] >= hi - 1e-6:
             continue  # a peak of 1 (never "out of sync" at the PSS) is a fine answer
         if i == 2 and judgment == "temporal_order" and theta[i] <= lo + 1e-6:
@@ -177,7 +206,7 @@ def fit_window(
         notes.append("the PSS interval reaches beyond the offsets searched")
     if math.isinf(ls_lo) or math.isinf(ls_hi):
         notes.append("the width interval reaches beyond the widths searched")
-    p_hat = p_timing(judgment, x, pss=theta[0], width=math.exp(theta[1]) * per, third=theta[2])
+    p_hat = _p(theta, judgment, x)
     width = math.exp(theta[1]) * per
 
     def w(v: float) -> float:
@@ -188,8 +217,10 @@ def fit_window(
         pss_ci_high=pss_hi, width_ms=width, width_ci_low=w(ls_lo) if ls_lo != -math.inf else 0.0,
         width_ci_high=w(ls_hi),
         peak=float(theta[2]) if judgment == "simultaneity" else math.nan,
+        floor=(float(theta[2] * theta[3]) if floor
+               else 0.0 if judgment == "simultaneity" else math.nan),
         lapse=float(theta[2]) if judgment == "temporal_order" else math.nan,
-        deviance=binomial_deviance(k, n, p_hat), deviance_df=len(x) - 3,
+        deviance=binomial_deviance(k, n, p_hat), deviance_df=len(x) - len(theta),
         note="; ".join(notes),
     )  # fmt: skip
 
@@ -207,7 +238,8 @@ def window_table(
     for (pid, series), part in counts.groupby(["participant", "condition"], sort=True):
         if part["offset_ms"].nunique() < 3:
             continue
-        fit = fit_window(part, judgment=task.timing.judgment, level=level, intervals=intervals)
+        fit = fit_window(part, judgment=task.timing.judgment, level=level, intervals=intervals,
+                         floor=task.timing.floor == "fit")  # fmt: skip
         out.append({"participant": pid, "condition": series, **asdict(fit)})
     frame = pd.DataFrame(out, columns=list(WINDOW_COLUMNS))
     rank = {s: i for i, s in enumerate(order)}
@@ -223,8 +255,10 @@ def window_curves(windows: pd.DataFrame, *, offsets: np.ndarray) -> pd.DataFrame
     for series, part in windows.groupby("condition", sort=False):
         judgment = str(part["judgment"].iloc[0])
         third = part["peak" if judgment == "simultaneity" else "lapse"].median()
+        floor = part["floor"].median() if judgment == "simultaneity" else 0.0
         p = p_timing(judgment, offsets, pss=part["pss_ms"].median(),
-                     width=part["width_ms"].median(), third=third)  # fmt: skip
+                     width=part["width_ms"].median(), third=third,
+                     floor=0.0 if pd.isna(floor) else floor)  # fmt: skip
         rows += [{"condition": series, "offset_ms": float(o), "p": float(v)}
                  for o, v in zip(offsets, p, strict=True)]  # fmt: skip
     return pd.DataFrame(rows, columns=["condition", "offset_ms", "p"])

@@ -535,7 +535,7 @@ def _noise_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
 @_check("tasks", "conditions", "blocks")
 def _timing_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """A timing task names one of its labels and is shown at three or more offsets of a
-    series (else no window can be fitted)."""
+    series, four for a simultaneity window with a floor (else no window can be fitted)."""
     conditions = {c.id: c for c in protocol.conditions}
     for ti, task in enumerate(protocol.tasks):
         if task.type != "identify" or task.timing is None:
@@ -552,11 +552,15 @@ def _timing_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     if c in conditions:
                         cond = conditions[c]
                         offsets.setdefault(cond.series_id, set()).add(cond.audio_offset_ms)
-        few = [s for s, values in offsets.items() if len(values) < 3]
+        floor = task.timing.judgment == "simultaneity" and task.timing.floor == "fit"
+        need = 4 if floor else 3
+        few = [s for s, values in offsets.items() if len(values) < need]
         if few or not offsets:
             which = ", ".join(few) or "no block shows it"
-            yield Issue(where, "a timing task needs three or more audio_offset_ms values per "
-                        f"condition series; {which} has fewer")  # fmt: skip
+            kind = " (a window with a floor)" if floor else ""
+            yield Issue(where, f"a timing task needs {'four' if floor else 'three'} or more "
+                        f"audio_offset_ms values per condition series{kind}; {which} has "
+                        "fewer")  # fmt: skip
 
 
 @_check("items")

@@ -367,6 +367,12 @@ class TimingJudgment(_Model):
         description="simultaneity: the label meaning 'in sync'; temporal_order: the label "
         "meaning 'the voice came first'."
     )
+    floor: Literal["fit", "none"] = Field(
+        "fit",
+        description="simultaneity: fit a floor - 'in sync' answers far outside the window "
+        "(guesses, a bias to say yes) - below the window (fit), or assume none (none: such "
+        "answers then widen the window).",
+    )
 
 
 class IdentifyTask(_Model):
@@ -792,16 +798,27 @@ class Identifier(_Model):
 
 class TimingObserver(_Model):
     """A simulated observer of audio-visual timing (one condition series). Simultaneity:
-    P(in sync) = peak * exp(-(x - pss)^2 / (2 sigma^2)), width = 2 sqrt(2 ln 2) sigma (full
-    width at half the peak). Temporal order: P(voice first) = lapse/2 + (1 - lapse) *
-    Phi((pss - x) / sigma), width = 2 * 0.6745 sigma (25 % to 75 %). x: the offset in ms."""
+    P(in sync) = floor + (peak - floor) * exp(-(x - pss)^2 / (2 sigma^2)), width = 2 sqrt(2
+    ln 2) sigma (full width at half the height above the floor). Temporal order: P(voice
+    first) = lapse/2 + (1 - lapse) * Phi((pss - x) / sigma), width = 2 * 0.6745 sigma (25 %
+    to 75 %). x: the offset in ms."""
 
     pss_ms: float = Field(0.0, ge=-1000, le=1000, description="Point of subjective simultaneity.")
     width_ms: float = Field(300.0, gt=0, le=4000, description="Width of the window (see above).")
     peak: float = Field(0.95, gt=0, le=1, description="Simultaneity: P(in sync) at the PSS.")
+    floor: float = Field(
+        0.0, ge=0, le=0.5, description="Simultaneity: P(in sync) far outside the window "
+        "(guesses, a bias to say yes); below the peak."
+    )
     lapse: float = Field(0.02, ge=0, le=0.5, description="Temporal order: lapse rate.")
     pss_sd_ms: float = Field(0.0, ge=0, description="SD of participants' PSS.")
     width_sd_ms: float = Field(0.0, ge=0, description="SD of participants' widths.")
+
+    @model_validator(mode="after")
+    def _floor_below_peak(self) -> TimingObserver:
+        if self.floor >= self.peak:
+            raise ValueError(f"floor ({self.floor:g}) must be below peak ({self.peak:g})")
+        return self
 
 
 class SrtListener(_Model):

@@ -212,7 +212,8 @@ class ChoiceModel:
         truth = self.protocol.simulation.timing.get(series, TimingObserver())
         pss, width = self.timing_truth(series)
         third = truth.peak if judgment == "simultaneity" else truth.lapse
-        return float(p_timing(judgment, offset_ms, pss=pss, width=width, third=third))
+        return float(p_timing(judgment, offset_ms, pss=pss, width=width, third=third,
+                              floor=truth.floor))  # fmt: skip
 
     def typed(self, screen: TypedScreen) -> str:
         """A typed answer: each scoring unit of what was said (keyword, or mora of its

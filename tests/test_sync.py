@@ -85,8 +85,13 @@ def test_a_timing_task_needs_three_offsets_per_series(tmp_path) -> None:
     block = "    task: in_sync\n"
     few = text.replace(block, block + "    conditions: [baseline_m100, baseline_0, standard_0, "
                        "standard_p100, standard_p200]\n")  # fmt: skip
+    # a window with a floor (the default) has four parameters: four offsets
+    assert ("four or more audio_offset_ms values per condition series (a window with a "
+            "floor); baseline, standard has fewer") in _problems(few, tmp_path)  # fmt: skip
+    no_floor = few.replace("label: sync}", "label: sync, floor: none}")
+    assert no_floor != few
     assert "three or more audio_offset_ms values per condition series; baseline has fewer" in (
-        _problems(few, tmp_path)
+        _problems(no_floor, tmp_path)
     )
 
 
@@ -161,6 +166,38 @@ def test_each_participants_intervals_cover_their_true_window() -> None:
         coverage[series] = (held("pss", truth.pss_ms), held("width", truth.width_ms))
     print(f"coverage (PSS, width) per method: {coverage}")
     assert all(0.90 <= v <= 0.98 for pair in coverage.values() for v in pair), coverage
+
+
+@pytest.mark.slow
+def test_in_sync_guesses_far_outside_the_window_are_fitted_as_a_floor() -> None:
+    """Observers who say "in sync" 20 % of the time however far apart voice and mouth are
+    (a floor): with the floor fitted (the default) each participant's intervals still cover
+    the true PSS and width (100 simulated participants per method, reported, held to
+    0.88-0.99) and the floor is recovered; assuming no floor widens the windows."""
+    protocol = load_protocol(protocol_path("kato2021_sync"))
+    fixed = {s: t.model_copy(update={"pss_sd_ms": 0.0, "width_sd_ms": 0.0, "floor": 0.2})
+             for s, t in protocol.simulation.timing.items()}  # fmt: skip
+    protocol = protocol.model_copy(update={"simulation": protocol.simulation.model_copy(
+        update={"timing": fixed})})  # fmt: skip
+    rows = _study(protocol, participants=100, seed=33)
+    windows = timing.window_table(rows, protocol, protocol.tasks[0])
+    task = protocol.tasks[0]
+    blind = task.model_copy(update={"timing": task.timing.model_copy(update={"floor": "none"})})
+    wide = timing.window_table(rows, protocol, blind, intervals=False)
+    report = {}
+    for series, part in windows.groupby("condition"):
+        truth = fixed[series]
+        held = [float(((part[f"{n}_ci_low"] <= v) & (v <= part[f"{n}_ci_high"])).mean())
+                for n, v in (("pss", truth.pss_ms), ("width", truth.width_ms))]  # fmt: skip
+        no_floor = float(wide.loc[wide["condition"] == series, "width_ms"].median())
+        report[series] = (*held, float(part["floor"].median()), float(part["width_ms"].median()),
+                          no_floor, truth.width_ms)  # fmt: skip
+        assert all(0.88 <= v <= 0.99 for v in held), (series, held)
+        assert abs(part["floor"].median() - 0.2) < 0.08, series  # bounded at 0: a little low
+        assert abs(part["width_ms"].median() - truth.width_ms) < 0.1 * truth.width_ms, series
+        assert no_floor > 1.3 * truth.width_ms, (series, no_floor)
+    print("coverage (PSS, width), median floor, median width with and without the floor, "
+          f"true width: {report}")
 
 
 def _stream_sha(path) -> str:
