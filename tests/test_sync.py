@@ -143,12 +143,39 @@ def test_simulated_windows_are_recovered_through_the_session_pipeline() -> None:
     assert len(tests) == 2 * (1 + 3)
 
 
+def test_temporal_order_functions_are_recovered_from_the_shipped_protocol(tmp_path) -> None:
+    """``protocols/kato2021_toj.yaml``: the synchrony clips with "which came first?"; the
+    participants' temporal-order functions hold the stated PSS and width per method, and the
+    analysis writes them to sync_window.csv as temporal_order windows with a lapse rate."""
+    from facelab.experiment.cli import main
+
+    protocol = load_protocol(protocol_path("kato2021_toj"))
+    assert protocol.tasks[0].timing.judgment == "temporal_order"
+    rows = _study(protocol, participants=12, seed=19)
+    windows = timing.window_table(rows, protocol, protocol.tasks[0])
+    assert list(windows["condition"].unique()) == SERIES and (windows["n"] == 54).all()
+    assert (windows["judgment"] == "temporal_order").all() and windows["floor"].isna().all()
+    summary, _ = timing.window_tests(windows)
+    for r in summary.itertuples():
+        truth = protocol.simulation.timing[r.condition]
+        assert r.pss_ms_ci_low <= truth.pss_ms <= r.pss_ms_ci_high, r
+        assert r.width_ms_ci_low <= truth.width_ms <= r.width_ms_ci_high, r
+    results, report = tmp_path / "results", tmp_path / "report"
+    assert main(["simulate", str(protocol_path("kato2021_toj")), "--participants", "4",
+                 "--sim-seed", "2", "--results", str(results)]) == 0  # fmt: skip
+    assert main(["analyze", str(protocol_path("kato2021_toj")), str(results), "--out",
+                 str(report)]) == 0  # fmt: skip
+    table = pd.read_csv(report / "sync_window.csv")
+    assert len(table) == 12 and set(table["judgment"]) == {"temporal_order"}
+
+
 @pytest.mark.slow
-def test_each_participants_intervals_cover_their_true_window() -> None:
+@pytest.mark.parametrize("name", ["kato2021_sync", "kato2021_toj"])
+def test_each_participants_intervals_cover_their_true_window(name) -> None:
     """Coverage of the per-participant 95 % profile intervals over 150 simulated participants
     per method (the protocol's design, one true window per method: no spread between
-    people) - reported, and held to 0.90-0.98."""
-    protocol = load_protocol(protocol_path("kato2021_sync"))
+    people), simultaneity and temporal order - reported, and held to 0.90-0.98."""
+    protocol = load_protocol(protocol_path(name))
     fixed = {s: t.model_copy(update={"pss_sd_ms": 0.0, "width_sd_ms": 0.0})
              for s, t in protocol.simulation.timing.items()}  # fmt: skip
     protocol = protocol.model_copy(update={"simulation": protocol.simulation.model_copy(
@@ -164,7 +191,7 @@ def test_each_participants_intervals_cover_their_true_window() -> None:
                           & (value <= part[f"{name}_ci_high"])).mean())  # fmt: skip
 
         coverage[series] = (held("pss", truth.pss_ms), held("width", truth.width_ms))
-    print(f"coverage (PSS, width) per method: {coverage}")
+    print(f"{name}: coverage (PSS, width) per method: {coverage}")
     assert all(0.90 <= v <= 0.98 for pair in coverage.values() for v in pair), coverage
 
 
