@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 from facelab.experiment.cli import main
 from facelab.resources import protocol_path
@@ -45,3 +46,26 @@ SIDE_BY_SIDE = (
         r"  practice: .*\n": "",
     },
 )
+
+
+def one_online_session(path: Path, root: Path) -> tuple[Any, list[dict[str, Any]]]:
+    """Serve the protocol at ``path`` (clips rendered into ``root/clips``, an SQLite database
+    in ``root``), run one simulated participant through it in headless Chromium (screenshots
+    in ``root/shots``) and return (the server, the stored response rows)."""
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from facelab.experiment.online.browser import SimulatedBrowser
+    from facelab.experiment.online.db import Response
+    from facelab.experiment.online.serve import BackgroundServer, prepare_server
+    from facelab.protocol import load_protocol
+
+    server, _ = prepare_server(
+        load_protocol(path), protocol_path=path, clips_dir=root / "clips",
+        db_url=f"sqlite:///{root / 'db.sqlite'}", results=root, admin_secret="s" * 20,
+    )  # fmt: skip
+    with BackgroundServer(server) as bg:
+        assert SimulatedBrowser(server, bg.url, 1, screenshots=root / "shots").run() == "complete"
+    with Session(server.engine) as db:
+        rows = [r.row for r in db.scalars(select(Response))]
+    return server, rows

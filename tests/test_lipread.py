@@ -88,31 +88,17 @@ def test_a_lipreading_session_online_in_chromium_is_exported_and_scored(tmp_path
     """The muted vowels served in headless Chromium (two methods, three vowels): every clip
     plays without sound, every trial is answered and scored, and the export is analysed into
     the per-method confusion and information transfer."""
-    from sqlalchemy import select
-    from sqlalchemy.orm import Session
 
     from facelab.experiment.cli import main
-    from facelab.experiment.online.browser import SimulatedBrowser
-    from facelab.experiment.online.db import Response
-    from facelab.experiment.online.serve import BackgroundServer, prepare_server
-    from tests.task_protocols import short_task_protocol
+    from tests.task_protocols import one_online_session, short_task_protocol
 
     edits = {r"    task: vowel\n": "    task: vowel\n    conditions: [baseline, emphasized]\n",
              r"      - \{id: (u|e), text: (う|え)。.*\n": "",
              r"answers: \{.*\}": "answers: {a: a, i: i, o: o}",
              r"    sets: 2\n": "    sets: 1\n"}  # fmt: skip
     path = short_task_protocol("kato2021_lipread", tmp_path, edits)
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
-    shots = tmp_path / "shots"
-    with BackgroundServer(server) as bg:
-        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
-    assert (shots / "identify.png").exists()
-    with Session(server.engine) as db:
-        rows = [r.row for r in db.scalars(select(Response))]
+    server, rows = one_online_session(path, tmp_path)
+    assert (tmp_path / "shots" / "identify.png").exists()
     assert len(rows) == 12 == len(server.study.planned("P0001"))  # 3 vowels x 2 methods x 2
     assert all(r["correct"] in (0, 1) for r in rows)
     out = tmp_path / "results"

@@ -303,31 +303,16 @@ def test_a_words_in_noise_session_online_in_chromium_is_exported_and_thresholded
     analysed into srt.csv."""
     import json
 
-    from sqlalchemy import select
-    from sqlalchemy.orm import Session
-
     from facelab.experiment.cli import main
-    from facelab.experiment.online.browser import SimulatedBrowser
-    from facelab.experiment.online.db import Response
-    from facelab.experiment.online.serve import BackgroundServer, prepare_server
-    from tests.task_protocols import short_task_protocol
+    from tests.task_protocols import one_online_session, short_task_protocol
 
     edits = {r"    task: word\n": "    task: word\n    conditions: [audio_m12, audio_m6, audio_0, "
              "standard_m12, standard_m6, standard_0]\n",
              r"      - \{id: (saru|ushi|kuma|shika), text: \S+。\}\n": "",
              r"answers: \{.*\}": "answers: {inu: inu, neko: neko}"}  # fmt: skip
     path = short_task_protocol("kato2021_srt", tmp_path, edits)
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
-    shots = tmp_path / "shots"
-    with BackgroundServer(server) as bg:
-        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
-    assert (shots / "identify.png").exists()
-    with Session(server.engine) as db:
-        rows = [r.row for r in db.scalars(select(Response))]
+    server, rows = one_online_session(path, tmp_path)
+    assert (tmp_path / "shots" / "identify.png").exists()
     assert len(rows) == 12 == len(server.study.planned("P0001"))
     assert all(r["correct"] in (0, 1) for r in rows)
     out = tmp_path / "results"

@@ -296,30 +296,15 @@ def test_a_synchrony_session_online_in_chromium_is_exported_and_windowed(tmp_pat
     and analysed into sync_window.csv."""
     import json
 
-    from sqlalchemy import select
-    from sqlalchemy.orm import Session
-
     from facelab.experiment.cli import main
-    from facelab.experiment.online.browser import SimulatedBrowser
-    from facelab.experiment.online.db import Response
-    from facelab.experiment.online.serve import BackgroundServer, prepare_server
-    from tests.task_protocols import short_task_protocol
+    from tests.task_protocols import one_online_session, short_task_protocol
 
     edits = {r"    task: in_sync\n": "    task: in_sync\n    conditions: [standard_m400, "
              "standard_m200, standard_0, standard_p200, standard_p400]\n",
              r"      - \{id: ma, .*\n": ""}  # fmt: skip
     path = short_task_protocol("kato2021_sync", tmp_path, edits)
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
-    shots = tmp_path / "shots"
-    with BackgroundServer(server) as bg:
-        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
-    assert (shots / "identify.png").exists()
-    with Session(server.engine) as db:
-        rows = [r.row for r in db.scalars(select(Response))]
+    server, rows = one_online_session(path, tmp_path)
+    assert (tmp_path / "shots" / "identify.png").exists()
     assert len(rows) == 15 == len(server.study.planned("P0001"))
     assert {r["response"] for r in rows} <= {"sync", "async"}
     out = tmp_path / "results"

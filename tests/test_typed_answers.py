@@ -247,23 +247,13 @@ def test_a_typed_session_online_in_chromium_is_exported_and_scored(tmp_path) -> 
     from sqlalchemy.orm import Session
 
     from facelab.experiment.cli import main
-    from facelab.experiment.online.browser import SimulatedBrowser
-    from facelab.experiment.online.db import Action, Response
-    from facelab.experiment.online.serve import BackgroundServer, prepare_server
-    from tests.task_protocols import short_task_protocol
+    from facelab.experiment.online.db import Action
+    from tests.task_protocols import one_online_session, short_task_protocol
 
     path = short_task_protocol("kato2021_srt_sentences", tmp_path, SHORT)
-    protocol = load_protocol(path)
-    server, _ = prepare_server(
-        protocol, protocol_path=path, clips_dir=tmp_path / "clips",
-        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
-    )  # fmt: skip
-    shots = tmp_path / "shots"
-    with BackgroundServer(server) as bg:
-        assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
-    assert (shots / "typed.png").exists()
+    server, rows = one_online_session(path, tmp_path)
+    assert (tmp_path / "shots" / "typed.png").exists()
     with Session(server.engine) as db:
-        rows = [r.row for r in db.scalars(select(Response))]
         typed = {a.record["trial_index"]: a.record["value"]
                  for a in db.scalars(select(Action)) if a.record.get("trial_index")}  # fmt: skip
     assert len(rows) == 4 == len(typed)
