@@ -465,7 +465,8 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     shots = tmp_path / "shots"
     args = ["serve", str(study / "vr.yaml"), "--clips", str(study / "clips"),
             "--db", f"sqlite:///{db}", "--results", str(tmp_path), "--port", "0",
-            "--simulate-participants", "1", "--screenshots", str(shots)]  # fmt: skip
+            "--simulate-participants", "1", "--screenshots", str(shots),
+            "--simulate-headset-off", "3"]  # fmt: skip
     assert main(args) == 0
     assert {"enter_vr.png", "vr-vas-naturalness.png", "complete.png"} <= {
         p.name for p in shots.glob("*.png")
@@ -476,6 +477,13 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
         records = [r.record for r in s.scalars(select(PlaybackRecord))]
         shown = [e.detail for e in s.scalars(select(Event).where(Event.kind == "display"))]
         recentred = [e.detail for e in s.scalars(select(Event).where(Event.kind == "recentre"))]
+        headset = [e.detail for e in s.scalars(select(Event).where(Event.kind == "headset"))]
+    # the headset taken off for a second during trial 3's clip: logged off and on again; the
+    # clip stopped and played again from the start, its record of the whole second playing
+    assert [(e["state"], e["during"], e["trial_index"]) for e in headset] == [
+        ("hidden", "clip", 3), ("visible", "screen", None)]  # fmt: skip
+    stopped = {r["trial_index"]: r["interruptions"] for r in records}
+    assert stopped[3] == 1 and all(v == 0 for k, v in stopped.items() if k != 3), stopped
     assert shown and all(e["ran"] == "webxr" for e in shown)
     assert all(e["input"] == "controller" and e["reference_space"] for e in shown)
     _every_screen_is_a_whole_vr_panel(study / "vr.yaml", shots)

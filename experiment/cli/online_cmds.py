@@ -59,6 +59,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 parallel=args.parallel,
                 screenshots=Path(args.screenshots) if args.screenshots else None,
                 progress=progress,
+                headset_off_at=args.simulate_headset_off,
             )
         done = sum(o == "complete" for o in outcomes.values())
         print(f"{done} of {len(outcomes)} simulated participants complete")
@@ -186,6 +187,13 @@ def register(add: AddCommand) -> None:
     p.add_argument("--sim-seed", type=seed, default=1, metavar="S", help="seed of their answers")
     p.add_argument("--parallel", type=whole(lo=1), default=2, metavar="K", help="browsers at once")
     p.add_argument("--screenshots", metavar="DIR", help="PNGs of the first participant's screens")
+    p.add_argument(
+        "--simulate-headset-off",
+        type=whole(lo=1),
+        metavar="TRIAL",
+        help="display webxr: the first simulated participant takes the headset off for a "
+        "second during the clip of this trial (the clip stops, and plays again once seen)",
+    )
 
     p = add(
         "export",

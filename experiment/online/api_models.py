@@ -132,6 +132,9 @@ class PlaybackIn(_Strict):
     # VR: whether the voice came from the avatar's mouth (an HRTF panner) and where that was
     # (x, y, z m, the reference space's axes)
     spatial_audio: bool | None = None
+    # VR: times the clip was stopped by the headset taken off (or the session ended) and
+    # played again from the start once seen (the record is of the whole playing)
+    interruptions: int | None = Field(None, ge=0, le=1000)
     audio_source_m: (
         Annotated[list[Annotated[float, Field(ge=-1e4, le=1e4)]], Field(min_length=3, max_length=3)]
         | None
@@ -140,7 +143,8 @@ class PlaybackIn(_Strict):
 
 class EventIn(_Strict):
     kind: Literal[
-        "browser", "play_refused", "fullscreen_exit", "resumed", "error", "display", "recentre"
+        "browser", "play_refused", "fullscreen_exit", "resumed", "error", "display", "recentre",
+        "headset",
     ]
     detail: dict[str, Any] = Field(default_factory=dict)
 

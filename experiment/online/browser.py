@@ -115,11 +115,17 @@ _EMULATOR_JS = """
     device.position.set(rest.x + dx, rest.y + dy, rest.z + dz);
   };
   window.facelabFace = (yaw) => pose(yaw, 0, 0, 0, 0, 0);
+  let offAt = %(off)s;  // the trial whose clip sees the headset taken off (once)
   const frameLoop = IWER.XRSession.prototype.requestAnimationFrame;
   IWER.XRSession.prototype.requestAnimationFrame = function (callback) {
     return frameLoop.call(this, function (time, frame) {
       const result = callback(time, frame);
       const live = window.FacelabLive;
+      if (offAt !== null && live && live.playing && live.playing.trial_index === offAt) {
+        offAt = null;  // off for a second, then on again
+        device.updateVisibilityState("hidden");
+        setTimeout(() => device.updateVisibilityState("visible"), 1000);
+      }
       if (live && live.onFrame && live.session) {
         const now = performance.now();
         phase += last === null ? 1 / 8 : Math.min((now - last) / 2000, 1 / 8);
@@ -168,14 +174,19 @@ const frame = () => new Promise((r) => setTimeout(r, 120));
 """
 
 
-def emulator_js(*, turn_deg: float = HEAD_TURN_DEG) -> str:
-    """The script that installs the emulated headset (IWER, from experiment/online/web)."""
+def emulator_js(*, turn_deg: float = HEAD_TURN_DEG, headset_off_at: int | None = None) -> str:
+    """The script that installs the emulated headset (IWER, from experiment/online/web);
+    with ``headset_off_at`` the participant takes it off for a second once that trial's clip
+    plays (checked in the XR frame loop: a driver polling between frames misses short
+    clips)."""
     from facelab.experiment.online.serve import vendor_dir
 
     iwer = vendor_dir() / "iwer" / "build" / "iwer.min.js"
     if not iwer.is_file():
         raise SessionError(f"the emulated headset needs {iwer}; run scripts/setup.sh (npm ci)")
-    return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {"turn": float(turn_deg)}
+    off = "null" if headset_off_at is None else str(int(headset_off_at))
+    return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {"turn": float(turn_deg),
+                                                              "off": off}  # fmt: skip
 
 
 _STATE_JS = """
@@ -210,6 +221,9 @@ class SimulatedBrowser:
     shots: set[str] = field(default_factory=set)
     texts: dict[str, str] = field(default_factory=dict)  # role -> the text screen's words
     headset: bool = True  # display webxr: an emulated headset (False: a browser without one)
+    # display webxr: the participant takes the headset off for a second during the clip of
+    # this trial (and puts it back on), once
+    headset_off_at: int | None = None
     _emulator: Any = None
 
     def participant(self) -> tuple[Participant, str]:
@@ -292,7 +306,8 @@ class SimulatedBrowser:
         vr = study.protocol.presentation.display == "webxr" and self.headset
         if vr:  # an emulated headset in this page (and on every reload)
             self._emulator = self._emulator or d.execute_cdp_cmd(
-                "Page.addScriptToEvaluateOnNewDocument", {"source": emulator_js()}
+                "Page.addScriptToEvaluateOnNewDocument",
+                {"source": emulator_js(headset_off_at=self.headset_off_at)},
             )
 
         def in_vr() -> bool:
@@ -472,13 +487,16 @@ def run_simulated(
     parallel: int = 2,
     screenshots: Path | None = None,
     progress: Callable[[int, str], None] | None = None,
+    headset_off_at: int | None = None,
 ) -> dict[int, str]:
-    """Drive simulated participants 1..n through the study; returns {k: outcome}."""
+    """Drive simulated participants 1..n through the study; returns {k: outcome}. The first
+    takes screenshots and, in VR, the headset off during trial ``headset_off_at``'s clip."""
 
     def one(k: int) -> str:
         outcome = SimulatedBrowser(
-            server, base_url, k, seed=seed, screenshots=screenshots if k == 1 else None
-        ).run()
+            server, base_url, k, seed=seed, screenshots=screenshots if k == 1 else None,
+            headset_off_at=headset_off_at if k == 1 else None,
+        ).run()  # fmt: skip
         if progress is not None:
             progress(k, outcome)
         return outcome

@@ -218,34 +218,69 @@ export class Stage {
       play.remove();
       await this.audio.resume();
     }
-    this.rest();
-    this.avatar.visible = true;
-    this.showRays(false);  // nothing drawn over the face while it talks
-    this.fadeIn();
     const fps = track.header.fps, n = track.frames, duration = n / fps;
-    const frames = [];
-    const src = this.audio.createBufferSource();
-    src.buffer = audio;
-    const source = this.voiceOutput();
-    src.connect(source.node);
-    // the voice starts once the face has faded in (the frames before show the rest face)
-    const lead = this.fadeStart !== null ? Math.max(0.15, this.vr.fade_ms / 1000) : 0.15;
-    const start = this.audio.currentTime + lead;
-    src.start(start);
-    const ended = new Promise((res) => { src.onended = res; });
-    await new Promise((res) => {
-      this.onFrame = (time, xrFrame) => {
-        const heard = this.heardAt(time) - start;
-        const k = heard < 0 ? 0 : Math.min(n - 1, Math.floor(heard * fps + 1e-9));
-        this.apply(track, k);
-        if (heard >= 0 && frames.length < MAX_FRAMES_LOGGED) frames.push([time, k, heard, this.viewer(xrFrame)]);
-        if (heard >= duration) { this.onFrame = null; res(); }
-      };
-    });
-    await ended;
+    let frames, source, interruptions = 0;
+    // a headset taken off (or the session ended) mid-clip stops the clip; once the
+    // participant can see again it plays from the start, and the record counts the stops
+    for (;;) {
+      this.rest();
+      this.avatar.visible = true;
+      this.showRays(false);  // nothing drawn over the face while it talks
+      this.fadeIn();
+      frames = [];
+      const src = this.audio.createBufferSource();
+      src.buffer = audio;
+      source = this.voiceOutput();
+      src.connect(source.node);
+      // the voice starts once the face has faded in (the frames before show the rest face)
+      const lead = this.fadeStart !== null ? Math.max(0.15, this.vr.fade_ms / 1000) : 0.15;
+      const start = this.audio.currentTime + lead;
+      src.start(start);
+      const ended = new Promise((res) => { src.onended = res; });
+      const outcome = await new Promise((res) => {
+        this.playing = { clip: s.clip, trial_index: s.practice ? null : s.trial_index, stop: () => res("interrupted") };
+        this.onFrame = (time, xrFrame) => {
+          const heard = this.heardAt(time) - start;
+          const k = heard < 0 ? 0 : Math.min(n - 1, Math.floor(heard * fps + 1e-9));
+          this.apply(track, k);
+          if (heard >= 0 && frames.length < MAX_FRAMES_LOGGED) frames.push([time, k, heard, this.viewer(xrFrame)]);
+          if (heard >= duration) res("done");
+        };
+      });
+      this.onFrame = null; this.playing = null;
+      if (outcome === "done") { await ended; break; }
+      try { src.stop(); } catch (e) { /* not started yet */ }
+      if (source.at) source.node.disconnect();
+      interruptions += 1;
+      await this.untilSeen(box);
+    }
     if (source.at) source.node.disconnect();
     this.showRays(true);
-    return this.record(s, frames, { fps, n, refused, duration, source });
+    return { ...this.record(s, frames, { fps, n, refused, duration, source }), interruptions };
+  }
+
+  // The headset's visibility changed (taken off: hidden; the system's menu: visible-blurred):
+  // logged, and a clip playing is stopped (it plays again once seen).
+  onVisibility(state) {
+    const playing = this.playing;
+    FacelabOutbox.send("/api/event", { kind: "headset", detail: {
+      state, during: playing ? "clip" : "screen", clip: playing ? playing.clip : null,
+      trial_index: playing ? playing.trial_index : null } });
+    if (state !== "visible" && playing) playing.stop();
+  }
+
+  // Until the participant sees the scene again: the headset's visibility back to visible, or
+  // (the session ended) VR entered again.
+  async untilSeen(box) {
+    for (;;) {
+      if (this.session && this.session.visibilityState === "visible") return;
+      if (!this.session) { await facelabEnterVR(box); continue; }
+      const session = this.session;
+      await new Promise((res) => {
+        const done = () => { session.removeEventListener("visibilitychange", done); session.removeEventListener("end", done); res(); };
+        session.addEventListener("visibilitychange", done); session.addEventListener("end", done);
+      });
+    }
   }
 
   // The clip's presentation record: the lab/video keys (onset, frames expected, dropped,
@@ -340,7 +375,9 @@ export class Stage {
   // (see placeAt) and again at the recentre step.
   async enterVR() {
     const session = await navigator.xr.requestSession("immersive-vr", { optionalFeatures: ["local-floor"] });
+    session.addEventListener("visibilitychange", () => this.onVisibility(session.visibilityState));
     session.addEventListener("end", () => {
+      if (this.playing) this.onVisibility("ended");
       if (this.session === session) this.session = null;
       this.lastPose = null;
       if (this.panel) this.panel.remove();
