@@ -100,9 +100,12 @@ def guess_rate(task: NoiseTask) -> float:
     return 0.0 if isinstance(task, TypedTask) else 1.0 / len(task.labels)
 
 
-def scoring_units(protocol: Protocol, task: TypedTask) -> dict[str, int]:
-    """Stimulus id -> how many units a typed answer to it is scored on (its keywords, or
-    the morae of what was said)."""
+def scoring_units(protocol: Protocol, task: TypedTask) -> dict[tuple[str, str], int]:
+    """(stimulus set, stimulus) -> how many units a typed answer to it is scored on: its
+    keywords that have a reading, or the morae of what was said (as
+    :func:`facelab.analysis.typed_scoring.score_typed` counts them)."""
+    from facelab.japanese_reading import morae, pronunciation
+
     out = {}
     for stimulus_set in protocol.stimulus_sets:
         for st in stimulus_set.stimuli:
@@ -110,11 +113,10 @@ def scoring_units(protocol: Protocol, task: TypedTask) -> dict[str, int]:
             if said is None:
                 continue
             if task.scoring == "morae":
-                from facelab.japanese_reading import morae, pronunciation
-
-                out[st.id] = len(morae(pronunciation(said)))
+                out[(stimulus_set.id, st.id)] = len(morae(pronunciation(said)))
             else:
-                out[st.id] = len(task.keywords_of(st) or said.split() or [said])
+                words = task.keywords_of(st) or said.split() or [said]
+                out[(stimulus_set.id, st.id)] = sum(1 for w in words if pronunciation(w))
     return out
 
 
@@ -127,7 +129,9 @@ def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: NoiseTask) -> pd.
     known = rows[rows["condition"].isin(list(conds))]
     if isinstance(task, TypedTask):
         units = scoring_units(protocol, task)
-        n = known["stimulus"].map(units).astype(float)
+        n = pd.Series([units.get((a, b)) for a, b in zip(known["stimulus_set"], known["stimulus"],
+                                                         strict=True)],
+                      index=known.index, dtype=float)  # fmt: skip
         frame = pd.DataFrame({
             "participant": known["participant"].astype(str).to_numpy(),
             "condition": [conds[c].series_id for c in known["condition"]],

@@ -446,11 +446,13 @@ def _typed_tables(
     """``typed_answers`` (every typed answer beside what was said, its score and whether
     all of it was right) and ``typed_summary`` (per condition: answers, participants, the
     mean score with a 95 % t interval over participants' means, the share all right)."""
-    said = {st.id: task.said(st) for s in protocol.stimulus_sets for st in s.stimuli}
+    said = {(s.id, st.id): task.said(st) for s in protocol.stimulus_sets for st in s.stimuli}
     answers = pd.DataFrame({
         "task": task.id, "participant": rows["participant"].astype(str),
         "trial_index": rows["trial_index"], "condition": rows["condition"],
-        "stimulus": rows["stimulus"], "said": rows["stimulus"].map(said),
+        "stimulus": rows["stimulus"],
+        "said": [said.get((a, b)) for a, b in zip(rows["stimulus_set"], rows["stimulus"],
+                                                  strict=True)],
         "response": rows["response"], "score": rows["score"].astype(float),
         "correct": rows["correct"],
     }).reset_index(drop=True)  # fmt: skip

@@ -235,11 +235,12 @@ def window_table(
     counts = timing_counts(rows, protocol, task)
     order = list(dict.fromkeys(c.series_id for c in protocol.conditions))
     out = []
+    floor = task.timing.judgment == "simultaneity" and task.timing.floor == "fit"
     for (pid, series), part in counts.groupby(["participant", "condition"], sort=True):
-        if part["offset_ms"].nunique() < 3:
+        if part["offset_ms"].nunique() < 3 + floor:  # too few for the window's parameters
             continue
         fit = fit_window(part, judgment=task.timing.judgment, level=level, intervals=intervals,
-                         floor=task.timing.floor == "fit")  # fmt: skip
+                         floor=floor)  # fmt: skip
         out.append({"participant": pid, "condition": series, **asdict(fit)})
     frame = pd.DataFrame(out, columns=list(WINDOW_COLUMNS))
     rank = {s: i for i, s in enumerate(order)}

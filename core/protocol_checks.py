@@ -462,10 +462,47 @@ def _typed_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Iterat
                 yield Issue((*where, "answers"), f"stimulus {st.id!r} of set "
                             f"{stimulus_set.id!r} has no text or transcript: give what it "
                             "says under answers")  # fmt: skip
+    yield from _keywords_said(protocol, task, where, sets)
     if sets and protocol.presentation.display == "webxr":
         yield Issue((*where, "type"), "typed answers need a keyboard, which a participant "
                     "in a headset cannot use: use an identify task (a closed set of words) "
                     "with display: webxr")  # fmt: skip
+
+
+def _keywords_said(
+    protocol: Protocol, task: Any, where: tuple[Any, ...], sets: set[str]
+) -> Iterator[Issue]:
+    """Each stimulus' keywords are said in it, in the order given (as pronounced): else even
+    the answer that repeats it word for word would score below 1. Needs OpenJTalk's reading;
+    without pyopenjtalk this is not checked."""
+    if task.scoring != "keywords":
+        return
+    try:
+        from facelab.japanese_reading import morae, pronunciation
+
+        pronunciation("あ")
+    except Exception:  # no reader here (pyopenjtalk missing): not checked
+        return
+    for stimulus_set in protocol.stimulus_sets:
+        if stimulus_set.id not in sets:
+            continue
+        for st in stimulus_set.stimuli:
+            said = task.said(st)
+            words = task.keywords_of(st)
+            if said is None or words is None:
+                continue
+            heard, at = morae(pronunciation(said)), 0
+            for word in words:
+                key = morae(pronunciation(word))
+                found = next((i for i in range(at, len(heard) - len(key) + 1)
+                              if heard[i : i + len(key)] == key), None)  # fmt: skip
+                if not key or found is None:
+                    yield Issue((*where, "keywords", st.id), f"keyword {word!r} is not said "
+                                f"in {said!r} after the keywords before it (read "
+                                f"{''.join(heard)}): list the keywords as said, "
+                                "in order")  # fmt: skip
+                    break
+                at = found + len(key)
 
 
 @_check("conditions", "rendering")
@@ -557,7 +594,7 @@ def _timing_tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
         few = [s for s, values in offsets.items() if len(values) < need]
         if few or not offsets:
             which = ", ".join(few) or "no block shows it"
-            kind = " (a window with a floor)" if floor else ""
+            kind = " (a window with a floor; timing.floor: none needs three)" if floor else ""
             yield Issue(where, f"a timing task needs {'four' if floor else 'three'} or more "
                         f"audio_offset_ms values per condition series{kind}; {which} has "
                         "fewer")  # fmt: skip

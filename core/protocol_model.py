@@ -427,7 +427,10 @@ class TypedTask(_Model):
         "what was said, split at spaces (a text without spaces is one keyword).",
     )
     tolerant: bool = Field(
-        True, description="A keyword of three or more morae also counts with one mora wrong."
+        False,
+        description="A keyword of three or more morae also counts with one mora wrong (a "
+        "typo) - but one wrong mora is also what mishearing makes (白い シロイ / 黒い "
+        "クロイ), so off by default in a listening task.",
     )
     max_length: int = Field(
         80, ge=1, le=200, description="Characters the answer field takes."
@@ -808,7 +811,7 @@ class TimingObserver(_Model):
     peak: float = Field(0.95, gt=0, le=1, description="Simultaneity: P(in sync) at the PSS.")
     floor: float = Field(
         0.0, ge=0, le=0.5, description="Simultaneity: P(in sync) far outside the window "
-        "(guesses, a bias to say yes); below the peak."
+        "(guesses, a bias to say yes); at most 0.6 x peak."
     )
     lapse: float = Field(0.02, ge=0, le=0.5, description="Temporal order: lapse rate.")
     pss_sd_ms: float = Field(0.0, ge=0, description="SD of participants' PSS.")
@@ -816,8 +819,9 @@ class TimingObserver(_Model):
 
     @model_validator(mode="after")
     def _floor_below_peak(self) -> TimingObserver:
-        if self.floor >= self.peak:
-            raise ValueError(f"floor ({self.floor:g}) must be below peak ({self.peak:g})")
+        if self.floor > 0.6 * self.peak:
+            raise ValueError(f"floor ({self.floor:g}) must be at most 0.6 x peak "
+                             f"({0.6 * self.peak:g}), the most the window fit allows")  # fmt: skip
         return self
 
 

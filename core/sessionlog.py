@@ -61,6 +61,7 @@ __all__ = [
     "LOG_COLUMNS_V1",
     "LOG_COLUMNS_V2",
     "MAX_SESSION",
+    "NA",
     "SessionContext",
     "SessionLock",
     "SessionLog",
@@ -149,7 +150,10 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     },
     "clip_frames_dropped": {"Description": "Frames of the clip(s) shown late (dropped)."},
     "timestamp": {"Description": "Wall-clock time the response was confirmed (ISO 8601, UTC)."},
-    "screen": {"Description": "Screen type that took the response: vas, choice_2afc, identify."},
+    "screen": {
+        "Description": "Screen type that took the response: vas, choice_2afc, identify, "
+        "typed (or a screen kind added by a package)."
+    },
     "response": {
         "Description": "Choice screens: the chosen condition id (2AFC) or label id (identify); "
         "typed screens: the text as typed (n/a when nothing was typed); n/a on VAS "

@@ -75,10 +75,11 @@ class ScriptedParticipant:
         return self.chosen.setdefault(state, answer)
 
     def tick(self) -> None:
-        """Send the events that are due."""
+        """Send the events that are due (a key waits while an xdotool is still typing)."""
         now = time.perf_counter()
-        due = [p for p in self.pending if p[0] <= now]
-        self.pending = [p for p in self.pending if p[0] > now]
+        typing = any(t.poll() is None for t in self.typing)
+        due = [p for p in self.pending if p[0] <= now and not (typing and p[1][0] == "key")]
+        self.pending = [p for p in self.pending if p not in due]
         for _, args, _state in sorted(due, key=lambda p: p[0]):
             self._run(args)
 
@@ -102,8 +103,8 @@ class ScriptedParticipant:
     ) -> None:
         """Type ``text`` into a typed screen's field, one character every 0.15 s (X key
         events; a character the keyboard map lacks, e.g. kana, gets a keycode mapped for it
-        while one xdotool types the whole text), then press Return (recorded first, once per
-        screen: a field is never typed into twice)."""
+        while one xdotool types the whole text), then press Return once the typing is done
+        (recorded first, once per ``field_id``: a field is never typed into twice)."""
         if field_id in self.planned:
             return
         self.planned[field_id] = time.perf_counter()

@@ -39,7 +39,7 @@ from typing import Any, ClassVar, TypeVar
 
 from facelab.design import PENDING, Trial
 from facelab.protocol import AnyTask, ChoiceTask, IdentifyTask, Protocol, TypedTask, VasItem
-from facelab.sessionlog import SessionContext, response_row
+from facelab.sessionlog import NA, SessionContext, response_row
 
 __all__ = [
     "SCREEN_KINDS",
@@ -597,9 +597,13 @@ class TypedAnswer:
 
 
 def typed_text(raw: str) -> str:
-    """A typed answer as the log stores it: NFC, every run of whitespace (tabs, newlines,
-    ideographic spaces) one space, no space at either end."""
-    return " ".join(unicodedata.normalize("NFC", raw).split())
+    """A typed answer as the log stores it: NFC, control and format characters (e.g. a
+    zero-width space) dropped, every run of whitespace (tabs, newlines, ideographic spaces)
+    one space, no space at either end."""
+    text = unicodedata.normalize("NFC", raw)
+    text = "".join(" " if ch.isspace() else ch for ch in text
+                   if ch.isspace() or unicodedata.category(ch) not in ("Cc", "Cf"))  # fmt: skip
+    return " ".join(text.split())
 
 
 def typed_score(*, said: str, text: str, task: TypedTask, keywords: Sequence[str] | None) -> float:
@@ -643,6 +647,8 @@ class TypedScreen(TaskScreen):
         if not isinstance(raw, str):
             raise AnswerError(f"text: expected the typed text, got {raw!r}")
         text = typed_text(raw)
+        if text == NA:
+            raise AnswerError(f"text: {NA!r} is how the log marks a missing value, not an answer")
         if len(text) > self.task.max_length:
             raise AnswerError(f"text: {len(text)} characters, at most {self.task.max_length}")
         return TypedAnswer(text=text, rt_s=rt_s, timestamp=timestamp)

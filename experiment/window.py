@@ -49,7 +49,7 @@ from facelab.experiment.timeline import (
 )
 from facelab.experiment.vas import VasGeometry, VasState
 from facelab.protocol import Protocol
-from facelab.sessionlog import utc_now
+from facelab.sessionlog import NA, utc_now
 
 __all__ = ["Window"]
 
@@ -93,6 +93,7 @@ class Window:
         self.script: ScriptedParticipant | None = None
         self.screenshots = screenshots
         self.shots_taken: set[str] = set()
+        self.typed_fields = 0  # typed screens shown (the scripted participant's field keys)
 
     def __enter__(self) -> Window:
         return self
@@ -497,7 +498,9 @@ class Window:
             practice = screen.trial is None or screen.practice or chooser is None
             text = screen.said if practice else chooser.typed(screen)  # type: ignore[union-attr]
             trial_index = None if practice else screen.trial_index
-            self.script.answer_text(id(field), text, item=screen.task.id, trial_index=trial_index)
+            self.typed_fields += 1  # a key of its own (an id() may come back for a new field)
+            self.script.answer_text(-self.typed_fields, text, item=screen.task.id,
+                                    trial_index=trial_index)  # fmt: skip
         self._clear_events()
         self.mouse.clickReset()
         onset = time.perf_counter()
@@ -516,7 +519,8 @@ class Window:
             down = bool(self.mouse.getPressed()[0])
             clicked = down and not was_down and confirm_box.contains(self.mouse)
             was_down = down
-            if clicked or any(k in ("return", "num_enter") for k in keys):
+            if (clicked or any(k in ("return", "num_enter") for k in keys)) and typed_text(
+                    str(field.text)) != NA:  # fmt: skip # the log's missing mark: not an answer
                 rt = time.perf_counter() - onset
                 if shot:  # the answer as confirmed
                     for stim in (prompt, field, confirm_box, confirm_label, hint):

@@ -87,7 +87,8 @@ def test_a_timing_task_needs_three_offsets_per_series(tmp_path) -> None:
                        "standard_p100, standard_p200]\n")  # fmt: skip
     # a window with a floor (the default) has four parameters: four offsets
     assert ("four or more audio_offset_ms values per condition series (a window with a "
-            "floor); baseline, standard has fewer") in _problems(few, tmp_path)  # fmt: skip
+            "floor; timing.floor: none needs three); baseline, standard has fewer") in _problems(
+        few, tmp_path)  # fmt: skip
     no_floor = few.replace("label: sync}", "label: sync, floor: none}")
     assert no_floor != few
     assert "three or more audio_offset_ms values per condition series; baseline has fewer" in (
@@ -107,6 +108,23 @@ def test_a_window_is_recovered_from_answers_drawn_from_it(judgment, third) -> No
     assert abs(fit.pss_ms - 70) < 12 and abs(fit.width_ms - 260) < 30
     assert fit.pss_ci_low < 70 < fit.pss_ci_high and fit.width_ci_low < 260 < fit.width_ci_high
     assert fit.pss_ci_high - fit.pss_ci_low < 40
+
+
+def test_a_floor_needs_four_offsets_and_stays_below_the_peak() -> None:
+    """A participant with answers at three offsets of a series is left out of a window with a
+    floor (four parameters) rather than stopping the analysis; a simulated floor above what
+    the fit allows is refused."""
+    from facelab.protocol_model import TimingObserver
+
+    protocol = load_protocol(protocol_path("kato2021_sync"))
+    rows = _study(protocol, participants=1, seed=3)
+    few = rows[rows["condition"].isin(["baseline_m100", "baseline_0", "baseline_p100",
+                                       "standard_m100", "standard_0", "standard_p100",
+                                       "standard_p200"])]  # fmt: skip
+    windows = timing.window_table(few, protocol, protocol.tasks[0])
+    assert list(windows["condition"]) == ["standard"]
+    with pytest.raises(ValueError, match=r"at most 0\.6 x peak"):
+        TimingObserver(peak=0.5, floor=0.4)
 
 
 def test_a_window_the_answers_do_not_bound_says_so() -> None:

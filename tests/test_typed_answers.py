@@ -267,3 +267,30 @@ def test_a_typed_session_online_in_chromium_is_exported_and_scored(tmp_path) -> 
     assert list(log["score"].astype(float)) == [r["score"] for r in sorted(
         rows, key=lambda r: r["trial_index"])]  # fmt: skip
     assert not math.isnan(float(log["score"].iloc[0]))
+
+
+def test_review_cases_a_misheard_word_a_missing_mark_and_keywords_out_of_order(
+    tmp_path,
+) -> None:
+    """From an independent review: a one-mora mishearing (白い heard as 黒い) is not a typo
+    by default; control and zero-width characters are dropped and the log's missing mark is
+    no answer; keywords must be said in the order listed; QUEST+ runs on typed answers."""
+    protocol = _protocol()
+    screen = _typed_screen(protocol, "s03")  # 白い 犬 庭 寝る
+    assert screen.score("黒い犬が庭で寝る") == 0.75
+    assert screen.score("白い犬が庭で寝る") == 1.0
+    assert typed_text("赤い\u200b車\x00") == "赤い車"
+    with pytest.raises(AnswerError, match="missing value"):
+        screen.answer("sentence", {"text": " n/a "}, rt_s=1.0, timestamp="t")
+    text = protocol_path("kato2021_srt_sentences").read_text(encoding="utf-8")
+    swapped = text.replace("      s01: [赤い, 車, 止まった]", "      s01: [車, 赤い, 止まった]")
+    assert "tasks[0].keywords.s01: keyword '赤い' is not said in '赤い車が止まった。' after" in (
+        _problems(swapped, tmp_path))  # fmt: skip
+    absent = text.replace("      s01: [赤い, 車, 止まった]", "      s01: [赤い, 犬, 止まった]")
+    assert "keyword '犬' is not said" in _problems(absent, tmp_path)
+    quest = text.replace("rule: brand_kollmeier, start: audio_p2, trials: 20, target_score: 0.5, "
+                         "assumed_slope: 0.15", "rule: quest_plus, trials: 20")  # fmt: skip
+    path = tmp_path / "quest.yaml"
+    path.write_text(quest, encoding="utf-8")
+    state = new_staircase(load_protocol_text(quest, path=path, base_dir=tmp_path), "audio")
+    assert state.gamma == 0.0
