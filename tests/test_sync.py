@@ -270,6 +270,8 @@ def test_offset_clips_share_one_picture_and_deliver_their_offset(tmp_path, capsy
     text = _sync_text().replace(block, block + "    conditions: [standard_m200, standard_0, "
                                 "standard_p300]\n")  # fmt: skip
     text = text.replace("      - {id: ma, text: ま。, tts: {speed: 0.8}}\n", "")
+    # three offsets: a window without a floor (a floor needs four)
+    text = text.replace("label: sync}", "label: sync, floor: none}")
     path = tmp_path / "sync.yaml"
     path.write_text(text, encoding="utf-8")
     out = tmp_path / "clips"
