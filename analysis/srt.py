@@ -127,29 +127,22 @@ def noise_trials(rows: pd.DataFrame, protocol: Protocol, task: NoiseTask) -> pd.
     scoring units and ``hits`` those the answer reproduced (``score`` x ``units``)."""
     conds = {c.id: c for c in protocol.conditions if c.noise is not None}
     known = rows[rows["condition"].isin(list(conds))]
-    if isinstance(task, TypedTask):
-        units = scoring_units(protocol, task)
-        n = pd.Series([units.get((a, b)) for a, b in zip(known["stimulus_set"], known["stimulus"],
-                                                         strict=True)],
-                      index=known.index, dtype=float)  # fmt: skip
-        frame = pd.DataFrame({
-            "participant": known["participant"].astype(str).to_numpy(),
-            "condition": [conds[c].series_id for c in known["condition"]],
-            "snr_db": [conds[c].noise.snr_db for c in known["condition"]],  # type: ignore[union-attr]
-            "correct": known["correct"].to_numpy(),
-            "units": n.to_numpy(),
-            "hits": (known["score"].astype(float) * n).round().to_numpy(),
-        })  # fmt: skip
-        return frame.dropna(subset=["units", "hits"]).reset_index(drop=True)
-    target = [task.target(condition=c, stimulus=s)
-              for c, s in zip(known["condition"], known["stimulus"], strict=True)]  # fmt: skip
     frame = pd.DataFrame({
         "participant": known["participant"].astype(str).to_numpy(),
         "condition": [conds[c].series_id for c in known["condition"]],
         "snr_db": [conds[c].noise.snr_db for c in known["condition"]],  # type: ignore[union-attr]
-        "target": target,
-        "response": known["response"].astype(str).to_numpy(),
     })  # fmt: skip
+    if isinstance(task, TypedTask):
+        units = scoring_units(protocol, task)
+        n = np.array([units.get((a, b), np.nan) for a, b in zip(
+            known["stimulus_set"], known["stimulus"], strict=True)], dtype=float)  # fmt: skip
+        frame["correct"] = known["correct"].to_numpy()
+        frame["units"] = n
+        frame["hits"] = np.round(known["score"].to_numpy(dtype=float) * n)
+        return frame.dropna(subset=["units", "hits"]).reset_index(drop=True)
+    frame["target"] = [task.target(condition=c, stimulus=s) for c, s in zip(
+        known["condition"], known["stimulus"], strict=True)]  # fmt: skip
+    frame["response"] = known["response"].astype(str).to_numpy()
     frame = frame.dropna(subset=["target"])
     frame["correct"] = (frame["response"] == frame["target"]).astype(int)
     frame["units"], frame["hits"] = 1.0, frame["correct"].astype(float)

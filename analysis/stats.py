@@ -39,6 +39,7 @@ __all__ = [
     "friedman",
     "levels",
     "lmm_anova",
+    "mean_t_interval",
     "one_way_anova",
     "p_adjust",
     "pairwise_paired",
@@ -657,6 +658,16 @@ def _posterior_row(
     }
 
 
+def mean_t_interval(values: np.ndarray, *, level: float = 0.95) -> tuple[float, float, float]:
+    """(mean, low, high): the mean of ``values`` (shape (n,)) with its t interval; the
+    interval is NaN for fewer than two values, everything NaN for none."""
+    n = len(values)
+    mean = float(values.mean()) if n else np.nan
+    half = (float(stats.t.ppf(0.5 + level / 2, n - 1) * values.std(ddof=1) / np.sqrt(n))
+            if n > 1 else np.nan)  # fmt: skip
+    return mean, mean - half, mean + half
+
+
 def series_comparison(
     table: pd.DataFrame,
     *,
@@ -682,12 +693,9 @@ def series_comparison(
         row: dict = {series: name, "participants": len(part), "determined": len(kept)}
         for measure in measures:
             v = kept[measure].to_numpy(dtype=float)
-            v = v[np.isfinite(v)]
-            mean = float(v.mean()) if len(v) else np.nan
-            half = (float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / np.sqrt(len(v)))
-                    if len(v) > 1 else np.nan)  # fmt: skip
-            row |= {f"{measure}_mean": mean, f"{measure}_ci_low": mean - half,
-                    f"{measure}_ci_high": mean + half}  # fmt: skip
+            mean, low, high = mean_t_interval(v[np.isfinite(v)])
+            row |= {f"{measure}_mean": mean, f"{measure}_ci_low": low,
+                    f"{measure}_ci_high": high}  # fmt: skip
         summary.append(row)
     tests = []
     names = list(dict.fromkeys(table[series]))

@@ -43,7 +43,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from scipy import stats as scipy_stats
 
 import facelab.analysis.graded as graded
 import facelab.analysis.identification as identification
@@ -136,13 +135,12 @@ def _staircase_tables(
     for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
         state = new_staircase(protocol, block_id)
         try:
-            scores = part["score"] if "score" in part else pd.Series(None, index=part.index)
             steps = state.replay(
                 zip(
                     part["trial_index"],
                     part["condition"],
                     part["correct"].astype(bool),
-                    [None if pd.isna(v) else float(v) for v in scores],
+                    [None if pd.isna(v) else float(v) for v in part["score"]],
                     strict=True,
                 )
             )
@@ -459,12 +457,10 @@ def _typed_tables(
     out = []
     for cond, part in in_protocol_order(answers, protocol):
         means = part.groupby("participant")["score"].mean()
-        k = len(means)
-        half = (float(scipy_stats.t.ppf(0.975, k - 1) * means.std(ddof=1) / np.sqrt(k))
-                if k >= 2 else float("nan"))  # fmt: skip
+        mean, low, high = stats.mean_t_interval(means.to_numpy(dtype=float))
         out.append({"task": task.id, "condition": cond, "answers": len(part),
-                    "participants": k, "mean_score": float(means.mean()),
-                    "ci_low": float(means.mean()) - half, "ci_high": float(means.mean()) + half,
+                    "participants": len(means), "mean_score": mean, "ci_low": low,
+                    "ci_high": high,
                     "all_right": float(part["correct"].astype(float).mean())})  # fmt: skip
     for name, frame in (("typed_answers", answers), ("typed_summary", pd.DataFrame(out))):
         if name in res.tables:

@@ -170,11 +170,10 @@ def fit_window(
     x = counts["offset_ms"].to_numpy(dtype=float)
     n = counts["n"].to_numpy(dtype=float)
     k = counts["k"].to_numpy(dtype=float)
-    if len(x) < 3:
-        raise AnalysisError(f"a timing window needs answers at three or more offsets, got {len(x)}")
     if len(x) < 3 + floor:
-        raise AnalysisError(f"a simultaneity window with a floor needs answers at four or "
-                            f"more offsets, got {len(x)}")  # fmt: skip
+        need = "four" if floor else "three"
+        raise AnalysisError(f"a timing window{' with a floor' if floor else ''} needs answers "
+                            f"at {need} or more offsets, got {len(x)}")  # fmt: skip
     bounds = _bounds(judgment, x, floor=floor)
 
     def loglik(theta: np.ndarray) -> float:

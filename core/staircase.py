@@ -134,13 +134,14 @@ class _Rule(abc.ABC):
     ) -> dict[str, Any]:
         """Apply an answer and return the line for ``_staircase.jsonl``."""
         level = self.levels[self.grid.index(condition)]
+        score = float(bool(correct)) if score is None else float(score)
         reversal = self.update(correct, score)
         return {
             "trial_index": trial_index,
             "condition": condition,
             "level": level,
             "correct": bool(correct),
-            "score": float(bool(correct)) if score is None else float(score),
+            "score": score,
             "reversal": reversal,
             "reversals": len(self.reversals),
             "next_condition": self.condition,

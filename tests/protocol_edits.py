@@ -1,9 +1,16 @@
 """Edits of the shipped kato2021 protocol's text that many tests make: a study cut down to
-what a test needs, so each test file does not carry its own copy of the same replacements."""
+what a test needs, so each test file does not carry its own copy of the same replacements;
+and the error an edited protocol is refused with (:func:`protocol_problems`)."""
 
 from __future__ import annotations
 
 import re
+from pathlib import Path
+
+import pytest
+
+from facelab.errors import ProtocolError
+from facelab.protocol import load_protocol_text
 
 
 def kato_vowels_only(text: str) -> str:
@@ -25,3 +32,12 @@ def kato_short(text: str, *, one_set: bool = True) -> str:
     text = text.replace("        expected_vowels: aiueo", "        expected_vowels: ai")
     text = re.sub(r"        text: 今日は.*\n", "        text: こんにちは。\n", text)
     return text.replace("    sets: 2\n", "    sets: 1\n") if one_set else text
+
+
+def protocol_problems(text: str, root: Path, name: str = "p.yaml") -> str:
+    """The error a protocol's ``text`` (written to ``root/name``) is refused with."""
+    path = root / name
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ProtocolError) as info:
+        load_protocol_text(text, path=path, base_dir=root)
+    return str(info.value)

@@ -14,7 +14,6 @@ import pandas as pd
 import pytest
 
 from facelab.analysis import srt
-from facelab.errors import ProtocolError
 from facelab.experiment.simulate import simulated_rows
 from facelab.intelligibility_function import p_correct
 from facelab.protocol import load_protocol, load_protocol_text
@@ -27,6 +26,7 @@ from facelab.stimuli.speech.noise import (
     rms_db,
     shaped_noise,
 )
+from tests.protocol_edits import protocol_problems
 
 SERIES = ["audio", "baseline", "standard", "emphasized"]
 SNRS = [-18.0, -15.0, -12.0, -9.0, -6.0, -3.0, 0.0]
@@ -38,11 +38,7 @@ def _text() -> str:
 
 
 def _problems(text: str, tmp_path) -> str:
-    path = tmp_path / "srt.yaml"
-    path.write_text(text, encoding="utf-8")
-    with pytest.raises(ProtocolError) as info:
-        load_protocol_text(text, path=path, base_dir=tmp_path)
-    return str(info.value)
+    return protocol_problems(text, tmp_path, "srt.yaml")
 
 
 def _voice(seconds: float = 0.6) -> np.ndarray:

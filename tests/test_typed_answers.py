@@ -16,13 +16,14 @@ import pytest
 
 from facelab.analysis import srt
 from facelab.design import Trial
-from facelab.errors import ProtocolError, SessionError
+from facelab.errors import SessionError
 from facelab.experiment.simulate import simulated_rows
 from facelab.experiment.timeline import AnswerError, TypedScreen, compile_timeline, typed_text
 from facelab.protocol import load_protocol, load_protocol_text
 from facelab.resources import protocol_path
 from facelab.sessionlog import LOG_COLUMNS, LOG_COLUMNS_V2, SessionContext, SessionLog
 from facelab.staircase import BrandKollmeierStaircase, new_staircase
+from tests.protocol_edits import protocol_problems
 
 SERIES = ["audio", "baseline", "emphasized"]
 
@@ -32,11 +33,7 @@ def _protocol():
 
 
 def _problems(text: str, tmp_path) -> str:
-    path = tmp_path / "p.yaml"
-    path.write_text(text, encoding="utf-8")
-    with pytest.raises(ProtocolError) as info:
-        load_protocol_text(text, path=path, base_dir=tmp_path)
-    return str(info.value)
+    return protocol_problems(text, tmp_path, "p.yaml")
 
 
 def _typed_screen(protocol, stimulus: str = "s02") -> TypedScreen:
