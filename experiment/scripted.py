@@ -44,11 +44,21 @@ class ScriptedParticipant:
     chosen: dict[int, Any] = field(default_factory=dict)
     chooser: ChoiceModel | None = None  # answers forced choices and identifications
     typing: list[subprocess.Popen] = field(default_factory=list)  # xdotool type, running
+    # characters outside the keyboard map (kana, kanji) given keycodes of their own before
+    # they are typed, least recently given first: see :meth:`_map_characters`
+    keycodes: dict[str, int] = field(default_factory=dict)
+    spare: list[int] | None = None
 
     def __post_init__(self) -> None:
         self.exe = shutil.which("xdotool")
         if self.exe is None:
             raise SessionError("--simulate drives the window with xdotool: apt-get install xdotool")
+        self.xmodmap = shutil.which("xmodmap")
+        if self.xmodmap is None:
+            raise SessionError(
+                "--simulate types answers with keys mapped by xmodmap: "
+                "apt-get install x11-xserver-utils"
+            )
         # the pointer inside the window gives it the keyboard focus (no window manager)
         self._run(["mousemove", *map(str, self.screen_xy(0, 0))])
 
@@ -59,11 +69,48 @@ class ScriptedParticipant:
 
     def _run(self, args: list[str]) -> None:
         if args[0] == "type":  # seconds long: typed while the window goes on drawing
+            self._map_characters(args[-1])
             self.typing.append(subprocess.Popen([self.exe, *args], stdout=subprocess.DEVNULL,
                                                 stderr=subprocess.DEVNULL))  # fmt: skip
             self.typing = [t for t in self.typing if t.poll() is None]
             return
         subprocess.run([self.exe, *args], check=False, capture_output=True)
+
+    def _map_characters(self, text: str) -> None:
+        """Give every character of ``text`` that the keyboard map lacks a keycode of its own,
+        before xdotool types it. xdotool would otherwise bind each such character to one
+        scratch keycode and unbind it right after the key press; a window that reads its
+        events late (a loaded machine) then looks the press up in a keyboard map already
+        changed again, and the character is lost (止まった typed, 止った logged). Keycodes
+        come from those with no key or only media keys (XF86…) on the X server the test
+        starts; the lowest empty one stays free as xdotool's scratch keycode."""
+        if self.spare is None:
+            table = subprocess.run([self.xmodmap, "-pke"], capture_output=True, text=True)
+            free = []
+            for line in table.stdout.splitlines():
+                code, _, syms = line.removeprefix("keycode").partition("=")
+                if all(s == "NoSymbol" or s.startswith("XF86") for s in syms.split()):
+                    free.append(int(code))
+            self.spare = free[1:]
+        new = [c for c in dict.fromkeys(text) if ord(c) > 0x7E and c not in self.keycodes]
+        keep = {self.keycodes[c] for c in text if c in self.keycodes}
+        # keycodes already given to characters of this text stay; the others are reused
+        # least recently given first
+        taken = {code: char for char, code in self.keycodes.items()}
+        edits = []
+        for char in new:
+            free = [code for code in self.spare if code not in keep]
+            if not free:
+                break  # more new characters than keycodes: xdotool binds the rest itself
+            code = free[0]
+            self.spare.remove(code)
+            self.spare.append(code)
+            self.keycodes.pop(taken.pop(code, ""), None)
+            self.keycodes[char] = taken[code] = code
+            keep.add(code)
+            edits += ["-e", f"keycode {code} = U{ord(char):04X} U{ord(char):04X}"]
+        if edits:
+            subprocess.run([self.xmodmap, *edits], check=False, capture_output=True)
 
     def schedule(self, delay: float, args: list[str], *, state: int | None = None) -> None:
         self.pending.append((time.perf_counter() + delay, args, state))

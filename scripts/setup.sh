@@ -15,7 +15,8 @@ VENV="$ROOT/.venv"
 
 # ffmpeg: clip encoding; libegl1 + libgl1-mesa-dri: offscreen rendering (EGL);
 # open-jtalk + naist-jdic: phoneme timing; xvfb + xauth: PsychoPy windows without a screen;
-# xdotool: the scripted participant of `facelab run --simulate` (real X clicks);
+# xdotool + x11-xserver-utils (xmodmap): the scripted participant of `facelab run --simulate`
+# (real X clicks and keys; typed kana get keycodes of their own first);
 # fonts-noto-cjk: Japanese text in windows and figures; libsndfile1/libportaudio2: audio I/O;
 # chromium + chromium-driver: simulated online participants and the browser tests;
 # postgresql: the online database at scale (the tests start one in a temporary folder);
@@ -25,7 +26,7 @@ VENV="$ROOT/.venv"
 APT_PACKAGES=(
   ffmpeg libegl1 libgl1-mesa-dri libglu1-mesa
   open-jtalk open-jtalk-mecab-naist-jdic
-  xvfb xauth xdotool fonts-noto-cjk
+  xvfb xauth xdotool x11-xserver-utils fonts-noto-cjk
   libsndfile1 libportaudio2 libasound2
   chromium chromium-driver postgresql espeak-ng g++
 )
