@@ -28,6 +28,8 @@ from typing import Any
 
 import pandas as pd
 
+from facelab import sickness_questionnaire as ssq
+from facelab.analysis.sickness import is_ssq_row
 from facelab.design import PENDING, block_trials, build_trials
 from facelab.errors import AnalysisError
 from facelab.protocol import Protocol
@@ -106,7 +108,14 @@ def expected_responses(protocol: Protocol) -> int:
     return sum(
         block_trials(protocol, block) * ((1 if block.task else len(protocol.items)) + added)
         for block in protocol.blocks
-    )
+    ) + len(ssq_items(protocol))
+
+
+def ssq_items(protocol: Protocol) -> list[str]:
+    """The log items of the sickness questionnaires the protocol asks for
+    (``presentation.ssq``)."""
+    return [ssq.item_id(moment=m, symptom=s.id)
+            for m in protocol.presentation.ssq for s in ssq.SYMPTOMS]  # fmt: skip
 
 
 #: the columns of a log row that come from the participant's trial list
@@ -132,6 +141,7 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
     checked = {
         (r.participant, r.session) for r in sessions.itertuples() if r.protocol_matches is True
     }
+    data = data[~is_ssq_row(data)]  # the questionnaire is outside the design
     # the screen that gave each response: a block's task, or the VAS items
     screen_of = {b.id: (b.task and protocol.task(b.task).type) or "vas" for b in protocol.blocks}
     added = added_items(protocol)
@@ -210,8 +220,8 @@ def check_data(
     conditions = [c.id for c in protocol.conditions]
     items = [i.id for i in protocol.items] + [t.id for t in protocol.tasks]
     items += list(added_items(protocol))
-    stray_c = sorted(set(data["condition"].dropna()) - set(conditions))
-    stray_i = sorted(set(data["item"].dropna()) - set(items))
+    stray_c = sorted(set(data.loc[~is_ssq_row(data), "condition"].dropna()) - set(conditions))
+    stray_i = sorted(set(data["item"].dropna()) - set(items) - set(ssq_items(protocol)))
     if stray_c or stray_i:
         what = "; ".join(
             part

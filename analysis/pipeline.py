@@ -41,6 +41,7 @@ from facelab.analysis.presentation import (
     with_live_playback,
 )
 from facelab.analysis.report import ReportFiles, write_report
+from facelab.analysis.sickness import is_ssq_row, ssq_tables
 from facelab.analysis.stimulus_checks import summarize_stimulus_checks
 from facelab.analysis.study import StudyResults, analyze_study
 from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks, answer_counts
@@ -149,6 +150,8 @@ def run(
         protocol_sha256=protocol_hash(protocol_path),
         accept_protocol_change=accept_protocol_change,
     )
+    questionnaires = data[is_ssq_row(data)]  # session-level: outside every trial analysis
+    data = data[~is_ssq_row(data)].reset_index(drop=True)
     vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
     study = analyze_study(vas, protocol, method=method) if not vas.empty else None
     tasks = analyze_tasks(
@@ -158,6 +161,7 @@ def run(
     _behaviour_tables(protocol, clips, vas, tasks)
     _objective_tables(protocol, clips, vas, tasks)
     _added_screen_tables(protocol, data, tasks)
+    _ssq_tables(protocol, questionnaires, tasks)
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)
     )
@@ -186,6 +190,19 @@ def run(
         stimulus_checks=summarize_stimulus_checks(clips),
     )
     return AnalysisRun(data=data, check=check, results=study, tasks=tasks, files=files)
+
+
+def _ssq_tables(protocol: Protocol, rows: pd.DataFrame, tasks) -> None:
+    """``ssq`` and ``ssq_summary`` (presentation.ssq): every questionnaire scored, and the
+    scores per moment and their change (:mod:`facelab.analysis.sickness`)."""
+    if not protocol.presentation.ssq:
+        return
+    tables, notes = ssq_tables(rows)
+    if not tables:
+        notes = ["the protocol asks for the sickness questionnaire (presentation.ssq), but "
+                 "the logs have no answers to it"]  # fmt: skip
+    tasks.tables.update(tables)
+    tasks.notes.extend(notes)
 
 
 def _added_screen_tables(protocol: Protocol, data: pd.DataFrame, tasks) -> None:

@@ -302,6 +302,11 @@ def write_report(
 
 
 _TASK_HEADINGS = {
+    "ssq_summary": "Simulator sickness (SSQ, Kennedy et al. 1993): nausea N, oculomotor O, "
+    "disorientation D and total scores per moment, and their change within participants "
+    "(mean with 95 % t interval)",
+    "ssq": "Simulator sickness: every questionnaire's scores (weights N 9.54, O 7.58, "
+    "D 13.92, total 3.74 on the raw sums)",
     "pilot_sessions": "Sessions: responses of those expected, minutes, median response time, "
     "dropped frames",
     "pilot_items": "Items: the distribution of each item's ratings (an item everyone answers "
@@ -386,6 +391,8 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "trend_contrast",
         "graded_lmm",
         "presentation_quality",
+        "ssq_summary",
+        "ssq",
         "pilot_sessions",
         "pilot_items",
     ):

@@ -18,7 +18,14 @@ import json
 from functools import cached_property
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from facelab.emotions import BEHAVIOUR_MODES, EMOTIONS, emotion_of
 from facelab.methods import BUILTIN_METHODS, method_spec
@@ -681,6 +688,20 @@ class Presentation(_Model):
     )
     break_text: Localized | None = None
     end_text: Localized | None = None
+    ssq: list[Literal["before", "after"]] = Field(
+        default_factory=list,
+        description="The Simulator Sickness Questionnaire (Kennedy et al. 1993; 16 symptoms, "
+        "none/slight/moderate/severe, one screen each) before the study's first screen after "
+        "the welcome, after its last trial, or both: [before, after]. Logged as items "
+        "ssq_<before|after>_<symptom>; facelab analyze scores it (ssq.csv).",
+    )
+
+    @field_validator("ssq")
+    @classmethod
+    def _ssq_once_each(cls, value: list[str]) -> list[str]:
+        if len(set(value)) != len(value):
+            raise ValueError("each of before and after may be named once")
+        return value
 
 
 class Camera(_Model):

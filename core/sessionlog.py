@@ -124,12 +124,15 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     "study": {"Description": "Study id from the protocol."},
     "participant": {"Description": "Participant id (letters and digits)."},
     "session": {"Description": "Session number, from 1."},
-    "trial_index": {"Description": "Position of the trial in the session's design, from 1."},
-    "block": {"Description": "Block id from the protocol."},
+    "trial_index": {"Description": "Position of the trial in the session's design, from 1; "
+                    "0 for the sickness questionnaire (screen ssq), outside the design."},
+    "block": {"Description": "Block id from the protocol (ssq for the sickness "
+              "questionnaire)."},
     "set_index": {"Description": "Set number within the block, from 1."},
     "stimulus_set": {"Description": "Stimulus set id."},
-    "stimulus": {"Description": "Stimulus id within the set."},
-    "condition": {"Description": "Condition id (for a forced choice: the test condition)."},
+    "stimulus": {"Description": "Stimulus id within the set (ssq: the symptom)."},
+    "condition": {"Description": "Condition id (for a forced choice: the test condition; "
+                  "ssq: before or after, when the questionnaire was given)."},
     "repetition": {"Description": "Nth showing of this stimulus and condition within the set."},
     "item": {"Description": "Response item id (VAS item, choice question or label question)."},
     "rating": {
@@ -152,12 +155,13 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     "timestamp": {"Description": "Wall-clock time the response was confirmed (ISO 8601, UTC)."},
     "screen": {
         "Description": "Screen type that took the response: vas, choice_2afc, identify, "
-        "typed (or a screen kind added by a package)."
+        "typed, ssq (the Simulator Sickness Questionnaire) or a screen kind added by a "
+        "package."
     },
     "response": {
         "Description": "Choice screens: the chosen condition id (2AFC) or label id (identify); "
-        "typed screens: the text as typed (n/a when nothing was typed); n/a on VAS "
-        "screens."
+        "typed screens: the text as typed (n/a when nothing was typed); ssq: the "
+        "symptom's rating, 0 none, 1 slight, 2 moderate, 3 severe; n/a on VAS screens."
     },
     "correct": {
         "Description": "1 when the response is the correct one (2AFC: the test condition was "

@@ -1,9 +1,11 @@
 """A session is a timeline of screens: jsPsych's timeline and plugins, in Python. Pure.
 
 :func:`compile_timeline` turns a protocol and a participant's trial list into the screens a
-participant sees, in order: a welcome screen (for the experimenter to check the id),
+participant sees, in order: a welcome screen (for the experimenter to check the id), the
+sickness questionnaire if the protocol asks for it before (``presentation.ssq``),
 instructions, a practice trial (never logged), then per trial its clip screen and its
-response screens, breaks after blocks that ask for one, and an end screen.
+response screens, breaks after blocks that ask for one, the questionnaire if asked for after,
+and an end screen.
 
 Each screen is a small frozen class with its parameters, the responses it collects
 (:meth:`Screen.response_keys`: ``(trial_index, item)`` pairs) and the log rows it produces from them
@@ -35,11 +37,15 @@ import unicodedata
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
+from facelab import sickness_questionnaire as ssq
 from facelab.design import PENDING, Trial
 from facelab.protocol import AnyTask, ChoiceTask, IdentifyTask, Protocol, TypedTask, VasItem
 from facelab.sessionlog import NA, SessionContext, response_row
+
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = [
     "SCREEN_KINDS",
@@ -58,6 +64,8 @@ __all__ = [
     "Playback",
     "ResponseScreen",
     "Screen",
+    "SsqAnswer",
+    "SsqScreen",
     "TaskScreen",
     "TextScreen",
     "TypedAnswer",
@@ -70,6 +78,7 @@ __all__ = [
     "number",
     "remaining",
     "screen_kind",
+    "ssq_screens",
     "trial_screens",
     "vr_texts",
     "vr_wording_notes",
@@ -706,6 +715,103 @@ class AdaptiveTrial(ResponseScreen):
 # --------------------------------------------------------------------------- compiling
 
 
+@dataclass(frozen=True)
+class SsqAnswer:
+    """One symptom's answer, 0-3 (the log row's response)."""
+
+    value: int
+    rt_s: float
+    timestamp: str
+
+
+@screen_kind
+@dataclass(frozen=True)
+class SsqScreen(ResponseScreen):
+    """One symptom of the Simulator Sickness Questionnaire (``presentation.ssq``;
+    :mod:`facelab.sickness_questionnaire`): the symptom and its four answers as buttons (the
+    lab window's numbered buttons, the browser's generic buttons plugin, a VR panel), logged
+    as item ``ssq_<moment>_<symptom>`` with the answer 0-3 as the response. Its row's trial is
+    the questionnaire's own (trial index 0, block ``ssq``, condition the moment, stimulus the
+    symptom), outside the participant's design."""
+
+    kind: ClassVar[str] = "ssq"
+    moment: str = "before"
+    symptom: str = ""
+
+    def item_id(self) -> str:
+        return ssq.item_id(moment=self.moment, symptom=self.symptom)
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        return ((0, self.item_id()),)
+
+    def question(self, lang: str) -> str:
+        words = next(s.text for s in ssq.SYMPTOMS if s.id == self.symptom)
+        if lang == "ja":
+            return f"【{words['ja']}】{ssq.QUESTION['ja']}"
+        return f"{words['en']}: {ssq.QUESTION['en'].lower()}"
+
+    def choices(self, lang: str) -> list[tuple[int, str]]:
+        return [(v, text.get(lang, text["en"])) for v, text in ssq.ANSWERS]
+
+    def simulate(self, rng: np.random.Generator) -> int:
+        """A simulated answer: mostly no symptom, a little more after the study than before."""
+        p = (0.75, 0.2, 0.05, 0.0) if self.moment == "before" else (0.55, 0.3, 0.12, 0.03)
+        return int(rng.choice(4, p=p))
+
+    def present(self, presenter: Any) -> Any:
+        """Answered as a screen of buttons: the lab window through :meth:`lab`, a simulated
+        participant through :meth:`simulate` (their ``added_screen``)."""
+        return presenter.added_screen(self)
+
+    def lab(self, window: Any) -> tuple[int, float]:
+        return window.buttons(self)
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return {
+            "kind": self.kind, "trial_index": 0, "item": self.item_id(), "practice": False,
+            "widget": "buttons", "question": self.question(ctx.lang),
+            "choices": [{"value": v, "label": label} for v, label in self.choices(ctx.lang)],
+        }  # fmt: skip
+
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> SsqAnswer:
+        value = posted.get("value")
+        if isinstance(value, bool) or value not in (0, 1, 2, 3):
+            raise AnswerError(f"value: expected 0, 1, 2 or 3, got {value!r}")
+        return SsqAnswer(int(value), rt_s, timestamp)
+
+    def posted(self, answer: Any) -> dict[str, Any]:
+        return {"value": answer.value}
+
+    def row(
+        self, item: str, answer: Any, *, context: SessionContext, playback: Playback | None
+    ) -> dict[str, Any]:
+        return self._row(context=context, playback=playback, item=item, rt_s=answer.rt_s,
+                         timestamp=answer.timestamp, response=str(answer.value))  # fmt: skip
+
+
+def ssq_screens(moment: str) -> list[SsqScreen]:
+    """The 16 screens of one administration (``moment`` before or after), in the
+    questionnaire's order."""
+    return [
+        SsqScreen(
+            trial=Trial(
+                trial_index=0,
+                block="ssq",
+                set_index=0,
+                stimulus_set="ssq",
+                stimulus=symptom.id,
+                condition=moment,
+                repetition=1,
+            ),
+            moment=moment,
+            symptom=symptom.id,
+        )
+        for symptom in ssq.SYMPTOMS
+    ]
+
+
 def _vas_screens(
     protocol: Protocol, trial: Trial | None, *, practice: bool, level: float | None = None
 ) -> list[VasScreen]:
@@ -822,6 +928,8 @@ def compile_timeline(
     screens: list[Screen] = [
         TextScreen(role="welcome", text=texts["welcome"].format(pid=participant, ses=session))
     ]
+    if "before" in pres.ssq:
+        screens += ssq_screens("before")
     if pres.instructions:
         screens.append(TextScreen(role="instructions", text=localized(pres.instructions, lang)))
     if pres.practice is not None:
@@ -846,6 +954,8 @@ def compile_timeline(
         if nxt is not None and nxt.block != trial.block and blocks[trial.block].break_after:
             text = localized(pres.break_text, lang, texts["break"])
             screens.append(TextScreen(role="break", text=text))
+    if "after" in pres.ssq:
+        screens += ssq_screens("after")
     screens.append(TextScreen(role="end", text=localized(pres.end_text, lang, texts["end"])))
     return screens
 

@@ -626,7 +626,8 @@ def test_without_a_headset_webxr_falls_back_only_when_the_protocol_allows(
          "choice_2afc"),
         ("method_identify", {r"    sets: 4": "    sets: 1",
                              r"presentations_per_condition: 2": "presentations_per_condition: 1",
-                             r"      - \{id: sentence.*\n": ""},
+                             r"      - \{id: sentence.*\n": "",
+                             r"\n  language: ja\n": "\n  language: ja\n  ssq: [after]\n"},
          "identify"),
     ],
 )  # fmt: skip
@@ -648,12 +649,30 @@ def test_forced_choice_and_identification_are_answered_in_vr(
     with BackgroundServer(server) as bg:
         assert SimulatedBrowser(server, bg.url, 1, screenshots=shots).run() == "complete"
     rows = _rows(server)
-    assert rows and {r["screen"] for r in rows} == {screen}
     assert len(rows) == len(server.study.planned("P0001"))
     with Session(server.engine) as db:
-        clicked = {a.record["trial_index"]: a.record["value"] for a in db.scalars(select(Action))}
+        actions = [a.record for a in db.scalars(select(Action))]
         shown = {r.record["display"] for r in db.scalars(select(PlaybackRecord))}
     assert shown == {"webxr"}
+    # the sickness questionnaire after the trials (identification only): 16 panels of four
+    # buttons, each stored as the button the ray selected
+    sickness = [r for r in rows if r["screen"] == "ssq"]
+    rows = [r for r in rows if r["screen"] != "ssq"]
+    assert rows and {r["screen"] for r in rows} == {screen}
+    chosen = {a["item"]: a["value"] for a in actions if a["item"].startswith("ssq_")}
+    assert len(sickness) == (16 if screen == "identify" else 0) == len(chosen)
+    assert {r["item"]: int(r["response"]) for r in sickness} == {k: int(v) for k, v in
+                                                                chosen.items()}  # fmt: skip
+    if sickness:
+        # the first symptom's panel: its question and the four answers drawn whole
+        lay = json.loads((shots / "ssq.panel.json").read_text(encoding="utf-8"))
+        assert not lay["overflow"]
+        for block in lay["blocks"]:
+            assert "".join(block["lines"]).replace(" ", "") == "".join(block["source"].split())
+        sources = {b["source"] for b in lay["blocks"]}
+        assert {"【全体的な不快感】いまのあなたの状態について、この症状はどのくらいありますか。",
+                "なし", "少し", "中くらい", "ひどい"} <= sources, sources  # fmt: skip
+    clicked = {a["trial_index"]: a["value"] for a in actions if not a["item"].startswith("ssq_")}
     for r in rows:  # the option the ray selected is the one stored
         if screen == "identify":
             assert r["response"] == clicked[r["trial_index"]]

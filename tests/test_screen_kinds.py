@@ -123,15 +123,24 @@ def test_every_screen_kind_has_a_plugin_and_each_json_is_what_it_declares() -> N
     assert set(SCREEN_KINDS) <= set(info), set(SCREEN_KINDS) - set(info)
     seen: set[str] = set()
     problems: list[str] = []
-    for name in shipped_protocols():
-        protocol = load_protocol(protocol_path(name))
+    for name, protocol in _protocols_with_every_kind():
         ctx = _context(protocol)
         for s in _every_screen(protocol, "P0007"):
             payload = s.browser(ctx)
             seen.add(payload["kind"])
             problems += [f"{name}: {p}" for p in _meets(info, payload)]
     assert not problems, "\n".join(sorted(set(problems))[:20])
-    assert seen == set(SCREEN_KINDS)  # the shipped protocols use every kind
+    assert seen == set(SCREEN_KINDS)  # the shipped protocols (and the SSQ) use every kind
+
+
+def _protocols_with_every_kind() -> Iterator[tuple[str, Any]]:
+    """The shipped protocols, and kato2021 with the sickness questionnaire (no shipped
+    protocol asks for it)."""
+    for name in shipped_protocols():
+        yield name, load_protocol(protocol_path(name))
+    kato = load_protocol(protocol_path("kato2021"))
+    yield "kato2021+ssq", kato.model_copy(update={
+        "presentation": kato.presentation.model_copy(update={"ssq": ["before", "after"]})})
 
 
 def test_a_plugin_that_drifts_from_its_screen_is_caught() -> None:

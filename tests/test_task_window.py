@@ -104,6 +104,9 @@ def test_staircase_in_the_window_survives_a_kill(tmp_path: Path) -> None:
 
 
 def test_identification_in_the_window(tmp_path: Path) -> None:
+    """Identification answered by number keys, then the sickness questionnaire after the last
+    trial (issue 51.2): its 16 symptoms answered with the keys too, each logged with the
+    value pressed."""
     path = short_task_protocol(
         "method_identify",
         tmp_path,
@@ -111,6 +114,7 @@ def test_identification_in_the_window(tmp_path: Path) -> None:
             r"    sets: 4": "    sets: 1",
             r"presentations_per_condition: 2": "presentations_per_condition: 1",
             r"      - \{id: sentence.*\n": "",
+            r"presentation:\n  language: ja\n": "presentation:\n  language: ja\n  ssq: [after]\n",
         },
     )
     proc = _run(path, tmp_path)
@@ -121,7 +125,14 @@ def test_identification_in_the_window(tmp_path: Path) -> None:
         json.loads(x)
         for x in _session(tmp_path, "methodid", "_actions.jsonl").read_text().splitlines()
     ]
+    sickness = [r for r in rows if r["screen"] == "ssq"]
+    rows = [r for r in rows if r["screen"] != "ssq"]
     assert [r["response"] for r in rows] == [a["value"] for a in actions if a["trial_index"]]
+    pressed = {a["item"]: a["value"] for a in actions if a["item"].startswith("ssq_")}
+    assert len(sickness) == 16 == len(pressed)
+    assert {r["item"]: int(r["response"]) for r in sickness} == pressed
+    assert {r["condition"] for r in sickness} == {"after"}
+    assert (tmp_path / "shots" / "ssq_screen.png").exists()
     answers = {
         "baseline": "visemes",
         "standard": "vowel_standard",

@@ -81,7 +81,9 @@ class AnswerIn(_Strict):
     """One answer from the browser (every field checked; unknown fields refused)."""
 
     client_key: Key
-    trial_index: int = Field(ge=1, le=100_000)
+    # 0: the sickness questionnaire (outside the design; the server checks the pair
+    # (trial_index, item) is one of the participant's screens either way)
+    trial_index: int = Field(ge=0, le=100_000)
     item: ItemId
     rt_s: float = Field(ge=0, le=86_400)
     rating: float | None = Field(None, ge=-1e6, le=1e6)

@@ -282,22 +282,28 @@ class SimulatedBrowser:
         chooser = ChoiceModel(self.server.study.protocol, rng=rng)
         sim = SimulatedParticipant(rater, chooser)
         study = self.server.study
-        screens = {
-            (s.trial_index, s.kind): s
-            for s in study.screens(p.participant)
-            if isinstance(s, ResponseScreen) and not s.practice
-        }
+        screens: dict[tuple[int | None, str, str | None], ResponseScreen] = {}
+        for s in study.screens(p.participant):
+            if isinstance(s, ResponseScreen) and not s.practice:
+                keys = s.response_keys()
+                # a screen of one item is also found by it (the questionnaire's screens share
+                # their trial and kind); the first of a trial and kind by (trial, kind) alone
+                if len(keys) == 1:
+                    screens[(s.trial_index, s.kind, keys[0][1])] = s
+                screens.setdefault((s.trial_index, s.kind, None), s)
 
-        def screen_for(trial: int | None, kind: str) -> ResponseScreen | None:
+        def screen_for(
+            trial: int | None, kind: str, item: str | None = None
+        ) -> ResponseScreen | None:
             """The response screen on show; a staircase trial's at the level the server
             chose from the answers stored so far (the page stored them before asking)."""
-            adaptive = screens.get((trial, "adaptive"))
+            adaptive = screens.get((trial, "adaptive", None))
             if isinstance(adaptive, AdaptiveTrial):
                 expanded = study.expand_adaptive(
                     p.participant, p.session, adaptive, self.server.logged(p)
                 )
                 return next(s for s in expanded if isinstance(s, ResponseScreen))
-            return screens.get((trial, kind))
+            return screens.get((trial, kind, item)) or screens.get((trial, kind, None))
 
         own = self.driver is None
         if own:
@@ -400,7 +406,7 @@ class SimulatedBrowser:
                         d.find_element(By.CSS_SELECTOR, "[data-facelab=next]").click()
                 elif kind == "vas":
                     trial = state["trial"]  # None on the practice trial (never logged)
-                    screen = screens.get((trial, "vas"))
+                    screen = screens.get((trial, "vas", None))
                     for wrap in d.find_elements(By.CSS_SELECTOR, ".facelab-vas-item"):
                         item = wrap.get_attribute("data-item")
                         vas = next(i for i in self.server.study.protocol.items if i.id == item)
@@ -451,7 +457,7 @@ class SimulatedBrowser:
                     # a screen answered by one of its option buttons: 2AFC, identification
                     # and any kind added to facelab that draws them
                     trial = state["trial"]
-                    screen = screen_for(trial, kind)
+                    screen = screen_for(trial, kind, state.get("item"))
                     if screen is None:  # the practice trial: any answer
                         options = d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]")
                         value = options[int(rng.integers(len(options)))].get_attribute("data-value")

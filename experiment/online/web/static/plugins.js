@@ -442,4 +442,4 @@ FacelabComplete.info = facelabInfo("facelab-complete", { kind: "STRING", role: "
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
 const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,
                          choice_2afc: FacelabChoice, identify: FacelabIdentify, typed: FacelabTyped,
-                         adaptive: FacelabAdaptive };
+                         adaptive: FacelabAdaptive, ssq: FacelabButtons };  // ssq: the sickness questionnaire's buttons
