@@ -509,6 +509,13 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
         assert rec["viewer_poses"] and rec["head_yaw_range_deg"] is not None
         assert all(abs(pose[4]) <= 20.5 for pose in rec["viewer_poses"])  # the script's bound
         assert rec["avatar_distance_m"] == pytest.approx(1.2, abs=0.05)
+        # both emulated controllers at every logged frame, within reach of the head
+        heads = {pose[0]: np.array(pose[1:4]) for pose in rec["viewer_poses"]}
+        hands = rec["controller_poses"]
+        assert sorted((h[0], h[1]) for h in hands) == sorted(
+            (t, hand) for t in heads for hand in (0.0, 1.0)
+        ), (hands, sorted(heads))
+        assert all(np.linalg.norm(np.array(h[2:5]) - heads[h[0]]) < 1.0 for h in hands)
         # within a frame of the sound wherever a frame fell inside the track (a loaded machine
         # may draw a short clip's only frames after its end: then there is nothing to measure)
         assert rec["av_offset_ms"] is None or abs(rec["av_offset_ms"]) < 1000 / 15
@@ -543,6 +550,7 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     assert first["display"] == "webxr" and first["head_yaw_range_deg"] is not None
     # the poses at the record's top level, as the README documents them (not under browser)
     assert first["viewer_poses"] and "viewer_poses" not in first.get("browser", {})
+    assert first["controller_poses"] and "controller_poses" not in first.get("browser", {})
     report = tmp_path / "report"  # the live measures as covariates and an exclusion rule
     # the rule at the median measured offset: it leaves out some trials, never all (how far
     # apart picture and sound are depends on how busy the machine is)

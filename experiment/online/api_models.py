@@ -120,7 +120,8 @@ class PlaybackIn(_Strict):
     # display live3d / webxr (live.js): what ran, the audio clock at each frame (s from the
     # clip's start), frame intervals over 1.5x the median, the shown frame's centre time minus
     # the heard audio time (median, ms), and in VR the viewer's head movement and distance
-    # to the avatar's face; viewer_poses: [t s, x, y, z m, yaw, pitch, roll deg] per frame
+    # to the avatar's face; viewer_poses: [t s, x, y, z m, yaw, pitch, roll deg] per frame;
+    # controller_poses below
     display: Literal["video", "live3d", "webxr"] | None = None
     audio_times: list[float] | None = Field(None, max_length=100_000)
     frames_late: int | None = Field(None, ge=0, le=1_000_000)
@@ -131,6 +132,11 @@ class PlaybackIn(_Strict):
     viewer_poses: list[Annotated[list[float], Field(min_length=7, max_length=7)]] | None = Field(
         None, max_length=100_000
     )
+    # VR: each tracked controller per frame, [t s, hand (0 left, 1 right, 2 neither), x, y, z m,
+    # yaw, pitch, roll deg] (its grip, else its pointer; the head's reference space)
+    controller_poses: (
+        list[Annotated[list[float], Field(min_length=8, max_length=8)]] | None
+    ) = Field(None, max_length=200_000)
     # VR: whether the voice came from the avatar's mouth (an HRTF panner) and where that was
     # (x, y, z m, the reference space's axes)
     spatial_audio: bool | None = None

@@ -64,9 +64,11 @@ _LAB_KEYS = (
     "frames_shown",
 )
 #: the keys of an exported record's top level: the lab's, then the live 3D / VR views'
-_PLAYBACK_KEYS = (*_LAB_KEYS, *LIVE_PLAYBACK_KEYS, "audio_times", "viewer_poses")
+_PLAYBACK_KEYS = (
+    *_LAB_KEYS, *LIVE_PLAYBACK_KEYS, "audio_times", "viewer_poses", "controller_poses"
+)
 #: the fields only the live 3D / VR views fill (left out of a video record's export)
-_LIVE_ONLY = frozenset(LIVE_PLAYBACK_KEYS) | {"audio_times", "viewer_poses"}
+_LIVE_ONLY = frozenset(LIVE_PLAYBACK_KEYS) | {"audio_times", "viewer_poses", "controller_poses"}
 
 
 def _exported(record: dict[str, Any]) -> dict[str, Any]:

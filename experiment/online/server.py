@@ -111,8 +111,9 @@ RECRUITMENT_PARAMS = {"PROLIFIC_PID": "prolific", "workerId": "mturk", "PARTICIP
 
 # What one participant may store besides answers. Sized from real sessions with headroom: a
 # clip's playback record is ~30 bytes a frame in a browser (flip time, frame shown) and ~90
-# in VR (audio time, viewer pose too); a 240 Hz display draws 240 frames a second. So a
-# record may hold 64 kB per second of its clip (3x a 240 Hz VR record) plus 32 kB; a trial
+# in VR (audio time, viewer pose too), ~230 with two controllers' poses; a 240 Hz display
+# draws 240 frames a second. So a record may hold 64 kB per second of its clip (a 240 Hz VR
+# record with two controllers, with headroom) plus 32 kB; a trial
 # at most 16 records (a pair trial records both clips of each showing: its showing, replays,
 # reloaded pages); a session 32 MB of playback and 1,000 events it posted, of at most 4,000
 # characters each (a session sends a handful; the server's own events are not counted).

@@ -202,6 +202,22 @@ export class Stage {
     return [p.x, p.y, p.z, deg(e.y), deg(e.x), deg(e.z)];
   }
 
+  // [[hand, x, y, z, yaw, pitch, roll], ...] of each tracked controller at XR frame `xrFrame`
+  // (hand 0 left, 1 right, 2 neither; its grip, else its pointer), in the reference space
+  // the head's pose is in; [] outside VR or with no controller tracked
+  hands(xrFrame) {
+    if (!xrFrame || !this.session) return [];
+    const space = this.renderer.xr.getReferenceSpace(), out = [];
+    for (const source of this.session.inputSources || []) {
+      const where = source.gripSpace || source.targetRaySpace;
+      const pose = where && space ? xrFrame.getPose(where, space) : null;
+      if (!pose) continue;
+      const p = pose.transform.position, e = eulerOf(pose.transform.orientation);
+      out.push([{ left: 0, right: 1 }[source.handedness] ?? 2, p.x, p.y, p.z, deg(e.y), deg(e.x), deg(e.z)]);
+    }
+    return out;
+  }
+
   // Play clip screen `s` (its clip JSON): resolves with the _playback.jsonl record.
   async play(s, box) {
     const { track, audio } = await this.clip(s);
@@ -243,7 +259,7 @@ export class Stage {
           const heard = this.heardAt(time) - start;
           const k = heard < 0 ? 0 : Math.min(n - 1, Math.floor(heard * fps + 1e-9));
           this.apply(track, k);
-          if (heard >= 0 && frames.length < MAX_FRAMES_LOGGED) frames.push([time, k, heard, this.viewer(xrFrame)]);
+          if (heard >= 0 && frames.length < MAX_FRAMES_LOGGED) frames.push([time, k, heard, this.viewer(xrFrame), this.hands(xrFrame)]);
           if (heard >= duration) res("done");
         };
       });
@@ -314,6 +330,7 @@ export class Stage {
       head_pitch_range_deg: poses.length ? round(range(poses.map((p) => p[4])), 2) : null,
       avatar_distance_m: poses.length ? round(median(poses.map((p) => Math.hypot(p[0] - eyes.x, p[1] - eyes.y, p[2] - eyes.z))), 3) : null,
       viewer_poses: poses.length ? frames.filter((f) => f[3]).map((f) => [round(f[0] / 1000, 4), ...f[3].map((v) => round(v, 4))]) : null,
+      controller_poses: this.session ? frames.flatMap((f) => (f[4] || []).map((h) => [round(f[0] / 1000, 4), ...h.map((v) => round(v, 4))])).slice(0, 2 * MAX_FRAMES_LOGGED) : null,
       spatial_audio: !!(source && source.at),
       audio_source_m: source && source.at ? source.at.map((v) => round(v, 4)) : null,
     };
