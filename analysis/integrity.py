@@ -201,6 +201,33 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
             )
 
 
+def _check_questionnaire(data: pd.DataFrame) -> None:
+    """The sickness questionnaire's rows are what the session wrote: screen ``ssq`` exactly on
+    its items, each on the questionnaire's own trial (index 0, block ``ssq``, the moment as
+    condition, the symptom as stimulus) with an answer 0-3 - refused naming the first row
+    that is not (an edited log, or rows from elsewhere)."""
+    parsed = data["item"].astype(str).map(ssq.parse_item)
+    screen = is_ssq_row(data)
+    for i in data.index[screen | parsed.notna()]:
+        row, item = data.loc[i], parsed[i]
+        where = f"{row['source']}: participant {row['participant']} item {row['item']!r}"
+        if not screen[i]:
+            raise AnalysisError(f"{where}: a sickness questionnaire item on screen "
+                                f"{row['screen']!r}; the log was edited")  # fmt: skip
+        if item is None:
+            raise AnalysisError(f"{where}: screen ssq but not a questionnaire item; the log "
+                                "was edited")  # fmt: skip
+        moment, symptom = item
+        expected = {"trial_index": 0, "block": "ssq", "condition": moment, "stimulus": symptom}
+        for column, value in expected.items():
+            if str(_plain(row[column])) != str(value):
+                raise AnalysisError(f"{where}: {column} is {_plain(row[column])!r}, expected "
+                                    f"{value!r}; the log was edited")  # fmt: skip
+        if str(_plain(row["response"])) not in ("0", "1", "2", "3"):
+            raise AnalysisError(f"{where}: response {_plain(row['response'])!r}, expected 0, "
+                                "1, 2 or 3 (none, slight, moderate, severe)")  # fmt: skip
+
+
 def _plain(value: object) -> object:
     """A cell as the log wrote it (numpy scalars as Python values, NaN as None)."""
     if value is None or (isinstance(value, float) and pd.isna(value)):
@@ -217,6 +244,7 @@ def check_data(
 ) -> DataCheck:
     """Check the loaded logs against ``protocol`` (see the module docstring)."""
     notes: list[str] = []
+    _check_questionnaire(data)  # first: its rows are outside the design's conditions
     conditions = [c.id for c in protocol.conditions]
     items = [i.id for i in protocol.items] + [t.id for t in protocol.tasks]
     items += list(added_items(protocol))

@@ -150,6 +150,7 @@ def run(
         protocol_sha256=protocol_hash(protocol_path),
         accept_protocol_change=accept_protocol_change,
     )
+    every_row = data  # the session table counts the questionnaire's answers too
     questionnaires = data[is_ssq_row(data)]  # session-level: outside every trial analysis
     data = data[~is_ssq_row(data)].reset_index(drop=True)
     vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
@@ -168,7 +169,7 @@ def run(
     live = live_quality(pd.concat([data, excluded], ignore_index=True))  # every trial shown
     if not live.empty:  # clips drawn live (display live3d / webxr): A/V offset, head movement
         tasks.tables["live_presentation"] = live
-    sessions = pilot_sessions(data, check)
+    sessions = pilot_sessions(every_row, check)
     if not modes.empty and not sessions.empty:  # where each session ran
         sessions = sessions.merge(modes, on=["participant", "session"], how="left")
     tasks.tables["pilot_sessions"] = sessions
@@ -197,7 +198,7 @@ def _ssq_tables(protocol: Protocol, rows: pd.DataFrame, tasks) -> None:
     scores per moment and their change (:mod:`facelab.analysis.sickness`)."""
     if not protocol.presentation.ssq:
         return
-    tables, notes = ssq_tables(rows)
+    tables, notes = ssq_tables(rows, moments=protocol.presentation.ssq)
     if not tables:
         notes = ["the protocol asks for the sickness questionnaire (presentation.ssq), but "
                  "the logs have no answers to it"]  # fmt: skip

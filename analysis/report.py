@@ -304,9 +304,11 @@ def write_report(
 _TASK_HEADINGS = {
     "ssq_summary": "Simulator sickness (SSQ, Kennedy et al. 1993): nausea N, oculomotor O, "
     "disorientation D and total scores per moment, and their change within participants "
-    "(mean with 95 % t interval)",
+    "(n participants; mean with 95 % t interval, median and quartiles; Wilcoxon signed-rank p "
+    "for the change)",
     "ssq": "Simulator sickness: every questionnaire's scores (weights N 9.54, O 7.58, "
     "D 13.92, total 3.74 on the raw sums)",
+    "ssq_symptoms": "Simulator sickness: each symptom's answers per moment",
     "pilot_sessions": "Sessions: responses of those expected, minutes, median response time, "
     "dropped frames",
     "pilot_items": "Items: the distribution of each item's ratings (an item everyone answers "
@@ -393,6 +395,7 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "presentation_quality",
         "ssq_summary",
         "ssq",
+        "ssq_symptoms",
         "pilot_sessions",
         "pilot_items",
     ):

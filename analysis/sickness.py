@@ -6,14 +6,22 @@ moment, and the change from before to after within participants.
   oculomotor, disorientation and total scores, their raw sums, and how many of the 16
   symptoms were answered (a questionnaire with any missing is not scored: NaN, and the
   report's notes name it).
-* ``ssq_summary`` - per moment and for ``change`` (after minus before, participants with
-  both): n, mean with its 95 % t interval, sd and median of each score.
+* ``ssq_summary`` - per moment the protocol asks for, and for ``change`` (after minus before,
+  participants with both): n participants (a participant's sessions are averaged first),
+  mean with its 95 % t interval, sd, median and quartiles of each score; for the change also
+  the Wilcoxon signed-rank test's p (scores pile up at 0 and are skewed, so the t interval
+  alone can mislead; pairs with no change are dropped, as Wilcoxon's test does).
+* ``ssq_symptoms`` - per moment and symptom: how many answered none, slight, moderate and
+  severe, and the mean answer.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 from facelab import sickness_questionnaire as ssq
 from facelab.analysis.stats import mean_t_interval
@@ -29,9 +37,12 @@ def is_ssq_row(data: pd.DataFrame) -> pd.Series:
     return data["screen"].fillna("") == "ssq"
 
 
-def ssq_tables(rows: pd.DataFrame) -> tuple[dict[str, pd.DataFrame], list[str]]:
-    """(``{"ssq", "ssq_summary"}``, notes) from the questionnaire's log rows (item
-    ``ssq_<moment>_<symptom>``, response 0-3); empty without rows."""
+def ssq_tables(
+    rows: pd.DataFrame, *, moments: Sequence[str] = ssq.MOMENTS
+) -> tuple[dict[str, pd.DataFrame], list[str]]:
+    """(``{"ssq", "ssq_summary", "ssq_symptoms"}``, notes) from the questionnaire's log rows
+    (item ``ssq_<moment>_<symptom>``, response 0-3) of the ``moments`` asked for; empty
+    without rows."""
     if rows.empty:
         return {}, []
     notes: list[str] = []
@@ -53,7 +64,8 @@ def ssq_tables(rows: pd.DataFrame) -> tuple[dict[str, pd.DataFrame], list[str]]:
         ["participant", "session", "moment"],
         key=lambda c: c.map({m: i for i, m in enumerate(ssq.MOMENTS)}) if c.name == "moment" else c,
     ).reset_index(drop=True)
-    return {"ssq": table, "ssq_summary": _summary(table)}, notes
+    summary = _summary(table, moments=[m for m in ssq.MOMENTS if m in moments])
+    return {"ssq": table, "ssq_summary": summary, "ssq_symptoms": _symptoms(rows)}, notes
 
 
 def _by_questionnaire(rows: pd.DataFrame):
@@ -70,28 +82,54 @@ def _by_questionnaire(rows: pd.DataFrame):
         yield key, list(zip(group["symptom"], group["value"], strict=True))
 
 
-def _summary(table: pd.DataFrame) -> pd.DataFrame:
-    out = []
+def _summary(table: pd.DataFrame, *, moments: Sequence[str]) -> pd.DataFrame:
     complete = table.dropna(subset=["total"])
-    for moment in ssq.MOMENTS:
-        out += _describe(complete[complete["moment"] == moment], moment)
-    wide = complete.pivot_table(index=["participant", "session"], columns="moment",
-                                values=list(SCORES))  # fmt: skip
-    if {"before", "after"} <= set(complete["moment"]):
+    # one value per participant and moment: their sessions averaged
+    per = complete.groupby(["participant", "moment"], sort=True)[list(SCORES)].mean()
+    out = []
+    for moment in moments:
+        out += _describe(per.xs(moment, level="moment") if moment in set(complete["moment"])
+                         else per.iloc[:0], moment)  # fmt: skip
+    if {"before", "after"} <= set(moments) and {"before", "after"} <= set(complete["moment"]):
+        wide = per.unstack("moment")
         change = pd.DataFrame({s: wide[(s, "after")] - wide[(s, "before")] for s in SCORES})
-        out += _describe(change.dropna(), "change (after - before)")
+        out += _describe(change.dropna(), "change (after - before)", test=True)
     return pd.DataFrame(out)
 
 
-def _describe(frame: pd.DataFrame, moment: str) -> list[dict[str, object]]:
+def _describe(frame: pd.DataFrame, moment: str, *, test: bool = False) -> list[dict[str, object]]:
     rows = []
     for score in SCORES:
         values = frame[score].to_numpy(dtype=float)
         mean, low, high = mean_t_interval(values)
-        rows.append({
+        q25, median, q75 = (np.percentile(values, (25, 50, 75)) if len(values)
+                            else (np.nan, np.nan, np.nan))  # fmt: skip
+        row = {
             "moment": moment, "score": score, "n": len(values), "mean": round(mean, 4),
             "ci_low": round(low, 4), "ci_high": round(high, 4),
             "sd": round(float(values.std(ddof=1)), 4) if len(values) > 1 else np.nan,
-            "median": round(float(np.median(values)), 4) if len(values) else np.nan,
-        })  # fmt: skip
+            "median": round(float(median), 4), "q25": round(float(q25), 4),
+            "q75": round(float(q75), 4),
+        }  # fmt: skip
+        if test:
+            moved = values[values != 0]
+            row["wilcoxon_p"] = (round(float(stats.wilcoxon(moved).pvalue), 6)
+                                 if len(moved) else np.nan)  # fmt: skip
+        rows.append(row)
     return rows
+
+
+def _symptoms(rows: pd.DataFrame) -> pd.DataFrame:
+    out = []
+    answers = dict(_by_questionnaire(rows))
+    for moment in ssq.MOMENTS:
+        given = [dict(a) for (_, _, m), a in answers.items() if m == moment]
+        if not given:
+            continue
+        for symptom in ssq.SYMPTOMS:
+            values = [int(a[symptom.id]) for a in given if symptom.id in a]
+            counts = {f"n_{ssq.ANSWERS[v][1]['en'].lower()}": values.count(v) for v in range(4)}
+            mean = round(float(np.mean(values)), 4) if values else np.nan
+            out.append({"moment": moment, "symptom": symptom.id, "n": len(values), **counts,
+                        "mean": mean})  # fmt: skip
+    return pd.DataFrame(out)

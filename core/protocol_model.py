@@ -694,6 +694,7 @@ class Presentation(_Model):
         "none/slight/moderate/severe, one screen each) before the study's first screen after "
         "the welcome, after its last trial, or both: [before, after]. Logged as items "
         "ssq_<before|after>_<symptom>; facelab analyze scores it (ssq.csv).",
+        json_schema_extra={"uniqueItems": True},
     )
 
     @field_validator("ssq")

@@ -128,7 +128,8 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
                     "0 for the sickness questionnaire (screen ssq), outside the design."},
     "block": {"Description": "Block id from the protocol (ssq for the sickness "
               "questionnaire)."},
-    "set_index": {"Description": "Set number within the block, from 1."},
+    "set_index": {"Description": "Set number within the block, from 1 (0 for the sickness "
+                  "questionnaire)."},
     "stimulus_set": {"Description": "Stimulus set id."},
     "stimulus": {"Description": "Stimulus id within the set (ssq: the symptom)."},
     "condition": {"Description": "Condition id (for a forced choice: the test condition; "

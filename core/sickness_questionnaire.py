@@ -52,7 +52,7 @@ SYMPTOMS: tuple[Symptom, ...] = (
     Symptom("eyestrain", ("O",), {"en": "Eyestrain", "ja": "目の疲れ"}),
     Symptom("difficulty_focusing", ("O", "D"),
             {"en": "Difficulty focusing", "ja": "目の焦点の合わせにくさ"}),
-    Symptom("increased_salivation", ("N",), {"en": "Increased salivation", "ja": "唾液が増える"}),
+    Symptom("increased_salivation", ("N",), {"en": "Increased salivation", "ja": "唾液の増加"}),
     Symptom("sweating", ("N",), {"en": "Sweating", "ja": "発汗"}),
     Symptom("nausea", ("N", "D"), {"en": "Nausea", "ja": "吐き気"}),
     Symptom("difficulty_concentrating", ("N", "O"),
@@ -64,7 +64,7 @@ SYMPTOMS: tuple[Symptom, ...] = (
     Symptom("dizzy_eyes_closed", ("D",),
             {"en": "Dizzy (eyes closed)", "ja": "めまい（目を閉じているとき）"}),
     Symptom("vertigo", ("D",), {"en": "Vertigo", "ja": "ぐるぐる回るようなめまい"}),
-    Symptom("stomach_awareness", ("N",), {"en": "Stomach awareness", "ja": "胃の不快感"}),
+    Symptom("stomach_awareness", ("N",), {"en": "Stomach awareness", "ja": "胃の違和感"}),
     Symptom("burping", ("N",), {"en": "Burping", "ja": "げっぷ"}),
 )
 # fmt: on
@@ -73,8 +73,8 @@ SYMPTOMS: tuple[Symptom, ...] = (
 ANSWERS: tuple[tuple[int, Mapping[str, str]], ...] = (
     (0, {"en": "None", "ja": "なし"}),
     (1, {"en": "Slight", "ja": "少し"}),
-    (2, {"en": "Moderate", "ja": "中くらい"}),
-    (3, {"en": "Severe", "ja": "ひどい"}),
+    (2, {"en": "Moderate", "ja": "中程度"}),
+    (3, {"en": "Severe", "ja": "強い"}),
 )
 
 #: the weight of each subscale's raw sum, and of the three sums together ("total")

@@ -1039,6 +1039,12 @@ def remaining(
     """The screens still to show when ``answered`` responses are already logged."""
     if not answered:
         return list(screens)
+    if not any(t >= 1 for t, _ in answered):
+        # stopped inside the questionnaire before the study (its answers are trial 0): the
+        # study has not begun, so its instructions and practice are still to come
+        out = [s for s in screens if not (isinstance(s, ResponseScreen) and s.response_keys()
+                                          and all(k in answered for k in s.response_keys()))]
+        return [out[0], TextScreen(role="resume", text=ui(language)["resume"]), *out[1:]]
     missing_trials = {
         s.trial_index
         for s in screens

@@ -679,7 +679,7 @@ def test_forced_choice_and_identification_are_answered_in_vr(
             assert "".join(block["lines"]).replace(" ", "") == "".join(block["source"].split())
         sources = {b["source"] for b in lay["blocks"]}
         assert {"【全体的な不快感】いまのあなたの状態について、この症状はどのくらいありますか。",
-                "なし", "少し", "中くらい", "ひどい"} <= sources, sources  # fmt: skip
+                "なし", "少し", "中程度", "強い"} <= sources, sources  # fmt: skip
     clicked = {a["trial_index"]: a["value"] for a in actions if not a["item"].startswith("ssq_")}
     for r in rows:  # the option the ray selected is the one stored
         if screen == "identify":

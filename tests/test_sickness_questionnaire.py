@@ -145,3 +145,67 @@ def test_questionnaire_answers_under_a_protocol_without_it_are_refused(tmp_path:
                        r"protocol 'kato2021' does not have"):  # fmt: skip
         analyze_run(results, load_protocol(plain), out=tmp_path / "a",
                     protocol_path=plain, accept_protocol_change=True)  # fmt: skip
+
+
+def test_stopped_inside_the_questionnaire_before_the_study_still_gets_its_instructions(
+    tmp_path: Path,
+) -> None:
+    """Three symptoms answered, then the page reloaded: the other thirteen, then the
+    instructions and the practice trial, which the participant has not seen yet."""
+    path = tmp_path / "kato.yaml"
+    path.write_text(_with_ssq(protocol_path("kato2021").read_text(encoding="utf-8")), "utf-8")
+    protocol = load_protocol(path)
+    screens = compile_timeline(protocol, build_trials(protocol, participant="P01"),
+                               participant="P01", session=1)  # fmt: skip
+    answered = {k for s in screens[1:4] for k in s.response_keys()}
+    todo = remaining(screens, answered, language="ja")
+    roles = [s.role for s in todo if isinstance(s, TextScreen)]
+    assert roles[:4] == ["welcome", "resume", "instructions", "practice"]
+    assert [s.symptom for s in todo[2:15]] == [s.id for s in ssq.SYMPTOMS[3:]]
+    assert len(todo) == len(screens) - 3 + 1
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "message"),
+    [
+        ("trial_index", "5", "trial_index is 5, expected 0"),
+        ("condition", "before", "condition is 'before', expected 'after'"),
+        ("response", "2.5", "response '2.5', expected 0, 1, 2 or 3"),
+        ("screen", "identify", "a sickness questionnaire item on screen 'identify'"),
+    ],
+)
+def test_an_edited_questionnaire_row_is_refused(tmp_path: Path, column, value, message) -> None:
+    path = tmp_path / "kato.yaml"
+    path.write_text(_with_ssq(kato_short(protocol_path("kato2021").read_text("utf-8")),
+                              "[after]"), "utf-8")  # fmt: skip
+    protocol = load_protocol(path)
+    results = tmp_path / "results"
+    simulate_study(protocol, protocol_path=path, results=results, participants=1, seed=2)
+    log = next(results.rglob("*_beh.tsv"))
+    rows = list(csv.DictReader(log.open(encoding="utf-8"), delimiter="\t"))
+    target = next(r for r in rows if r["item"] == "ssq_after_nausea")
+    target[column] = value
+    with log.open("w", encoding="utf-8", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]), delimiter="\t", lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    with pytest.raises(AnalysisError, match="ssq_after_nausea") as info:
+        analyze_run(results, protocol, out=tmp_path / "a", protocol_path=path)
+    assert message in str(info.value)
+
+
+def test_a_vas_row_relabelled_as_the_questionnaire_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "kato.yaml"
+    path.write_text(_with_ssq(kato_short(protocol_path("kato2021").read_text("utf-8")),
+                              "[after]"), "utf-8")  # fmt: skip
+    protocol = load_protocol(path)
+    results = tmp_path / "results"
+    simulate_study(protocol, protocol_path=path, results=results, participants=1, seed=2)
+    log = next(results.rglob("*_beh.tsv"))
+    lines = log.read_text(encoding="utf-8").splitlines()
+    header = lines[0].split("\t")
+    first = lines[1].split("\t")
+    first[header.index("screen")] = "ssq"
+    log.write_text("\n".join([lines[0], "\t".join(first), *lines[2:]]) + "\n", "utf-8")
+    with pytest.raises(AnalysisError, match="screen ssq but not a questionnaire item"):
+        analyze_run(results, protocol, out=tmp_path / "a", protocol_path=path)

@@ -522,10 +522,13 @@ class StudyServer:
         timeline, clips = study.timeline_json(p.participant, answered, session=p.session)
         planned = study.planned(p.participant)
         if answered and p.completed is None:  # a page reload or a return: logged as a resume
-            left = sorted(planned - answered)
+            # the first trial still to answer, in the order shown (the questionnaire's trial 0
+            # comes last when it follows the trials)
+            left = [key[0] for key in study.planned_in_order(p.participant)
+                    if key not in answered]  # fmt: skip
             with self._writes, Session(self.engine) as db:
                 detail = {"answered": len(answered & planned),
-                          "first_trial": left[0][0] if left else None}  # fmt: skip
+                          "first_trial": left[0] if left else None}  # fmt: skip
                 db.add(Event(participant_pk=p.pk, kind="resumed", detail=detail))
                 db.commit()
         pres = study.protocol.presentation

@@ -89,7 +89,12 @@ class OnlineStudy:
 
     def planned(self, participant: str) -> set[tuple[int, str]]:
         """Every (trial_index, item) the participant's session asks for."""
-        return {k for s in self.screens(participant) for k in s.response_keys()}
+        return set(self.planned_in_order(participant))
+
+    def planned_in_order(self, participant: str) -> list[tuple[int, str]]:
+        """Every (trial_index, item) the participant's session asks for, in the order of its
+        screens."""
+        return [k for s in self.screens(participant) for k in s.response_keys()]
 
     # -- to the browser
 
