@@ -8,6 +8,8 @@ Layout (BIDS-style, one folder per participant session)::
         sub-<ID>_ses-<N>_task-<study>_session.json  provenance: protocol hash, seed, trial
                                                     order, clip hashes, software, screen/audio
         sub-<ID>_ses-<N>_task-<study>_playback.jsonl  every flip of every clip (the runner)
+        sub-<ID>_ses-<N>_task-<study>_screen_poses.jsonl  VR: head and controller poses while
+                                                    each screen waited for an answer (online)
         sub-<ID>_ses-<N>_task-<study>_actions.jsonl   what a scripted participant did (--simulate)
         sub-<ID>_ses-<N>_task-<study>_staircase.jsonl every step of every staircase
         sub-<ID>_ses-<N>_task-<study>_repairs.tsv   only after a crash: cut-off lines kept verbatim
@@ -207,6 +209,7 @@ class SessionPaths:
     actions: Path
     staircase: Path
     lock: Path
+    screen_poses: Path
 
 
 #: a response log's file name, as :func:`session_paths` makes it
@@ -246,6 +249,7 @@ def session_paths(
         actions=folder / f"{stem}_actions.jsonl",
         staircase=folder / f"{stem}_staircase.jsonl",
         lock=folder / ".lock",
+        screen_poses=folder / f"{stem}_screen_poses.jsonl",
     )
 
 

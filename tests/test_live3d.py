@@ -551,6 +551,21 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     # the poses at the record's top level, as the README documents them (not under browser)
     assert first["viewer_poses"] and "viewer_poses" not in first.get("browser", {})
     assert first["controller_poses"] and "controller_poses" not in first.get("browser", {})
+    # the poses while each panel waited for an answer: head and both controllers per frame,
+    # under the screen's trial, kind and item (a panel answered before the headless headset
+    # drew a frame has none: frames come every 150-500 ms here)
+    waited = [json.loads(x) for x in next(out.rglob("*_screen_poses.jsonl")).read_text(
+        "utf-8").splitlines()]  # fmt: skip
+    rated = [w for w in waited if w["screen"] == "vas" and w["trial_index"]]
+    items = {item.id for item in load_protocol(study / "vr.yaml").items}
+    assert rated and {w["item"] for w in rated} <= items
+    assert len(rated) >= len(records), (len(rated), len(records))  # most of the 18 VAS screens
+    assert {w["screen"] for w in waited} >= {"vas", "text"}
+    for w in waited:
+        times = [v[0] for v in w["viewer_poses"]]
+        assert times == sorted(times) and w["shown"] <= times[0] + 1e-3
+        assert sorted((c[0], c[1]) for c in w["controller_poses"]) == sorted(
+            (t, hand) for t in times for hand in (0.0, 1.0))
     report = tmp_path / "report"  # the live measures as covariates and an exclusion rule
     # the rule at the median measured offset: it leaves out some trials, never all (how far
     # apart picture and sound are depends on how busy the machine is)

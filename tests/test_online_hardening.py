@@ -507,3 +507,45 @@ def test_fuzzing_the_api_finds_no_5xx_no_foreign_error_shape_and_stores_nothing_
     print(f"fuzzed {sum(seen.values())} requests: {dict(sorted(seen.items()))}")
     assert sum(seen.values()) >= 300 and seen.get(422, 0) > 0
     assert seen.get(200, 0) > 0  # it reached past the door (stored answers, records, events)
+
+
+# --------------------------------------------------------------------------- issue 51.3
+
+
+def test_the_poses_while_a_vr_screen_waits_are_stored_once_checked_and_exported(
+    study: Path,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """/api/screen_poses keeps one record per key (a replay is not stored twice), refuses a
+    trial that is not the participant's, a pose of the wrong length and a non-finite number
+    in words, and the export writes the records to the session's _screen_poses.jsonl."""
+    server = _server(study, tmp_path / "db.sqlite")
+    client = TestClient(create_app(server))
+    p, ok, keys = _joined(server)
+    assert client.post("/api/response", json=_answer(*keys[0], 50.0, "dddddddddddd0000"),
+                       headers=ok).status_code == 200  # fmt: skip
+    record = {
+        "client_key": "poses0000000", "trial_index": keys[0][0], "screen": "vas",
+        "item": keys[0][1], "role": None, "shown": 12.5,
+        "viewer_poses": [[12.6, 0.0, 1.2, 0.0, 3.0, -2.0, 0.5], [12.8, 0.01, 1.2, 0.0, 4.0, -2.0, 0.5]],
+        "controller_poses": [[12.6, 0, 0.2, 1.0, -0.3, 0, 0, 0], [12.6, 1, -0.2, 1.0, -0.3, 0, 0, 0]],
+    }  # fmt: skip
+    first = client.post("/api/screen_poses", json=record, headers=ok)
+    assert first.status_code == 200 and first.json()["replay"] is False
+    assert client.post("/api/screen_poses", json=record, headers=ok).json()["replay"] is True
+    wrong = client.post("/api/screen_poses", headers=ok,
+                        json={**record, "client_key": "poses0000001", "trial_index": 999})
+    assert wrong.status_code == 422 and "not one of this participant's trials" in wrong.text
+    short = client.post("/api/screen_poses", headers=ok,
+                        json={**record, "client_key": "poses0000002", "viewer_poses": [[1.0]]})
+    assert short.status_code == 422 and "viewer_poses" in short.text
+    endless = _post(client, "/api/screen_poses", {
+        **record, "client_key": "poses0000003",
+        "viewer_poses": [[float("inf"), 0, 0, 0, 0, 0, 0]]}, ok)  # fmt: skip
+    assert endless.status_code == 422
+    out = tmp_path / "export"
+    assert main(["export", "--db", f"sqlite:///{tmp_path / 'db.sqlite'}",
+                 "--results", str(out)]) == 0  # fmt: skip
+    lines = next(out.rglob("*_screen_poses.jsonl")).read_text("utf-8").splitlines()
+    assert [json.loads(x) for x in lines] == [{k: v for k, v in record.items()
+                                               if k != "client_key"}]  # fmt: skip

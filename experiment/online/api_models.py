@@ -8,7 +8,7 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
-__all__ = ["AnswerIn", "EventIn", "PlaybackIn"]
+__all__ = ["AnswerIn", "EventIn", "PlaybackIn", "ScreenPosesIn"]
 
 Key = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{8,64}$")]
 ItemId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
@@ -147,6 +147,27 @@ class PlaybackIn(_Strict):
         Annotated[list[Annotated[float, Field(ge=-1e4, le=1e4)]], Field(min_length=3, max_length=3)]
         | None
     ) = None
+
+
+class ScreenPosesIn(_Strict):
+    """The head's and the controllers' poses while one VR screen waited for an answer (a VAS
+    item, a choice, the questionnaire, a text): the screen's trial (None outside the trials),
+    kind and item, when it was shown (page seconds), and per drawn frame the head
+    ``[t s, x, y, z m, yaw, pitch, roll deg]`` and each tracked controller
+    ``[t, hand (0 left, 1 right, 2 neither), x, y, z, yaw, pitch, roll]``."""
+
+    client_key: Key
+    trial_index: int | None = Field(None, ge=0, le=100_000)
+    screen: Annotated[str, StringConstraints(pattern=r"^[a-z0-9_]{1,32}$")]
+    item: ItemId | None = None
+    role: Annotated[str, StringConstraints(pattern=r"^[a-z_]{1,32}$")] | None = None
+    shown: float = Field(ge=0, le=1e7)
+    viewer_poses: list[Annotated[list[float], Field(min_length=7, max_length=7)]] = Field(
+        max_length=100_000
+    )
+    controller_poses: list[Annotated[list[float], Field(min_length=8, max_length=8)]] = Field(
+        max_length=200_000
+    )
 
 
 class EventIn(_Strict):

@@ -14,7 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
+from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn, ScreenPosesIn
 from facelab.experiment.online.middleware import IMPORT_MAP, SecurityHeaders
 from facelab.experiment.online.server import (
     ADMIN_HEADER,
@@ -267,6 +267,12 @@ def create_app(server: StudyServer) -> Any:
         p = server.participant(request.headers.get(TOKEN_HEADER))
         server.check_earlier_token(p, request.headers.get(EARLIER_TOKEN_HEADER))
         return server.store_playback(p, record)
+
+    @app.post("/api/screen_poses")
+    def screen_poses(request: Request, record: ScreenPosesIn) -> dict[str, Any]:
+        p = server.participant(request.headers.get(TOKEN_HEADER))
+        server.check_earlier_token(p, request.headers.get(EARLIER_TOKEN_HEADER))
+        return server.store_screen_poses(p, record)
 
     @app.post("/api/event")
     def event(request: Request, ev: EventIn) -> dict[str, Any]:

@@ -12,6 +12,9 @@ SHA-256). Tables:
 * ``responses``     one row per (participant, trial_index, item): the lab log row as JSON plus
                     the client's idempotency key (unique);
 * ``playback``      one row per clip shown (client key unique): the ``_playback.jsonl`` record;
+* ``screen_poses``  one row per VR screen shown (client key unique): the head's and the
+                    controllers' poses while it waited for an answer
+                    (``_screen_poses.jsonl``);
 * ``actions``       one row per action of a simulated participant (``_actions.jsonl``);
 * ``events``        what else happened (joined, resumed, play() refused, completed);
 * ``protocols``     the bytes of every protocol file the server has served, by SHA-256 (the
@@ -133,6 +136,17 @@ class PlaybackRecord(Base):
     # the record's trial and its size in bytes (JSON), for the caps on what one stores
     trial_index: Mapped[int | None] = mapped_column(Integer, nullable=True)
     bytes: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
+class ScreenPoses(Base):
+    __tablename__ = "screen_poses"
+    __table_args__ = (UniqueConstraint("client_key", name="uq_screen_poses_key"),)
+    pk: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    participant_pk: Mapped[int] = mapped_column(ForeignKey("participants.pk"), index=True)
+    client_key: Mapped[str] = mapped_column(String(64))
+    record: Mapped[dict[str, Any]] = mapped_column(JSON)
+    bytes: Mapped[int] = mapped_column(Integer)
+    received: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
 class Action(Base):

@@ -45,6 +45,7 @@ from facelab.experiment.online.db import (
     PlaybackRecord,
     ProtocolFile,
     Response,
+    ScreenPoses,
 )
 from facelab.formats import LIVE_PLAYBACK_KEYS
 from facelab.protocol import Protocol, load_protocol
@@ -189,8 +190,13 @@ def export_sessions(
             events = db.scalars(
                 select(Event).where(Event.participant_pk == p.pk).order_by(Event.pk)
             ).all()
+            poses = db.scalars(
+                select(ScreenPoses).where(ScreenPoses.participant_pk == p.pk)
+                .order_by(ScreenPoses.pk)
+            ).all()  # fmt: skip
             try:
-                log, changed = _export_one(p, rows, playback, actions, events, results=results)
+                log, changed = _export_one(p, rows, playback, actions, events, results=results,
+                                           screen_poses=poses)  # fmt: skip
             except (UnicodeError, StageError, ValueError, TypeError, RecursionError) as exc:
                 quarantine.append(f"study {p.study} participant {p.participant}: not exported "
                                   f"({exc}); the database still holds it")  # fmt: skip
@@ -266,6 +272,7 @@ def _export_one(
     events: Sequence[Event],
     *,
     results: Path,
+    screen_poses: Sequence[ScreenPoses] = (),
 ) -> tuple[SessionLog, int]:
     """One participant's session folder written or extended; also how many stored text
     fields had to be written escaped (see :func:`escaped`)."""
@@ -338,4 +345,8 @@ def _export_one(
         records, n = escaped([a.record for a in actions])
         changed += n
         _append_new(paths.actions, records)
+    if screen_poses:  # VR: the poses while each screen waited for an answer
+        records, n = escaped([r.record for r in screen_poses])
+        changed += n
+        _append_new(paths.screen_poses, records)
     return log, changed

@@ -56,13 +56,14 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from facelab.design import participant_seed, trial_order
-from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn
+from facelab.experiment.online.api_models import AnswerIn, EventIn, PlaybackIn, ScreenPosesIn
 from facelab.experiment.online.db import (
     Event,
     Participant,
     PlaybackRecord,
     ProtocolFile,
     Response,
+    ScreenPoses,
     Setting,
     utcnow,
 )
@@ -122,6 +123,10 @@ PLAYBACK_BYTES_BASE = 32_000
 PLAYBACK_RECORDS_PER_TRIAL = 16
 PLAYBACK_BYTES_PER_SESSION = 32_000_000
 EVENTS_PER_SESSION = 1_000
+# VR screens' poses (head and two controllers, ~230 bytes a frame): a session may store 4,000
+# screens' records (a screen shown again after a reload sends another) and 32 MB of them
+SCREEN_POSES_PER_SESSION = 4_000
+SCREEN_POSES_BYTES_PER_SESSION = 32_000_000
 ADMIN_FAILURES_PER_MIN = 10
 #: refused rejoins logged per session (someone trying the participant's id cannot fill the
 #: database through them)
@@ -736,6 +741,35 @@ class StudyServer:
                     bytes=size,
                 )
             )
+            try:
+                with self._writes:
+                    db.commit()
+            except IntegrityError:
+                db.rollback()
+                return {"stored": True, "replay": True}
+        return {"stored": True, "replay": False}
+
+    def store_screen_poses(self, p: Participant, record: ScreenPosesIn) -> dict[str, Any]:
+        """Keep one VR screen's poses (idempotent by client key), capped per session."""
+        if record.trial_index not in (None, 0) and record.trial_index not in self._trial_indices(p):
+            raise RefusedError(422, f"trial_index: {record.trial_index} is not one of this "
+                               "participant's trials")  # fmt: skip
+        stored = record.model_dump(exclude={"client_key"})
+        if not _finite(stored):
+            raise RefusedError(422, "poses: numbers must be finite (no NaN or Infinity)")
+        size = len(json.dumps(stored, separators=(",", ":")))
+        with Session(self.engine) as db:
+            if db.scalars(select(ScreenPoses).where(
+                    ScreenPoses.client_key == record.client_key)).first():  # fmt: skip
+                return {"stored": True, "replay": True}
+            count, total = db.execute(
+                select(func.count(), func.coalesce(func.sum(ScreenPoses.bytes), 0)).where(
+                    ScreenPoses.participant_pk == p.pk)).one()  # fmt: skip
+            if count >= SCREEN_POSES_PER_SESSION or total + size > SCREEN_POSES_BYTES_PER_SESSION:
+                raise RefusedError(413, f"this session stored {count} screens' poses "
+                                   f"({total} bytes) already")  # fmt: skip
+            db.add(ScreenPoses(participant_pk=p.pk, client_key=record.client_key,
+                               record=stored, bytes=size, received=utcnow()))  # fmt: skip
             try:
                 with self._writes:
                     db.commit()

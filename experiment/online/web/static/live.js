@@ -55,6 +55,7 @@ export class Stage {
     this.session = null;                      // the immersive session, while it runs
     this.panel = null;
     this.onFrame = null;                      // the clip being played, called every frame
+    this.screenPoses = null;                  // the poses while a VR screen waits (mirror)
     this.yaw = 0;                             // the facing direction the avatar was placed at
     this.lastPose = null;                     // the viewer's pose at the last XR frame
     this.fadeStart = null;
@@ -184,6 +185,7 @@ export class Stage {
       this.fading();
     }
     if (this.onFrame) this.onFrame(time, xrFrame);
+    else if (this.screenPoses && xrFrame) this.collectScreenPose(time, xrFrame);
     if (this.panel) this.panel.hover(this);
     if (this.onFrame || this.session) this.renderer.render(this.scene, this.camera);
   }
@@ -395,6 +397,7 @@ export class Stage {
     session.addEventListener("visibilitychange", () => this.onVisibility(session.visibilityState));
     session.addEventListener("end", () => {
       if (this.playing) this.onVisibility("ended");
+      this.sendScreenPoses();
       if (this.session === session) this.session = null;
       this.lastPose = null;
       if (this.panel) this.panel.remove();
@@ -533,14 +536,37 @@ export class Stage {
     return new THREE.Quaternion().setFromUnitVectors(new THREE.Vector3(0, 0, -1), dir).toArray();
   }
 
-  // Mirror the DOM screen `box` on a panel (VR only); null out of VR.
+  // Mirror the DOM screen `box` on a panel (VR only); null out of VR. The poses of the
+  // screen it replaces are sent, and this one's are collected while it shows.
   mirror(box) {
+    this.sendScreenPoses();
     if (this.panel) { this.panel.remove(); this.panel = null; }
     if (!this.session || !box) return null;
     this.avatar.visible = false;  // a screen to answer: the panel alone
     this.panel = new Panel(this, box);
     this.fadeIn();
+    const d = box.dataset;
+    this.screenPoses = { trial_index: d.trial !== undefined ? Number(d.trial) : null,
+      screen: d.facelab || "screen", item: d.item || null, role: d.role || null,
+      shown: round(performance.now() / 1000, 4), viewer_poses: [], controller_poses: [] };
     return this.panel;
+  }
+
+  // the head's and controllers' poses at XR frame `xrFrame` while a screen waits (tick)
+  collectScreenPose(time, xrFrame) {
+    const c = this.screenPoses, head = this.viewer(xrFrame);
+    if (!c || !head || c.viewer_poses.length >= MAX_FRAMES_LOGGED) return;
+    const t = round(time / 1000, 4);
+    c.viewer_poses.push([t, ...head.map((v) => round(v, 4))]);
+    for (const h of this.hands(xrFrame)) c.controller_poses.push([t, ...h.map((v) => round(v, 4))]);
+  }
+
+  // the poses collected while the last screen showed, to the server (once; none: nothing)
+  sendScreenPoses() {
+    const c = this.screenPoses;
+    this.screenPoses = null;
+    if (!c || !c.viewer_poses.length) return;
+    FacelabOutbox.send("/api/screen_poses", { client_key: FacelabOutbox.newKey(), ...c });
   }
 
   // where a DOM element of the panel (a button, or a VAS line at fraction `frac`) is in the
