@@ -521,14 +521,16 @@ def test_the_poses_while_a_vr_screen_waits_are_stored_once_checked_and_exported(
     in words, and the export writes the records to the session's _screen_poses.jsonl."""
     server = _server(study, tmp_path / "db.sqlite")
     client = TestClient(create_app(server))
-    p, ok, keys = _joined(server)
+    _p, ok, keys = _joined(server)
     assert client.post("/api/response", json=_answer(*keys[0], 50.0, "dddddddddddd0000"),
                        headers=ok).status_code == 200  # fmt: skip
     record = {
         "client_key": "poses0000000", "trial_index": keys[0][0], "screen": "vas",
         "item": keys[0][1], "role": None, "shown": 12.5,
-        "viewer_poses": [[12.6, 0.0, 1.2, 0.0, 3.0, -2.0, 0.5], [12.8, 0.01, 1.2, 0.0, 4.0, -2.0, 0.5]],
-        "controller_poses": [[12.6, 0, 0.2, 1.0, -0.3, 0, 0, 0], [12.6, 1, -0.2, 1.0, -0.3, 0, 0, 0]],
+        "viewer_poses": [[12.6, 0.0, 1.2, 0.0, 3.0, -2.0, 0.5],
+                         [12.8, 0.01, 1.2, 0.0, 4.0, -2.0, 0.5]],
+        "controller_poses": [[12.6, 0, 0.2, 1.0, -0.3, 0, 0, 0],
+                             [12.6, 1, -0.2, 1.0, -0.3, 0, 0, 0]],
     }  # fmt: skip
     first = client.post("/api/screen_poses", json=record, headers=ok)
     assert first.status_code == 200 and first.json()["replay"] is False
