@@ -6,7 +6,9 @@ display, audio, disk) -> the session's lock -> the session log created (or resum
 protocol, same trial order, same clips) -> the timeline walked in the window
 (:mod:`facelab.experiment.window`), each response appended and fsync'd as its screen ends.
 Escape asks before quitting (exit 4); SIGINT (exit 130) and SIGTERM (exit 143) end the
-session the same way; every response given is on disk, and ``--resume`` continues.
+session the same way; every response given is on disk, and ``--resume`` continues. With
+``presentation.ssq`` after, quitting with Escape first shows the sickness questionnaire's
+symptoms not yet answered (Escape again skips them).
 
 ``--simulate`` drives this same window with a scripted participant
 (:mod:`facelab.experiment.scripted`): real X mouse and key events.
@@ -23,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from facelab.design import build_trials, participant_seed, trial_order
-from facelab.errors import SessionError
+from facelab.errors import SessionAbortedError, SessionError
 from facelab.experiment.adaptive import Staircases
 from facelab.experiment.preflight import (
     check_audio,
@@ -37,6 +39,7 @@ from facelab.experiment.scripted import ScriptedParticipant
 from facelab.experiment.simulate import ChoiceModel, RatingModel
 from facelab.experiment.timeline import (
     ResponseScreen,
+    SsqScreen,
     compile_timeline,
     needed_clips,
     remaining,
@@ -64,6 +67,31 @@ class RunOptions:
     verify_hashes: bool = True
     accept_changed_clips: bool = False
     warn_dropped_frames: int = 3  # a clip that drops more frames is named at once
+
+
+def _sickness_after_quitting(
+    protocol: Protocol,
+    screens: list[Any],
+    log: SessionLog,
+    *,
+    window: Window,
+    context: SessionContext,
+    on_row: Any,
+) -> None:
+    """The experimenter quit a session whose protocol asks for the sickness questionnaire
+    after the study: its symptoms not yet answered are shown before the window closes (a
+    participant who stops because they feel sick is the one whose answers matter most);
+    Escape and "y" skip it. Logged like any answer; the session stays resumable."""
+    if "after" not in protocol.presentation.ssq:
+        return
+    todo = [s for s in remaining(screens, log.answered(), language=protocol.presentation.language)
+            if isinstance(s, SsqScreen) and s.moment == "after"]  # fmt: skip
+    if not todo:
+        return
+    print("quit: the sickness questionnaire (after) is shown before the window closes; "
+          "Escape then y skips it", flush=True)  # fmt: skip
+    walk(todo, presenter=window, log=log, context=context, replayed=set(), on_row=on_row,
+         staircases=None)  # fmt: skip
 
 
 def _versions() -> dict[str, str]:
@@ -233,15 +261,20 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                     "refresh_hz": window.refresh_hz(),
                 }
             )
-            ran = walk(
-                todo,
-                presenter=window,
-                log=log,
-                context=context,
-                replayed={t for t, _ in answered},
-                on_row=saved_line,
-                staircases=Staircases(protocol, logged=log.rows, record=paths.staircase),
-            )
+            try:
+                ran = walk(
+                    todo,
+                    presenter=window,
+                    log=log,
+                    context=context,
+                    replayed={t for t, _ in answered},
+                    on_row=saved_line,
+                    staircases=Staircases(protocol, logged=log.rows, record=paths.staircase),
+                )
+            except SessionAbortedError:
+                _sickness_after_quitting(protocol, screens, log, window=window, context=context,
+                                         on_row=saved_line)  # fmt: skip
+                raise
         drops.end_block()
         log.update_provenance(
             finished=dt.datetime.now(dt.UTC).isoformat(), dropped_frames=drops.summary()

@@ -265,3 +265,44 @@ def _type_with_keys_mapped(tmp_path: Path) -> None:
         int(line.split()[1]) for line in keymap().splitlines()
         if "U6B62" in line or "U307E" in line
     }  # fmt: skip
+
+
+def test_quitting_shows_the_sickness_questionnaire_before_the_window_closes(
+    tmp_path: Path,
+) -> None:
+    """A participant who stops because they feel sick is the one whose SSQ matters: with
+    ``ssq: [after]``, Escape and y during the trials first show the questionnaire's 16
+    symptoms (answered by the scripted participant), then the session ends (exit 4) and
+    stays resumable."""
+    import shutil
+    import time
+
+    path = short_task_protocol(
+        "method_identify",
+        tmp_path,
+        {
+            r"    sets: 4": "    sets: 1",
+            r"presentations_per_condition: 2": "presentations_per_condition: 1",
+            r"      - \{id: sentence.*\n": "",
+            r"presentation:\n  language: ja\n": "presentation:\n  language: ja\n  ssq: [after]\n",
+        },
+    )
+    proc = _run(path, tmp_path)
+    assert proc.stdout is not None
+    while True:
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()[-1500:] if proc.stderr else ""
+        if line.endswith("(saved)\n"):
+            break
+    xdotool = shutil.which("xdotool")
+    assert xdotool
+    subprocess.run([xdotool, "key", "Escape"], check=True)
+    time.sleep(1.0)
+    subprocess.run([xdotool, "key", "y"], check=True)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 4, err[-1500:]
+    assert "sickness questionnaire (after) is shown" in out
+    rows = _beh_rows(tmp_path, "methodid")
+    sickness = [r for r in rows if r["screen"] == "ssq"]
+    assert len(sickness) == 16 and {r["condition"] for r in sickness} == {"after"}
+    assert 1 <= sum(r["screen"] == "identify" for r in rows) < 3  # quit before the last trial
