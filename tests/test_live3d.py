@@ -650,7 +650,7 @@ def test_without_a_headset_webxr_falls_back_only_when_the_protocol_allows(
         ("method_identify", {r"    sets: 4": "    sets: 1",
                              r"presentations_per_condition: 2": "presentations_per_condition: 1",
                              r"      - \{id: sentence.*\n": "",
-                             r"\n  language: ja\n": "\n  language: ja\n  ssq: [after]\n"},
+                             r"\n  language: ja\n": "\n  language: ja\n  ssq: [before, after]\n"},
          "identify"),
     ],
 )  # fmt: skip
@@ -677,18 +677,21 @@ def test_forced_choice_and_identification_are_answered_in_vr(
         actions = [a.record for a in db.scalars(select(Action))]
         shown = {r.record["display"] for r in db.scalars(select(PlaybackRecord))}
     assert shown == {"webxr"}
-    # the sickness questionnaire after the trials (identification only): 16 panels of four
-    # buttons, each stored as the button the ray selected
+    # the sickness questionnaire (identification only): before the study on the screen,
+    # before the headset goes on (16 clicks), after it 16 panels of four buttons, each stored
+    # as the button clicked or the ray selected
     sickness = [r for r in rows if r["screen"] == "ssq"]
     rows = [r for r in rows if r["screen"] != "ssq"]
     assert rows and {r["screen"] for r in rows} == {screen}
     chosen = {a["item"]: a["value"] for a in actions if a["item"].startswith("ssq_")}
-    assert len(sickness) == (16 if screen == "identify" else 0) == len(chosen)
+    assert len(sickness) == (32 if screen == "identify" else 0) == len(chosen)
     assert {r["item"]: int(r["response"]) for r in sickness} == {k: int(v) for k, v in
                                                                 chosen.items()}  # fmt: skip
     if sickness:
-        # the first symptom's panel: its question and the four answers drawn whole
-        lay = json.loads((shots / "ssq.panel.json").read_text(encoding="utf-8"))
+        # the first symptom before the study on the page (no panel); after it, its panel:
+        # the question and the four answers drawn whole
+        assert (shots / "ssq.png").exists() and not (shots / "ssq.panel.json").exists()
+        lay = json.loads((shots / "vr-ssq.panel.json").read_text(encoding="utf-8"))
         assert not lay["overflow"]
         for block in lay["blocks"]:
             assert "".join(block["lines"]).replace(" ", "") == "".join(block["source"].split())

@@ -468,9 +468,10 @@ class SimulatedBrowser:
                         self._record(
                             p, trial_index=trial, item=state.get("item") or "", value=value
                         )
-                    self._shot(kind)
+                    vr_now = in_vr()
+                    self._shot(f"vr-{kind}" if vr_now else kind)
                     option = f"[data-facelab=option][data-value='{value}']"
-                    if in_vr():
+                    if vr_now:
                         xr_select(option)
                     else:
                         d.find_element(By.CSS_SELECTOR, option).click()

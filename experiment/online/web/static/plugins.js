@@ -72,11 +72,13 @@ class FacelabPlugin {
 }
 // display webxr: every screen runs in the headset, so the immersive session is entered (or
 // entered again after the headset was taken off) before the screen is shown - but not for
-// the end page alone (its code is read on the screen)
+// the end page alone (its code is read on the screen), nor for the sickness questionnaire
+// before the study while the headset is not yet on (its baseline is taken outside VR)
 async function facelabReady(el, trial) {
   const stage = FacelabSession.stage;
   if (!stage || stage.ran !== "webxr" || stage.inVR()) return;
   if (trial && trial.kind === "text" && trial.role === "end" && stage.origin) return;
+  if (trial && trial.kind === "ssq" && String(trial.item).startsWith("ssq_before_")) return;
   await facelabEnterVR(el);
 }
 
