@@ -151,8 +151,9 @@ def run(
         accept_protocol_change=accept_protocol_change,
     )
     every_row = data  # the session table counts the questionnaire's answers too
-    questionnaires = data[is_ssq_row(data)]  # session-level: outside every trial analysis
-    data = data[~is_ssq_row(data)].reset_index(drop=True)
+    in_ssq = is_ssq_row(data)
+    questionnaires = data[in_ssq]  # session-level: outside every trial analysis
+    data = data[~in_ssq].reset_index(drop=True)
     vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
     study = analyze_study(vas, protocol, method=method) if not vas.empty else None
     tasks = analyze_tasks(

@@ -165,6 +165,18 @@ def test_stopped_inside_the_questionnaire_before_the_study_still_gets_its_instru
     assert len(todo) == len(screens) - 3 + 1
 
 
+def _one_session_with_ssq_after(tmp_path: Path):
+    """(protocol path, protocol, results root, the log) of one simulated participant of
+    kato2021 (short) with the questionnaire after the trials."""
+    path = tmp_path / "kato.yaml"
+    path.write_text(_with_ssq(kato_short(protocol_path("kato2021").read_text("utf-8")),
+                              "[after]"), "utf-8")  # fmt: skip
+    protocol = load_protocol(path)
+    results = tmp_path / "results"
+    simulate_study(protocol, protocol_path=path, results=results, participants=1, seed=2)
+    return path, protocol, results, next(results.rglob("*_beh.tsv"))
+
+
 @pytest.mark.parametrize(
     ("column", "value", "message"),
     [
@@ -175,13 +187,7 @@ def test_stopped_inside_the_questionnaire_before_the_study_still_gets_its_instru
     ],
 )
 def test_an_edited_questionnaire_row_is_refused(tmp_path: Path, column, value, message) -> None:
-    path = tmp_path / "kato.yaml"
-    path.write_text(_with_ssq(kato_short(protocol_path("kato2021").read_text("utf-8")),
-                              "[after]"), "utf-8")  # fmt: skip
-    protocol = load_protocol(path)
-    results = tmp_path / "results"
-    simulate_study(protocol, protocol_path=path, results=results, participants=1, seed=2)
-    log = next(results.rglob("*_beh.tsv"))
+    path, protocol, results, log = _one_session_with_ssq_after(tmp_path)
     rows = list(csv.DictReader(log.open(encoding="utf-8"), delimiter="\t"))
     target = next(r for r in rows if r["item"] == "ssq_after_nausea")
     target[column] = value
@@ -195,13 +201,7 @@ def test_an_edited_questionnaire_row_is_refused(tmp_path: Path, column, value, m
 
 
 def test_a_vas_row_relabelled_as_the_questionnaire_is_refused(tmp_path: Path) -> None:
-    path = tmp_path / "kato.yaml"
-    path.write_text(_with_ssq(kato_short(protocol_path("kato2021").read_text("utf-8")),
-                              "[after]"), "utf-8")  # fmt: skip
-    protocol = load_protocol(path)
-    results = tmp_path / "results"
-    simulate_study(protocol, protocol_path=path, results=results, participants=1, seed=2)
-    log = next(results.rglob("*_beh.tsv"))
+    path, protocol, results, log = _one_session_with_ssq_after(tmp_path)
     lines = log.read_text(encoding="utf-8").splitlines()
     header = lines[0].split("\t")
     first = lines[1].split("\t")

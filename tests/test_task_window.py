@@ -22,6 +22,15 @@ pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))
 
 
+#: method_identify cut to one set of three trials, with the sickness questionnaire after them
+IDENTIFY_WITH_SSQ_AFTER = {
+    r"    sets: 4": "    sets: 1",
+    r"presentations_per_condition: 2": "presentations_per_condition: 1",
+    r"      - \{id: sentence.*\n": "",
+    r"presentation:\n  language: ja\n": "presentation:\n  language: ja\n  ssq: [after]\n",
+}
+
+
 def _run(path: Path, root: Path, *extra: str) -> subprocess.Popen:
     if not os.environ.get("DISPLAY"):
         pytest.fail("no DISPLAY: run the tests with the README's test command (xvfb-run)")
@@ -107,16 +116,7 @@ def test_identification_in_the_window(tmp_path: Path) -> None:
     """Identification answered by number keys, then the sickness questionnaire after the last
     trial (issue 51.2): its 16 symptoms answered with the keys too, each logged with the
     value pressed."""
-    path = short_task_protocol(
-        "method_identify",
-        tmp_path,
-        {
-            r"    sets: 4": "    sets: 1",
-            r"presentations_per_condition: 2": "presentations_per_condition: 1",
-            r"      - \{id: sentence.*\n": "",
-            r"presentation:\n  language: ja\n": "presentation:\n  language: ja\n  ssq: [after]\n",
-        },
-    )
+    path = short_task_protocol("method_identify", tmp_path, IDENTIFY_WITH_SSQ_AFTER)
     proc = _run(path, tmp_path)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-1500:]
@@ -277,16 +277,7 @@ def test_quitting_shows_the_sickness_questionnaire_before_the_window_closes(
     import shutil
     import time
 
-    path = short_task_protocol(
-        "method_identify",
-        tmp_path,
-        {
-            r"    sets: 4": "    sets: 1",
-            r"presentations_per_condition: 2": "presentations_per_condition: 1",
-            r"      - \{id: sentence.*\n": "",
-            r"presentation:\n  language: ja\n": "presentation:\n  language: ja\n  ssq: [after]\n",
-        },
-    )
+    path = short_task_protocol("method_identify", tmp_path, IDENTIFY_WITH_SSQ_AFTER)
     proc = _run(path, tmp_path)
     assert proc.stdout is not None
     while True:

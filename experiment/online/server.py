@@ -741,12 +741,17 @@ class StudyServer:
                     bytes=size,
                 )
             )
-            try:
-                with self._writes:
-                    db.commit()
-            except IntegrityError:
-                db.rollback()
-                return {"stored": True, "replay": True}
+            return self._commit_keyed(db)
+
+    def _commit_keyed(self, db: Session) -> dict[str, Any]:
+        """Commit a record stored under its client key: a second store of the same key that
+        raced this one is a replay, not an error."""
+        try:
+            with self._writes:
+                db.commit()
+        except IntegrityError:
+            db.rollback()
+            return {"stored": True, "replay": True}
         return {"stored": True, "replay": False}
 
     def store_screen_poses(self, p: Participant, record: ScreenPosesIn) -> dict[str, Any]:
@@ -770,13 +775,7 @@ class StudyServer:
                                    f"({total} bytes) already")  # fmt: skip
             db.add(ScreenPoses(participant_pk=p.pk, client_key=record.client_key,
                                record=stored, bytes=size, received=utcnow()))  # fmt: skip
-            try:
-                with self._writes:
-                    db.commit()
-            except IntegrityError:
-                db.rollback()
-                return {"stored": True, "replay": True}
-        return {"stored": True, "replay": False}
+            return self._commit_keyed(db)
 
     def store_event(self, p: Participant, ev: EventIn) -> None:
         if len(repr(ev.detail)) > 4000:
