@@ -29,6 +29,11 @@ from typing import Any
 import pandas as pd
 
 from facelab import sickness_questionnaire as ssq
+from facelab.analysis.conversation import (
+    check_conversation_rows,
+    conversation_items,
+    is_conversation_row,
+)
 from facelab.analysis.sickness import is_ssq_row
 from facelab.design import PENDING, block_trials, build_trials
 from facelab.errors import AnalysisError
@@ -108,7 +113,7 @@ def expected_responses(protocol: Protocol) -> int:
     return sum(
         block_trials(protocol, block) * ((1 if block.task else len(protocol.items)) + added)
         for block in protocol.blocks
-    ) + len(ssq_items(protocol))
+    ) + len(ssq_items(protocol)) + len(conversation_items(protocol))
 
 
 def ssq_items(protocol: Protocol) -> list[str]:
@@ -141,7 +146,8 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
     checked = {
         (r.participant, r.session) for r in sessions.itertuples() if r.protocol_matches is True
     }
-    data = data[~is_ssq_row(data)]  # the questionnaire is outside the design
+    # the questionnaire and the conversation are outside the design
+    data = data[~is_ssq_row(data) & ~is_conversation_row(data)]
     # the screen that gave each response: a block's task, or the VAS items
     screen_of = {b.id: (b.task and protocol.task(b.task).type) or "vas" for b in protocol.blocks}
     added = added_items(protocol)
@@ -245,11 +251,13 @@ def check_data(
     """Check the loaded logs against ``protocol`` (see the module docstring)."""
     notes: list[str] = []
     _check_questionnaire(data)  # first: its rows are outside the design's conditions
+    check_conversation_rows(data, protocol)
     conditions = [c.id for c in protocol.conditions]
     items = [i.id for i in protocol.items] + [t.id for t in protocol.tasks]
     items += list(added_items(protocol))
     stray_c = sorted(set(data.loc[~is_ssq_row(data), "condition"].dropna()) - set(conditions))
-    stray_i = sorted(set(data["item"].dropna()) - set(items) - set(ssq_items(protocol)))
+    stray_i = sorted(set(data["item"].dropna()) - set(items) - set(ssq_items(protocol))
+                     - set(conversation_items(protocol)))
     if stray_c or stray_i:
         what = "; ".join(
             part

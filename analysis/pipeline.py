@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from facelab.analysis.conversation import conversation_tables, is_conversation_row
 from facelab.analysis.integrity import DataCheck, added_items, added_kinds, check_data
 from facelab.analysis.load import load_results
 from facelab.analysis.objective import (
@@ -151,9 +152,10 @@ def run(
         accept_protocol_change=accept_protocol_change,
     )
     every_row = data  # the session table counts the questionnaire's answers too
-    in_ssq = is_ssq_row(data)
+    in_ssq, in_conversation = is_ssq_row(data), is_conversation_row(data)
     questionnaires = data[in_ssq]  # session-level: outside every trial analysis
-    data = data[~in_ssq].reset_index(drop=True)
+    conversations = data[in_conversation]
+    data = data[~in_ssq & ~in_conversation].reset_index(drop=True)
     vas = data[data["screen"].fillna("vas") == "vas"].reset_index(drop=True)
     study = analyze_study(vas, protocol, method=method) if not vas.empty else None
     tasks = analyze_tasks(
@@ -164,6 +166,9 @@ def run(
     _objective_tables(protocol, clips, vas, tasks)
     _added_screen_tables(protocol, data, tasks)
     _ssq_tables(protocol, questionnaires, tasks)
+    tables, notes = conversation_tables(conversations, protocol)
+    tasks.tables.update(tables)
+    tasks.notes.extend(notes)
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)
     )

@@ -309,6 +309,10 @@ _TASK_HEADINGS = {
     "ssq": "Simulator sickness: every questionnaire's scores (weights N 9.54, O 7.58, "
     "D 13.92, total 3.74 on the raw sums)",
     "ssq_symptoms": "Simulator sickness: each symptom's answers per moment",
+    "conversation_summary": "Live conversation: each item asked about the partner after it "
+    "(n participants; mean with 95 % t interval, median and quartiles)",
+    "conversation": "Live conversation: per session how it ended, how long it lasted, the "
+    "turns, and the ratings of the partner",
     "pilot_sessions": "Sessions: responses of those expected, minutes, median response time, "
     "dropped frames",
     "pilot_items": "Items: the distribution of each item's ratings (an item everyone answers "
@@ -396,6 +400,8 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "ssq_summary",
         "ssq",
         "ssq_symptoms",
+        "conversation_summary",
+        "conversation",
         "pilot_sessions",
         "pilot_items",
     ):

@@ -645,6 +645,27 @@ def _practice(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
 
 
+@_check("presentation", "conditions", "items", "blocks")
+def _conversation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """The conversation names a real condition and real VAS items."""
+    conversation = protocol.presentation.conversation
+    if conversation is None:
+        return
+    where = ("presentation", "conversation")
+    for b, block in enumerate(protocol.blocks):
+        if block.id == "conversation":
+            yield Issue(("blocks", b, "id"), "'conversation' is the conversation's own block in "
+                        "the logs; give this block another id")  # fmt: skip
+    if conversation.condition not in {c.id for c in protocol.conditions}:
+        yield Issue((*where, "condition"), f"unknown condition {conversation.condition!r}")
+    known = {i.id for i in protocol.items}
+    for k, item in enumerate(conversation.items or ()):
+        if item not in known:
+            yield Issue((*where, "items", k),
+                        f"unknown item {item!r}; the protocol's VAS items: "
+                        f"{', '.join(sorted(known)) or 'none'}")  # fmt: skip
+
+
 @_check("presentation")
 def _added_screens(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """Each added screen names an installed screen kind and gives it options it accepts."""

@@ -667,6 +667,33 @@ class AddedScreen(_Model):
     )
 
 
+class Conversation(_Model):
+    """A live conversation with a partner shown as the avatar (issue 53.4): a talker - the
+    experimenter or a confederate, on the talker page ``/talk`` of ``facelab serve`` - speaks,
+    the condition's method drives the avatar from the streamed voice, and the participant sees
+    and hears it for ``minutes``; then the VAS ``items`` are asked about the partner. Each
+    turn is recorded (audio, the track as shown, latencies) in the participant's folder."""
+
+    condition: Id = Field(description="The condition whose method drives the partner's face.")
+    minutes: float = Field(
+        gt=0.0,
+        le=120.0,
+        description="How long the conversation lasts; the talker can end it sooner.",
+    )
+    when: Literal["before", "after"] = Field(
+        "before",
+        description="Before the trials (after the instructions and practice) or after them.",
+    )
+    items: list[Id] | None = Field(
+        None,
+        description="The VAS items (ids from 'items') asked about the partner after the "
+        "conversation; default all.",
+    )
+    text: Localized | None = Field(
+        None, description="Shown with the avatar during the conversation; default facelab's."
+    )
+
+
 class Presentation(_Model):
     language: LangCode = Field("ja", description="Language of all participant-facing text.")
     items_layout: Literal["sequential", "together"] = "sequential"
@@ -688,6 +715,11 @@ class Presentation(_Model):
     )
     break_text: Localized | None = None
     end_text: Localized | None = None
+    conversation: Conversation | None = Field(
+        None,
+        description="A live conversation with a partner shown as the avatar, then VAS items "
+        "about the partner (online sessions; logged as block 'conversation').",
+    )
     ssq: list[Literal["before", "after"]] = Field(
         default_factory=list,
         description="The Simulator Sickness Questionnaire (Kennedy et al. 1993; 16 symptoms, "

@@ -113,6 +113,13 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
     :class:`~facelab.errors.SessionAbortedError` when the experimenter quits.
     """
     pid = options.participant
+    if protocol.presentation.conversation is not None:
+        raise SessionError(
+            f"{protocol_path}: presentation.conversation: a live conversation runs in the "
+            "participant's browser (facelab serve: the talker's voice drives the avatar there); "
+            "the lab window cannot draw a live avatar. Run the session online, or remove the "
+            "conversation for the lab"
+        )
     trials = build_trials(protocol, participant=pid)
     screens = compile_timeline(protocol, trials, participant=pid, session=options.session)
     needed = needed_clips(screens)

@@ -36,6 +36,8 @@ from facelab.experiment.timeline import (
     ChoiceScreen,
     ClipPairScreen,
     ClipScreen,
+    ConversationAnswer,
+    ConversationScreen,
     IdentifyAnswer,
     IdentifyScreen,
     PairPlayback,
@@ -341,6 +343,11 @@ class SimulatedParticipant:
         rt = self.chooser.response_time()
         self.clock += rt
         return [TypedAnswer(text, round(rt, 3), self._stamp())]
+
+    def conversation(self, screen: ConversationScreen) -> list[ConversationAnswer]:
+        """A live conversation: simulated as lasting its minutes, one turn heard."""
+        self.clock += screen.seconds
+        return [ConversationAnswer("time", 1, round(screen.seconds, 3), self._stamp())]
 
     def added_screen(self, screen: Any) -> list[Any]:
         """A package's added screen: the kind's own simulated answer

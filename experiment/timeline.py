@@ -58,6 +58,8 @@ __all__ = [
     "ClipKey",
     "ClipPairScreen",
     "ClipScreen",
+    "ConversationAnswer",
+    "ConversationScreen",
     "IdentifyAnswer",
     "IdentifyScreen",
     "PairPlayback",
@@ -73,6 +75,7 @@ __all__ = [
     "VasAnswer",
     "VasScreen",
     "compile_timeline",
+    "conversation_screens",
     "localized",
     "needed_clips",
     "number",
@@ -108,6 +111,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "label_keys": "数字キー、またはクリックで答えてください",
         "typed_keys": "聞こえたとおりに入力し、Enter キーか「決定」で答えてください"
         "（聞き取れなければ空欄のまま）",
+        "conversation": "画面の相手と話してください。",
+        "partner": "いま話した相手について答えてください。",
     },
     "en": {
         "welcome": "Participant {pid} (session {ses})\n\nPress space to start.",
@@ -127,6 +132,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "label_keys": "Press a number key, or click",
         "typed_keys": "Type what you heard, then press Enter or click Confirm (leave it "
         "empty if you heard nothing)",
+        "conversation": "Talk with the partner on the screen.",
+        "partner": "Please answer about the partner you just talked with.",
     },
 }
 
@@ -231,7 +238,7 @@ class TextScreen(Screen):
     VR: a panel's button, and the text as :func:`vr_texts` words it)."""
 
     kind: ClassVar[str] = "text"
-    role: str  # welcome | instructions | practice | resume | break | end
+    role: str  # welcome | instructions | practice | resume | partner | break | end
     text: str
 
     def browser(self, ctx: BrowserContext) -> dict[str, Any]:
@@ -812,6 +819,89 @@ def ssq_screens(moment: str) -> list[SsqScreen]:
     ]
 
 
+@dataclass(frozen=True)
+class ConversationAnswer:
+    """How a live conversation ended: ``ended`` ``time`` (its minutes ran out) or ``talker``
+    (the talker ended it), the turns the participant's page was sent, and how long it lasted
+    (``rt_s``, s)."""
+
+    ended: str
+    turns: int
+    rt_s: float
+    timestamp: str
+
+
+@screen_kind
+@dataclass(frozen=True)
+class ConversationScreen(ResponseScreen):
+    """A live conversation (``presentation.conversation``, issue 53.4): the partner's avatar,
+    driven by the talker's streamed voice under ``condition``'s method, for ``seconds`` or
+    until the talker ends it. Logged as item ``conversation`` on the conversation's own trial
+    (index 0, block ``conversation``, stimulus ``partner``): ``response`` how it ended,
+    ``score`` the turns, ``rt_s`` how long it lasted. Runs online only (the server relays the
+    talker; the turns are recorded in the participant's folder); the lab window cannot draw
+    a live avatar, and a simulated participant answers it at once."""
+
+    kind: ClassVar[str] = "conversation"
+    condition: str = ""
+    seconds: float = 0.0
+    text: str = ""
+
+    def response_keys(self) -> tuple[tuple[int, str], ...]:
+        return ((0, "conversation"),)
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        return {
+            "kind": self.kind, "trial_index": 0, "item": "conversation", "practice": False,
+            "condition": self.condition, "seconds": self.seconds, "text": self.text,
+        }  # fmt: skip
+
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> ConversationAnswer:
+        ended = posted.get("ended")
+        if ended not in ("time", "talker"):
+            raise AnswerError(f"ended: expected 'time' or 'talker', got {ended!r}")
+        turns = posted.get("turns")
+        if isinstance(turns, bool) or not isinstance(turns, int) or not 0 <= turns <= 100_000:
+            raise AnswerError(f"turns: expected a whole number from 0, got {turns!r}")
+        return ConversationAnswer(ended, turns, rt_s, timestamp)
+
+    def posted(self, answer: Any) -> dict[str, Any]:
+        return {"ended": answer.ended, "turns": answer.turns}
+
+    def row(
+        self, item: str, answer: Any, *, context: SessionContext, playback: Playback | None
+    ) -> dict[str, Any]:
+        return self._row(context=context, playback=playback, item=item, rt_s=answer.rt_s,
+                         timestamp=answer.timestamp, response=answer.ended,
+                         score=float(answer.turns))  # fmt: skip
+
+
+def conversation_screens(protocol: Protocol) -> list[Screen]:
+    """The conversation of ``presentation.conversation`` and the VAS items about the partner
+    after it (one screen each, or together as ``items_layout`` says); none without one."""
+    conv = protocol.presentation.conversation
+    if conv is None:
+        return []
+    lang = protocol.presentation.language
+    trial = Trial(trial_index=0, block="conversation", set_index=0,
+                  stimulus_set="conversation", stimulus="partner",
+                  condition=conv.condition, repetition=1)  # fmt: skip
+    texts = ui(lang)
+    talk = ConversationScreen(trial=trial, condition=conv.condition, seconds=conv.minutes * 60.0,
+                              text=localized(conv.text, lang, texts["conversation"]))  # fmt: skip
+    screens: list[Screen] = [talk]
+    wanted = conv.items
+    items = tuple(i for i in protocol.items if wanted is None or i.id in wanted)
+    if not items:
+        return screens
+    screens.append(TextScreen(role="partner", text=texts["partner"]))
+    if protocol.presentation.items_layout == "together":
+        return [*screens, VasScreen(trial=trial, items=items)]
+    return [*screens, *(VasScreen(trial=trial, items=(item,)) for item in items)]
+
+
 def _vas_screens(
     protocol: Protocol, trial: Trial | None, *, practice: bool, level: float | None = None
 ) -> list[VasScreen]:
@@ -947,6 +1037,9 @@ def compile_timeline(
         )
         screens.append(TextScreen(role="practice", text=texts["practice"]))
         screens += trial_screens(protocol, practice, practice=True, task=task)
+    conversation = pres.conversation
+    if conversation is not None and conversation.when == "before":
+        screens += conversation_screens(protocol)
     blocks = {b.id: b for b in protocol.blocks}
     for i, trial in enumerate(trials):
         screens += trial_screens(protocol, trial)
@@ -954,6 +1047,8 @@ def compile_timeline(
         if nxt is not None and nxt.block != trial.block and blocks[trial.block].break_after:
             text = localized(pres.break_text, lang, texts["break"])
             screens.append(TextScreen(role="break", text=text))
+    if conversation is not None and conversation.when == "after":
+        screens += conversation_screens(protocol)
     if "after" in pres.ssq:
         screens += ssq_screens("after")
     screens.append(TextScreen(role="end", text=localized(pres.end_text, lang, texts["end"])))
@@ -1033,6 +1128,12 @@ def needed_clips(screens: Sequence[Screen]) -> set[ClipKey]:
     return needed
 
 
+def _question_due(screens: Sequence[Screen], i: int, answered: set[tuple[int, str]]) -> bool:
+    """Whether the first response screen after screen ``i`` has a response still to give."""
+    nxt = next((x for x in screens[i + 1 :] if isinstance(x, ResponseScreen)), None)
+    return nxt is not None and any(k not in answered for k in nxt.response_keys())
+
+
 def remaining(
     screens: Sequence[Screen], answered: set[tuple[int, str]], *, language: str
 ) -> list[Screen]:
@@ -1042,8 +1143,11 @@ def remaining(
     if not any(t >= 1 for t, _ in answered):
         # stopped inside the questionnaire before the study (its answers are trial 0): the
         # study has not begun, so its instructions and practice are still to come
-        out = [s for s in screens if not (isinstance(s, ResponseScreen) and s.response_keys()
-                                          and all(k in answered for k in s.response_keys()))]
+        out = [s for i, s in enumerate(screens)
+               if not (isinstance(s, ResponseScreen) and s.response_keys()
+                       and all(k in answered for k in s.response_keys()))
+               and not (isinstance(s, TextScreen) and s.role == "partner"
+                        and not _question_due(screens, i, answered))]  # fmt: skip
         return [out[0], TextScreen(role="resume", text=ui(language)["resume"]), *out[1:]]
     missing_trials = {
         s.trial_index
@@ -1051,12 +1155,14 @@ def remaining(
         if isinstance(s, ResponseScreen) and any(k not in answered for k in s.response_keys())
     }
     out: list[Screen] = []
-    for s in screens:
+    for i, s in enumerate(screens):
         if isinstance(s, TextScreen):
             if s.role == "welcome":
                 out += [s, TextScreen(role="resume", text=ui(language)["resume"])]
             elif s.role in ("break", "end"):
                 out.append(s)
+            elif s.role == "partner" and _question_due(screens, i, answered):
+                out.append(s)  # kept while a question about the partner is to come
             continue  # instructions and the practice announcement are not repeated
         if getattr(s, "practice", False):
             continue

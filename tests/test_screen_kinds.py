@@ -41,6 +41,7 @@ from facelab.experiment.timeline import (
 )
 from facelab.experiment.walk import walk
 from facelab.protocol import load_protocol
+from facelab.protocol_model import Conversation
 from facelab.resources import protocol_path, shipped_protocols
 from facelab.sessionlog import SessionContext, SessionLog
 from tests.protocol_edits import kato_short
@@ -134,13 +135,16 @@ def test_every_screen_kind_has_a_plugin_and_each_json_is_what_it_declares() -> N
 
 
 def _protocols_with_every_kind() -> Iterator[tuple[str, Any]]:
-    """The shipped protocols, and kato2021 with the sickness questionnaire (no shipped
-    protocol asks for it)."""
+    """The shipped protocols, and kato2021 with the sickness questionnaire and with a live
+    conversation (no shipped protocol asks for them)."""
     for name in shipped_protocols():
         yield name, load_protocol(protocol_path(name))
     kato = load_protocol(protocol_path("kato2021"))
     yield "kato2021+ssq", kato.model_copy(update={
         "presentation": kato.presentation.model_copy(update={"ssq": ["before", "after"]})})
+    conversation = Conversation(condition="emphasized", minutes=2.0)
+    yield "kato2021+conversation", kato.model_copy(update={
+        "presentation": kato.presentation.model_copy(update={"conversation": conversation})})
 
 
 def test_a_plugin_that_drifts_from_its_screen_is_caught() -> None:

@@ -31,6 +31,21 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 f"--consent {args.consent}: cannot read it as UTF-8 text ({exc})"
             ) from None
     clips = Path(args.clips) if args.clips else results / protocol.study.id / "clips"
+    routes = ()
+    if protocol.presentation.conversation is not None:  # the talker's voice drives the avatar
+        from facelab.experiment.live_dialogue.conversation import conversation_routes
+
+        if args.conversation_input is not None and not Path(args.conversation_input).is_file():
+            raise FacelabError(f"--conversation-input {args.conversation_input}: no such file")
+        routes = (conversation_routes(
+            protocol, protocol_path=Path(args.protocol),
+            folder=results / protocol.study.id / "conversations",
+            talker=Path(args.conversation_input) if args.conversation_input else "mic",
+            playout_ms=args.conversation_playout_ms,
+        ),)  # fmt: skip
+    elif args.conversation_input is not None:
+        raise FacelabError(f"--conversation-input: {args.protocol} has no "
+                           "presentation.conversation")  # fmt: skip
     server, made = prepare_server(
         protocol,
         protocol_path=Path(args.protocol),
@@ -41,6 +56,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         completion_code=args.completion_code,
         consent=consent,
         admin_secret=os.environ.get("FACELAB_ADMIN_SECRET"),
+        routes=routes,
     )
     if args.simulate_participants:
         from facelab.experiment.online.browser import run_simulated
@@ -88,6 +104,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         "{{%PROLIFIC_PID%}})"
     )
     print(f"  experimenter page:   {base}/admin")
+    if routes:
+        print(f"  talker page:         {base}/talk   (the live conversation's talker)")
     if args.forwarded_allow_ips:
         print(f"  client addresses:    from X-Forwarded-For set by {args.forwarded_allow_ips}")
     else:
@@ -187,6 +205,18 @@ def register(add: AddCommand) -> None:
     p.add_argument("--sim-seed", type=seed, default=1, metavar="S", help="seed of their answers")
     p.add_argument("--parallel", type=whole(lo=1), default=2, metavar="K", help="browsers at once")
     p.add_argument("--screenshots", metavar="DIR", help="PNGs of the first participant's screens")
+    p.add_argument(
+        "--conversation-input",
+        metavar="FILE.wav",
+        help="presentation.conversation: the server is the talker, saying this recording "
+        "to each participant once their conversation starts (demos and tests); default: the "
+        "talker's page /talk, with a microphone",
+    )
+    p.add_argument(
+        "--conversation-playout-ms", type=float, default=120.0, metavar="MS",
+        help="the participant hears the talker this long after the sound arrives (a jitter "
+        "buffer that also holds the analysis; default 120)",
+    )  # fmt: skip
     p.add_argument(
         "--simulate-headset-off",
         type=whole(lo=1),

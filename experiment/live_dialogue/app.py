@@ -47,7 +47,7 @@ from facelab.experiment.online.server import THREE_FILES, WEB
 from facelab.protocol import Protocol
 from facelab.stimuli.methods.live_drive import LIVE_FPS, LiveDriver
 
-__all__ = ["LIVE_RATE", "LiveConfig", "LiveHub", "create_live_app"]
+__all__ = ["LIVE_RATE", "LiveConfig", "LiveHub", "create_live_app", "talk_socket", "view_socket"]
 
 LIVE_RATE = 16_000  # the talker page captures at this rate (the analyser's own)
 CHUNK = 160  # samples per streamed chunk: 10 ms
@@ -333,7 +333,8 @@ def _numeric_rows(rows: Any, *, width: int, limit: int = 200_000) -> list[list[f
 def create_live_app(hub: LiveHub):
     """The FastAPI app over ``hub`` (see the module docstring)."""
     app = FastAPI(openapi_url=None, docs_url=None, redoc_url=None)
-    assets = {n: WEB / "static" / n for n in ("live.js", "dialogue.js", "facelab.css")}
+    assets = {n: WEB / "static" / n
+              for n in ("live.js", "dialogue.js", "conversation.js", "capture.js", "facelab.css")}
     three = {rel: (hub.config.vendor or WEB / "node_modules") / "three" / rel
              for rel in THREE_FILES}  # fmt: skip
 
@@ -385,80 +386,93 @@ def create_live_app(hub: LiveHub):
     @app.websocket("/ws/view")
     async def view(ws: WebSocket) -> None:
         await ws.accept()
-        vid = hub.add_viewer(ws)
-        await hub.join_turn(vid)
-        hub.start_file_talker()
-        try:
-            while True:
-                msg = await ws.receive()
-                if msg.get("type") == "websocket.disconnect":
-                    break
-                try:
-                    hub.viewer_log(vid, json.loads(msg.get("text") or ""))
-                except (ValueError, RecursionError):  # not JSON, or nested beyond reason
-                    continue
-        except WebSocketDisconnect:
-            pass
-        finally:
-            hub.viewers.pop(vid, None)
+        await view_socket(hub, ws)
 
     @app.websocket("/ws/talk")
     async def talk(ws: WebSocket) -> None:
         await ws.accept()
-
-        async def refuse(why: str) -> None:
-            await ws.send_text(json.dumps({"error": why}))
-            await ws.close()
-
-        if hub.config.talker != "mic":
-            await refuse("this session's talker is a file")
-            return
-        started = False
-        try:
-            while True:
-                msg = await ws.receive()
-                if msg.get("type") == "websocket.disconnect":
-                    break
-                if msg.get("bytes") is not None:
-                    data = msg["bytes"]
-                    if not started or len(data) % 4 or len(data) > 4 * LIVE_RATE:
-                        continue
-                    # a sample that is not a number becomes silence: the timing is kept
-                    chunk = np.nan_to_num(np.frombuffer(data, dtype="<f4").astype(np.float64),
-                                          nan=0.0, posinf=0.0, neginf=0.0)  # fmt: skip
-                    await hub.audio(np.clip(chunk, -1.0, 1.0))
-                    continue
-                try:
-                    control = json.loads(msg.get("text") or "")
-                except (ValueError, RecursionError):
-                    continue
-                if not isinstance(control, dict):
-                    continue
-                if not started and control.get("sample_rate") == LIVE_RATE:
-                    try:
-                        await hub.start_turn()
-                    except SessionError as exc:
-                        await refuse(str(exc))
-                        return
-                    started = True
-                    await ws.send_text(json.dumps({"started": True}))
-                elif started and control.get("end"):
-                    break
-                elif not started:
-                    await ws.send_text(json.dumps({"error": f"capture at {LIVE_RATE} Hz"}))
-        except WebSocketDisconnect:
-            pass
-        finally:
-            if started:  # a talker gone without saying so ends its turn too (shielded: a
-                try:  # handler cancelled on a lost connection still saves the turn)
-                    record = await asyncio.shield(hub.end_turn())
-                    reply = {"saved": record and record["folder"]}
-                except SessionError as exc:
-                    reply = {"error": str(exc)}
-                try:
-                    await ws.send_text(json.dumps(reply))
-                    await ws.close()
-                except Exception:  # the talker's page is gone: the turn is saved anyway
-                    pass
+        await talk_socket(hub, ws)
 
     return app
+
+
+async def view_socket(hub: LiveHub, ws: WebSocket) -> None:
+    """A viewer's socket (accepted): joined to the hub (and to a turn running now) until it
+    closes; its end-of-turn logs go to the hub. A file talker starts with the first viewer."""
+    vid = hub.add_viewer(ws)
+    await hub.join_turn(vid)
+    hub.start_file_talker()
+    try:
+        while True:
+            msg = await ws.receive()
+            if msg.get("type") == "websocket.disconnect":
+                break
+            try:
+                hub.viewer_log(vid, json.loads(msg.get("text") or ""))
+            except (ValueError, RecursionError):  # not JSON, or nested beyond reason
+                continue
+    except WebSocketDisconnect:
+        pass
+    finally:
+        hub.viewers.pop(vid, None)
+
+
+async def talk_socket(hub: LiveHub, ws: WebSocket) -> None:
+    """A talker's socket (accepted): ``{"sample_rate": 16000}`` starts a turn, float32 chunks
+    follow, ``{"end": 1}`` (or the socket closing) ends and saves it; the reply names the
+    saved folder or the error."""
+
+    async def refuse(why: str) -> None:
+        await ws.send_text(json.dumps({"error": why}))
+        await ws.close()
+
+    if hub.config.talker != "mic":
+        await refuse("this session's talker is a file")
+        return
+    started = False
+    try:
+        while True:
+            msg = await ws.receive()
+            if msg.get("type") == "websocket.disconnect":
+                break
+            if msg.get("bytes") is not None:
+                data = msg["bytes"]
+                if not started or len(data) % 4 or len(data) > 4 * LIVE_RATE:
+                    continue
+                # a sample that is not a number becomes silence: the timing is kept
+                chunk = np.nan_to_num(np.frombuffer(data, dtype="<f4").astype(np.float64),
+                                      nan=0.0, posinf=0.0, neginf=0.0)  # fmt: skip
+                await hub.audio(np.clip(chunk, -1.0, 1.0))
+                continue
+            try:
+                control = json.loads(msg.get("text") or "")
+            except (ValueError, RecursionError):
+                continue
+            if not isinstance(control, dict):
+                continue
+            if not started and control.get("sample_rate") == LIVE_RATE:
+                try:
+                    await hub.start_turn()
+                except SessionError as exc:
+                    await refuse(str(exc))
+                    return
+                started = True
+                await ws.send_text(json.dumps({"started": True}))
+            elif started and control.get("end"):
+                break
+            elif not started:
+                await ws.send_text(json.dumps({"error": f"capture at {LIVE_RATE} Hz"}))
+    except WebSocketDisconnect:
+        pass
+    finally:
+        if started:  # a talker gone without saying so ends its turn too (shielded: a
+            try:  # handler cancelled on a lost connection still saves the turn)
+                record = await asyncio.shield(hub.end_turn())
+                reply = {"saved": record and record["folder"]}
+            except SessionError as exc:
+                reply = {"error": str(exc)}
+            try:
+                await ws.send_text(json.dumps(reply))
+                await ws.close()
+            except Exception:  # the talker's page is gone: the turn is saved anyway
+                pass

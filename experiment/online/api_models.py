@@ -97,6 +97,9 @@ class AnswerIn(_Strict):
         | Annotated[str, StringConstraints(max_length=64)]
         | None
     ) = None
+    # a live conversation's end: how it ended and the turns the page was sent
+    ended: Literal["time", "talker"] | None = None
+    turns: int | None = Field(None, ge=0, le=100_000)
     timestamp: Iso
     clip_onset: float | None = Field(None, ge=0, le=1e7)
     clip_frames_dropped: int | None = Field(None, ge=0, le=1_000_000)

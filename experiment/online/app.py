@@ -290,4 +290,6 @@ def create_app(server: StudyServer) -> Any:
         server.check_admin(request.headers.get(ADMIN_HEADER), address=client_address(request))
         return {"study": server.study.study, "participants": server.progress()}
 
+    for add in config.routes:  # routes of their own (a live conversation's)
+        add(app, server)
     return SecurityHeaders(app)

@@ -12,6 +12,7 @@ lab's ``_actions.jsonl`` record), then clicks: the VAS line at the rating its
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import hmac
 import json
@@ -205,6 +206,16 @@ if (consent) return {kind: 'consent'};
 return {kind: 'wait'};
 """
 
+#: a live conversation's screen: ask the page (conversation.js) to keep the first frame it
+#: draws with a weight of 0.3 or more, and return it once kept
+_CONVERSATION_SNAP_JS = """
+const a = window.FacelabDialogue;
+if (!a) return null;
+if (!a.snapAsked) { a.snap = {after_s: 0.0, peak: 0.3}; a.snapAsked = true; }
+return a.snapshot || null;
+"""
+
+
 
 @dataclass
 class SimulatedBrowser:
@@ -264,6 +275,13 @@ class SimulatedBrowser:
                 (self.screenshots / f"{name}.panel.json").write_text(
                     json.dumps(layout, ensure_ascii=False), encoding="utf-8"
                 )
+
+    def _save_data_url(self, name: str, url: str) -> None:
+        """A PNG data URL the page made (a canvas) as ``name``.png, once per name."""
+        if self.screenshots is not None and name not in self.shots and "," in url:
+            self.shots.add(name)
+            self.screenshots.mkdir(parents=True, exist_ok=True)
+            (self.screenshots / f"{name}.png").write_bytes(base64.b64decode(url.split(",", 1)[1]))
 
     def run(self, *, timeout_s: float = 900.0) -> str:
         """Walk the session; returns "complete" or "stopped" (``stop_after`` reached)."""
@@ -348,6 +366,15 @@ class SimulatedBrowser:
                         if in_vr() and d.execute_script("return !!FacelabLive.onFrame"):
                             self._shot("vr-clip")  # the avatar talking, in the room
                         self._shot(kind)
+                    time.sleep(0.1)
+                    continue
+                if kind == "conversation":  # the partner talks; the participant watches
+                    # the page keeps the first drawn frame with the mouth well open (a busy
+                    # page answers a driver's call only every few seconds)
+                    shot = d.execute_script(_CONVERSATION_SNAP_JS)
+                    self._shot("conversation-page")
+                    if shot:
+                        self._save_data_url("conversation", shot)
                     time.sleep(0.1)
                     continue
                 if kind == "error":

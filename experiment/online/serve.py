@@ -53,10 +53,18 @@ def prepare_server(
     completion_code: str | None = None,
     consent: str | None = None,
     admin_secret: str | None = None,
+    routes: tuple[Any, ...] = (),
 ) -> tuple[StudyServer, str | None]:
     """The server for ``protocol``; returns it and a newly made experimenter secret (None
     when ``admin_secret`` was given). Every clip is checked first (present, unchanged, from
-    the protocol as it is now), as before a lab session."""
+    the protocol as it is now), as before a lab session. ``routes`` add routes of their own
+    to the app (``add(app, server)``); a protocol with a live conversation needs its routes
+    (:func:`facelab.experiment.live_dialogue.conversation.conversation_routes`)."""
+    if protocol.presentation.conversation is not None and not routes:
+        raise SessionError(
+            f"{protocol_path}: presentation.conversation: this server has no live "
+            "conversation (serve the study with facelab serve, which adds it)"
+        )
     base = protocol_path.parent
     study = checked_study(
         protocol, protocol_sha256=protocol_hash(protocol_path), clips_dir=clips_dir, base_dir=base
@@ -76,6 +84,7 @@ def prepare_server(
         completion_url=completion_url,
         completion_code=completion_code,
         consent=consent,
+        routes=tuple(routes),
     )
     engine = open_engine(db_url or default_url(results, protocol.study.id))
     store_protocol(engine, protocol_path=protocol_path, study=protocol.study.id)

@@ -177,6 +177,9 @@ class ServeConfig:
     # where the copies browsers fetch are written (see facelab.experiment.online.served);
     # None serves the rendered files under their SHA-256
     served_dir: Path | None = None
+    # what adds routes of its own to the app (``add(app, server)``): the live conversation of
+    # a protocol with one (facelab.experiment.live_dialogue.conversation)
+    routes: tuple[Any, ...] = ()
 
 
 class InUseError(Exception):
@@ -382,6 +385,19 @@ class StudyServer:
             lang = self.study.protocol.presentation.language
             raise RefusedError(409, PAUSED.get(lang, PAUSED["en"]))
         self._by_token.put(digest, p)
+        return p
+
+    def participant_by_id(self, participant: str) -> Participant:
+        """The participant ``participant`` (e.g. P0001) of this study, for the experimenter's
+        pages (behind the experimenter secret); 404 when there is none."""
+        with Session(self.engine, expire_on_commit=False) as db:
+            p = db.scalars(
+                select(Participant).where(
+                    Participant.participant == participant, Participant.study == self.study.study
+                )
+            ).first()
+        if p is None:
+            raise RefusedError(404, f"no participant {participant!r} in this study")
         return p
 
     def check_earlier_token(self, p: Participant, earlier: str | None) -> None:

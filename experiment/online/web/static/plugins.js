@@ -441,7 +441,26 @@ class FacelabComplete extends FacelabPlugin {
 }
 FacelabComplete.info = facelabInfo("facelab-complete", { kind: "STRING", role: "STRING", text: "STRING", vr_text: "STRING" });
 
+// A live conversation (presentation.conversation): the partner's avatar, driven by the
+// talker's streamed voice, for the screen's seconds or until the talker ends it
+// (conversation.js); answered with how it ended and the turns heard. In VR no panel covers
+// the partner.
+class FacelabConversation extends FacelabPlugin {
+  async run(el, s) {
+    const started = performance.now();
+    const box = facelabBox("facelab-conversation", "conversation", s); box.dataset.item = s.item;
+    const stage = FacelabSession.stage;
+    const { converse } = await import("/static/conversation.js");
+    const out = await converse({ box, screen: s, language: document.documentElement.lang, token: FacelabOutbox.readToken(),
+                                 show: () => facelabShow(el, box, !(stage && stage.inVR())) });
+    FacelabOutbox.send("/api/response", facelabAnswer(s, s.item, { ended: out.ended, turns: out.turns }, started));
+    return { ended: out.ended, turns: out.turns };
+  }
+}
+FacelabConversation.info = facelabInfo("facelab-conversation", { ...FacelabFields.screen, item: "STRING", condition: "STRING", seconds: "FLOAT", text: "STRING" });
+
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
 const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,
                          choice_2afc: FacelabChoice, identify: FacelabIdentify, typed: FacelabTyped,
-                         adaptive: FacelabAdaptive, ssq: FacelabButtons };  // ssq: the sickness questionnaire's buttons
+                         adaptive: FacelabAdaptive, ssq: FacelabButtons,  // ssq: the sickness questionnaire's buttons
+                         conversation: FacelabConversation };
