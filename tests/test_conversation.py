@@ -186,16 +186,17 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-def _server(study: Path, results: Path, *, talker: str | Path = "mic"):
+def _server(study: Path, results: Path, *, talker: str | Path = "mic", path: Path | None = None):
     from facelab.experiment.live_dialogue.conversation import conversation_routes
     from facelab.experiment.online.serve import prepare_server
 
-    protocol = load_protocol(study / "conv.yaml")
-    routes = conversation_routes(protocol, protocol_path=study / "conv.yaml",
+    path = path or study / "conv.yaml"
+    protocol = load_protocol(path)
+    routes = conversation_routes(protocol, protocol_path=path,
                                  folder=results / "conversations", talker=talker,
                                  playout_ms=1000.0)  # fmt: skip
     server, _ = prepare_server(
-        protocol, protocol_path=study / "conv.yaml", clips_dir=study / "clips",
+        protocol, protocol_path=path, clips_dir=study / "clips",
         db_url=f"sqlite:///{results / 'db.sqlite'}", results=results, admin_secret=SECRET,
         routes=(routes,),
     )  # fmt: skip
@@ -438,3 +439,36 @@ def test_serve_with_a_recording_as_the_talker_then_export_and_analyze(
     assert main(["serve", str(path), "--clips", str(study / "clips"), "--results",
                  str(tmp_path / "r2"), "--conversation-input", str(tmp_path / "none.wav")]) == 2
     assert "none.wav" in capsys.readouterr().err
+
+
+@slow
+def test_a_conversation_in_an_emulated_headset(study: Path, tmp_path: Path) -> None:
+    """display webxr: the conversation runs in the headset (the partner in the room, no panel
+    over them) with the server as the talker, and ends when its 7 s have run out; the
+    participant's page drew the turn in VR, and the partner is rated on a VR panel."""
+    from facelab.experiment.online.browser import SimulatedBrowser
+    from facelab.experiment.online.serve import BackgroundServer
+
+    text = (study / "conv.yaml").read_text(encoding="utf-8")
+    text = text.replace("presentation:\n", "presentation:\n  display: webxr\n", 1)
+    path = tmp_path / "conv_vr.yaml"
+    path.write_text(text.replace("minutes: 3,", "minutes: 0.12,"), encoding="utf-8")
+    results, shots = tmp_path / "results", tmp_path / "shots"
+    results.mkdir()
+    server = _server(study, results, talker=study / "talk.wav", path=path)
+    with BackgroundServer(server) as bg:
+        assert SimulatedBrowser(server, bg.url, 1, seed=5, screenshots=shots).run() == "complete"
+    with Session(server.engine) as db:
+        rows = [x.row for x in db.scalars(select(Response))]
+        clicks = {(a.record["trial_index"], a.record["item"]): a.record["value"]
+                  for a in db.scalars(select(Action))}  # fmt: skip
+    talk = next(r for r in rows if r["item"] == "conversation")
+    assert talk["response"] == "time" and talk["score"] == 1.0 and talk["rt_s"] >= 7.2
+    partner = next(r for r in rows if r["trial_index"] == 0 and r["item"] == "naturalness")
+    assert abs(partner["rating"] - clicks[(0, "naturalness")]) < 0.5  # a ray on the panel
+    (turn,) = sorted((results / "conversations" / "P0001").glob("turn-*"))
+    record = json.loads((turn / "turn.json").read_text(encoding="utf-8"))
+    assert record["viewer_displays"] == {"1": "webxr"}
+    with (turn / "frames.csv").open(encoding="utf-8") as f:
+        drawn = list(csv.DictReader(f))
+    assert drawn and all(int(d["frame"]) <= int(d["wanted"]) for d in drawn)

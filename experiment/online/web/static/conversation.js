@@ -13,7 +13,7 @@ export const wsUrl = (path) => (location.protocol === "https:" ? "wss://" : "ws:
 // Follow the turns a socket brings: `api` (the page's state for drivers and tests) gets
 // state, turns, shown, lateAudio and snapshots; `onMessage(msg)` sees every text message.
 // Returns stop(): the turn being heard is logged to the server now, the stage let go.
-export function followTurns({ stage, cfg, ws, api, status, onMessage }) {
+export function followTurns({ stage, cfg, ws, api, status, onMessage, output = null }) {
   const K = cfg.names.length, ctx = stage.audio;
   const channels = cfg.names.map((name) => ({ name, kind: "blendshape" }));
   let values = new Float32Array(K * 1024), have = -1, t0 = null, endS = null, log = [], sent = true;
@@ -47,7 +47,7 @@ export function followTurns({ stage, cfg, ws, api, status, onMessage }) {
       const buffer = ctx.createBuffer(1, count, cfg.sample_rate);
       buffer.copyToChannel(data, 0);
       const src = ctx.createBufferSource();
-      src.buffer = buffer; src.connect(ctx.destination);
+      src.buffer = buffer; src.connect(output || ctx.destination);  // in VR: from the mouth
       const when = t0 + start / cfg.sample_rate;
       if (when < ctx.currentTime) api.lateAudio += 1;  // arrived after its time: played now
       src.start(Math.max(when, ctx.currentTime));
@@ -132,13 +132,20 @@ export async function converse({ box, screen, language, token, show }) {
   stage.attach(box);
   box.append(status);
   show();
-  if (!stage.inVR()) await soundOn(stage.audio, box, words.listen);
+  const inVR = stage.inVR();
+  let voice = null;
+  if (inVR) {  // the partner in the room, no panel and no rays over them, the voice from the mouth
+    stage.avatar.visible = true; stage.showRays(false); stage.fadeIn();
+    voice = stage.voiceOutput();
+  } else {
+    await soundOn(stage.audio, box, words.listen);
+  }
   const ws = new WebSocket(wsUrl("/ws/conversation/view"));
   let ended = null;
   const done = new Promise((res) => {
     ws.onopen = () => { ws.send(JSON.stringify({ token })); api.state = "waiting"; };
     setTimeout(() => res("time"), screen.seconds * 1000);
-    const stop = followTurns({ stage, cfg, ws, api, status, onMessage: (msg) => {
+    const stop = followTurns({ stage, cfg, ws, api, status, output: voice && voice.node, onMessage: (msg) => {
       if (msg.conversation_end) res("talker");
       if (msg.error) { api.state = "refused"; api.error = msg.error; }
     } });
@@ -148,6 +155,8 @@ export async function converse({ box, screen, language, token, show }) {
   api.stop();
   await new Promise((res) => setTimeout(res, 200));  // the log's message leaves before the close
   ws.close();
+  if (voice && voice.at) voice.node.disconnect();
+  if (inVR) stage.showRays(true);
   api.state = "ended"; api.ended = ended;
   if (own) { stage.renderer.setAnimationLoop(null); stage.audio.close().catch(() => {}); }
   return { ended, turns: api.turns };
