@@ -43,24 +43,31 @@ def conversation_items(protocol: Protocol) -> list[str]:
                                if conv.items is None or i.id in conv.items]  # fmt: skip
 
 
-def is_conversation_row(data: pd.DataFrame) -> pd.Series:
-    """Rows of the log on the conversation's trial (block ``conversation``)."""
+def is_conversation_row(data: pd.DataFrame, protocol: Protocol) -> pd.Series:
+    """Rows of the log on the conversation's trial (block ``conversation``) of a protocol
+    with one (without one, a block may have that id)."""
+    if protocol.presentation.conversation is None:
+        return pd.Series(False, index=data.index)
     return data["block"].astype(str) == BLOCK
 
 
 def check_conversation_rows(data: pd.DataFrame, protocol: Protocol) -> None:
     """The conversation's rows are what a session writes - refused naming the first that is
     not (an edited log, or rows from another protocol)."""
-    rows = data[is_conversation_row(data) | (data["item"].astype(str) == "conversation")]
+    conv = protocol.presentation.conversation
+    talks = data["screen"].astype(str) == "conversation"
+    if conv is None:
+        if talks.any():
+            first = data[talks].iloc[0]
+            raise AnalysisError(f"{first.get('source', 'the logs')}: participant "
+                                f"{first['participant']}: rows of a live conversation, but the "
+                                f"protocol {protocol.study.id!r} has none "
+                                "(presentation.conversation); pass the protocol these sessions "
+                                "ran")  # fmt: skip
+        return
+    rows = data[is_conversation_row(data, protocol) | talks]
     if rows.empty:
         return
-    conv = protocol.presentation.conversation
-    first = rows.iloc[0]
-    where = f"{first.get('source', 'the logs')}: participant {first['participant']}"
-    if conv is None:
-        raise AnalysisError(f"{where}: rows of a live conversation, but the protocol "
-                            f"{protocol.study.id!r} has none (presentation.conversation); "
-                            "pass the protocol these sessions ran")  # fmt: skip
     items = set(conversation_items(protocol))
     for _, row in rows.iterrows():
         where = (f"{row.get('source', 'the logs')}: participant {row['participant']} "
@@ -81,6 +88,12 @@ def check_conversation_rows(data: pd.DataFrame, protocol: Protocol) -> None:
         if screen == "conversation" and str(row["response"]) not in ("time", "talker"):
             raise AnalysisError(f"{where}: response {row['response']!r}, expected 'time' or "
                                 "'talker' (how the conversation ended)")  # fmt: skip
+        numbers = ("score", "rt_s") if screen == "conversation" else ("rating",)
+        for column in numbers:
+            value = pd.to_numeric(pd.Series([row[column]]), errors="coerce").iloc[0]
+            if not np.isfinite(value) or value < 0:
+                raise AnalysisError(f"{where}: {column} is {row[column]!r}, expected a number "
+                                    "from 0; the log was edited")  # fmt: skip
 
 
 def conversation_tables(

@@ -147,7 +147,7 @@ def _check_design(data: pd.DataFrame, protocol: Protocol, sessions: pd.DataFrame
         (r.participant, r.session) for r in sessions.itertuples() if r.protocol_matches is True
     }
     # the questionnaire and the conversation are outside the design
-    data = data[~is_ssq_row(data) & ~is_conversation_row(data)]
+    data = data[~is_ssq_row(data) & ~is_conversation_row(data, protocol)]
     # the screen that gave each response: a block's task, or the VAS items
     screen_of = {b.id: (b.task and protocol.task(b.task).type) or "vas" for b in protocol.blocks}
     added = added_items(protocol)

@@ -152,7 +152,7 @@ def run(
         accept_protocol_change=accept_protocol_change,
     )
     every_row = data  # the session table counts the questionnaire's answers too
-    in_ssq, in_conversation = is_ssq_row(data), is_conversation_row(data)
+    in_ssq, in_conversation = is_ssq_row(data), is_conversation_row(data, protocol)
     questionnaires = data[in_ssq]  # session-level: outside every trial analysis
     conversations = data[in_conversation]
     data = data[~in_ssq & ~in_conversation].reset_index(drop=True)

@@ -13,6 +13,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from facelab import sickness_questionnaire as ssq
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
 from facelab.methods import METHODS, method_spec
@@ -645,6 +646,18 @@ def _practice(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             yield Issue((*where, "condition"), f"unknown condition {practice.condition!r}")
 
 
+@_check("presentation", "items", "tasks")
+def _questionnaire_items(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
+    """No item or task has the id of a sickness questionnaire item the protocol asks for."""
+    taken = {ssq.item_id(moment=m, symptom=s.id) for m in protocol.presentation.ssq
+             for s in ssq.SYMPTOMS}  # fmt: skip
+    for section, entries in (("items", protocol.items), ("tasks", protocol.tasks)):
+        for k, entry in enumerate(entries):
+            if entry.id in taken:
+                yield Issue((section, k, "id"), f"{entry.id!r} is an item of the sickness "
+                            "questionnaire (presentation.ssq) in the logs; choose another id")
+
+
 @_check("presentation", "conditions", "items", "blocks")
 def _conversation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """The conversation names a real condition and real VAS items."""
@@ -658,6 +671,10 @@ def _conversation(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                         "the logs; give this block another id")  # fmt: skip
     if conversation.condition not in {c.id for c in protocol.conditions}:
         yield Issue((*where, "condition"), f"unknown condition {conversation.condition!r}")
+    for k, item in enumerate(protocol.items):
+        if item.id == "conversation":
+            yield Issue(("items", k, "id"), "'conversation' is the conversation's own item in "
+                        "the logs; give this item another id")  # fmt: skip
     known = {i.id for i in protocol.items}
     for k, item in enumerate(conversation.items or ()):
         if item not in known:

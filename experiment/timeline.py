@@ -1140,9 +1140,10 @@ def remaining(
     """The screens still to show when ``answered`` responses are already logged."""
     if not answered:
         return list(screens)
-    if not any(t >= 1 for t, _ in answered):
+    if all((ssq.parse_item(item) or ("",))[0] == "before" for _, item in answered):
         # stopped inside the questionnaire before the study (its answers are trial 0): the
-        # study has not begun, so its instructions and practice are still to come
+        # study has not begun, so its instructions and practice are still to come (an
+        # answered conversation or trial means it has)
         out = [s for i, s in enumerate(screens)
                if not (isinstance(s, ResponseScreen) and s.response_keys()
                        and all(k in answered for k in s.response_keys()))

@@ -70,11 +70,37 @@ def test_the_conversation_key_is_checked(tmp_path: Path) -> None:
     assert "presentation.conversation.condition" in problems and "'nope'" in problems
     assert "presentation.conversation.items[1]: unknown item 'nope'" in problems
     assert "unknown item 'naturalness'" not in problems
-    taken = with_conversation(text.replace("  - id: vowels\n", "  - id: conversation\n"),
+    taken = with_conversation(text.replace("  - id: vowels\n    stimulus_set: vowels",
+                                           "  - id: conversation\n    stimulus_set: vowels"),
                               "{condition: standard, minutes: 2}")  # fmt: skip
     assert "blocks[0].id" in protocol_problems(taken, tmp_path)
     none = with_conversation(text, "{condition: standard, minutes: 0}")
     assert "presentation.conversation.minutes" in protocol_problems(none, tmp_path)
+    # the ids the logs give the conversation's and the questionnaire's rows are reserved
+    own = with_conversation(text.replace("  - id: naturalness\n", "  - id: conversation\n"),
+                            "{condition: standard, minutes: 2}")  # fmt: skip
+    assert "items[0].id: 'conversation' is the conversation's own item" in protocol_problems(
+        own, tmp_path)
+    sick = text.replace("  - id: naturalness\n", "  - id: ssq_after_nausea\n")
+    sick = sick.replace("  items_layout: sequential\n",
+                        "  items_layout: sequential\n  ssq: [after]\n")
+    assert "items[0].id: 'ssq_after_nausea'" in protocol_problems(sick, tmp_path)
+
+
+def test_without_a_conversation_a_block_may_be_called_conversation(tmp_path: Path,
+                                                                   capsys) -> None:  # fmt: skip
+    path = tmp_path / "p.yaml"
+    text = kato_text().replace("  - id: vowels\n    stimulus_set: vowels",
+                               "  - id: conversation\n    stimulus_set: vowels")  # the block
+    path.write_text(text, "utf-8")
+    results = tmp_path / "results"
+    assert main(["simulate", str(path), "--participants", "2", "--sim-seed", "1",
+                 "--results", str(results)]) == 0  # fmt: skip
+    assert main(["analyze", str(path), str(results), "--out", str(tmp_path / "out")]) == 0
+    capsys.readouterr()
+    with (tmp_path / "out" / "ratings.csv").open(encoding="utf-8") as f:
+        assert "conversation" in {r["block"] for r in csv.DictReader(f)}  # analysed as any
+    assert not (tmp_path / "out" / "conversation.csv").exists()
 
 
 @pytest.mark.parametrize("when", ["before", "after"])
@@ -105,6 +131,12 @@ def test_the_timeline_has_the_conversation_then_the_partner_questions(
     assert not any(isinstance(s, ConversationScreen) for s in left)
     roles = [s.role for s in left if isinstance(s, TextScreen)]
     assert "partner" in roles and "resume" in roles
+    # the study has begun: neither its instructions nor its practice trial again
+    assert "instructions" not in roles and "practice" not in roles
+    assert not any(getattr(s, "practice", False) for s in left)
+    intro_at = next(i for i, s in enumerate(left) if isinstance(s, TextScreen)
+                    and s.role == "partner")  # fmt: skip
+    assert left[intro_at + 1] == vas
     # every question answered too: no intro to a question that will not come
     answered |= {(0, "naturalness")}
     left = remaining(screens, answered, language="ja")
@@ -160,6 +192,18 @@ def test_simulated_conversations_are_tabulated_and_kept_out_of_the_trials(
     assert main(["analyze", str(path), str(results), "--out", str(tmp_path / "r2")]) == 2
     err = capsys.readouterr().err
     assert "P02" in err and "condition" in err and "conversation" in err
+    lines[1] = lines[1].replace("\tstandard\t", "\temphasized\t", 1)  # restored
+    tsv.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert main(["analyze", str(path), str(results), "--out", str(tmp_path / "r4")]) == 0
+    capsys.readouterr()
+    # the conversation's answer logged twice: refused, naming it
+    third = next(results.rglob("sub-P03_*_beh.tsv"))
+    rows = third.read_text(encoding="utf-8").splitlines()
+    third.write_text("\n".join([rows[0], rows[1], *rows[1:]]) + "\n", encoding="utf-8")
+    assert main(["analyze", str(path), str(results), "--out", str(tmp_path / "r5")]) == 2
+    err = capsys.readouterr().err
+    assert "P03" in err and "'conversation'" in err and "twice" in err
+    third.write_text("\n".join(rows) + "\n", encoding="utf-8")
     # rows of a conversation analysed with a protocol that has none: refused
     assert main(["analyze", str(KATO), str(results), "--out", str(tmp_path / "r3")]) == 2
     assert "presentation.conversation" in capsys.readouterr().err
@@ -245,11 +289,12 @@ def test_the_conversation_routes_refuse_strangers_and_relay_a_turn(
     with client.websocket_connect("/ws/conversation/view") as ws:
         ws.send_text(json.dumps({"token": "not-a-token"}))
         assert "unknown token" in ws.receive_json()["error"]
-    with pytest.raises(WebSocketDisconnect), client.websocket_connect(
+    with client.websocket_connect(
         "/ws/conversation/view", headers={"origin": "http://elsewhere.example"}
     ) as ws:
-        ws.send_text(json.dumps({"token": token}))
-        ws.receive_json()
+        assert "from this site" in ws.receive_json()["error"]
+        with pytest.raises(WebSocketDisconnect):
+            ws.receive_json()
     with client.websocket_connect("/ws/conversation/talk") as ws:
         ws.send_text(json.dumps({"admin": "wrong-secret-0000", "participant": p.participant}))
         assert "error" in ws.receive_json()
@@ -257,6 +302,9 @@ def test_the_conversation_routes_refuse_strangers_and_relay_a_turn(
     x = synthesize("はい。", sample_rate=16_000).samples.astype(np.float32)
     with client.websocket_connect("/ws/conversation/view") as viewer:
         viewer.send_text(json.dumps({"token": token}))
+        _until(lambda: client.get("/api/conversation/status", headers=admin,
+                                  params={"participant": p.participant}).json()["viewers"],
+               timeout_s=30, what="the viewer did not join")  # fmt: skip
         with client.websocket_connect("/ws/conversation/talk") as talker:
             talker.send_text(json.dumps({"admin": SECRET, "participant": p.participant}))
             assert talker.receive_json() == {"joined": p.participant, "viewers": 1}
@@ -286,6 +334,12 @@ def test_the_conversation_routes_refuse_strangers_and_relay_a_turn(
                         headers=admin)  # fmt: skip
         assert r.json() == {"ended": True, "viewers": 1}
         assert viewer.receive_json() == {"conversation_end": 1}
+        # the page reloads after the end: told at once, and /api/conversation says so
+    with client.websocket_connect("/ws/conversation/view") as again:
+        again.send_text(json.dumps({"token": token}))
+        assert again.receive_json() == {"conversation_end": 1}
+    cfg = client.get("/api/conversation", headers={"X-Facelab-Token": token}).json()
+    assert cfg["ended"] is True and cfg["turns"] == 1
     audio, rate = sf.read(Path(saved) / "audio.wav", dtype="float32")
     assert rate == 16_000 and np.array_equal(audio, np.clip(x, -1, 1))  # as the talker sent it
     turn = json.loads((Path(saved) / "turn.json").read_text(encoding="utf-8"))

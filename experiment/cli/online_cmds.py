@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, seed, whole
+from facelab.experiment.cli.common import AddCommand, output_dir, real, seed, whole
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -213,7 +213,7 @@ def register(add: AddCommand) -> None:
         "talker's page /talk, with a microphone",
     )
     p.add_argument(
-        "--conversation-playout-ms", type=float, default=120.0, metavar="MS",
+        "--conversation-playout-ms", type=real(lo=40, hi=1000), default=120.0, metavar="MS",
         help="the participant hears the talker this long after the sound arrives (a jitter "
         "buffer that also holds the analysis; default 120)",
     )  # fmt: skip

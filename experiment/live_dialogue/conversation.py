@@ -22,8 +22,14 @@ Routes it adds to ``facelab serve``'s app (:func:`conversation_routes`):
 ``WS /ws/conversation/talk``     first message ``{"admin": SECRET, "participant": ID}``;
                                  then one turn as ``facelab live``'s ``/ws/talk``
 ``POST /api/conversation/end``   (experimenter secret) ``{"participant": ID}``: end it now
-``GET /api/conversation/status`` (experimenter secret) ``?participant=ID``: viewers, turns
+                                 (a page that joins later is told at once)
+``GET /api/conversation/status`` (experimenter secret) ``?participant=ID``: pages in it,
+                                 turns, seconds left (409 before the participant reaches it)
 ===============================  ==========================================================
+
+The conversation's clock runs on the server from the moment the participant's page first
+joins: a page that reloads rejoins with the time left and the turns recorded so far. A room
+is let go once the conversation's answer is stored and no page or turn is in it.
 
 The sockets refuse a page of another origin (the browser's ``Origin`` header), an unknown
 token or a wrong secret; the token travels in the socket's first message, never in its URL.
@@ -33,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,24 +64,50 @@ from facelab.experiment.online.server import (
 )
 from facelab.protocol import Protocol
 
-__all__ = ["Conversations", "conversation_routes"]
+__all__ = ["Conversations", "Room", "conversation_routes"]
 
 FIRST_MESSAGE_S = 10.0  # a socket that does not say who it is within this long is closed
+FIRST_MESSAGE_MAX = 4096  # characters of a socket's first message (a token, a secret, an id)
+MAX_VIEWERS = 3  # pages of one participant in their conversation at once (a reload: two)
+
+
+@dataclass
+class Room:
+    """One participant's conversation: its hub, when their page first joined (the
+    conversation's clock runs from then, across reloads) and whether the talker ended it."""
+
+    hub: LiveHub
+    seconds: float
+    started: float | None = None  # time.monotonic() at the first viewer's join
+    ended_by_talker: bool = False
+
+    def remaining_s(self) -> float:
+        if self.started is None:
+            return self.seconds
+        return max(0.0, self.seconds - (time.monotonic() - self.started))
+
+    def over(self) -> bool:
+        return self.ended_by_talker or (self.started is not None and self.remaining_s() <= 0)
 
 
 @dataclass
 class Conversations:
-    """The live conversations of one study's participants: a hub each, opened when their
-    conversation screen first asks for it (and kept while the server runs, so a page that
-    reloads joins the same one)."""
+    """The live conversations of one study's participants: a room each, opened when their
+    conversation screen asks for it, kept while their page may come back to it (a reload
+    rejoins it, its clock running on), and let go once its answer is stored and no page is
+    in it."""
 
     protocol_path: Path
     folder: Path  # turns go to <folder>/<participant>/turn-NNN
     talker: str | Path = "mic"  # "mic": the talker's page; a WAV: the server talks
     playout_ms: float = 120.0
     vendor: Path | None = None
-    hubs: dict[str, LiveHub] = field(default_factory=dict)
+    rooms: dict[str, Room] = field(default_factory=dict)
     locks: dict[str, asyncio.Lock] = field(default_factory=dict)
+
+    @property
+    def hubs(self) -> dict[str, LiveHub]:
+        return {pid: room.hub for pid, room in self.rooms.items()}
 
     def config(self, protocol: Protocol, participant: str) -> LiveConfig:
         conv = protocol.presentation.conversation
@@ -93,53 +126,77 @@ class Conversations:
         joins."""
         LiveHub.open(self.config(protocol, "check"))
 
-    async def hub(self, server: StudyServer, participant: Any) -> LiveHub:
+    async def room(self, server: StudyServer, participant: Any) -> Room:
+        """The participant's room, opened now if it is not open (RefusedError when their
+        conversation is answered already, or cannot start)."""
         pid = participant.participant
         lock = self.locks.setdefault(pid, asyncio.Lock())
         async with lock:
-            if pid not in self.hubs:
+            if pid not in self.rooms:
+                answered = await asyncio.to_thread(server.answered, participant)
+                if (0, "conversation") in answered:
+                    raise RefusedError(409, "this participant's conversation is over")
                 protocol = server.study_of(participant).protocol
-                config = self.config(protocol, pid)
-                self.hubs[pid] = await asyncio.to_thread(LiveHub.open, config)
-            return self.hubs[pid]
+                try:
+                    hub = await asyncio.to_thread(LiveHub.open, self.config(protocol, pid))
+                except FacelabError as exc:
+                    raise RefusedError(503, f"the conversation cannot start: {exc}") from None
+                except Exception:  # an avatar or a talker's file gone bad since the start
+                    raise RefusedError(503, "the conversation cannot start: its avatar or "
+                                       "talker could not be loaded (see the server's "
+                                       "protocol check: facelab validate)") from None  # fmt: skip
+                seconds = protocol.presentation.conversation.minutes * 60.0  # type: ignore[union-attr]
+                self.rooms[pid] = Room(hub=hub, seconds=seconds)
+            return self.rooms[pid]
 
-    def viewer_json(self, hub: LiveHub) -> dict[str, Any]:
+    async def release(self, server: StudyServer, participant: Any) -> None:
+        """Let a room go once its conversation is answered (its end stored: a page that
+        comes back before that must find it, ended or with its time left) and no page or
+        turn is in it."""
+        pid = participant.participant
+        room = self.rooms.get(pid)
+        if room is None or room.hub.viewers or room.hub.busy:
+            return
+        answered = await asyncio.to_thread(server.answered, participant)
+        still_empty = self.rooms.get(pid) is room and not room.hub.viewers and not room.hub.busy
+        if (0, "conversation") in answered and still_empty:
+            del self.rooms[pid]
+
+    def viewer_json(self, room: Room) -> dict[str, Any]:
+        hub = room.hub
         out = hub.live_json()
         out["scene"]["avatar"] = "/conversation/avatar/" + hub.scene["name"]
-        out["turns"] = len(hub.turns)
+        out["turns"] = len(hub.turns)  # recorded before this page joined (a reload)
+        out["remaining_s"] = round(room.remaining_s(), 3)
+        out["ended"] = room.ended_by_talker
         return out
 
     def add_routes(self, app: FastAPI, server: StudyServer) -> None:
         """The routes of the module docstring, on ``app`` over ``server``."""
         conversations = self
 
-        async def participant_of(token: Any) -> Any:
-            return await asyncio.to_thread(server.participant, token if isinstance(token, str)
-                                           else None)  # fmt: skip
-
-        async def open_hub(token: Any) -> LiveHub:
-            p = await participant_of(token)
-            try:
-                return await conversations.hub(server, p)
-            except FacelabError as exc:
-                raise RefusedError(503, f"the conversation cannot start: {exc}") from None
+        async def participant_room(token: Any) -> tuple[Any, Room]:
+            p = await asyncio.to_thread(server.participant, token if isinstance(token, str)
+                                        else None)  # fmt: skip
+            return p, await conversations.room(server, p)
 
         @app.get("/api/conversation")
         async def conversation(request: Request) -> dict[str, Any]:
-            hub = await open_hub(request.headers.get(TOKEN_HEADER))
-            return conversations.viewer_json(hub)
+            _, room = await participant_room(request.headers.get(TOKEN_HEADER))
+            return conversations.viewer_json(room)
 
         @app.get("/conversation/avatar/{name}")
         def avatar(name: str) -> Response:
-            for hub in list(conversations.hubs.values()):
-                if hub.scene["name"] == name:
-                    return Response(hub.scene["glb"], media_type="model/gltf-binary")
+            for room in list(conversations.rooms.values()):
+                if room.hub.scene["name"] == name:
+                    return Response(room.hub.scene["glb"], media_type="model/gltf-binary")
             raise RefusedError(404, "not found")
 
         @app.get("/talk")
         def talk_page() -> HTMLResponse:
+            lang = server.study.protocol.presentation.language
             return HTMLResponse(
-                "<!doctype html><html><head><meta charset='utf-8'>"
+                f"<!doctype html><html lang='{lang}'><head><meta charset='utf-8'>"
                 "<title>facelab: talker</title><link rel='stylesheet' "
                 "href='/static/facelab.css'>"
                 f"<script type='importmap'>{IMPORT_MAP}</script></head>"
@@ -148,17 +205,19 @@ class Conversations:
                 headers={"cache-control": "no-store"},
             )
 
-        async def talker_hub(request_or_ws: Any, secret: Any, participant: Any) -> LiveHub:
+        async def talker_room(request_or_ws: Any, secret: Any, participant: Any) -> Room:
+            """The open room of ``participant``, for the experimenter (their secret)."""
             address = request_or_ws.client.host if request_or_ws.client else "?"
             await asyncio.to_thread(server.check_admin, secret if isinstance(secret, str)
                                     else None, address=address)  # fmt: skip
             if not isinstance(participant, str) or len(participant) > 32:
                 raise RefusedError(422, "participant: expected a participant id, e.g. P0001")
-            p = await asyncio.to_thread(server.participant_by_id, participant)
-            try:
-                return await conversations.hub(server, p)
-            except FacelabError as exc:
-                raise RefusedError(503, f"the conversation cannot start: {exc}") from None
+            await asyncio.to_thread(server.participant_by_id, participant)  # 404 if none
+            room = conversations.rooms.get(participant)
+            if room is None:
+                raise RefusedError(409, f"{participant} is not in their conversation (their "
+                                   "page opens it when they reach it)")  # fmt: skip
+            return room
 
         @app.post("/api/conversation/end")
         async def end(request: Request) -> dict[str, Any]:
@@ -167,32 +226,38 @@ class Conversations:
             except ValueError:
                 body = None
             who = body.get("participant") if isinstance(body, dict) else None
-            hub = await talker_hub(request, request.headers.get(ADMIN_HEADER), who)
-            await hub.broadcast(json.dumps({"conversation_end": 1}))
-            return {"ended": True, "viewers": len(hub.viewers)}
+            room = await talker_room(request, request.headers.get(ADMIN_HEADER), who)
+            room.ended_by_talker = True  # a page joining later is told at once
+            await room.hub.broadcast(json.dumps({"conversation_end": 1}))
+            return {"ended": True, "viewers": len(room.hub.viewers)}
 
         @app.get("/api/conversation/status")
         async def status(request: Request, participant: str = "") -> dict[str, Any]:
-            hub = await talker_hub(request, request.headers.get(ADMIN_HEADER), participant)
+            room = await talker_room(request, request.headers.get(ADMIN_HEADER), participant)
+            hub = room.hub
             return {"participant": participant, "viewers": len(hub.viewers),
                     "turns": len(hub.turns), "busy": hub.busy,
+                    "remaining_s": round(room.remaining_s(), 1),
+                    "ended": room.ended_by_talker,
                     "problems": list(hub.problems)}  # fmt: skip
 
         async def first_message(ws: WebSocket) -> dict[str, Any] | None:
-            """The socket's first message as a JSON object, None (and closed) when it is
-            not one, comes too late, or the page is of another origin."""
+            """The socket's first message as a JSON object; None (the socket closed) when it
+            is not one, comes too late, is too long, or the page is of another origin."""
             origin, host = ws.headers.get("origin"), ws.headers.get("host")
             await ws.accept()
-            if origin is not None and origin.split("://", 1)[-1] != host:
-                await ws.close(code=1008)
-                return None
-            try:
-                msg = await asyncio.wait_for(ws.receive_text(), FIRST_MESSAGE_S)
-                hello = json.loads(msg)
-            except Exception:  # too late, binary, closed or not JSON
-                await ws.close(code=1008)
-                return None
-            return hello if isinstance(hello, dict) else None
+            hello = None
+            if origin is None or origin.split("://", 1)[-1] == host:
+                try:
+                    msg = await asyncio.wait_for(ws.receive_text(), FIRST_MESSAGE_S)
+                    if len(msg) <= FIRST_MESSAGE_MAX:
+                        hello = json.loads(msg)
+                except Exception:  # too late, binary, closed or not JSON
+                    hello = None
+            if isinstance(hello, dict):
+                return hello
+            await refuse(ws, "expected a first message saying who this is, from this site")
+            return None
 
         async def refuse(ws: WebSocket, why: str) -> None:
             try:
@@ -207,11 +272,21 @@ class Conversations:
             if hello is None:
                 return
             try:
-                hub = await open_hub(hello.get("token"))
+                p, room = await participant_room(hello.get("token"))
             except RefusedError as exc:
                 await refuse(ws, exc.message)
                 return
-            await view_socket(hub, ws)
+            if len(room.hub.viewers) >= MAX_VIEWERS:
+                await refuse(ws, f"this conversation has {MAX_VIEWERS} pages open already")
+                return
+            if room.started is None:
+                room.started = time.monotonic()  # the conversation's clock starts
+            if room.ended_by_talker:
+                await ws.send_text(json.dumps({"conversation_end": 1}))
+            try:
+                await view_socket(room.hub, ws)
+            finally:
+                await conversations.release(server, p)
 
         @app.websocket("/ws/conversation/talk")
         async def talk(ws: WebSocket) -> None:
@@ -219,13 +294,16 @@ class Conversations:
             if hello is None:
                 return
             try:
-                hub = await talker_hub(ws, hello.get("admin"), hello.get("participant"))
+                room = await talker_room(ws, hello.get("admin"), hello.get("participant"))
             except RefusedError as exc:
                 await refuse(ws, exc.message)
                 return
+            if room.over():
+                await refuse(ws, "this participant's conversation is over")
+                return
             await ws.send_text(json.dumps({"joined": hello.get("participant"),
-                                           "viewers": len(hub.viewers)}))  # fmt: skip
-            await talk_socket(hub, ws)
+                                           "viewers": len(room.hub.viewers)}))  # fmt: skip
+            await talk_socket(room.hub, ws)
 
 
 def conversation_routes(

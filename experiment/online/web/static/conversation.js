@@ -107,23 +107,36 @@ const WORDS = {
 };
 
 // The conversation screen of an online study (presentation.conversation): the partner's avatar
-// drawn live from the talker's voice, for `screen.seconds` or until the talker ends it.
-// Resolves {ended: "time" | "talker", turns}.
+// drawn live from the talker's voice until the conversation's time has run out (the server
+// keeps its clock: a reloaded page rejoins it with the time left) or the talker ends it.
+// Resolves {ended: "time" | "talker", turns}. A conversation that cannot run here (the server
+// refuses it, the 3D view cannot start, the connection is lost) is said to the participant
+// and reported as an event; the page reloads to rejoin it - nothing is answered for it.
 export async function converse({ box, screen, language, token, show }) {
   const words = WORDS[language] || WORDS.en;
   const api = window.FacelabDialogue = { state: "loading", turns: 0 };
-  const r = await FacelabOutbox.request("GET", "/api/conversation");
-  if (!r.ok) {
+  const fail = async (what, error) => {
+    api.state = "failed"; api.error = String(error).slice(0, 300);
+    box.textContent = "";
     const p = document.createElement("p"); p.className = "facelab-note"; p.dataset.facelab = "error";
     p.textContent = words.failed; box.append(p); show();
-    FacelabOutbox.send("/api/event", { kind: "error", detail: { what: "conversation", error: ((await r.json().catch(() => ({}))).error || String(r.status)).slice(0, 300) } });
-    await new Promise(() => {});  // the experimenter is called; the session resumes here
+    FacelabOutbox.send("/api/event", { kind: "error", detail: { what, error: api.error } });
+    await new Promise((res) => setTimeout(res, 8000));
+    location.reload();  // rejoins the conversation where it is (the session resumes here)
+    await new Promise(() => {});
+  };
+  let cfg, stage, own;
+  try {
+    const r = await FacelabOutbox.request("GET", "/api/conversation");
+    if (!r.ok) return await fail("conversation", (await r.json().catch(() => ({}))).error || r.status);
+    cfg = await r.json();
+    // the session's own stage when it has one (live3d / webxr: the same avatar), else one here
+    own = !FacelabSession.stage;
+    stage = FacelabSession.stage || await new Stage({ display: "live3d", scene: cfg.scene, language, vr: cfg.vr }).init();
+  } catch (e) {
+    return await fail("conversation view", e && e.message || e);
   }
-  const cfg = await r.json();
   api.cfg = cfg;
-  // the session's own stage when it has one (live3d / webxr: the same avatar), else one here
-  const own = !FacelabSession.stage;
-  const stage = FacelabSession.stage || await new Stage({ display: "live3d", scene: cfg.scene, language, vr: cfg.vr }).init();
   window.FacelabLive = stage;
   const text = document.createElement("p"); text.className = "facelab-question"; text.textContent = screen.text;
   const status = document.createElement("p"); status.className = "facelab-announce"; status.dataset.facelab = "live-status";
@@ -141,23 +154,28 @@ export async function converse({ box, screen, language, token, show }) {
     await soundOn(stage.audio, box, words.listen);
   }
   const ws = new WebSocket(wsUrl("/ws/conversation/view"));
-  let ended = null;
+  let finished = false, lost = null;
   const done = new Promise((res) => {
+    if (cfg.ended) { res("talker"); return; }  // the talker ended it while this page was away
     ws.onopen = () => { ws.send(JSON.stringify({ token })); api.state = "waiting"; };
-    setTimeout(() => res("time"), screen.seconds * 1000);
+    const left = Number.isFinite(cfg.remaining_s) ? cfg.remaining_s : screen.seconds;
+    setTimeout(() => res("time"), Math.max(0, left) * 1000);
+    ws.onclose = () => { if (!finished) { lost = lost || "the connection to the server was lost"; res("lost"); } };
     const stop = followTurns({ stage, cfg, ws, api, status, output: voice && voice.node, onMessage: (msg) => {
       if (msg.conversation_end) res("talker");
-      if (msg.error) { api.state = "refused"; api.error = msg.error; }
+      if (msg.error) { lost = msg.error; res("lost"); }
     } });
     api.stop = stop;
   });
-  ended = await done;
-  api.stop();
+  const ended = await done;
+  finished = true;
+  if (api.stop) api.stop();
   await new Promise((res) => setTimeout(res, 200));  // the log's message leaves before the close
   ws.close();
   if (voice && voice.at) voice.node.disconnect();
   if (inVR) stage.showRays(true);
-  api.state = "ended"; api.ended = ended;
   if (own) { stage.renderer.setAnimationLoop(null); stage.audio.close().catch(() => {}); }
-  return { ended, turns: api.turns };
+  if (ended === "lost") return await fail("conversation connection", lost);
+  api.state = "ended"; api.ended = ended;
+  return { ended, turns: (cfg.turns || 0) + api.turns };
 }
