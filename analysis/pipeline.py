@@ -39,6 +39,7 @@ from facelab.analysis.presentation import (
     playback_replays,
     presentation_quality,
     session_modes,
+    session_records,
     with_live_playback,
 )
 from facelab.analysis.report import ReportFiles, write_report
@@ -46,6 +47,7 @@ from facelab.analysis.sickness import is_ssq_row, ssq_tables
 from facelab.analysis.stimulus_checks import summarize_stimulus_checks
 from facelab.analysis.study import StudyResults, analyze_study
 from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks, answer_counts
+from facelab.analysis.vr_screen_poses import screen_pose_summary, screen_pose_table
 from facelab.errors import AnalysisError
 from facelab.formats import MANIFEST_NAME
 from facelab.protocol import Protocol, protocol_hash
@@ -172,6 +174,10 @@ def run(
     tasks.tables["presentation_quality"] = presentation_quality(
         data, excluded=excluded, replays=playback_replays(records)
     )
+    poses = screen_pose_table(session_records(every_row, suffix="_screen_poses.jsonl"))
+    if not poses.empty:  # VR: how participants moved while screens waited for an answer
+        tasks.tables["vr_screen_poses_summary"] = screen_pose_summary(poses)
+        tasks.tables["vr_screen_poses"] = poses
     live = live_quality(pd.concat([data, excluded], ignore_index=True))  # every trial shown
     if not live.empty:  # clips drawn live (display live3d / webxr): A/V offset, head movement
         tasks.tables["live_presentation"] = live

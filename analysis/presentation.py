@@ -30,6 +30,7 @@ __all__ = [
     "playback_replays",
     "presentation_quality",
     "session_modes",
+    "session_records",
     "trial_playback",
     "trials_shown",
     "with_live_playback",
@@ -137,11 +138,18 @@ def playback_records(data: pd.DataFrame) -> list[dict[str, Any]]:
     """Every ``_playback.jsonl`` record beside the session logs ``data`` was read from (its
     ``source`` column), each with its session's ``participant`` and ``session``; a line cut
     off mid-write is passed over (the trial's earlier record stands)."""
+    return session_records(data, suffix="_playback.jsonl")
+
+
+def session_records(data: pd.DataFrame, *, suffix: str) -> list[dict[str, Any]]:
+    """Every record of the JSON-lines file ``<session stem><suffix>`` beside the session logs
+    ``data`` was read from, each with its session's ``participant`` and ``session``; a line
+    cut off mid-write is passed over."""
     out = []
     sessions = data[["source", "participant", "session"]].drop_duplicates("source")
     for source, participant, session in sessions.itertuples(index=False):
         tsv = Path(source)
-        path = tsv.with_name(tsv.name.replace("_beh.tsv", "_playback.jsonl"))
+        path = tsv.with_name(tsv.name.replace("_beh.tsv", suffix))
         if not path.is_file():
             continue
         for line in path.read_text(encoding="utf-8").split("\n"):  # (not U+2028 in a string)

@@ -309,6 +309,11 @@ _TASK_HEADINGS = {
     "ssq": "Simulator sickness: every questionnaire's scores (weights N 9.54, O 7.58, "
     "D 13.92, total 3.74 on the raw sums)",
     "ssq_symptoms": "Simulator sickness: each symptom's answers per moment",
+    "vr_screen_poses_summary": "VR screens: how participants moved while each kind of "
+    "screen waited for their answer (median seconds, head yaw range deg, head travel m, "
+    "controller path m)",
+    "vr_screen_poses": "VR screens: per screen shown in VR, the head's yaw, pitch and roll "
+    "ranges (deg), its travel (m) and the controllers' path (m)",
     "conversation_summary": "Live conversation: each item asked about the partner after it "
     "(n participants; mean with 95 % t interval, median and quartiles)",
     "conversation": "Live conversation: per session how it ended, how long it lasted, the "
@@ -402,6 +407,7 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "ssq_symptoms",
         "conversation_summary",
         "conversation",
+        "vr_screen_poses_summary",
         "pilot_sessions",
         "pilot_items",
     ):

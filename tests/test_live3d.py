@@ -580,6 +580,17 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     assert "--max-av-offset-ms" in (report / "report.md").read_text("utf-8")
     # the frame measures: headless frames are sparse, so some frame stays on screen long
     assert "frame_age_max_ms" in (report / "ratings.csv").read_text("utf-8").splitlines()[0]
+    # how the head moved while the panels waited: one row per screen with poses, the yaw
+    # range that of its logged poses
+    import pandas as pd
+
+    moved = pd.read_csv(report / "vr_screen_poses.csv")
+    assert len(moved) == sum(1 for w in waited if w["viewer_poses"])
+    expected = sorted(round(np.ptp([v[4] for v in w["viewer_poses"]]), 2) for w in waited
+                      if w["viewer_poses"])  # fmt: skip
+    assert sorted(moved["head_yaw_range_deg"]) == pytest.approx(expected, abs=0.02)
+    kinds = pd.read_csv(report / "vr_screen_poses_summary.csv")["screen"]
+    assert {"vas", "text"} <= set(kinds)
 
 
 @slow
