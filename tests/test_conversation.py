@@ -421,8 +421,11 @@ def test_a_participant_and_a_talker_in_two_browsers_converse_then_the_partner_is
             talker.find_element(By.CSS_SELECTOR, "[data-facelab=talk]").click()  # stop
             _until(lambda: talker.execute_script(state) == "saved", timeout_s=60,
                    what="the talker's turn was not saved")  # fmt: skip
-            if shots:
-                talker.save_screenshot(str(tmp_path / "talker.png"))
+            # the talker's page follows the participant: their page in it, the turn recorded
+            seen = "const p = window.FacelabDialogue.participant; return p && [p.viewers, p.turns]"
+            _until(lambda: talker.execute_script(seen) == [1, 1], timeout_s=30,
+                   what="the talker page did not show the participant's state")  # fmt: skip
+            talker.save_screenshot(str(tmp_path / "talker.png"))
             talker.find_element(By.CSS_SELECTOR, "[data-facelab=end_conversation]").click()
             _until(lambda: talker.execute_script(state) == "ended", timeout_s=30,
                    what="the talker could not end the conversation")  # fmt: skip
@@ -526,3 +529,8 @@ def test_a_conversation_in_an_emulated_headset(study: Path, tmp_path: Path) -> N
     with (turn / "frames.csv").open(encoding="utf-8") as f:
         drawn = list(csv.DictReader(f))
     assert drawn and all(int(d["frame"]) <= int(d["wanted"]) for d in drawn)
+    # where the participant's head was at each drawn frame (the emulated head turns)
+    with (turn / "poses.csv").open(encoding="utf-8") as f:
+        heads = list(csv.DictReader(f))
+    assert [h["page_ms"] for h in heads] == [d["page_ms"] for d in drawn]
+    assert record["head_poses"] == len(heads)

@@ -235,6 +235,23 @@ def test_a_turn_is_saved_whole_and_never_overwritten(tmp_path) -> None:
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == first
 
 
+def test_a_viewer_in_a_headset_has_its_head_poses_saved(tmp_path) -> None:
+    turn = Turn(sample_rate=16_000, names=("jawOpen",))
+    turn.add_audio(np.zeros(1600, np.float32))
+    turn.add_frames(0, np.zeros((10, 1)))
+    turn.add_viewer_log(1, [[10.0, 0.05, 5, 5]], poses=[[10.0, 0, 1.2, 0, 175.0, -3.0, 1.0],
+                                                        [26.7, 0, 1.2, 0.01, -170.0, 4.0, 0.0]])
+    record = turn.save_new(tmp_path, condition="c", avatar_sha256="a" * 64, info={},
+                           playout_ms=120)  # fmt: skip
+    folder = Path(record["folder"])
+    rows = (folder / "poses.csv").read_text().splitlines()
+    assert rows[0] == "viewer,page_ms,x,y,z,yaw,pitch,roll" and len(rows) == 3
+    assert rows[2] == "1,26.7,0.0,1.2,0.01,-170.0,4.0,0.0"
+    # the turn across 180 deg is 15 deg, not 345
+    assert record["head_poses"] == 2 and record["head_yaw_range_deg"] == pytest.approx(15.0)
+    assert record["head_pitch_range_deg"] == pytest.approx(7.0)
+
+
 def test_a_turn_name_taken_meanwhile_is_not_overwritten(tmp_path, monkeypatch) -> None:
     """Another saver takes turn-001 between the name's choice and the rename: the turn goes
     to the next free name, the other's files untouched; numbering goes past 999."""

@@ -92,6 +92,7 @@ class LiveHub:
     turn_viewers: set[int] = field(default_factory=set)
     logs: dict[int, list] = field(default_factory=dict)
     arrivals: dict[int, list] = field(default_factory=dict)
+    poses: dict[int, list] = field(default_factory=dict)  # in VR: a viewer's head per frame
     late_audio: dict[int, int] = field(default_factory=dict)  # chunks a viewer got too late
     displays: dict[int, str] = field(default_factory=dict)  # how each viewer showed the turn
     turn_started: float = 0.0
@@ -165,6 +166,7 @@ class LiveHub:
             return
         self.logs[vid] = _numeric_rows(msg.get("log"), width=4)
         self.arrivals[vid] = _numeric_rows(msg.get("arrivals"), width=2)
+        self.poses[vid] = _numeric_rows(msg.get("poses"), width=7)
         late = msg.get("late_audio")
         self.late_audio[vid] = int(late) if isinstance(late, int) and late >= 0 else 0
         shown = msg.get("display")
@@ -199,6 +201,7 @@ class LiveHub:
         self.busy = True
         self.turn = Turn(sample_rate=LIVE_RATE, names=self.driver.names)
         self.logs, self.arrivals, self.late_audio, self.displays = {}, {}, {}, {}
+        self.poses = {}
         self.turn_started = time.time()
         self.turn_viewers = set(self.viewers)
         await self.broadcast(json.dumps({"turn": len(self.turns) + 1}))
@@ -249,7 +252,8 @@ class LiveHub:
             ):
                 await asyncio.sleep(0.05)
             for vid, log in sorted(self.logs.items()):
-                turn.add_viewer_log(vid, log, arrivals=self.arrivals.get(vid, []))
+                turn.add_viewer_log(vid, log, arrivals=self.arrivals.get(vid, []),
+                                    poses=self.poses.get(vid, []))  # fmt: skip
             cond = self.config.protocol.condition(self.config.condition)
             info = {
                 "protocol": str(self.config.protocol_path),

@@ -10,8 +10,11 @@ A turn's folder (``<session>/turn-001`` …, never overwritten; :meth:`Turn.save
                  time the viewer was hearing), frame (the track frame drawn), wanted (the
                  frame for heard_s), latency_ms (heard_s - frame / 100: mouth behind sound, ms; an
                  on-time frame reads 0-10 ms, the track's own frame step), late
+    poses.csv    in VR only: per drawn frame of each viewer in a headset, the head's pose:
+                 viewer, page_ms, x, y, z (m), yaw, pitch, roll (deg), in the headset's
+                 reference space
     turn.json    protocol, condition, method, avatar, rates, the latency summary, what a
-                 browser cannot measure
+                 browser cannot measure (and in VR the head's yaw and pitch ranges)
 
 Latency is measured where the viewer's page can see it: the audio clock it plays the talker's
 sound by and the frame it draws at each display frame. The budget follows ITU-R BT.1359's
@@ -56,6 +59,7 @@ BUDGET_BEHIND_MS = 45.0
 #: mouth ahead of sound, ms, at any drawn frame
 BUDGET_AHEAD_MS = 45.0
 FRAME_COLUMNS = ("viewer", "page_ms", "heard_s", "frame", "wanted", "latency_ms", "late")
+POSE_COLUMNS = ("viewer", "page_ms", "x", "y", "z", "yaw", "pitch", "roll")
 #: what the figures leave out: a page sees its own clocks only
 NOT_MEASURED = (
     "the microphone's and the sound card's own delays before the talker's page gets the "
@@ -140,6 +144,8 @@ class Turn:
     n_frames: int = 0
     #: per frames message a viewer got: how long before its first frame was due it arrived, ms
     margins_ms: list[float] = field(default_factory=list)
+    #: in VR: per drawn frame, the viewer's head pose (see the module docstring)
+    poses: list[dict[str, Any]] = field(default_factory=list)
 
     def add_audio(self, chunk: np.ndarray) -> None:
         self.audio.append(np.asarray(chunk, np.float32).ravel())
@@ -154,12 +160,21 @@ class Turn:
             self.n_frames += len(weights)
 
     def add_viewer_log(
-        self, viewer: int, log: list[list[float]], *, arrivals: list[list[float]] | None = None
+        self,
+        viewer: int,
+        log: list[list[float]],
+        *,
+        arrivals: list[list[float]] | None = None,
+        poses: list[list[float]] | None = None,
     ) -> None:
         """A viewer's drawn frames, each ``[page_ms, heard_s, frame, _]`` (finite numbers),
         and when its frame messages arrived, each ``[first frame, audio time then playing
         (s)]``. The frame the sound wanted (``wanted``) and ``late`` are computed here from
-        ``heard_s``, not taken from the page."""
+        ``heard_s``, not taken from the page. In VR, ``poses``: per drawn frame
+        ``[page_ms, x, y, z, yaw, pitch, roll]`` of the viewer's head."""
+        for page_ms, *pose in poses or ():
+            head = {k: round(float(v), 4) for k, v in zip(POSE_COLUMNS[2:], pose, strict=True)}
+            self.poses.append({"viewer": viewer, "page_ms": round(float(page_ms), 2), **head})
         for frame, at in arrivals or ():
             self.margins_ms.append(round((int(frame) / self.fps - float(at)) * 1000, 2))
         for page_ms, heard_s, frame, _ in log:
@@ -170,6 +185,16 @@ class Turn:
                 "latency_ms": round((float(heard_s) - int(frame) / self.fps) * 1000, 2),
                 "late": int(int(frame) < wanted),
             })  # fmt: skip
+
+    def _pose_summary(self) -> dict[str, Any]:
+        """In VR: the head poses logged, and the head's yaw and pitch ranges (deg) over them."""
+        if not self.poses:
+            return {}
+        yaw = np.degrees(np.unwrap(np.radians([p["yaw"] for p in self.poses])))
+        pitch = np.array([p["pitch"] for p in self.poses])
+        return {"head_poses": len(self.poses),
+                "head_yaw_range_deg": round(float(np.ptp(yaw)), 2),
+                "head_pitch_range_deg": round(float(np.ptp(pitch)), 2)}  # fmt: skip
 
     @property
     def samples(self) -> np.ndarray:
@@ -209,6 +234,7 @@ class Turn:
             "n_frames": len(weights),
             "viewers": sorted({int(r["viewer"]) for r in self.rows}),
             **summary,
+            **self._pose_summary(),
             "not_measured": NOT_MEASURED,
         }
         stamp = str(info.get("started", "")).replace("-", "").replace(":", "")
@@ -226,6 +252,12 @@ class Turn:
         writer.writeheader()
         writer.writerows(self.rows)
         replace_file(scratch / "frames.csv", text.getvalue())
+        if self.poses:  # a viewer in a headset
+            text = io.StringIO()
+            writer = csv.DictWriter(text, fieldnames=POSE_COLUMNS, lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(self.poses)
+            replace_file(scratch / "poses.csv", text.getvalue())
         for _ in range(10_000):
             folder = next_turn_dir(session)
             record["turn"] = folder.name

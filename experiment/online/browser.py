@@ -206,13 +206,12 @@ if (consent) return {kind: 'consent'};
 return {kind: 'wait'};
 """
 
-#: a live conversation's screen: ask the page (conversation.js) to keep the first frame it
-#: draws with a weight of 0.3 or more, and return it once kept
+#: a live conversation: ask the page (conversation.js) to keep the first frame it draws with
+#: a weight of 0.3 or more, and return it once kept
 _CONVERSATION_SNAP_JS = """
+window.FacelabSnapRequest = window.FacelabSnapRequest || {after_s: 0.0, peak: 0.3};
 const a = window.FacelabDialogue;
-if (!a) return null;
-if (!a.snapAsked) { a.snap = {after_s: 0.0, peak: 0.3}; a.snapAsked = true; }
-return a.snapshot || null;
+return (a && a.snapshot) || null;
 """
 
 
@@ -368,13 +367,15 @@ class SimulatedBrowser:
                         self._shot(kind)
                     time.sleep(0.1)
                     continue
-                if kind == "conversation":  # the partner talks; the participant watches
-                    # the page keeps the first drawn frame with the mouth well open (a busy
-                    # page answers a driver's call only every few seconds)
+                if self.screenshots is not None and "conversation" not in self.shots:
+                    # a live conversation's page keeps its first drawn frame with the mouth
+                    # well open (a busy page answers a driver's call only every few seconds,
+                    # so the request stands from the start and the still is fetched later)
                     shot = d.execute_script(_CONVERSATION_SNAP_JS)
-                    self._shot("conversation-page")
                     if shot:
                         self._save_data_url("conversation", shot)
+                if kind == "conversation":  # the partner talks; the participant watches
+                    self._shot("conversation-page")
                     time.sleep(0.1)
                     continue
                 if kind == "error":

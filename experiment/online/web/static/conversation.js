@@ -18,11 +18,12 @@ export function followTurns({ stage, cfg, ws, api, status, onMessage, output = n
   const channels = cfg.names.map((name) => ({ name, kind: "blendshape" }));
   let values = new Float32Array(K * 1024), have = -1, t0 = null, endS = null, log = [], sent = true;
   let arrivals = [];  // [first frame, audio context time it arrived] per frames message
+  let poses = [];  // in VR: [page ms, x, y, z, yaw, pitch, roll] of the head per drawn frame
   api.lateAudio = 0; api.turns = 0;
   const frameTrack = { header: { channels }, channels: K, values: null };
   const sendLog = () => {
     sent = true;
-    if (ws.readyState === 1) ws.send(JSON.stringify({ log, arrivals, late_audio: api.lateAudio, display: stage.inVR() ? "webxr" : "live3d" }));
+    if (ws.readyState === 1) ws.send(JSON.stringify({ log, arrivals, poses, late_audio: api.lateAudio, display: stage.inVR() ? "webxr" : "live3d" }));
     api.lastLog = log.length;
   };
 
@@ -31,7 +32,7 @@ export function followTurns({ stage, cfg, ws, api, status, onMessage, output = n
     if (typeof e.data === "string") {
       const msg = JSON.parse(e.data);
       if ("turn" in msg) {  // a new turn: forget the last one's frames and clock
-        have = -1; t0 = null; endS = null; log = []; arrivals = []; sent = false; api.lateAudio = 0;
+        have = -1; t0 = null; endS = null; log = []; arrivals = []; poses = []; sent = false; api.lateAudio = 0;
         api.state = "turn"; api.turns += 1;
         if (status) status.textContent = "";
       }
@@ -60,7 +61,7 @@ export function followTurns({ stage, cfg, ws, api, status, onMessage, output = n
     }
   };
 
-  stage.onFrame = (time) => {
+  stage.onFrame = (time, xrFrame) => {
     // a requested still (api.snap = {after_s, peak}): the canvas as last drawn, once it drew a
     // frame past after_s whose largest weight reached peak
     if (api.snapDue) { api.snapshot = stage.renderer.domElement.toDataURL("image/png"); api.snapDue = false; }
@@ -80,7 +81,11 @@ export function followTurns({ stage, cfg, ws, api, status, onMessage, output = n
       // turn on a page that draws a few frames a second)
       api.bestDue = true; api.best = api.shown;
     }
-    if (!sent && log.length < MAX_LOG) log.push([time, heard, k, wanted]);
+    if (!sent && log.length < MAX_LOG) {
+      log.push([time, heard, k, wanted]);
+      const head = stage.inVR() ? stage.viewer(xrFrame) : null;  // where the participant looked
+      if (head) poses.push([time, ...head]);
+    }
     if (!sent && endS !== null && heard > endS + 0.2) { sendLog(); api.state = "done"; }
   };
 
@@ -114,7 +119,9 @@ const WORDS = {
 // and reported as an event; the page reloads to rejoin it - nothing is answered for it.
 export async function converse({ box, screen, language, token, show }) {
   const words = WORDS[language] || WORDS.en;
-  const api = window.FacelabDialogue = { state: "loading", turns: 0 };
+  // a driver's standing request for a still of the partner mid-turn (see followTurns' snap)
+  const snap = window.FacelabSnapRequest ? { ...window.FacelabSnapRequest } : null;
+  const api = window.FacelabDialogue = { state: "loading", turns: 0, snap };
   const fail = async (what, error) => {
     api.state = "failed"; api.error = String(error).slice(0, 300);
     box.textContent = "";

@@ -11,11 +11,12 @@ const WORDS = {
   ja: { start: "話し始める", stop: "話し終える", listen: "音声をオンにする", waiting: "話し手を待っています…",
         talking: "話しています…", saved: "録音しました", enter: "VRを開始", secret: "実験者の秘密鍵",
         participant: "参加者ID（例 P0001）", join: "接続", end: "会話を終える", ended: "会話を終えました",
-        viewers: "参加者の画面: {n}" },
+        viewers: "参加者の画面: {n}", room: "参加者の画面: {n} · 残り {left} 秒 · 録音した発話: {turns}" },
   en: { start: "Start talking", stop: "Stop", listen: "Turn the sound on", waiting: "Waiting for the talker…",
         talking: "Talking…", saved: "Turn recorded", enter: "Enter VR", secret: "Experimenter secret",
         participant: "Participant id (e.g. P0001)", join: "Connect", end: "End the conversation",
-        ended: "Conversation ended", viewers: "Participant's page: {n}" },
+        ended: "Conversation ended", viewers: "Participant's page: {n}",
+        room: "Participant's page: {n} · {left} s left · turns recorded: {turns}" },
 };
 const el = (tag, cls, text) => { const e = document.createElement(tag); if (cls) e.className = cls; if (text) e.textContent = text; return e; };
 window.FacelabOutbox = window.FacelabOutbox || { send() {} };  // the study server's event log: none here
@@ -57,6 +58,18 @@ async function talker() {
     login.secret.onchange = () => sessionStorage.setItem("facelab-admin", login.secret.value);
     login.end = end;
     main.append(viewers);
+    // where the participant is: their page in the conversation, the time left, the turns
+    setInterval(async () => {
+      const who = login.participant.value.trim(), secret = login.secret.value;
+      if (!who || !secret) return;
+      const r = await fetch("/api/conversation/status?participant=" + encodeURIComponent(who),
+                            { headers: { "x-facelab-admin": secret } }).catch(() => null);
+      const b = r ? await r.json().catch(() => ({})) : {};
+      api.participant = r && r.ok ? b : null;
+      viewers.textContent = !r ? "" : r.ok
+        ? words.room.replace("{n}", b.viewers).replace("{left}", Math.round(b.remaining_s)).replace("{turns}", b.turns) + (b.ended ? " · " + words.ended : "")
+        : b.error || String(r.status);
+    }, 2000);
   }
   const button = el("button", "facelab-button", words.start);
   button.dataset.facelab = "talk";
