@@ -344,6 +344,9 @@ def test_the_conversation_routes_refuse_strangers_and_relay_a_turn(
     assert rate == 16_000 and np.array_equal(audio, np.clip(x, -1, 1))  # as the talker sent it
     turn = json.loads((Path(saved) / "turn.json").read_text(encoding="utf-8"))
     assert turn["condition"] == "emphasized" and turn["viewer_displays"] == {"1": "live3d"}
+    # whose turn it is: the participant, their session and protocol version
+    assert (turn["participant"], turn["session"]) == (p.participant, 1)
+    assert turn["protocol_sha256"] == p.protocol_sha256
 
 
 def _talker_page(url: str, wav: Path):

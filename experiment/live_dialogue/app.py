@@ -75,6 +75,9 @@ class LiveConfig:
     display: str = "live3d"
     playout_ms: float = 120.0
     vendor: Path | None = None
+    #: an online study's conversation: whose it is (participant id, session, the SHA-256 of
+    #: the protocol version their session runs), written into each turn.json
+    owner: dict[str, Any] | None = None
 
 
 @dataclass
@@ -269,6 +272,7 @@ class LiveHub:
                 "behaviour": "not run live (the mouth only: the condition's method)",
                 "audio_chunks_late": sum(self.late_audio.values()),
                 "viewer_displays": {str(v): d for v, d in sorted(self.displays.items())},
+                **(self.config.owner or {}),
             }  # fmt: skip
             try:
                 record = await asyncio.to_thread(

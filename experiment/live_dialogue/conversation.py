@@ -109,7 +109,9 @@ class Conversations:
     def hubs(self) -> dict[str, LiveHub]:
         return {pid: room.hub for pid, room in self.rooms.items()}
 
-    def config(self, protocol: Protocol, participant: str) -> LiveConfig:
+    def config(
+        self, protocol: Protocol, participant: str, *, owner: dict[str, Any] | None = None
+    ) -> LiveConfig:
         conv = protocol.presentation.conversation
         if conv is None:
             raise SessionError(f"{self.protocol_path}: the protocol has no "
@@ -118,7 +120,7 @@ class Conversations:
         return LiveConfig(protocol=protocol, protocol_path=self.protocol_path,
                           condition=conv.condition, session=self.folder / participant,
                           talker=self.talker, display=display, playout_ms=self.playout_ms,
-                          vendor=self.vendor)  # fmt: skip
+                          vendor=self.vendor, owner=owner)  # fmt: skip
 
     def check(self, protocol: Protocol) -> None:
         """Open the conversation once (SessionError naming what cannot run live): a
@@ -137,8 +139,11 @@ class Conversations:
                 if (0, "conversation") in answered:
                     raise RefusedError(409, "this participant's conversation is over")
                 protocol = server.study_of(participant).protocol
+                owner = {"participant": pid, "session": participant.session,
+                         "protocol_sha256": participant.protocol_sha256}  # fmt: skip
+                config = self.config(protocol, pid, owner=owner)
                 try:
-                    hub = await asyncio.to_thread(LiveHub.open, self.config(protocol, pid))
+                    hub = await asyncio.to_thread(LiveHub.open, config)
                 except FacelabError as exc:
                     raise RefusedError(503, f"the conversation cannot start: {exc}") from None
                 except Exception:  # an avatar or a talker's file gone bad since the start
