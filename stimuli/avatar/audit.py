@@ -31,14 +31,31 @@ EMPTY_TARGET_MM = 0.5
 IDENTICAL_TOLERANCE_MM = 0.01
 
 
+def _measured(avatar: Avatar) -> dict[object, tuple]:
+    """The avatar's measures so far (the methods and checks ask the same questions of one
+    avatar many times: validating the shipped protocols asked 2,107 times), each kept with
+    the target arrays it was measured on - a target replaced by another array is measured
+    again."""
+    cache = avatar.__dict__.get("_facelab_audit")
+    if cache is None:
+        cache = avatar.__dict__["_facelab_audit"] = {}
+    return cache
+
+
 def target_motion_mm(avatar: Avatar, names: Iterable[str]) -> dict[str, float]:
     """{name: the largest displacement of any vertex at full weight, mm} for each of ``names``
     the avatar has (absent names are left out)."""
-    return {
-        n: float(np.sqrt((avatar.targets[n].astype(np.float64) ** 2).sum(axis=1)).max()) * 1e3
-        for n in names
-        if n in avatar.targets
-    }
+    cache, out = _measured(avatar), {}
+    for n in names:
+        delta = avatar.targets.get(n)
+        if delta is None:
+            continue
+        hit = cache.get(n)
+        if hit is None or hit[0] is not delta:
+            mm = float(np.sqrt((delta.astype(np.float64) ** 2).sum(axis=1)).max()) * 1e3
+            hit = cache[n] = (delta, mm)
+        out[n] = hit[1]
+    return out
 
 
 def identical_targets(avatar: Avatar, names: Iterable[str]) -> list[tuple[str, str]]:
@@ -46,12 +63,16 @@ def identical_targets(avatar: Avatar, names: Iterable[str]) -> list[tuple[str, s
     :data:`IDENTICAL_TOLERANCE_MM`, each pair once, in sorted order."""
     motion = target_motion_mm(avatar, names)
     live = sorted(n for n, mm in motion.items() if mm >= EMPTY_TARGET_MM)
-    pairs = []
+    cache, pairs = _measured(avatar), []
     tol = IDENTICAL_TOLERANCE_MM * 1e-3
     for i, a in enumerate(live):
         da = avatar.targets[a]
         for b in live[i + 1 :]:
-            if np.abs(da - avatar.targets[b]).max() <= tol:
+            db = avatar.targets[b]
+            hit = cache.get((a, b))
+            if hit is None or hit[0] is not da or hit[1] is not db:
+                hit = cache[(a, b)] = (da, db, bool(np.abs(da - db).max() <= tol))
+            if hit[2]:
                 pairs.append((a, b))
     return pairs
 
