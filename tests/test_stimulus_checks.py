@@ -59,6 +59,20 @@ def test_empty_and_copied_targets_are_found_from_the_geometry() -> None:
     assert "empty" in why["jawOpen"] and "same shape" in why["mouthFunnel"]
 
 
+def test_a_replaced_target_is_measured_again() -> None:
+    """The audit keeps an avatar's measures with the arrays they were made on: a target
+    given another array (an edit of the avatar in memory) is measured anew."""
+    head = _broken_head()
+    names = ["jawOpen", "mouthFunnel", "mouthPucker"]
+    assert target_motion_mm(head, names)["jawOpen"] == 0
+    assert identical_targets(head, names) == [("mouthFunnel", "mouthPucker")]
+    head.targets["jawOpen"] = head.targets["mouthSmileLeft"].copy()
+    head.targets["mouthPucker"] = head.targets["mouthPucker"] * 2.0
+    assert target_motion_mm(head, names)["jawOpen"] > 1
+    assert identical_targets(head, names) == []
+    assert unusable_targets(head, names) == {}
+
+
 def test_the_audit_fails_an_arkit_mouth_that_cannot_show_z() -> None:
     """Without vowel shapes to stand in, the empty jawOpen and the copied funnel fail."""
     head = _broken_head()
