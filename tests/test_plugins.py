@@ -55,6 +55,7 @@ def _protocol(folder: Path, gain: float) -> Path:
     return path
 
 
+@pytest.mark.slow  # it renders (and measures) clips with the installed method
 def test_an_installed_method_is_listed_validated_and_rendered(installed: Path,
                                                               tmp_path: Path) -> None:  # fmt: skip
     listed = _facelab(installed, "plugins")
