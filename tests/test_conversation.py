@@ -271,82 +271,84 @@ def test_the_conversation_routes_refuse_strangers_and_relay_a_turn(
 
     server = _server(study, tmp_path)
     p, token = server.join(recruitment=None, source=None)
-    client = TestClient(create_app(server))
-    assert client.get("/api/conversation").status_code == 401
-    r = client.get("/api/conversation", headers={"X-Facelab-Token": token})
-    assert r.status_code == 200
-    cfg = r.json()
-    assert cfg["condition"] == "emphasized" and cfg["sample_rate"] == 16_000 and cfg["names"]
-    glb = client.get(cfg["scene"]["avatar"])
-    assert glb.status_code == 200 and glb.content[:4] == b"glTF"
-    admin = {"X-Facelab-Admin": SECRET}
-    wrong = {"X-Facelab-Admin": "wrong-secret-0000"}
-    assert client.get("/api/conversation/status", params={"participant": p.participant},
-                      headers=wrong).status_code == 401  # fmt: skip
-    assert client.get("/api/conversation/status", params={"participant": "P9999"},
-                      headers=admin).status_code == 404  # fmt: skip
-    # a viewer with an unknown token, and a page of another origin, are turned away
-    with client.websocket_connect("/ws/conversation/view") as ws:
-        ws.send_text(json.dumps({"token": "not-a-token"}))
-        assert "unknown token" in ws.receive_json()["error"]
-    with client.websocket_connect(
-        "/ws/conversation/view", headers={"origin": "http://elsewhere.example"}
-    ) as ws:
-        assert "from this site" in ws.receive_json()["error"]
-        with pytest.raises(WebSocketDisconnect):
-            ws.receive_json()
-    with client.websocket_connect("/ws/conversation/talk") as ws:
-        ws.send_text(json.dumps({"admin": "wrong-secret-0000", "participant": p.participant}))
-        assert "error" in ws.receive_json()
-    # the participant's page and the talker: a turn relayed and recorded
-    x = synthesize("はい。", sample_rate=16_000).samples.astype(np.float32)
-    with client.websocket_connect("/ws/conversation/view") as viewer:
-        viewer.send_text(json.dumps({"token": token}))
-        _until(lambda: client.get("/api/conversation/status", headers=admin,
-                                  params={"participant": p.participant}).json()["viewers"],
-               timeout_s=30, what="the viewer did not join")  # fmt: skip
-        with client.websocket_connect("/ws/conversation/talk") as talker:
-            talker.send_text(json.dumps({"admin": SECRET, "participant": p.participant}))
-            assert talker.receive_json() == {"joined": p.participant, "viewers": 1}
-            talker.send_text(json.dumps({"sample_rate": 16_000}))
-            assert talker.receive_json() == {"started": True}
-            assert viewer.receive_json() == {"turn": 1}
-            for k in range(0, len(x), 160):
-                talker.send_bytes(x[k : k + 160].tobytes())
-            talker.send_text(json.dumps({"end": 1}))
-            kinds = set()
-            while True:  # the sound and the face frames, then the turn's end
-                msg = viewer.receive()
-                if msg.get("bytes"):
-                    kinds.add(int.from_bytes(msg["bytes"][:4], "little"))
-                elif "end" in json.loads(msg["text"]):
-                    break
-            assert kinds == {1, 2}
-            viewer.send_text(json.dumps({"log": [[1.0, 0.05, 5, 5]], "arrivals": [[0, 0.0]],
-                                         "display": "live3d"}))  # fmt: skip
-            saved = talker.receive_json()["saved"]
-        assert Path(saved).parent == tmp_path / "conversations" / p.participant
-        status = client.get("/api/conversation/status", params={"participant": p.participant},
-                            headers=admin).json()  # fmt: skip
-        assert status["turns"] == 1 and status["viewers"] == 1 and not status["busy"]
-        # the talker ends the conversation: the participant's page is told
-        r = client.post("/api/conversation/end", json={"participant": p.participant},
-                        headers=admin)  # fmt: skip
-        assert r.json() == {"ended": True, "viewers": 1}
-        assert viewer.receive_json() == {"conversation_end": 1}
-        # the page reloads after the end: told at once, and /api/conversation says so
-    with client.websocket_connect("/ws/conversation/view") as again:
-        again.send_text(json.dumps({"token": token}))
-        assert again.receive_json() == {"conversation_end": 1}
-    cfg = client.get("/api/conversation", headers={"X-Facelab-Token": token}).json()
-    assert cfg["ended"] is True and cfg["turns"] == 1
-    audio, rate = sf.read(Path(saved) / "audio.wav", dtype="float32")
-    assert rate == 16_000 and np.array_equal(audio, np.clip(x, -1, 1))  # as the talker sent it
-    turn = json.loads((Path(saved) / "turn.json").read_text(encoding="utf-8"))
-    assert turn["condition"] == "emphasized" and turn["viewer_displays"] == {"1": "live3d"}
-    # whose turn it is: the participant, their session and protocol version
-    assert (turn["participant"], turn["session"]) == (p.participant, 1)
-    assert turn["protocol_sha256"] == p.protocol_sha256
+    # one event loop for the app's sockets and requests, as under uvicorn (without the
+    # context manager each socket of a TestClient runs in an event loop of its own)
+    with TestClient(create_app(server)) as client:
+        assert client.get("/api/conversation").status_code == 401
+        r = client.get("/api/conversation", headers={"X-Facelab-Token": token})
+        assert r.status_code == 200
+        cfg = r.json()
+        assert cfg["condition"] == "emphasized" and cfg["sample_rate"] == 16_000 and cfg["names"]
+        glb = client.get(cfg["scene"]["avatar"])
+        assert glb.status_code == 200 and glb.content[:4] == b"glTF"
+        admin = {"X-Facelab-Admin": SECRET}
+        wrong = {"X-Facelab-Admin": "wrong-secret-0000"}
+        assert client.get("/api/conversation/status", params={"participant": p.participant},
+                          headers=wrong).status_code == 401  # fmt: skip
+        assert client.get("/api/conversation/status", params={"participant": "P9999"},
+                          headers=admin).status_code == 404  # fmt: skip
+        # a viewer with an unknown token, and a page of another origin, are turned away
+        with client.websocket_connect("/ws/conversation/view") as ws:
+            ws.send_text(json.dumps({"token": "not-a-token"}))
+            assert "unknown token" in ws.receive_json()["error"]
+        with client.websocket_connect(
+            "/ws/conversation/view", headers={"origin": "http://elsewhere.example"}
+        ) as ws:
+            assert "from this site" in ws.receive_json()["error"]
+            with pytest.raises(WebSocketDisconnect):
+                ws.receive_json()
+        with client.websocket_connect("/ws/conversation/talk") as ws:
+            ws.send_text(json.dumps({"admin": "wrong-secret-0000", "participant": p.participant}))
+            assert "error" in ws.receive_json()
+        # the participant's page and the talker: a turn relayed and recorded
+        x = synthesize("はい。", sample_rate=16_000).samples.astype(np.float32)
+        with client.websocket_connect("/ws/conversation/view") as viewer:
+            viewer.send_text(json.dumps({"token": token}))
+            _until(lambda: client.get("/api/conversation/status", headers=admin,
+                                      params={"participant": p.participant}).json()["viewers"],
+                   timeout_s=30, what="the viewer did not join")  # fmt: skip
+            with client.websocket_connect("/ws/conversation/talk") as talker:
+                talker.send_text(json.dumps({"admin": SECRET, "participant": p.participant}))
+                assert talker.receive_json() == {"joined": p.participant, "viewers": 1}
+                talker.send_text(json.dumps({"sample_rate": 16_000}))
+                assert talker.receive_json() == {"started": True}
+                assert viewer.receive_json() == {"turn": 1}
+                for k in range(0, len(x), 160):
+                    talker.send_bytes(x[k : k + 160].tobytes())
+                talker.send_text(json.dumps({"end": 1}))
+                kinds = set()
+                while True:  # the sound and the face frames, then the turn's end
+                    msg = viewer.receive()
+                    if msg.get("bytes"):
+                        kinds.add(int.from_bytes(msg["bytes"][:4], "little"))
+                    elif "end" in json.loads(msg["text"]):
+                        break
+                assert kinds == {1, 2}
+                viewer.send_text(json.dumps({"log": [[1.0, 0.05, 5, 5]], "arrivals": [[0, 0.0]],
+                                             "display": "live3d"}))  # fmt: skip
+                saved = talker.receive_json()["saved"]
+            assert Path(saved).parent == tmp_path / "conversations" / p.participant
+            status = client.get("/api/conversation/status", params={"participant": p.participant},
+                                headers=admin).json()  # fmt: skip
+            assert status["turns"] == 1 and status["viewers"] == 1 and not status["busy"]
+            # the talker ends the conversation: the participant's page is told
+            r = client.post("/api/conversation/end", json={"participant": p.participant},
+                            headers=admin)  # fmt: skip
+            assert r.json() == {"ended": True, "viewers": 1}
+            assert viewer.receive_json() == {"conversation_end": 1}
+            # the page reloads after the end: told at once, and /api/conversation says so
+        with client.websocket_connect("/ws/conversation/view") as again:
+            again.send_text(json.dumps({"token": token}))
+            assert again.receive_json() == {"conversation_end": 1}
+        cfg = client.get("/api/conversation", headers={"X-Facelab-Token": token}).json()
+        assert cfg["ended"] is True and cfg["turns"] == 1
+        audio, rate = sf.read(Path(saved) / "audio.wav", dtype="float32")
+        assert rate == 16_000 and np.array_equal(audio, np.clip(x, -1, 1))  # as the talker sent it
+        turn = json.loads((Path(saved) / "turn.json").read_text(encoding="utf-8"))
+        assert turn["condition"] == "emphasized" and turn["viewer_displays"] == {"1": "live3d"}
+        # whose turn it is: the participant, their session and protocol version
+        assert (turn["participant"], turn["session"]) == (p.participant, 1)
+        assert turn["protocol_sha256"] == p.protocol_sha256
 
 
 def _talker_page(url: str, wav: Path):

@@ -369,12 +369,7 @@ class StudyServer:
         cached = self._by_token.get(digest)
         if cached is not None:
             return cached
-        with Session(self.engine, expire_on_commit=False) as db:
-            p = db.scalars(
-                select(Participant).where(
-                    Participant.token_sha256 == digest, Participant.study == self.study.study
-                )
-            ).first()
+        p = self._find_participant(Participant.token_sha256 == digest)
         if p is None:
             raise RefusedError(401, "unknown token (a rejoin gives a new one)")
         version = self._version(p.protocol_sha256)
@@ -390,15 +385,17 @@ class StudyServer:
     def participant_by_id(self, participant: str) -> Participant:
         """The participant ``participant`` (e.g. P0001) of this study, for the experimenter's
         pages (behind the experimenter secret); 404 when there is none."""
-        with Session(self.engine, expire_on_commit=False) as db:
-            p = db.scalars(
-                select(Participant).where(
-                    Participant.participant == participant, Participant.study == self.study.study
-                )
-            ).first()
+        p = self._find_participant(Participant.participant == participant)
         if p is None:
             raise RefusedError(404, f"no participant {participant!r} in this study")
         return p
+
+    def _find_participant(self, where: Any) -> Participant | None:
+        """This study's participant matching the SQL condition ``where``, or None."""
+        with Session(self.engine, expire_on_commit=False) as db:
+            return db.scalars(
+                select(Participant).where(where, Participant.study == self.study.study)
+            ).first()
 
     def check_earlier_token(self, p: Participant, earlier: str | None) -> None:
         """Answers a browser saved under an earlier token of this session (before the token
