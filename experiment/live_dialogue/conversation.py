@@ -105,10 +105,6 @@ class Conversations:
     rooms: dict[str, Room] = field(default_factory=dict)
     locks: dict[str, asyncio.Lock] = field(default_factory=dict)
 
-    @property
-    def hubs(self) -> dict[str, LiveHub]:
-        return {pid: room.hub for pid, room in self.rooms.items()}
-
     def config(
         self, protocol: Protocol, participant: str, *, owner: dict[str, Any] | None = None
     ) -> LiveConfig:
