@@ -18,12 +18,14 @@ import soundfile as sf
 from facelab.errors import FacelabError, SessionError, StageError
 from facelab.experiment.cli import main
 from facelab.experiment.live_dialogue.turn import (
+    BUDGET_AHEAD_MS,
     BUDGET_BEHIND_MS,
     Turn,
     latency_summary,
     next_turn_dir,
     turns_protocol,
 )
+from facelab.experiment.live_dialogue.window_view import LEAD_MAX_S
 from facelab.formats import read_manifest, read_track
 from facelab.methods import METHODS
 from facelab.protocol import load_protocol
@@ -405,8 +407,8 @@ def test_a_microphone_talker_over_its_socket(tmp_path) -> None:
 def test_live_refuses_what_it_cannot_do(tmp_path, capsys) -> None:
     assert main(["live", str(KATO), "--condition", "nope"]) == 2
     assert "conditions are baseline, standard, emphasized" in capsys.readouterr().err
-    assert main(["live", str(KATO), "--condition", "standard", "--display", "window"]) == 2
-    assert "lab window cannot show a live avatar" in capsys.readouterr().err
+    assert main(["live", str(KATO), "--condition", "standard", "--size", "640x480"]) == 2
+    assert "--size goes with --display window" in capsys.readouterr().err
     assert main(["live", str(KATO), "--condition", "standard", "--json", "x.json"]) == 2
     assert "--json goes with --simulate" in capsys.readouterr().err
     bad = tmp_path / "bad.wav"
@@ -426,7 +428,7 @@ def test_live_refuses_what_it_cannot_do(tmp_path, capsys) -> None:
 # --------------------------------------------------------------------------- in Chromium
 
 
-def drawn_right(folder: Path, record: dict) -> None:
+def drawn_right(folder: Path, record: dict, *, ahead_ms: float = 0.0) -> None:
     """The viewer drew frames of the turn, each the frame of the audio it heard or (late, the
     frame not there yet: a starved page or server) an older one, never a later one; and the
     figures in turn.json are those of frames.csv. How many frames a headless page draws, and
@@ -439,14 +441,17 @@ def drawn_right(folder: Path, record: dict) -> None:
     assert rows, "the viewer drew no frame of the turn"
     for row in rows:
         frame, wanted = int(row["frame"]), int(row["wanted"])
-        assert frame <= wanted  # never the mouth of sound not yet heard
+        # never the mouth of sound not yet heard (a page draws the frame it has when it
+        # draws); or, for a viewer that asks for the frame of the flip ahead (the lab
+        # window), never more than ``ahead_ms`` before the sound
+        assert (frame - wanted) * 10 <= ahead_ms
         assert int(row["late"]) == int(frame < wanted)
         if frame == wanted:  # on time: behind by less than one 10 ms frame step
             assert 0 <= float(row["latency_ms"]) <= 10.0
     during = [r for r in rows if 0 <= float(r["heard_s"]) < record["n_frames"] / 100]
     assert record["frames_shown"] == len(during)
     assert record["frames_late"] == sum(int(r["late"]) for r in during)
-    assert record["ahead_ms_max"] in (None, 0.0)
+    assert record["ahead_ms_max"] is None or record["ahead_ms_max"] <= ahead_ms
     assert isinstance(record["audio_chunks_late"], int)
 
 
@@ -541,3 +546,118 @@ def test_a_simulated_live_turn_in_an_emulated_headset(tmp_path) -> None:
     picture = np.asarray(Image.open(shot).convert("L"), float)
     left, right = picture[:, : picture.shape[1] // 2], picture[:, picture.shape[1] // 2 :]
     assert left.std() > 10 and right.std() > 10  # both eyes' views show the avatar
+
+
+# --------------------------------------------------------------------------- the lab window
+
+
+def _facelab() -> str:
+    import sys
+
+    return str(Path(sys.executable).with_name("facelab"))
+
+
+def _sound_home(folder: Path, *, device: str) -> dict[str, str]:
+    """The environment of a ``facelab live`` whose ALSA default output is ``device``: ALSA's
+    null output (written at once, never heard: this machine has no sound card) or one that
+    cannot open."""
+    import os
+
+    folder.mkdir(parents=True, exist_ok=True)
+    pcm = "type null" if device == "null" else "type hw\n  card 99"
+    (folder / ".asoundrc").write_text(f"pcm.!default {{\n  {pcm}\n}}\n")
+    return {**os.environ, "HOME": str(folder)}
+
+
+def test_the_window_is_refused_without_a_sound_output(tmp_path) -> None:
+    """A lab machine whose PortAudio finds no output: the participant could not hear the
+    talker, so the window is refused in words, before anything is recorded."""
+    import subprocess
+
+    env = _sound_home(tmp_path / "home", device="none")
+    done = subprocess.run(
+        [_facelab(), "live", str(KATO), "--condition", "standard",
+         "--display", "window", "--input", str(tmp_path / "none.wav"), "--session",
+         str(tmp_path / "never")], env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2  # the missing input file is said first
+    assert "none.wav: no such audio file" in done.stderr
+    talk = tmp_path / "talk.wav"
+    sf.write(talk, synthesize("はい。", sample_rate=16_000).samples, 16_000)
+    done = subprocess.run(
+        [_facelab(), "live", str(KATO), "--condition", "standard",
+         "--display", "window", "--input", str(talk), "--session", str(tmp_path / "never")],
+        env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "no usable sound output" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "never").exists()
+
+
+def test_render_size_keeps_the_protocol_s_frame_inside_the_window() -> None:
+    from facelab.experiment.live_dialogue.window_view import render_size
+
+    assert render_size(width=1280, height=720, window=(1280, 800)) == (1280, 720)
+    assert render_size(width=1280, height=720, window=(960, 600)) == (960, 540)
+    assert render_size(width=1280, height=720, window=(1920, 1080)) == (1280, 720)  # not up
+    assert render_size(width=720, height=1280, window=(1280, 800)) == (450, 800)
+
+
+@pytest.mark.slow
+def test_a_simulated_live_turn_in_the_lab_window(tmp_path) -> None:
+    """--display window: the talker page (Chromium, the file as its microphone) drives the
+    avatar in the lab's PsychoPy window, drawn by the offline renderer, the sound on the
+    machine's output (ALSA's null device here); the turn is recorded with the window's frame
+    log, each frame the one of the sound heard at its flip (or older, late), and the window's
+    still is the offline picture of the frame it says it showed."""
+    import subprocess
+
+    from PIL import Image
+
+    from facelab.stimuli.render.renderer import Renderer
+    from facelab.stimuli.render.scene import settings_for
+
+    talk = tmp_path / "talk.wav"
+    sf.write(talk, synthesize("はい、わかりました。すぐに行きます。", sample_rate=24_000).samples,
+             24_000, subtype="PCM_16")  # fmt: skip
+    out, shot = tmp_path / "live.json", tmp_path / "window.png"
+    done = subprocess.run(
+        [_facelab(), "live", str(KATO), "--condition", "emphasized",
+         "--display", "window", "--windowed", "--size", "960x600", "--simulate", str(talk),
+         "--json", str(out), "--screenshot", str(shot), "--session", str(tmp_path / "s"),
+         "--playout-ms", "1000"],
+        env=_sound_home(tmp_path / "home", device="null"), capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    record = json.loads(out.read_text())
+    assert record["viewer_displays"] == {"1": "window"}
+    folder = Path(record["recording"])
+    # the window asks for the frame of the flip that will show it (the render takes 30-60 ms
+    # here), at most LEAD_MAX_S ahead: a flip sooner than expected shows it that much ahead
+    drawn_right(folder, record, ahead_ms=LEAD_MAX_S * 1000)
+    assert LEAD_MAX_S * 1000 <= BUDGET_AHEAD_MS
+    track = read_track(folder / "track.bin")
+    snapped = record["screenshot_frame"]
+    assert 0 <= snapped["frame"] < len(track.values)
+    assert snapped["peak"] == pytest.approx(float(track.values[snapped["frame"]].max()), abs=1e-4)
+    # the still: the window (960 x 600) with the protocol's 1280 x 720 frame scaled to fit,
+    # centred; it is the offline renderer's picture of the frame the window logged
+    window = np.asarray(Image.open(shot).convert("RGB"), float)
+    assert window.shape == (600, 960, 3)
+    shown = window[30:570]
+    protocol = load_protocol(KATO)
+    avatar = load_avatar(protocol, base_dir=KATO.parent)
+    weights = np.zeros(len(avatar.target_names))
+    for name, value in zip(track.names, track.values[snapped["frame"]], strict=True):
+        weights[avatar.target_names.index(name)] = value
+    from dataclasses import replace
+
+    with Renderer(avatar, replace(settings_for(protocol), width=960, height=540)) as r:
+        offline, rest = r.frame(weights).astype(float), r.frame(weights * 0).astype(float)
+    assert shown.std() > 10  # the avatar, not a uniform picture
+    err = np.abs(shown - offline).mean()
+    assert err < 3.0, err  # the same picture, the right way up (display rounding only)
+    mouth = np.abs(offline - rest).sum(axis=2) > 30  # where the moved mouth differs from rest
+    assert mouth.sum() > 50
+    assert np.abs(shown - offline)[mouth].mean() < np.abs(shown - rest)[mouth].mean()

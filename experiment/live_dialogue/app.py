@@ -32,6 +32,7 @@ import math
 import struct
 import sys
 import time
+from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,8 @@ class LiveHub:
     next_viewer: int = 1
     feeding: asyncio.Future | None = None  # the analysis of the latest chunk
     ending: bool = False  # the turn is ending: its viewers' logs are awaited
+    #: the server's event loop, once it runs (a viewer in another thread joins through it)
+    loop: asyncio.AbstractEventLoop | None = None
 
     @classmethod
     def open(cls, config: LiveConfig) -> LiveHub:
@@ -173,7 +176,7 @@ class LiveHub:
         late = msg.get("late_audio")
         self.late_audio[vid] = int(late) if isinstance(late, int) and late >= 0 else 0
         shown = msg.get("display")
-        self.displays[vid] = shown if shown in ("live3d", "webxr") else "unknown"
+        self.displays[vid] = shown if shown in ("live3d", "webxr", "window") else "unknown"
 
     async def broadcast(self, message: bytes | str, *, to: set[int] | None = None) -> None:
         for vid, ws in list(self.viewers.items()):
@@ -340,7 +343,13 @@ def _numeric_rows(rows: Any, *, width: int, limit: int = 200_000) -> list[list[f
 
 def create_live_app(hub: LiveHub):
     """The FastAPI app over ``hub`` (see the module docstring)."""
-    app = FastAPI(openapi_url=None, docs_url=None, redoc_url=None)
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        hub.loop = asyncio.get_running_loop()
+        yield
+
+    app = FastAPI(openapi_url=None, docs_url=None, redoc_url=None, lifespan=lifespan)
     assets = {n: WEB / "static" / n
               for n in ("live.js", "dialogue.js", "conversation.js", "capture.js", "facelab.css")}
     three = {rel: (hub.config.vendor or WEB / "node_modules") / "three" / rel
