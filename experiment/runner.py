@@ -17,6 +17,7 @@ symptoms not yet answered (Escape again skips them).
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import platform
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +68,9 @@ class RunOptions:
     verify_hashes: bool = True
     accept_changed_clips: bool = False
     warn_dropped_frames: int = 3  # a clip that drops more frames is named at once
+    #: hosts presentation.conversation in the window (facelab run gives a LabConversation):
+    #: called (window, screen, participant=, session=, protocol_sha256=)
+    conversation: Any = None
 
 
 def _sickness_after_quitting(
@@ -113,12 +117,11 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
     :class:`~facelab.errors.SessionAbortedError` when the experimenter quits.
     """
     pid = options.participant
-    if protocol.presentation.conversation is not None:
+    if protocol.presentation.conversation is not None and options.conversation is None:
         raise SessionError(
-            f"{protocol_path}: presentation.conversation: a live conversation runs in the "
-            "participant's browser (facelab serve: the talker's voice drives the avatar there); "
-            "the lab window cannot draw a live avatar. Run the session online, or remove the "
-            "conversation for the lab"
+            f"{protocol_path}: presentation.conversation: this session has no host for the "
+            "live conversation (facelab run gives one; a program calling run_session passes "
+            "RunOptions.conversation)"
         )
     trials = build_trials(protocol, participant=pid)
     screens = compile_timeline(protocol, trials, participant=pid, session=options.session)
@@ -261,6 +264,11 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                     paths.actions,
                     chooser=ChoiceModel(protocol, rng=rng) if protocol.tasks else None,
                 )
+            if options.conversation is not None:
+                window.conversation_host = functools.partial(
+                    options.conversation, participant=pid, session=options.session,
+                    protocol_sha256=digest,
+                )  # fmt: skip
             log.update_provenance(
                 screen={
                     "size": list(window.size),

@@ -838,9 +838,10 @@ class ConversationScreen(ResponseScreen):
     driven by the talker's streamed voice under ``condition``'s method, for ``seconds`` or
     until the talker ends it. Logged as item ``conversation`` on the conversation's own trial
     (index 0, block ``conversation``, stimulus ``partner``): ``response`` how it ended,
-    ``score`` the turns, ``rt_s`` how long it lasted. Runs online only (the server relays the
-    talker; the turns are recorded in the participant's folder); the lab window cannot draw
-    a live avatar, and a simulated participant answers it at once."""
+    ``score`` the turns, ``rt_s`` how long it lasted. Online the server relays the talker to
+    the participant's page; in the lab the window's ``conversation_host`` (facelab run's live
+    server) draws the partner in the session's window; the turns are recorded in the
+    participant's folder either way. A simulated participant answers it at once."""
 
     kind: ClassVar[str] = "conversation"
     condition: str = ""

@@ -34,6 +34,8 @@ from facelab.experiment.timeline import (
     ClipKey,
     ClipPairScreen,
     ClipScreen,
+    ConversationAnswer,
+    ConversationScreen,
     IdentifyAnswer,
     IdentifyScreen,
     PairPlayback,
@@ -94,6 +96,9 @@ class Window:
         self.screenshots = screenshots
         self.shots_taken: set[str] = set()
         self.typed_fields = 0  # typed screens shown (the scripted participant's field keys)
+        #: hosts a live conversation screen (the runner's RunOptions.conversation, bound to
+        #: the session): called with (window, screen), returns a ConversationAnswer
+        self.conversation_host: Any = None
 
     def __enter__(self) -> Window:
         return self
@@ -530,6 +535,15 @@ class Window:
                 text = typed_text(str(field.text))[:limit]
                 self.win.removeEditable(field)  # the next screen's field gets the keys
                 return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
+
+    def conversation(self, screen: ConversationScreen) -> list[ConversationAnswer]:
+        """A live conversation (presentation.conversation) in this window: the partner's
+        avatar drawn from the talker's streamed voice, for the conversation's minutes."""
+        if self.conversation_host is None:
+            raise SessionError("presentation.conversation: this window has no live server "
+                               "for the talker (facelab run starts one)")  # fmt: skip
+        self._clear_events()
+        return [self.conversation_host(self, screen)]
 
     def added_screen(self, screen: Any) -> list[Any]:
         """A screen kind from a package (``AddedScreen``): drawn by the kind's ``lab``."""

@@ -3,7 +3,7 @@
 * The protocol key ``presentation.conversation`` is checked (condition, items, the block id
   it reserves); the timeline puts the conversation and the questions about the partner before
   or after the trials; resume shows what is missing (the partner's intro only while a
-  question about the partner is to come); the lab window refuses it in words.
+  question about the partner is to come); the lab window refuses it without a sound output.
 * Simulated sessions log it on its own trial; the analysis keeps it out of the trial
   analyses, tabulates it (conversation.csv, conversation_summary.csv) and refuses an edited
   row.
@@ -143,13 +143,32 @@ def test_the_timeline_has_the_conversation_then_the_partner_questions(
     assert "partner" not in [s.role for s in left if isinstance(s, TextScreen)]
 
 
-def test_the_lab_window_refuses_a_conversation_in_words(tmp_path: Path, capsys) -> None:
+def test_the_lab_window_refuses_a_conversation_it_cannot_let_the_participant_hear(
+    tmp_path: Path,
+) -> None:
+    """facelab run hosts the conversation in its window (tests/test_runner.py runs one); a
+    lab machine without a sound output is refused before anything is made, and a talker file
+    given to a protocol without a conversation is named."""
+    import os
+    import subprocess
+    import sys
+
     path = tmp_path / "conv.yaml"
     path.write_text(with_conversation(kato_text(), "{condition: standard, minutes: 1}"), "utf-8")
-    code = main(["run", str(path), "--participant", "P01", "--results", str(tmp_path / "r")])
-    err = capsys.readouterr().err
-    assert code == 2 and "presentation.conversation" in err and "facelab serve" in err
-    assert "Traceback" not in err and not (tmp_path / "r").exists()
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / ".asoundrc").write_text("pcm.!default {\n  type hw\n  card 99\n}\n")
+    exe = str(Path(sys.executable).with_name("facelab"))
+    done = subprocess.run([exe, "run", str(path), "--participant", "P01", "--results",
+                           str(tmp_path / "r")], env={**os.environ, "HOME": str(home)},
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 2 and "no usable sound output" in done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "r").exists()
+    done = subprocess.run([exe, "run", str(KATO), "--participant", "P01", "--results",
+                           str(tmp_path / "r"), "--conversation-input", str(path)],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 2 and "has no presentation.conversation" in done.stderr
+    assert not (tmp_path / "r").exists()
 
 
 # --------------------------------------------------------------------------- simulate, analyse

@@ -401,3 +401,59 @@ def test_escape_asks_then_quits_keeping_every_rating(study: Path, tmp_path: Path
     _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 4 and "continue with --resume" in err
     assert len(_rows(results, "P03")) >= 2
+
+
+@pytest.mark.slow
+def test_a_conversation_phase_in_the_lab_window(study: Path, tmp_path: Path) -> None:
+    """presentation.conversation in `facelab run`: the session's window shows the partner's
+    avatar live from the talker (a file the conversation's server streams), with the sound on
+    the machine's output (ALSA's null device here), for the conversation's minutes; then the
+    question about the partner and the trials. The conversation is logged on its own trial,
+    the turn recorded in the participant's folder with the frames the window showed."""
+    import json
+
+    import soundfile as sf
+
+    from facelab.stimuli.speech.tts import synthesize
+    from tests.test_conversation import with_conversation
+
+    text = (study / "short.yaml").read_text(encoding="utf-8")
+    conv = tmp_path / "conv.yaml"
+    conv.write_text(with_conversation(text, "{condition: emphasized, minutes: 0.15, when: "
+                                      "before, items: [naturalness]}"), "utf-8")  # fmt: skip
+    talk = tmp_path / "talk.wav"
+    sf.write(talk, synthesize("はい、わかりました。", sample_rate=16_000).samples, 16_000)
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / ".asoundrc").write_text("pcm.!default {\n  type null\n}\n")
+    env = {**os.environ, "SDL_AUDIODRIVER": "dummy", "HOME": str(home)}
+    results = tmp_path / "res"
+    done = subprocess.run(
+        [EXE, "run", str(conv), "--clips", str(study / "clips"), "--results", str(results),
+         "--simulate", "--participant", "P09", "--windowed", "--conversation-input",
+         str(talk), "--conversation-playout-ms", "1000"],
+        env=env, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert f"session complete: {RATINGS + 2} ratings" in done.stdout  # + conversation, partner
+    rows = _rows(results, "P09")
+    talked = [r for r in rows if r["item"] == "conversation"]
+    assert len(talked) == 1
+    row = talked[0]
+    assert (row["block"], row["condition"], row["response"]) == ("conversation", "emphasized",
+                                                                 "time")  # fmt: skip
+    assert float(row["score"]) == 1  # the file's one turn
+    assert 9.0 <= float(row["rt_s"]) < 15.0  # its 0.15 minutes
+    assert rows.index(row) == 0  # before the trials
+    partner = [r for r in rows if r["stimulus"] == "partner" and r["item"] == "naturalness"]
+    assert len(partner) == 1
+    folder = results / "kato2021" / "conversations" / "P09" / "turn-001"
+    record = json.loads((folder / "turn.json").read_text(encoding="utf-8"))
+    assert record["participant"] == "P09" and record["session"] == 1
+    assert record["viewer_displays"] == {"1": "window"}
+    with open(folder / "frames.csv", encoding="utf-8") as f:
+        frames = list(csv.DictReader(f))
+    assert frames, "the window showed no frame of the turn"
+    # each frame the one of the sound heard at its flip, or older (late), never more than
+    # the window's 45 ms lead ahead of it
+    assert all(int(r["frame"]) - int(r["wanted"]) <= 4 for r in frames)

@@ -7,6 +7,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from facelab.errors import FacelabError
 
@@ -344,3 +345,34 @@ def run_stimulus_checks(
     if report.failures:
         raise report.error()
     return report
+
+
+def conversation_talker(args: argparse.Namespace, protocol: Any) -> str | Path | None:
+    """``--conversation-input`` checked against the protocol: the talker of its
+    ``presentation.conversation`` (a file, or ``"mic"``: the talker's page), None without one
+    (FacelabError for a file given to a protocol with none, or a missing file)."""
+    given = args.conversation_input
+    if protocol.presentation.conversation is None:
+        if given is not None:
+            raise FacelabError(f"--conversation-input: {args.protocol} has no "
+                               "presentation.conversation")  # fmt: skip
+        return None
+    if given is not None and not Path(given).is_file():
+        raise FacelabError(f"--conversation-input {given}: no such file")
+    return Path(given) if given is not None else "mic"
+
+
+def add_conversation_options(p: argparse.ArgumentParser, *, who: str) -> None:
+    """``--conversation-input`` and ``--conversation-playout-ms`` (``who`` hears the talker)."""
+    p.add_argument(
+        "--conversation-input",
+        metavar="FILE.wav",
+        help="presentation.conversation: the server is the talker, saying this recording "
+        "once the conversation starts (demos and tests); default: the talker's page /talk, "
+        "with a microphone",
+    )
+    p.add_argument(
+        "--conversation-playout-ms", type=real(lo=40, hi=1000), default=120.0, metavar="MS",
+        help=f"{who} hears the talker this long after the sound arrives (a jitter buffer that "
+        "also holds the analysis; default 120)",
+    )  # fmt: skip

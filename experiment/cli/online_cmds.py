@@ -9,7 +9,14 @@ import sys
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_dir, real, seed, whole
+from facelab.experiment.cli.common import (
+    AddCommand,
+    add_conversation_options,
+    conversation_talker,
+    output_dir,
+    seed,
+    whole,
+)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -32,20 +39,15 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             ) from None
     clips = Path(args.clips) if args.clips else results / protocol.study.id / "clips"
     routes = ()
-    if protocol.presentation.conversation is not None:  # the talker's voice drives the avatar
+    talker = conversation_talker(args, protocol)
+    if talker is not None:  # the talker's voice drives the avatar
         from facelab.experiment.live_dialogue.conversation import conversation_routes
 
-        if args.conversation_input is not None and not Path(args.conversation_input).is_file():
-            raise FacelabError(f"--conversation-input {args.conversation_input}: no such file")
         routes = (conversation_routes(
             protocol, protocol_path=Path(args.protocol),
-            folder=results / protocol.study.id / "conversations",
-            talker=Path(args.conversation_input) if args.conversation_input else "mic",
+            folder=results / protocol.study.id / "conversations", talker=talker,
             playout_ms=args.conversation_playout_ms,
         ),)  # fmt: skip
-    elif args.conversation_input is not None:
-        raise FacelabError(f"--conversation-input: {args.protocol} has no "
-                           "presentation.conversation")  # fmt: skip
     server, made = prepare_server(
         protocol,
         protocol_path=Path(args.protocol),
@@ -205,18 +207,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("--sim-seed", type=seed, default=1, metavar="S", help="seed of their answers")
     p.add_argument("--parallel", type=whole(lo=1), default=2, metavar="K", help="browsers at once")
     p.add_argument("--screenshots", metavar="DIR", help="PNGs of the first participant's screens")
-    p.add_argument(
-        "--conversation-input",
-        metavar="FILE.wav",
-        help="presentation.conversation: the server is the talker, saying this recording "
-        "to each participant once their conversation starts (demos and tests); default: the "
-        "talker's page /talk, with a microphone",
-    )
-    p.add_argument(
-        "--conversation-playout-ms", type=real(lo=40, hi=1000), default=120.0, metavar="MS",
-        help="the participant hears the talker this long after the sound arrives (a jitter "
-        "buffer that also holds the analysis; default 120)",
-    )  # fmt: skip
+    add_conversation_options(p, who="the participant")
     p.add_argument(
         "--simulate-headset-off",
         type=whole(lo=1),

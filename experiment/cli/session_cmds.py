@@ -8,6 +8,8 @@ from pathlib import Path
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
     AddCommand,
+    add_conversation_options,
+    conversation_talker,
     deprecated,
     output_dir,
     parse_effects,
@@ -27,6 +29,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     validate_participant_id(args.participant)
     output_dir(args.results, option="--results")
     size = parse_size(args.size) or (1280, 800)
+    talker = conversation_talker(args, protocol)
+    conversation = None
+    if talker is not None:  # the partner drawn live in this window, heard on its speakers
+        from facelab.experiment.live_dialogue.app import LIVE_RATE
+        from facelab.experiment.live_dialogue.lab_conversation import LabConversation
+        from facelab.experiment.live_dialogue.window_view import SoundOut
+
+        SoundOut.check(sample_rate=LIVE_RATE)
+        conversation = LabConversation(
+            protocol=protocol, protocol_path=Path(args.protocol), results=Path(args.results),
+            talker=talker, playout_ms=args.conversation_playout_ms,
+            host=args.conversation_host, port=args.conversation_port,
+        )  # fmt: skip
     options = RunOptions(
         participant=args.participant,
         session=args.session,
@@ -40,6 +55,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         size=size,
         accept_changed_clips=args.accept_changed_clips,
         warn_dropped_frames=args.warn_dropped_frames,
+        conversation=conversation,
     )
     summary = run_session(protocol, protocol_path=Path(args.protocol), options=options)
     state = "complete" if summary["complete"] else "incomplete"
@@ -115,6 +131,12 @@ def register(add: AddCommand) -> None:
     p.add_argument(
         "--screenshots", metavar="DIR", help="save PNGs of a clip frame and a VAS screen"
     )
+    add_conversation_options(p, who="the participant")
+    p.add_argument("--conversation-host", default="127.0.0.1", metavar="HOST",
+                   help="presentation.conversation: the talker's page is served here (default "
+                   "127.0.0.1; the lab network's address for a talker on another machine)")
+    p.add_argument("--conversation-port", type=whole(lo=1, hi=65535), default=8010,
+                   metavar="PORT", help="... and on this port (default 8010)")
 
     p = add(
         "simulate",

@@ -267,16 +267,21 @@ class WindowViewer:
         hub: LiveHub,
         *,
         loop: asyncio.AbstractEventLoop,
-        size: tuple[int, int],
-        fullscreen: bool,
+        size: tuple[int, int] = (1280, 800),
+        fullscreen: bool = False,
+        window: Any = None,
     ) -> None:
+        """A window of ``size`` (or full screen) of its own, or the lab session's ``window``
+        (a :class:`~facelab.experiment.window.Window`, left open at the end)."""
         from facelab.experiment.window import Window
 
         self.hub, self.loop = hub, loop
         config = hub.config
         self.sound = SoundOut(sample_rate=hub.driver.sample_rate)
+        self.own_window = window is None
         try:
-            self.window = Window(config.protocol, clips={}, size=size, fullscreen=fullscreen)
+            self.window = window or Window(config.protocol, clips={}, size=size,
+                                           fullscreen=fullscreen)  # fmt: skip
         except Exception:
             self.sound.close()
             raise
@@ -286,7 +291,8 @@ class WindowViewer:
             self.renderer = FrameRenderer(protocol_path=config.protocol_path,
                                           names=hub.driver.names, size=self.frame_size)  # fmt: skip
         except Exception:
-            self.window.__exit__()
+            if self.own_window:
+                self.window.__exit__()
             self.sound.close()
             raise
         self.socket = LocalSocket()
@@ -306,7 +312,8 @@ class WindowViewer:
             self.hub.viewers.pop(self.vid, None)
         self.renderer.close()
         self.sound.close()
-        self.window.__exit__()
+        if self.own_window:
+            self.window.__exit__()
 
     async def _join(self) -> int:
         vid = self.hub.add_viewer(self.socket)  # type: ignore[arg-type]
@@ -328,8 +335,13 @@ class WindowViewer:
             self._picture.image = image
         return self._picture
 
-    def run(self, *, stop: threading.Event | None = None) -> dict[str, Any]:
-        """Follow turns until Escape (confirmed), ``stop``, or the window is closed."""
+    def run(
+        self, *, stop: threading.Event | None = None, until: float | None = None,
+        quit_raises: bool = False,
+    ) -> dict[str, Any]:  # fmt: skip
+        """Follow turns until Escape (confirmed; with ``quit_raises`` the SessionAbortedError
+        goes on to the caller), ``stop`` is set, or ``time.perf_counter()`` passes
+        ``until``."""
         win, event = self.window.win, self.window.event
         words = _WORDS.get(self.hub.config.protocol.presentation.language, _WORDS["en"])
         status = self.window.text_stim(words["waiting"], y=-0.42 * self.window.size[1],
@@ -344,7 +356,9 @@ class WindowViewer:
         began = time.perf_counter()
         flips = turns = 0
         changed = True
-        while not (stop is not None and stop.is_set()):
+        while not (stop is not None and stop.is_set()) and not (
+            until is not None and time.perf_counter() >= until
+        ):
             turn = self._messages(turn, k_names)
             fresh = None
             if asked is not None and self.renderer.ready(0.002):
@@ -395,6 +409,8 @@ class WindowViewer:
                 try:
                     self.window._check_escape(keys)
                 except SessionAbortedError:
+                    if quit_raises:
+                        raise
                     break
         if turn is not None and not turn.sent and turn.log:
             self._send_log(turn)  # the window closes mid-turn: what it showed is kept
