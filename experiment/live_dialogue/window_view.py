@@ -469,10 +469,11 @@ class WindowViewer:
 
     def _send_log(self, turn: _TurnView) -> None:
         turn.sent = True
-        self.hub.viewer_log(self.vid, {
-            "log": turn.log, "arrivals": turn.arrivals, "poses": [],
-            "late_audio": self.sound.late, "display": "window",
-        })  # fmt: skip
+        message = {"log": turn.log, "arrivals": turn.arrivals, "poses": [],
+                   "late_audio": self.sound.late, "display": "window"}  # fmt: skip
+        # handed to the server's loop, which owns the hub's state (as a socket's message is)
+        with contextlib.suppress(RuntimeError):  # the server already stopped
+            self.loop.call_soon_threadsafe(self.hub.viewer_log, self.vid, message)
 
 
 _WORDS = {
