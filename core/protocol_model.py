@@ -669,16 +669,17 @@ class AddedScreen(_Model):
 
 class Conversation(_Model):
     """A live conversation with a partner shown as the avatar (issue 53.4): a talker - the
-    experimenter or a confederate, on the talker page ``/talk`` of ``facelab serve`` - speaks,
-    the condition's method drives the avatar from the streamed voice, and the participant sees
-    and hears it for ``minutes``; then the VAS ``items`` are asked about the partner. Each
-    turn is recorded (audio, the track as shown, latencies) in the participant's folder."""
+    experimenter or a confederate, on the talker page ``/talk`` of ``facelab serve`` (online)
+    or of the live server ``facelab run`` starts (in the lab) - speaks, the condition's method
+    drives the avatar from the streamed voice, and the participant sees and hears it for
+    ``minutes``; then the VAS ``items`` are asked about the partner. Each turn is recorded
+    (audio, the track as shown, latencies) in the participant's folder."""
 
     condition: Id = Field(description="The condition whose method drives the partner's face.")
     minutes: float = Field(
         gt=0.0,
         le=120.0,
-        description="How long the conversation lasts; the talker can end it sooner.",
+        description="How long the conversation lasts; online the talker can end it sooner.",
     )
     when: Literal["before", "after"] = Field(
         "before",
@@ -718,7 +719,7 @@ class Presentation(_Model):
     conversation: Conversation | None = Field(
         None,
         description="A live conversation with a partner shown as the avatar, then VAS items "
-        "about the partner (online sessions; logged as block 'conversation').",
+        "about the partner (online and in the lab window; logged as block 'conversation').",
     )
     ssq: list[Literal["before", "after"]] = Field(
         default_factory=list,

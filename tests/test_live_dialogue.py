@@ -18,7 +18,6 @@ import soundfile as sf
 from facelab.errors import FacelabError, SessionError, StageError
 from facelab.experiment.cli import main
 from facelab.experiment.live_dialogue.turn import (
-    BUDGET_AHEAD_MS,
     BUDGET_BEHIND_MS,
     Turn,
     latency_summary,
@@ -636,7 +635,6 @@ def test_a_simulated_live_turn_in_the_lab_window(tmp_path) -> None:
     # the window asks for the frame of the flip that will show it (the render takes 30-60 ms
     # here), at most LEAD_MAX_S ahead: a flip sooner than expected shows it that much ahead
     drawn_right(folder, record, ahead_ms=LEAD_MAX_S * 1000)
-    assert LEAD_MAX_S * 1000 <= BUDGET_AHEAD_MS
     track = read_track(folder / "track.bin")
     snapped = record["screenshot_frame"]
     assert 0 <= snapped["frame"] < len(track.values)

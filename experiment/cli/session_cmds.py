@@ -42,6 +42,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             talker=talker, playout_ms=args.conversation_playout_ms,
             host=args.conversation_host, port=args.conversation_port,
         )  # fmt: skip
+        conversation.check(conditions=[protocol.presentation.conversation.condition])
     options = RunOptions(
         participant=args.participant,
         session=args.session,

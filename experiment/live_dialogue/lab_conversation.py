@@ -44,6 +44,23 @@ class LabConversation:
     host: str = "127.0.0.1"
     port: int = 8010
 
+    def check(self, *, conditions: list[str]) -> None:
+        """Before the session starts: each conversation condition runs live on the avatar,
+        the talker's file reads, and the port is free (SessionError naming what is not)."""
+        import socket
+
+        for condition in conditions:
+            LiveHub.open(LiveConfig(protocol=self.protocol, protocol_path=self.protocol_path,
+                                    condition=condition, talker=self.talker,
+                                    session=self.results))  # fmt: skip
+        with socket.socket() as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+            try:
+                probe.bind((self.host, self.port))
+            except OSError:
+                raise SessionError(f"--conversation-port {self.port}: {self.host}:{self.port} "
+                                   "is taken or not this machine's; give another") from None
+
     def __call__(
         self, window: Any, screen: ConversationScreen, *, participant: str, session: int,
         protocol_sha256: str,
@@ -68,10 +85,12 @@ class LabConversation:
             who = url if self.talker == "mic" else f"{self.talker} (streamed once)"
             print(f"conversation under {screen.condition!r} for {screen.seconds:g} s; "
                   f"the talker: {who}", flush=True)  # fmt: skip
-            began = time.perf_counter()
+            window.text_stim(screen.text).draw()
+            window.win.flip()  # while the avatar's renderer starts (its clock not yet running)
             with WindowViewer(hub, loop=hub.loop, window=window) as view:
-                view.run(until=began + screen.seconds, quit_raises=True)
-            lasted = time.perf_counter() - began
+                shown = view.run(seconds=screen.seconds, quit_raises=True, caption=screen.text)
+            lasted = shown["seconds_shown"]
+            window.win.flip()  # the partner gone while a turn still being spoken is saved
             end = time.monotonic() + TURN_END_WAIT_S  # a turn spoken when time ran out:
             while hub.busy and time.monotonic() < end:  # saved once the talker stops (or
                 time.sleep(0.05)  # as far as it got, when the server closes its socket)

@@ -46,10 +46,13 @@ from facelab.stimuli.methods.live_drive import LIVE_FPS
 __all__ = ["LEAD_MAX_S", "LocalSocket", "SoundOut", "WindowViewer", "render_size"]
 
 RENDER_START_S = 120.0  # how long the render worker may take to load the avatar
-LOG_AFTER_END_S = 0.2
+LOG_AFTER_END_S = 0.2  # the log goes back this long after the turn's last sound was heard
 #: the furthest ahead a frame is asked for (s): a frame is never shown more than this before
 #: its sound (the live budget's 45 ms, however quick the flip; a slower render shows it late)
-LEAD_MAX_S = 0.045  # the log goes back this long after the turn's last sound was heard
+LEAD_MAX_S = 0.045
+#: a chunk of sound this far past its time (s) is dropped, not played: the sound keeps to the
+#: clock the frames follow (after the window was held, e.g. by the quit question)
+DROP_LATE_S = 0.1
 
 
 class LocalSocket:
@@ -175,10 +178,14 @@ def _render_worker(conn, protocol_path: str, names: tuple[str, ...], size: tuple
                 full[:] = 0.0
                 full[columns] = weights
                 conn.send_bytes(np.ascontiguousarray(renderer.frame(full)).tobytes())
-    except FacelabError as exc:
-        conn.send(("error", str(exc)))
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         return
+    except FacelabError as exc:
+        conn.send(("error", str(exc)))
+    except Exception:  # a driver or a model the renderer cannot draw: said, not a traceback
+        with contextlib.suppress(OSError, ValueError):
+            conn.send(("error", "the offline renderer failed on this avatar (facelab render "
+                                "shows the same problem with its details)"))
 
 
 class FrameRenderer:
@@ -195,7 +202,7 @@ class FrameRenderer:
         child.close()
         if not self.conn.poll(RENDER_START_S):
             self.close()
-            raise SessionError(f"--display window: the avatar renderer did not start within "
+            raise SessionError(f"the live window: the avatar renderer did not start within "
                                f"{RENDER_START_S:.0f} s")  # fmt: skip
         try:
             kind, detail = self.conn.recv()
@@ -203,7 +210,7 @@ class FrameRenderer:
             kind, detail = "error", "the renderer process ended"
         if kind != "ready":
             self.close()
-            raise SessionError(f"--display window: the avatar cannot be drawn: {detail}")
+            raise SessionError(f"the live window: the avatar cannot be drawn: {detail}")
 
     def ask(self, weights: np.ndarray) -> None:
         """Start drawing weights (K,); :meth:`take` gets the frame (one asked at a time)."""
@@ -214,7 +221,12 @@ class FrameRenderer:
 
     def take(self) -> np.ndarray:
         """The asked frame, (H, W, 3) uint8 (waits for it)."""
-        data = self.conn.recv_bytes()
+        try:
+            data = self.conn.recv_bytes()
+        except (EOFError, OSError):
+            raise SessionError("the live window: the avatar renderer stopped") from None
+        if len(data) != self.size[0] * self.size[1] * 3:  # its last word, an error
+            raise SessionError("the live window: the avatar renderer stopped")
         return np.frombuffer(data, np.uint8).reshape(self.size[1], self.size[0], 3)
 
     def draw(self, weights: np.ndarray) -> np.ndarray:
@@ -309,7 +321,8 @@ class WindowViewer:
 
     def __exit__(self, *exc: object) -> None:
         if self.vid is not None:
-            self.hub.viewers.pop(self.vid, None)
+            with contextlib.suppress(RuntimeError):  # the loop owns the hub (if it still runs)
+                self.loop.call_soon_threadsafe(self.hub.viewers.pop, self.vid, None)
         self.renderer.close()
         self.sound.close()
         if self.own_window:
@@ -336,19 +349,26 @@ class WindowViewer:
         return self._picture
 
     def run(
-        self, *, stop: threading.Event | None = None, until: float | None = None,
-        quit_raises: bool = False,
+        self, *, stop: threading.Event | None = None, seconds: float | None = None,
+        quit_raises: bool = False, caption: str = "",
     ) -> dict[str, Any]:  # fmt: skip
         """Follow turns until Escape (confirmed; with ``quit_raises`` the SessionAbortedError
-        goes on to the caller), ``stop`` is set, or ``time.perf_counter()`` passes
-        ``until``."""
+        goes on to the caller), ``stop`` is set, or ``seconds`` have passed since the window
+        joined the hub (the avatar drawn, the talker's sound expected); ``caption`` is shown
+        above the avatar throughout. Returns what it showed, with ``seconds_shown``."""
         win, event = self.window.win, self.window.event
         words = _WORDS.get(self.hub.config.protocol.presentation.language, _WORDS["en"])
         status = self.window.text_stim(words["waiting"], y=-0.42 * self.window.size[1],
                                        height=0.028 * self.window.size[1])  # fmt: skip
         k_names = len(self.hub.driver.names)
+        top = self.window.text_stim(caption, y=0.44 * self.window.size[1],
+                                    height=0.026 * self.window.size[1]) if caption else None
         picture = self._image(self.renderer.draw(np.zeros(k_names)))
-        self.vid = asyncio.run_coroutine_threadsafe(self._join(), self.loop).result(timeout=30)
+        try:
+            self.vid = asyncio.run_coroutine_threadsafe(self._join(), self.loop).result(30)
+        except TimeoutError:
+            raise SessionError("the live window could not join the live server") from None
+        until = None if seconds is None else time.perf_counter() + seconds
         turn: _TurnView | None = None
         shown_k: int | None = None  # the frame the window shows
         asked: tuple[int, float] | None = None  # the frame being drawn, and when it was asked
@@ -377,6 +397,8 @@ class WindowViewer:
                     asked = (k, time.perf_counter())
             if changed:  # else the screen keeps its picture
                 picture.draw()
+                if top is not None:
+                    top.draw()
                 if turn is None or turn.t0 is None:
                     status.draw()
                 win.flip()
@@ -408,6 +430,7 @@ class WindowViewer:
             if keys:
                 try:
                     self.window._check_escape(keys)
+                    changed = True  # the quit question declined: the picture again
                 except SessionAbortedError:
                     if quit_raises:
                         raise
@@ -415,6 +438,7 @@ class WindowViewer:
         if turn is not None and not turn.sent and turn.log:
             self._send_log(turn)  # the window closes mid-turn: what it showed is kept
         return {"flips": flips, "turns_shown": turns, "frame_size": list(self.frame_size),
+                "seconds_shown": round(time.perf_counter() - began, 3),
                 "sound_device": self.sound.device,
                 "sound_latency_ms": round(self.sound.latency_s * 1000, 1)}  # fmt: skip
 
@@ -442,7 +466,11 @@ class WindowViewer:
             if kind == AUDIO:
                 if turn.t0 is None:
                     turn.t0 = time.perf_counter() + playout - start / rate
-                self.sound.play(data[:, 0], at=turn.t0 + start / rate)
+                at = turn.t0 + start / rate
+                if at < time.perf_counter() - DROP_LATE_S:
+                    self.sound.late += 1
+                    continue
+                self.sound.play(data[:, 0], at=at)
             elif kind == FRAMES:
                 turn.frames(start, data)
 
