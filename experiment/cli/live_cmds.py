@@ -102,22 +102,15 @@ def _serve(args: argparse.Namespace) -> int:
 
 def _serve_window(hub, args: argparse.Namespace, *, size: tuple[int, int]) -> int:
     """The server in a thread, the lab window (this thread) its viewer until Escape."""
-    import time
-
-    from facelab.errors import SessionError
     from facelab.experiment.live_dialogue.app import create_live_app
     from facelab.experiment.live_dialogue.window_view import WindowViewer
     from facelab.experiment.online.serve import BackgroundServer
 
     fullscreen = hub.config.protocol.presentation.fullscreen and not args.windowed
     with BackgroundServer(None, host=args.host, port=args.port, app=create_live_app(hub)):
-        deadline = time.monotonic() + 20
-        while hub.loop is None:
-            if time.monotonic() > deadline:
-                raise SessionError(f"the server did not start on {args.host}:{args.port}")
-            time.sleep(0.02)
+        loop = hub.running_loop()
         print("  the lab window shows the avatar; Escape (then y) closes it")
-        with WindowViewer(hub, loop=hub.loop, size=size, fullscreen=fullscreen) as view:
+        with WindowViewer(hub, loop=loop, size=size, fullscreen=fullscreen) as view:
             shown = view.run()
     print(f"facelab live: {shown['turns_shown']} turns shown in the window; "
           f"{len(hub.turns)} recorded in {hub.config.session}")  # fmt: skip

@@ -141,6 +141,16 @@ class LiveHub:
         return cls(config=config, scene=scene, driver=driver,
                    talker_audio=talker_audio)  # fmt: skip
 
+    def running_loop(self, *, timeout_s: float = 20.0) -> asyncio.AbstractEventLoop:
+        """The server's event loop once the app serving this hub runs (another thread joins
+        the hub through it); SessionError when it does not start within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while self.loop is None:
+            if time.monotonic() > deadline:
+                raise SessionError("the live server did not start")
+            time.sleep(0.02)
+        return self.loop
+
     def live_json(self) -> dict[str, Any]:
         p = self.config.protocol
         return {

@@ -75,19 +75,14 @@ class LabConversation:
         )  # fmt: skip
         hub = LiveHub.open(config)
         with BackgroundServer(None, host=self.host, port=self.port, app=create_live_app(hub)):
-            deadline = time.monotonic() + 20
-            while hub.loop is None:
-                if time.monotonic() > deadline:
-                    raise SessionError(f"the conversation's server did not start on "
-                                       f"{self.host}:{self.port}")  # fmt: skip
-                time.sleep(0.02)
+            loop = hub.running_loop()
             url = f"http://{self.host}:{self.port}/talk"
             who = url if self.talker == "mic" else f"{self.talker} (streamed once)"
             print(f"conversation under {screen.condition!r} for {screen.seconds:g} s; "
                   f"the talker: {who}", flush=True)  # fmt: skip
             window.text_stim(screen.text).draw()
             window.win.flip()  # while the avatar's renderer starts (its clock not yet running)
-            with WindowViewer(hub, loop=hub.loop, window=window) as view:
+            with WindowViewer(hub, loop=loop, window=window) as view:
                 shown = view.run(seconds=screen.seconds, quit_raises=True, caption=screen.text)
             lasted = shown["seconds_shown"]
             window.win.flip()  # the partner gone while a turn still being spoken is saved

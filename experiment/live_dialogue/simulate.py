@@ -15,6 +15,7 @@ from typing import Any
 from facelab.errors import SessionError
 from facelab.experiment.live_dialogue.app import LiveConfig, LiveHub, create_live_app
 from facelab.experiment.online.serve import BackgroundServer
+from facelab.stimuli.speech.audio import Speech
 
 __all__ = ["simulate_live"]
 
@@ -44,7 +45,7 @@ def simulate_live(
     hub = LiveHub.open(config)
     snapped = None
     with tempfile.TemporaryDirectory(prefix="facelab-live-") as tmp:
-        fake = _fake_microphone(wav, Path(tmp))
+        fake = _fake_microphone(speech, Path(tmp))
         with BackgroundServer(None, app=create_live_app(hub)) as server:
             if config.display == "window":
                 snapped = _window_turn(hub, server.url, fake=fake, duration_s=duration,
@@ -120,13 +121,11 @@ def _record(hub: LiveHub, *, wav: Path, duration_s: float, screenshot: Path | No
     return record
 
 
-def _fake_microphone(wav: Path, folder: Path) -> Path:
-    """``wav`` as 16-bit 48 kHz PCM, what Chromium's fake capture reads."""
+def _fake_microphone(speech: Speech, folder: Path) -> Path:
+    """``speech`` (at 48 kHz) as 16-bit PCM in ``folder``, what Chromium's fake capture
+    reads."""
     import soundfile as sf
 
-    from facelab.stimuli.speech.audio import load_audio
-
-    speech = load_audio(wav, sample_rate=48_000)
     fake = folder / "talker.wav"
     sf.write(str(fake), speech.samples, speech.sample_rate, subtype="PCM_16")
     return fake
@@ -164,11 +163,7 @@ def _window_turn(hub: LiveHub, url: str, *, fake: Path, duration_s: float,
     Chromium (a thread): one turn; the window's still saved to ``screenshot``."""
     from facelab.experiment.live_dialogue.window_view import WindowViewer
 
-    deadline = time.monotonic() + 20
-    while hub.loop is None:  # the server's loop, which the window joins the hub through
-        if time.monotonic() > deadline:
-            raise SessionError("simulated live session: the server did not start")
-        time.sleep(0.02)
+    loop = hub.running_loop()  # the server's loop, which the window joins the hub through
     stop, failures = threading.Event(), []
 
     def talker() -> None:
@@ -188,7 +183,7 @@ def _window_turn(hub: LiveHub, url: str, *, fake: Path, duration_s: float,
         finally:
             stop.set()
 
-    with WindowViewer(hub, loop=hub.loop, size=window_size, fullscreen=False) as view:
+    with WindowViewer(hub, loop=loop, size=window_size, fullscreen=False) as view:
         if screenshot is not None:  # mid-sentence, the mouth open (as the browser viewer)
             view.snap = {"after_s": duration_s / 3, "peak": 0.25}
         thread = threading.Thread(target=talker, daemon=True)
