@@ -223,15 +223,16 @@ class Window:
         """Play one clip with sound; returns onset, flips and dropped frames."""
         if screen.interval is not None:
             self._announce(screen)
+        shot = None if screen.practice else "clip_mid_playback"
+        return self.play_file(self.clips[screen.clip], shot=shot)
+
+    def play_file(self, ref: ClipRef, *, shot: str | None = None) -> Playback:
+        """Play one clip where and as the study's clips play (also a file that is not one of
+        the study's: a latency test clip)."""
         w, h = self.size
         scale = min(0.95 * w / 16, 0.80 * h / 9)
-        (playback,) = self._play(
-            [screen.clip],
-            sizes=[(16 * scale, 9 * scale)],
-            positions=[(0, 0.05 * h)],
-            sound=0,
-            shot=None if screen.practice else "clip_mid_playback",
-        )
+        (playback,) = self._play([ref], sizes=[(16 * scale, 9 * scale)],
+                                 positions=[(0, 0.05 * h)], sound=0, shot=shot)  # fmt: skip
         return playback
 
     def clip_pair(self, screen: ClipPairScreen) -> PairPlayback:
@@ -239,7 +240,7 @@ class Window:
         w, h = self.size
         scale = min(0.47 * w / 16, 0.80 * h / 9)
         left, right = self._play(
-            list(screen.clips()),
+            [self.clips[k] for k in screen.clips()],
             sizes=[(16 * scale, 9 * scale)] * 2,
             positions=[(-0.245 * w, 0.05 * h), (0.245 * w, 0.05 * h)],
             sound=screen.sound - 1,
@@ -249,16 +250,15 @@ class Window:
 
     def _play(
         self,
-        keys: list[ClipKey],
+        refs: list[ClipRef],
         *,
         sizes: list[tuple[float, float]],
         positions: list[tuple[float, float]],
         sound: int,
         shot: str | None,
     ) -> list[Playback]:
-        """Play the clips ``keys`` together (started on the same flip), only clip ``sound``
+        """Play the clips ``refs`` together (started on the same flip), only clip ``sound``
         with its sound; one :class:`Playback` per clip, timed on the shared flips."""
-        refs = [self.clips[k] for k in keys]
         movies = [
             self.visual.MovieStim(
                 self.win,

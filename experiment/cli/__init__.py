@@ -24,6 +24,7 @@ from facelab.experiment.cli import (
     behaviour_cmds,
     demo_cmd,
     impression_cmds,
+    latency_cmds,
     live_cmds,
     online_cmds,
     protocol_cmds,
@@ -44,6 +45,7 @@ FAMILIES = (
     session_cmds,
     online_cmds,
     live_cmds,
+    latency_cmds,
     analysis_cmds,
     demo_cmd,
 )

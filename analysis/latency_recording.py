@@ -1,0 +1,161 @@
+"""A photodiode and microphone recording of a latency test clip, measured: how much later the
+sound arrived than the light, event by event.
+
+The recording holds the photodiode's signal on one channel and the microphone's on another
+(one sound card, one clock). Each channel is measured the same way: its deviation from its
+median (the photodiode's polarity and a line input's DC blocking do not matter), a 2 ms
+trailing maximum as its envelope (a tone's cycles filled in, nothing anticipated), candidate
+events where the envelope rises through half of its high percentile, at most one per half
+period; each event's onset is where the envelope first rose through ``onset_fraction`` of its
+typical peak above the floor (at least 8 noise deviations above it), interpolated between
+samples. Each light is paired with the sound onset nearest to it within half a period.
+
+``offset_ms`` = sound onset - light onset: positive when the sound comes late. The lights'
+intervals against the schedule's period show frames shown late or dropped (a flash that came
+a frame late shifts one interval up and the next down by a frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from facelab.errors import StageError
+
+__all__ = ["LatencyMeasure", "channel_onsets", "measure_latency"]
+
+ENVELOPE_S = 0.002  # trailing maximum: fills a tone's cycles down to 500 Hz
+SEARCH_S = 0.05  # how far before a strong crossing its onset is looked for
+
+
+def _envelope(x: np.ndarray, *, sample_rate: int) -> np.ndarray:
+    a = np.abs(x.astype(np.float64) - float(np.median(x)))
+    w = max(1, round(ENVELOPE_S * sample_rate))
+    padded = np.concatenate([np.zeros(w - 1), a])
+    return np.lib.stride_tricks.sliding_window_view(padded, w).max(axis=1)
+
+
+def channel_onsets(
+    x: np.ndarray, *, sample_rate: int, min_gap_s: float, onset_fraction: float = 0.1
+) -> np.ndarray:
+    """Event onsets (s) in one channel ``x`` (n,): see the module's description. Empty when
+    the channel holds no events standing out of its noise."""
+    env = _envelope(x, sample_rate=sample_rate)
+    floor = float(np.median(env))
+    spread = 1.4826 * float(np.median(np.abs(env - floor)))
+    top = float(np.percentile(env, 99.9))
+    if top - floor <= 20 * max(spread, 1e-9):
+        return np.empty(0)  # nothing stands out of the noise
+    high = floor + 0.5 * (top - floor)
+    above = env >= high
+    rises = np.flatnonzero(above[1:] & ~above[:-1]) + 1
+    gap = round(min_gap_s * sample_rate)
+    strong: list[int] = []
+    for k in rises:
+        if not strong or k - strong[-1] >= gap:
+            strong.append(int(k))
+    if not strong:
+        return np.empty(0)
+    search = round(SEARCH_S * sample_rate)
+    peaks = np.array([env[k : k + search].max() for k in strong])
+    typical = float(np.median(peaks))
+    low = floor + max(onset_fraction * (typical - floor), 8 * spread)
+    onsets = []
+    for k in strong:
+        start = max(0, k - search)
+        below = np.flatnonzero(env[start:k] < low)
+        j = start + (int(below[-1]) if below.size else 0)  # last sample under the threshold
+        # between sample j (under) and j + 1 (at or over), linearly
+        a, b = env[j], env[min(j + 1, len(env) - 1)]
+        frac = 0.0 if b <= a else float(np.clip((low - a) / (b - a), 0.0, 1.0))
+        onsets.append((j + frac) / sample_rate)
+    return np.array(onsets)
+
+
+@dataclass(frozen=True)
+class LatencyMeasure:
+    """Per event (``events``: event, light_s, sound_s, offset_ms, light_interval_ms) and the
+    summary figures (``summary``: counts, offset mean, SD, median, range, the lights'
+    largest interval error against the schedule)."""
+
+    events: pd.DataFrame
+    summary: dict
+
+
+def measure_latency(
+    recording: np.ndarray,
+    *,
+    sample_rate: int,
+    photodiode: int,
+    mic: int,
+    period_s: float,
+    expected: int | None = None,
+    source: str = "the recording",
+) -> LatencyMeasure:
+    """Measure a (n, channels) ``recording`` of a latency test clip; ``period_s`` the
+    schedule's period, ``expected`` its event count. A StageError when a channel is missing
+    or holds fewer than three events."""
+    if recording.ndim != 2:
+        raise StageError(f"{source}: expected a recording of shape (samples, channels)")
+    channels = recording.shape[1]
+    for name, k in (("photodiode", photodiode), ("microphone", mic)):
+        if not 0 <= k < channels:
+            raise StageError(
+                f"{source} has {channels} channel{'s' * (channels != 1)} (0 to {channels - 1});"
+                f" the {name} channel {k} is not one of them"
+            )
+    if photodiode == mic:
+        raise StageError(f"the photodiode and the microphone are both channel {mic}: record "
+                         "them on two channels of one recording")  # fmt: skip
+    gap = period_s / 2
+    light = channel_onsets(recording[:, photodiode], sample_rate=sample_rate, min_gap_s=gap)
+    sound = channel_onsets(recording[:, mic], sample_rate=sample_rate, min_gap_s=gap)
+    for name, k, found, hint in (
+        ("flashes", photodiode, light, "is the photodiode on the white patch, its cable in "
+         "the line input, and the clip playing?"),
+        ("tone bursts", mic, sound, "is the microphone near the participant's head and the "
+         "sound on?"),
+    ):  # fmt: skip
+        if len(found) < 3:
+            raise StageError(
+                f"{source}: {len(found)} {name} found on channel {k} (at least 3 are needed): "
+                f"{hint}"
+            )
+    rows = []
+    used: set[int] = set()
+    for i, t in enumerate(light):
+        j = int(np.argmin(np.abs(sound - t)))
+        paired = abs(sound[j] - t) <= gap and j not in used
+        if paired:
+            used.add(j)
+        rows.append({
+            "event": i + 1,
+            "light_s": round(float(t), 6),
+            "sound_s": round(float(sound[j]), 6) if paired else np.nan,
+            "offset_ms": round(1000 * float(sound[j] - t), 3) if paired else np.nan,
+            "light_interval_ms": round(1000 * float(t - light[i - 1]), 3) if i else np.nan,
+        })  # fmt: skip
+    events = pd.DataFrame(rows)
+    offsets = events["offset_ms"].dropna().to_numpy()
+    if len(offsets) < 3:
+        raise StageError(f"{source}: only {len(offsets)} flashes have a tone burst within half "
+                         "a period: is this a recording of the latency test clip?")  # fmt: skip
+    intervals = events["light_interval_ms"].dropna().to_numpy()
+    steps = np.round(intervals / (1000 * period_s))  # a missing flash: two periods
+    error = intervals - 1000 * period_s * np.maximum(steps, 1)
+    summary = {
+        "events_expected": expected,
+        "flashes_found": len(light),
+        "tone_bursts_found": len(sound),
+        "pairs": len(offsets),
+        "offset_ms_mean": round(float(offsets.mean()), 3),
+        "offset_ms_sd": round(float(offsets.std(ddof=1)), 3),
+        "offset_ms_median": round(float(np.median(offsets)), 3),
+        "offset_ms_min": round(float(offsets.min()), 3),
+        "offset_ms_max": round(float(offsets.max()), 3),
+        "light_interval_error_ms_max": round(float(np.abs(error).max()), 3) if len(error) else None,
+        "flashes_missing": (max(0, expected - len(light)) if expected is not None else None),
+    }
+    return LatencyMeasure(events, summary)
