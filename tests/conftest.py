@@ -45,6 +45,8 @@ def _own_display() -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # a facelab child that dies in native code (a signal, not an error) prints where it was
+    os.environ.setdefault("PYTHONFAULTHANDLER", "1")
     if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("DISPLAY"):
         _own_display()
 

@@ -82,7 +82,9 @@ def chromium(*, size: tuple[int, int] = (1280, 800), extra_args: Sequence[str] =
     ):
         opts.add_argument(arg)
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    return webdriver.Chrome(service=Service(executable_path=driver_exe), options=opts)
+    driver = webdriver.Chrome(service=Service(executable_path=driver_exe), options=opts)
+    driver.set_script_timeout(90)  # a VR select waits for XR frames (up to 60 s on a load)
+    return driver
 
 
 #: the emulated headset (Meta's IWER from npm, never served to participants): installed in the
@@ -118,8 +120,10 @@ _EMULATOR_JS = """
   window.facelabFace = (yaw) => pose(yaw, 0, 0, 0, 0, 0);
   let offAt = %(off)s;  // the trial whose clip sees the headset taken off (once)
   const frameLoop = IWER.XRSession.prototype.requestAnimationFrame;
+  window.facelabXRFrames = 0;  // XR frames run: a driver's trigger waits for them
   IWER.XRSession.prototype.requestAnimationFrame = function (callback) {
     return frameLoop.call(this, function (time, frame) {
+      window.facelabXRFrames += 1;
       const result = callback(time, frame);
       const live = window.FacelabLive;
       if (offAt !== null && live && live.playing && live.playing.trial_index === offAt) {
@@ -143,6 +147,9 @@ _EMULATOR_JS = """
   };
 })();
 """
+#: a screen the simulated participant answered that is still on show this long after (s):
+#: the answer was lost - said, rather than waited out to the session's timeout
+STUCK_S = 180.0
 #: the yaw (deg, + to the left) the emulated participant faces when they recentre
 RECENTRE_YAW_DEG = 15.0
 _FACE_JS = "window.facelabFace(arguments[0]);"
@@ -162,16 +169,27 @@ if (!target) { done('no panel target for ' + selector); return; }
 const c = device.controllers.right;
 const q = stage.aim(1, target);
 c.quaternion.set(q[0], q[1], q[2], q[3]);
-const frame = () => new Promise((r) => setTimeout(r, 120));
+// IWER reads a button once per XR frame (the last value set wins), and a loaded machine
+// draws a headless XR frame only every few hundred ms: each step waits for two XR frames,
+// so the press is seen, aimed, and the release after it (a timer alone can miss the press);
+// a select that ends the session (Exit) has no frames after it
+const frames = (n) => new Promise((resolve, reject) => {
+  const until = window.facelabXRFrames + n, give_up = performance.now() + 60000;
+  const poll = () => {
+    if (window.facelabXRFrames >= until || !stage.session) resolve();
+    else if (performance.now() > give_up) reject(new Error('no XR frame for 60 s'));
+    else setTimeout(poll, 20);
+  };
+  poll();
+});
 (async () => {
-  await frame(); await frame();
+  await frames(2);
   c.updateButtonValue('trigger', 1);
-  for (let i = 0; i < 40 && c.getButtonValue('trigger') < 1; i++) await frame();
-  await frame(); await frame();
+  await frames(2);
   c.updateButtonValue('trigger', 0);
-  await frame(); await frame();
+  await frames(2);
   done(null);
-})();
+})().catch((e) => done('the select on ' + selector + ': ' + e.message));
 """
 
 
@@ -352,11 +370,16 @@ class SimulatedBrowser:
         try:
             d.get(f"{self.base_url}/run#t={token}")
             deadline = time.monotonic() + timeout_s
-            done_screens: set[Any] = set()
+            done_screens: dict[Any, float] = {}  # screen answered -> when
             while time.monotonic() < deadline:
                 state = d.execute_script(_STATE_JS)
                 kind = state["kind"]
                 key = (kind, state.get("seq"))
+                if key in done_screens and time.monotonic() - done_screens[key] > STUCK_S:
+                    raise SessionError(
+                        f"simulated participant {self.k}: the {kind} screen answered "
+                        f"{STUCK_S:.0f} s ago is still on show"
+                    )
                 if (
                     kind in ("wait", "loading", "clip", "clip_pair", "saving")
                     or key in done_screens
@@ -504,7 +527,7 @@ class SimulatedBrowser:
                     else:
                         d.find_element(By.CSS_SELECTOR, option).click()
                     self.given += screen is not None
-                done_screens.add(key)
+                done_screens[key] = time.monotonic()
                 time.sleep(0.05)
             raise SessionError(f"simulated participant {self.k} did not finish in {timeout_s} s")
         finally:
