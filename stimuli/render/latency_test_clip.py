@@ -12,7 +12,8 @@ The clip: ``events`` times, every ``period_s`` from ``first_s``, the patch (a sq
 lower-left corner, ``patch`` of the picture's height) turns from black to white for
 ``flash_frames`` frames, and a ``tone_hz`` burst of the same length (1 ms raised-cosine ramps)
 starts at the first white frame's time. Between events the patch is black, outlined in dark
-grey so that the sensor can be placed; the rest of the picture is dark. Frame k is shown from
+grey so that the sensor can be placed; the rest of the picture is a dim, still
+checkerboard. Frame k is shown from
 k / fps (:mod:`facelab.stimuli.render.clip`'s contract), so in the file light and sound start
 at the same instant to the sample.
 """
@@ -150,7 +151,12 @@ def event_frames(clip: LatencyTestClip) -> np.ndarray:
 def latency_test_frames(clip: LatencyTestClip):
     """The clip's RGB frames (height, width, 3) uint8, one per frame, as a generator."""
     left, top, side, _ = clip.patch_px
-    dark = np.full((clip.height, clip.width, 3), 24, np.uint8)
+    # a dim, still checkerboard: a player that shows no frames is seen (the lab window's
+    # uniform-picture check), and nothing but the patch changes
+    cell = max(2, clip.height // 9)
+    rows, cols = np.indices((clip.height, clip.width)) // cell
+    board = np.where((rows + cols) % 2 == 0, 20, 44).astype(np.uint8)
+    dark = np.repeat(board[:, :, None], 3, axis=2)
     edge = max(2, side // 20)
     dark[top - edge : top + side + edge, left - edge : left + side + edge] = 90  # the outline
     dark[top : top + side, left : left + side] = 0
