@@ -16,6 +16,7 @@ import threading
 import time
 from pathlib import Path
 
+import pandas as pd
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import delete, select
@@ -675,6 +676,60 @@ def test_a_tab_closed_mid_trial_resumes_at_the_first_unanswered_screen(
     export_sessions(server.engine, results=tmp_path / "out")
     saved = json.loads(next((tmp_path / "out").rglob("*_session.json")).read_text("utf-8"))
     assert [(r["answered"], r["first_trial"]) for r in saved["resumes"]] == [(3, 2)]
+
+
+def test_a_participant_who_stops_answers_the_questionnaire_after_and_keeps_their_answers(
+    study: Path, tmp_path: Path
+) -> None:
+    """The page's Stop button (confirmed) mid-study: a withdrawn event, the page reloads as a
+    stopped session - the sickness questionnaire after, then a note that the answers are kept
+    - and opened again it stays stopped; the answers given are stored, exported (the session
+    file says when it was stopped) and the questionnaire scored."""
+    text = (study / "short.yaml").read_text(encoding="utf-8")
+    text = text.replace("\n  language: ja\n", "\n  language: ja\n  ssq: [before, after]\n", 1)
+    path = tmp_path / "ssq.yaml"
+    path.write_text(text, encoding="utf-8")
+    server, _ = prepare_server(
+        load_protocol(path), protocol_path=path, clips_dir=study / "clips",
+        db_url=f"sqlite:///{tmp_path / 'db.sqlite'}", results=tmp_path, admin_secret="s" * 20,
+    )  # fmt: skip
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        driver = chromium()
+        try:
+            # the 16 answers of the questionnaire before, then three ratings
+            first = SimulatedBrowser(server, bg.url, 1, withdraw_after=16 + 3, driver=driver,
+                                     screenshots=shots)  # fmt: skip
+            assert first.run() == "withdrawn"
+            again = SimulatedBrowser(server, bg.url, 1, driver=driver)  # the link, later
+            assert again.run() == "withdrawn"
+            note = driver.find_element("css selector", "[data-facelab=withdrawn]").text
+            assert "回答は保存されています" in note
+            assert not driver.find_elements("css selector", "[data-facelab=withdraw]")
+        finally:
+            driver.quit()
+    assert {"withdraw-ask.png", "withdrawn.png"} <= {p.name for p in shots.glob("*.png")}
+    rows = _rows(server, "P0001")
+    sickness = sorted(r["item"] for r in rows if r["screen"] == "ssq")
+    assert sum(i.startswith("ssq_before_") for i in sickness) == 16
+    assert sum(i.startswith("ssq_after_") for i in sickness) == 16 and len(sickness) == 32
+    assert len([r for r in rows if r["screen"] != "ssq"]) == 3  # the three ratings given
+    with Session(server.engine) as db:
+        stopped = [e.detail for e in db.scalars(select(Event).where(Event.kind == "withdrawn"))]
+        person = db.scalars(select(Participant)).one()
+    assert len(stopped) == 1 and stopped[0]["screen"] == "vas" and person.completed is None
+    (progress,) = server.progress()
+    assert progress["withdrawn"] is True and progress["completed"] is None
+    out = tmp_path / "out"
+    export_sessions(server.engine, results=out)
+    saved = json.loads(next(out.rglob("*_session.json")).read_text("utf-8"))
+    assert saved["withdrawn"] and saved["finished"] is None
+    report = tmp_path / "report"
+    assert main(["analyze", str(path), str(out), "--force", "--out", str(report),
+                 "--bootstrap", "0"]) == 0  # fmt: skip
+    table = pd.read_csv(next(report.rglob("ssq.csv")))
+    assert sorted(table["moment"]) == ["after", "before"]
+    assert table["total"].notna().all()
 
 
 def test_answers_refused_while_the_protocol_was_changed_are_held_and_stored_after(

@@ -244,6 +244,10 @@ class SimulatedBrowser:
     seed: int = 1
     screenshots: Path | None = None
     stop_after: int | None = None  # logged answers to give, then stop (a closed tab)
+    # logged answers to give, then stop the study from the page (its Stop button, confirmed),
+    # answer what the stopped session still asks (the sickness questionnaire after)
+    withdraw_after: int | None = None
+    withdrew: bool = False
     driver: Any = None
     given: int = 0
     shots: set[str] = field(default_factory=set)
@@ -301,7 +305,8 @@ class SimulatedBrowser:
             (self.screenshots / f"{name}.png").write_bytes(base64.b64decode(url.split(",", 1)[1]))
 
     def run(self, *, timeout_s: float = 900.0) -> str:
-        """Walk the session; returns "complete" or "stopped" (``stop_after`` reached)."""
+        """Walk the session; returns "complete", "stopped" (``stop_after`` reached) or
+        "withdrawn" (stopped from the page, ``withdraw_after``)."""
         from selenium.webdriver.common.action_chains import ActionChains
         from selenium.webdriver.common.by import By
 
@@ -422,6 +427,26 @@ class SimulatedBrowser:
                     and kind in ("vas", "choice_2afc", "identify", "typed")
                 ):
                     return "stopped"
+                if kind == "withdrawn":  # the stopped session's last page
+                    self._shot("withdrawn")
+                    return "withdrawn"
+                if (
+                    self.withdraw_after is not None
+                    and not self.withdrew
+                    and self.given >= self.withdraw_after
+                    and kind in ("vas", "choice_2afc", "identify", "typed")
+                ):
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=withdraw]").click()
+                    self._shot("withdraw-ask")
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=withdraw_confirm]").click()
+                    self.withdrew = True
+                    until = time.monotonic() + 60  # until the page has reloaded
+                    while time.monotonic() < until and d.execute_script(
+                        "return !!document.querySelector('[data-facelab=withdraw_ask]')"
+                    ):
+                        time.sleep(0.2)
+                    done_screens.clear()  # the reloaded page numbers its screens anew
+                    continue
                 if kind == "enter_vr":
                     self._shot("enter_vr")
                     d.find_element(By.CSS_SELECTOR, "[data-facelab=enter_vr] button").click()

@@ -534,12 +534,23 @@ class StudyServer:
             raise RefusedError(409, str(exc)) from None
         return {"trial_index": trial_index, "screens": screens}
 
+    def withdrew(self, p: Participant) -> bool:
+        """The participant stopped the study from its page (a ``withdrawn`` event)."""
+        with Session(self.engine) as db:
+            return bool(db.scalar(select(func.count()).where(
+                Event.participant_pk == p.pk, Event.kind == "withdrawn")))  # fmt: skip
+
     def session_state(self, p: Participant) -> dict[str, Any]:
         answered = self.answered(p)
         study = self.study_of(p)
         timeline, clips = study.timeline_json(p.participant, answered, session=p.session)
         planned = study.planned(p.participant)
-        if answered and p.completed is None:  # a page reload or a return: logged as a resume
+        withdrawn = p.completed is None and self.withdrew(p)
+        if withdrawn:  # only the sickness questionnaire after (if asked), on the plain page
+            timeline = [s for s in timeline if s["kind"] == "ssq"
+                        and str(s.get("item", "")).startswith("ssq_after_")]  # fmt: skip
+            clips = []
+        elif answered and p.completed is None:  # a page reload or a return: logged as a resume
             # the first trial still to answer, in the order shown (the questionnaire's trial 0
             # comes last when it follows the trials)
             left = [key[0] for key in study.planned_in_order(p.participant)
@@ -554,16 +565,17 @@ class StudyServer:
             "study": self.study.study,
             "participant": p.participant,
             "language": pres.language,
-            "fullscreen": pres.fullscreen,
-            "display": pres.display,
+            "fullscreen": pres.fullscreen and not withdrawn,
+            "display": "video" if withdrawn else pres.display,
             **(
                 {
                     "scene": self.config.live.scene_json(),
                     "vr": pres.vr.model_dump(),
                 }
-                if self.config.live is not None
+                if self.config.live is not None and not withdrawn
                 else {}
             ),
+            "withdrawn": withdrawn,
             "consent": self.config.consent or "",
             "resumed": bool(answered),
             "planned": len(planned),
@@ -850,6 +862,8 @@ class StudyServer:
                 .group_by(PlaybackRecord.participant_pk, PlaybackRecord.trial_index)
                 .having(func.count() >= PLAYBACK_RECORDS_PER_TRIAL)
             ).all()}  # fmt: skip
+            withdrawn = set(db.scalars(select(Event.participant_pk).where(
+                Event.kind == "withdrawn", Event.participant_pk.in_(pks))))  # fmt: skip
             errors: dict[int, list[dict[str, Any]]] = {}
             for e in db.scalars(
                 select(Event).where(Event.kind == "error", Event.participant_pk.in_(pks))
@@ -877,6 +891,7 @@ class StudyServer:
                     "planned": planned_n[p.participant],
                     "started": p.created.isoformat() if p.created else None,
                     "completed": p.completed.isoformat() if p.completed else None,
+                    "withdrawn": p.pk in withdrawn,
                     # the protocol version the session runs: "current", "earlier <sha12>",
                     # or why it cannot be served
                     "protocol": f"cannot be served: {version}"

@@ -400,6 +400,7 @@ FacelabAdaptive.info = facelabInfo("facelab-adaptive", { kind: "STRING", trial_i
 class FacelabComplete extends FacelabPlugin {
   async run(el, s) {
     const box = facelabBox("facelab-text", "end", s);
+    const stop = document.querySelector("[data-facelab=withdraw]"); if (stop) stop.remove();  // done: nothing to stop
     box.appendChild(facelabEl("p", "", facelabTextOf(s)));
     const status = facelabEl("p", "facelab-note", FacelabSession.ui.saving); status.dataset.facelab = "saving";
     box.appendChild(status); facelabShow(el, box);

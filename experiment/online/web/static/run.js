@@ -5,11 +5,16 @@ const FACELAB_UI = {
   ja: { agree: "同意して始める", next: "次へ", saving: "回答を保存しています…", saved: "すべての回答を保存しました。",
         back: "完了ページへ", fullscreen: "全画面表示で行います。", start: "開始", loading: "読み込み中…",
         missing: "このリンクは無効です。募集ページのリンクから開いてください。", resume: "中断したところから再開します。",
+        withdraw: "中止する", withdraw_ask: "研究への参加を中止しますか？ここまでの回答は保存されます。", withdraw_yes: "中止する", withdraw_no: "続ける",
+        withdrawn: "参加を中止しました。ここまでの回答は保存されています。ご協力ありがとうございました。募集サイトの案内に従って手続きしてください。",
         stuck: "{n}件の回答をまだ保存できていません。このページを閉じずに、募集サイトのメッセージ機能で研究者にご連絡ください。保存できしだい完了コードを表示します。閉じる場合は、後で同じブラウザで募集ページのリンクを開き直してください。回答はこのブラウザに残っていて、そのときに送られます。" },
   en: { agree: "I agree, start", next: "Next", saving: "Saving your answers…", saved: "All your answers are saved.",
         back: "Back to the recruitment site", fullscreen: "The study runs in full screen.", start: "Start",
         loading: "Loading…", missing: "This link is not valid. Please open the link from the recruitment site.",
-        resume: "Continuing where you stopped.", nolive: "This browser cannot show the study's 3D view. Please open the recruitment link again in a current Chrome, Edge or Firefox.",
+        resume: "Continuing where you stopped.",
+        withdraw: "Stop the study", withdraw_ask: "Stop taking part in the study? Your answers so far are kept.", withdraw_yes: "Stop", withdraw_no: "Continue",
+        withdrawn: "You have stopped the study. Your answers so far are kept. Thank you for taking part; please follow the recruitment site's instructions.",
+        nolive: "This browser cannot show the study's 3D view. Please open the recruitment link again in a current Chrome, Edge or Firefox.",
         stuck: "{n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. The completion code appears here as soon as they are saved. If you must close it, open the recruitment link again later in this browser: your answers are kept here and sent then." },
 };
 
@@ -34,6 +39,8 @@ const FACELAB_UI = {
   const status = facelabEl("div", "facelab-status"); document.body.appendChild(status);
   FacelabOutbox.onChange((n) => { status.textContent = n ? `${n} …` : ""; });
 
+  if (state.withdrawn) { await facelabWithdrawn(state, ui, app); return; }
+  facelabWithdrawControl(ui);
   for (const src of state.plugins || []) {  // the plugins of screen kinds added to facelab
     await new Promise((res, rej) => {
       const s = document.createElement("script"); s.src = src; s.onload = res; s.onerror = rej;
@@ -96,3 +103,42 @@ const FACELAB_UI = {
   });
   await jsPsych.run(timeline);
 })();
+
+// Stopping the study (a participant may, at any time): a small button in the corner asks
+// again, logs a "withdrawn" event (kept in this browser until the server has it) and reloads
+// the page, which the server then serves as a stopped session.
+function facelabWithdrawControl(ui) {
+  const stop = facelabEl("button", "facelab-withdraw", ui.withdraw); stop.dataset.facelab = "withdraw";
+  document.body.appendChild(stop);
+  stop.addEventListener("click", () => {
+    if (document.querySelector("[data-facelab=withdraw_ask]")) return;
+    const ask = facelabEl("div", "facelab-withdraw-ask"); ask.dataset.facelab = "withdraw_ask";
+    ask.appendChild(facelabEl("p", "", ui.withdraw_ask));
+    const yes = facelabEl("button", "facelab-button", ui.withdraw_yes); yes.dataset.facelab = "withdraw_confirm";
+    const no = facelabEl("button", "facelab-button", ui.withdraw_no); no.dataset.facelab = "withdraw_cancel";
+    ask.appendChild(yes); ask.appendChild(no); document.body.appendChild(ask);
+    no.addEventListener("click", () => ask.remove());
+    yes.addEventListener("click", async () => {
+      yes.disabled = true; no.disabled = true;
+      const on = document.querySelector("#app [data-facelab]");
+      const detail = { screen: on ? on.dataset.facelab : null, trial_index: on && on.dataset.trial ? Number(on.dataset.trial) : null };
+      FacelabOutbox.send("/api/event", { kind: "withdrawn", detail });
+      const stage = FacelabSession.stage;
+      if (stage && stage.session) await stage.session.end().catch(() => {});
+      await Promise.race([FacelabOutbox.flush(), facelabSleep(20000)]);
+      location.reload();  // an unsent event goes first on the next load
+    });
+  });
+}
+
+// A stopped session: the sickness questionnaire after (when the protocol asks for it), on the
+// plain page, then the note that the answers are kept.
+async function facelabWithdrawn(state, ui, app) {
+  app.textContent = "";
+  const timeline = state.timeline.map((s) => Object.assign({ type: facelabPluginOf(s) }, s));
+  if (timeline.length) await initJsPsych({ display_element: "app" }).run(timeline);
+  await Promise.race([FacelabOutbox.flush(), facelabSleep(30000)]);
+  app.textContent = "";
+  const box = facelabEl("div", "facelab-text"); box.dataset.facelab = "withdrawn";
+  box.appendChild(facelabEl("p", "", ui.withdrawn)); app.appendChild(box);
+}
