@@ -19,6 +19,7 @@ from scipy.signal import butter, lfilter
 
 from facelab.analysis.latency_recording import channel_onsets, measure_latency
 from facelab.errors import StageError
+from facelab.experiment.cli import main
 from facelab.stimuli.render.clip import decode_audio, decode_frames
 from facelab.stimuli.render.latency_test_clip import (
     LatencyTestClip,
@@ -139,7 +140,7 @@ def test_a_missing_flash_is_counted_and_a_recording_without_one_is_refused(
 
 
 def test_the_commands_write_measure_and_refuse_clearly(
-    clip: tuple[LatencyTestClip, Path], tmp_path: Path
+    clip: tuple[LatencyTestClip, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     plan, path = clip
     rec = tmp_path / "rec.wav"
@@ -153,27 +154,27 @@ def test_the_commands_write_measure_and_refuse_clearly(
     assert "6 of 6 events measured" in done.stdout
     summary = json.loads((out / "latency_summary.json").read_text())
     assert summary["offset_ms_mean"] == pytest.approx(-25.0, abs=1.0)
-    again = subprocess.run([EXE, "latency-test", "measure", str(rec), "--schedule", schedule,
-                            "--out", str(out)], capture_output=True, text=True)  # fmt: skip
-    assert again.returncode == 2 and "exists; choose another file or pass --force" in again.stderr
+    def facelab(*args: str) -> tuple[int, str]:  # the refusals in this process: faster
+        code = main(["latency-test", *args])
+        return code, capsys.readouterr().err
+
+    code, again = facelab("measure", str(rec), "--schedule", schedule, "--out", str(out))
+    assert code == 2 and "exists; choose another file or pass --force" in again
     mono = tmp_path / "mono.wav"
     sf.write(mono, np.zeros(SR, np.float32), SR)
-    bad = subprocess.run([EXE, "latency-test", "measure", str(mono), "--schedule", schedule],
-                         capture_output=True, text=True)  # fmt: skip
-    assert bad.returncode == 2
-    assert "has 1 channel (0 to 0); the microphone channel 1 is not one of them" in bad.stderr
+    code, bad = facelab("measure", str(mono), "--schedule", schedule)
+    assert code == 2
+    assert "has 1 channel (0 to 0); the microphone channel 1 is not one of them" in bad
     not_json = tmp_path / "x.json"
     not_json.write_text("flashes: 3")
-    bad = subprocess.run([EXE, "latency-test", "measure", str(rec), "--schedule", str(not_json)],
-                         capture_output=True, text=True)  # fmt: skip
-    assert bad.returncode == 2 and "not a latency test schedule" in bad.stderr
-    short = subprocess.run([EXE, "latency-test", "clip", "--out", str(tmp_path / "c.mp4"),
-                            "--fps", "120", "--flash-frames", "1"], capture_output=True,
-                           text=True)  # fmt: skip
-    assert short.returncode == 2
-    assert "--flash-frames 1: a flash of 8 ms is too short at 120 frames/s" in short.stderr
+    code, not_schedule = facelab("measure", str(rec), "--schedule", str(not_json))
+    assert code == 2 and "not a latency test schedule" in not_schedule
+    code, short = facelab("clip", "--out", str(tmp_path / "c.mp4"), "--fps", "120",
+                          "--flash-frames", "1")  # fmt: skip
+    assert code == 2
+    assert "--flash-frames 1: a flash of 8 ms is too short at 120 frames/s" in short
     assert not (tmp_path / "c.mp4").exists() and not (tmp_path / "c.json").exists()
-    for text in (bad.stderr, again.stderr):
+    for text in (bad, again, not_schedule, short):
         assert "Traceback" not in text and "Error:" not in text
 
 
