@@ -3,8 +3,10 @@ sound arrived than the light, event by event.
 
 The recording holds the photodiode's signal on one channel and the microphone's on another
 (one sound card, one clock). Each channel is measured the same way: its deviation from its
-median (the photodiode's polarity and a line input's DC blocking do not matter), a 2 ms
-trailing maximum as its envelope (a tone's cycles filled in, nothing anticipated), candidate
+median (the photodiode's polarity and a line input's DC blocking do not matter; the
+microphone's high-passed at 300 Hz first, against mains hum), a trailing maximum as its
+envelope (2 ms for the tone's cycles, 10 ms for a backlight's PWM flicker on the light;
+nothing anticipated, so the onset is not moved by it), candidate
 events where the envelope rises through half of its high percentile, at most one per half
 period; each event's onset is where the envelope first rose through ``onset_fraction`` of its
 typical peak above the floor (at least 8 noise deviations above it), interpolated between
@@ -26,23 +28,40 @@ from facelab.errors import StageError
 
 __all__ = ["LatencyMeasure", "channel_onsets", "measure_latency"]
 
-ENVELOPE_S = 0.002  # trailing maximum: fills a tone's cycles down to 500 Hz
+#: the trailing maximum's length per channel: the tone's cycles (1 kHz) are filled in within
+#: 2 ms; a backlight's PWM flicker (down to 100 Hz) riding on the light within 10 ms
+MIC_ENVELOPE_S = 0.002
+LIGHT_ENVELOPE_S = 0.010
+#: the microphone channel is high-passed (causal, 2nd order): mains hum and rumble removed,
+#: the tone's onset delayed by well under a millisecond
+MIC_HIGHPASS_HZ = 300.0
 SEARCH_S = 0.05  # how far before a strong crossing its onset is looked for
 
 
-def _envelope(x: np.ndarray, *, sample_rate: int) -> np.ndarray:
+def _envelope(x: np.ndarray, *, sample_rate: int, window_s: float) -> np.ndarray:
     a = np.abs(x.astype(np.float64) - float(np.median(x)))
-    w = max(1, round(ENVELOPE_S * sample_rate))
+    w = max(1, round(window_s * sample_rate))
     padded = np.concatenate([np.zeros(w - 1), a])
     return np.lib.stride_tricks.sliding_window_view(padded, w).max(axis=1)
 
 
 def channel_onsets(
-    x: np.ndarray, *, sample_rate: int, min_gap_s: float, onset_fraction: float = 0.1
+    x: np.ndarray,
+    *,
+    sample_rate: int,
+    min_gap_s: float,
+    onset_fraction: float = 0.1,
+    envelope_s: float = MIC_ENVELOPE_S,
+    highpass_hz: float | None = None,
 ) -> np.ndarray:
     """Event onsets (s) in one channel ``x`` (n,): see the module's description. Empty when
     the channel holds no events standing out of its noise."""
-    env = _envelope(x, sample_rate=sample_rate)
+    if highpass_hz is not None:
+        from scipy.signal import butter, lfilter
+
+        b, a = butter(2, highpass_hz / (sample_rate / 2), "high")
+        x = lfilter(b, a, x.astype(np.float64))
+    env = _envelope(x, sample_rate=sample_rate, window_s=envelope_s)
     floor = float(np.median(env))
     spread = 1.4826 * float(np.median(np.abs(env - floor)))
     top = float(np.percentile(env, 99.9))
@@ -110,8 +129,10 @@ def measure_latency(
         raise StageError(f"the photodiode and the microphone are both channel {mic}: record "
                          "them on two channels of one recording")  # fmt: skip
     gap = period_s / 2
-    light = channel_onsets(recording[:, photodiode], sample_rate=sample_rate, min_gap_s=gap)
-    sound = channel_onsets(recording[:, mic], sample_rate=sample_rate, min_gap_s=gap)
+    light = channel_onsets(recording[:, photodiode], sample_rate=sample_rate, min_gap_s=gap,
+                           envelope_s=LIGHT_ENVELOPE_S)  # fmt: skip
+    sound = channel_onsets(recording[:, mic], sample_rate=sample_rate, min_gap_s=gap,
+                           highpass_hz=MIC_HIGHPASS_HZ)  # fmt: skip
     for name, k, found, hint in (
         ("flashes", photodiode, light, "is the photodiode on the white patch, its cable in "
          "the line input, and the clip playing?"),

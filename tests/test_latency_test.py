@@ -62,10 +62,11 @@ def test_the_clip_lights_and_sounds_together(clip: tuple[LatencyTestClip, Path])
 
 def _recording(
     plan: LatencyTestClip, path: Path, *, display_ms: float, sound_ms: float,
-    late_frame_event: int | None = None, seed: int = 3,
+    late_frame_event: int | None = None, seed: int = 3, pwm_hz: float = 0.0,
 ) -> np.ndarray:
     """A photodiode and microphone recording of the clip played with the picture
-    ``display_ms`` and the sound ``sound_ms`` late (one event's flash a frame late)."""
+    ``display_ms`` and the sound ``sound_ms`` late (one event's flash a frame late; the
+    backlight flickering at ``pwm_hz``, half on)."""
     frames = decode_frames(path, width=plan.width, height=plan.height)
     left, top, side, _ = plan.patch_px
     lum = frames[:, top : top + side, left : left + side].mean(axis=(1, 2, 3)) / 255
@@ -79,6 +80,8 @@ def _recording(
     light = np.where(shown >= 0, lum[np.clip(shown, 0, len(lum) - 1)], lum[0])
     a = np.exp(-1 / (0.002 * SR))  # the panel's 2 ms rise
     light = lfilter([1 - a], [1, -a], light)
+    if pwm_hz:
+        light = light * ((t * pwm_hz) % 1 < 0.5)
     b, den = butter(1, 10 / (SR / 2), "high")  # a line input's DC block
     rng = np.random.default_rng(seed)
     diode = -0.4 * lfilter(b, den, light) + 0.003 * rng.standard_normal(n)  # inverted
@@ -87,16 +90,21 @@ def _recording(
     mic[d : d + len(audio)] = 0.3 * audio[: n - d]
     room = np.exp(-np.arange(2400) / 400) * rng.standard_normal(2400) * 0.005
     mic = mic + np.convolve(mic, room)[:n]
-    mic += 0.01 * np.sin(2 * np.pi * 50 * t) + 0.004 * rng.standard_normal(n)
+    mic += 0.05 * np.sin(2 * np.pi * 50 * t) + 0.004 * rng.standard_normal(n)  # hum, -10 dB
     return np.stack([diode, mic], axis=1)
 
 
-@pytest.mark.parametrize("display_ms, sound_ms", [(37.0, 12.0), (5.0, 60.0), (20.0, 20.0)])
+@pytest.mark.parametrize(
+    "display_ms, sound_ms, pwm_hz", [(37.0, 12.0, 0.0), (5.0, 60.0, 240.0), (20.0, 20.0, 1000.0)]
+)
 def test_a_recording_is_measured_to_the_millisecond(
-    clip: tuple[LatencyTestClip, Path], display_ms: float, sound_ms: float
+    clip: tuple[LatencyTestClip, Path], display_ms: float, sound_ms: float, pwm_hz: float
 ) -> None:
+    """Within 1 ms, with mains hum on the microphone and a PWM backlight on the light (a
+    flash that starts while the backlight is off is seen when it comes on: at 240 Hz and
+    above that is under 2.1 ms, and this schedule's onsets meet it switched on)."""
     plan, path = clip
-    rec = _recording(plan, path, display_ms=display_ms, sound_ms=sound_ms)
+    rec = _recording(plan, path, display_ms=display_ms, sound_ms=sound_ms, pwm_hz=pwm_hz)
     got = measure_latency(rec, sample_rate=SR, photodiode=0, mic=1, period_s=plan.period_s,
                           expected=plan.events)  # fmt: skip
     s = got.summary
