@@ -117,7 +117,12 @@ function facelabWithdrawControl(ui) {
     const yes = facelabEl("button", "facelab-button", ui.withdraw_yes); yes.dataset.facelab = "withdraw_confirm";
     const no = facelabEl("button", "facelab-button", ui.withdraw_no); no.dataset.facelab = "withdraw_cancel";
     ask.appendChild(yes); ask.appendChild(no); document.body.appendChild(ask);
-    no.addEventListener("click", () => ask.remove());
+    // while it asks, keys do not reach the screen behind it (a space would go on)
+    const hold = (e) => { if (document.body.contains(ask)) { e.stopImmediatePropagation(); e.preventDefault(); } };
+    window.addEventListener("keydown", hold, true); window.addEventListener("keyup", hold, true);
+    no.addEventListener("click", () => {
+      ask.remove(); window.removeEventListener("keydown", hold, true); window.removeEventListener("keyup", hold, true);
+    });
     yes.addEventListener("click", async () => {
       yes.disabled = true; no.disabled = true;
       const on = document.querySelector("#app [data-facelab]");
