@@ -63,6 +63,8 @@ def test_the_clip_lights_and_sounds_together(clip: tuple[LatencyTestClip, Path])
 def _recording(
     plan: LatencyTestClip, path: Path, *, display_ms: float, sound_ms: float,
     late_frame_event: int | None = None, seed: int = 3, pwm_hz: float = 0.0,
+    dc_coupled: bool = False, lead_in_s: float = 0.0, hum: tuple[float, ...] = (0.05,),
+    click_before: int | None = None,
 ) -> np.ndarray:
     """A photodiode and microphone recording of the clip played with the picture
     ``display_ms`` and the sound ``sound_ms`` late (one event's flash a frame late; the
@@ -74,23 +76,35 @@ def _recording(
         k = round(plan.onsets_s[late_frame_event] * plan.fps)
         lum[k] = lum[k - 1]
     audio = decode_audio(path, sample_rate=SR)
-    n = len(audio) + SR // 2
+    n = len(audio) + SR // 2 + round(lead_in_s * SR)
     t = np.arange(n) / SR
-    shown = np.floor((t - display_ms / 1000) * plan.fps).astype(int)
+    shown = np.floor((t - lead_in_s - display_ms / 1000) * plan.fps).astype(int)
     light = np.where(shown >= 0, lum[np.clip(shown, 0, len(lum) - 1)], lum[0])
+    if lead_in_s:  # a grey window on the screen before the clip (lighter than its black)
+        light = np.where(shown < 0, 0.5, light)
     a = np.exp(-1 / (0.002 * SR))  # the panel's 2 ms rise
-    light = lfilter([1 - a], [1, -a], light)
+    light = lfilter([1 - a], [1, -a], light, zi=[a * light[0]])[0]  # steady from the start
     if pwm_hz:
         light = light * ((t * pwm_hz) % 1 < 0.5)
     b, den = butter(1, 10 / (SR / 2), "high")  # a line input's DC block
     rng = np.random.default_rng(seed)
-    diode = -0.4 * lfilter(b, den, light) + 0.003 * rng.standard_normal(n)  # inverted
+    if not dc_coupled:
+        light = lfilter(b, den, light)
+    diode = -0.4 * light + 0.003 * rng.standard_normal(n)  # inverted
     mic = np.zeros(n)
-    d = round(sound_ms / 1000 * SR)
-    mic[d : d + len(audio)] = 0.3 * audio[: n - d]
+    d = round((sound_ms / 1000 + lead_in_s) * SR)
+    if d >= 0:
+        mic[d : d + len(audio)] = 0.3 * audio[: n - d]
+    else:  # the sound ahead of the picture
+        mic[: len(audio) + d] = 0.3 * audio[-d:]
+    if click_before is not None:  # a 1 ms click 100 ms before one burst
+        k = d + round((plan.onsets_s[click_before] - 0.1) * SR)
+        mic[k : k + SR // 1000] += 0.4
     room = np.exp(-np.arange(2400) / 400) * rng.standard_normal(2400) * 0.005
     mic = mic + np.convolve(mic, room)[:n]
-    mic += 0.05 * np.sin(2 * np.pi * 50 * t) + 0.004 * rng.standard_normal(n)  # hum, -10 dB
+    for h, level in enumerate(hum):  # mains hum (and its harmonics)
+        mic += level * np.sin(2 * np.pi * 50 * (2 * h + 1) * t)
+    mic += 0.004 * rng.standard_normal(n)
     return np.stack([diode, mic], axis=1)
 
 
@@ -114,6 +128,49 @@ def test_a_recording_is_measured_to_the_millisecond(
     assert s["light_interval_error_ms_max"] < 1.0
     assert list(got.events.columns) == ["event", "light_s", "sound_s", "offset_ms",
                                         "light_interval_ms"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["dc_coupled_after_a_grey_screen", "sound_ahead", "a_click_before_a_burst", "hum_harmonics"],
+)
+def test_awkward_recordings_are_measured_too(clip: tuple[LatencyTestClip, Path], case) -> None:
+    """A DC-coupled photodiode that saw a grey window for most of the recording; the sound
+    35 ms ahead of the light; a click 100 ms before one burst; hum at 50, 150 and 250 Hz
+    (-4, -10, -16 dB against the tone)."""
+    plan, path = clip
+    kw: dict = {"display_ms": 30.0, "sound_ms": 12.0}
+    truth = -18.0
+    if case == "dc_coupled_after_a_grey_screen":
+        kw |= {"dc_coupled": True, "lead_in_s": 6.0}
+    elif case == "sound_ahead":
+        kw |= {"display_ms": 40.0, "sound_ms": 5.0}
+        truth = -35.0
+    elif case == "a_click_before_a_burst":
+        kw |= {"click_before": 3}
+    else:
+        kw |= {"hum": (0.1, 0.05, 0.025)}
+    rec = _recording(plan, path, **kw)
+    got = measure_latency(rec, sample_rate=SR, photodiode=0, mic=1, period_s=plan.period_s,
+                          tone_hz=plan.tone_hz, expected=plan.events)  # fmt: skip
+    s = got.summary
+    assert s["pairs"] == plan.events and s["warnings"] == [], s
+    assert s["offset_ms_mean"] == pytest.approx(truth, abs=1.0) and s["offset_ms_sd"] < 0.5, s
+
+
+def test_a_sound_later_than_half_a_period_and_two_playings_are_warned_about(
+    clip: tuple[LatencyTestClip, Path],
+) -> None:
+    plan, path = clip
+    late = _recording(plan, path, display_ms=10.0, sound_ms=10.0 + 0.6 * 1000 * plan.period_s)
+    got = measure_latency(late, sample_rate=SR, photodiode=0, mic=1, period_s=plan.period_s,
+                          expected=plan.events)  # fmt: skip
+    assert any("paired with the wrong flash" in w for w in got.summary["warnings"])
+    once = _recording(plan, path, display_ms=10.0, sound_ms=10.0)
+    twice = np.concatenate([once, once])
+    got = measure_latency(twice, sample_rate=SR, photodiode=0, mic=1, period_s=plan.period_s,
+                          expected=plan.events)  # fmt: skip
+    assert any("record one playing per measurement" in w for w in got.summary["warnings"])
 
 
 def test_a_flash_shown_a_frame_late_shows_in_its_offset_and_intervals(

@@ -42,6 +42,7 @@ from facelab.experiment.online.load import (
 )
 from facelab.experiment.online.middleware import MAX_BODY_BYTES
 from facelab.experiment.online.serve import BackgroundServer, free_port, prepare_server
+from facelab.experiment.online.server import RefusedError
 from facelab.protocol import load_protocol, protocol_hash
 from facelab.sessionlog import SessionLog
 from tests.protocol_edits import kato_short
@@ -718,6 +719,10 @@ def test_a_participant_who_stops_answers_the_questionnaire_after_and_keeps_their
         stopped = [e.detail for e in db.scalars(select(Event).where(Event.kind == "withdrawn"))]
         person = db.scalars(select(Participant)).one()
     assert len(stopped) == 1 and stopped[0]["screen"] == "vas" and person.completed is None
+    with pytest.raises(RefusedError, match="stopped by the participant"):  # no code, ever
+        server.completion(person)
+    state = server.session_state(person)
+    assert state["withdrawn"] and state["timeline"] == [] and state["display"] == "video"
     (progress,) = server.progress()
     assert progress["withdrawn"] is True and progress["completed"] is None
     out = tmp_path / "out"

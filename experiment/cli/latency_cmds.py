@@ -62,6 +62,7 @@ def _play(args: argparse.Namespace) -> int:
     size = parse_size(args.size) or (1280, 800)
     ref = ClipRef(path=clip_path, sha256=sha256_file(clip_path), duration_s=clip.duration_s,
                   fps=clip.fps, size=(clip.width, clip.height))  # fmt: skip
+    json_out = output_file(args.json, option="--json", force=args.force) if args.json else None
     fullscreen = protocol.presentation.fullscreen and not args.windowed
     rows = []
     with Window(protocol, clips={}, size=size, fullscreen=fullscreen) as window:
@@ -73,8 +74,8 @@ def _play(args: argparse.Namespace) -> int:
             })  # fmt: skip
             print(f"playing {k + 1}/{args.repeat}: {len(shown.flip_times)} flips, "
                   f"{shown.dropped} of {shown.frames_expected} frames not shown")  # fmt: skip
-    if args.json:
-        Path(args.json).write_text(json.dumps({"clip": str(clip_path), "window": size,
+    if json_out is not None:
+        json_out.write_text(json.dumps({"clip": str(clip_path), "window": size,
                                                "playings": rows}, indent=2) + "\n",
                                    encoding="utf-8")  # fmt: skip
     return 0
@@ -100,7 +101,8 @@ def _measure(args: argparse.Namespace) -> int:
             output_file(out / name, option="--out", force=args.force)
     got = measure_latency(
         data, sample_rate=int(rate), photodiode=args.photodiode_channel, mic=args.mic_channel,
-        period_s=schedule.period_s, expected=schedule.events, source=str(path),
+        period_s=schedule.period_s, tone_hz=schedule.tone_hz, expected=schedule.events,
+        source=str(path),
     )  # fmt: skip
     s = got.summary
     print(f"{s['pairs']} of {s['events_expected']} events measured ({s['flashes_found']} "
@@ -115,6 +117,8 @@ def _measure(args: argparse.Namespace) -> int:
     if s["flashes_missing"]:
         print(f"warning: {s['flashes_missing']} flashes of {schedule.events} not found "
               "(frames dropped, or the recording started late or ended early)")  # fmt: skip
+    for warning in s["warnings"]:
+        print(f"warning: {warning}")
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         got.events.to_csv(out / "latency_events.csv", index=False)
@@ -155,6 +159,7 @@ def register(add: AddCommand) -> None:
     v.add_argument("--windowed", action="store_true", help="a window instead of full screen")
     v.add_argument("--size", metavar="WxH", help="window size with --windowed (default 1280x800)")
     v.add_argument("--json", metavar="FILE", help="write what each playing showed")
+    force_option(v)
 
     v = verb("measure", "measure a photodiode + microphone recording of the test clip")
     v.add_argument("recording", metavar="RECORDING.wav")

@@ -176,7 +176,7 @@ class ScreenPosesIn(_Strict):
 class EventIn(_Strict):
     kind: Literal[
         "browser", "play_refused", "fullscreen_exit", "resumed", "error", "display", "recentre",
-        "headset", "withdrawn",
+        "headset", "withdrawn", "withdraw_cancelled",
     ]
     detail: dict[str, Any] = Field(default_factory=dict)
 

@@ -295,7 +295,8 @@ def _export_one(
         "started": p.created.isoformat() if p.created else None,
         "finished": p.completed.isoformat() if p.completed else None,
         # the participant stopped the study from its page (when), its answers until then kept
-        "withdrawn": next((e.at.isoformat() for e in events if e.kind == "withdrawn"), None),
+        "withdrawn": None if p.completed else next(
+            (e.at.isoformat() for e in events if e.kind == "withdrawn"), None),
         "events": [
             {"kind": e.kind, "at": e.at.isoformat(), **({"detail": e.detail} if e.detail else {})}
             for e in events

@@ -535,7 +535,8 @@ class StudyServer:
         return {"trial_index": trial_index, "screens": screens}
 
     def withdrew(self, p: Participant) -> bool:
-        """The participant stopped the study from its page (a ``withdrawn`` event)."""
+        """The participant stopped the study from its page (a ``withdrawn`` event; it counts
+        only while the session is not complete, and a stopped session is never completed)."""
         with Session(self.engine) as db:
             return bool(db.scalar(select(func.count()).where(
                 Event.participant_pk == p.pk, Event.kind == "withdrawn")))  # fmt: skip
@@ -576,6 +577,7 @@ class StudyServer:
                 else {}
             ),
             "withdrawn": withdrawn,
+            "complete": p.completed is not None,
             "consent": self.config.consent or "",
             "resumed": bool(answered),
             "planned": len(planned),
@@ -698,7 +700,12 @@ class StudyServer:
             count = db.scalar(select(func.count()).where(Response.participant_pk == p.pk))
             if (count or 0) < planned:
                 return False
+            stopped = db.scalar(select(func.count()).where(
+                Event.participant_pk == p.pk, Event.kind == "withdrawn"))  # fmt: skip
             fresh = db.get(Participant, p.pk)
+            assert fresh is not None
+            if stopped and fresh.completed is None:  # stopped: never completed afterwards
+                return False
             assert fresh is not None
             if fresh.completed is None:
                 fresh.completed = utcnow()
@@ -811,7 +818,7 @@ class StudyServer:
         with self._writes, Session(self.engine) as db:
             count = db.scalar(select(func.count()).where(  # what this session posted
                 Event.participant_pk == p.pk, Event.bytes.is_not(None))) or 0  # fmt: skip
-            if count >= EVENTS_PER_SESSION:
+            if count >= EVENTS_PER_SESSION and ev.kind != "withdrawn":  # a stop always counts
                 raise RefusedError(413, f"this session has {EVENTS_PER_SESSION} events already")
             if ev.kind == "browser":
                 fresh = db.get(Participant, p.pk)
@@ -821,6 +828,9 @@ class StudyServer:
             db.commit()
 
     def completion(self, p: Participant) -> dict[str, Any]:
+        if p.completed is None and self.withdrew(p):
+            raise RefusedError(409, "this session was stopped by the participant: it has no "
+                               "completion code")  # fmt: skip
         planned = self.study_of(p).planned(p.participant)
         missing = planned - self.answered(p)
         if missing:
@@ -891,7 +901,9 @@ class StudyServer:
                     "planned": planned_n[p.participant],
                     "started": p.created.isoformat() if p.created else None,
                     "completed": p.completed.isoformat() if p.completed else None,
-                    "withdrawn": p.pk in withdrawn,
+                    # stopped from the page before it was complete (one rule: a stopped
+                    # session is never completed, a Stop after completion does not count)
+                    "withdrawn": p.pk in withdrawn and p.completed is None,
                     # the protocol version the session runs: "current", "earlier <sha12>",
                     # or why it cannot be served
                     "protocol": f"cannot be served: {version}"

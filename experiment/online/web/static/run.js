@@ -7,6 +7,7 @@ const FACELAB_UI = {
         missing: "このリンクは無効です。募集ページのリンクから開いてください。", resume: "中断したところから再開します。",
         withdraw: "中止する", withdraw_ask: "研究への参加を中止しますか？ここまでの回答は保存されます。", withdraw_yes: "中止する", withdraw_no: "続ける",
         withdrawn: "参加を中止しました。ここまでの回答は保存されています。ご協力ありがとうございました。募集サイトの案内に従って手続きしてください。",
+        withdrawn_unsaved: "参加を中止しました。{n}件の回答をまだ保存できていません。このページを閉じずに、募集サイトのメッセージ機能で研究者にご連絡ください。閉じる場合は、後で同じブラウザで募集ページのリンクを開き直してください。回答はこのブラウザに残っていて、そのときに送られます。",
         stuck: "{n}件の回答をまだ保存できていません。このページを閉じずに、募集サイトのメッセージ機能で研究者にご連絡ください。保存できしだい完了コードを表示します。閉じる場合は、後で同じブラウザで募集ページのリンクを開き直してください。回答はこのブラウザに残っていて、そのときに送られます。" },
   en: { agree: "I agree, start", next: "Next", saving: "Saving your answers…", saved: "All your answers are saved.",
         back: "Back to the recruitment site", fullscreen: "The study runs in full screen.", start: "Start",
@@ -14,6 +15,7 @@ const FACELAB_UI = {
         resume: "Continuing where you stopped.",
         withdraw: "Stop the study", withdraw_ask: "Stop taking part in the study? Your answers so far are kept.", withdraw_yes: "Stop", withdraw_no: "Continue",
         withdrawn: "You have stopped the study. Your answers so far are kept. Thank you for taking part; please follow the recruitment site's instructions.",
+        withdrawn_unsaved: "You have stopped the study. {n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. If you must close it, open the recruitment link again later in this browser: your answers are kept here and sent then.",
         nolive: "This browser cannot show the study's 3D view. Please open the recruitment link again in a current Chrome, Edge or Firefox.",
         stuck: "{n} of your answers could not be saved yet. Please keep this page open and contact the researcher through the recruitment site's messages. The completion code appears here as soon as they are saved. If you must close it, open the recruitment link again later in this browser: your answers are kept here and sent then." },
 };
@@ -40,7 +42,7 @@ const FACELAB_UI = {
   FacelabOutbox.onChange((n) => { status.textContent = n ? `${n} …` : ""; });
 
   if (state.withdrawn) { await facelabWithdrawn(state, ui, app); return; }
-  facelabWithdrawControl(ui);
+  if (!state.complete) facelabWithdrawControl(ui);
   for (const src of state.plugins || []) {  // the plugins of screen kinds added to facelab
     await new Promise((res, rej) => {
       const s = document.createElement("script"); s.src = src; s.onload = res; s.onerror = rej;
@@ -118,10 +120,16 @@ function facelabWithdrawControl(ui) {
     const no = facelabEl("button", "facelab-button", ui.withdraw_no); no.dataset.facelab = "withdraw_cancel";
     ask.appendChild(yes); ask.appendChild(no); document.body.appendChild(ask);
     // while it asks, keys do not reach the screen behind it (a space would go on)
-    const hold = (e) => { if (document.body.contains(ask)) { e.stopImmediatePropagation(); e.preventDefault(); } };
+    const hold = (e) => {  // keys on the question's own buttons still work
+      if (document.body.contains(ask) && !ask.contains(e.target)) { e.stopImmediatePropagation(); e.preventDefault(); }
+    };
+    yes.focus();
     window.addEventListener("keydown", hold, true); window.addEventListener("keyup", hold, true);
     no.addEventListener("click", () => {
       ask.remove(); window.removeEventListener("keydown", hold, true); window.removeEventListener("keyup", hold, true);
+      stop.blur();  // Enter or space go to the screen again, not to Stop
+      const on = document.querySelector("#app [data-facelab]");
+      FacelabOutbox.send("/api/event", { kind: "withdraw_cancelled", detail: { trial_index: on && on.dataset.trial ? Number(on.dataset.trial) : null } });
     });
     yes.addEventListener("click", async () => {
       yes.disabled = true; no.disabled = true;
@@ -145,5 +153,8 @@ async function facelabWithdrawn(state, ui, app) {
   await Promise.race([FacelabOutbox.flush(), facelabSleep(30000)]);
   app.textContent = "";
   const box = facelabEl("div", "facelab-text"); box.dataset.facelab = "withdrawn";
-  box.appendChild(facelabEl("p", "", ui.withdrawn)); app.appendChild(box);
+  const unsaved = FacelabOutbox.held() + FacelabOutbox.pending();
+  // answers not yet stored are not called kept: what to do instead (they stay in the browser)
+  box.appendChild(facelabEl("p", "", unsaved ? ui.withdrawn_unsaved.replace("{n}", String(unsaved)) : ui.withdrawn));
+  app.appendChild(box);
 }
