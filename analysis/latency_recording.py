@@ -78,8 +78,8 @@ def channel_onsets(
         x = lfilter(b, a, x)
     if brightening:
         x = x - float(np.median(x))
-        firsts = _clusters(np.abs(x), sample_rate=sample_rate, min_gap_s=min_gap_s,
-                           envelope_s=envelope_s, first=True)  # fmt: skip
+        firsts = _clusters(_envelope(x, sample_rate=sample_rate, window_s=envelope_s),
+                           sample_rate=sample_rate, min_gap_s=min_gap_s, first=True)  # fmt: skip
         if not firsts:
             return np.empty(0)
         way = 1.0 if sum(np.sign(x[k]) for k in firsts) >= 0 else -1.0
@@ -88,12 +88,9 @@ def channel_onsets(
                    onset_fraction=onset_fraction, envelope_s=envelope_s)  # fmt: skip
 
 
-def _clusters(
-    x: np.ndarray, *, sample_rate: int, min_gap_s: float, envelope_s: float, first: bool
-) -> list[int]:
-    """The strong rises of ``x``, one per half period: each cluster's first (``first``) or
-    the one with the most energy after it."""
-    env = _envelope(x, sample_rate=sample_rate, window_s=envelope_s)
+def _clusters(env: np.ndarray, *, sample_rate: int, min_gap_s: float, first: bool) -> list[int]:
+    """The strong rises of the envelope ``env``, one per half period: each cluster's first
+    (``first``) or the one with the most energy after it."""
     floor = float(np.median(env))
     spread = 1.4826 * float(np.median(np.abs(env - floor)))
     top = float(np.percentile(env, 99.9))
@@ -119,11 +116,10 @@ def _onsets(
     x: np.ndarray, *, sample_rate: int, min_gap_s: float, onset_fraction: float,
     envelope_s: float,
 ) -> np.ndarray:
-    strong = _clusters(x, sample_rate=sample_rate, min_gap_s=min_gap_s, envelope_s=envelope_s,
-                       first=False)  # fmt: skip
+    env = _envelope(x, sample_rate=sample_rate, window_s=envelope_s)  # once, for both steps
+    strong = _clusters(env, sample_rate=sample_rate, min_gap_s=min_gap_s, first=False)
     if not strong:
         return np.empty(0)
-    env = _envelope(x, sample_rate=sample_rate, window_s=envelope_s)
     floor = float(np.median(env))
     spread = 1.4826 * float(np.median(np.abs(env - floor)))
     search = round(SEARCH_S * sample_rate)
