@@ -248,6 +248,26 @@ def test_pipelined_frames_equal_frame_by_frame() -> None:
     assert len(still) == 2
 
 
+def test_renderers_open_at_once_each_keep_drawing_when_another_closes() -> None:
+    """Several renderers may be open in one process (the render stage's cached one, a contact
+    sheet's, the live view's): closing one must leave the others drawing the same pictures.
+    pyrender alone terminates the shared EGL display on every close."""
+    head = default_head()
+    open_mouth = head.weight_vector({"jawOpen": 0.8})
+    with Renderer(head, SMALL) as a:
+        before = a.frame(open_mouth)
+        with Renderer(head, RenderSettings(width=96, height=96)) as b:
+            in_b = b.frame(open_mouth)
+            with Renderer(head, SMALL) as c:
+                assert np.array_equal(c.frame(open_mouth), before)
+            assert np.array_equal(a.frame(open_mouth), before)  # c closed, a still draws
+            assert np.array_equal(b.frame(open_mouth), in_b)
+        frames = list(a.frames([open_mouth, open_mouth]))  # b closed
+        assert all(np.array_equal(f, before) for f in frames)
+    with Renderer(head, SMALL) as d:  # and a new one after all were closed
+        assert np.array_equal(d.frame(open_mouth), before)
+
+
 def test_drawing_only_the_heads_rectangle_changes_no_pixel() -> None:
     """Frames are cleared, drawn and resolved only inside the avatar's screen rectangle (and
     the previous frame's): bit for bit what drawing the whole frame gives, also when the head

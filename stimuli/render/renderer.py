@@ -27,6 +27,7 @@ Frames are ``(height, width, 3)`` uint8 RGB. ``PYOPENGL_PLATFORM`` defaults to `
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -55,6 +56,59 @@ from facelab.stimuli.render.scene import (
     RenderSettings,
     camera_placement,
 )
+
+
+def _count_egl_contexts() -> None:
+    """Let several renderers be open at once in one process. pyrender's EGL platform
+    terminates the process's one EGL display whenever any renderer is deleted (and destroys
+    its context while still current): every other renderer still open is then left with a
+    dead context, and its next GL call fails or touches freed driver memory. Here the display
+    is terminated only when the last context goes, and a context is released before it is
+    destroyed. Idempotent; nothing to do on other platforms (OSMesa)."""
+    try:
+        from pyrender.platforms import egl as _egl
+    except Exception:
+        return
+    cls = _egl.EGLPlatform
+    if getattr(cls, "_facelab_counted", False):
+        return
+    lock = threading.Lock()
+    live: set[int] = set()
+    init_context = cls.init_context
+
+    def counted_init(self) -> None:  # type: ignore[no-untyped-def]
+        init_context(self)
+        with lock:
+            live.add(id(self))
+
+    def counted_delete(self) -> None:  # type: ignore[no-untyped-def]
+        from OpenGL.EGL import (
+            EGL_NO_CONTEXT,
+            EGL_NO_SURFACE,
+            eglDestroyContext,
+            eglMakeCurrent,
+            eglTerminate,
+        )  # fmt: skip
+
+        with lock:
+            live.discard(id(self))
+            last = not live
+            if self._egl_display is None:
+                return
+            if self._egl_context is not None:
+                eglMakeCurrent(self._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+                eglDestroyContext(self._egl_display, self._egl_context)
+                self._egl_context = None
+            if last:
+                eglTerminate(self._egl_display)
+            self._egl_display = None
+
+    cls.init_context = counted_init
+    cls.delete_context = counted_delete
+    cls._facelab_counted = True
+
+
+_count_egl_contexts()
 
 __all__ = [
     "DEFAULT_DISTANCE_M",
@@ -216,10 +270,11 @@ class Renderer:
             ) from None
         max_samples = int(GL.glGetIntegerv(GL.GL_MAX_SAMPLES))
         if s.msaa > max(1, max_samples):
+            gl_name = (GL.glGetString(GL.GL_RENDERER) or b"?").decode(errors="replace")
             self.__exit__()
             raise StageError(
                 f"rendering.msaa is {s.msaa}, but this OpenGL "
-                f"({GL.glGetString(GL.GL_RENDERER).decode(errors='replace')}) multisamples at "
+                f"({gl_name}) multisamples at "
                 f"most {max_samples} times: set rendering.msaa to "
                 f"{' or '.join(str(v) for v in (1, 2, 4, 8) if v <= max(1, max_samples))}"
             )
@@ -374,6 +429,7 @@ class Renderer:
     def _upload(self, verts: np.ndarray, lit: np.ndarray) -> None:
         t0 = time.perf_counter()
         assert self._renderer is not None
+        self._renderer._platform.make_current()  # another renderer may have drawn since
         if not self._groups[0].primitive._buffers:  # another scene was drawn since
             self._renderer._renderer._facelab_scissor(None)
             self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
@@ -402,6 +458,7 @@ class Renderer:
         """The drawn frame, read back (waits for the rasteriser)."""
         t0 = time.perf_counter()
         assert self._renderer is not None
+        self._renderer._platform.make_current()
         color = self._renderer._renderer._facelab_read()
         self.times.raster_readback += time.perf_counter() - t0
         self.times.frames += 1
