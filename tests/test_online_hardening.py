@@ -551,3 +551,33 @@ def test_the_poses_while_a_vr_screen_waits_are_stored_once_checked_and_exported(
     lines = next(out.rglob("*_screen_poses.jsonl")).read_text("utf-8").splitlines()
     assert [json.loads(x) for x in lines] == [{k: v for k, v in record.items()
                                                if k != "client_key"}]  # fmt: skip
+
+
+def test_a_body_with_a_lone_surrogate_is_refused_not_a_server_error(
+    study: Path,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """JSON may spell a lone UTF-16 surrogate (\\ud800) that is no Unicode text: as a key or a
+    value, on every POST endpoint, it is a 4xx in facelab's shape and nothing is stored (CI
+    once found a 500 for {"\\ud800": "\\x1f"} on /api/event)."""
+    server = _server(study, tmp_path / "db.sqlite")
+    client = TestClient(create_app(server), raise_server_exceptions=False)
+    _p, ok, _keys = _joined(server)
+    headers = {**ok, "Content-Type": "application/json"}
+
+    def stored() -> int:
+        with Session(server.engine) as db:
+            return sum(db.scalar(select(func.count()).select_from(t)) or 0
+                       for t in (Response, PlaybackRecord, Event))  # fmt: skip
+
+    before = stored()
+    for url in ("/api/event", "/api/response", "/api/playback", "/api/screen_poses"):
+        for body in ('{"\\ud800": "\\u001f"}', '{"kind": "\\udc00"}', '["\\ud83d"]'):
+            r = client.post(url, content=body, headers=headers)
+            assert 400 <= r.status_code < 500, (url, body, r.status_code, r.text)
+            assert set(r.json()) == {"error"}, r.text
+            assert "surrogate" in r.json()["error"], r.text
+    # a pair (an emoji spelled as escapes) is text: refused only for what the field is
+    r = client.post("/api/event", content='{"kind": "\\ud83d\\ude00"}', headers=headers)
+    assert r.status_code == 422 and "surrogate" not in r.json()["error"], r.text
+    assert stored() == before

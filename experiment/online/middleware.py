@@ -1,5 +1,6 @@
 """The server's ASGI middleware: cross-origin POSTs refused, request bodies over
-:data:`MAX_BODY_BYTES` refused before parsing (declared or chunked), and the security headers
+:data:`MAX_BODY_BYTES` refused before parsing (declared or chunked), JSON bodies that spell
+text no Unicode string holds (a lone UTF-16 surrogate) refused, and the security headers
 (a strict Content-Security-Policy, ``nosniff``, ``no-referrer``, no framing) on every response.
 """
 
@@ -7,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import json
 from typing import Any
 
 from fastapi import FastAPI
@@ -74,6 +76,7 @@ class SecurityHeaders:
                 message["headers"] = list(message.get("headers", [])) + extra
             await send(message)
 
+        body = b""
         declared = headers.get(b"content-length", b"0")
         too_large = not declared.isdigit() or int(declared) > MAX_BODY_BYTES
         if not too_large and scope["method"] in ("POST", "PUT", "PATCH"):
@@ -86,7 +89,30 @@ class SecurityHeaders:
             )
             await refusal(scope, receive, send_with_headers)
             return
+        if scope["method"] == "POST" and api and _lone_surrogate(body):
+            refusal = JSONResponse(
+                {"error": "the request's text is not Unicode: it spells a lone UTF-16 surrogate "
+                 "(\\ud800-\\udfff not in a pair)"}, status_code=422,
+            )  # fmt: skip
+            await refusal(scope, receive, send_with_headers)
+            return
         await self.app(scope, receive, send_with_headers)
+
+
+def _lone_surrogate(body: bytes | None) -> bool:
+    """Whether a JSON body escapes a surrogate that is not half of a pair (``"\\ud800"``):
+    Python parses it into a str that cannot be encoded, stored or answered (the validator and
+    the database raise on it). A pair (an emoji spelled as escapes) is text and passes; a body
+    that is not JSON is left for the route to refuse."""
+    if not body or b"\\u" not in body:
+        return False
+    try:
+        json.dumps(json.loads(body), ensure_ascii=False).encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    except (ValueError, RecursionError):
+        return False
+    return False
 
 
 async def _read_body(receive: Any) -> bytes | None:
