@@ -628,7 +628,8 @@ class VirtualReality(_Model):
         250,
         ge=0,
         le=2000,
-        description="Each new screen or clip in VR fades in from black over this time (0: cut).",
+        description="Each new screen or clip in VR fades in from black over this time, and "
+        "a selected answer or a clip's end fades out to black over half of it (0: cut).",
     )
     recentre: bool = Field(
         True,

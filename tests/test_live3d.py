@@ -610,6 +610,11 @@ def test_a_tab_closed_mid_trial_in_vr_resumes(study: Path, tmp_path: Path) -> No
         finally:
             driver.quit()
     assert _clicked_equals_stored(server) == 18
+    # after the resume (trials 2-9, two ratings each, one of trial 2 given before) each of
+    # the 15 answers faded out when selected and each of the 8 clips at its end; every
+    # screen and clip faded in
+    fades = again.vr_fades
+    assert fades is not None and fades["out"] >= 15 + 8 and fades["in"] >= fades["out"], fades
     with Session(server.engine) as s:
         resumed = [e.detail for e in s.scalars(select(Event).where(Event.kind == "resumed"))]
     assert resumed == [{"answered": 3, "first_trial": 2}]
@@ -627,6 +632,31 @@ def test_a_tab_closed_mid_trial_in_vr_resumes(study: Path, tmp_path: Path) -> No
     assert quality[0].endswith(",replays")
     assert sum(int(line.rsplit(",", 1)[1]) for line in quality[1:]) == 1  # trial 2, once
     assert "sessions: 1 online (webxr 1), all simulated" in (report / "report.md").read_text()
+
+
+@slow
+def test_a_participant_stops_from_the_vr_panel_with_the_headset_on(
+    study: Path, tmp_path: Path
+) -> None:
+    """Every VR panel carries the page's Stop button: selected with the ray it asks on the
+    panel (stop or continue); confirmed, VR ends and the page reloads as a stopped session;
+    the answers given are kept, the stop logged at the screen it was selected on."""
+    server = _server(study, "vr.yaml", tmp_path / "db.sqlite")
+    shots = tmp_path / "shots"
+    with BackgroundServer(server) as bg:
+        browser = SimulatedBrowser(server, bg.url, 1, withdraw_after=2, screenshots=shots)
+        assert browser.run() == "withdrawn"
+    assert browser.withdrew and browser.vr_fades["out"] >= 2, browser.vr_fades
+    asked = json.loads((shots / "vr-withdraw-ask.panel.json").read_text("utf-8"))
+    drawn = {b["source"] for b in asked["blocks"]}
+    assert "研究への参加を中止しますか？ここまでの回答は保存されます。" in drawn
+    assert {"中止する", "続ける"} <= drawn and not asked["overflow"]
+    assert _clicked_equals_stored(server) == 2
+    with Session(server.engine) as db:
+        stopped = [e.detail for e in db.scalars(select(Event).where(Event.kind == "withdrawn"))]
+        person = db.scalars(select(Participant)).one()
+    assert len(stopped) == 1 and stopped[0]["screen"] == "vas" and person.completed is None
+    assert server.session_state(person)["withdrawn"]
 
 
 @slow

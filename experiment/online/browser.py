@@ -153,6 +153,8 @@ STUCK_S = 180.0
 #: the yaw (deg, + to the left) the emulated participant faces when they recentre
 RECENTRE_YAW_DEG = 15.0
 _FACE_JS = "window.facelabFace(arguments[0]);"
+#: the fades the VR page has begun, {in, out} (out: a selected answer, a clip's end)
+_FADES_JS = "return window.FacelabLive ? {...window.FacelabLive.fades} : null;"
 _ON_PANEL_JS = """
 const el = document.querySelector(arguments[0]);
 return !!(el && window.FacelabLive && window.FacelabLive.target(el));
@@ -250,6 +252,7 @@ class SimulatedBrowser:
     withdraw_after: int | None = None
     withdrew: bool = False
     exit_missed: bool = False  # the end panel's Exit select saw no XR frames (VR ended itself)
+    vr_fades: dict[str, int] | None = None  # the VR page's fades begun, before Exit or Stop
     driver: Any = None
     given: int = 0
     shots: set[str] = field(default_factory=set)
@@ -416,6 +419,7 @@ class SimulatedBrowser:
                 if kind == "complete":
                     if in_vr():  # the end panel: take off the headset, then Exit
                         wait_for("[data-facelab=exit_vr]")
+                        self.vr_fades = d.execute_script(_FADES_JS)
                         self._shot("vr-end")
                         wait_s = 10.0
                         try:
@@ -446,9 +450,17 @@ class SimulatedBrowser:
                     and self.given >= self.withdraw_after
                     and kind in ("vas", "choice_2afc", "identify", "typed")
                 ):
-                    d.find_element(By.CSS_SELECTOR, "[data-facelab=withdraw]").click()
-                    self._shot("withdraw-ask")
-                    d.find_element(By.CSS_SELECTOR, "[data-facelab=withdraw_confirm]").click()
+                    if in_vr():  # with the headset on: the panel's Stop, its question there
+                        wait_for("[data-facelab=withdraw]")
+                        xr_select("[data-facelab=withdraw]")
+                        wait_for("[data-facelab=withdraw_confirm]")
+                        self._shot("vr-withdraw-ask")
+                        self.vr_fades = d.execute_script(_FADES_JS)
+                        xr_select("[data-facelab=withdraw_confirm]")
+                    else:
+                        d.find_element(By.CSS_SELECTOR, "[data-facelab=withdraw]").click()
+                        self._shot("withdraw-ask")
+                        d.find_element(By.CSS_SELECTOR, "[data-facelab=withdraw_confirm]").click()
                     self.withdrew = True
                     until = time.monotonic() + 60  # until the page has reloaded
                     while time.monotonic() < until and d.execute_script(

@@ -9,9 +9,11 @@
 // on a panel in front of the participant (a canvas texture, its text wrapped and scaled to
 // fit) and answered with a controller ray or gaze-and-select, which clicks the very DOM
 // buttons a mouse would - one answer path, the same logging. The participant sits in a
-// neutral room (vr.room), each screen fades in (vr.fade_ms), rays are hidden while a clip
-// plays, the avatar's eyes are placed where the recentre step measured the participant's
-// (vr.recentre) and its voice comes from its mouth (vr.spatial_audio).
+// neutral room (vr.room), each screen and clip fades in from black (vr.fade_ms) and out to
+// black when an answer is selected or a clip ends, rays are hidden while a clip plays, the
+// avatar's eyes are placed where the recentre step measured the participant's (vr.recentre)
+// and its voice comes from its mouth (vr.spatial_audio). Every panel carries the page's Stop
+// button; its question (stop or continue) is asked on the panel.
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 
@@ -58,7 +60,8 @@ export class Stage {
     this.screenPoses = null;                  // the poses while a VR screen waits (mirror)
     this.yaw = 0;                             // the facing direction the avatar was placed at
     this.lastPose = null;                     // the viewer's pose at the last XR frame
-    this.fadeStart = null;
+    this.fade = null;                         // {from, to, start, ms}: the fader's course
+    this.fades = { in: 0, out: 0 };           // fades begun (drivers and tests read them)
   }
 
   async init() {
@@ -251,7 +254,7 @@ export class Stage {
       source = this.voiceOutput();
       src.connect(source.node);
       // the voice starts once the face has faded in (the frames before show the rest face)
-      const lead = this.fadeStart !== null ? Math.max(0.15, this.vr.fade_ms / 1000) : 0.15;
+      const lead = this.fade && this.fade.to === 0 ? Math.max(0.15, this.vr.fade_ms / 1000) : 0.15;
       const start = this.audio.currentTime + lead;
       src.start(start);
       const ended = new Promise((res) => { src.onended = res; });
@@ -266,7 +269,7 @@ export class Stage {
         };
       });
       this.onFrame = null; this.playing = null;
-      if (outcome === "done") { await ended; break; }
+      if (outcome === "done") { await ended; await this.fadeOut(); break; }
       try { src.stop(); } catch (e) { /* not started yet */ }
       if (source.at) source.node.disconnect();
       interruptions += 1;
@@ -400,6 +403,7 @@ export class Stage {
       this.sendScreenPoses();
       if (this.session === session) this.session = null;
       this.lastPose = null;
+      this.fade = null;
       if (this.panel) this.panel.remove();
       this.panel = null;
       if (this.room) { this.scene.remove(this.room); this.room = null; }
@@ -503,18 +507,40 @@ export class Stage {
     for (const c of this.controllers || []) { const r = c.getObjectByName("ray"); if (r) r.visible = on; }
   }
 
-  // the next screen or clip fades in from black over vr.fade_ms (VR only)
+  // (VR only) the next screen or clip fades in from black over vr.fade_ms; a selected answer
+  // and a clip's end fade out to black over half that first (fadeOut resolves then)
+  fadable() { return !!this.session && !!this.fader && this.vr.fade_ms > 0; }
+
   fadeIn() {
-    if (!this.session || !this.fader || !(this.vr.fade_ms > 0)) return;
-    this.fadeStart = performance.now();
+    if (!this.fadable()) return;
+    this.fade = { from: 1, to: 0, start: performance.now(), ms: this.vr.fade_ms };
+    this.fades.in += 1;
     this.fading();
+  }
+
+  fadeOut() {
+    if (!this.fadable()) return Promise.resolve();
+    const ms = this.vr.fade_ms / 2;
+    const fade = this.fade = { from: this.opacity(), to: 1, start: performance.now(), ms };
+    this.fades.out += 1;
+    this.fading();
+    // never left in the dark: what follows fades in; if nothing does, this fade undoes itself
+    setTimeout(() => { if (this.fade === fade) this.fadeIn(); }, ms + 3000);
+    return new Promise((res) => setTimeout(res, ms));
+  }
+
+  // the fader's opacity now (0 clear, 1 black)
+  opacity() {
+    const f = this.fade;
+    if (!f) return 0;
+    return f.from + (f.to - f.from) * Math.min(1, (performance.now() - f.start) / f.ms);
   }
 
   fading() {
     if (!this.fader) return;
     if (this.lastPose) { const p = this.lastPose.position; this.fader.position.set(p.x, p.y, p.z); }
-    const a = this.fadeStart === null ? 0 : 1 - (performance.now() - this.fadeStart) / this.vr.fade_ms;
-    if (a <= 0) { this.fadeStart = null; this.fader.visible = false; return; }
+    const a = this.opacity();
+    if (a <= 0) { if (this.fade && this.fade.to === 0) this.fade = null; this.fader.visible = false; return; }
     this.fader.visible = true; this.fader.material.opacity = a;
   }
 
@@ -541,6 +567,7 @@ export class Stage {
   mirror(box) {
     this.sendScreenPoses();
     if (this.panel) { this.panel.remove(); this.panel = null; }
+    if (this.session && !box && this.fade && this.fade.to === 1) this.fadeIn();  // no panel: clear
     if (!this.session || !box) return null;
     this.avatar.visible = false;  // a screen to answer: the panel alone
     this.panel = new Panel(this, box);
@@ -645,6 +672,8 @@ class Panel {
     this.draw();  // sizes and places the panel
     this.observer = new MutationObserver(() => this.draw());
     this.observer.observe(box, { subtree: true, attributes: true, childList: true, characterData: true });
+    // the page's Stop question is added to (and removed from) the body: drawn on this panel
+    this.observer.observe(document.body, { childList: true });
   }
 
   // below the avatar's eyes, nearer, turned towards the eyes, so the face stays in view
@@ -684,8 +713,21 @@ class Panel {
       if (source !== null) blocks.push({ source, lines: got });
       return got.length;
     };
+    // the page's Stop question, while it asks, in place of the screen (its own two buttons)
+    const ask = document.querySelector("[data-facelab=withdraw_ask]");
+    const src = ask || this.box;
+    // the page's Stop button (top left; the study's end removes it)
+    const stop = ask ? null : document.querySelector("[data-facelab=withdraw]");
+    if (stop) {
+      g.font = font(22);
+      const bw = Math.max(150, g.measureText(stop.textContent).width + 32), bh = 44;
+      const r = { el: stop, kind: "button", x: M, y: 14, w: bw, h: bh };
+      ops.push({ t: "rect", x: r.x, y: r.y, w: bw, h: bh, color: "#e0e0e0" });
+      ops.push({ t: "text", s: stop.textContent, x: r.x + bw / 2, y: r.y + bh / 2, px: 22, align: "center", color: "#8e2424" });
+      regions.push(r);
+    }
     // the recentre button (every panel but the recentre step's own)
-    if (st.vr.recentre !== false && !this.box.querySelector("[data-facelab=recentre_ok]")) {
+    if (!ask && st.vr.recentre !== false && !this.box.querySelector("[data-facelab=recentre_ok]")) {
       g.font = font(22);
       const bw = Math.max(150, g.measureText(words.recentre_short).width + 32), bh = 44;
       const r = { el: "recentre", kind: "recentre", x: W - M - bw, y: 14, w: bw, h: bh };
@@ -693,8 +735,8 @@ class Panel {
       ops.push({ t: "text", s: words.recentre_short, x: r.x + bw / 2, y: r.y + bh / 2, px: 22, align: "center", color: "#333" });
       regions.push(r);
     }
-    const sources = this.box.querySelectorAll(".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
-    const items = this.box.querySelectorAll(".facelab-vas-item");
+    const sources = src.querySelectorAll(".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
+    const items = src.querySelectorAll(".facelab-vas-item");
     if (!items.length) for (const t of sources) { text(t.textContent, 40 * scale, { source: t.textContent }); y += 14 * scale; }
     for (const item of items) {
       const q = item.querySelector(".facelab-question").textContent;
@@ -718,7 +760,7 @@ class Panel {
       y = top; text(right, 26 * scale, { x: x1 + 8, align: "right", maxW: half, color: "#333", source: right });
       y = Math.max(y, yl) + 26 * scale;
     }
-    const buttons = [...this.box.querySelectorAll("button")];
+    const buttons = [...src.querySelectorAll("button")];
     if (buttons.length) {
       y += 10;
       const perRow = buttons.length <= 3 ? buttons.length : Math.ceil(buttons.length / Math.ceil(buttons.length / 3));
@@ -803,12 +845,20 @@ class Panel {
     this.cursor.visible = shown;
   }
 
-  select(controller) {
+  async select(controller) {
+    if (this.busy) return;  // a selected button is taking effect
     const h = this.hit(controller);
     if (!h) return;
     const r = this.regions.find((q) => h.x >= q.x && h.x <= q.x + q.w && h.y >= q.y && h.y <= q.y + q.h);
     if (!r) return;
-    if (r.kind === "button" && !r.el.disabled) r.el.click();
+    if (r.kind === "button" && !r.el.disabled) {
+      // the panel fades to black, then the button takes effect; a screen that stays (Stop's
+      // question, a button that does not end it) fades in again
+      this.busy = true;
+      const st = this.stage;
+      try { await st.fadeOut(); if (r.el.isConnected && !r.el.disabled) r.el.click(); } finally { this.busy = false; }
+      setTimeout(() => { if (st.panel === this && st.fade && st.fade.to === 1) st.fadeIn(); }, 100);
+    }
     if (r.kind === "line" && r.el.facelabPlace) r.el.facelabPlace(Math.min(1, Math.max(0, (h.x - r.x) / r.w)));
     if (r.kind === "recentre") this.stage.recentre("button");
   }
