@@ -11,15 +11,21 @@ import pytest
 
 from facelab.experiment.cli import main
 from facelab.stimuli.avatar import default_head
+from facelab.stimuli.checks.face_tracker import picture_keys
 from facelab.stimuli.methods import DriveInput, drive
+from facelab.stimuli.render import clip as clip_module
 from facelab.stimuli.render.clip import (
     av_offset_ms,
     decode_audio,
+    decode_audios,
     decode_frames,
     encode,
     frame_weights,
     padded_audio,
     probe,
+    remux,
+    remux_many,
+    shifted_audio,
 )
 from facelab.stimuli.render.renderer import Renderer, RenderSettings
 from facelab.stimuli.speech.analyser import analyze
@@ -100,6 +106,41 @@ def test_clip_audio_equals_the_input(clip: dict) -> None:
     assert best == 0  # no delay between input and decoded audio
     snr = 10 * np.log10(np.sum(b**2) / np.sum((a - b) ** 2))
     assert snr > 25  # AAC is lossy; the waveform is otherwise the input's
+
+
+def test_many_sounds_on_one_picture_are_the_bytes_of_one_at_a_time(
+    clip: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """remux_many (one ffmpeg for several sounds, in batches) writes for each sound the file
+    remux writes alone; decode_audios (one ffmpeg for several clips) gives what decode_audio
+    gives, a broken file an empty sound without spoiling the others; picture_keys is equal
+    for the clips sharing a picture and differs for another picture."""
+    info, audio = clip["info"], clip["audio"]
+    fps, n = 30, clip["n"]
+    sounds = [audio, shifted_audio(audio, offset_ms=40), shifted_audio(audio, offset_ms=-120)]
+    alone = [remux(video=info.path, audio=a, out=tmp_path / f"alone{k}.mp4", fps=fps, n_frames=n)
+             for k, a in enumerate(sounds)]  # fmt: skip
+    monkeypatch.setattr(clip_module, "REMUX_BATCH", 2)  # two processes: 2 + 1 outputs
+    outputs = [(a, tmp_path / "many" / f"m{k}.mp4") for k, a in enumerate(sounds)]
+    many = remux_many(video=info.path, fps=fps, n_frames=n, outputs=outputs)
+    assert [m.sha256 for m in many] == [a.sha256 for a in alone]
+    assert len({a.sha256 for a in alone}) == 3  # the sounds differ, so do the files
+    assert not list((tmp_path / "many").glob("facelab-remux-*"))  # nothing half-written left
+
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"not a clip")
+    other = tmp_path / "other.mp4"  # another picture: the rest face throughout
+    encode((clip["neutral"] for _ in range(n)), audio=audio, out=other, fps=fps, width=320,
+           height=240, n_frames=n)  # fmt: skip
+    paths = [m.path for m in many] + [broken, info.path]
+    decoded = decode_audios(paths, sample_rate=16_000, batch=3)
+    assert len(decoded) == 5 and len(decoded[3]) == 0
+    for path, got in zip(paths, decoded, strict=True):
+        if path != broken:
+            assert np.array_equal(got, decode_audio(path, sample_rate=16_000)), path
+    keys = picture_keys([info.path, *(m.path for m in many), broken, other], batch=4)
+    assert len(set(keys[:4])) == 1 and keys[0] is not None
+    assert keys[4] is None and keys[5] not in (None, keys[0])
 
 
 def test_clip_starts_and_ends_neutral_and_is_in_sync(clip: dict) -> None:

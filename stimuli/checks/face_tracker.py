@@ -9,13 +9,15 @@ the ``.venv`` facelab runs from (or beside the source tree of an editable instal
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,7 @@ __all__ = [
     "ClipTracking",
     "PendingTracking",
     "analysis_size",
+    "picture_keys",
     "start_tracking",
     "track_clips",
     "tracker_python",
@@ -83,9 +86,46 @@ def _array(values: list, shape: tuple[int, ...] = ()) -> np.ndarray:
     return np.asarray([nan if v is None else v for v in values], float)
 
 
+def picture_keys(paths: Sequence[Path], *, batch: int = 24) -> list[str | None]:
+    """A key per clip that is equal for clips whose picture streams are the same bytes with
+    the same timing (a re-muxed clip and the clip it copied the picture from): the SHA-256
+    of ffmpeg's per-packet checksums of the copied video stream (timestamps, sizes, codec
+    header and dimensions included). None where it cannot be read (such a clip is tracked
+    on its own). One ffmpeg process per ``batch`` clips."""
+    exe = shutil.which("ffmpeg")
+    if exe is None:
+        return [None] * len(paths)
+    keys: list[str | None] = []
+    for start in range(0, len(paths), batch):
+        group = list(paths[start : start + batch])
+        with tempfile.TemporaryDirectory(prefix="facelab-pictures-") as tmp:
+            sums = [Path(tmp) / f"{k}.txt" for k in range(len(group))]
+            everyone = list(range(len(group)))
+            if _framehashes(exe, group, sums):
+                read = dict.fromkeys(everyone, True)
+            else:  # one unreadable clip fails the batch: each on its own
+                read = {k: _framehashes(exe, [group[k]], [sums[k]]) for k in everyone}
+            for k in everyone:
+                text = sums[k].read_bytes() if read[k] and sums[k].is_file() else b""
+                keys.append(hashlib.sha256(text).hexdigest() if text else None)
+    return keys
+
+
+def _framehashes(exe: str, clips: Sequence[Path], outs: Sequence[Path]) -> bool:
+    """ffmpeg's per-packet checksums of each clip's copied video stream into its ``outs``
+    file, one process; whether it succeeded."""
+    cmd = [exe, "-v", "error", "-nostdin", "-y"]
+    for clip in clips:
+        cmd += ["-i", str(clip)]
+    for j, out in enumerate(outs):
+        cmd += ["-map", f"{j}:v:0", "-c", "copy", "-f", "framehash", "-hash", "sha256", str(out)]
+    return subprocess.run(cmd, capture_output=True, check=False).returncode == 0
+
+
 class PendingTracking:
     """Tracker processes started by :func:`start_tracking`; :meth:`collect` waits for them
-    (the caller may do its own work meanwhile) and returns {str(path): ClipTracking}."""
+    (the caller may do its own work meanwhile) and returns {str(path): ClipTracking}. Clips
+    with the same picture (:func:`picture_keys`) and size are tracked once."""
 
     def __init__(self, clips: Sequence[tuple[Path, int, int, float]], processes: int | None):
         python = tracker_python()
@@ -95,6 +135,19 @@ class PendingTracking:
                 "run bash scripts/setup.sh, or set FACELAB_TRACKER_PYTHON"
             )
         self.python = python
+        # one tracking per picture: the others get its measures under their own path
+        self._same: dict[str, str] = {}  # str(path) -> str(path) of the clip tracked for it
+        first: dict[tuple, str] = {}
+        unique = []
+        for clip, key in zip(clips, picture_keys([c[0] for c in clips]), strict=True):
+            path, w, h, duration = clip
+            ident = (key, w, h, duration) if key is not None else (str(path),)
+            if ident in first:
+                self._same[str(path)] = first[ident]
+                continue
+            first[ident] = str(path)
+            unique.append(clip)
+        clips = unique
         n_proc = max(1, min(processes or min(os.cpu_count() or 1, 4), len(clips)))
         groups: list[list[dict]] = [[] for _ in range(n_proc)]
         load = [0.0] * n_proc
@@ -151,6 +204,8 @@ class PendingTracking:
                         tracker=answer["tracker"],
                         grey=np.load(self._greys[clip["path"]]),
                     )
+            for path, tracked in self._same.items():
+                out[path] = replace(out[tracked], path=path)
             return out
         finally:
             for proc in self._procs:

@@ -13,7 +13,6 @@ import csv
 import io
 import json
 import math
-import subprocess
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
@@ -50,7 +49,7 @@ from facelab.stimuli.checks.clip_checks import (
 from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
 from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, info
 from facelab.stimuli.render.build import vowel_peak_times
-from facelab.stimuli.render.clip import padded_audio, shifted_audio
+from facelab.stimuli.render.clip import decode_audios, padded_audio, shifted_audio
 from facelab.stimuli.render.clipspec import ClipJob
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.scene import load_avatar
@@ -149,17 +148,6 @@ def read_checks(path: Path) -> list[dict[str, str]]:
     """The rows of a ``stimulus_checks.csv`` as written (strings)."""
     with open(path, newline="", encoding="utf-8") as fh:
         return list(csv.DictReader(fh))
-
-
-def _audio(path: Path) -> np.ndarray:
-    proc = subprocess.run(
-        ["ffmpeg", "-v", "error", "-nostdin", "-i", str(path), "-vn", "-ac", "1", "-ar",
-         str(AUDIO_RATE), "-f", "f32le", "-"],
-        capture_output=True, check=False,
-    )  # fmt: skip
-    if proc.returncode != 0:
-        return np.zeros(0, np.float32)
-    return np.frombuffer(proc.stdout, "<f4")
 
 
 def _vowel_confidence(weights: np.ndarray) -> float:
@@ -265,7 +253,8 @@ def check_clips(
             analysed[key] = tracks_for(stimuli[key], speech_of(key))[0]
         return analysed[key]
 
-    sounds = {m["clip_id"]: _audio(clips_dir / m["path"]) for m in manifest}
+    decoded = decode_audios([clips_dir / m["path"] for m in manifest], sample_rate=AUDIO_RATE)
+    sounds = {m["clip_id"]: sound for m, sound in zip(manifest, decoded, strict=True)}
     for m in manifest:
         if stimuli.get((m["stimulus_set"], m["stimulus"])) is not None:
             speech_of((m["stimulus_set"], m["stimulus"]))

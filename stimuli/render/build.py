@@ -44,7 +44,7 @@ from facelab.stimuli.render.clip import (
     frame_poses,
     frame_weights,
     padded_audio,
-    remux,
+    remux_many,
     sha256_file,
     weights_at,
 )
@@ -394,21 +394,30 @@ def build_clips(
             _write_json(behaviour_log_path(out, clip_id), behaviour.log())
 
     report = render_grid(tasks(), cluster=cluster, on_result=finished, progress=progress)
-    for row, about, behaviour, track, shown_audio, source, n_frames in remuxed:
+    # the clips sharing a picture re-muxed together (one ffmpeg for several sounds)
+    by_picture: dict[tuple[str, int], list[tuple]] = {}
+    for entry in remuxed:
+        by_picture.setdefault((entry[5], entry[6]), []).append(entry)
+    for (source, n_frames), group in by_picture.items():
         if source in report.failed:
-            report.failed[row["clip_id"]] = f"its picture is {source}'s, which failed"
+            for entry in group:
+                report.failed[entry[0]["clip_id"]] = f"its picture is {source}'s, which failed"
             continue
         try:
-            info = remux(video=out / f"{source}.mp4", audio=shown_audio, out=out / row["path"],
-                         fps=fps, n_frames=n_frames)  # fmt: skip
+            infos = remux_many(video=out / f"{source}.mp4", fps=fps, n_frames=n_frames,
+                               outputs=[(e[4], out / e[0]["path"]) for e in group])  # fmt: skip
         except StageError as exc:
-            report.failed[row["clip_id"]] = str(exc)
+            for entry in group:
+                report.failed[entry[0]["clip_id"]] = str(exc)
             continue
-        replace_file(out / row["track_file"], track)
-        written(row, about, behaviour, info)
-        row["status"] = "remuxed"
-        log(f"  re-muxed {row['clip_id']} (the picture of {source}, the voice "
-            f"{about.get('audio_offset_ms', 0.0):+g} ms)")
+        for (row, about, behaviour, track, _audio, _source, _n), info in zip(
+            group, infos, strict=True
+        ):
+            replace_file(out / row["track_file"], track)
+            written(row, about, behaviour, info)
+            row["status"] = "remuxed"
+            log(f"  re-muxed {row['clip_id']} (the picture of {source}, the voice "
+                f"{about.get('audio_offset_ms', 0.0):+g} ms)")
     finish_grid(report, rows=rows, out=out, log=log)
     write_manifest(out, rows, columns=(*CLIP_COLUMNS, *TRACK_COLUMNS))
     return rows

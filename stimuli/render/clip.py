@@ -31,10 +31,12 @@ from facelab.stimuli.speech.audio import Speech, write_wav
 
 __all__ = [
     "ClipInfo",
+    "decode_audios",
     "encode",
     "frame_weights",
     "padded_audio",
     "remux",
+    "remux_many",
     "sha256_file",
     "shifted_audio",
     "weights_at",
@@ -279,33 +281,63 @@ def remux(*, video: Path, audio: Speech, out: Path, fps: int, n_frames: int) -> 
     """A clip with ``video``'s picture - its stream copied, not decoded or encoded again -
     and ``audio`` encoded as :func:`encode` does (AAC); atomic write. Clips that differ only
     in their sound (an audio offset) share one rendering this way."""
-    info = probe(video)
+    return remux_many(video=video, outputs=[(audio, out)], fps=fps, n_frames=n_frames)[0]
+
+
+#: outputs one ffmpeg process writes in :func:`remux_many` (its start-up, ~70 ms, is most of
+#: a short clip's re-mux; the open files stay few)
+REMUX_BATCH = 16
+
+
+def remux_many(
+    *, video: Path, outputs: list[tuple[Speech, Path]], fps: int, n_frames: int
+) -> list[ClipInfo]:
+    """:func:`remux` for several sounds on one picture: each output ``(audio, out)`` gets
+    ``video``'s stream copied and its own ``audio`` (AAC), written by one ffmpeg process per
+    :data:`REMUX_BATCH` outputs - the bytes :func:`remux` writes for each; atomic writes."""
+    if not outputs:
+        return []
+    info = probe(video, count_frames=False)
     stream = next((s for s in info.get("streams", []) if s.get("codec_type") == "video"), None)
     if stream is None:
         raise StageError(f"{video.name}: no video stream to reuse")
     width, height = int(stream["width"]), int(stream["height"])
     duration = n_frames / fps
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="facelab-remux-", dir=out.parent) as tmp:
-        wav = Path(tmp) / "audio.wav"
-        write_wav(wav, audio)
-        part = Path(tmp) / out.name
-        cmd = [
-            _ffmpeg(), "-hide_banner", "-loglevel", "error", "-y",
-            "-i", str(video), "-i", str(wav), "-map", "0:v:0", "-map", "1:a",
-            "-c:v", "copy", "-c:a", "aac", "-b:a", "192k", "-ar", str(audio.sample_rate),
-            "-t", f"{duration:.6f}", "-movflags", "+faststart", str(part),
-        ]  # fmt: skip
-        done = subprocess.run(cmd, capture_output=True, check=False)
-        if done.returncode != 0:
-            raise StageError(f"ffmpeg could not put the new sound on {video.name}: "
-                             f"{done.stderr.decode(errors='replace').strip()[-300:]}")  # fmt: skip
-        part.replace(out)
-    return ClipInfo(out, duration, fps, width, height, n_frames, sha256_file(out))
+    done: list[ClipInfo] = []
+    for start in range(0, len(outputs), REMUX_BATCH):
+        batch = outputs[start : start + REMUX_BATCH]
+        folder = batch[0][1].parent
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix="facelab-remux-", dir=folder) as tmp:
+            cmd = [_ffmpeg(), "-hide_banner", "-loglevel", "error", "-y", "-i", str(video)]
+            parts = []
+            for k, (audio, _out) in enumerate(batch):
+                wav = Path(tmp) / f"audio{k}.wav"
+                write_wav(wav, audio)
+                cmd += ["-i", str(wav)]
+            for k, (audio, out) in enumerate(batch):
+                part = Path(tmp) / f"{k}-{out.name}"
+                parts.append(part)
+                cmd += [
+                    "-map", "0:v:0", "-map", f"{k + 1}:a", "-c:v", "copy", "-c:a", "aac",
+                    "-b:a", "192k", "-ar", str(audio.sample_rate), "-t", f"{duration:.6f}",
+                    "-movflags", "+faststart", str(part),
+                ]  # fmt: skip
+            ran = subprocess.run(cmd, capture_output=True, check=False)
+            if ran.returncode != 0:
+                why = ran.stderr.decode(errors="replace").strip()[-300:]
+                raise StageError(f"ffmpeg could not put the new sound on {video.name}: {why}")
+            for part, (_audio, out) in zip(parts, batch, strict=True):
+                out.parent.mkdir(parents=True, exist_ok=True)
+                part.replace(out)
+                done.append(ClipInfo(out, duration, fps, width, height, n_frames,
+                                     sha256_file(out)))  # fmt: skip
+    return done
 
 
-def probe(path: Path) -> dict:
-    """Stream facts of a clip from ffprobe: codecs, frames, durations, sample rate."""
+def probe(path: Path, *, count_frames: bool = True) -> dict:
+    """Stream facts of a clip from ffprobe: codecs, frames (``count_frames``: counted by
+    decoding, ``nb_read_frames``), durations, sample rate."""
     exe = shutil.which("ffprobe")
     if exe is None:
         raise StageError("ffprobe is not installed (Debian ffmpeg)")
@@ -316,7 +348,7 @@ def probe(path: Path) -> dict:
             exe,
             "-v",
             "error",
-            "-count_frames",
+            *(["-count_frames"] if count_frames else []),
             "-show_streams",
             "-show_format",
             "-of",
@@ -350,6 +382,34 @@ def decode_audio(path: Path, *, sample_rate: int) -> np.ndarray:
     """The clip's audio as mono float32 at ``sample_rate``."""
     raw = _decode(path, ["-f", "f32le", "-ac", "1", "-ar", str(sample_rate)], "audio")
     return np.frombuffer(raw, dtype=np.float32)
+
+
+def decode_audios(paths: list[Path], *, sample_rate: int, batch: int = 24) -> list[np.ndarray]:
+    """Each clip's audio as mono float32 at ``sample_rate``, as :func:`decode_audio` gives
+    it, decoded by one ffmpeg process per ``batch`` clips (its start-up is most of a short
+    clip's decoding). A clip without decodable sound gives an empty array (a batch that
+    fails is decoded clip by clip, so one broken file spoils nothing else)."""
+    sounds: list[np.ndarray] = []
+    for start in range(0, len(paths), batch):
+        group = paths[start : start + batch]
+        with tempfile.TemporaryDirectory(prefix="facelab-audio-") as tmp:
+            cmd = [_ffmpeg(), "-v", "error", "-nostdin", "-y"]
+            for path in group:
+                cmd += ["-i", str(path)]
+            raws = [Path(tmp) / f"{k}.f32" for k in range(len(group))]
+            for k, raw in enumerate(raws):
+                cmd += ["-map", f"{k}:a:0", "-f", "f32le", "-ac", "1", "-ar", str(sample_rate),
+                        str(raw)]  # fmt: skip
+            ok = subprocess.run(cmd, capture_output=True, check=False).returncode == 0
+            for path, raw in zip(group, raws, strict=True):
+                if ok:
+                    sounds.append(np.fromfile(raw, dtype="<f4"))
+                    continue
+                try:
+                    sounds.append(decode_audio(path, sample_rate=sample_rate))
+                except StageError:
+                    sounds.append(np.zeros(0, np.float32))
+    return sounds
 
 
 def decode_frames(path: Path, *, width: int, height: int) -> np.ndarray:
