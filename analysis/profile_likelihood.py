@@ -2,11 +2,13 @@
 fits of the objective tasks (audio-visual timing windows, speech reception thresholds).
 
 A model is its log-likelihood ``loglik(theta) -> float`` over a parameter vector with box
-``bounds``. :func:`best_fit` maximises it from several starts (L-BFGS-B); with ``fixed``
-parameters held it is the profile. :func:`profile_interval` finds where twice the drop of the
-profile log-likelihood from the maximum reaches the chi-square(1) quantile, re-fitting the
-other parameters at each value (from the best fit: the profile is continuous there); an end
-that would pass the parameter's bound is returned as ``-inf`` / ``inf``.
+``bounds`` (and, optionally, its ``gradient(theta) -> (k,)``: without it L-BFGS-B differences
+the likelihood numerically, several evaluations per step). :func:`best_fit` maximises it
+from several starts (L-BFGS-B); with ``fixed`` parameters held it is the profile.
+:func:`profile_interval` finds where twice the drop of the profile log-likelihood from the
+maximum reaches the chi-square(1) quantile, re-fitting the other parameters at each value
+(from the best fit: the profile is continuous there); an end that would pass the
+parameter's bound is returned as ``-inf`` / ``inf``.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from facelab.errors import AnalysisError
 
 __all__ = [
     "Bounds",
+    "Gradient",
     "LogLik",
     "best_fit",
     "binomial_deviance",
@@ -30,6 +33,7 @@ __all__ = [
 ]
 
 LogLik = Callable[[np.ndarray], float]
+Gradient = Callable[[np.ndarray], np.ndarray]
 Bounds = Sequence[tuple[float, float]]
 
 
@@ -44,9 +48,11 @@ def best_fit(
     bounds: Bounds,
     starts: Sequence[np.ndarray],
     fixed: dict[int, float] | None = None,
+    gradient: Gradient | None = None,
 ) -> tuple[np.ndarray, float]:
     """The parameters (``fixed`` {index: value} held) maximising ``loglik`` within
-    ``bounds`` from the best of ``starts``, and the log-likelihood there."""
+    ``bounds`` from the best of ``starts``, and the log-likelihood there; ``gradient`` the
+    log-likelihood's derivatives (k,), if known."""
     fixed = fixed or {}
     k = len(bounds)
     free = [i for i in range(k) if i not in fixed]
@@ -60,10 +66,18 @@ def best_fit(
             theta[i] = v
         return theta
 
+    def with_gradient(free_values: np.ndarray) -> tuple[float, np.ndarray]:
+        theta = full(free_values)
+        return -loglik(theta), -np.asarray(gradient(theta), dtype=float)[free]  # type: ignore[misc]
+
+    def without(free_values: np.ndarray) -> float:
+        return -loglik(full(free_values))
+
     best_theta, best_ll = None, -math.inf
     for start in starts:
         s = np.clip(np.asarray(start, dtype=float)[free], lo, hi)
-        res = optimize.minimize(lambda f: -loglik(full(f)), s, method="L-BFGS-B",
+        res = optimize.minimize(without if gradient is None else with_gradient, s,
+                                jac=gradient is not None, method="L-BFGS-B",
                                 bounds=[bounds[i] for i in free])  # fmt: skip
         if -res.fun > best_ll:
             best_theta, best_ll = full(res.x), float(-res.fun)
@@ -81,6 +95,7 @@ def profile_interval(
     ll: float,
     index: int,
     cutoff: float,
+    gradient: Gradient | None = None,
 ) -> tuple[float, float]:
     """The profile-likelihood interval of parameter ``index`` around the maximum ``theta``
     (log-likelihood ``ll``); ``-inf`` / ``inf`` for an end beyond the search bound."""
@@ -88,7 +103,8 @@ def profile_interval(
     def drop(value: float) -> float:
         if value == theta[index]:
             return -cutoff
-        _, ll_v = best_fit(loglik, bounds=bounds, starts=[theta], fixed={index: value})
+        _, ll_v = best_fit(loglik, bounds=bounds, starts=[theta], fixed={index: value},
+                           gradient=gradient)  # fmt: skip
         return 2.0 * (ll - ll_v) - cutoff
 
     lo_b, hi_b = bounds[index]

@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import special
 
 import facelab.analysis.stats as fstats
 from facelab.analysis.profile_likelihood import (
@@ -127,6 +128,38 @@ def _loglik(theta: np.ndarray, judgment: str, x: np.ndarray, n: np.ndarray, k: n
     return float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
 
 
+def _gradient(
+    theta: np.ndarray, judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray
+) -> np.ndarray:
+    """d :func:`_loglik` / d theta (len(theta),): the chain rule through ``p`` (0 where
+    ``p`` is clipped, as the clipped likelihood is flat there)."""
+    sigma = math.exp(theta[1])
+    z = (x - theta[0]) / sigma
+    if judgment == "simultaneity":
+        g = np.exp(-0.5 * z**2)
+        share = theta[3] if len(theta) > 3 else 0.0
+        peak = theta[2]
+        height = peak * (1.0 - share)  # the peak above the floor
+        p = peak * share + height * g
+        dp = [height * g * z / sigma, height * g * z**2, share + (1.0 - share) * g]
+        if len(theta) > 3:
+            dp.append(peak * (1.0 - g))
+    else:
+        lapse = theta[2]
+        density = (1.0 - lapse) * _normal_pdf(z)
+        p = lapse / 2 + (1.0 - lapse) * special.ndtr(-z)
+        dp = [density / sigma, density * z, 0.5 - special.ndtr(-z)]
+    inside = (p > _EPS) & (p < 1 - _EPS)
+    pc = np.clip(p, _EPS, 1 - _EPS)
+    weight = np.where(inside, k / pc - (n - k) / (1.0 - pc), 0.0)
+    return np.array([float(np.sum(weight * d)) for d in dp])
+
+
+def _normal_pdf(z: np.ndarray) -> np.ndarray:
+    """The standard normal density at ``z``."""
+    return np.exp(-0.5 * z**2) / math.sqrt(2.0 * math.pi)
+
+
 def _bounds(judgment: str, x: np.ndarray, *, floor: bool) -> list[tuple[float, float]]:
     levels = np.unique(x)
     span = float(levels[-1] - levels[0])
@@ -179,15 +212,19 @@ def fit_window(
     def loglik(theta: np.ndarray) -> float:
         return _loglik(theta, judgment, x, n, k)
 
-    theta, ll = best_fit(loglik, bounds=bounds, starts=_starts(judgment, x, n, k, floor=floor))
+    def gradient(theta: np.ndarray) -> np.ndarray:
+        return _gradient(theta, judgment, x, n, k)
+
+    theta, ll = best_fit(loglik, bounds=bounds, starts=_starts(judgment, x, n, k, floor=floor),
+                         gradient=gradient)  # fmt: skip
     cutoff = chi2_cutoff(level)
     per = _per_sigma(judgment)
     pss_lo = pss_hi = ls_lo = ls_hi = math.nan
     if intervals:
         pss_lo, pss_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
-                                          cutoff=cutoff)  # fmt: skip
+                                          cutoff=cutoff, gradient=gradient)  # fmt: skip
         ls_lo, ls_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=1,
-                                        cutoff=cutoff)  # fmt: skip
+                                        cutoff=cutoff, gradient=gradient)  # fmt: skip
     notes = []
     names = ("the PSS", "the width", "the peak" if judgment == "simultaneity" else "the lapse",
              *(("the floor",) if floor else ()))  # fmt: skip
