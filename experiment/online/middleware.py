@@ -89,30 +89,50 @@ class SecurityHeaders:
             )
             await refusal(scope, receive, send_with_headers)
             return
-        if scope["method"] == "POST" and api and _lone_surrogate(body):
+        bad = _lone_surrogate(body) if scope["method"] == "POST" and api else None
+        if bad is not None:
             refusal = JSONResponse(
-                {"error": "the request's text is not Unicode: it spells a lone UTF-16 surrogate "
-                 "(\\ud800-\\udfff not in a pair)"}, status_code=422,
+                {"error": f"{bad} that is not Unicode (it spells a lone UTF-16 surrogate, "
+                 "\\ud800-\\udfff not in a pair)"}, status_code=422,
             )  # fmt: skip
             await refusal(scope, receive, send_with_headers)
             return
         await self.app(scope, receive, send_with_headers)
 
 
-def _lone_surrogate(body: bytes | None) -> bool:
-    """Whether a JSON body escapes a surrogate that is not half of a pair (``"\\ud800"``):
-    Python parses it into a str that cannot be encoded, stored or answered (the validator and
-    the database raise on it). A pair (an emoji spelled as escapes) is text and passes; a body
-    that is not JSON is left for the route to refuse."""
-    if not body or b"\\u" not in body:
-        return False
+def _not_text(value: str) -> bool:
     try:
-        json.dumps(json.loads(body), ensure_ascii=False).encode("utf-8")
+        value.encode("utf-8")
     except UnicodeEncodeError:
         return True
-    except (ValueError, RecursionError):
-        return False
     return False
+
+
+def _lone_surrogate(body: bytes | None) -> str | None:
+    """Where a JSON body escapes a surrogate that is not half of a pair (``"\\ud800"``) -
+    ``field.sub: a key`` / ``field.sub: text`` (``body`` at the top) - or None. Python parses
+    it into a str that cannot be encoded, stored or answered (the validator and the
+    database raise on it). A pair (an emoji spelled as escapes) is text and passes; a body
+    that is not JSON is left for the route to refuse."""
+    if not body or b"\\u" not in body:
+        return None
+    try:
+        parsed = json.loads(body)
+    except (ValueError, RecursionError):
+        return None
+    stack: list[tuple[tuple[str, ...], Any]] = [((), parsed)]
+    while stack:  # depth first, in the body's order
+        path, value = stack.pop()
+        where = ".".join(path) or "body"
+        if isinstance(value, str) and _not_text(value):
+            return f"{where}: text"
+        if isinstance(value, dict):
+            if any(_not_text(k) for k in value):
+                return f"{where}: a key"
+            stack += [((*path, k), v) for k, v in reversed(value.items())]
+        elif isinstance(value, list):
+            stack += [((*path, str(i)), v) for i, v in reversed(list(enumerate(value)))]
+    return None
 
 
 async def _read_body(receive: Any) -> bytes | None:
