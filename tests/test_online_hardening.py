@@ -577,6 +577,11 @@ def test_a_body_with_a_lone_surrogate_is_refused_not_a_server_error(
             assert 400 <= r.status_code < 500, (url, body, r.status_code, r.text)
             assert set(r.json()) == {"error"}, r.text
             assert "surrogate" in r.json()["error"], r.text
+    # nor raw surrogate bytes (CESU-8), nor UTF-16 (which Python's JSON reader accepts)
+    utf16 = '{"kind": "\ud800"}'.encode("utf-16", "surrogatepass")
+    for raw in (b'{"kind": "\xed\xa0\x80"}', utf16):
+        r = client.post("/api/event", content=raw, headers=headers)
+        assert r.status_code == 422 and r.json()["error"].startswith("body: text"), r.text
     # a pair (an emoji spelled as escapes) is text: refused only for what the field is
     r = client.post("/api/event", content='{"kind": "\\ud83d\\ude00"}', headers=headers)
     assert r.status_code == 422 and "surrogate" not in r.json()["error"], r.text

@@ -168,6 +168,11 @@ const stage = window.FacelabLive, device = window.facelabXRDevice;
 const el = document.querySelector(selector);
 const target = el && stage.target(el, frac);
 if (!target) { done('no panel target for ' + selector); return; }
+const seen = () => new Promise((resolve) => {  // as a participant: once the panel shows
+  const poll = () => (stage.opacity() <= 0.5 && !stage.selecting
+    ? resolve() : setTimeout(poll, 20));
+  poll();
+});
 const c = device.controllers.right;
 const q = stage.aim(1, target);
 c.quaternion.set(q[0], q[1], q[2], q[3]);
@@ -186,6 +191,7 @@ const frames = (n) => new Promise((resolve, reject) => {
   poll();
 });
 (async () => {
+  await seen();
   await frames(2);
   c.updateButtonValue('trigger', 1);
   await frames(2);

@@ -92,8 +92,8 @@ class SecurityHeaders:
         bad = _lone_surrogate(body) if scope["method"] == "POST" and api else None
         if bad is not None:
             refusal = JSONResponse(
-                {"error": f"{bad} that is not Unicode (it spells a lone UTF-16 surrogate, "
-                 "\\ud800-\\udfff not in a pair)"}, status_code=422,
+                {"error": f"{bad} that is not UTF-8 Unicode (a lone UTF-16 surrogate, "
+                 "\\ud800-\\udfff not in a pair, or another encoding)"}, status_code=422,
             )  # fmt: skip
             await refusal(scope, receive, send_with_headers)
             return
@@ -109,12 +109,22 @@ def _not_text(value: str) -> bool:
 
 
 def _lone_surrogate(body: bytes | None) -> str | None:
-    """Where a JSON body escapes a surrogate that is not half of a pair (``"\\ud800"``) -
-    ``field.sub: a key`` / ``field.sub: text`` (``body`` at the top) - or None. Python parses
-    it into a str that cannot be encoded, stored or answered (the validator and the
-    database raise on it). A pair (an emoji spelled as escapes) is text and passes; a body
-    that is not JSON is left for the route to refuse."""
-    if not body or b"\\u" not in body:
+    """Where a JSON body holds a surrogate that is not half of a pair (``"\\ud800"``) -
+    ``field.sub: a key`` / ``field.sub: text`` (``body`` at the top; ``body: text`` for a body
+    that is not strict UTF-8 - raw surrogate bytes, or UTF-16/32, which Python's JSON reader
+    would accept) - or None. Python parses such a surrogate into a str that cannot be
+    encoded, stored or answered (the validator and the database raise on it). A pair (an
+    emoji spelled as escapes) is text and passes; a body that is not JSON is left for the
+    route to refuse."""
+    if not body:
+        return None
+    try:
+        body.decode("utf-8")  # strict: encoded surrogates (ED A0 80 ...) are refused
+    except UnicodeDecodeError:
+        return "body: text"
+    if b"\x00" in body:  # JSON never holds a raw NUL: this is UTF-16 or UTF-32
+        return "body: text"
+    if b"\\u" not in body:
         return None
     try:
         parsed = json.loads(body)

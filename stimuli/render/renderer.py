@@ -64,7 +64,10 @@ def _count_egl_contexts() -> None:
     its context while still current): every other renderer still open is then left with a
     dead context, and its next GL call fails or touches freed driver memory. Here the display
     is terminated only when the last context goes, and a context is released before it is
-    destroyed. Idempotent; nothing to do on other platforms (OSMesa)."""
+    destroyed. Idempotent; nothing to do on other platforms (``PYOPENGL_PLATFORM`` not egl:
+    the EGL module is not even imported, as importing it installs PyOpenGL's EGL platform)."""
+    if os.environ.get("PYOPENGL_PLATFORM", "egl") != "egl":
+        return
     try:
         from pyrender.platforms import egl as _egl
     except Exception:
@@ -72,13 +75,15 @@ def _count_egl_contexts() -> None:
     cls = _egl.EGLPlatform
     if getattr(cls, "_facelab_counted", False):
         return
-    lock = threading.Lock()
+    # re-entrant: a renderer collected (pyrender's __del__) while another is being made or
+    # closed on this thread comes back in here
+    lock = threading.RLock()
     live: set[int] = set()
     init_context = cls.init_context
 
     def counted_init(self) -> None:  # type: ignore[no-untyped-def]
-        init_context(self)
-        with lock:
+        with lock:  # not while another thread terminates the display
+            init_context(self)
             live.add(id(self))
 
     def counted_delete(self) -> None:  # type: ignore[no-untyped-def]

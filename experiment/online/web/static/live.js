@@ -62,6 +62,9 @@ export class Stage {
     this.lastPose = null;                     // the viewer's pose at the last XR frame
     this.fade = null;                         // {from, to, start, ms}: the fader's course
     this.fades = { in: 0, out: 0 };           // fades begun (drivers and tests read them)
+    this.selecting = false;                   // a selected button is taking effect
+    this.selectedAt = null;                   // when (page ms) and where the viewer was at
+    this.selectedPose = null;                 // the last select of a button
   }
 
   async init() {
@@ -462,8 +465,11 @@ export class Stage {
   // The recentre step and button: the avatar (and panel, room) placed again from where the
   // participant's eyes are and face now; logged.
   recentre(why) {
-    if (!this.lastPose) return false;
-    this.placeAt(this.lastPose);
+    // the recentre step's button: where the participant was when they selected it (its
+    // click comes after the fade-out)
+    const pose = why === "start" && this.selectedPose ? this.selectedPose : this.lastPose;
+    if (!pose) return false;
+    this.placeAt(pose);
     const eyes = this.eyesPosition();
     FacelabOutbox.send("/api/event", { kind: "recentre", detail: {
       why, yaw_deg: round(deg(this.yaw), 2), eye_height_m: round(this.eyeHeight(), 3),
@@ -567,7 +573,6 @@ export class Stage {
   mirror(box) {
     this.sendScreenPoses();
     if (this.panel) { this.panel.remove(); this.panel = null; }
-    if (this.session && !box && this.fade && this.fade.to === 1) this.fadeIn();  // no panel: clear
     if (!this.session || !box) return null;
     this.avatar.visible = false;  // a screen to answer: the panel alone
     this.panel = new Panel(this, box);
@@ -846,18 +851,32 @@ class Panel {
   }
 
   async select(controller) {
-    if (this.busy) return;  // a selected button is taking effect
+    const st = this.stage;
+    // a selected button is taking effect, or the next screen is still (mostly) dark: a second
+    // or blind press answers nothing
+    if (st.selecting || st.opacity() > 0.5) return;
     const h = this.hit(controller);
     if (!h) return;
     const r = this.regions.find((q) => h.x >= q.x && h.x <= q.x + q.w && h.y >= q.y && h.y <= q.y + q.h);
     if (!r) return;
     if (r.kind === "button" && !r.el.disabled) {
-      // the panel fades to black, then the button takes effect; a screen that stays (Stop's
-      // question, a button that does not end it) fades in again
-      this.busy = true;
-      const st = this.stage;
-      try { await st.fadeOut(); if (r.el.isConnected && !r.el.disabled) r.el.click(); } finally { this.busy = false; }
-      setTimeout(() => { if (st.panel === this && st.fade && st.fade.to === 1) st.fadeIn(); }, 100);
+      // the panel fades to black, then the button takes effect (the answer's time is the
+      // select's: facelabAnswer reads selectedAt); a screen that stays (Stop's question, a
+      // button that does not end it) fades in again
+      st.selecting = true;
+      const at = st.selectedAt = performance.now();
+      st.selectedPose = st.lastPose;
+      let dark = null;
+      try {
+        await st.fadeOut();
+        dark = st.fade;
+        if (r.el.isConnected && !r.el.disabled) r.el.click();
+      } finally { st.selecting = false; }
+      setTimeout(() => {  // the click's answer has been taken (synchronously or just after)
+        if (st.selectedAt === at) { st.selectedAt = null; st.selectedPose = null; }
+        // the same screen and no other fade since: it fades in again
+        if (st.panel === this && dark && st.fade === dark) st.fadeIn();
+      }, 100);
     }
     if (r.kind === "line" && r.el.facelabPlace) r.el.facelabPlace(Math.min(1, Math.max(0, (h.x - r.x) / r.w)));
     if (r.kind === "recentre") this.stage.recentre("button");

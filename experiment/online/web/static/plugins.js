@@ -44,11 +44,15 @@ function facelabInfo(name, fields) {
 }
 function facelabAnswer(screen, item, fields, started) {
   const pb = FacelabSession.playback[screen.trial_index] || null;
+  // in VR a selected button takes effect after the panel has faded out: the answer's time
+  // is the select's (a select on an earlier screen is older than this one's start)
+  const stage = FacelabSession.stage;
+  const chosen = stage && stage.selectedAt !== null && stage.selectedAt >= started ? stage.selectedAt : performance.now();
   return Object.assign({
     client_key: FacelabOutbox.newKey(),
     trial_index: screen.trial_index,
     item,
-    rt_s: Math.max(0, (performance.now() - started) / 1000),
+    rt_s: Math.max(0, (chosen - started) / 1000),
     timestamp: new Date().toISOString(),
     clip_onset: pb ? pb.onset : null,
     clip_frames_dropped: pb ? pb.dropped : null,
