@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from facelab.errors import StageError
+from facelab.stimuli.render.clip import ffmpeg_each
 
 __all__ = [
     "ANALYSIS_HEIGHT",
@@ -91,35 +92,12 @@ def picture_keys(paths: Sequence[Path], *, batch: int = 24) -> list[str | None]:
     the same timing (a re-muxed clip and the clip it copied the picture from): the SHA-256
     of ffmpeg's per-packet checksums of the copied video stream (timestamps, sizes, codec
     header and dimensions included). None where it cannot be read (such a clip is tracked
-    on its own). One ffmpeg process per ``batch`` clips."""
-    exe = shutil.which("ffmpeg")
-    if exe is None:
+    on its own). In batches (:func:`~facelab.stimuli.render.clip.ffmpeg_each`)."""
+    if shutil.which("ffmpeg") is None:
         return [None] * len(paths)
-    keys: list[str | None] = []
-    for start in range(0, len(paths), batch):
-        group = list(paths[start : start + batch])
-        with tempfile.TemporaryDirectory(prefix="facelab-pictures-") as tmp:
-            sums = [Path(tmp) / f"{k}.txt" for k in range(len(group))]
-            everyone = list(range(len(group)))
-            if _framehashes(exe, group, sums):
-                read = dict.fromkeys(everyone, True)
-            else:  # one unreadable clip fails the batch: each on its own
-                read = {k: _framehashes(exe, [group[k]], [sums[k]]) for k in everyone}
-            for k in everyone:
-                text = sums[k].read_bytes() if read[k] and sums[k].is_file() else b""
-                keys.append(hashlib.sha256(text).hexdigest() if text else None)
-    return keys
-
-
-def _framehashes(exe: str, clips: Sequence[Path], outs: Sequence[Path]) -> bool:
-    """ffmpeg's per-packet checksums of each clip's copied video stream into its ``outs``
-    file, one process; whether it succeeded."""
-    cmd = [exe, "-v", "error", "-nostdin", "-y"]
-    for clip in clips:
-        cmd += ["-i", str(clip)]
-    for j, out in enumerate(outs):
-        cmd += ["-map", f"{j}:v:0", "-c", "copy", "-f", "framehash", "-hash", "sha256", str(out)]
-    return subprocess.run(cmd, capture_output=True, check=False).returncode == 0
+    framehash = ["-c", "copy", "-f", "framehash", "-hash", "sha256"]
+    sums = ffmpeg_each(paths, stream="v:0", batch=batch, output_args=framehash)
+    return [hashlib.sha256(text).hexdigest() if text else None for text in sums]
 
 
 class PendingTracking:

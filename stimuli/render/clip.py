@@ -15,7 +15,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -33,6 +33,7 @@ __all__ = [
     "ClipInfo",
     "decode_audios",
     "encode",
+    "ffmpeg_each",
     "frame_weights",
     "padded_audio",
     "remux",
@@ -384,32 +385,43 @@ def decode_audio(path: Path, *, sample_rate: int) -> np.ndarray:
     return np.frombuffer(raw, dtype=np.float32)
 
 
+def ffmpeg_each(
+    paths: Sequence[Path], *, stream: str, output_args: list[str], batch: int = 24
+) -> list[bytes | None]:
+    """What ffmpeg writes for each clip's ``stream`` (``"a:0"``, ``"v:0"``) with
+    ``output_args`` (a format and its options), one process per ``batch`` clips - its
+    start-up is most of a short clip's work. None for a clip it cannot read: a batch that
+    fails is run clip by clip, so one broken file spoils nothing else."""
+    exe = _ffmpeg()
+    out: list[bytes | None] = []
+    for start in range(0, len(paths), batch):
+        group = list(paths[start : start + batch])
+        with tempfile.TemporaryDirectory(prefix="facelab-ffmpeg-") as tmp:
+            files = [Path(tmp) / f"{k}.out" for k in range(len(group))]
+
+            def run(members: list[int], *, group=group, files=files) -> bool:
+                cmd = [exe, "-v", "error", "-nostdin", "-y"]
+                for k in members:
+                    cmd += ["-i", str(group[k])]
+                for j, k in enumerate(members):
+                    cmd += ["-map", f"{j}:{stream}", *output_args, str(files[k])]
+                return subprocess.run(cmd, capture_output=True, check=False).returncode == 0
+
+            everyone = list(range(len(group)))
+            read = dict.fromkeys(everyone, True) if run(everyone) else {
+                k: run([k]) for k in everyone}  # fmt: skip
+            out += [files[k].read_bytes() if read[k] and files[k].is_file() else None
+                    for k in everyone]  # fmt: skip
+    return out
+
+
 def decode_audios(paths: list[Path], *, sample_rate: int, batch: int = 24) -> list[np.ndarray]:
     """Each clip's audio as mono float32 at ``sample_rate``, as :func:`decode_audio` gives
-    it, decoded by one ffmpeg process per ``batch`` clips (its start-up is most of a short
-    clip's decoding). A clip without decodable sound gives an empty array (a batch that
-    fails is decoded clip by clip, so one broken file spoils nothing else)."""
-    sounds: list[np.ndarray] = []
-    for start in range(0, len(paths), batch):
-        group = paths[start : start + batch]
-        with tempfile.TemporaryDirectory(prefix="facelab-audio-") as tmp:
-            cmd = [_ffmpeg(), "-v", "error", "-nostdin", "-y"]
-            for path in group:
-                cmd += ["-i", str(path)]
-            raws = [Path(tmp) / f"{k}.f32" for k in range(len(group))]
-            for k, raw in enumerate(raws):
-                cmd += ["-map", f"{k}:a:0", "-f", "f32le", "-ac", "1", "-ar", str(sample_rate),
-                        str(raw)]  # fmt: skip
-            ok = subprocess.run(cmd, capture_output=True, check=False).returncode == 0
-            for path, raw in zip(group, raws, strict=True):
-                if ok:
-                    sounds.append(np.fromfile(raw, dtype="<f4"))
-                    continue
-                try:
-                    sounds.append(decode_audio(path, sample_rate=sample_rate))
-                except StageError:
-                    sounds.append(np.zeros(0, np.float32))
-    return sounds
+    it, decoded in batches (:func:`ffmpeg_each`); a clip without decodable sound gives an
+    empty array."""
+    raw = ffmpeg_each(paths, stream="a:0", batch=batch,
+                      output_args=["-f", "f32le", "-ac", "1", "-ar", str(sample_rate)])  # fmt: skip
+    return [np.frombuffer(r or b"", dtype="<f4").copy() for r in raw]
 
 
 def decode_frames(path: Path, *, width: int, height: int) -> np.ndarray:
