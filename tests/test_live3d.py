@@ -455,6 +455,61 @@ def _every_screen_is_a_whole_vr_panel(protocol_file: Path, shots: Path) -> None:
     assert "ヘッドセットを外して、パソコンの画面をご覧ください。" in end
 
 
+_HEADSET_OFF_PAGE_JS = """
+const done = arguments[0];
+// a loaded machine: the page draws a frame only every 1.5 s (timers still run between)
+window.requestAnimationFrame = (cb) => setTimeout(() => cb(performance.now()), 1500);
+(async () => {
+  const session = await navigator.xr.requestSession('immersive-vr');
+  const gl = document.getElementById('c').getContext('webgl', {xrCompatible: true});
+  session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
+  const seen = [];
+  session.addEventListener('visibilitychange',
+    () => seen.push([session.visibilityState, performance.now()]));
+  window.FacelabLive = { playing: { trial_index: 3 }, session, onFrame: null };
+  const t0 = performance.now();
+  const frame = () => {
+    if (performance.now() - t0 > 20000 || seen.length >= 2) { done(seen); return; }
+    session.requestAnimationFrame(frame);
+  };
+  session.requestAnimationFrame(frame);
+})().catch((e) => done(e.message));
+"""
+
+
+def test_the_emulated_headset_comes_back_on_after_it_is_taken_off_on_a_slow_page(
+    tmp_path: Path,
+) -> None:
+    """--simulate-headset-off: the emulated participant takes the headset off during the
+    trial's clip and puts it on again a second after the page saw it off, with XR frames
+    seconds apart (CI at f9f983b: "visible" asked before "hidden" took effect was dropped, the
+    headset stayed off and the session never finished)."""
+    import functools
+    import http.server
+    import threading
+
+    from facelab.experiment.online.browser import emulator_js
+
+    (tmp_path / "index.html").write_text("<canvas id=c></canvas>", encoding="utf-8")
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+    handler.log_message = lambda *a: None  # type: ignore[attr-defined]
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    d = chromium()
+    try:
+        d.execute_cdp_cmd(
+            "Page.addScriptToEvaluateOnNewDocument", {"source": emulator_js(headset_off_at=3)}
+        )
+        d.get(f"http://127.0.0.1:{srv.server_address[1]}/index.html")
+        d.set_script_timeout(60)
+        seen = d.execute_async_script(_HEADSET_OFF_PAGE_JS)
+    finally:
+        d.quit()
+        srv.shutdown()
+    assert [s for s, _ in seen] == ["hidden", "visible"], seen
+    assert seen[1][1] - seen[0][1] >= 1000  # off for a second at least, as the page saw it
+
+
 @slow
 def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
     study: Path, tmp_path: Path

@@ -119,6 +119,7 @@ _EMULATOR_JS = """
   };
   window.facelabFace = (yaw) => pose(yaw, 0, 0, 0, 0, 0);
   let offAt = %(off)s;  // the trial whose clip sees the headset taken off (once)
+  let off = null;  // taken off: {since: when the page saw it hidden}
   const frameLoop = IWER.XRSession.prototype.requestAnimationFrame;
   window.facelabXRFrames = 0;  // XR frames run: a driver's trigger waits for them
   IWER.XRSession.prototype.requestAnimationFrame = function (callback) {
@@ -129,7 +130,14 @@ _EMULATOR_JS = """
       if (offAt !== null && live && live.playing && live.playing.trial_index === offAt) {
         offAt = null;  // off for a second, then on again
         device.updateVisibilityState("hidden");
-        setTimeout(() => device.updateVisibilityState("visible"), 1000);
+        off = { since: null };
+      } else if (off && device.visibilityState === "hidden") {
+        // IWER applies a visibility change at its next frame and drops a change back to the
+        // state still in force: "visible" is asked for only once "hidden" took effect (a
+        // loaded machine may draw no XR frame for over a second)
+        const now = performance.now();
+        if (off.since === null) off.since = now;
+        else if (now - off.since >= 1000) { device.updateVisibilityState("visible"); off = null; }
       }
       if (live && live.onFrame && live.session) {
         const now = performance.now();
@@ -155,6 +163,16 @@ RECENTRE_YAW_DEG = 15.0
 _FACE_JS = "window.facelabFace(arguments[0]);"
 #: the fades the VR page has begun, {in, out} (out: a selected answer, a clip's end)
 _FADES_JS = "return window.FacelabLive ? {...window.FacelabLive.fades} : null;"
+#: in VR, what the page's stage was doing (for a message when a session runs out of time)
+_VR_STATE_JS = """
+const s = window.FacelabLive;
+if (!s || !s.inVR || !s.inVR()) return null;
+const frames = s.frameCount === undefined ? '' : `, XR frames drawn: ${s.frameCount}`;
+const clip = s.playing ? `, clip ${s.playing.clip} playing` : '';
+const seen = s.session ? `, headset ${s.session.visibilityState}` : '';
+return `in VR, panel opacity ${s.opacity().toFixed(2)}, selecting: ${!!s.selecting}` + clip
+  + seen + frames;
+"""
 _ON_PANEL_JS = """
 const el = document.querySelector(arguments[0]);
 return !!(el && window.FacelabLive && window.FacelabLive.target(el));
@@ -168,9 +186,14 @@ const stage = window.FacelabLive, device = window.facelabXRDevice;
 const el = document.querySelector(selector);
 const target = el && stage.target(el, frac);
 if (!target) { done('no panel target for ' + selector); return; }
-const seen = () => new Promise((resolve) => {  // as a participant: once the panel shows
-  const poll = () => (stage.opacity() <= 0.5 && !stage.selecting
-    ? resolve() : setTimeout(poll, 20));
+const seen = () => new Promise((resolve, reject) => {  // as a participant: once it shows
+  const until = performance.now() + 30000;
+  const poll = () => {
+    if (stage.opacity() <= 0.5 && !stage.selecting) resolve();
+    else if (performance.now() > until) reject(new Error(
+      `the panel still dark (opacity ${stage.opacity().toFixed(2)}) after 30 s`));
+    else setTimeout(poll, 20);
+  };
   poll();
 });
 const c = device.controllers.right;
@@ -308,6 +331,21 @@ class SimulatedBrowser:
                     json.dumps(layout, ensure_ascii=False), encoding="utf-8"
                 )
 
+    def _stuck_on(self, state: dict[str, Any] | None, for_s: float) -> str:
+        """What the page showed when the session ran out of time, for the message; its
+        screenshot as ``timeout.png`` (with ``screenshots``)."""
+        from selenium.common.exceptions import WebDriverException
+
+        where = "nothing" if state is None else f"the {state.get('kind')} screen"
+        if state and state.get("trial") is not None:
+            where += f" of trial {state['trial']}"
+        try:  # what the page says, as far as it still answers
+            self._shot("timeout")
+            vr = self.driver.execute_script(_VR_STATE_JS) if self.driver is not None else None
+        except WebDriverException:
+            vr = "the page no longer answers"
+        return f"{where} on show for {for_s:.0f} s" + (f" ({vr})" if vr else "")
+
     def _save_data_url(self, name: str, url: str) -> None:
         """A PNG data URL the page made (a canvas) as ``name``.png, once per name."""
         if self.screenshots is not None and name not in self.shots and "," in url:
@@ -387,10 +425,13 @@ class SimulatedBrowser:
             d.get(f"{self.base_url}/run#t={token}")
             deadline = time.monotonic() + timeout_s
             done_screens: dict[Any, float] = {}  # screen answered -> when
+            showing: tuple[Any, float] = (None, time.monotonic())  # the state on show, since
             while time.monotonic() < deadline:
                 state = d.execute_script(_STATE_JS)
                 kind = state["kind"]
                 key = (kind, state.get("seq"))
+                if state != showing[0]:
+                    showing = (state, time.monotonic())
                 if key in done_screens and time.monotonic() - done_screens[key] > STUCK_S:
                     raise SessionError(
                         f"simulated participant {self.k}: the {kind} screen answered "
@@ -582,7 +623,10 @@ class SimulatedBrowser:
                     self.given += screen is not None
                 done_screens[key] = time.monotonic()
                 time.sleep(0.05)
-            raise SessionError(f"simulated participant {self.k} did not finish in {timeout_s} s")
+            raise SessionError(
+                f"simulated participant {self.k} did not finish in {timeout_s} s: "
+                + self._stuck_on(showing[0], time.monotonic() - showing[1])
+            )
         finally:
             if own:
                 d.quit()
