@@ -693,15 +693,31 @@ def test_a_tab_closed_mid_trial_in_vr_resumes(study: Path, tmp_path: Path) -> No
 def test_a_participant_stops_from_the_vr_panel_with_the_headset_on(
     study: Path, tmp_path: Path
 ) -> None:
-    """Every VR panel carries the page's Stop button: selected with the ray it asks on the
-    panel (stop or continue); confirmed, VR ends and the page reloads as a stopped session;
-    the answers given are kept, the stop logged at the screen it was selected on."""
+    """Every VR panel carries the page's Stop button: selected it asks on the panel (stop or
+    continue); confirmed, VR ends and the page reloads as a stopped session; the answers
+    given are kept, the stop logged at the screen it was selected on. The participant wears
+    a gaze-only headset (no controllers: they look at a button or a place on the line and
+    press the select button): the panels say so, the display logs it, and the head's ray is
+    not logged as a controller."""
     server = _server(study, "vr.yaml", tmp_path / "db.sqlite")
     shots = tmp_path / "shots"
     with BackgroundServer(server) as bg:
-        browser = SimulatedBrowser(server, bg.url, 1, withdraw_after=2, screenshots=shots)
+        browser = SimulatedBrowser(
+            server, bg.url, 1, withdraw_after=2, screenshots=shots, vr_input="gaze"
+        )
         assert browser.run() == "withdrawn"
     assert browser.withdrew and browser.vr_fades["out"] >= 2, browser.vr_fades
+    for name in ("vr-recentre", "vr-text-instructions", "vr-vas-naturalness"):
+        drawn = json.loads((shots / f"{name}.panel.json").read_text("utf-8"))
+        said = [line["text"] for line in drawn["lines"]]
+        assert "選びたいものを見つめて、選択ボタンを押します。" in said, (name, said)
+        assert not any("コントローラー" in t for t in said), (name, said)
+    with Session(server.engine) as db:
+        shown = [e.detail for e in db.scalars(select(Event).where(Event.kind == "display"))]
+        records = [r.record for r in db.scalars(select(PlaybackRecord))]
+    assert shown and all(e["input"] == "gaze" for e in shown)
+    assert len(records) == 2 and all(r["viewer_poses"] for r in records)
+    assert all(not r["controller_poses"] for r in records)
     asked = json.loads((shots / "vr-withdraw-ask.panel.json").read_text("utf-8"))
     drawn = {b["source"] for b in asked["blocks"]}
     assert "研究への参加を中止しますか？ここまでの回答は保存されます。" in drawn

@@ -78,6 +78,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 screenshots=Path(args.screenshots) if args.screenshots else None,
                 progress=progress,
                 headset_off_at=args.simulate_headset_off,
+                vr_input=args.simulate_vr_input,
             )
         done = sum(o == "complete" for o in outcomes.values())
         print(f"{done} of {len(outcomes)} simulated participants complete")
@@ -214,6 +215,13 @@ def register(add: AddCommand) -> None:
         metavar="TRIAL",
         help="display webxr: the first simulated participant takes the headset off for a "
         "second during the clip of this trial (the clip stops, and plays again once seen)",
+    )
+    p.add_argument(
+        "--simulate-vr-input",
+        choices=("controller", "gaze"),
+        default="controller",
+        help="display webxr: the simulated participants' emulated headset has two controllers "
+        "(default) or none (gaze-only: they look at what they select and press its button)",
     )
 
     p = add(

@@ -101,9 +101,24 @@ def chromium(*, size: tuple[int, int] = (1280, 800), extra_args: Sequence[str] =
 HEAD_TURN_DEG = 20.0
 _EMULATOR_JS = """
 (function () {
-  const device = new IWER.XRDevice(IWER.metaQuest3, { stereoEnabled: true });
+  const gazeOnly = %(gaze)s;
+  // a gaze-only headset (no controllers: the head's ray and one select button, as a
+  // phone-in-a-viewer or a headset used without its controllers) or a Quest 3 with both
+  const config = gazeOnly ? { ...IWER.metaQuest3, name: "gaze-only headset",
+    controllerConfig: undefined,
+    supportedFeatures: [...IWER.metaQuest3.supportedFeatures.filter((f) => f !== "hand-tracking"),
+                        "gaze-tracking"] } : IWER.metaQuest3;
+  const device = new IWER.XRDevice(config, { stereoEnabled: true });
   device.installRuntime({ forceInstall: true });
   window.facelabXRDevice = device;
+  window.facelabGazeOnly = gazeOnly;
+  let pressed = 0;  // gaze-only: XR frames left of a select button held (2: press, 1: release)
+  window.facelabGazeSelect = () => { pressed = 2; };
+  if (gazeOnly) {  // IWER gives its gaze input only to sessions asking for it
+    const request = navigator.xr.requestSession.bind(navigator.xr);
+    navigator.xr.requestSession = (mode, init = {}) => request(mode, { ...init,
+      optionalFeatures: [...(init.optionalFeatures || []), "gaze-tracking"] });
+  }
   const turn = %(turn)s;
   const rest = { x: device.position.x, y: device.position.y, z: device.position.z };
   let phase = 0, last = null;
@@ -123,8 +138,19 @@ _EMULATOR_JS = """
   const frameLoop = IWER.XRSession.prototype.requestAnimationFrame;
   window.facelabXRFrames = 0;  // XR frames run: a driver's trigger waits for them
   IWER.XRSession.prototype.requestAnimationFrame = function (callback) {
+    const session = this;
     return frameLoop.call(this, function (time, frame) {
       window.facelabXRFrames += 1;
+      const gaze = gazeOnly && pressed
+        ? [...session.inputSources].find((s) => s.targetRayMode === "gaze") : null;
+      if (gaze) {  // the select button, pressed on one XR frame and released on the next
+        const at = { frame, inputSource: gaze };
+        if (pressed === 2) {
+          session.dispatchEvent(new IWER.XRInputSourceEvent("selectstart", at));
+          session.dispatchEvent(new IWER.XRInputSourceEvent("select", at));
+        } else session.dispatchEvent(new IWER.XRInputSourceEvent("selectend", at));
+        pressed -= 1;
+      }
       const result = callback(time, frame);
       const live = window.FacelabLive;
       if (offAt !== null && live && live.playing && live.playing.trial_index === offAt) {
@@ -158,6 +184,8 @@ _EMULATOR_JS = """
 #: a screen the simulated participant answered that is still on show this long after (s):
 #: the answer was lost - said, rather than waited out to the session's timeout
 STUCK_S = 180.0
+#: how an emulated headset's participant selects (emulator_js)
+VR_INPUTS = ("controller", "gaze")
 #: the yaw (deg, + to the left) the emulated participant faces when they recentre
 RECENTRE_YAW_DEG = 15.0
 _FACE_JS = "window.facelabFace(arguments[0]);"
@@ -196,9 +224,13 @@ const seen = () => new Promise((resolve, reject) => {  // as a participant: once
   };
   poll();
 });
-const c = device.controllers.right;
-const q = stage.aim(1, target);
-c.quaternion.set(q[0], q[1], q[2], q[3]);
+// a controller's ray (the right one), or on a gaze-only headset the head turned to look
+const gazeOnly = !!window.facelabGazeOnly, c = device.controllers.right;
+const aim = () => {
+  const q = stage.aim(gazeOnly ? 0 : 1, target);
+  (gazeOnly ? device : c).quaternion.set(q[0], q[1], q[2], q[3]);
+};
+if (!gazeOnly) aim();
 // IWER reads a button once per XR frame (the last value set wins), and a loaded machine
 // draws a headless XR frame only every few hundred ms: each step waits for two XR frames,
 // so the press is seen, aimed, and the release after it (a timer alone can miss the press);
@@ -215,6 +247,15 @@ const frames = (n) => new Promise((resolve, reject) => {
 });
 (async () => {
   await seen();
+  if (gazeOnly) {  // look at it (once the panel is drawn), then the select button
+    await frames(1);
+    aim();
+    await frames(2);
+    window.facelabGazeSelect();
+    await frames(3);
+    done(null);
+    return;
+  }
   await frames(2);
   c.updateButtonValue('trigger', 1);
   await frames(2);
@@ -225,19 +266,26 @@ const frames = (n) => new Promise((resolve, reject) => {
 """
 
 
-def emulator_js(*, turn_deg: float = HEAD_TURN_DEG, headset_off_at: int | None = None) -> str:
+def emulator_js(
+    *, turn_deg: float = HEAD_TURN_DEG, headset_off_at: int | None = None,
+    input: str = "controller",
+) -> str:  # fmt: skip
     """The script that installs the emulated headset (IWER, from experiment/online/web);
     with ``headset_off_at`` the participant takes it off for a second once that trial's clip
     plays (checked in the XR frame loop: a driver polling between frames misses short
-    clips)."""
+    clips). ``input``: ``"controller"`` (a Quest 3 and its two controllers) or ``"gaze"`` (no
+    controllers: the head's ray and a select button)."""
+    if input not in VR_INPUTS:
+        raise SessionError(f"an emulated headset's input is one of {', '.join(VR_INPUTS)}")
     from facelab.experiment.online.serve import vendor_dir
 
     iwer = vendor_dir() / "iwer" / "build" / "iwer.min.js"
     if not iwer.is_file():
         raise SessionError(f"the emulated headset needs {iwer}; run scripts/setup.sh (npm ci)")
     off = "null" if headset_off_at is None else str(int(headset_off_at))
-    return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {"turn": float(turn_deg),
-                                                              "off": off}  # fmt: skip
+    gaze = "true" if input == "gaze" else "false"
+    return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {
+        "turn": float(turn_deg), "off": off, "gaze": gaze}  # fmt: skip
 
 
 _STATE_JS = """
@@ -290,6 +338,7 @@ class SimulatedBrowser:
     # display webxr: the participant takes the headset off for a second during the clip of
     # this trial (and puts it back on), once
     headset_off_at: int | None = None
+    vr_input: str = "controller"  # display webxr: the emulated headset's input (VR_INPUTS)
     _emulator: Any = None
 
     def participant(self) -> tuple[Participant, str]:
@@ -402,7 +451,7 @@ class SimulatedBrowser:
         if vr:  # an emulated headset in this page (and on every reload)
             self._emulator = self._emulator or d.execute_cdp_cmd(
                 "Page.addScriptToEvaluateOnNewDocument",
-                {"source": emulator_js(headset_off_at=self.headset_off_at)},
+                {"source": emulator_js(headset_off_at=self.headset_off_at, input=self.vr_input)},
             )
 
         def in_vr() -> bool:
@@ -643,14 +692,16 @@ def run_simulated(
     screenshots: Path | None = None,
     progress: Callable[[int, str], None] | None = None,
     headset_off_at: int | None = None,
+    vr_input: str = "controller",
 ) -> dict[int, str]:
     """Drive simulated participants 1..n through the study; returns {k: outcome}. The first
-    takes screenshots and, in VR, the headset off during trial ``headset_off_at``'s clip."""
+    takes screenshots and, in VR, the headset off during trial ``headset_off_at``'s clip;
+    ``vr_input``: their emulated headset's input (:data:`VR_INPUTS`)."""
 
     def one(k: int) -> str:
         outcome = SimulatedBrowser(
             server, base_url, k, seed=seed, screenshots=screenshots if k == 1 else None,
-            headset_off_at=headset_off_at if k == 1 else None,
+            headset_off_at=headset_off_at if k == 1 else None, vr_input=vr_input,
         ).run()  # fmt: skip
         if progress is not None:
             progress(k, outcome)

@@ -213,11 +213,13 @@ export class Stage {
 
   // [[hand, x, y, z, yaw, pitch, roll], ...] of each tracked controller at XR frame `xrFrame`
   // (hand 0 left, 1 right, 2 neither; its grip, else its pointer), in the reference space
-  // the head's pose is in; [] outside VR or with no controller tracked
+  // the head's pose is in; [] outside VR or with no controller tracked (a gaze input's ray is
+  // the head's: not a controller)
   hands(xrFrame) {
     if (!xrFrame || !this.session) return [];
     const space = this.renderer.xr.getReferenceSpace(), out = [];
     for (const source of this.session.inputSources || []) {
+      if (source.targetRayMode === "gaze") continue;
       const where = source.gripSpace || source.targetRaySpace;
       const pose = where && space ? xrFrame.getPose(where, space) : null;
       if (!pose) continue;
