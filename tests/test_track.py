@@ -96,15 +96,22 @@ def test_render_writes_the_track_each_clip_was_drawn_from(tmp_path: Path) -> Non
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.build import build_clips, settings_for
     from facelab.stimuli.render.clip import decode_frames
+    from tests.protocol_edits import kato_short
 
-    src = ROOT / "protocols" / "kato2021.yaml"
+    # every clip of kato2021 (each condition, set and stimulus), its stimuli shortened
+    src = tmp_path / "kato2021.yaml"
+    src.write_text(kato_short((ROOT / "protocols" / "kato2021.yaml").read_text("utf-8"),
+                              one_set=False), encoding="utf-8")  # fmt: skip
     protocol = load_protocol(src)
     settings = replace(settings_for(protocol), width=160, height=90)
-    build_clips(protocol, protocol_path=src, out=tmp_path, settings=settings, log=lambda s: None)
-    for row in read_manifest(tmp_path):
-        track = read_track(tmp_path / row["track_file"])
-        assert sha256_file(tmp_path / row["track_file"]) == row["track_sha256"]
-        frames = decode_frames(tmp_path / row["path"], width=160, height=90)
+    out = tmp_path / "clips"
+    build_clips(protocol, protocol_path=src, out=out, settings=settings, log=lambda s: None)
+    rows = read_manifest(out)
+    assert len(rows) == 6  # two stimuli (the vowels, a sentence) under three conditions
+    for row in rows:
+        track = read_track(out / row["track_file"])
+        assert sha256_file(out / row["track_file"]) == row["track_sha256"]
+        frames = decode_frames(out / row["path"], width=160, height=90)
         assert track.header["n_frames"] == len(frames) and track.header["clip_id"] == row["clip_id"]
         # the picture moves where the track moves: frame-to-frame change of the mouth region
         # against the track's frame-to-frame change (any method: ARKit or viseme channels)
@@ -115,9 +122,9 @@ def test_render_writes_the_track_each_clip_was_drawn_from(tmp_path: Path) -> Non
         r = np.corrcoef(moved, pixels)[0, 1]
         assert r > 0.5, (row["clip_id"], r)
     # deleting a track: the next render writes it again and reuses the clip
-    first = read_manifest(tmp_path)[0]
-    (tmp_path / first["track_file"]).unlink()
-    again = build_clips(protocol, protocol_path=src, out=tmp_path, settings=settings,
+    first = read_manifest(out)[0]
+    (out / first["track_file"]).unlink()
+    again = build_clips(protocol, protocol_path=src, out=out, settings=settings,
                         log=lambda s: None)  # fmt: skip
     assert all(r["status"] == "unchanged" for r in again)
-    assert sha256_file(tmp_path / first["track_file"]) == first["track_sha256"]
+    assert sha256_file(out / first["track_file"]) == first["track_sha256"]
