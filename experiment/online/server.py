@@ -195,6 +195,13 @@ class RefusedError(Exception):
         self.message = message
 
 
+def _withdrew_in(db: Session, participant_pk: int) -> bool:
+    """Whether participant ``participant_pk`` stopped the study from its page (a
+    ``withdrawn`` event), asked in the open session ``db``."""
+    return bool(db.scalar(select(func.count()).where(
+        Event.participant_pk == participant_pk, Event.kind == "withdrawn")))  # fmt: skip
+
+
 class StudyServer:
     """The study's state on top of the database; every method is one short transaction."""
 
@@ -538,8 +545,7 @@ class StudyServer:
         """The participant stopped the study from its page (a ``withdrawn`` event; it counts
         only while the session is not complete, and a stopped session is never completed)."""
         with Session(self.engine) as db:
-            return bool(db.scalar(select(func.count()).where(
-                Event.participant_pk == p.pk, Event.kind == "withdrawn")))  # fmt: skip
+            return _withdrew_in(db, p.pk)
 
     def session_state(self, p: Participant) -> dict[str, Any]:
         answered = self.answered(p)
@@ -700,13 +706,11 @@ class StudyServer:
             count = db.scalar(select(func.count()).where(Response.participant_pk == p.pk))
             if (count or 0) < planned:
                 return False
-            stopped = db.scalar(select(func.count()).where(
-                Event.participant_pk == p.pk, Event.kind == "withdrawn"))  # fmt: skip
             fresh = db.get(Participant, p.pk)
             assert fresh is not None
-            if stopped and fresh.completed is None:  # stopped: never completed afterwards
+            # stopped: never completed afterwards (asked in this transaction, under the lock)
+            if fresh.completed is None and _withdrew_in(db, p.pk):
                 return False
-            assert fresh is not None
             if fresh.completed is None:
                 fresh.completed = utcnow()
                 db.add(Event(participant_pk=p.pk, kind="completed", detail={}))
