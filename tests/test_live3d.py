@@ -171,6 +171,22 @@ def test_vr_texts_name_no_keys_and_validate_says_which_do(tmp_path: Path, capsys
     assert "break" not in vr_texts(load_protocol(path))
 
 
+def test_the_emulated_headsets_options_need_simulated_participants_in_vr(
+    tmp_path: Path, capsys
+) -> None:
+    """--simulate-headset-off and --simulate-vr-input gaze say what they need (simulated
+    participants, a webxr protocol) instead of being ignored; nothing is written."""
+    results = tmp_path / "results"
+    base = ["serve", str(KATO), "--results", str(results)]
+    assert main([*base, "--simulate-vr-input", "gaze"]) == 2
+    assert "--simulate-vr-input: only with --simulate-participants N" in capsys.readouterr().err
+    assert main([*base, "--simulate-participants", "1", "--simulate-headset-off", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "--simulate-headset-off: the simulated participants wear a headset only when" in err
+    assert "presentation.display is webxr" in err and "has video" in err
+    assert "Traceback" not in err and not results.exists()
+
+
 # --------------------------------------------------------------------------- Chromium
 
 slow = pytest.mark.slow

@@ -29,6 +29,17 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise FacelabError(f"--port {args.port}: expected 1..65535 (0: any free port)")
     if args.simulate_participants is not None and args.simulate_participants < 1:
         raise FacelabError("--simulate-participants: expected a number >= 1")
+    asked = {"--simulate-headset-off": args.simulate_headset_off is not None,
+             "--simulate-vr-input": args.simulate_vr_input != "controller"}  # fmt: skip
+    headset = [flag for flag, given in asked.items() if given]
+    if headset and not args.simulate_participants:
+        raise FacelabError(f"{headset[0]}: only with --simulate-participants N")
+    if headset and protocol.presentation.display != "webxr":
+        raise FacelabError(
+            f"{headset[0]}: the simulated participants wear a headset only when the protocol's "
+            f"presentation.display is webxr ({args.protocol} has "
+            f"{protocol.presentation.display})"
+        )
     consent = None
     if args.consent:
         try:
