@@ -178,8 +178,10 @@ def test_the_emulated_headsets_options_need_simulated_participants_in_vr(
     participants, a webxr protocol) instead of being ignored; nothing is written."""
     results = tmp_path / "results"
     base = ["serve", str(KATO), "--results", str(results)]
-    assert main([*base, "--simulate-vr-input", "gaze"]) == 2
-    assert "--simulate-vr-input: only with --simulate-participants N" in capsys.readouterr().err
+    for asked in ("gaze", "controller"):  # either, said explicitly
+        assert main([*base, "--simulate-vr-input", asked]) == 2
+        err = capsys.readouterr().err
+        assert "--simulate-vr-input: only with --simulate-participants N" in err
     assert main([*base, "--simulate-participants", "1", "--simulate-headset-off", "2"]) == 2
     err = capsys.readouterr().err
     assert "--simulate-headset-off: the simulated participants wear a headset only when" in err
@@ -493,6 +495,7 @@ window.requestAnimationFrame = (cb) => setTimeout(() => cb(performance.now()), 1
 """
 
 
+@pytest.mark.slow
 def test_the_emulated_headset_comes_back_on_after_it_is_taken_off_on_a_slow_page(
     tmp_path: Path,
 ) -> None:
@@ -507,8 +510,11 @@ def test_the_emulated_headset_comes_back_on_after_it_is_taken_off_on_a_slow_page
     from facelab.experiment.online.browser import emulator_js
 
     (tmp_path / "index.html").write_text("<canvas id=c></canvas>", encoding="utf-8")
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
-    handler.log_message = lambda *a: None  # type: ignore[attr-defined]
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args: object) -> None:  # no request lines in the test output
+            pass
+
+    handler = functools.partial(Quiet, directory=str(tmp_path))
     srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     d = chromium()
@@ -522,6 +528,8 @@ def test_the_emulated_headset_comes_back_on_after_it_is_taken_off_on_a_slow_page
     finally:
         d.quit()
         srv.shutdown()
+        srv.server_close()
+    assert isinstance(seen, list), seen  # else the page's error
     assert [s for s, _ in seen] == ["hidden", "visible"], seen
     assert seen[1][1] - seen[0][1] >= 1000  # off for a second at least, as the page saw it
 

@@ -30,7 +30,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if args.simulate_participants is not None and args.simulate_participants < 1:
         raise FacelabError("--simulate-participants: expected a number >= 1")
     asked = {"--simulate-headset-off": args.simulate_headset_off is not None,
-             "--simulate-vr-input": args.simulate_vr_input != "controller"}  # fmt: skip
+             "--simulate-vr-input": args.simulate_vr_input is not None}  # fmt: skip
     headset = [flag for flag, given in asked.items() if given]
     if headset and not args.simulate_participants:
         raise FacelabError(f"{headset[0]}: only with --simulate-participants N")
@@ -89,7 +89,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 screenshots=Path(args.screenshots) if args.screenshots else None,
                 progress=progress,
                 headset_off_at=args.simulate_headset_off,
-                vr_input=args.simulate_vr_input,
+                vr_input=args.simulate_vr_input or "controller",
             )
         done = sum(o == "complete" for o in outcomes.values())
         print(f"{done} of {len(outcomes)} simulated participants complete")
@@ -229,8 +229,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--simulate-vr-input",
-        choices=("controller", "gaze"),
-        default="controller",
+        choices=("controller", "gaze"),  # browser.VR_INPUTS (not imported for --help)
         help="display webxr: the simulated participants' emulated headset has two controllers "
         "(default) or none (gaze-only: they look at what they select and press its button)",
     )

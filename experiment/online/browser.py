@@ -113,7 +113,8 @@ _EMULATOR_JS = """
   window.facelabXRDevice = device;
   window.facelabGazeOnly = gazeOnly;
   let pressed = 0;  // gaze-only: XR frames left of a select button held (2: press, 1: release)
-  window.facelabGazeSelect = () => { pressed = 2; };
+  window.facelabGazeSelect = () => { pressed = 2; window.facelabGazeMissed = null; };
+  window.facelabGazeSelects = 0;  // selects sent (a driver checks its own arrived)
   if (gazeOnly) {  // IWER gives its gaze input only to sessions asking for it
     const request = navigator.xr.requestSession.bind(navigator.xr);
     navigator.xr.requestSession = (mode, init = {}) => request(mode, { ...init,
@@ -144,12 +145,18 @@ _EMULATOR_JS = """
       const gaze = gazeOnly && pressed
         ? [...session.inputSources].find((s) => s.targetRayMode === "gaze") : null;
       if (gaze) {  // the select button, pressed on one XR frame and released on the next
+        // (as the WebXR spec orders them: selectstart; then select and selectend)
         const at = { frame, inputSource: gaze };
-        if (pressed === 2) {
-          session.dispatchEvent(new IWER.XRInputSourceEvent("selectstart", at));
+        if (pressed === 2) session.dispatchEvent(new IWER.XRInputSourceEvent("selectstart", at));
+        else {
           session.dispatchEvent(new IWER.XRInputSourceEvent("select", at));
-        } else session.dispatchEvent(new IWER.XRInputSourceEvent("selectend", at));
+          session.dispatchEvent(new IWER.XRInputSourceEvent("selectend", at));
+          window.facelabGazeSelects += 1;
+        }
         pressed -= 1;
+      } else if (gazeOnly && pressed) {  // no gaze input (the headset off): nothing selected
+        window.facelabGazeMissed = "the headset has no gaze input on this frame";
+        pressed = 0;
       }
       const result = callback(time, frame);
       const live = window.FacelabLive;
@@ -195,7 +202,7 @@ _FADES_JS = "return window.FacelabLive ? {...window.FacelabLive.fades} : null;"
 _VR_STATE_JS = """
 const s = window.FacelabLive;
 if (!s || !s.inVR || !s.inVR()) return null;
-const frames = s.frameCount === undefined ? '' : `, XR frames drawn: ${s.frameCount}`;
+const frames = s.frameCount === undefined ? '' : `, frames drawn: ${s.frameCount}`;
 const clip = s.playing ? `, clip ${s.playing.clip} playing` : '';
 const seen = s.session ? `, headset ${s.session.visibilityState}` : '';
 return `in VR, panel opacity ${s.opacity().toFixed(2)}, selecting: ${!!s.selecting}` + clip
@@ -207,7 +214,8 @@ return !!(el && window.FacelabLive && window.FacelabLive.target(el));
 """
 
 # Point the emulated right controller at a DOM element's place on the VR panel (a VAS line at
-# fraction arguments[1]) and pull the trigger (a select), as a participant would.
+# fraction arguments[1]) and pull the trigger (a select), as a participant would; on a
+# gaze-only headset look at it and press the select button.
 _XR_SELECT_JS = """
 const [selector, frac, done] = arguments;
 const stage = window.FacelabLive, device = window.facelabXRDevice;
@@ -251,9 +259,12 @@ const frames = (n) => new Promise((resolve, reject) => {
     await frames(1);
     aim();
     await frames(2);
+    const sent = window.facelabGazeSelects;
     window.facelabGazeSelect();
     await frames(3);
-    done(null);
+    if (window.facelabGazeSelects > sent) done(null);
+    else done('the gaze select on ' + selector + ' was not sent: '
+              + (window.facelabGazeMissed || 'too few XR frames'));
     return;
   }
   await frames(2);
@@ -276,7 +287,9 @@ def emulator_js(
     clips). ``input``: ``"controller"`` (a Quest 3 and its two controllers) or ``"gaze"`` (no
     controllers: the head's ray and a select button)."""
     if input not in VR_INPUTS:
-        raise SessionError(f"an emulated headset's input is one of {', '.join(VR_INPUTS)}")
+        raise SessionError(
+            f"an emulated headset's input {input!r}: expected one of {', '.join(VR_INPUTS)}"
+        )
     from facelab.experiment.online.serve import vendor_dir
 
     iwer = vendor_dir() / "iwer" / "build" / "iwer.min.js"
@@ -393,6 +406,8 @@ class SimulatedBrowser:
             vr = self.driver.execute_script(_VR_STATE_JS) if self.driver is not None else None
         except WebDriverException:
             vr = "the page no longer answers"
+        except OSError as exc:  # the screenshot could not be written: the timeout still said
+            vr = f"no screenshot: {exc.strerror or exc}"
         return f"{where} on show for {for_s:.0f} s" + (f" ({vr})" if vr else "")
 
     def _save_data_url(self, name: str, url: str) -> None:
@@ -571,7 +586,9 @@ class SimulatedBrowser:
                     time.sleep(0.5)
                     continue
                 if kind == "recentre" and in_vr():
-                    # a participant sitting a little turned: "ahead" is where they look
+                    # a participant sitting a little turned: "ahead" is where they look (on a
+                    # gaze-only headset they then look at the OK button to select it: its
+                    # direction is the one the recentre takes)
                     d.execute_script(_FACE_JS, RECENTRE_YAW_DEG)
                     wait_for("[data-facelab=recentre_ok]")
                     self._shot("vr-recentre")
