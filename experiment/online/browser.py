@@ -202,7 +202,8 @@ _FADES_JS = "return window.FacelabLive ? {...window.FacelabLive.fades} : null;"
 _VR_STATE_JS = """
 const s = window.FacelabLive;
 if (!s || !s.inVR || !s.inVR()) return null;
-const frames = s.frameCount === undefined ? '' : `, frames drawn: ${s.frameCount}`;
+const n = window.facelabXRFrames;  // the emulated headset's count (emulator_js)
+const frames = n === undefined ? '' : `, XR frames run: ${n}`;
 const clip = s.playing ? `, clip ${s.playing.clip} playing` : '';
 const seen = s.session ? `, headset ${s.session.visibilityState}` : '';
 return `in VR, panel opacity ${s.opacity().toFixed(2)}, selecting: ${!!s.selecting}` + clip

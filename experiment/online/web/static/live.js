@@ -181,7 +181,6 @@ export class Stage {
   // -- the frame loop: live3d draws while a clip plays; VR draws every frame of the session
 
   tick(time, xrFrame) {
-    this.frameCount = (this.frameCount || 0) + 1;  // frames drawn (a stalled loop, in reports)
     if (this.session && xrFrame) {
       const pose = xrFrame.getViewerPose(this.renderer.xr.getReferenceSpace());
       if (pose) {
