@@ -9,7 +9,8 @@ tests' word scoring does; they are not quite, so intervals from sentences are so
 narrow). They are fitted per participant and series (:attr:`Condition.series_id`,
 e.g. one animation method at every SNR) by maximum likelihood with
 :func:`facelab.intelligibility_function.p_correct`: the guess rate 1/k of the task's k labels
-(0 for typed answers: an open set),
+(0 for typed answers: an open set; a word matrix's mean 1/column length, its words
+scored one by one),
 the SRT (50 % right), the slope at the SRT (per dB, in [0.005, 1]) and a lapse rate in
 [0, 0.1]. The SRT's interval is a profile-likelihood interval
 (:mod:`facelab.analysis.profile_likelihood`; the slope and lapse re-fitted along it); ``note``
@@ -48,7 +49,7 @@ from facelab.analysis.profile_likelihood import (
 )
 from facelab.errors import AnalysisError
 from facelab.intelligibility_function import p_correct
-from facelab.protocol import IdentifyTask, Protocol, TypedTask
+from facelab.protocol import IdentifyTask, MatrixTask, Protocol, TypedTask
 
 __all__ = [
     "SRT_COLUMNS",
@@ -96,7 +97,10 @@ NoiseTask = IdentifyTask | TypedTask
 
 
 def guess_rate(task: NoiseTask) -> float:
-    """P(right) by guessing: 1/k for k labels, 0 for typed answers (an open set)."""
+    """P(right) by guessing: 1/k for k labels, 0 for typed answers (an open set), a word
+    matrix's mean 1/column length."""
+    if isinstance(task, MatrixTask):
+        return task.guess_rate()
     return 0.0 if isinstance(task, TypedTask) else 1.0 / len(task.labels)
 
 
@@ -109,6 +113,10 @@ def scoring_units(protocol: Protocol, task: TypedTask) -> dict[tuple[str, str], 
     out = {}
     for stimulus_set in protocol.stimulus_sets:
         for st in stimulus_set.stimuli:
+            if isinstance(task, MatrixTask):  # a word from each column
+                if task.words_said(st) is not None:
+                    out[(stimulus_set.id, st.id)] = len(task.columns)
+                continue
             said = task.said(st)
             if said is None:
                 continue

@@ -51,7 +51,14 @@ import facelab.analysis.srt as srt
 import facelab.analysis.stats as stats
 import facelab.analysis.timing as timing
 from facelab.errors import AnalysisError
-from facelab.protocol import ChoiceTask, IdentifyTask, Protocol, TypedTask
+from facelab.protocol import (
+    ChoiceTask,
+    IdentifyTask,
+    MatrixTask,
+    Protocol,
+    Stimulus,
+    TypedTask,
+)
 from facelab.staircase import new_staircase
 
 __all__ = [
@@ -444,7 +451,11 @@ def _typed_tables(
     """``typed_answers`` (every typed answer beside what was said, its score and whether
     all of it was right) and ``typed_summary`` (per condition: answers, participants, the
     mean score with a 95 % t interval over participants' means, the share all right)."""
-    said = {(s.id, st.id): task.said(st) for s in protocol.stimulus_sets for st in s.stimuli}
+    def said_in(st: Stimulus) -> str | None:  # a matrix: the words, as the answers give them
+        words = task.words_said(st) if isinstance(task, MatrixTask) else None
+        return " ".join(words) if words is not None else task.said(st)
+
+    said = {(s.id, st.id): said_in(st) for s in protocol.stimulus_sets for st in s.stimuli}
     answers = pd.DataFrame({
         "task": task.id, "participant": rows["participant"].astype(str),
         "trial_index": rows["trial_index"], "condition": rows["condition"],

@@ -35,7 +35,7 @@ def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
     return tuple(out)
 
 
-_TASK_TAGS = {"choice_2afc", "identify", "typed"}
+_TASK_TAGS = {"choice_2afc", "identify", "typed", "matrix"}
 
 
 _TYPE_TAGS = {
@@ -375,6 +375,8 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     )
         if task.type == "typed":
             yield from _typed_task(protocol, task, where)
+        if task.type == "matrix":
+            yield from _matrix_task(protocol, task, where)
     for bi, block in enumerate(protocol.blocks):
         where = ("blocks", bi)
         task = tasks.get(block.task) if block.task else None
@@ -416,11 +418,12 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 yield Issue((*where, "conditions"), "a staircase needs two or more levels")
             if (rule is not None and rule.rule == "brand_kollmeier" and task is not None
                     and task.type == "choice_2afc"):
-                yield Issue((*where, "staircase", "rule"), "brand_kollmeier adapts on the share "
-                            "of words understood: use a typed or identify task")  # fmt: skip
+                yield Issue((*where, "staircase", "rule"), "brand_kollmeier adapts on the "
+                            "share of words understood: use a typed, matrix or identify "
+                            "task")  # fmt: skip
             scorable = (
                 task is not None and task.type == "choice_2afc" and task.correct == "comparison"
-            ) or (task is not None and task.type == "typed") or (
+            ) or (task is not None and task.type in ("typed", "matrix")) or (
                 task is not None
                 and task.type == "identify"
                 and (
@@ -435,7 +438,7 @@ def _tasks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                     "a staircase adapts on correct answers: use a choice_2afc task with "
                     "correct: comparison, an identify task with an answer for every condition "
                     "or every stimulus of the block (e.g. the word said in noise), or a typed "
-                    "task",
+                    "or matrix task",
                 )
         elif block.staircase is not None:
             yield Issue((*where, "staircase"), f"a staircase rule on a {block.design!r} block")
@@ -468,6 +471,43 @@ def _typed_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Iterat
         yield Issue((*where, "type"), "typed answers need a keyboard, which a participant "
                     "in a headset cannot use: use an identify task (a closed set of words) "
                     "with display: webxr")  # fmt: skip
+
+
+def _matrix_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Iterator[Issue]:
+    """A matrix task's answers name stimuli, and every stimulus it is shown with says one
+    word of each column, in the columns' order (else no pick could be right)."""
+    stimuli = {st.id for s in protocol.stimulus_sets for st in s.stimuli}
+    for sid in task.answers:
+        if sid not in stimuli:
+            yield Issue((*where, "answers", sid), f"unknown stimulus {sid!r}")
+    sets = {b.stimulus_set for b in protocol.blocks if b.task == task.id}
+    n = len(task.columns)
+    for stimulus_set in protocol.stimulus_sets:
+        if stimulus_set.id not in sets:
+            continue
+        for st in stimulus_set.stimuli:
+            if st.silence_s is not None:
+                continue
+            words = task.words_said(st)
+            name = f"stimulus {st.id!r} of set {stimulus_set.id!r}"
+            if words is None:
+                yield Issue((*where, "answers"), f"{name} has no text or transcript: give "
+                            "its words under answers")  # fmt: skip
+                continue
+            if len(words) != n:
+                yield Issue((*where, "answers", st.id), f"{name} says {len(words)} word(s) "
+                            f"({' '.join(words)}), expected {n}, one from each column: "
+                            "write its text with spaces between the words, or give them "
+                            "under answers")  # fmt: skip
+                continue
+            for i, (word, column) in enumerate(zip(words, task.columns, strict=True)):
+                if word not in column:
+                    yield Issue((*where, "answers", st.id), f"{name}: word {i + 1} {word!r} "
+                                f"is not in column {i + 1} ({', '.join(column)})")  # fmt: skip
+    if sets and protocol.presentation.display == "webxr":
+        yield Issue((*where, "type"), "a word matrix is not drawn on a VR panel yet: show "
+                    "a matrix task in the lab window or the browser, or use an identify "
+                    "task (a closed set of words) with display: webxr")  # fmt: skip
 
 
 def _keywords_said(

@@ -41,6 +41,7 @@ __all__ = [
     "Condition",
     "IdentifyTask",
     "Label",
+    "MatrixTask",
     "Noise",
     "Protocol",
     "Rendering",
@@ -453,8 +454,67 @@ class TypedTask(_Model):
         return list(words) if words else None
 
 
-Task = Annotated[ChoiceTask | IdentifyTask | TypedTask, Field(discriminator="type")]
-AnyTask = ChoiceTask | IdentifyTask | TypedTask
+#: What a matrix answer's words are cut from when taken from a stimulus' text: punctuation
+#: at a word's ends (the text is read by the TTS with it).
+_WORD_PUNCTUATION = "、。，．！？「」『』・,.!?\"'"
+
+
+class MatrixTask(TypedTask):
+    """A closed-set sentence test (a matrix test: Hagerman 1982; Wagener, Brand & Kollmeier
+    1999): every sentence takes one word from each column of a word matrix, the participant
+    sees the matrix after the clip and picks one word in each column (a guess where unsure).
+    The picks are stored as the answer, words joined by spaces (``response``), and scored
+    word by word against what was said: ``score`` is the share of the columns picked right,
+    ``correct`` 1 when all were; a word is right by chance once in each column's length.
+    Shown in the lab window and the browser, not in VR."""
+
+    type: Literal["matrix"]  # type: ignore[assignment]
+    question: Localized = Field(description="e.g. {ja: 聞こえた文の言葉を選んでください}.")
+    columns: list[Annotated[list[Text], Field(min_length=2, max_length=12)]] = Field(
+        min_length=2,
+        max_length=8,
+        description="The word matrix: columns of alternatives (e.g. 5 columns of 10 words: "
+        "name, number, adjective, object, verb), in the order they are said.",
+    )
+    answers: dict[Id, Text] = Field(
+        default_factory=dict,
+        description="Stimulus id -> the words said, one per column, separated by spaces, "
+        "when not the stimulus' text (written with spaces between the words; punctuation "
+        "at the words' ends is dropped).",
+    )
+
+    @model_validator(mode="after")
+    def _distinct_words(self) -> MatrixTask:
+        typed_only = sorted(self.model_fields_set & {"scoring", "keywords", "tolerant",
+                                                      "max_length"})  # fmt: skip
+        if typed_only:
+            raise ValueError(f"{', '.join(typed_only)}: for a typed task; a matrix answer is "
+                             "scored word by word against the columns")  # fmt: skip
+        for i, column in enumerate(self.columns):
+            seen = {w for w in column if column.count(w) > 1}
+            if seen:
+                raise ValueError(f"column {i + 1} lists {', '.join(sorted(seen))} twice")
+            if any(w != w.strip() or " " in w for w in column):
+                raise ValueError(f"column {i + 1}: a word is written without spaces")
+        return self
+
+    def words_said(self, stimulus: Stimulus) -> list[str] | None:
+        """The words said in ``stimulus``, one per column (None: nothing known)."""
+        said = self.said(stimulus)
+        if said is None:
+            return None
+        words = [w.strip(_WORD_PUNCTUATION) for w in said.split()]
+        return [w for w in words if w]
+
+    def guess_rate(self) -> float:
+        """P(a word right by guessing), over the columns: the mean of 1 / column length."""
+        return sum(1.0 / len(c) for c in self.columns) / len(self.columns)
+
+
+Task = Annotated[
+    ChoiceTask | IdentifyTask | TypedTask | MatrixTask, Field(discriminator="type")
+]
+AnyTask = ChoiceTask | IdentifyTask | TypedTask | MatrixTask
 
 
 class StaircaseRule(_Model):

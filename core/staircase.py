@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from facelab.protocol import ChoiceTask, Protocol, TypedTask
+from facelab.protocol import ChoiceTask, MatrixTask, Protocol, TypedTask
 from facelab.psychometric_function import midpoint, predict
 
 __all__ = [
@@ -373,9 +373,11 @@ Staircase = UpDownStaircase | QuestPlusStaircase | BrandKollmeierStaircase
 
 def guess_rate(protocol: Protocol, block_id: str) -> float:
     """P(correct) by guessing in a staircase block's task: 1/2 for 2AFC, 1/k for an identify
-    task with k labels, 0 for typed answers."""
+    task with k labels, 0 for typed answers, a matrix's mean 1/column length."""
     block = next(b for b in protocol.blocks if b.id == block_id)
     task = next(t for t in protocol.tasks if t.id == block.task)
+    if isinstance(task, MatrixTask):
+        return task.guess_rate()  # a word of each column right by chance
     if isinstance(task, TypedTask):
         return 0.0  # an open set: no answer is right by chance
     return 0.5 if isinstance(task, ChoiceTask) else 1.0 / len(task.labels)

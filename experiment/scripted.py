@@ -16,6 +16,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -184,14 +185,39 @@ class ScriptedParticipant:
         self.planned[state_id] = now
         value = self._replan(state_id, value)
         self.record(trial_index=trial_index, item=item, value=value)
-        x, y = self.screen_xy(geometry.x_of(value), geometry.y_line)
-        cx, cy = self.screen_xy(*geometry.confirm_centre)
-        for at, args in (
-            (0.0, ["mousemove", str(x), str(y)]),
-            (0.05, ["mousedown", "1"]),
-            (0.12, ["mouseup", "1"]),
-            (0.30, ["mousemove", str(cx), str(cy)]),
-            (0.36, ["mousedown", "1"]),
-            (0.44, ["mouseup", "1"]),
-        ):
-            self.schedule(delay + at, args, state=state_id)
+        points = [(geometry.x_of(value), geometry.y_line), geometry.confirm_centre]
+        self._click(state_id, points, delay=delay)
+
+    def answer_clicks(
+        self,
+        state_id: int,
+        points: Sequence[tuple[float, float]],
+        value: str,
+        *,
+        trial_index: int | None,
+        item: str,
+    ) -> None:
+        """Click ``points`` (window pixels from its centre) in turn, e.g. a word in each
+        column of a matrix and then confirm (recorded first). Called every frame the screen
+        is up: the clicks are sent again when the screen is still there 4 s after they all
+        went out (clicks lost, e.g. before the window took the pointer; picking a word
+        twice is harmless)."""
+        now = time.perf_counter()
+        planned = self.planned.get(state_id)
+        if planned is not None and now - planned < 4.0 + 0.3 * len(points):
+            return
+        self.planned[state_id] = now
+        self.pending = [p for p in self.pending if p[2] != state_id]
+        if planned is None:
+            self.record(trial_index=trial_index, item=item, value=value)
+        self._click(state_id, points, delay=0.4)
+
+    def _click(
+        self, state_id: int, points: Sequence[tuple[float, float]], *, delay: float
+    ) -> None:
+        """Move to each point, press and release there, 0.3 s apart."""
+        for i, point in enumerate(points):
+            x, y = self.screen_xy(*point)
+            for at, args in ((0.0, ["mousemove", str(x), str(y)]), (0.06, ["mousedown", "1"]),
+                             (0.14, ["mouseup", "1"])):  # fmt: skip
+                self.schedule(delay + 0.3 * i + at, args, state=state_id)

@@ -40,6 +40,7 @@ from facelab.experiment.timeline import (
     ConversationScreen,
     IdentifyAnswer,
     IdentifyScreen,
+    MatrixScreen,
     PairPlayback,
     Playback,
     TextScreen,
@@ -217,19 +218,25 @@ class ChoiceModel:
         return float(p_timing(judgment, offset_ms, pss=pss, width=width, third=third,
                               floor=truth.floor))  # fmt: skip
 
+    def _p_understood(self, screen: TypedScreen, *, guess: float = 0.0) -> float:
+        """P(a word of the trial right): the series' listener at the SNR with the guess
+        rate ``guess`` (``simulation.srt``), else the identifier's accuracy."""
+        assert screen.trial is not None
+        cond = self.protocol.condition(screen.trial.condition)
+        listener = self.protocol.simulation.srt.get(cond.series_id)
+        if cond.noise is not None and listener is not None:
+            srt = self.srt_of(cond.series_id)
+            return float(p_correct(cond.noise.snr_db, srt=srt, slope=listener.slope,
+                                   guess=guess, lapse=listener.lapse))  # fmt: skip
+        return float(self.identifier.condition_accuracy.get(screen.trial.condition,
+                                                            self.identifier.accuracy))  # fmt: skip
+
     def typed(self, screen: TypedScreen) -> str:
         """A typed answer: each scoring unit of what was said (keyword, or mora of its
         reading) heard with P(SNR) of the series' listener (``simulation.srt``, no guessing
         in an open set), else with the identifier's accuracy; the units heard, in order."""
         assert screen.trial is not None and screen.task is not None
-        cond = self.protocol.condition(screen.trial.condition)
-        listener = self.protocol.simulation.srt.get(cond.series_id)
-        if cond.noise is not None and listener is not None:
-            p = float(p_correct(cond.noise.snr_db, srt=self.srt_of(cond.series_id),
-                                slope=listener.slope, guess=0.0, lapse=listener.lapse))  # fmt: skip
-        else:
-            p = self.identifier.condition_accuracy.get(screen.trial.condition,
-                                                       self.identifier.accuracy)  # fmt: skip
+        p = self._p_understood(screen)
         if screen.task.scoring == "morae":
             from facelab.japanese_reading import morae, pronunciation
 
@@ -237,6 +244,19 @@ class ChoiceModel:
         else:
             units, sep = list(screen.keywords or screen.said.split() or [screen.said]), " "
         return sep.join(u for u in units if self.rng.random() < p)
+
+    def matrix(self, screen: MatrixScreen) -> str:
+        """A matrix answer: each word said picked right with P(SNR) of the series' listener
+        (``simulation.srt``, its guess rate one in the column's length: the stated SRT is
+        where half the words are right, as the analysis fits it), else a wrong word of its
+        column at random; with no listener, right with the identifier's accuracy."""
+        assert screen.task is not None
+        picks = []
+        for word, column in zip(screen.said.split(" "), screen.task.columns, strict=True):
+            others = [w for w in column if w != word]
+            right = self.rng.random() < self._p_understood(screen, guess=1.0 / len(column))
+            picks.append(word if right else others[int(self.rng.integers(len(others)))])
+        return " ".join(picks)
 
     def identify(self, screen: IdentifyScreen) -> str:
         assert screen.trial is not None and screen.task is not None
@@ -340,6 +360,14 @@ class SimulatedParticipant:
         if screen.trial is None or screen.practice or self.chooser is None:
             return [TypedAnswer(screen.said, 1.0, self._stamp())]
         text = self.chooser.typed(screen)
+        rt = self.chooser.response_time()
+        self.clock += rt
+        return [TypedAnswer(text, round(rt, 3), self._stamp())]
+
+    def matrix(self, screen: MatrixScreen) -> list[TypedAnswer]:
+        if screen.trial is None or screen.practice or self.chooser is None:
+            return [TypedAnswer(screen.said, 1.0, self._stamp())]
+        text = self.chooser.matrix(screen)
         rt = self.chooser.response_time()
         self.clock += rt
         return [TypedAnswer(text, round(rt, 3), self._stamp())]

@@ -41,7 +41,15 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 from facelab import sickness_questionnaire as ssq
 from facelab.design import PENDING, Trial
-from facelab.protocol import AnyTask, ChoiceTask, IdentifyTask, Protocol, TypedTask, VasItem
+from facelab.protocol import (
+    AnyTask,
+    ChoiceTask,
+    IdentifyTask,
+    MatrixTask,
+    Protocol,
+    TypedTask,
+    VasItem,
+)
 from facelab.sessionlog import NA, SessionContext, response_row
 
 if TYPE_CHECKING:
@@ -62,6 +70,7 @@ __all__ = [
     "ConversationScreen",
     "IdentifyAnswer",
     "IdentifyScreen",
+    "MatrixScreen",
     "PairPlayback",
     "Playback",
     "ResponseScreen",
@@ -111,6 +120,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "label_keys": "数字キー、またはクリックで答えてください",
         "typed_keys": "聞こえたとおりに入力し、Enter キーか「決定」で答えてください"
         "（聞き取れなければ空欄のまま）",
+        "matrix_keys": "各列から聞こえた言葉を一つずつクリックし、「決定」で答えてください"
+        "（分からないときは推測で）",
         "conversation": "画面の相手と話してください。",
         "partner": "いま話した相手について答えてください。",
     },
@@ -132,6 +143,8 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "label_keys": "Press a number key, or click",
         "typed_keys": "Type what you heard, then press Enter or click Confirm (leave it "
         "empty if you heard nothing)",
+        "matrix_keys": "Click the word you heard in each column, then Confirm (guess when "
+        "unsure)",
         "conversation": "Talk with the partner on the screen.",
         "partner": "Please answer about the partner you just talked with.",
     },
@@ -695,6 +708,49 @@ class TypedScreen(TaskScreen):
 
 @screen_kind
 @dataclass(frozen=True)
+class MatrixScreen(TypedScreen):
+    """Pick what was said from a word matrix: one word in each column, then confirm. The
+    answer is the picks joined by spaces (a :class:`TypedAnswer`); ``said`` is the words
+    said, joined likewise, and the score the share of columns picked right."""
+
+    kind: ClassVar[str] = "matrix"
+    task: MatrixTask | None = None  # type: ignore[assignment]
+
+    def browser(self, ctx: BrowserContext) -> dict[str, Any]:
+        assert self.task is not None
+        return TaskScreen.browser(self, ctx) | {
+            "columns": [list(c) for c in self.task.columns],
+            "confirm": ctx.texts["confirm"],
+            "hint": ctx.texts["matrix_keys"],
+        }
+
+    def answer(
+        self, item: str, posted: Mapping[str, Any], *, rt_s: float, timestamp: str
+    ) -> TypedAnswer:
+        assert self.task is not None
+        words = posted.get("words")
+        n = len(self.task.columns)
+        if not isinstance(words, list) or len(words) != n:
+            raise AnswerError(f"words: expected a list of {n} words, one from each column, "
+                              f"got {words!r}")  # fmt: skip
+        for i, (word, column) in enumerate(zip(words, self.task.columns, strict=True)):
+            if word not in column:
+                raise AnswerError(f"words[{i}]: {word!r} is not in column {i + 1}")
+        return TypedAnswer(text=" ".join(words), rt_s=rt_s, timestamp=timestamp)
+
+    def posted(self, answer: TypedAnswer) -> dict[str, Any]:
+        return {"words": answer.text.split(" ") if answer.text else []}
+
+    def score(self, text: str) -> float:
+        """The share of the columns whose pick is the word said there."""
+        said, picked = self.said.split(" "), text.split(" ")
+        if not said or len(picked) != len(said):
+            return 0.0
+        return round(sum(a == b for a, b in zip(said, picked, strict=True)) / len(said), 6)
+
+
+@screen_kind
+@dataclass(frozen=True)
 class AdaptiveTrial(ResponseScreen):
     """A staircase trial before its level is known: the walker asks the block's staircase for
     the condition, then shows :meth:`expand`'s screens. Collects the task's one response."""
@@ -979,6 +1035,14 @@ def _task_screens(
             ClipScreen(trial=shown, clip=clip, practice=practice),
             IdentifyScreen(trial=shown, practice=practice, level=level, task=task),
         ]
+    if isinstance(task, MatrixTask):
+        stimulus = next(st for st in protocol.stimulus_set(trial.stimulus_set).stimuli
+                        if st.id == trial.stimulus)  # fmt: skip
+        return [
+            ClipScreen(trial=shown, clip=clip, practice=practice),
+            MatrixScreen(trial=shown, practice=practice, level=level, task=task,
+                         said=" ".join(task.words_said(stimulus) or [])),
+        ]  # fmt: skip
     if isinstance(task, TypedTask):
         stimulus = next(st for st in protocol.stimulus_set(trial.stimulus_set).stimuli
                         if st.id == trial.stimulus)  # fmt: skip

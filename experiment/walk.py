@@ -22,6 +22,7 @@ from facelab.experiment.timeline import (
     ClipScreen,
     IdentifyAnswer,
     IdentifyScreen,
+    MatrixScreen,
     PairPlayback,
     Playback,
     ResponseScreen,
@@ -47,6 +48,7 @@ class Presenter(Protocol):
     def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]: ...
     def identify(self, screen: IdentifyScreen) -> list[IdentifyAnswer]: ...
     def typed(self, screen: TypedScreen) -> list[TypedAnswer]: ...
+    def matrix(self, screen: MatrixScreen) -> list[TypedAnswer]: ...
 
 
 def walk(

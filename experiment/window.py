@@ -38,6 +38,7 @@ from facelab.experiment.timeline import (
     ConversationScreen,
     IdentifyAnswer,
     IdentifyScreen,
+    MatrixScreen,
     PairPlayback,
     Playback,
     TextScreen,
@@ -535,6 +536,103 @@ class Window:
                 text = typed_text(str(field.text))[:limit]
                 self.win.removeEditable(field)  # the next screen's field gets the keys
                 return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
+
+    def matrix(self, screen: MatrixScreen) -> list[TypedAnswer]:
+        """Pick the word heard in each column of the matrix (a click; a second click in a
+        column moves the pick), then confirm: the confirm button takes a click once every
+        column has a pick."""
+        assert screen.task is not None
+        w, h = self.size
+        columns = screen.task.columns
+        n, rows = len(columns), max(len(c) for c in columns)
+        col_w = min(0.9 * w / n, 0.3 * w)
+        row_h = min(0.065 * h, 0.58 * h / rows)
+        top = 0.30 * h - row_h / 2
+        xs = [(i - (n - 1) / 2) * col_w for i in range(n)]
+        cells: list[tuple[Any, Any, int, str]] = []  # (box, label, column, word)
+        for ci, (x, column) in enumerate(zip(xs, columns, strict=True)):
+            for ri, word in enumerate(column):
+                y = top - ri * row_h
+                box = self.visual.Rect(self.win, width=0.94 * col_w, height=0.9 * row_h,
+                                       pos=(x, y), lineColor="grey", lineWidth=1,
+                                       fillColor=(-0.45, -0.45, -0.45))  # fmt: skip
+                label = self.text_stim(word, y=y, height=min(0.028 * h, 0.6 * row_h),
+                                       width=0.9 * col_w)  # fmt: skip
+                label.pos = (x, y)
+                cells.append((box, label, ci, word))
+        prompt = self.text_stim(localized(screen.task.question, self.lang), y=0.38 * h,
+                                height=0.03 * h)  # fmt: skip
+        confirm_y = top - (rows - 0.5) * row_h - 0.06 * h
+        confirm_box = self.visual.Rect(
+            self.win, width=0.2 * w, height=0.07 * h, pos=(0, confirm_y), lineColor="white",
+            lineWidth=2, fillColor=(0.1, 0.45, 0.25),
+        )  # fmt: skip
+        confirm_label = self.text_stim(self.ui["confirm"], y=confirm_y, height=0.03 * h,
+                                       width=0.2 * w)  # fmt: skip
+        hint = self.text_stim(self.ui["matrix_keys"], y=confirm_y - 0.075 * h,
+                              height=0.022 * h, color="lightgrey")  # fmt: skip
+        script = None
+        if self.script is not None:  # the scripted participant's clicks, planned once
+            chooser = self.script.chooser
+            practice = screen.trial is None or screen.practice or chooser is None
+            text = screen.said if practice else chooser.matrix(screen)  # type: ignore[union-attr]
+            centres = {(ci, word): box.pos for box, _label, ci, word in cells}
+            points = [tuple(centres[(ci, word)]) for ci, word in enumerate(text.split(" "))]
+            self.typed_fields += 1
+            script = (-self.typed_fields, [*points, (0.0, confirm_y)], text,
+                      None if practice else screen.trial_index)  # fmt: skip
+        picked: dict[int, str] = {}
+        self._clear_events()
+        self.mouse.clickReset()
+        onset = time.perf_counter()
+        shot = None if screen.practice else "matrix_screen"
+        # every press where it was made, from the window's events: a polled button state
+        # misses a quick click while a frame of 50 words is drawn, and the pointer has moved
+        # on by the next poll
+        presses: list[tuple[float, float]] = []
+
+        def on_press(x: float, y: float, button: int, _modifiers: int) -> None:
+            if button == 1:  # the left button
+                presses.append((x - w / 2, y - h / 2))
+
+        self.win.winHandle.push_handlers(on_mouse_press=on_press)
+
+        def draw() -> None:
+            for box, label, ci, word in cells:
+                box.fillColor = (-0.75, 0.0, -0.5) if picked.get(ci) == word else (-0.45,) * 3
+                box.lineColor = "white" if picked.get(ci) == word else "grey"
+                box.draw()
+                label.draw()
+            confirm_box.opacity = 1.0 if len(picked) == n else 0.35
+            for stim in (prompt, confirm_box, confirm_label, hint):
+                stim.draw()
+
+        try:
+            while True:
+                draw()
+                self.win.flip()
+                if self.script is not None and script is not None:
+                    state, clicks, text, trial_index = script
+                    self.script.answer_clicks(state, clicks, text, trial_index=trial_index,
+                                              item=screen.task.id)  # fmt: skip
+                if self.script:
+                    self.script.tick()
+                self._check_escape(self.event.getKeys())  # also takes the window's events
+                while presses:
+                    x, y = presses.pop(0)
+                    for box, _label, ci, word in cells:
+                        if box.contains(x, y):
+                            picked[ci] = word
+                    if len(picked) == n and confirm_box.contains(x, y):
+                        rt = time.perf_counter() - onset
+                        if shot:  # the answer as confirmed
+                            draw()
+                            self._screenshot(shot)
+                            self.win.clearBuffer()
+                        text = " ".join(picked[i] for i in range(n))
+                        return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
+        finally:
+            self.win.winHandle.remove_handlers(on_mouse_press=on_press)
 
     def conversation(self, screen: ConversationScreen) -> list[ConversationAnswer]:
         """A live conversation (presentation.conversation) in this window: the partner's

@@ -214,6 +214,36 @@ def test_typed_answers_in_the_window(tmp_path: Path) -> None:
     assert (tmp_path / "shots" / "typed_screen.png").exists()
 
 
+def test_matrix_answers_in_the_window(tmp_path: Path) -> None:
+    """A word matrix (issue 52.2) in the lab window: the scripted participant clicks a word
+    in each column and then Confirm with real X pointer events; every logged response is
+    the words clicked, scored word by word, and the staircase moved by those scores."""
+    from tests.test_word_matrix import SHORT
+
+    path = short_task_protocol("kato2021_srt_matrix", tmp_path, SHORT)
+    proc = _run(path, tmp_path)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-1500:]
+    study = "kato2021_srt_matrix"
+    rows = _beh_rows(tmp_path, study)
+    actions = [json.loads(x) for x in _session(tmp_path, study, "_actions.jsonl").read_text(
+        encoding="utf-8").splitlines()]  # fmt: skip
+    clicked = {a["trial_index"]: a["value"] for a in actions if a["trial_index"] is not None}
+    protocol = load_protocol(path)
+    task = protocol.tasks[0]
+    said = {st.id: task.words_said(st) for st in protocol.stimulus_sets[0].stimuli}
+    assert len(rows) == 4 == len(clicked)
+    for r in rows:
+        assert r["response"] == clicked[int(r["trial_index"])] and r["screen"] == "matrix"
+        picked = r["response"].split(" ")
+        right = sum(a == b for a, b in zip(picked, said[r["stimulus"]], strict=True))
+        assert float(r["score"]) == right / 5 and int(r["correct"]) == int(right == 5)
+    steps = [json.loads(x) for x in _session(tmp_path, study, "_staircase.jsonl").read_text(
+        encoding="utf-8").splitlines()]  # fmt: skip
+    assert [s["score"] for s in steps] == [float(r["score"]) for r in rows]
+    assert (tmp_path / "shots" / "matrix_screen.png").exists()
+
+
 def test_typed_kana_keep_their_keys_while_xdotool_types(tmp_path: Path) -> None:
     """The scripted typist gives each kana/kanji a keycode of its own before xdotool types:
     the keyboard map must not change while the keys go out (xdotool's one scratch keycode,

@@ -91,6 +91,10 @@ class AnswerIn(_Strict):
     label: ItemId | None = None
     # a typed answer (as typed; the screen normalises its whitespace and checks its length)
     text: Annotated[str, StringConstraints(max_length=400)] | None = None
+    # a word-matrix answer: the word picked in each column (the screen checks them)
+    words: (
+        list[Annotated[str, StringConstraints(min_length=1, max_length=64)]] | None
+    ) = Field(None, min_length=1, max_length=8)
     # the answer of a screen kind added to facelab (its Screen.answer reads and checks it)
     value: (
         Annotated[float, Field(ge=-1e6, le=1e6)]

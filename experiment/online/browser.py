@@ -196,6 +196,10 @@ VR_INPUTS = ("controller", "gaze")
 #: the yaw (deg, + to the left) the emulated participant faces when they recentre
 RECENTRE_YAW_DEG = 15.0
 _FACE_JS = "window.facelabFace(arguments[0]);"
+
+#: The screen kinds that store a participant's answer (a stop or a withdrawal is taken
+#: there, after the answers counted).
+_ANSWER_KINDS = ("vas", "choice_2afc", "identify", "typed", "matrix")
 #: the fades the VR page has begun, {in, out} (out: a selected answer, a clip's end)
 _FADES_JS = "return window.FacelabLive ? {...window.FacelabLive.fades} : null;"
 #: in VR, what the page's stage was doing (for a message when a session runs out of time)
@@ -550,7 +554,7 @@ class SimulatedBrowser:
                 if (
                     self.stop_after is not None
                     and self.given >= self.stop_after
-                    and kind in ("vas", "choice_2afc", "identify", "typed")
+                    and kind in _ANSWER_KINDS
                 ):
                     return "stopped"
                 if kind == "withdrawn":  # the stopped session's last page
@@ -560,7 +564,7 @@ class SimulatedBrowser:
                     self.withdraw_after is not None
                     and not self.withdrew
                     and self.given >= self.withdraw_after
-                    and kind in ("vas", "choice_2afc", "identify", "typed")
+                    and kind in _ANSWER_KINDS
                 ):
                     if in_vr():  # with the headset on: the panel's Stop, its question there
                         wait_for("[data-facelab=withdraw]")
@@ -664,6 +668,26 @@ class SimulatedBrowser:
                         field.send_keys(text)
                     self._shot(kind)
                     field.send_keys("\n")
+                    self.given += screen is not None
+                elif kind == "matrix":  # a word in each column, then Confirm
+                    trial = state["trial"]
+                    screen = screen_for(trial, kind)
+                    if screen is None:  # the practice trial: the first word of each column
+                        cols = d.find_elements(By.CSS_SELECTOR, ".facelab-matrix-column")
+                        words = [c.find_element(By.CSS_SELECTOR, "[data-facelab=word]")
+                                 .get_attribute("data-value") for c in cols]  # fmt: skip
+                    else:
+                        (answer,) = screen.present(sim)
+                        words = screen.posted(answer)["words"]
+                        self._record(p, trial_index=trial, item=state.get("item") or "",
+                                     value=" ".join(words))  # fmt: skip
+                    for ci, word in enumerate(words):
+                        (button,) = [b for b in d.find_elements(
+                            By.CSS_SELECTOR, f"[data-facelab=word][data-column='{ci}']")
+                            if b.get_attribute("data-value") == word]  # fmt: skip
+                        button.click()
+                    self._shot(kind)
+                    d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
                     self.given += screen is not None
                 elif d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]"):
                     # a screen answered by one of its option buttons: 2AFC, identification

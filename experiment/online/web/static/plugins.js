@@ -357,6 +357,46 @@ class FacelabTyped extends FacelabPlugin {
 }
 FacelabTyped.info = facelabInfo("facelab-typed", { ...FacelabFields.screen, ...FacelabFields.task, max_length: "INT", confirm: "STRING", hint: "STRING" });
 
+// Pick what was said from a word matrix (a matrix sentence test): one word in each column
+// (a click picks, another click in the column moves the pick); Confirm answers once every
+// column has a pick. The picks are posted as "words", in the columns' order.
+class FacelabMatrix extends FacelabPlugin {
+  async run(el, s) {
+    const started = performance.now();
+    const box = facelabBox("facelab-choice facelab-matrix", "matrix", s); box.dataset.item = s.item;
+    box.appendChild(facelabEl("div", "facelab-question", s.question));
+    const grid = facelabEl("div", "facelab-matrix-grid");
+    grid.style.gridTemplateColumns = `repeat(${s.columns.length}, minmax(0, 1fr))`;
+    const picked = new Array(s.columns.length).fill(null);
+    const confirm = facelabEl("button", "facelab-button", s.confirm); confirm.dataset.facelab = "confirm";
+    confirm.disabled = true;
+    s.columns.forEach((column, ci) => {
+      const col = facelabEl("div", "facelab-matrix-column"); col.dataset.column = String(ci);
+      const buttons = column.map((word) => {
+        const b = facelabEl("button", "facelab-button facelab-word", word);
+        b.dataset.facelab = "word"; b.dataset.column = String(ci); b.dataset.value = word;
+        b.setAttribute("aria-pressed", "false");
+        b.addEventListener("click", () => {
+          picked[ci] = word;
+          for (const o of buttons) o.setAttribute("aria-pressed", String(o === b));
+          confirm.disabled = picked.some((w) => w === null);
+        });
+        col.appendChild(b);
+        return b;
+      });
+      grid.appendChild(col);
+    });
+    box.appendChild(grid); box.appendChild(confirm);
+    box.appendChild(facelabEl("p", "facelab-note", s.hint));
+    facelabShow(el, box);
+    await new Promise((res) => confirm.addEventListener("click", () => { if (!picked.includes(null)) res(); }));
+    const words = picked.slice();
+    if (!s.practice) FacelabOutbox.send("/api/response", facelabAnswer(s, s.item, { words }, started));
+    return { words };
+  }
+}
+FacelabMatrix.info = facelabInfo("facelab-matrix", { ...FacelabFields.screen, ...FacelabFields.task, columns: "COMPLEX", confirm: "STRING", hint: "STRING" });
+
 // A screen kind of buttons from an installed package (facelab.experiment.screen_kinds.
 // ButtonScreen, widget "buttons"): its question and choices; the answer posted as "value".
 class FacelabButtons extends FacelabChoice {
@@ -466,6 +506,6 @@ FacelabConversation.info = facelabInfo("facelab-conversation", { ...FacelabField
 
 // The plugin of each screen kind the server sends (facelab.experiment.online.study).
 const FacelabPlugins = { text: FacelabText, clip: FacelabClip, clip_pair: FacelabClipPair, vas: FacelabVas,
-                         choice_2afc: FacelabChoice, identify: FacelabIdentify, typed: FacelabTyped,
+                         choice_2afc: FacelabChoice, identify: FacelabIdentify, typed: FacelabTyped, matrix: FacelabMatrix,
                          adaptive: FacelabAdaptive, ssq: FacelabButtons,  // ssq: the sickness questionnaire's buttons
                          conversation: FacelabConversation };
