@@ -475,7 +475,8 @@ def _typed_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Iterat
 
 def _matrix_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Iterator[Issue]:
     """A matrix task's answers name stimuli, and every stimulus it is shown with says one
-    word of each column, in the columns' order (else no pick could be right)."""
+    word of each column, in the columns' order (else no pick could be right). Shown in VR
+    too: a panel of the columns, a word picked with the controller's ray or the gaze."""
     stimuli = {st.id for s in protocol.stimulus_sets for st in s.stimuli}
     for sid in task.answers:
         if sid not in stimuli:
@@ -504,10 +505,6 @@ def _matrix_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Itera
                 if word not in column:
                     yield Issue((*where, "answers", st.id), f"{name}: word {i + 1} {word!r} "
                                 f"is not in column {i + 1} ({', '.join(column)})")  # fmt: skip
-    if sets and protocol.presentation.display == "webxr":
-        yield Issue((*where, "type"), "a word matrix is not drawn on a VR panel yet: show "
-                    "a matrix task in the lab window or the browser, or use an identify "
-                    "task (a closed set of words) with display: webxr")  # fmt: skip
 
 
 def _keywords_said(

@@ -39,6 +39,7 @@ from facelab.stimuli.avatar.gltf import live_glb
 from facelab.stimuli.avatar.samples import write_sample
 from facelab.stimuli.render.scene import camera_json, framing, settings_for
 from tests.protocol_edits import kato_short
+from tests.test_word_matrix import SHORT as MATRIX_SHORT
 
 ROOT = Path(__file__).resolve().parents[1]
 KATO = ROOT / "protocols" / "kato2021.yaml"
@@ -788,6 +789,7 @@ def test_without_a_headset_webxr_falls_back_only_when_the_protocol_allows(
                              r"      - \{id: sentence.*\n": "",
                              r"\n  language: ja\n": "\n  language: ja\n  ssq: [before, after]\n"},
          "identify"),
+        ("kato2021_srt_matrix", MATRIX_SHORT, "matrix"),
     ],
 )  # fmt: skip
 def test_forced_choice_and_identification_are_answered_in_vr(
@@ -835,8 +837,13 @@ def test_forced_choice_and_identification_are_answered_in_vr(
         assert {"【全体的な不快感】いまのあなたの状態について、この症状はどのくらいありますか。",
                 "なし", "少し", "中程度", "強い"} <= sources, sources  # fmt: skip
     clicked = {a["trial_index"]: a["value"] for a in actions if not a["item"].startswith("ssq_")}
+    if screen == "matrix":  # the columns' 50 words drawn whole on one panel, none cut
+        lay = json.loads((shots / "vr-matrix.panel.json").read_text(encoding="utf-8"))
+        assert not lay["overflow"] and lay["height"] <= 1280
+        drawn = {b["source"] for b in lay["blocks"]}
+        assert {w for c in protocol.tasks[0].columns for w in c} <= drawn
     for r in rows:  # the option the ray selected is the one stored
-        if screen == "identify":
+        if screen in ("identify", "matrix"):
             assert r["response"] == clicked[r["trial_index"]]
         else:
             assert (r["response"] == r["condition"]) == (clicked[r["trial_index"]] == r["position"])

@@ -681,13 +681,22 @@ class SimulatedBrowser:
                         words = screen.posted(answer)["words"]
                         self._record(p, trial_index=trial, item=state.get("item") or "",
                                      value=" ".join(words))  # fmt: skip
+                    vr = in_vr()
                     for ci, word in enumerate(words):
+                        if vr:  # the controller's ray (or the gaze) on the panel's word
+                            xr_select(f"[data-facelab=word][data-column='{ci}']"
+                                      f"[data-value={json.dumps(word, ensure_ascii=False)}]")
+                            continue
                         (button,) = [b for b in d.find_elements(
                             By.CSS_SELECTOR, f"[data-facelab=word][data-column='{ci}']")
                             if b.get_attribute("data-value") == word]  # fmt: skip
                         button.click()
-                    self._shot(kind)
-                    d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
+                    if vr:
+                        self._shot(f"vr-{kind}")
+                        xr_select("[data-facelab=confirm]")
+                    else:
+                        self._shot(kind)
+                        d.find_element(By.CSS_SELECTOR, "[data-facelab=confirm]").click()
                     self.given += screen is not None
                 elif d.find_elements(By.CSS_SELECTOR, "[data-facelab=option]"):
                     # a screen answered by one of its option buttons: 2AFC, identification

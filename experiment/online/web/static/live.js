@@ -742,7 +742,10 @@ class Panel {
       ops.push({ t: "text", s: words.recentre_short, x: r.x + bw / 2, y: r.y + bh / 2, px: 22, align: "center", color: "#333" });
       regions.push(r);
     }
-    const sources = src.querySelectorAll(".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
+    // a word matrix: its question, then its columns of words (the screen's own hint names
+    // the mouse: the device's hint is drawn at the foot instead)
+    const grid = ask ? null : src.querySelector(".facelab-matrix-grid");
+    const sources = src.querySelectorAll(grid ? ".facelab-question" : ".facelab-question, :scope > p, .facelab-text > p, .facelab-code");
     const items = src.querySelectorAll(".facelab-vas-item");
     if (!items.length) for (const t of sources) { text(t.textContent, 40 * scale, { source: t.textContent }); y += 14 * scale; }
     for (const item of items) {
@@ -767,7 +770,31 @@ class Panel {
       y = top; text(right, 26 * scale, { x: x1 + 8, align: "right", maxW: half, color: "#333", source: right });
       y = Math.max(y, yl) + 26 * scale;
     }
-    const buttons = [...src.querySelectorAll("button")];
+    if (grid) {  // one column per word of the sentence, its pick marked; a select picks
+      const cols = [...grid.querySelectorAll(".facelab-matrix-column")];
+      const gap = 10, rowGap = 4, n = cols.length;
+      const cw = (W - 2 * M - (n - 1) * gap) / n, ch = 40 * Math.max(scale, 0.8), top = y;
+      let rows = 0;
+      cols.forEach((col, ci) => {
+        const x = M + ci * (cw + gap);
+        const words = [...col.querySelectorAll("button")];
+        rows = Math.max(rows, words.length);
+        words.forEach((b, ri) => {
+          const by = top + ri * (ch + rowGap), on = b.getAttribute("aria-pressed") === "true";
+          ops.push({ t: "rect", x, y: by, w: cw, h: ch, color: on ? "#1b5e20" : "#dcdcdc" });
+          let px = 26 * Math.max(scale, 0.8);
+          g.font = font(px);
+          while (px > 14 && g.measureText(b.textContent).width > cw - 12) { px -= 1; g.font = font(px); }
+          const w = g.measureText(b.textContent).width;
+          ops.push({ t: "text", s: b.textContent, x: x + cw / 2, y: by + ch / 2, px, align: "center", color: on ? "#fff" : "#111" });
+          lines.push({ text: b.textContent, x0: x + cw / 2 - w / 2, x1: x + cw / 2 + w / 2, y0: by, y1: by + ch });
+          blocks.push({ source: b.textContent, lines: [b.textContent] });
+          regions.push({ el: b, kind: "pick", x, y: by, w: cw, h: ch });
+        });
+      });
+      y = top + rows * (ch + rowGap);
+    }
+    const buttons = [...src.querySelectorAll("button")].filter((b) => !b.classList.contains("facelab-word"));
     if (buttons.length) {
       y += 10;
       const perRow = buttons.length <= 3 ? buttons.length : Math.ceil(buttons.length / Math.ceil(buttons.length / 3));
@@ -880,6 +907,8 @@ class Panel {
         if (st.panel === this && dark && st.fade === dark) st.fadeIn();
       }, 100);
     }
+    // a word of a matrix: picked at once (no fade: the screen stays until its Confirm)
+    if (r.kind === "pick" && r.el.isConnected) r.el.click();
     if (r.kind === "line" && r.el.facelabPlace) r.el.facelabPlace(Math.min(1, Math.max(0, (h.x - r.x) / r.w)));
     if (r.kind === "recentre") this.stage.recentre("button");
   }
