@@ -26,6 +26,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.json_schema import SkipJsonSchema
 
 from facelab.emotions import BEHAVIOUR_MODES, EMOTIONS, emotion_of
 from facelab.methods import BUILTIN_METHODS, method_spec
@@ -469,6 +470,11 @@ class MatrixTask(TypedTask):
     Shown in the lab window and the browser, not in VR."""
 
     type: Literal["matrix"]  # type: ignore[assignment]
+    # a typed task's keys, refused on a matrix (see the validator) and left out of its schema
+    scoring: SkipJsonSchema[Literal["keywords", "morae"]] = "keywords"
+    keywords: SkipJsonSchema[dict[Id, list[Text]]] = Field(default_factory=dict)
+    tolerant: SkipJsonSchema[bool] = False
+    max_length: SkipJsonSchema[int] = 80
     question: Localized = Field(description="e.g. {ja: 聞こえた文の言葉を選んでください}.")
     columns: list[Annotated[list[Text], Field(min_length=2, max_length=12)]] = Field(
         min_length=2,
