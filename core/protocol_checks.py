@@ -481,16 +481,27 @@ def _matrix_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Itera
     for sid in task.answers:
         if sid not in stimuli:
             yield Issue((*where, "answers", sid), f"unknown stimulus {sid!r}")
+    for bi, block in enumerate(protocol.blocks):  # staircases that adapt on whole sentences
+        rule = block.staircase
+        if block.task == task.id and rule is not None and rule.rule != "brand_kollmeier":
+            yield Issue(("blocks", bi, "staircase", "rule"), f"{rule.rule} adapts on whole "
+                        "sentences right, which a matrix scores word by word: use "
+                        "brand_kollmeier (it moves by the share of words right)")  # fmt: skip
     sets = {b.stimulus_set for b in protocol.blocks if b.task == task.id}
+    practice = protocol.presentation.practice
+    if practice is not None:  # the practice trial shows the matrix of its block's task
+        sets.add(practice.stimulus_set)
     n = len(task.columns)
     for stimulus_set in protocol.stimulus_sets:
         if stimulus_set.id not in sets:
             continue
         for st in stimulus_set.stimuli:
-            if st.silence_s is not None:
-                continue
             words = task.words_said(st)
             name = f"stimulus {st.id!r} of set {stimulus_set.id!r}"
+            if st.silence_s is not None:
+                yield Issue((*where, "answers", st.id), f"{name} is silence: a matrix "
+                            "trial needs a sentence, one word of each column")  # fmt: skip
+                continue
             if words is None:
                 yield Issue((*where, "answers"), f"{name} has no text or transcript: give "
                             "its words under answers")  # fmt: skip

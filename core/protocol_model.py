@@ -15,6 +15,7 @@ is :func:`json_schema`; ``protocols/schema/protocol.schema.json`` is generated f
 from __future__ import annotations
 
 import json
+import unicodedata
 from functools import cached_property
 from typing import Annotated, Any, Literal
 
@@ -476,11 +477,12 @@ class MatrixTask(TypedTask):
     tolerant: SkipJsonSchema[bool] = False
     max_length: SkipJsonSchema[int] = 80
     question: Localized = Field(description="e.g. {ja: 聞こえた文の言葉を選んでください}.")
-    columns: list[Annotated[list[Text], Field(min_length=2, max_length=12)]] = Field(
+    columns: list[Annotated[list[Text], Field(min_length=3, max_length=12)]] = Field(
         min_length=2,
         max_length=8,
-        description="The word matrix: columns of alternatives (e.g. 5 columns of 10 words: "
-        "name, number, adjective, object, verb), in the order they are said.",
+        description="The word matrix: columns of 3-12 alternatives (e.g. 5 columns of 10 "
+        "words: name, number, adjective, object, verb), in the order they are said; a word "
+        "at most 64 characters, without spaces or punctuation at its ends.",
     )
     answers: dict[Id, Text] = Field(
         default_factory=dict,
@@ -500,8 +502,14 @@ class MatrixTask(TypedTask):
             seen = {w for w in column if column.count(w) > 1}
             if seen:
                 raise ValueError(f"column {i + 1} lists {', '.join(sorted(seen))} twice")
-            if any(w != w.strip() or " " in w for w in column):
-                raise ValueError(f"column {i + 1}: a word is written without spaces")
+            for w in column:
+                if (any(ch.isspace() or unicodedata.category(ch) in ("Cc", "Cf") for ch in w)
+                        or len(w) > 64 or w.strip(_WORD_PUNCTUATION) != w):  # fmt: skip
+                    raise ValueError(
+                        f"column {i + 1}: {w!r}: a word is at most 64 characters, without "
+                        "spaces, control characters or punctuation at its ends (a "
+                        "participant could never pick it right)"
+                    )
         return self
 
     def words_said(self, stimulus: Stimulus) -> list[str] | None:

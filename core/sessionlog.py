@@ -158,22 +158,24 @@ COLUMN_DESCRIPTIONS: dict[str, dict[str, str]] = {
     "timestamp": {"Description": "Wall-clock time the response was confirmed (ISO 8601, UTC)."},
     "screen": {
         "Description": "Screen type that took the response: vas, choice_2afc, identify, "
-        "typed, ssq (the Simulator Sickness Questionnaire) or a screen kind added by a "
-        "package."
+        "typed, matrix (a word matrix), ssq (the Simulator Sickness Questionnaire) or a "
+        "screen kind added by a package."
     },
     "response": {
         "Description": "Choice screens: the chosen condition id (2AFC) or label id (identify); "
-        "typed screens: the text as typed (n/a when nothing was typed); ssq: the "
+        "typed screens: the text as typed (n/a when nothing was typed); matrix: the words "
+        "picked, one per column, joined by spaces; ssq: the "
         "symptom's rating, 0 none, 1 slight, 2 moderate, 3 severe; n/a on VAS screens."
     },
     "correct": {
         "Description": "1 when the response is the correct one (2AFC: the test condition was "
-        "chosen; identify: the true label; typed: every scoring unit reproduced), 0 when "
-        "not, n/a when the task has no correct answer."
+        "chosen; identify: the true label; typed: every scoring unit reproduced; matrix: "
+        "every word), 0 when not, n/a when the task has no correct answer."
     },
     "score": {
         "Description": "Typed answers: the share of the scoring units (keywords or morae of "
-        "what was said) the answer reproduced, as pronounced; n/a on other screens.",
+        "what was said) the answer reproduced, as pronounced; matrix: the share of the "
+        "columns whose pick is the word said; n/a on other screens.",
         "Units": "proportion (0..1)",
     },
     "level": {"Description": "The stimulus level of the condition (a graded dimension), or n/a."},

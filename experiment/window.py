@@ -591,9 +591,13 @@ class Window:
         # on by the next poll
         presses: list[tuple[float, float]] = []
 
+        # pyglet's event coordinates are in window points; the stimuli are placed in
+        # framebuffer pixels (twice as many on a Retina or scaled display)
+        scale = w / max(1, self.win.winHandle.width)
+
         def on_press(x: float, y: float, button: int, _modifiers: int) -> None:
             if button == 1:  # the left button
-                presses.append((x - w / 2, y - h / 2))
+                presses.append((x * scale - w / 2, y * scale - h / 2))
 
         self.win.winHandle.push_handlers(on_mouse_press=on_press)
 

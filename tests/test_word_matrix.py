@@ -11,13 +11,14 @@ import pytest
 
 from facelab.analysis import srt
 from facelab.design import Trial
-from facelab.experiment.simulate import simulated_rows
+from facelab.experiment.simulate import ChoiceModel, simulated_rows
 from facelab.experiment.timeline import (
     AnswerError,
     BrowserContext,
     MatrixScreen,
     trial_screens,
 )
+from facelab.intelligibility_function import p_correct
 from facelab.protocol import MatrixTask, load_protocol
 from facelab.resources import protocol_path
 from facelab.sessionlog import SessionContext
@@ -94,6 +95,21 @@ def test_matrix_protocols_are_checked_with_their_keys(tmp_path) -> None:
     unknown = text.replace(m03, "m03, text: 姉が 六つの 軽い 皿を 飲んだ。")
     problem = protocol_problems(unknown, tmp_path)
     assert "word 5 '飲んだ' is not in column 5 (買った, 見た" in problem
+    silent = text.replace("      - {id: m10, text:", "      - {id: quiet, silence_s: 2.0}\n"
+                                                      "      - {id: m10, text:")
+    assert "stimulus 'quiet' of set 'sentences' is silence: a matrix trial needs a sentence" in (
+        protocol_problems(silent, tmp_path))  # fmt: skip
+    quest = text.replace("rule: brand_kollmeier, start: audio_p0, trials: 20, target_score: 0.5, "
+                         "assumed_slope: 0.15", "rule: quest_plus, trials: 20")  # fmt: skip
+    assert "blocks[0].staircase.rule: quest_plus adapts on whole sentences right" in (
+        protocol_problems(quest, tmp_path))  # fmt: skip
+    pair = text.replace("[母が, 父が, 姉が, 兄が, 妹が, 弟が, 祖母が, 先生が, 友達が, 医者が]",
+                        "[母が, 父が]")  # fmt: skip
+    assert "tasks[0].columns[0]" in protocol_problems(pair, tmp_path)
+    for bad in ("母\u3000が", "母が。", "x" * 65):
+        spaced = text.replace("[母が, 父が,", f'["{bad}", 父が,')
+        assert "a word is at most 64 characters, without spaces" in protocol_problems(
+            spaced, tmp_path), bad  # fmt: skip
     twice = text.replace("[母が, 父が,", "[母が, 母が,")
     assert "column 1 lists 母が twice" in protocol_problems(twice, tmp_path)
     typed_key = text.replace("    type: matrix\n", "    type: matrix\n    tolerant: true\n")
@@ -125,6 +141,19 @@ def test_simulated_answers_are_right_by_chance_below_threshold_and_the_srts_reco
     for response in frame["response"]:
         words = response.split(" ")
         assert len(words) == 5 and all(w in c for w, c in zip(words, columns, strict=True))
+    # one listener's words at -16 dB, far below the threshold: right as often as the stated
+    # function says with the guess rate 1/10 (about one in nine), not almost never
+    chooser = ChoiceModel(protocol, rng=np.random.default_rng(11))
+    trial = Trial(trial_index=1, block="audio", set_index=1, stimulus_set="sentences",
+                  stimulus="m01", condition="audio_m16", repetition=1)  # fmt: skip
+    (_, screen) = trial_screens(protocol, trial)
+    said = screen.said.split(" ")
+    hits = [a == b for _ in range(600)
+            for a, b in zip(chooser.matrix(screen).split(" "), said, strict=True)]  # fmt: skip
+    truth = protocol.simulation.srt["audio"]
+    want = float(p_correct(-16.0, srt=chooser.srt_of("audio"), slope=truth.slope, guess=0.1,
+                           lapse=truth.lapse))  # fmt: skip
+    assert want >= 0.1 and abs(np.mean(hits) - want) < 0.03, (np.mean(hits), want)
     table = srt.srt_table(frame, protocol, protocol.tasks[0])
     assert list(table["condition"].unique()) == SERIES
     assert (table["n"] == 20 * 5).all()  # every word of 20 sentences per series
@@ -207,6 +236,7 @@ def test_a_matrix_session_online_in_chromium_is_stored_scored_and_exported(tmp_p
                  str(out), "--protocol", str(path)]) == 0  # fmt: skip
     log = pd.read_csv(next(out.rglob("*_beh.tsv")), sep="\t", keep_default_na=False)
     by_trial = {r["trial_index"]: r for r in rows}
+    assert len(log) == 4
     for r in log.itertuples():
         assert r.response == by_trial[r.trial_index]["response"]
         assert float(r.score) == pytest.approx(by_trial[r.trial_index]["score"])
