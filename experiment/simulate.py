@@ -22,7 +22,7 @@ A simulated session walks the same timeline of screens as a real one
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -357,17 +357,19 @@ class SimulatedParticipant:
         return [IdentifyAnswer(label, round(rt, 3), self._stamp())]
 
     def typed(self, screen: TypedScreen) -> list[TypedAnswer]:
-        if screen.trial is None or screen.practice or self.chooser is None:
-            return [TypedAnswer(screen.said, 1.0, self._stamp())]
-        text = self.chooser.typed(screen)
-        rt = self.chooser.response_time()
-        self.clock += rt
-        return [TypedAnswer(text, round(rt, 3), self._stamp())]
+        return self._text_answer(screen, lambda chooser: chooser.typed(screen))
 
     def matrix(self, screen: MatrixScreen) -> list[TypedAnswer]:
+        return self._text_answer(screen, lambda chooser: chooser.matrix(screen))
+
+    def _text_answer(
+        self, screen: TypedScreen, choose: Callable[[ChoiceModel], str]
+    ) -> list[TypedAnswer]:
+        """A typed or matrix answer: what was said on the practice trial, else the chooser's
+        text after its response time."""
         if screen.trial is None or screen.practice or self.chooser is None:
             return [TypedAnswer(screen.said, 1.0, self._stamp())]
-        text = self.chooser.matrix(screen)
+        text = choose(self.chooser)
         rt = self.chooser.response_time()
         self.clock += rt
         return [TypedAnswer(text, round(rt, 3), self._stamp())]
