@@ -352,6 +352,9 @@ _TASK_HEADINGS = {
     "series (SNR of 50 % right answers, 95 % profile-likelihood interval; guess rate 1/k), the "
     "benefit against audio alone in dB (Wald interval) and Sumby-Pollack's visual enhancement "
     "at the audio-only SRT",
+    "matrix_words": "Word matrix: each word position's share picked right per condition "
+    "series (participants' mean, 95 % t interval; the series' SNRs pooled), chance 1 / column "
+    "length, and the confusion made most often",
     "srt_summary": "Speech in noise: the participants' mean SRT, benefit and enhancement per "
     "series (95 % t intervals; thresholds not fully determined left out)",
     "srt_tests": "Speech in noise: the series compared within participants (RM ANOVA, "
@@ -397,6 +400,7 @@ def _task_headline(tasks: TaskResults | None) -> list[tuple[str, pd.DataFrame]]:
         "identification_condition_model",
         "srt_summary",
         "srt_tests",
+        "matrix_words",
         "sync_summary",
         "sync_tests",
         "trend_contrast",

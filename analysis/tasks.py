@@ -22,7 +22,9 @@
   ``audio_offset_ms`` (``sync_window``), the series' means and their within-participant
   comparison (``sync_summary``, ``sync_tests``; :mod:`facelab.analysis.timing`);
 * typed answers (a ``typed`` task): every answer beside what was said with its score
-  (``typed_answers``) and the mean score per condition (``typed_summary``);
+  (``typed_answers``) and the mean score per condition (``typed_summary``); a word matrix
+  also each word position's share right per condition and its commonest confusion
+  (``matrix_words``);
 * speech in noise (an identify task with answers, or a typed task, on conditions with
   ``noise``): each
   participant's speech reception threshold per condition series, the audio-visual benefit
@@ -473,10 +475,58 @@ def _typed_tables(
                     "participants": len(means), "mean_score": mean, "ci_low": low,
                     "ci_high": high,
                     "all_right": float(part["correct"].astype(float).mean())})  # fmt: skip
-    for name, frame in (("typed_answers", answers), ("typed_summary", pd.DataFrame(out))):
+    frames = {"typed_answers": answers, "typed_summary": pd.DataFrame(out)}
+    if isinstance(task, MatrixTask):
+        frames["matrix_words"] = matrix_word_table(answers, task=task, protocol=protocol)
+    for name, frame in frames.items():
         if name in res.tables:
             frame = pd.concat([res.tables[name], frame], ignore_index=True)
         res.tables[name] = frame
+
+
+def matrix_word_table(
+    answers: pd.DataFrame, *, task: MatrixTask, protocol: Protocol
+) -> pd.DataFrame:
+    """Per condition series and word position (column) of a word matrix: how often the word
+    said there was picked (``condition`` is the series, :attr:`Condition.series_id`: a
+    series' SNRs pooled). ``answers``: :func:`_typed_tables`' rows (``said`` and ``response``,
+    words separated by spaces). Columns: ``position`` (1 = the first column), ``answers``,
+    ``participants``, ``mean_right`` (the participants' mean share right, 95 % t interval
+    ``ci_low``/``ci_high``), ``pooled_right``, ``chance`` (1 / the column's length) and
+    ``most_confused`` (the wrong pick made most often, ``said→picked (times)``; empty when
+    none was). Compare positions within a series: an adaptive track shows each its own SNRs."""
+    series = {c.id: c.series_id for c in protocol.conditions}
+    rows = []
+    for _, answer in answers.iterrows():
+        said = str(answer["said"] or "").split()
+        picked = str(answer["response"]).split() if pd.notna(answer["response"]) else []
+        if len(said) != len(task.columns) or not picked:
+            continue  # nothing known was said, or no answer
+        for i, word in enumerate(said):
+            pick = picked[i] if i < len(picked) else ""
+            rows.append((series.get(answer["condition"], answer["condition"]),
+                         answer["participant"], i + 1, word, pick))
+    words = pd.DataFrame(rows, columns=["condition", "participant", "position", "said", "picked"])
+    words["right"] = (words["said"] == words["picked"]).astype(float)
+    out = []
+    for cond in dict.fromkeys(series.values()):
+        part = words[words["condition"] == cond]
+        for position, at in part.groupby("position", sort=True):
+            means = at.groupby("participant")["right"].mean()
+            mean, low, high = stats.mean_t_interval(means.to_numpy(dtype=float))
+            wrong = at[at["right"] == 0]
+            confused = (wrong["said"] + "→" + wrong["picked"]).value_counts()
+            out.append({
+                "task": task.id, "condition": cond, "position": int(position),
+                "answers": len(at), "participants": len(means), "mean_right": mean,
+                "ci_low": low, "ci_high": high, "pooled_right": float(at["right"].mean()),
+                "chance": 1.0 / len(task.columns[int(position) - 1]),
+                "most_confused": (f"{confused.index[0]} ({int(confused.iloc[0])})"
+                                  if len(confused) else ""),
+            })  # fmt: skip
+    columns = ["task", "condition", "position", "answers", "participants", "mean_right",
+               "ci_low", "ci_high", "pooled_right", "chance", "most_confused"]  # fmt: skip
+    return pd.DataFrame(out, columns=columns)
 
 
 def score_identification(rows: pd.DataFrame, task: IdentifyTask) -> pd.DataFrame:

@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 from facelab.analysis import srt
+from facelab.analysis import tasks as tasks_mod
 from facelab.design import Trial
 from facelab.experiment.simulate import ChoiceModel, simulated_rows
 from facelab.experiment.timeline import (
@@ -162,6 +163,44 @@ def test_simulated_answers_are_right_by_chance_below_threshold_and_the_srts_reco
     for r in summary.itertuples():
         half = (r.srt_db_ci_high - r.srt_db_ci_low) / 2
         assert abs(r.srt_db_mean - truth[r.condition].srt_db) <= 1.5 * half, r
+
+
+def test_each_word_position_is_scored_against_the_word_said_there() -> None:
+    """``matrix_words``: per condition and column, the share of the said word picked (the
+    participants' mean with its interval), chance, and the commonest wrong pick; a position
+    whose words are guessed scores near chance, one heard clearly near 1."""
+    protocol = _protocol()
+    task = protocol.tasks[0]
+    said = " ".join(w[0] for w in task.columns)  # the first word of each column
+    # P1 picks every word right but the 2nd column's, where it picks that column's 2nd word;
+    # P2 gets all right; an unanswered trial counts nowhere
+    wrong2 = said.split()
+    wrong2[1] = task.columns[1][1]
+    answers = pd.DataFrame({
+        "participant": ["P1", "P1", "P2", "P2", "P2"],
+        "condition": ["audio_m4"] * 5,
+        "said": [said] * 5,
+        "response": [" ".join(wrong2), " ".join(wrong2), said, said, None],
+    })  # fmt: skip
+    table = tasks_mod.matrix_word_table(answers, task=task, protocol=protocol)
+    assert list(table["position"]) == [1, 2, 3, 4, 5]
+    assert list(table["answers"]) == [4] * 5 and (table["participants"] == 2).all()
+    second = table.iloc[1]
+    assert second["mean_right"] == 0.5 and second["pooled_right"] == 0.5
+    assert second["most_confused"] == f"{task.columns[1][0]}→{task.columns[1][1]} (2)"
+    assert (table.drop(index=1)["mean_right"] == 1.0).all()
+    assert (table["most_confused"].drop(index=1) == "").all()
+    assert np.allclose(table["chance"], [1 / len(c) for c in task.columns])
+    # through the analysis: simulated listeners at the protocol's SNRs, every position in
+    # every series, each share above chance and below 1 (the tracks hover near 50 % words)
+    frame = _rows(protocol, participants=4, seed=5).assign(item=task.id)
+    res = tasks_mod.analyze_tasks(frame, protocol, rng=np.random.default_rng(0), n_boot=20)
+    words = res.tables["matrix_words"]
+    assert len(words) == 3 * 5 and list(words["condition"].unique()) == SERIES
+    assert (words["answers"] == 4 * 20).all()
+    assert ((words["pooled_right"] > words["chance"]) & (words["pooled_right"] < 1)).all()
+    assert (words["ci_low"] <= words["mean_right"]).all()
+    assert (words["mean_right"] <= words["ci_high"]).all()
 
 
 @pytest.mark.slow
