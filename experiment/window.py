@@ -57,6 +57,54 @@ from facelab.sessionlog import NA, utc_now
 __all__ = ["Window"]
 
 
+class _Pointer:
+    """The left button's presses and releases as the window's events report them, where
+    each was made, in the stimuli's pixels (origin at the centre). A polled button state
+    misses a click made between two polls - pressed and released while a frame is drawn (a
+    quick click, a slow frame, a busy machine) - and by the next poll the pointer may have
+    moved on. Use as a context manager around a screen's loop; events arrive when the window
+    handles its events (``flip``, ``event.getKeys``)."""
+
+    def __init__(self, win: Any, size: tuple[int, int]):
+        self._handle = win.winHandle
+        self._size = size
+        self.events: list[tuple[str, float, float]] = []  # ("press" | "release", x, y)
+        self.held = False  # the button is down (as the events last said)
+
+    def _place(self, x: float, y: float) -> tuple[float, float]:
+        # pyglet's event coordinates are in window points from the bottom-left; the stimuli
+        # are placed in framebuffer pixels (twice as many on a Retina or scaled display)
+        w, h = self._size
+        scale = w / max(1, self._handle.width)
+        return x * scale - w / 2, y * scale - h / 2
+
+    def _press(self, x: float, y: float, button: int, _modifiers: int) -> None:
+        if button == 1:  # the left button
+            self.events.append(("press", *self._place(x, y)))
+
+    def _release(self, x: float, y: float, button: int, _modifiers: int) -> None:
+        if button == 1:
+            self.events.append(("release", *self._place(x, y)))
+
+    def __enter__(self) -> _Pointer:
+        self._handle.push_handlers(on_mouse_press=self._press, on_mouse_release=self._release)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._handle.remove_handlers(on_mouse_press=self._press, on_mouse_release=self._release)
+
+    def take(self) -> list[tuple[str, float, float]]:
+        """The events since the last call, oldest first; :attr:`held` follows them."""
+        events, self.events = self.events, []
+        for kind, _x, _y in events:
+            self.held = kind == "press"
+        return events
+
+    def presses(self) -> list[tuple[float, float]]:
+        """Where the button was pressed since the last call, oldest first."""
+        return [(x, y) for kind, x, y in self.take() if kind == "press"]
+
+
 class Window:
     """A PsychoPy window that presents timeline screens. Use as a context manager."""
 
@@ -414,30 +462,29 @@ class Window:
         self._clear_events()
         self.mouse.clickReset()
         onset = time.perf_counter()
-        was_down = False
-        while True:
-            if self.script is not None and scripted is not None:
-                key, value, trial_index, item = scripted
-                self.script.answer_key(id(stims), key, value, trial_index=trial_index, item=item)
-            for stim in stims:
-                stim.draw()
-            if shot:
-                self._screenshot(shot)
-                shot = None
-            self.win.flip()
-            if self.script:
-                self.script.tick()
-            pressed = self.event.getKeys()
-            self._check_escape(pressed)
-            for key in pressed:
-                if key in keys:
-                    return keys[key], time.perf_counter() - onset
-            down = bool(self.mouse.getPressed()[0])
-            if down and not was_down:
-                for stim, value in clickable:
-                    if stim.contains(self.mouse):
-                        return value, time.perf_counter() - onset
-            was_down = down
+        with _Pointer(self.win, self.size) as pointer:
+            while True:
+                if self.script is not None and scripted is not None:
+                    key, value, trial_index, item = scripted
+                    self.script.answer_key(id(stims), key, value, trial_index=trial_index,
+                                           item=item)  # fmt: skip
+                for stim in stims:
+                    stim.draw()
+                if shot:
+                    self._screenshot(shot)
+                    shot = None
+                self.win.flip()
+                if self.script:
+                    self.script.tick()
+                pressed = self.event.getKeys()
+                self._check_escape(pressed)
+                for key in pressed:
+                    if key in keys:
+                        return keys[key], time.perf_counter() - onset
+                for x, y in pointer.presses():
+                    for stim, value in clickable:
+                        if stim.contains(x, y):
+                            return value, time.perf_counter() - onset
 
     def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
         """Which of the two clips? Keys 1/2 or a click on a button."""
@@ -511,31 +558,29 @@ class Window:
         self.mouse.clickReset()
         onset = time.perf_counter()
         shot = None if screen.practice else "typed_screen"
-        was_down = False
-        while True:
-            if len(field.text) > limit:
-                field.text = field.text[:limit]
-            for stim in (prompt, field, confirm_box, confirm_label, hint):
-                stim.draw()
-            self.win.flip()
-            if self.script:
-                self.script.tick()
-            keys = self.event.getKeys()
-            self._check_escape(keys)
-            down = bool(self.mouse.getPressed()[0])
-            clicked = down and not was_down and confirm_box.contains(self.mouse)
-            was_down = down
-            if (clicked or any(k in ("return", "num_enter") for k in keys)) and typed_text(
-                    str(field.text)) != NA:  # fmt: skip # the log's missing mark: not an answer
-                rt = time.perf_counter() - onset
-                if shot:  # the answer as confirmed
-                    for stim in (prompt, field, confirm_box, confirm_label, hint):
-                        stim.draw()
-                    self._screenshot(shot)
-                    self.win.clearBuffer()
-                text = typed_text(str(field.text))[:limit]
-                self.win.removeEditable(field)  # the next screen's field gets the keys
-                return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
+        with _Pointer(self.win, self.size) as pointer:
+            while True:
+                if len(field.text) > limit:
+                    field.text = field.text[:limit]
+                for stim in (prompt, field, confirm_box, confirm_label, hint):
+                    stim.draw()
+                self.win.flip()
+                if self.script:
+                    self.script.tick()
+                keys = self.event.getKeys()
+                self._check_escape(keys)
+                clicked = any(confirm_box.contains(x, y) for x, y in pointer.presses())
+                if (clicked or any(k in ("return", "num_enter") for k in keys)) and typed_text(
+                        str(field.text)) != NA:  # fmt: skip # the log's missing mark: no answer
+                    rt = time.perf_counter() - onset
+                    if shot:  # the answer as confirmed
+                        for stim in (prompt, field, confirm_box, confirm_label, hint):
+                            stim.draw()
+                        self._screenshot(shot)
+                        self.win.clearBuffer()
+                    text = typed_text(str(field.text))[:limit]
+                    self.win.removeEditable(field)  # the next screen's field gets the keys
+                    return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
 
     def matrix(self, screen: MatrixScreen) -> list[TypedAnswer]:
         """Pick the word heard in each column of the matrix (a click; a second click in a
@@ -586,20 +631,6 @@ class Window:
         self.mouse.clickReset()
         onset = time.perf_counter()
         shot = None if screen.practice else "matrix_screen"
-        # every press where it was made, from the window's events: a polled button state
-        # misses a quick click while a frame of 50 words is drawn, and the pointer has moved
-        # on by the next poll
-        presses: list[tuple[float, float]] = []
-
-        # pyglet's event coordinates are in window points; the stimuli are placed in
-        # framebuffer pixels (twice as many on a Retina or scaled display)
-        scale = w / max(1, self.win.winHandle.width)
-
-        def on_press(x: float, y: float, button: int, _modifiers: int) -> None:
-            if button == 1:  # the left button
-                presses.append((x * scale - w / 2, y * scale - h / 2))
-
-        self.win.winHandle.push_handlers(on_mouse_press=on_press)
 
         def draw() -> None:
             for box, label, ci, word in cells:
@@ -611,7 +642,8 @@ class Window:
             for stim in (prompt, confirm_box, confirm_label, hint):
                 stim.draw()
 
-        try:
+        # every press where it was made (a frame of 50 words is slow enough to miss a click)
+        with _Pointer(self.win, self.size) as pointer:
             while True:
                 draw()
                 self.win.flip()
@@ -622,8 +654,7 @@ class Window:
                 if self.script:
                     self.script.tick()
                 self._check_escape(self.event.getKeys())  # also takes the window's events
-                while presses:
-                    x, y = presses.pop(0)
+                for x, y in pointer.presses():
                     for box, _label, ci, word in cells:
                         if box.contains(x, y):
                             picked[ci] = word
@@ -635,8 +666,6 @@ class Window:
                             self.win.clearBuffer()
                         text = " ".join(picked[i] for i in range(n))
                         return [TypedAnswer(text=text, rt_s=round(rt, 4), timestamp=utc_now())]
-        finally:
-            self.win.winHandle.remove_handlers(on_mouse_press=on_press)
 
     def conversation(self, screen: ConversationScreen) -> list[ConversationAnswer]:
         """A live conversation (presentation.conversation) in this window: the partner's
@@ -743,7 +772,6 @@ class Window:
         )
         self._clear_events()
         self.mouse.clickReset()
-        was_down = False
         targets: dict[int, float] = {}
         trial = screen.trial
         if self.script is not None:
@@ -754,78 +782,76 @@ class Window:
                     targets[id(state)] = self.script.model.rate(
                         item=item.id, stimulus_set=trial.stimulus_set, condition=trial.condition
                     )[0]
-        while True:
-            if self.script is not None:
-                delay = 0.3
-                for item, g, state, _ in rows:
-                    if state.confirmed_at is None:
-                        self.script.answer(
-                            id(state),
-                            g,
-                            targets[id(state)],
-                            delay,
-                            trial_index=None if screen.practice else screen.trial_index,
-                            item=item.id,
-                        )
-                        delay += 0.6
-            now = self.clock.getTime()
-            x, y = self.mouse.getPos()
-            down = bool(self.mouse.getPressed()[0])
-            all_rated = all(state.rating is not None for _, _, state, _ in rows)
-            if down and not was_down:
-                if rows[-1][1].on_confirm(x, y) and all_rated:
+        with _Pointer(self.win, self.size) as pointer:
+            while True:
+                if self.script is not None:
+                    delay = 0.3
+                    for item, g, state, _ in rows:
+                        if state.confirmed_at is None:
+                            self.script.answer(
+                                id(state),
+                                g,
+                                targets[id(state)],
+                                delay,
+                                trial_index=None if screen.practice else screen.trial_index,
+                                item=item.id,
+                            )
+                            delay += 0.6
+                now = self.clock.getTime()
+                for kind, x, y in pointer.take():  # every press and release, where it was made
+                    rated = all(state.rating is not None for _, _, state, _ in rows)
                     for _, _, state, _ in rows:
-                        state.confirmed_at = now
-                else:
-                    for _, _, state, _ in rows:
-                        state.press(x, y, now)
-            elif down:
-                for _, _, state, _ in rows:
-                    state.move(x, y, now)
-            elif was_down:
-                for _, _, state, _ in rows:
-                    state.release()
-            was_down = down
-            keys = self.event.getKeys(modifiers=True)
-            self._check_escape(keys)
-            active = next((s for _, _, s, _ in rows if s.confirmed_at is None), None)
-            for key, mods in keys:
-                if key in ("return", "space", "num_enter"):
-                    if all_rated:
-                        for _, _, state, _ in rows:
+                        if kind == "release":
+                            state.release()
+                        elif rows[-1][1].on_confirm(x, y) and rated:
                             state.confirmed_at = now
-                elif active is not None:
-                    active.key(key, now, shift=bool(mods.get("shift")))
-            if all(state.confirmed_at is not None for _, _, state, _ in rows):
-                stamp = utc_now()
-                return [
-                    VasAnswer(
-                        item=item.id,
-                        rating=round(float(state.rating), 4),
-                        rt_s=round(float(state.rt), 4),
-                        timestamp=stamp,
-                    )
-                    for item, _, state, _ in rows
-                ]
-            for _, g, state, stims in rows:
-                stims["question"].draw()
-                stims["line"].draw()
-                for t in stims["ticks"]:
-                    t.draw()
-                stims["left"].draw()
-                stims["right"].draw()
-                if state.marker_visible:  # hidden until the first click or arrow key
-                    stims["marker"].pos = (g.x_of(state.rating), g.y_line)
-                    stims["marker"].draw()
-            confirm_box.fillColor = (0.1, 0.45, 0.25) if all_rated else (-0.5, -0.5, -0.5)
-            confirm_label.color = "white" if all_rated else "grey"
-            confirm_box.draw()
-            confirm_label.draw()
-            if shot and not any(st.marker_visible for _, _, st, _ in rows):
-                self._screenshot("vas_before_click")
-            if shot and all_rated:
-                self._screenshot(shot)
-                shot = None
-            self.win.flip()
-            if self.script:
-                self.script.tick()
+                        else:
+                            state.press(x, y, now)
+                if pointer.held:  # a drag along the line follows the pointer
+                    x, y = self.mouse.getPos()
+                    for _, _, state, _ in rows:
+                        state.move(x, y, now)
+                all_rated = all(state.rating is not None for _, _, state, _ in rows)
+                keys = self.event.getKeys(modifiers=True)
+                self._check_escape(keys)
+                active = next((s for _, _, s, _ in rows if s.confirmed_at is None), None)
+                for key, mods in keys:
+                    if key in ("return", "space", "num_enter"):
+                        if all_rated:
+                            for _, _, state, _ in rows:
+                                state.confirmed_at = now
+                    elif active is not None:
+                        active.key(key, now, shift=bool(mods.get("shift")))
+                if all(state.confirmed_at is not None for _, _, state, _ in rows):
+                    stamp = utc_now()
+                    return [
+                        VasAnswer(
+                            item=item.id,
+                            rating=round(float(state.rating), 4),
+                            rt_s=round(float(state.rt), 4),
+                            timestamp=stamp,
+                        )
+                        for item, _, state, _ in rows
+                    ]
+                for _, g, state, stims in rows:
+                    stims["question"].draw()
+                    stims["line"].draw()
+                    for t in stims["ticks"]:
+                        t.draw()
+                    stims["left"].draw()
+                    stims["right"].draw()
+                    if state.marker_visible:  # hidden until the first click or arrow key
+                        stims["marker"].pos = (g.x_of(state.rating), g.y_line)
+                        stims["marker"].draw()
+                confirm_box.fillColor = (0.1, 0.45, 0.25) if all_rated else (-0.5, -0.5, -0.5)
+                confirm_label.color = "white" if all_rated else "grey"
+                confirm_box.draw()
+                confirm_label.draw()
+                if shot and not any(st.marker_visible for _, _, st, _ in rows):
+                    self._screenshot("vas_before_click")
+                if shot and all_rated:
+                    self._screenshot(shot)
+                    shot = None
+                self.win.flip()
+                if self.script:
+                    self.script.tick()
