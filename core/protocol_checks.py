@@ -492,29 +492,34 @@ def _matrix_task(protocol: Protocol, task: Any, where: tuple[Any, ...]) -> Itera
     if practice is not None:  # the practice trial shows the matrix of its block's task
         sets.add(practice.stimulus_set)
     n = len(task.columns)
-    for stimulus_set in protocol.stimulus_sets:
+    for si, stimulus_set in enumerate(protocol.stimulus_sets):
         if stimulus_set.id not in sets:
             continue
-        for st in stimulus_set.stimuli:
+        for sti, st in enumerate(stimulus_set.stimuli):
             words = task.words_said(st)
             name = f"stimulus {st.id!r} of set {stimulus_set.id!r}"
+            # the key the words come from: the task's answer, else the stimulus' own text
+            source = ((*where, "answers", st.id) if task.answers.get(st.id) else
+                      ("stimulus_sets", si, "stimuli", sti,
+                       "text" if st.text else "transcript"))  # fmt: skip
             if st.silence_s is not None:
-                yield Issue((*where, "answers", st.id), f"{name} is silence: a matrix "
-                            "trial needs a sentence, one word of each column")  # fmt: skip
+                yield Issue(("stimulus_sets", si, "stimuli", sti, "silence_s"), f"{name} is "
+                            "silence: a matrix trial needs a sentence, one word of each "
+                            "column")  # fmt: skip
                 continue
             if words is None:
                 yield Issue((*where, "answers"), f"{name} has no text or transcript: give "
                             "its words under answers")  # fmt: skip
                 continue
             if len(words) != n:
-                yield Issue((*where, "answers", st.id), f"{name} says {len(words)} word(s) "
+                yield Issue(source, f"{name} says {len(words)} word(s) "
                             f"({' '.join(words)}), expected {n}, one from each column: "
                             "write its text with spaces between the words, or give them "
                             "under answers")  # fmt: skip
                 continue
             for i, (word, column) in enumerate(zip(words, task.columns, strict=True)):
                 if word not in column:
-                    yield Issue((*where, "answers", st.id), f"{name}: word {i + 1} {word!r} "
+                    yield Issue(source, f"{name}: word {i + 1} {word!r} "
                                 f"is not in column {i + 1} ({', '.join(column)})")  # fmt: skip
 
 

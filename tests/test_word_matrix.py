@@ -90,15 +90,20 @@ def test_matrix_protocols_are_checked_with_their_keys(tmp_path) -> None:
     text = _text()
     m03 = "m03, text: 姉が 六つの 軽い 皿を 洗った。"
     short = text.replace(m03, "m03, text: 姉が 六つの 皿を 洗った。")
-    assert ("tasks[0].answers.m03: stimulus 'm03' of set 'sentences' says 4 word(s) (姉が "
-            "六つの 皿を 洗った), expected 5, one from each column") in protocol_problems(
-        short, tmp_path)  # fmt: skip
+    # named at the key the words come from: the stimulus' text, or the task's answer
+    assert ("stimulus_sets[0].stimuli[2].text: stimulus 'm03' of set 'sentences' says 4 "
+            "word(s) (姉が 六つの 皿を 洗った), expected 5, one from each column") in (
+        protocol_problems(short, tmp_path))  # fmt: skip
+    answered = text.replace("    type: matrix\n",
+                            "    type: matrix\n    answers: {m03: 姉が 六つの 皿を 洗った}\n")
+    assert ("tasks[0].answers.m03: stimulus 'm03' of set 'sentences' says 4 word(s)") in (
+        protocol_problems(answered, tmp_path))  # fmt: skip
     unknown = text.replace(m03, "m03, text: 姉が 六つの 軽い 皿を 飲んだ。")
     problem = protocol_problems(unknown, tmp_path)
     assert "word 5 '飲んだ' is not in column 5 (買った, 見た" in problem
     silent = text.replace("      - {id: m10, text:", "      - {id: quiet, silence_s: 2.0}\n"
                                                       "      - {id: m10, text:")
-    assert "stimulus 'quiet' of set 'sentences' is silence: a matrix trial needs a sentence" in (
+    assert "silence_s: stimulus 'quiet' of set 'sentences' is silence: a matrix trial" in (
         protocol_problems(silent, tmp_path))  # fmt: skip
     quest = text.replace("rule: brand_kollmeier, start: audio_p0, trials: 20, target_score: 0.5, "
                          "assumed_slope: 0.15", "rule: quest_plus, trials: 20")  # fmt: skip
