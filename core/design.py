@@ -9,6 +9,10 @@ stimulus set ``presentations_per_condition`` times. The order inside a set is
   row ``(participant number - 1 + set_index - 1) mod rows``, so participants 1..rows see
   every order and every condition follows every other equally often; repeated as needed.
 
+The blocks come in the protocol's order, or with ``presentation.block_order: latin_square``
+in the order of row ``(participant number - 1) mod rows`` of a balanced Latin square of the
+blocks (:func:`block_sequence`).
+
 The participant's generator is seeded by :func:`participant_seed`, a reproducible function of
 the study seed and the participant id, so the same inputs always give the same trial list and
 different participants get different orders.
@@ -34,6 +38,7 @@ __all__ = [
     "TRIAL_COLUMNS",
     "Trial",
     "balanced_latin_square",
+    "block_sequence",
     "block_trials",
     "build_trials",
     "count_trials",
@@ -156,6 +161,38 @@ def balanced_latin_square(k: int) -> list[list[int]]:
     return rows
 
 
+def _number(participant: str, what: str) -> int:
+    number = participant_number(participant)
+    if number is None:
+        raise StageError(f"{what} uses order 'latin_square', which needs participant ids "
+                         f"ending in a number (e.g. P01); got {participant!r}")  # fmt: skip
+    return number
+
+
+def block_sequence(protocol: Protocol, *, participant: str) -> list[Block]:
+    """The blocks in the order ``participant`` does them: the protocol's, or with
+    ``presentation.block_order: latin_square`` row ``(participant number - 1) mod rows`` of
+    a balanced Latin square of the blocks.
+
+    Examples
+    --------
+    >>> from facelab.resources import protocol_path
+    >>> from facelab.protocol import load_protocol
+    >>> matrix = load_protocol(protocol_path("kato2021_srt_matrix"))
+    >>> for n in (1, 2, 3):
+    ...     print(" ".join(b.id for b in block_sequence(matrix, participant=f"P{n}")))
+    audio baseline emphasized
+    baseline emphasized audio
+    emphasized audio baseline
+    """
+    blocks = list(protocol.blocks)
+    if protocol.presentation.block_order == "fixed" or len(blocks) < 2:
+        return blocks
+    rows = balanced_latin_square(len(blocks))
+    row = rows[(_number(participant, "presentation.block_order") - 1) % len(rows)]
+    return [blocks[i] for i in row]
+
+
 def _set_sequence(
     *,
     protocol: Protocol,
@@ -169,12 +206,7 @@ def _set_sequence(
     stimuli = [s.id for s in protocol.stimulus_set(block.stimulus_set).stimuli]
     reps = block.presentations_per_condition
     if block.order == "latin_square":
-        number = participant_number(participant)
-        if number is None:
-            raise StageError(
-                f"block {block.id!r} uses order 'latin_square', which needs participant ids "
-                f"ending in a number (e.g. P01); got {participant!r}"
-            )
+        number = _number(participant, f"block {block.id!r}")
         rows = balanced_latin_square(len(conditions))
         row = rows[(number - 1 + set_index - 1) % len(rows)]
         conditions = [conditions[i] for i in row]
@@ -218,7 +250,7 @@ def build_trials(protocol: Protocol, *, participant: str, seed: int | None = Non
     study_seed = protocol.seed if seed is None else seed
     rng = np.random.default_rng(participant_seed(study_seed, participant))
     trials: list[Trial] = []
-    for block in protocol.blocks:
+    for block in block_sequence(protocol, participant=participant):
         task = protocol.block_task(block)
         standard = task.standard if task is not None and task.type == "choice_2afc" else None
         if block.design == "staircase":

@@ -773,6 +773,14 @@ class Conversation(_Model):
 class Presentation(_Model):
     language: LangCode = Field("ja", description="Language of all participant-facing text.")
     items_layout: Literal["sequential", "together"] = "sequential"
+    block_order: Literal["fixed", "latin_square"] = Field(
+        "fixed",
+        description="The order of the blocks in a session: fixed (the protocol's) or "
+        "latin_square (a row of a balanced Latin square of the blocks chosen by the "
+        "participant's number, so that across participants every block comes at every place "
+        "and after every other equally often: learning and fatigue are spread over the "
+        "blocks; participant ids must end in a number, e.g. P01).",
+    )
     fullscreen: bool = True
     display: Literal["video", "live3d", "webxr"] = Field(
         "video",

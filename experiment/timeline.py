@@ -1088,7 +1088,8 @@ def compile_timeline(
     if pres.instructions:
         screens.append(TextScreen(role="instructions", text=localized(pres.instructions, lang)))
     if pres.practice is not None:
-        task = protocol.block_task(protocol.blocks[0])
+        first = trials[0].block if trials else protocol.blocks[0].id  # this participant's
+        task = protocol.block_task(next(b for b in protocol.blocks if b.id == first))
         practice = Trial(
             trial_index=0,
             block="practice",

@@ -118,3 +118,37 @@ def test_fixed_order_follows_the_protocol(kato: Protocol) -> None:
 def test_bad_participant_id(kato: Protocol) -> None:
     with pytest.raises(StageError, match="letters or digits"):
         build_trials(kato, participant="sub-01")
+
+
+def test_block_order_latin_square_spreads_each_block_over_every_place() -> None:
+    """``presentation.block_order: latin_square`` (the shipped matrix test): over six
+    participants each of three blocks comes first, second and third twice, and after each
+    other block equally often; a participant's trials follow their blocks whole, staircases
+    included; the practice trial asks the first block's task; ids without a number are
+    refused in words. ``fixed`` keeps the protocol's order for everyone."""
+    from facelab.design import block_sequence
+    from facelab.experiment.timeline import compile_timeline
+    from facelab.resources import protocol_path
+
+    matrix = load_protocol(protocol_path("kato2021_srt_matrix"))
+    assert matrix.presentation.block_order == "latin_square"
+    orders = [[b.id for b in block_sequence(matrix, participant=f"P{n:02d}")]
+              for n in range(1, 7)]  # fmt: skip
+    ids = [b.id for b in matrix.blocks]
+    for place in range(3):
+        assert Counter(order[place] for order in orders) == dict.fromkeys(ids, 2)
+    follows = Counter((o[i], o[i + 1]) for o in orders for i in range(2))
+    assert set(follows.values()) == {2} and len(follows) == 6
+    trials = build_trials(matrix, participant="P02")
+    seen = list(dict.fromkeys(t.block for t in trials))
+    assert seen == orders[1] != ids and len(trials) == 60
+    assert [t.trial_index for t in trials] == list(range(1, 61))
+    screens = compile_timeline(matrix, trials, participant="P02", session=1)
+    practice = next(s for s in screens if getattr(s, "practice", False) and hasattr(s, "task"))
+    assert practice.task.id == "sentence"
+    with pytest.raises(StageError, match=r"block_order.*ending in a number"):
+        build_trials(matrix, participant="alice")
+    fixed = matrix.model_copy(update={"presentation": matrix.presentation.model_copy(
+        update={"block_order": "fixed"})})  # fmt: skip
+    for n in (1, 2, 5):
+        assert [b.id for b in block_sequence(fixed, participant=f"P{n}")] == ids
