@@ -122,6 +122,7 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "（聞き取れなければ空欄のまま）",
         "matrix_keys": "各列から聞こえた言葉を一つずつクリックし、「決定」で答えてください"
         "（分からないときは推測で）",
+        "matrix_column": "{n}列目",
         "conversation": "画面の相手と話してください。",
         "partner": "いま話した相手について答えてください。",
     },
@@ -145,6 +146,7 @@ UI_TEXT: dict[str, dict[str, str]] = {
         "empty if you heard nothing)",
         "matrix_keys": "Click the word you heard in each column, then Confirm (guess when "
         "unsure)",
+        "matrix_column": "Column {n}",
         "conversation": "Talk with the partner on the screen.",
         "partner": "Please answer about the partner you just talked with.",
     },
@@ -720,6 +722,10 @@ class MatrixScreen(TypedScreen):
         assert self.task is not None
         return TaskScreen.browser(self, ctx) | {
             "columns": [list(c) for c in self.task.columns],
+            # each column's name for screen readers (a group of buttons)
+            "column_labels": [
+                ctx.texts["matrix_column"].format(n=i + 1) for i in range(len(self.task.columns))
+            ],
             "confirm": ctx.texts["confirm"],
             "hint": ctx.texts["matrix_keys"],
         }

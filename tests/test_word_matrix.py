@@ -54,6 +54,7 @@ def test_the_matrix_screen_stores_the_words_picked_and_scores_each() -> None:
     sent = screen.browser(BrowserContext(lang="ja", clip_json=dict))
     assert [len(c) for c in sent["columns"]] == [10] * 5 and sent["kind"] == "matrix"
     assert sent["hint"].startswith("各列から") and sent["confirm"] == "決定"
+    assert sent["column_labels"] == ["1列目", "2列目", "3列目", "4列目", "5列目"]  # for readers
 
     def row_of(words: list[str]) -> dict:
         answer = screen.answer("sentence", {"words": words}, rt_s=1.0, timestamp="t")

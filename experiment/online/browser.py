@@ -16,6 +16,7 @@ import base64
 import hashlib
 import hmac
 import json
+import re
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -682,14 +683,20 @@ class SimulatedBrowser:
                         self._record(p, trial_index=trial, item=state.get("item") or "",
                                      value=" ".join(words))  # fmt: skip
                     vr = in_vr()
+                    groups = [] if vr else d.find_elements(
+                        By.CSS_SELECTOR, ".facelab-matrix [role=group][aria-label]")  # fmt: skip
                     for ci, word in enumerate(words):
                         if vr:  # the controller's ray (or the gaze) on the panel's word
                             xr_select(f"[data-facelab=word][data-column='{ci}']"
                                       f"[data-value={json.dumps(word, ensure_ascii=False)}]")
                             continue
-                        (button,) = [b for b in d.find_elements(
-                            By.CSS_SELECTOR, f"[data-facelab=word][data-column='{ci}']")
-                            if b.get_attribute("data-value") == word]  # fmt: skip
+                        # as a screen reader finds it: the column group named by its
+                        # number, then the button that says the word
+                        number = re.compile(rf"(?<!\d){ci + 1}(?!\d)")
+                        (group,) = [g for g in groups
+                                    if number.search(g.get_attribute("aria-label") or "")]
+                        (button,) = [b for b in group.find_elements(By.TAG_NAME, "button")
+                                     if b.text == word]  # fmt: skip
                         button.click()
                     if vr:
                         self._shot(f"vr-{kind}")

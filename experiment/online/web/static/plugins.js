@@ -372,6 +372,8 @@ class FacelabMatrix extends FacelabPlugin {
     confirm.disabled = true;
     s.columns.forEach((column, ci) => {
       const col = facelabEl("div", "facelab-matrix-column"); col.dataset.column = String(ci);
+      col.setAttribute("role", "group");  // a screen reader names the column before its words
+      col.setAttribute("aria-label", (s.column_labels || [])[ci] || String(ci + 1));
       const buttons = column.map((word) => {
         const b = facelabEl("button", "facelab-button facelab-word", word);
         b.dataset.facelab = "word"; b.dataset.column = String(ci); b.dataset.value = word;
@@ -395,7 +397,7 @@ class FacelabMatrix extends FacelabPlugin {
     return { words };
   }
 }
-FacelabMatrix.info = facelabInfo("facelab-matrix", { ...FacelabFields.screen, ...FacelabFields.task, columns: "COMPLEX", confirm: "STRING", hint: "STRING" });
+FacelabMatrix.info = facelabInfo("facelab-matrix", { ...FacelabFields.screen, ...FacelabFields.task, columns: "COMPLEX", column_labels: "COMPLEX", confirm: "STRING", hint: "STRING" });
 
 // A screen kind of buttons from an installed package (facelab.experiment.screen_kinds.
 // ButtonScreen, widget "buttons"): its question and choices; the answer posted as "value".
