@@ -306,3 +306,36 @@ def test_sheets_frame_the_face_box(kind: str, tmp_path: Path) -> None:
     px = 0.5 + f * rel[:, :2] / -rel[:, 2:3]  # 0..1 across the frame
     assert (px > 0).all() and (px < 1).all()
     assert np.ptp(px[:, 1]) > 0.6  # the face fills most of the frame's height
+
+
+def test_the_same_warning_on_many_clips_is_said_once_with_how_many() -> None:
+    """A demo at 96x64 warns on every clip that its face is too small for the tracker: 180
+    identical lines hid the summary. Four or more clips with the same warning (check,
+    measure, value and note) are one line naming the first two and how many more; fewer,
+    or different values, are said clip by clip; accepted failures are kept apart."""
+    from facelab.experiment.cli.common import say_checks
+    from facelab.stimuli.checks.rows import CheckRow
+    from facelab.stimuli.checks.run_checks import CheckReport
+
+    small = dict(check="av_sync", measure="not_measured", value=math.nan,
+                 threshold="measurable", passed=False, note="the face is 32 px tall",
+                 severity="warning")  # fmt: skip
+    rows = [CheckRow(clip=f"s__m{i:02d}__baseline", condition="baseline", **small)
+            for i in range(1, 7)]  # fmt: skip
+    rows.append(CheckRow(clip="s__m01__standard", condition="standard", check="mouth_motion",
+                         measure="range", value=0.2, threshold=">= 0.3", passed=False,
+                         severity="warning"))  # fmt: skip
+    rows += [CheckRow(clip=f"s__m0{i}__emphasized", condition="emphasized", check="mouth_motion",
+                      measure="range", value=0.1, threshold=">= 0.3", passed=False,
+                      accepted=True) for i in range(1, 3)]  # fmt: skip
+    said: list[str] = []
+    say_checks(CheckReport(rows=rows), say=said.append)
+    assert said[0] == (
+        "warning: av_sync: 6 clips (s__m01__baseline [baseline], s__m02__baseline [baseline] "
+        "and 4 more; each in stimulus_checks.csv): not_measured = not measured, expected "
+        "measurable (the face is 32 px tall)")  # fmt: skip
+    assert said[1] == ("warning: mouth_motion: s__m01__standard [standard]: range = 0.2, "
+                       "expected >= 0.3")  # fmt: skip
+    assert said[2].startswith("accepted: mouth_motion: s__m01__emphasized [emphasized]")
+    assert said[3].startswith("accepted: mouth_motion: s__m02__emphasized")
+    assert said[4].startswith("stimulus checks:") and len(said) == 5

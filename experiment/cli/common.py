@@ -315,10 +315,27 @@ def check_options(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+#: this many clips or more with the same warning are said in one line
+GROUP_WARNINGS_FROM = 4
+
+
 def say_checks(report, *, say: Callable[[str], None] = print) -> None:
-    """Every warning and accepted failure of a stimulus-check report, then its summary."""
+    """Every warning and accepted failure of a stimulus-check report, then its summary. The
+    same warning on many clips (a check, measure, value and note alike, e.g. a face too small
+    for the tracker at a demo's size) is one line naming the first clips and how many more:
+    every row stays in ``stimulus_checks.csv``."""
+    groups: dict[tuple[bool, str, str], list] = {}
     for row in report.warnings:
-        say(("accepted: " if row.accepted else "warning: ") + row.describe())
+        groups.setdefault((row.accepted, row.check, row.what()), []).append(row)
+    for (accepted, check, what), rows in groups.items():
+        mark = "accepted: " if accepted else "warning: "
+        if len(rows) < GROUP_WARNINGS_FROM:
+            for row in rows:
+                say(mark + row.describe())
+            continue
+        first = ", ".join(row.where() for row in rows[:2])
+        say(f"{mark}{check}: {len(rows)} clips ({first} and {len(rows) - 2} more; each in "
+            f"stimulus_checks.csv): {what}")  # fmt: skip
     say(report.summary())
 
 

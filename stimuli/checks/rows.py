@@ -62,15 +62,21 @@ class CheckRow:
             "accepted": str(self.accepted).lower(),
         }  # fmt: skip
 
+    def where(self) -> str:
+        """The clip (or the avatar) and its condition, e.g. ``s__m01__baseline [baseline]``."""
+        return " ".join(x for x in (self.clip or "(avatar)", self.condition and
+                                    f"[{self.condition}]") if x)  # fmt: skip
+
+    def what(self) -> str:
+        """The measure's value against its threshold, and the note."""
+        value = "not measured" if math.isnan(self.value) else f"{self.value:.4g}"
+        return f"{self.measure} = {value}, expected {self.threshold}" + (
+            f" ({self.note})" if self.note else ""
+        )
+
     def describe(self) -> str:
         """One line for the terminal: what failed, where, the value against its threshold."""
-        where = " ".join(x for x in (self.clip or "(avatar)", self.condition and
-                                     f"[{self.condition}]") if x)  # fmt: skip
-        value = "not measured" if math.isnan(self.value) else f"{self.value:.4g}"
-        return (
-            f"{self.check}: {where}: {self.measure} = {value}, expected {self.threshold}"
-            + (f" ({self.note})" if self.note else "")
-        )
+        return f"{self.check}: {self.where()}: {self.what()}"
 
 
 def _num(value: float | None) -> float:
