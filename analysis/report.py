@@ -206,6 +206,8 @@ def write_report(
                 "order": b.order,
                 "task": b.task or "VAS items",
                 "design": b.design,
+                # the blocks' order: the protocol's, or a Latin-square row per participant
+                "block order": protocol.presentation.block_order.replace("_", " "),
             }
             for b in protocol.blocks
         ]

@@ -500,12 +500,11 @@ def matrix_word_table(
     for _, answer in answers.iterrows():
         said = str(answer["said"] or "").split()
         picked = str(answer["response"]).split() if pd.notna(answer["response"]) else []
-        if len(said) != len(task.columns) or not picked:
-            continue  # nothing known was said, or no answer
+        if len(said) != len(task.columns) or not picked or answer["condition"] not in series:
+            continue  # nothing known was said, no answer, or a condition not in the protocol
         for i, word in enumerate(said):
             pick = picked[i] if i < len(picked) else ""
-            rows.append((series.get(answer["condition"], answer["condition"]),
-                         answer["participant"], i + 1, word, pick))
+            rows.append((series[answer["condition"]], answer["participant"], i + 1, word, pick))
     words = pd.DataFrame(rows, columns=["condition", "participant", "position", "said", "picked"])
     words["right"] = (words["said"] == words["picked"]).astype(float)
     out = []

@@ -540,10 +540,15 @@ def design_sampler(protocol: Protocol) -> DesignSampler:
                     "midpoint_sd": 0.0}
         )  # fmt: skip
         simulation = protocol.simulation.model_copy(update={"observer": observer})
+        # a Latin-square order needs a participant number: a drawn one, so the calibration
+        # spans the orders participants get
+        numbered = protocol.presentation.block_order == "latin_square" or any(
+            b.order == "latin_square" for b in protocol.blocks)  # fmt: skip
+        participant = f"C{int(rng.integers(1, 10**6))}" if numbered else "calibration"
         rows = pd.DataFrame(
             simulated_rows(
                 protocol.model_copy(update={"simulation": simulation}),
-                participant="calibration", rng=rng,
+                participant=participant, rng=rng,
             )
         )  # fmt: skip
         return rows[rows["item"] == task] if not rows.empty else rows

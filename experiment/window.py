@@ -197,7 +197,9 @@ class Window:
             lineBreaking="uax14",
         )
 
-    def _check_escape(self, keys: list) -> None:
+    def _check_escape(self, keys: list) -> bool:
+        """Escape asks whether to quit: y stops the session, n goes back to the screen (True:
+        the question was shown, so clicks made meanwhile are not answers to the screen)."""
         if any((k[0] if isinstance(k, tuple) else k) == "escape" for k in keys):
             prompt = self.text_stim(self.ui["quit"])
             while True:
@@ -210,8 +212,9 @@ class Window:
                         "continue with --resume"
                     )
                 if "n" in answer:
-                    return
+                    return True
                 self.core.wait(0.01)
+        return False
 
     def _clear_events(self) -> None:
         """Drop stale input before a new screen, but never an Escape press."""
@@ -477,13 +480,14 @@ class Window:
                 if self.script:
                     self.script.tick()
                 pressed = self.event.getKeys()
-                self._check_escape(pressed)
+                if self._check_escape(pressed):
+                    pointer.take()  # clicks made while the quit question was up
                 for key in pressed:
                     if key in keys:
                         return keys[key], time.perf_counter() - onset
                 for x, y in pointer.presses():
                     for stim, value in clickable:
-                        if stim.contains(x, y):
+                        if stim.contains(x, y, units="pix"):  # a plugin's stim: any units
                             return value, time.perf_counter() - onset
 
     def choice_2afc(self, screen: ChoiceScreen) -> list[ChoiceAnswer]:
@@ -568,8 +572,10 @@ class Window:
                 if self.script:
                     self.script.tick()
                 keys = self.event.getKeys()
-                self._check_escape(keys)
-                clicked = any(confirm_box.contains(x, y) for x, y in pointer.presses())
+                if self._check_escape(keys):
+                    pointer.take()  # clicks made while the quit question was up
+                clicked = any(confirm_box.contains(x, y, units="pix")
+                              for x, y in pointer.presses())  # fmt: skip
                 if (clicked or any(k in ("return", "num_enter") for k in keys)) and typed_text(
                         str(field.text)) != NA:  # fmt: skip # the log's missing mark: no answer
                     rt = time.perf_counter() - onset
@@ -653,12 +659,13 @@ class Window:
                                               item=screen.task.id)  # fmt: skip
                 if self.script:
                     self.script.tick()
-                self._check_escape(self.event.getKeys())  # also takes the window's events
+                if self._check_escape(self.event.getKeys()):  # also takes the window's events
+                    pointer.take()  # clicks made while the quit question was up
                 for x, y in pointer.presses():
                     for box, _label, ci, word in cells:
-                        if box.contains(x, y):
+                        if box.contains(x, y, units="pix"):
                             picked[ci] = word
-                    if len(picked) == n and confirm_box.contains(x, y):
+                    if len(picked) == n and confirm_box.contains(x, y, units="pix"):
                         rt = time.perf_counter() - onset
                         if shot:  # the answer as confirmed
                             draw()
@@ -801,7 +808,8 @@ class Window:
                 for kind, x, y in pointer.take():  # every press and release, where it was made
                     rated = all(state.rating is not None for _, _, state, _ in rows)
                     for _, _, state, _ in rows:
-                        if kind == "release":
+                        if kind == "release":  # the drag ends where the button was let go
+                            state.move(x, y, now)
                             state.release()
                         elif rows[-1][1].on_confirm(x, y) and rated:
                             state.confirmed_at = now
@@ -813,7 +821,8 @@ class Window:
                         state.move(x, y, now)
                 all_rated = all(state.rating is not None for _, _, state, _ in rows)
                 keys = self.event.getKeys(modifiers=True)
-                self._check_escape(keys)
+                if self._check_escape(keys):
+                    pointer.take()  # clicks made while the quit question was up
                 active = next((s for _, _, s, _ in rows if s.confirmed_at is None), None)
                 for key, mods in keys:
                     if key in ("return", "space", "num_enter"):

@@ -152,3 +152,24 @@ def test_block_order_latin_square_spreads_each_block_over_every_place() -> None:
         update={"block_order": "fixed"})})  # fmt: skip
     for n in (1, 2, 5):
         assert [b.id for b in block_sequence(fixed, participant=f"P{n}")] == ids
+
+
+def test_the_calibration_of_intervals_runs_on_a_latin_square_block_order() -> None:
+    """``facelab analyze`` calibrates a 2AFC's per-participant intervals by simulating one
+    participant through the design; with the blocks in a Latin-square order that participant
+    needs a number (it was called 'calibration' and the analysis stopped)."""
+    import numpy as np
+
+    from facelab.experiment.simulate import design_sampler
+    from facelab.resources import protocol_path
+
+    p = load_protocol(protocol_path("gain_2afc"))
+    second = p.blocks[0].model_copy(update={"id": "again"})
+    p = p.model_copy(update={
+        "blocks": [p.blocks[0], second],
+        "presentation": p.presentation.model_copy(update={"block_order": "latin_square"}),
+    })  # fmt: skip
+    task = next(t.id for t in p.tasks if t.type == "choice_2afc")
+    rows = design_sampler(p)(task, 0.5, 1.0, 0.02, np.random.default_rng(3))
+    assert len(rows) == 2 * len([t for t in build_trials(p, participant="P1")
+                                 if t.block == "again"])  # fmt: skip
