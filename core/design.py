@@ -42,6 +42,7 @@ __all__ = [
     "block_trials",
     "build_trials",
     "count_trials",
+    "needs_numbered_ids",
     "participant_number",
     "participant_seed",
     "trial_order",
@@ -159,6 +160,14 @@ def balanced_latin_square(k: int) -> list[list[int]]:
     if k % 2:
         rows += [list(reversed(row)) for row in rows]
     return rows
+
+
+def needs_numbered_ids(protocol: Protocol) -> bool:
+    """True when the design orders something by participant number (a Latin-square block
+    order, or a block's Latin-square condition order): its participant ids must end in one."""
+    return protocol.presentation.block_order == "latin_square" or any(
+        b.order == "latin_square" for b in protocol.blocks
+    )
 
 
 def _number(participant: str, what: str) -> int:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from facelab.design import build_trials, participant_seed
+from facelab.design import build_trials, needs_numbered_ids, participant_seed
 from facelab.errors import StageError
 from facelab.experiment.adaptive import Staircases
 from facelab.experiment.timeline import (
@@ -542,9 +542,8 @@ def design_sampler(protocol: Protocol) -> DesignSampler:
         simulation = protocol.simulation.model_copy(update={"observer": observer})
         # a Latin-square order needs a participant number: a drawn one, so the calibration
         # spans the orders participants get
-        numbered = protocol.presentation.block_order == "latin_square" or any(
-            b.order == "latin_square" for b in protocol.blocks)  # fmt: skip
-        participant = f"C{int(rng.integers(1, 10**6))}" if numbered else "calibration"
+        participant = (f"C{int(rng.integers(1, 10**6))}" if needs_numbered_ids(protocol)
+                       else "calibration")  # fmt: skip
         rows = pd.DataFrame(
             simulated_rows(
                 protocol.model_copy(update={"simulation": simulation}),

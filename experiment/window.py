@@ -197,9 +197,10 @@ class Window:
             lineBreaking="uax14",
         )
 
-    def _check_escape(self, keys: list) -> bool:
-        """Escape asks whether to quit: y stops the session, n goes back to the screen (True:
-        the question was shown, so clicks made meanwhile are not answers to the screen)."""
+    def _check_escape(self, keys: list, pointer: _Pointer | None = None) -> None:
+        """Escape asks whether to quit: y stops the session, n goes back to the screen; the
+        clicks made while the question was up are dropped from ``pointer`` (no answers to the
+        screen)."""
         if any((k[0] if isinstance(k, tuple) else k) == "escape" for k in keys):
             prompt = self.text_stim(self.ui["quit"])
             while True:
@@ -212,9 +213,10 @@ class Window:
                         "continue with --resume"
                     )
                 if "n" in answer:
-                    return True
+                    if pointer is not None:
+                        pointer.take()
+                    return
                 self.core.wait(0.01)
-        return False
 
     def _clear_events(self) -> None:
         """Drop stale input before a new screen, but never an Escape press."""
@@ -480,8 +482,7 @@ class Window:
                 if self.script:
                     self.script.tick()
                 pressed = self.event.getKeys()
-                if self._check_escape(pressed):
-                    pointer.take()  # clicks made while the quit question was up
+                self._check_escape(pressed, pointer)
                 for key in pressed:
                     if key in keys:
                         return keys[key], time.perf_counter() - onset
@@ -572,8 +573,7 @@ class Window:
                 if self.script:
                     self.script.tick()
                 keys = self.event.getKeys()
-                if self._check_escape(keys):
-                    pointer.take()  # clicks made while the quit question was up
+                self._check_escape(keys, pointer)
                 clicked = any(confirm_box.contains(x, y, units="pix")
                               for x, y in pointer.presses())  # fmt: skip
                 if (clicked or any(k in ("return", "num_enter") for k in keys)) and typed_text(
@@ -659,8 +659,7 @@ class Window:
                                               item=screen.task.id)  # fmt: skip
                 if self.script:
                     self.script.tick()
-                if self._check_escape(self.event.getKeys()):  # also takes the window's events
-                    pointer.take()  # clicks made while the quit question was up
+                self._check_escape(self.event.getKeys(), pointer)  # takes the window's events
                 for x, y in pointer.presses():
                     for box, _label, ci, word in cells:
                         if box.contains(x, y, units="pix"):
@@ -821,8 +820,7 @@ class Window:
                         state.move(x, y, now)
                 all_rated = all(state.rating is not None for _, _, state, _ in rows)
                 keys = self.event.getKeys(modifiers=True)
-                if self._check_escape(keys):
-                    pointer.take()  # clicks made while the quit question was up
+                self._check_escape(keys, pointer)
                 active = next((s for _, _, s, _ in rows if s.confirmed_at is None), None)
                 for key, mods in keys:
                     if key in ("return", "space", "num_enter"):
