@@ -10,9 +10,13 @@ the short ones fill the gaps at the end.
 
 from __future__ import annotations
 
+import json
 import os
+import resource
 import shutil
 import subprocess
+import time
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +48,49 @@ def _own_display() -> None:
     os.environ.pop("XAUTHORITY", None)  # no cookie: the worker's own server admits local clients
 
 
+#: every test's wall and CPU seconds (its own process and the children it waited for: renders,
+#: ffmpeg, Dask workers; not Chromium's processes, which chromedriver does not wait for), one
+#: JSON line each, appended by whichever worker ran it; the run's summary adds them up by file.
+TIMES = ROOT / ".pytest_cache" / "facelab-test-times.jsonl"
+
+
+def _cpu() -> tuple[float, float]:
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    wall, (me, kids) = time.perf_counter(), _cpu()
+    yield
+    after = _cpu()
+    line = {"test": item.nodeid, "wall_s": round(time.perf_counter() - wall, 3),
+            "cpu_s": round(after[0] - me, 3), "children_cpu_s": round(after[1] - kids, 3)}
+    with TIMES.open("a", encoding="utf-8") as fh:  # one short line a write: whole lines interleave
+        fh.write(json.dumps(line) + "\n")
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
+    if os.environ.get("PYTEST_XDIST_WORKER") or not TIMES.is_file():
+        return
+    by_file: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
+    for raw in TIMES.read_text(encoding="utf-8").splitlines():
+        t = json.loads(raw)
+        by_file[t["test"].split("::")[0]][0] += t["cpu_s"] + t["children_cpu_s"]
+        by_file[t["test"].split("::")[0]][1] += t["wall_s"]
+    total = sum(cpu for cpu, _ in by_file.values())
+    terminalreporter.section(
+        f"test files by CPU seconds (all: {total:.0f} s, browsers not counted; {TIMES.name})"
+    )
+    for name, (cpu, wall) in sorted(by_file.items(), key=lambda kv: -kv[1][0])[:15]:
+        terminalreporter.write_line(f"{cpu:8.1f} s CPU {wall:8.1f} s wall  {name}")
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # the run's first process starts the record
+        TIMES.parent.mkdir(exist_ok=True)
+        TIMES.write_text("", encoding="utf-8")
     # a facelab child that dies in native code (a signal, not an error) prints where it was
     os.environ.setdefault("PYTHONFAULTHANDLER", "1")
     if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("DISPLAY"):

@@ -542,7 +542,8 @@ def test_a_conversation_in_an_emulated_headset(study: Path, tmp_path: Path) -> N
     results.mkdir()
     server = _server(study, results, talker=study / "talk.wav", path=path)
     with BackgroundServer(server) as bg:
-        assert SimulatedBrowser(server, bg.url, 1, seed=5, screenshots=shots).run() == "complete"
+        sim = SimulatedBrowser(server, bg.url, 1, seed=5, screenshots=shots, window=(640, 400))
+        assert sim.run() == "complete"  # the headset's two eyes drawn small: sooner frames
     with Session(server.engine) as db:
         rows = [x.row for x in db.scalars(select(Response))]
         clicks = {(a.record["trial_index"], a.record["item"]): a.record["value"]

@@ -163,16 +163,17 @@ def real(
     return parse
 
 
-def parse_size(text: str | None) -> tuple[int, int] | None:
-    """``WIDTHxHEIGHT`` -> (width, height); even numbers >= 64 (H.264 needs even sizes)."""
+def parse_size(text: str | None, *, option: str = "--size") -> tuple[int, int] | None:
+    """``WIDTHxHEIGHT`` -> (width, height); even numbers >= 64 (H.264 needs even sizes);
+    ``option``: the flag the errors name."""
     if not text:
         return None
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise FacelabError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x360") from None
+        raise FacelabError(f"{option} {text!r}: expected WIDTHxHEIGHT, e.g. 640x360") from None
     if w % 2 or h % 2 or w < 64 or h < 64:
-        raise FacelabError(f"--size {text!r}: width and height must be even and >= 64")
+        raise FacelabError(f"{option} {text!r}: width and height must be even and >= 64")
     return w, h
 
 

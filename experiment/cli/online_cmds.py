@@ -14,6 +14,7 @@ from facelab.experiment.cli.common import (
     add_conversation_options,
     conversation_talker,
     output_dir,
+    parse_size,
     seed,
     whole,
 )
@@ -29,6 +30,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise FacelabError(f"--port {args.port}: expected 1..65535 (0: any free port)")
     if args.simulate_participants is not None and args.simulate_participants < 1:
         raise FacelabError("--simulate-participants: expected a number >= 1")
+    window = parse_size(args.simulate_window, option="--simulate-window")
+    if window is not None and not args.simulate_participants:
+        raise FacelabError("--simulate-window: only with --simulate-participants N")
     asked = {"--simulate-headset-off": args.simulate_headset_off is not None,
              "--simulate-vr-input": args.simulate_vr_input is not None}  # fmt: skip
     headset = [flag for flag, given in asked.items() if given]
@@ -90,6 +94,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 progress=progress,
                 headset_off_at=args.simulate_headset_off,
                 vr_input=args.simulate_vr_input or "controller",
+                window=window or (1280, 800),
             )
         done = sum(o == "complete" for o in outcomes.values())
         print(f"{done} of {len(outcomes)} simulated participants complete")
@@ -219,6 +224,13 @@ def register(add: AddCommand) -> None:
     p.add_argument("--sim-seed", type=seed, default=1, metavar="S", help="seed of their answers")
     p.add_argument("--parallel", type=whole(lo=1), default=2, metavar="K", help="browsers at once")
     p.add_argument("--screenshots", metavar="DIR", help="PNGs of the first participant's screens")
+    p.add_argument(
+        "--simulate-window",
+        metavar="WxH",
+        help="the simulated participants' browser window (default 1280x800); an emulated "
+        "headset draws both eyes into it, so a smaller one (e.g. 640x400) runs a VR session "
+        "faster on a machine without a GPU, with smaller screenshots",
+    )
     add_conversation_options(p, who="the participant")
     p.add_argument(
         "--simulate-headset-off",
