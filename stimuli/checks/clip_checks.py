@@ -19,6 +19,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
+import scipy.fft as sfft
 
 from facelab.stimuli.checks.face_tracker import ClipTracking
 from facelab.stimuli.checks.rows import CheckRow, at_least, at_most, info
@@ -422,18 +423,23 @@ def mix_lag(sound: np.ndarray, intended: np.ndarray, *, sample_rate: int) -> int
     if n < 2:
         return 0
     reach = min(round(0.1 * sample_rate), n - 1)
-    corr = np.fft.irfft(np.fft.rfft(d, 2 * n) * np.conj(np.fft.rfft(m, 2 * n)))
+    # zero-padded to at least 2n (no wrap-around) and to a length of small prime factors: a
+    # clip's sample count is often near-prime, where the FFT is up to 10x slower
+    size = sfft.next_fast_len(2 * n, real=True)
+    corr = sfft.irfft(sfft.rfft(d, size) * np.conj(sfft.rfft(m, size)), size)
     lags = np.r_[np.arange(0, reach + 1), np.arange(-reach, 0)]  # circular: negative at the end
-    return int(lags[np.argmax(corr[lags % (2 * n)])])
+    return int(lags[np.argmax(corr[lags % size])])
 
 
 def noise_rows(
     sound: np.ndarray, intended: np.ndarray, *, quiet: np.ndarray, sample_rate: int,
     snr_db: float, noise_dbfs: float, fps: float, clip: str, condition: str,
+    lag: int | None = None,
 ) -> list[CheckRow]:  # fmt: skip
     """A speech-in-noise clip's sound, measured (``check`` noise). ``intended`` is the mix
     as made (:func:`facelab.stimuli.render.sound.clip_sound`), ``quiet`` marks its samples
-    where the voice is silent and the noise steady (between its fades).
+    where the voice is silent and the noise steady (between its fades); ``lag``: the
+    :func:`mix_lag` of the two when it was measured already.
 
     * ``speech_lag_ms``: the intended mix found in the decoded sound by cross-correlation, at
       most one frame from where it was put;
@@ -452,7 +458,7 @@ def noise_rows(
     d, m = np.asarray(sound[:n], np.float64), np.asarray(intended[:n], np.float64)
     if n == 0 or not np.any(m):
         return [at_most(-20.0, None, measure="mix_error_db", note="no sound to measure", **kw)]
-    lag = mix_lag(d, m, sample_rate=sample_rate)
+    lag = mix_lag(d, m, sample_rate=sample_rate) if lag is None else lag
     m = np.roll(m, lag)
     error = rms_db(d - m) - rms_db(m)
     steady = np.asarray(quiet[:n], bool)

@@ -299,10 +299,10 @@ def check_clips(
             def at_rate(x: np.ndarray, rate: int = padded.sample_rate) -> np.ndarray:
                 return resample(x, rate_in=rate, rate_out=AUDIO_RATE)
 
-            heard[m["clip_id"]] = (mix_lag(sounds[m["clip_id"]], at_rate(mix.samples),
-                                           sample_rate=AUDIO_RATE)
-                                   / AUDIO_RATE * float(m["fps"]))  # fmt: skip
-            rows += noise_rows(sounds[m["clip_id"]], at_rate(mix.samples),
+            intended = at_rate(mix.samples)
+            lag = mix_lag(sounds[m["clip_id"]], intended, sample_rate=AUDIO_RATE)
+            heard[m["clip_id"]] = lag / AUDIO_RATE * float(m["fps"])
+            rows += noise_rows(sounds[m["clip_id"]], intended, lag=lag,
                                quiet=at_rate(quiet.astype(np.float32)) > 0.999,
                                sample_rate=AUDIO_RATE, snr_db=cond.noise.snr_db,
                                noise_dbfs=cond.noise.speech_level_dbfs - cond.noise.snr_db,
