@@ -79,6 +79,8 @@ def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Co
         t = json.loads(raw)
         by_file[t["test"].split("::")[0]][0] += t["cpu_s"] + t["children_cpu_s"]
         by_file[t["test"].split("::")[0]][1] += t["wall_s"]
+    if not by_file:
+        return
     total = sum(cpu for cpu, _ in by_file.values())
     terminalreporter.section(
         f"test files by CPU seconds (all: {total:.0f} s, browsers not counted; {TIMES.name})"
@@ -104,7 +106,28 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Slow tests first. Under scripts/test.sh's work stealing each of n workers starts on one
+    of n equal consecutive runs of the collection, so the slowest measured tests
+    (tests/slowest_tests.json) are dealt out to the runs' starts, longest first to the run
+    with the least so far: each starts at once on its own worker, not queued behind another."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: slow first
+    known = json.loads((ROOT / "tests" / "slowest_tests.json").read_text("utf-8"))["seconds"]
+    heavy = sorted((i for i in items if i.nodeid in known), key=lambda i: -known[i.nodeid])
+    rest = [i for i in items if i.nodeid not in known]
+    n = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    runs: list[list[pytest.Item]] = [[] for _ in range(n)]
+    loads = [0.0] * n
+    for item in heavy:
+        k = loads.index(min(loads))
+        runs[k].append(item)
+        loads[k] += known[item.nodeid]
+    ordered, left = [], len(items)
+    for k in range(n):  # the scheduler's first split: left // (workers still to serve)
+        size = max(left // (n - k), len(runs[k]))
+        take = size - len(runs[k])
+        ordered += runs[k] + rest[:take]
+        rest, left = rest[take:], left - size
+    items[:] = ordered + rest
 
 
 @pytest.fixture
