@@ -187,6 +187,14 @@ def test_the_emulated_headsets_options_need_simulated_participants_in_vr(
     err = capsys.readouterr().err
     assert "--simulate-headset-off: the simulated participants wear a headset only when" in err
     assert "presentation.display is webxr" in err and "has video" in err
+    # the simulated browsers' window: only for them, and a size
+    assert main([*base, "--simulate-window", "640x400"]) == 2
+    assert "--simulate-window: only with --simulate-participants N" in capsys.readouterr().err
+    for bad, said in (("big", "expected WIDTHxHEIGHT"),
+                      ("641x400", "width and height must be even and >= 64")):  # fmt: skip
+        assert main([*base, "--simulate-participants", "1", "--simulate-window", bad]) == 2
+        err = capsys.readouterr().err
+        assert f"--simulate-window {bad!r}: {said}" in err, err
     assert "Traceback" not in err and not results.exists()
 
 
