@@ -76,7 +76,10 @@ def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Co
         return
     by_file: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
     for raw in TIMES.read_text(encoding="utf-8").splitlines():
-        t = json.loads(raw)
+        try:
+            t = json.loads(raw)
+        except ValueError:  # a worker killed mid-line
+            continue
         by_file[t["test"].split("::")[0]][0] += t["cpu_s"] + t["children_cpu_s"]
         by_file[t["test"].split("::")[0]][1] += t["wall_s"]
     if not by_file:
@@ -105,6 +108,7 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         _XVFB.wait(timeout=10)
 
 
+@pytest.hookimpl(trylast=True)  # after -m / -k deselection: the split is of the tests run
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Slow tests first. Under scripts/test.sh's work stealing each of n workers starts on one
     of n equal consecutive runs of the collection, so the slowest measured tests

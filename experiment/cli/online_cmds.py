@@ -30,9 +30,16 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise FacelabError(f"--port {args.port}: expected 1..65535 (0: any free port)")
     if args.simulate_participants is not None and args.simulate_participants < 1:
         raise FacelabError("--simulate-participants: expected a number >= 1")
-    window = parse_size(args.simulate_window, option="--simulate-window")
-    if window is not None and not args.simulate_participants:
-        raise FacelabError("--simulate-window: only with --simulate-participants N")
+    window = None
+    if args.simulate_window is not None:
+        if not args.simulate_participants:
+            raise FacelabError("--simulate-window: only with --simulate-participants N")
+        window = parse_size(args.simulate_window, option="--simulate-window")
+        if window is None:  # given empty
+            raise FacelabError("--simulate-window '': expected WIDTHxHEIGHT, e.g. 640x400")
+        if window[0] > 7680 or window[1] > 4320:
+            raise FacelabError(f"--simulate-window {args.simulate_window!r}: expected at most "
+                               "7680x4320")  # fmt: skip
     asked = {"--simulate-headset-off": args.simulate_headset_off is not None,
              "--simulate-vr-input": args.simulate_vr_input is not None}  # fmt: skip
     headset = [flag for flag, given in asked.items() if given]
@@ -76,7 +83,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         routes=routes,
     )
     if args.simulate_participants:
-        from facelab.experiment.online.browser import run_simulated
+        from facelab.experiment.online.browser import WINDOW, run_simulated
 
         with BackgroundServer(server, host=args.host, port=args.port) as bg:
             print(f"serving {protocol.study.id!r} at {bg.url} for simulated participants")
@@ -94,7 +101,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 progress=progress,
                 headset_off_at=args.simulate_headset_off,
                 vr_input=args.simulate_vr_input or "controller",
-                window=window or (1280, 800),
+                window=window or WINDOW,
             )
         done = sum(o == "complete" for o in outcomes.values())
         print(f"{done} of {len(outcomes)} simulated participants complete")

@@ -39,7 +39,9 @@ from facelab.experiment.timeline import (
     ResponseScreen,
 )
 
-__all__ = ["SimulatedBrowser", "chromium", "emulator_js", "run_simulated", "simulated_token"]
+__all__ = [
+    "WINDOW", "SimulatedBrowser", "chromium", "emulator_js", "run_simulated", "simulated_token"
+]
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
@@ -52,7 +54,11 @@ def simulated_token(server: StudyServer, k: int) -> str:
     ).hexdigest()
 
 
-def chromium(*, size: tuple[int, int] = (1280, 800), extra_args: Sequence[str] = ()) -> Any:
+#: the simulated participants' browser window (width, height; pixels) unless asked otherwise
+WINDOW = (1280, 800)
+
+
+def chromium(*, size: tuple[int, int] = WINDOW, extra_args: Sequence[str] = ()) -> Any:
     """A headless Chromium under Selenium, sound muted, autoplay allowed (no person to click);
     ``extra_args``: more command-line switches (e.g. a fake microphone)."""
     from selenium import webdriver
@@ -361,7 +367,7 @@ class SimulatedBrowser:
     # the browser window (pixels) when it opens its own; an emulated headset draws both eyes
     # into it, so a smaller one draws faster without a GPU (1280x800 -> 640x400: the same
     # session in about 60 % of the time)
-    window: tuple[int, int] = (1280, 800)
+    window: tuple[int, int] = WINDOW
     _emulator: Any = None
 
     def participant(self) -> tuple[Participant, str]:
@@ -755,7 +761,7 @@ def run_simulated(
     progress: Callable[[int, str], None] | None = None,
     headset_off_at: int | None = None,
     vr_input: str = "controller",
-    window: tuple[int, int] = (1280, 800),
+    window: tuple[int, int] = WINDOW,
 ) -> dict[int, str]:
     """Drive simulated participants 1..n through the study; returns {k: outcome}. The first
     takes screenshots and, in VR, the headset off during trial ``headset_off_at``'s clip;
