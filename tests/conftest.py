@@ -80,8 +80,9 @@ def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Co
             t = json.loads(raw)
         except ValueError:  # a worker killed mid-line
             continue
-        by_file[t["test"].split("::")[0]][0] += t["cpu_s"] + t["children_cpu_s"]
-        by_file[t["test"].split("::")[0]][1] += t["wall_s"]
+        spent = by_file[t["test"].split("::")[0]]
+        spent[0] += t["cpu_s"] + t["children_cpu_s"]
+        spent[1] += t["wall_s"]
     if not by_file:
         return
     total = sum(cpu for cpu, _ in by_file.values())

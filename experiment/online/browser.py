@@ -366,7 +366,7 @@ class SimulatedBrowser:
     vr_input: str = "controller"  # display webxr: the emulated headset's input (VR_INPUTS)
     # the browser window (pixels) when it opens its own; an emulated headset draws both eyes
     # into it, so a smaller one draws faster without a GPU (1280x800 -> 640x400: the same
-    # session in about 60 % of the time)
+    # session in about 58 % of the time)
     window: tuple[int, int] = WINDOW
     _emulator: Any = None
 
