@@ -309,11 +309,11 @@ def test_renderers_open_at_once_each_keep_drawing_when_another_closes() -> None:
         assert np.array_equal(d.frame(open_mouth), before)
 
 
-def test_drawing_only_the_heads_rectangle_changes_no_pixel() -> None:
-    """Frames are cleared, drawn and resolved only inside the avatar's screen rectangle (and
-    the previous frame's): bit for bit what drawing the whole frame gives, also when the head
-    swings (its old place must be cleared), moves out of the picture and comes back, with and
-    without multisampling."""
+def test_resolving_only_the_heads_rectangle_changes_no_pixel() -> None:
+    """Frames are resolved (and turned top row first) only inside the avatar's screen
+    rectangle (and the previous frame's): bit for bit what resolving the whole frame gives,
+    also when the head swings (its old place must be replaced), moves out of the picture and
+    comes back, with and without multisampling."""
     from facelab.stimuli.avatar.rig import HeadPose
 
     head = default_head()
