@@ -63,6 +63,23 @@ def test_the_protocol_interleaves_four_series_at_seven_snrs() -> None:
     assert srt.is_noise_task(protocol, task) and len(task.labels) == 6
 
 
+def test_a_noise_token_is_the_inverse_fft_numpy_gives_bit_for_bit() -> None:
+    """Noise tokens stay what earlier renders made: the faster inverse FFT gives numpy's
+    numbers exactly, at a prime length (where the two differ most in speed)."""
+    from facelab.stimuli.speech.noise import NPERSEG
+
+    spectrum = long_term_spectrum([_voice()], sample_rate=RATE)
+    n = 24_989  # prime
+    made = shaped_noise(spectrum, n=n, rng=noise_rng("study", "set", "word", "-6"))
+    rng = noise_rng("study", "set", "word", "-6")
+    bins = np.fft.rfftfreq(n)
+    shape = np.interp(bins, np.linspace(0.0, 0.5, len(spectrum)), spectrum)
+    phases = rng.uniform(0.0, 2.0 * np.pi, len(bins))
+    amplitude = shape * np.abs(rng.normal(size=len(bins)) + 1j * rng.normal(size=len(bins)))
+    x = np.fft.irfft(amplitude * np.exp(1j * phases), n=n)
+    assert n > NPERSEG and np.array_equal(made, x / np.sqrt(np.mean(x**2)))
+
+
 @pytest.mark.parametrize("snr", [-18.0, -6.0, 0.0, 6.0])
 def test_the_mix_keeps_the_speech_level_and_sets_the_noise_below_it(snr: float) -> None:
     voice = _voice()
