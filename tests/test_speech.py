@@ -39,6 +39,30 @@ def test_tts_parameters_change_the_voice() -> None:
     assert synthesize("あいうえお", sample_rate=16_000).sample_rate == 16_000
 
 
+def test_an_utterance_asked_again_is_the_first_ones_copy(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A render and its checks ask for the same speech: OpenJTalk runs once, and a caller
+    changing its samples does not change what the next caller gets."""
+    from facelab.stimuli.speech import tts
+
+    first = synthesize("おはようございます", speed=1.05)
+    expected = first.samples.copy()
+    first.samples[:] = 0.0  # the caller's own copy
+    class RanAgainError(Exception):
+        pass
+
+    def refuse() -> str:
+        raise RanAgainError
+
+    monkeypatch.setattr(tts, "_open_jtalk", refuse)
+    again = synthesize("おはようございます", speed=1.05)
+    assert np.array_equal(again.samples, expected) and again.phones == first.phones
+    assert again.words == first.words and again.source == first.source
+    with pytest.raises(RanAgainError):
+        synthesize("おはようございます", speed=1.1)  # other parameters: another run
+
+
 def _f0(speech) -> float:
     phone = speech.phones[1]
     seg = speech.samples[int(phone.start * 48_000) : int(phone.end * 48_000)].astype(float)

@@ -8,10 +8,13 @@ generated from (5 ms resolution for mei: 240-sample frames at 48 kHz).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import shutil
 import subprocess
 import tempfile
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 from facelab.errors import SpeechError
@@ -22,6 +25,13 @@ __all__ = ["DICTIONARY_DIR", "TTS_SAMPLE_RATE", "parse_trace", "synthesize", "vo
 
 DICTIONARY_DIR = Path("/var/lib/mecab/dic/open-jtalk/naist-jdic")
 TTS_SAMPLE_RATE = 48_000  # mei_normal's native rate
+
+# OpenJTalk is deterministic, and one process often asks for the same utterance more than once
+# (a render makes a clip's speech, its stimulus checks make it again to compare the clip with):
+# the latest results are kept, up to this many bytes of samples, and handed out as copies
+_MEMO_BYTES = 64 * 2**20
+_memo: OrderedDict[tuple, Speech] = OrderedDict()
+_memo_lock = threading.Lock()
 
 
 def voice_file() -> Path:
@@ -77,6 +87,26 @@ def synthesize(
         raise SpeechError("empty text: nothing to synthesise")
     if not 0.5 <= speed <= 2.0:
         raise SpeechError(f"speed {speed} is outside 0.5..2")
+    key = (clean, float(speed), float(pitch_halftones), alpha, int(sample_rate))
+    with _memo_lock:
+        kept = _memo.get(key)
+        if kept is not None:
+            _memo.move_to_end(key)
+    if kept is None:
+        kept = _run_open_jtalk(clean, speed=speed, pitch_halftones=pitch_halftones,
+                               alpha=alpha, sample_rate=sample_rate)  # fmt: skip
+        with _memo_lock:
+            _memo[key] = kept
+            total = sum(v.samples.nbytes for v in _memo.values())
+            while total > _MEMO_BYTES and len(_memo) > 1:
+                total -= _memo.popitem(last=False)[1].samples.nbytes
+    return dataclasses.replace(kept, samples=kept.samples.copy())
+
+
+def _run_open_jtalk(
+    clean: str, *, speed: float, pitch_halftones: float, alpha: float | None, sample_rate: int
+) -> Speech:
+    """One run of ``open_jtalk`` (see :func:`synthesize`)."""
     exe = _open_jtalk()
     with tempfile.TemporaryDirectory(prefix="facelab-tts-") as tmp:
         tmpdir = Path(tmp)
