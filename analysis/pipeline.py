@@ -48,6 +48,7 @@ from facelab.analysis.stimulus_checks import summarize_stimulus_checks
 from facelab.analysis.study import StudyResults, analyze_study
 from facelab.analysis.tasks import DesignSampler, TaskResults, analyze_tasks, answer_counts
 from facelab.analysis.vr_screen_poses import screen_pose_summary, screen_pose_table
+from facelab.blas_threads import on_one_blas_thread
 from facelab.errors import AnalysisError
 from facelab.formats import MANIFEST_NAME
 from facelab.protocol import Protocol, protocol_hash
@@ -88,6 +89,7 @@ def study_root(results: Path, protocol: Protocol) -> Path:
     return results if results.name == protocol.study.id else results / protocol.study.id
 
 
+@on_one_blas_thread  # many small fits: see facelab.blas_threads
 def run(
     results: Path,
     protocol: Protocol,

@@ -57,6 +57,7 @@ from facelab.analysis.tasks import (
     in_protocol_order,
     score_identification,
 )
+from facelab.blas_threads import one_blas_thread
 from facelab.errors import AnalysisError, StageError
 from facelab.experiment.simulate import check_effects, simulated_rows
 from facelab.grid import Cluster, GridTask, run_grid
@@ -232,15 +233,17 @@ def protocol_estimates(data: pd.DataFrame, protocol: Protocol) -> dict[str, floa
 def _one_study(
     study: tuple[Protocol, list[str], np.random.Generator, Mapping[str, float] | None],
 ) -> tuple[dict[tuple[str, str], float], dict[str, float]]:
-    """One simulated study of participants ``ids``, analysed: (tests, estimates)."""
+    """One simulated study of participants ``ids``, analysed: (tests, estimates). Numpy's
+    BLAS is held to one thread (:func:`facelab.blas_threads.one_blas_thread`)."""
     protocol, ids, study_rng, effects = study
-    log = [
-        row
-        for pid, child in zip(ids, study_rng.spawn(len(ids)), strict=True)
-        for row in simulated_rows(protocol, participant=pid, rng=child, effects=effects)
-    ]
-    data = frame_from_rows(log)
-    return protocol_tests(data, protocol), protocol_estimates(data, protocol)
+    with one_blas_thread():
+        log = [
+            row
+            for pid, child in zip(ids, study_rng.spawn(len(ids)), strict=True)
+            for row in simulated_rows(protocol, participant=pid, rng=child, effects=effects)
+        ]
+        data = frame_from_rows(log)
+        return protocol_tests(data, protocol), protocol_estimates(data, protocol)
 
 
 def _study_chunk(studies: list) -> list:

@@ -327,3 +327,39 @@ def test_power_simulate_analyses_a_study_as_facelab_analyze_does(tmp_path: Path)
     assert np.isfinite(tests[("natural/s", "rm_anova")])
     assert tests[("natural/s", "rm_anova")] == pytest.approx(p_analyze, rel=1e-12)
     assert any("P3" in n and "lack a condition" in n for n in study.notes)
+
+
+def test_the_analysis_and_power_studies_hold_blas_to_one_thread(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Their many small fits run with one BLAS thread (facelab.blas_threads: with OpenBLAS's
+    spinning threads `facelab power --simulate` of kato2021_sync took 130 s, with one 11 s),
+    whatever the caller allowed."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from facelab.analysis import pipeline
+    from facelab.experiment import simulated_power as power_module
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    class SeenError(Exception):
+        pass
+
+    seen: list[list[int]] = []
+
+    def look(*args: object, **kwargs: object) -> None:
+        seen.append([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"])
+        raise SeenError
+
+    path = protocol_path("kato2021_sync")
+    protocol = load_protocol(path)
+    monkeypatch.setattr(pipeline, "load_results", look)
+    monkeypatch.setattr(power_module, "frame_from_rows", look)
+    with threadpool_limits(limits=2, user_api="blas"):
+        allowed = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+        with pytest.raises(SeenError):
+            pipeline.run(tmp_path, protocol, protocol_path=path, out=tmp_path / "out")
+        with pytest.raises(SeenError):
+            power_module._one_study((protocol, ["P1", "P2"], np.random.default_rng(1), None))
+    assert allowed and max(allowed) == 2  # the test can fail: the caller allowed two
+    assert seen == [[1] * len(allowed)] * 2

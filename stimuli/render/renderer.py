@@ -22,7 +22,7 @@ Speed on a CPU-only machine (Mesa llvmpipe) decides the design:
   (deforming, normals) and took a whole core from llvmpipe's rasterisers - 4x MSAA at 720p30
   ran at RTF 1.04 with them and 0.72 without (``facelab bench render``).
   :meth:`Renderer.frames` holds numpy's BLAS to one thread while a clip is drawn
-  (threadpoolctl).
+  (:func:`facelab.blas_threads.one_blas_thread`).
 
 Frames are ``(height, width, 3)`` uint8 RGB. ``PYOPENGL_PLATFORM`` defaults to ``egl``.
 """
@@ -37,7 +37,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
-from threadpoolctl import threadpool_limits
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -48,6 +47,7 @@ import pyrender
 from OpenGL import GL
 from pyrender import renderer as _pr_renderer
 
+from facelab.blas_threads import one_blas_thread
 from facelab.errors import StageError
 from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.avatar.rig import HeadPose
@@ -388,7 +388,7 @@ class Renderer:
         drawn = False
         # one BLAS thread while the clip is drawn (see the module docstring); the caller's own
         # numpy work between clips (e.g. analysing the next stimulus) keeps its threads
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             for w, pose in pairs:
                 prepared = self._prepare(w, pose)  # overlaps the previous frame's rasterisation
                 if drawn:
