@@ -174,6 +174,7 @@ def test_the_lab_window_refuses_a_conversation_it_cannot_let_the_participant_hea
 # --------------------------------------------------------------------------- simulate, analyse
 
 
+@pytest.mark.slow
 def test_simulated_conversations_are_tabulated_and_kept_out_of_the_trials(
     tmp_path: Path, capsys
 ) -> None:

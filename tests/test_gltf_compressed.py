@@ -152,6 +152,7 @@ def test_a_compressed_avatar_is_described(
     assert report["arkit_targets"] == "52/52" and report["textures"] and not report["notes"]
 
 
+@pytest.mark.slow
 def test_damaged_compressed_files_load_or_are_refused(
     samples: dict[str, Path], tmp_path: Path
 ) -> None:

@@ -373,6 +373,7 @@ def test_impression_render_writes_one_clip_per_level(
 # --------------------------------------------------------------------------- in protocols
 
 
+@pytest.mark.slow
 def test_shipped_impression_protocols_simulate_and_analyse(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

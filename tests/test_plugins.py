@@ -82,6 +82,7 @@ def test_an_installed_method_is_listed_validated_and_rendered(installed: Path,
     assert track.names == ["jawOpen"] and track.values.max() > 0.5
 
 
+@pytest.mark.slow
 def test_a_broken_plugin_is_named_and_facelab_still_works(installed: Path, tmp_path: Path) -> None:
     """A package whose entry point names a module that needs one not installed: ``facelab
     plugins`` names the package and what is missing (exit 1); validating kato2021 works."""
@@ -151,6 +152,7 @@ def _with_confidence(folder: Path, *, options: str = "{p_sure: 0.7}", short: boo
     return path
 
 
+@pytest.mark.slow
 def test_an_installed_screen_kind_is_validated_simulated_and_tabled(
     installed: Path, tmp_path: Path
 ) -> None:

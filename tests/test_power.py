@@ -158,6 +158,7 @@ simulation:
 """
 
 
+@pytest.mark.slow
 def test_simulated_power_of_a_protocol_matches_the_formula(tmp_path: Path) -> None:
     """The whole pipeline (design, timeline, simulated answers, RM ANOVA) at n = 20 against
     the non-central F formula with f2 from the simulation model: 4 ratings per cell, so
@@ -202,6 +203,7 @@ def test_simulated_identification_test_keeps_alpha_with_few_participants() -> No
     assert ident["power"] <= 0.05 + 2 * np.sqrt(0.05 * 0.95 / sims)
 
 
+@pytest.mark.slow
 def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "pow.yaml"
     path.write_text(_TWO_CONDITIONS, encoding="utf-8")
@@ -235,6 +237,7 @@ def test_power_simulate_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert "nothing to simulate" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_simulated_threshold_precision_of_a_forced_choice_protocol(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

@@ -371,6 +371,7 @@ def test_ids_that_would_make_clip_names_collide_are_refused(
     assert issue.line and ("no '__'" in issue.message or "64 characters" in issue.message)
 
 
+@pytest.mark.slow
 def test_a_large_protocol_validates(tmp_path: Path, kato_text: str) -> None:
     """150,000 stimuli (7.8 MB of YAML): answered, not hung (timing: see the closing note)."""
     stims = "".join(f"      - id: s{i}\n        text: こんにちは。\n" for i in range(150_000))

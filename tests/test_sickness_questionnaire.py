@@ -93,6 +93,7 @@ def test_the_questionnaire_opens_and_closes_the_session_and_resumes_where_it_sto
     assert todo[2] == before[5]
 
 
+@pytest.mark.slow
 def test_simulated_sessions_are_scored_and_a_missing_answer_is_named(tmp_path: Path) -> None:
     path = tmp_path / "kato.yaml"
     path.write_text(_with_ssq(kato_short(protocol_path("kato2021").read_text("utf-8"))), "utf-8")

@@ -249,6 +249,7 @@ def test_a_row_off_the_participants_design_is_refused(
     assert "participant P01 " in err
 
 
+@pytest.mark.slow
 def test_incomplete_participant_is_reported_and_left_out_of_the_rm_analysis(
     simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -29,7 +29,7 @@ REF = Path(__file__).parent / "reference"
 EXAMPLES = (
     "gain_2afc",
     "gain_staircase",
-    "gain_questplus",
+    pytest.param("gain_questplus", marks=pytest.mark.slow),  # ~13 s
     "method_identify",
     "gain_vas",
     "horii_impression_side",
