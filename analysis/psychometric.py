@@ -101,13 +101,14 @@ def count_responses(
     missing = [c for c in (x, y, *by) if c not in trials.columns]
     if missing:
         raise AnalysisError(f"psychometric data lack column(s) {missing}")
-    data = trials.dropna(subset=[x, y])
-    values = pd.to_numeric(data[y].astype(float), errors="coerce")
+    # the two columns only, not the whole frame (simulations count thousands of sessions)
+    keep = (trials[x].notna() & trials[y].notna()).to_numpy()
+    values = pd.to_numeric(trials[y][keep].astype(float), errors="coerce")
     if values.isna().any() or not values.isin([0.0, 1.0]).all():
         raise AnalysisError(f"column {y!r} must hold 0/1 answers")
-    data = data.assign(_y=values, _x=pd.to_numeric(data[x], errors="coerce"))
-    if not by:  # counted directly (a groupby costs ~10 ms; simulations count thousands)
-        level = data["_x"].to_numpy(dtype=float)
+    numeric = pd.to_numeric(trials[x][keep], errors="coerce")
+    if not by:  # counted directly (a groupby costs ~10 ms)
+        level = numeric.to_numpy(dtype=float)
         kept = ~np.isnan(level)
         levels, at = np.unique(level[kept], return_inverse=True)
         return pd.DataFrame({
@@ -116,6 +117,7 @@ def count_responses(
             "k": np.bincount(at, weights=values.to_numpy()[kept], minlength=len(levels))
             .round().astype(int),
         })  # fmt: skip
+    data = trials.loc[keep, list(by)].assign(_y=values.to_numpy(), _x=numeric.to_numpy())
     keys = [*by, "_x"]
     out = data.groupby(keys, sort=True).agg(n=("_y", "size"), k=("_y", "sum")).reset_index()
     out = out.rename(columns={"_x": "level"})
