@@ -258,6 +258,21 @@ def test_numeric_options_are_checked_before_anything_runs(
     assert info.value.code == 2 and said in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize(
+    ("size", "said"),
+    [("", "--size '': expected WIDTHxHEIGHT"), ("640x", "expected WIDTHxHEIGHT"),
+     ("641x360", "even and >= 64"), ("8000x4000", "expected at most 7680x4320")],
+)  # fmt: skip
+def test_a_size_given_empty_or_too_large_is_refused_not_ignored(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], size: str, said: str
+) -> None:
+    """`--size ''` once fell back to the protocol's resolution as if the flag were absent."""
+    out = tmp_path / "clips"
+    assert main(["render", str(kato_path), "--out", str(out), "--size", size]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "Traceback" not in err and not out.exists()
+
+
 def test_option_types_accept_what_they_should() -> None:
     from facelab.experiment.cli.common import real, whole
 

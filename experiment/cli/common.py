@@ -163,10 +163,14 @@ def real(
     return parse
 
 
+MAX_SIZE = (7680, 4320)  # as the protocol's rendering.width/height allow
+
+
 def parse_size(text: str | None, *, option: str = "--size") -> tuple[int, int] | None:
-    """``WIDTHxHEIGHT`` -> (width, height); even numbers >= 64 (H.264 needs even sizes);
-    ``option``: the flag the errors name."""
-    if not text:
+    """``WIDTHxHEIGHT`` -> (width, height); even numbers from 64 to 7680x4320 (H.264 needs
+    even sizes; 8K is the largest frame a protocol may ask for); None when the flag was not
+    given (an empty value is an error); ``option``: the flag the errors name."""
+    if text is None:
         return None
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -174,6 +178,8 @@ def parse_size(text: str | None, *, option: str = "--size") -> tuple[int, int] |
         raise FacelabError(f"{option} {text!r}: expected WIDTHxHEIGHT, e.g. 640x360") from None
     if w % 2 or h % 2 or w < 64 or h < 64:
         raise FacelabError(f"{option} {text!r}: width and height must be even and >= 64")
+    if w > MAX_SIZE[0] or h > MAX_SIZE[1]:
+        raise FacelabError(f"{option} {text!r}: expected at most {MAX_SIZE[0]}x{MAX_SIZE[1]}")
     return w, h
 
 

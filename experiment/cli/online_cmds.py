@@ -35,11 +35,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         if not args.simulate_participants:
             raise FacelabError("--simulate-window: only with --simulate-participants N")
         window = parse_size(args.simulate_window, option="--simulate-window")
-        if window is None:  # given empty
-            raise FacelabError("--simulate-window '': expected WIDTHxHEIGHT, e.g. 640x400")
-        if window[0] > 7680 or window[1] > 4320:
-            raise FacelabError(f"--simulate-window {args.simulate_window!r}: expected at most "
-                               "7680x4320")  # fmt: skip
     asked = {"--simulate-headset-off": args.simulate_headset_off is not None,
              "--simulate-vr-input": args.simulate_vr_input is not None}  # fmt: skip
     headset = [flag for flag, given in asked.items() if given]
