@@ -155,8 +155,7 @@ def render_size(*, width: int, height: int, window: tuple[int, int]) -> tuple[in
 def _render_worker(conn, protocol_path: str, names: tuple[str, ...], size: tuple[int, int]):
     """A process of its own: the protocol's avatar drawn by the offline renderer; each
     request ``(K,)`` weights of ``names`` is answered with the frame's RGB bytes."""
-    from threadpoolctl import threadpool_limits
-
+    from facelab.blas_threads import one_blas_thread
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.renderer import Renderer
     from facelab.stimuli.render.scene import load_avatar, settings_for
@@ -168,7 +167,7 @@ def _render_worker(conn, protocol_path: str, names: tuple[str, ...], size: tuple
         columns = np.array([avatar.target_names.index(n) for n in names], dtype=int)
         settings = replace(settings_for(protocol), width=size[0], height=size[1])
         # one BLAS thread: OpenBLAS's idle workers spin, taking the core the window needs
-        with threadpool_limits(limits=1, user_api="blas"), Renderer(avatar, settings) as renderer:
+        with one_blas_thread(), Renderer(avatar, settings) as renderer:
             full = np.zeros(len(avatar.target_names))
             conn.send(("ready", None))
             while True:
