@@ -117,7 +117,7 @@ def count_responses(
             "k": np.bincount(at, weights=values.to_numpy()[kept], minlength=len(levels))
             .round().astype(int),
         })  # fmt: skip
-    data = trials.loc[keep, list(by)].assign(_y=values.to_numpy(), _x=numeric.to_numpy())
+    data = trials.loc[keep, list(by)].assign(_y=values.to_numpy(), _x=numeric.array)
     keys = [*by, "_x"]
     out = data.groupby(keys, sort=True).agg(n=("_y", "size"), k=("_y", "sum")).reset_index()
     out = out.rename(columns={"_x": "level"})

@@ -27,7 +27,9 @@ _R = TypeVar("_R")
 
 def one_blas_thread() -> AbstractContextManager[object]:
     """A context in which numpy's BLAS (OpenBLAS, MKL, ...) uses one thread; the previous
-    limits come back on leaving it."""
+    limits come back on leaving it. The limit is the whole process's: not for threads that
+    enter and leave it concurrently (their exits may restore each other's limits - a matter
+    of speed only, never of results)."""
     return threadpool_limits(limits=1, user_api="blas")
 
 

@@ -313,8 +313,9 @@ def test_resolving_only_the_heads_rectangle_changes_no_pixel() -> None:
     """Frames are resolved (and turned top row first) only inside the avatar's screen
     rectangle (and the previous frame's): bit for bit what resolving the whole frame gives,
     also when the head swings (its old place must be replaced), moves out of the picture and
-    comes back, with and without multisampling."""
+    comes back, or a frame is drawn and never read back, with and without multisampling."""
     from facelab.stimuli.avatar.rig import HeadPose
+    from facelab.stimuli.render.renderer import _union
 
     head = default_head()
     weights = [head.weight_vector({"jawOpen": 0.15 * (k % 5)}) for k in range(10)]
@@ -334,11 +335,26 @@ def test_resolving_only_the_heads_rectangle_changes_no_pixel() -> None:
             boxed._draw(boxed._screen_box(away))
             empty = boxed._collect()
             back = boxed.frame(weights[0], pose=poses[0])
+            # a frame drawn and never read back (an error mid-clip), the head moved aside: the
+            # next frame there must still replace what the last one read back left
+            aside = head.deform(weights[0]) + np.array([0.25, 0.0, 0.0], np.float32)
+            last, moved = boxed._screen_box(head.deform(weights[0], pose=poses[0])), None
+            for _ in range(2):
+                moved = boxed._screen_box(aside)
+                boxed._upload(aside, boxed._lit(aside))
+                boxed._draw(moved)
+            after = boxed._collect()
+            assert moved is not None and last is not None
+            assert moved[0] > last[0] and _union(moved, moved) != _union(moved, last)
         with Renderer(head, s) as whole:
             whole._screen_box = lambda verts: None  # type: ignore[method-assign]
             reference = list(whole.frames(weights, poses))
             reference_back = whole.frame(weights[0], pose=poses[0])
+            whole._upload(aside, whole._lit(aside))
+            whole._draw(None)
+            reference_after = whole._collect()
         assert all(b is not None and b[2] * b[3] < 0.8 * 320 * 240 for b in boxes)
         assert all(np.array_equal(a, b) for a, b in zip(drawn, reference, strict=True))
         assert np.all(empty == empty[0, 0])  # nothing of the head left behind
         assert np.array_equal(back, reference_back)
+        assert np.array_equal(after, reference_after)

@@ -166,10 +166,13 @@ def real(
 MAX_SIZE = (7680, 4320)  # as the protocol's rendering.width/height allow
 
 
-def parse_size(text: str | None, *, option: str = "--size") -> tuple[int, int] | None:
-    """``WIDTHxHEIGHT`` -> (width, height); even numbers from 64 to 7680x4320 (H.264 needs
-    even sizes; 8K is the largest frame a protocol may ask for); None when the flag was not
-    given (an empty value is an error); ``option``: the flag the errors name."""
+def parse_size(
+    text: str | None, *, option: str = "--size", largest: tuple[int, int] | None = MAX_SIZE
+) -> tuple[int, int] | None:
+    """``WIDTHxHEIGHT`` -> (width, height); even numbers >= 64 (H.264 needs even sizes), at
+    most ``largest`` (8K by default, the largest frame a protocol may render; None for a
+    window, which may span several screens); None when the flag was not given (an empty
+    value is an error); ``option``: the flag the errors name."""
     if text is None:
         return None
     try:
@@ -178,8 +181,8 @@ def parse_size(text: str | None, *, option: str = "--size") -> tuple[int, int] |
         raise FacelabError(f"{option} {text!r}: expected WIDTHxHEIGHT, e.g. 640x360") from None
     if w % 2 or h % 2 or w < 64 or h < 64:
         raise FacelabError(f"{option} {text!r}: width and height must be even and >= 64")
-    if w > MAX_SIZE[0] or h > MAX_SIZE[1]:
-        raise FacelabError(f"{option} {text!r}: expected at most {MAX_SIZE[0]}x{MAX_SIZE[1]}")
+    if largest is not None and (w > largest[0] or h > largest[1]):
+        raise FacelabError(f"{option} {text!r}: expected at most {largest[0]}x{largest[1]}")
     return w, h
 
 

@@ -59,7 +59,7 @@ def _play(args: argparse.Namespace) -> int:
     clip = LatencyTestClip.read(clip_path.with_suffix(".json"))
     if args.size and not args.windowed:
         raise FacelabError("--size goes with --windowed")
-    size = parse_size(args.size) or (1280, 800)
+    size = parse_size(args.size, largest=None) or (1280, 800)  # a window
     ref = ClipRef(path=clip_path, sha256=sha256_file(clip_path), duration_s=clip.duration_s,
                   fps=clip.fps, size=(clip.width, clip.height))  # fmt: skip
     json_out = output_file(args.json, option="--json", force=args.force) if args.json else None

@@ -75,7 +75,7 @@ def _window_size(args: argparse.Namespace) -> tuple[int, int]:
     for option, value in (("--size", args.size), ("--windowed", args.windowed)):
         if value and args.display != "window":
             raise FacelabError(f"{option} goes with --display window (the lab window)")
-    return parse_size(args.size) or (1280, 800)
+    return parse_size(args.size, largest=None) or (1280, 800)  # a window
 
 
 def _serve(args: argparse.Namespace) -> int:

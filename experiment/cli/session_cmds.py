@@ -28,7 +28,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     protocol = load_protocol(args.protocol)
     validate_participant_id(args.participant)
     output_dir(args.results, option="--results")
-    size = parse_size(args.size) or (1280, 800)
+    size = parse_size(args.size, largest=None) or (1280, 800)  # a window
     talker = conversation_talker(args, protocol)
     conversation = None
     if talker is not None:  # the partner drawn live in this window, heard on its speakers

@@ -545,7 +545,8 @@ class NaiveRenderer:
 
 
 def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None:
-    """Replace pyrender's framebuffer handling on this renderer: colour-only BGRA read-back."""
+    """Replace pyrender's framebuffer handling on this renderer: colour-only RGB read-back of
+    the resolved (and upside-down) picture."""
 
     def configure(self: _pr_renderer.Renderer) -> None:
         if self._main_fb is not None:
@@ -599,15 +600,16 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
         return read_now(self), None
 
     def scissor(self: _pr_renderer.Renderer, box: _Box | None) -> None:
-        """Limit the next resolve to ``box`` joined with the previous box (whatever that
-        frame drew there is replaced now); None: the whole frame. Invariant: outside the last
-        box the resolved picture is the background. Clearing and drawing cover the whole
-        framebuffer (see the module docstring)."""
+        """Limit the next resolve to ``box`` joined with the last *resolved* box (whatever
+        that frame left is replaced now); None: the whole frame. Invariant: outside the last
+        resolved box the resolved picture is the background - kept when a frame is drawn and
+        never read back (an error mid-clip): the box is recorded by the resolve, not here.
+        Clearing and drawing cover the whole framebuffer (see the module docstring)."""
         w, h = self.viewport_width, self.viewport_height
         last = getattr(self, "_facelab_last_box", None)
         full = (0, 0, w, h)
         self._facelab_box = full if box is None or last is None else _union(box, last)
-        self._facelab_last_box = box
+        self._facelab_drawn_box = box
         GL.glDisable(GL.GL_SCISSOR_TEST)
 
     def read_now(self: _pr_renderer.Renderer) -> np.ndarray:
@@ -621,10 +623,12 @@ def _use_fast_framebuffer(renderer: _pr_renderer.Renderer, *, msaa: int) -> None
         GL.glBlitFramebuffer(
             x, y, x + bw, y + bh, *flipped, GL.GL_COLOR_BUFFER_BIT, GL.GL_NEAREST
         )
+        self._facelab_last_box = getattr(self, "_facelab_drawn_box", None)
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
-        buf = GL.glReadPixels(0, 0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE)
-        return np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 3)
+        # outputType None: the array itself (writeable), not bytes on older numpy
+        buf = GL.glReadPixels(0, 0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE, outputType=None)
+        return np.asarray(buf, dtype=np.uint8).reshape(h, w, 3)
 
     def delete_fb(self: _pr_renderer.Renderer) -> None:
         for fb in {self._main_fb, self._main_fb_ms} - {None}:

@@ -87,7 +87,8 @@ def synthesize(
         raise SpeechError("empty text: nothing to synthesise")
     if not 0.5 <= speed <= 2.0:
         raise SpeechError(f"speed {speed} is outside 0.5..2")
-    key = (clean, float(speed), float(pitch_halftones), alpha, int(sample_rate))
+    sample_rate = int(sample_rate)
+    key = (clean, float(speed), float(pitch_halftones), alpha, sample_rate)
     with _memo_lock:
         kept = _memo.get(key)
         if kept is not None:
