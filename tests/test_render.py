@@ -338,14 +338,15 @@ def test_resolving_only_the_heads_rectangle_changes_no_pixel() -> None:
             # a frame drawn and never read back (an error mid-clip), the head moved aside: the
             # next frame there must still replace what the last one read back left
             aside = head.deform(weights[0]) + np.array([0.25, 0.0, 0.0], np.float32)
-            last, moved = boxed._screen_box(head.deform(weights[0], pose=poses[0])), None
-            for _ in range(2):
-                moved = boxed._screen_box(aside)
+            last = boxed._screen_box(head.deform(weights[0], pose=poses[0]))
+            moved = boxed._screen_box(aside)
+            assert moved is not None and last is not None
+            # the head moved right, and the last frame read back lies partly outside its box
+            assert moved[0] > last[0] and _union(moved, last) != moved
+            for _ in range(2):  # drawn twice, read back once
                 boxed._upload(aside, boxed._lit(aside))
                 boxed._draw(moved)
             after = boxed._collect()
-            assert moved is not None and last is not None
-            assert moved[0] > last[0] and _union(moved, moved) != _union(moved, last)
         with Renderer(head, s) as whole:
             whole._screen_box = lambda verts: None  # type: ignore[method-assign]
             reference = list(whole.frames(weights, poses))
