@@ -22,6 +22,21 @@ def test_validate_ok(kato_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert "ok:" in out and "18 trials x 2 items" in out
 
 
+def test_validate_loads_neither_the_renderer_nor_the_signal_stack(kato_path: Path) -> None:
+    """`facelab validate` is run after every edit of a protocol: it reads every file the
+    protocol names and audits the avatar without importing pyrender or scipy.signal (about
+    half of its time before they were left to the commands that render or analyse)."""
+    script = (
+        "import sys\n"
+        "from facelab.experiment.cli import main\n"
+        f"assert main(['validate', {str(kato_path)!r}]) == 0\n"
+        "print(sorted(m for m in ('pyrender', 'scipy.signal', 'OpenGL') if m in sys.modules))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_design_prints_csv(kato_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["design", str(kato_path), "--participant", "P01"]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))

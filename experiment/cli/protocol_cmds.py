@@ -17,8 +17,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from facelab.protocol import load_protocol, refuse
 
     try:
-        from facelab.stimuli.render.inputs import input_problems
-        from facelab.stimuli.render.prepare import input_notes
+        from facelab.stimuli.render.inputs import input_notes, input_problems
     except ImportError:  # the core alone: the files the protocol names are not read
         input_problems = input_notes = None
         print("note: files named by the protocols are not checked (needs facelab[stimuli])")
@@ -82,7 +81,7 @@ def _audit(protocol, *, path) -> None:
     unless the protocol accepts them (``checks.accept``)."""
     from facelab.errors import StageError
     from facelab.stimuli.checks.avatar_checks import audit_avatar
-    from facelab.stimuli.checks.run_checks import accept_checks
+    from facelab.stimuli.checks.rows import accept_checks
     from facelab.stimuli.render.scene import load_avatar
 
     avatar = load_avatar(protocol, base_dir=path.parent)

@@ -45,7 +45,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.build import build_clips, clip_counts, plan
-    from facelab.stimuli.render.prepare import input_notes
+    from facelab.stimuli.render.inputs import input_notes
 
     protocol = load_protocol(args.protocol)
     default_out = Path("results") / protocol.study.id / "clips"

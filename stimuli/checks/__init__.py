@@ -4,7 +4,20 @@ the end of every render command). :mod:`.avatar_checks` audits the avatar's geom
 decoded frames, :mod:`.clip_checks` turns what it measured into rows, and :mod:`.run_checks`
 writes ``stimulus_checks.csv``."""
 
+from __future__ import annotations
+
+from typing import Any
+
 from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow
-from facelab.stimuli.checks.run_checks import CHECKS_NAME, CheckReport, check_clips
 
 __all__ = ["CHECKS_NAME", "CHECK_COLUMNS", "CheckReport", "CheckRow", "check_clips"]
+
+
+def __getattr__(name: str) -> Any:
+    """:mod:`.run_checks` (the renderer and the clip decoders) is loaded on first use, so
+    auditing an avatar (``facelab validate``) does not load pyrender."""
+    if name in ("CHECKS_NAME", "CheckReport", "check_clips"):
+        from facelab.stimuli.checks import run_checks
+
+        return getattr(run_checks, name)
+    raise AttributeError(f"module 'facelab.stimuli.checks' has no attribute {name!r}")

@@ -24,14 +24,8 @@ from facelab.stimuli.avatar.mesh import Avatar
 from facelab.stimuli.checks.avatar_checks import eye_rows
 from facelab.stimuli.checks.clip_checks import face_visible_rows, level_rows
 from facelab.stimuli.checks.face_tracker import start_tracking
-from facelab.stimuli.checks.rows import CheckRow, at_least, at_most, info
-from facelab.stimuli.checks.run_checks import (
-    CHECKS_NAME,
-    CheckReport,
-    accept_checks,
-    read_checks,
-    write_checks,
-)
+from facelab.stimuli.checks.rows import CheckRow, accept_checks, at_least, at_most, info
+from facelab.stimuli.checks.run_checks import CHECKS_NAME, CheckReport, read_checks, write_checks
 
 __all__ = ["REALISED_SHORTFALL", "behaviour_rows", "check_clip_set", "impression_rows"]
 

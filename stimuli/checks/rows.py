@@ -11,12 +11,14 @@ note says why); ``threshold`` says the comparison in words, e.g. ``>= 0.5``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 
+from facelab.errors import StageError
 from facelab.formats import STIMULUS_CHECK_COLUMNS
+from facelab.protocol_checks import CHECK_NAMES
 
-__all__ = ["CHECK_COLUMNS", "CheckRow", "at_least", "at_most", "info"]
+__all__ = ["CHECK_COLUMNS", "CheckRow", "accept_checks", "at_least", "at_most", "info"]
 
 CHECK_COLUMNS = STIMULUS_CHECK_COLUMNS
 
@@ -117,3 +119,15 @@ def info(
 ) -> CheckRow:
     """A row that reports a measure without a threshold."""
     return CheckRow(clip, condition, check, measure, _num(value), "", None, note, "info")
+
+
+def accept_checks(rows: Iterable[CheckRow], names: Iterable[str]) -> list[CheckRow]:
+    """The rows with the failures of the checks ``names`` marked accepted."""
+    names = set(names)
+    unknown = names - set(CHECK_NAMES)
+    if unknown:
+        raise StageError(
+            f"--accept-check {', '.join(sorted(unknown))}: unknown check; checks: "
+            f"{', '.join(CHECK_NAMES)}"
+        )
+    return [r.accept() if r.check in names else r for r in rows]

@@ -14,7 +14,7 @@ import io
 import json
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -30,7 +30,6 @@ from facelab.formats import (
     write_face_tracking,
 )
 from facelab.protocol import Protocol
-from facelab.protocol_checks import CHECK_NAMES
 from facelab.stimuli.checks.avatar_checks import audit_avatar
 from facelab.stimuli.checks.clip_checks import (
     articulation_rows,
@@ -47,7 +46,7 @@ from facelab.stimuli.checks.clip_checks import (
     too_small,
 )
 from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
-from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, info
+from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, accept_checks, info
 from facelab.stimuli.render.build import vowel_peak_times
 from facelab.stimuli.render.clip import decode_audios, padded_audio, shifted_audio
 from facelab.stimuli.render.clipspec import ClipJob
@@ -61,7 +60,6 @@ __all__ = [
     "CHECKS_NAME",
     "MANIFEST_COLUMN",
     "CheckReport",
-    "accept_checks",
     "check_clips",
     "read_checks",
     "record_in_manifest",
@@ -120,18 +118,6 @@ class CheckReport:
             + " (recorded in clips.csv and stimulus_checks.csv)"
         )
         return StageError("\n".join(lines))
-
-
-def accept_checks(rows: Iterable[CheckRow], names: Iterable[str]) -> list[CheckRow]:
-    """The rows with the failures of the checks ``names`` marked accepted."""
-    names = set(names)
-    unknown = names - set(CHECK_NAMES)
-    if unknown:
-        raise StageError(
-            f"--accept-check {', '.join(sorted(unknown))}: unknown check; checks: "
-            f"{', '.join(CHECK_NAMES)}"
-        )
-    return [r.accept() if r.check in names else r for r in rows]
 
 
 def write_checks(rows: Sequence[CheckRow], path: Path) -> Path:

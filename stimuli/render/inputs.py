@@ -15,7 +15,7 @@ from facelab.stimuli.methods import check_playable, get
 from facelab.stimuli.render.clipspec import plan
 from facelab.stimuli.speech.audio import load_audio
 
-__all__ = ["input_problems"]
+__all__ = ["audio_only_note", "input_notes", "input_problems"]
 
 
 def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
@@ -61,3 +61,38 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
         except FacelabError as exc:
             issues.append(Issue(("rendering", "avatar"), f"condition {cond.id!r}: {exc}"))
     return issues
+
+
+def audio_only_note(protocol: Protocol) -> str | None:
+    """One line naming the recordings analysed audio-only (no transcript), or None."""
+    found = [
+        f"{s.id} ({s.audio})"
+        for ss in protocol.stimulus_sets
+        for s in ss.stimuli
+        if s.audio is not None and s.transcript is None
+    ]
+    if not found:
+        return None
+    return (
+        f"note: {len(found)} recording(s) without a transcript get their tracks from "
+        f"audio-only analysis: {', '.join(found)} (give each a 'transcript' to drive the "
+        "mouth from the aligned words)"
+    )
+
+
+def input_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
+    """What ``validate`` and ``render`` say about the protocol's inputs besides problems:
+    recordings analysed audio-only, and each method's own notes on the conditions that use
+    it (:meth:`Method.protocol_notes`, e.g. impression levels too close to see)."""
+    from facelab.stimuli.methods import get
+
+    note = audio_only_note(protocol)
+    notes = [note] if note else []
+    by_method: dict[str, list[object]] = {}
+    for cond in protocol.conditions:
+        by_method.setdefault(cond.method, []).append(cond.settings)
+    for name, settings in by_method.items():
+        notes += get(name).protocol_notes(
+            settings, base_dir=base_dir, has_tasks=bool(protocol.tasks)
+        )
+    return notes

@@ -17,9 +17,7 @@ from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowels import isolate_vowels
 
 __all__ = [
-    "audio_only_note",
     "find_stimulus",
-    "input_notes",
     "speech_for",
     "track_source_text",
     "tracks_for",
@@ -87,41 +85,6 @@ def track_source_text(stimulus: Stimulus) -> str:
     if source == "audio":
         return "audio analysis" + (" (track_from: audio)" if stimulus.track_from else "")
     return "silence"
-
-
-def audio_only_note(protocol: Protocol) -> str | None:
-    """One line naming the recordings analysed audio-only (no transcript), or None."""
-    found = [
-        f"{s.id} ({s.audio})"
-        for ss in protocol.stimulus_sets
-        for s in ss.stimuli
-        if s.audio is not None and s.transcript is None
-    ]
-    if not found:
-        return None
-    return (
-        f"note: {len(found)} recording(s) without a transcript get their tracks from "
-        f"audio-only analysis: {', '.join(found)} (give each a 'transcript' to drive the "
-        "mouth from the aligned words)"
-    )
-
-
-def input_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
-    """What ``validate`` and ``render`` say about the protocol's inputs besides problems:
-    recordings analysed audio-only, and each method's own notes on the conditions that use
-    it (:meth:`Method.protocol_notes`, e.g. impression levels too close to see)."""
-    from facelab.stimuli.methods import get
-
-    note = audio_only_note(protocol)
-    notes = [note] if note else []
-    by_method: dict[str, list[object]] = {}
-    for cond in protocol.conditions:
-        by_method.setdefault(cond.method, []).append(cond.settings)
-    for name, settings in by_method.items():
-        notes += get(name).protocol_notes(
-            settings, base_dir=base_dir, has_tasks=bool(protocol.tasks)
-        )
-    return notes
 
 
 def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeTrack | None]:

@@ -12,7 +12,6 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
-from scipy import signal
 
 from facelab.errors import SpeechError
 from facelab.stimuli.speech.prosody import (
@@ -91,6 +90,8 @@ def resample(samples: np.ndarray, *, rate_in: int, rate_out: int) -> np.ndarray:
     """Polyphase resampling with scipy's default Kaiser-windowed anti-alias filter."""
     if rate_in == rate_out:
         return samples.astype(np.float32, copy=False)
+    from scipy import signal  # on first use: scipy.signal takes ~1.5 s to import
+
     ratio = Fraction(rate_out, rate_in)
     out = signal.resample_poly(samples.astype(np.float64), ratio.numerator, ratio.denominator)
     return out.astype(np.float32)
