@@ -50,7 +50,8 @@ def _own_display() -> None:
 
 #: every test's wall and CPU seconds (its own process and the children it waited for: renders,
 #: ffmpeg, Dask workers; not Chromium's processes, which chromedriver does not wait for), one
-#: JSON line each, appended by whichever worker ran it; the run's summary adds them up by file.
+#: JSON line each, appended by whichever worker ran it (named: "gw0".., "main" without xdist);
+#: the run's summary adds them up by file.
 TIMES = ROOT / ".pytest_cache" / "facelab-test-times.jsonl"
 
 
@@ -66,7 +67,8 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     yield
     after = _cpu()
     line = {"test": item.nodeid, "wall_s": round(time.perf_counter() - wall, 3),
-            "cpu_s": round(after[0] - me, 3), "children_cpu_s": round(after[1] - kids, 3)}
+            "cpu_s": round(after[0] - me, 3), "children_cpu_s": round(after[1] - kids, 3),
+            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main")}
     with TIMES.open("a", encoding="utf-8") as fh:  # one short line a write: whole lines interleave
         fh.write(json.dumps(line) + "\n")
 

@@ -39,6 +39,7 @@ from facelab.stimuli.avatar.gltf import live_glb
 from facelab.stimuli.avatar.samples import write_sample
 from facelab.stimuli.render.scene import camera_json, framing, settings_for
 from tests.protocol_edits import kato_short
+from tests.shared_renders import rendered_clips
 from tests.test_word_matrix import SHORT as MATRIX_SHORT
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -214,7 +215,6 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The short kato2021 rendered once (320x180, 15 fps), with live3d and webxr variants."""
     root = tmp_path_factory.mktemp("live3d")
     text = _short(KATO.read_text(encoding="utf-8"))
-    (root / "video.yaml").write_text(text, encoding="utf-8")
     (root / "live.yaml").write_text(_with_display(text, "  display: live3d\n"), "utf-8")
     (root / "vr.yaml").write_text(
         _with_display(text, "  display: webxr\n  vr:\n    avatar_distance_m: 1.2\n"), "utf-8"
@@ -222,8 +222,8 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (root / "vr_fallback.yaml").write_text(
         _with_display(text, "  display: webxr\n  vr:\n    fallback: live3d\n"), "utf-8"
     )
-    args = ["render", str(root / "video.yaml"), "--out", str(root / "clips")]
-    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0
+    rendered_clips(tmp_path_factory, text=text, into=root, name="video.yaml", size="320x180",
+                   fps="15")  # fmt: skip
     # a textured, skinned avatar file (Ready Player Me's layout: ARKit + visemes)
     write_sample(root / "rpm.glb", kind="rpm")
     rpm = _with_display(text, "  display: live3d\n")

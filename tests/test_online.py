@@ -46,6 +46,7 @@ from facelab.experiment.online.server import RefusedError
 from facelab.protocol import load_protocol, protocol_hash
 from facelab.sessionlog import SessionLog
 from tests.protocol_edits import kato_short
+from tests.shared_renders import rendered_clips
 from tests.task_protocols import SIDE_BY_SIDE, short_task_protocol
 
 pytestmark = pytest.mark.slow
@@ -57,11 +58,9 @@ PLANNED = 18  # 9 trials x 2 VAS items in the short study
 def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The paper's design, one set per block, 1-2 s clips at 320x180, rendered once."""
     root = tmp_path_factory.mktemp("online")
-    text = (ROOT / "protocols" / "kato2021.yaml").read_text(encoding="utf-8")
-    text = kato_short(text)
-    (root / "short.yaml").write_text(text, encoding="utf-8")
-    args = ["render", str(root / "short.yaml"), "--out", str(root / "clips")]
-    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet"]) == 0
+    text = kato_short((ROOT / "protocols" / "kato2021.yaml").read_text(encoding="utf-8"))
+    rendered_clips(tmp_path_factory, text=text, into=root, name="short.yaml", size="320x180",
+                   fps="15")  # fmt: skip
     return root
 
 

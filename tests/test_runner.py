@@ -19,6 +19,7 @@ from facelab.design import build_trials
 from facelab.experiment.cli import main
 from facelab.protocol import load_protocol
 from tests.protocol_edits import kato_short
+from tests.shared_renders import rendered_clips
 
 pytestmark = [pytest.mark.slow, pytest.mark.display]
 EXE = str(Path(sys.executable).with_name("facelab"))
@@ -36,24 +37,8 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     text = (Path(__file__).resolve().parents[1] / "protocols" / "kato2021.yaml").read_text(
         encoding="utf-8"
     )
-    text = kato_short(text)
-    (root / "short.yaml").write_text(text, encoding="utf-8")
-    assert (
-        main(
-            [
-                "render",
-                str(root / "short.yaml"),
-                "--out",
-                str(root / "clips"),
-                "--size",
-                "320x180",
-                "--fps",
-                "15",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    rendered_clips(tmp_path_factory, text=kato_short(text), into=root, name="short.yaml",
+                   size="320x180", fps="15")  # fmt: skip
     return root
 
 
