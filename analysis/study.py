@@ -192,17 +192,27 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
     }
     for cell in rating_cells(data, protocol):
         item, sset, where = cell.item, cell.sset, cell.where
-        notes.extend(cell.notes)
-        if cell.sub is None:
+        one_condition = cell.sub is None and len(cell.seen) == 1
+        if not one_condition:
+            notes.extend(cell.notes)
+        if cell.sub is None and not one_condition:
             continue
-        sub, seen, rm_sub = cell.sub, cell.seen, cell.rm_sub
-        n_rm = int(rm_sub["participant"].nunique())
+        if one_condition:  # a pilot of one method: its ratings described, nothing compared
+            sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
+            seen, rm_sub = cell.seen, sub
+            sub = sub.assign(condition=pd.Categorical(sub["condition"], categories=seen))
+            n_rm = int(sub["participant"].nunique())
+            estimable = False
+            reason = "not estimable: ratings for one condition only, nothing to compare"
+        else:
+            sub, seen, rm_sub = cell.sub, cell.seen, cell.rm_sub
+            n_rm = int(rm_sub["participant"].nunique())
+            estimable = n_rm >= 2
+            reason = (
+                f"not estimable: {n_rm} participant(s) rated every condition; the "
+                "repeated-measures analysis needs 2 or more"
+            )
         kw = {"dv": "rating", "within": "condition", "subject": "participant"}
-        estimable = n_rm >= 2
-        reason = (
-            f"not estimable: {n_rm} participant(s) rated every condition; the "
-            "repeated-measures analysis needs 2 or more"
-        )
         if estimable:
             try:
                 wide = stats.cell_means(rm_sub, **kw)
@@ -225,12 +235,14 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                 .rename("mean")
                 .reset_index()
             )
-        try:
-            pa = stats.one_way_anova(sub, dv="rating", between="condition")
-            tk = stats.tukey_hsd(sub, dv="rating", between="condition")
-        except AnalysisError as exc:
-            notes.append(f"{where}: the paper's procedure is not estimable ({exc}).")
-            pa = tk = pd.DataFrame()
+        pa = tk = pd.DataFrame()
+        if not one_condition:
+            try:
+                pa = stats.one_way_anova(sub, dv="rating", between="condition")
+                tk = stats.tukey_hsd(sub, dv="rating", between="condition")
+            except AnalysisError as exc:
+                notes.append(f"{where}: the paper's procedure is not estimable ({exc}).")
+                pa = tk = pd.DataFrame()
         for key, frame in (
             ("cells", cells),
             ("rm", rm),

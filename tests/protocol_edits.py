@@ -41,3 +41,40 @@ def protocol_problems(text: str, root: Path, name: str = "p.yaml") -> str:
     with pytest.raises(ProtocolError) as info:
         load_protocol_text(text, path=path, base_dir=root)
     return str(info.value)
+
+
+#: a study of one condition (a pilot of one method) on vowels spoken without pauses
+ONE_CONDITION = """\
+schema_version: 1
+study: {id: one_condition, title: One method, participants_planned: 3}
+seed: 1
+conditions:
+  - {id: standard, label: {ja: 標準, en: standard}, method: vowel_blend,
+     params: {z: standard, gain: 1.0}}
+stimulus_sets:
+  - id: short
+    stimuli:
+      - {id: aiueo, text: あいうえお, expected_vowels: aiueo}
+      - {id: hai, text: はい, expected_vowels: ai}
+blocks:
+  - {id: short, stimulus_set: short, sets: 1, presentations_per_condition: 1,
+     order: random_within_set}
+items:
+  - id: naturalness
+    question: {ja: 自然さ, en: naturalness}
+    left_anchor: {ja: 不自然, en: unnatural}
+    right_anchor: {ja: 自然, en: natural}
+    range: [0, 100]
+    marker_start: hidden
+    confirm: true
+presentation:
+  language: ja
+  items_layout: sequential
+  fullscreen: false
+  instructions: {ja: 見てください, en: Watch}
+  end_text: {ja: 終了, en: End}
+rendering: {width: 160, height: 90, fps: 10, avatar: default, pad_s: 0.3}
+simulation:
+  model: {mean: 45, participant_sd: 10, interaction_sd: 4, noise_sd: 12, rt_median_s: 3.0}
+  effects: {standard: 10}
+"""

@@ -310,3 +310,34 @@ def test_a_missing_optional_dependency_names_the_extra(
     code = main(["avatar", "sample", "--kind", "rpm", "--out", str(tmp_path / "a.glb")])
     err = capsys.readouterr().err
     assert code == 3 and "'pygltflib'" in err and "pip install 'facelab[stimuli]'" in err
+
+
+def test_words_openjtalk_cannot_speak_and_wrong_expected_vowels_are_refused_before_rendering(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Text that is punctuation, an emoji or a lone っ has no speech to synthesise (the render
+    used to fail on OpenJTalk's own message, or draw a mouth that never moves), and
+    expected_vowels that are not the vowels OpenJTalk reads were found only after every clip
+    was drawn: validate and render refuse both at their lines, and render writes nothing."""
+    from tests.protocol_edits import ONE_CONDITION
+
+    text = ONE_CONDITION.replace(
+        "      - {id: hai, text: はい, expected_vowels: ai}",
+        "      - {id: hai, text: はい, expected_vowels: aiu}\n"
+        "      - {id: dot, text: 。}\n      - {id: face, text: 😀}\n      - {id: tsu, text: っ}",
+    )
+    path = tmp_path / "words.yaml"
+    path.write_text(text, encoding="utf-8")
+    for command in ("validate", "render"):
+        argv = [command, str(path)] + (["--out", str(tmp_path / "clips")] * (command == "render"))
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "invalid protocol (4 problems)" in err, err
+        assert ("words.yaml:11: stimulus_sets[0].stimuli[1].expected_vowels: 'aiu', but "
+                "OpenJTalk reads 'はい' as 'h a i', whose vowels are 'ai'") in err  # fmt: skip
+        assert "words.yaml:12: stimulus_sets[0].stimuli[2].text: OpenJTalk reads nothing" in err
+        assert "stimuli[3].text: OpenJTalk reads nothing in '😀'" in err
+        assert "stimuli[4].text: OpenJTalk reads only 'cl' in 'っ'" in err
+    assert not (tmp_path / "clips").exists()
+    path.write_text(ONE_CONDITION, encoding="utf-8")  # あいうえお run together: valid
+    assert main(["validate", str(path)]) == 0

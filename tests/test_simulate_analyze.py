@@ -428,3 +428,27 @@ def test_the_pilot_summary_names_sessions_and_an_item_everyone_answers_alike(
     items = pd.read_csv(dest / "pilot_items.csv").set_index(["item", "stimulus_set"])
     assert items.loc[("naturalness", "vowels"), "all_the_same"]
     assert not items.loc[("mouth_shape", "vowels"), "all_the_same"]
+
+
+def test_a_study_of_one_condition_is_described_not_compared(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A pilot of one method: its ratings are tabled and drawn; every comparison is marked not
+    estimable with the reason (it used to fail, saying no rating matched the protocol)."""
+    from tests.protocol_edits import ONE_CONDITION
+
+    path = tmp_path / "one.yaml"
+    path.write_text(ONE_CONDITION, encoding="utf-8")
+    argv = ["simulate", str(path), "--participants", "3", "--sim-seed", "4"]
+    assert main([*argv, "--results", str(tmp_path / "res")]) == 0
+    out = tmp_path / "analysis"
+    assert main(["analyze", str(path), str(tmp_path / "res"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "ratings for one condition only, nothing to compare" in printed
+    assert "responses for 1 condition" not in printed  # not also "not analysed"
+    cells = pd.read_csv(out / "cell_means.csv")
+    assert len(cells) == 3 and set(cells["condition"]) == {"standard"}
+    assert cells["mean"].notna().all()
+    layout = pd.read_csv(out / "paper_layout.csv")
+    assert len(layout) == 2 and layout["f"].isna().all()
+    assert (out / "fig_naturalness_short.png").stat().st_size > 5_000

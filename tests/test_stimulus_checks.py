@@ -339,3 +339,54 @@ def test_the_same_warning_on_many_clips_is_said_once_with_how_many() -> None:
     assert said[2].startswith("accepted: mouth_motion: s__m01__emphasized [emphasized]")
     assert said[3].startswith("accepted: mouth_motion: s__m02__emphasized")
     assert said[4].startswith("stimulus checks:") and len(said) == 5
+
+
+@pytest.mark.slow
+def test_run_together_vowels_and_silence_are_checked_and_other_studies_clips_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """あいうえお and はい spoken without pauses render and are checked (each vowel's peak from
+    the words, at 30 fps; it used to fail after every clip was drawn, finding one vowel); a
+    silent stimulus is not compared between conditions (no method moves the mouth to
+    silence); `facelab check` refuses a folder holding another study's clips, or clips of an
+    edited protocol, instead of passing whatever it lists."""
+    from tests.protocol_edits import ONE_CONDITION
+
+    baseline = "  - {id: baseline, label: {ja: 基準, en: base}, method: viseme_baseline}\n"
+    text = ONE_CONDITION.replace("conditions:\n", "conditions:\n" + baseline).replace(
+        "      - {id: hai,", "      - {id: quiet, silence_s: 0.6}\n      - {id: hai,")
+    proto = tmp_path / "run_together.yaml"
+    proto.write_text(text, encoding="utf-8")
+    out = tmp_path / "clips"
+    argv = ["render", str(proto), "--out", str(out), "--size", "640x360", "--fps", "30"]
+    assert main([*argv, "--quiet"]) == 0
+    with open(out / "stimulus_checks.csv", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    differ = {r["clip"].split("__")[1] for r in rows if r["check"] == "conditions_differ"}
+    assert differ == {"aiueo", "hai"}  # the silent stimulus is not compared
+    assert all(r["passed"] == "true" for r in rows if r["check"] == "conditions_differ")
+    rules = [r for r in rows if r["check"] == "articulation" and "aiueo" in r["clip"]
+             and r["threshold"]]  # fmt: skip
+    assert len(rules) == 6 and all(r["passed"] == "true" for r in rules)  # 3 rules x 2
+    capsys.readouterr()
+    assert main(["check", str(KATO), "--clips", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "does not list 6 of the 6 clips 'kato2021' needs" in err
+    assert f"facelab render {KATO} --out {out}" in err and "Traceback" not in err
+    proto.write_text(text.replace("text: はい", "text: いいえ").replace(
+        "expected_vowels: ai}", "expected_vowels: iie}"), encoding="utf-8")  # fmt: skip
+    assert main(["check", str(proto), "--clips", str(out)]) == 2
+    assert "2 clip(s) in" in capsys.readouterr().err
+
+
+def test_vowels_closer_than_two_frames_are_not_measured_but_said_why() -> None:
+    """At 10 fps the frame nearest one vowel's peak of a run-together あいうえお (peaks ~85 ms
+    apart) may show its neighbour: the articulation check says so instead of failing."""
+    from facelab.stimuli.checks.clip_checks import too_few_frames
+
+    peaks = [0.40, 0.49, 0.57, 0.66, 0.75]
+    why = too_few_frames(peaks, fps=10)
+    assert why is not None and "80 ms apart" in why and "render at 25 fps or more" in why
+    assert too_few_frames(peaks, fps=30) is None
+    assert too_few_frames([0.4, 1.0, 1.6], fps=10) is None  # the seed's あ。い。う。
+    assert too_few_frames([0.4], fps=10) is None

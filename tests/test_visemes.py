@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,12 @@ from facelab.stimuli.speech.analyser import StreamingAnalyzer, VisemeError, anal
 from facelab.stimuli.speech.audio import Phone
 from facelab.stimuli.speech.track import VISEMES, VOWELS, VisemeTrack, from_phonemes
 from facelab.stimuli.speech.tts import synthesize
-from facelab.stimuli.speech.vowels import calibrate, isolate_vowels, vowel_segments
+from facelab.stimuli.speech.vowels import (
+    calibrate,
+    isolate_vowels,
+    vowel_segments,
+    vowel_stretches,
+)
 
 RATE = 48_000
 
@@ -135,6 +142,40 @@ def test_vowel_isolation_keeps_only_the_intended_vowel() -> None:
     np.testing.assert_allclose(iso.weights.sum(axis=1), 1.0)
     with pytest.raises(VisemeError, match="found 2 voiced segments but expected_vowels is 'aiu'"):
         isolate_vowels(track, vowels="aiu")
+
+
+@pytest.mark.parametrize(("text", "vowels"), [("あいうえお", "aiueo"), ("はい", "ai"),
+                                             ("ええ", "ee"), ("です", "eu")])  # fmt: skip
+def test_vowels_run_together_get_one_stretch_each_from_the_words(text: str, vowels: str) -> None:
+    """Vowels spoken without pauses are one voiced stretch; with the words known, each vowel
+    phoneme gets its own, in order, and holds that vowel's peak (the articulation checks and
+    the contact sheets look there; isolation keeps that vowel only)."""
+    speech = synthesize(text)
+    track = from_phonemes(speech.phones, duration_s=speech.duration_s)
+    assert len(vowel_segments(track, widen=True)) < len(vowels)  # one stretch for them all
+    stretches = vowel_stretches(track, vowels=vowels, phones=speech.phones)
+    assert len(stretches) == len(vowels)
+    assert all(b > a for a, b in stretches)
+    assert all(b1 <= a2 for (_, b1), (a2, _) in itertools.pairwise(stretches))  # in order
+    said = [p for p in speech.phones if p.phoneme.lower() in VOWELS]
+    for (a, b), vowel, phone in zip(stretches, vowels, said, strict=True):
+        assert track.times[a] <= (phone.start + phone.end) / 2 <= track.times[b - 1] + 1e-9
+        if phone.phoneme.islower():  # voiced: the vowel's own weight peaks in its stretch
+            col = VOWELS.index(vowel)
+            assert track.vowels()[a:b, col].max() >= 0.99 * track.vowels()[:, col].max()
+    iso = isolate_vowels(track, vowels=vowels, segments=stretches)
+    for (a, b), vowel in zip(stretches, vowels, strict=True):
+        others = [k for k in range(5) if VOWELS[k] != vowel]
+        assert np.all(iso.vowels()[a:b][:, others] == 0)
+
+
+def test_vowels_that_cannot_be_told_apart_are_refused_with_the_reason() -> None:
+    speech = synthesize("あいうえお")
+    track = from_phonemes(speech.phones, duration_s=speech.duration_s)
+    with pytest.raises(VisemeError, match="the words' vowels are 'aiueo': give those"):
+        vowel_stretches(track, vowels="aiu", phones=speech.phones)
+    with pytest.raises(VisemeError, match=r"told apart by the pauses .* give it its 'transcript'"):
+        vowel_stretches(track, vowels="aiueo")  # a recording without its words
 
 
 def test_calibration_adapts_to_a_speaker() -> None:

@@ -82,6 +82,19 @@ def too_small(tr: ClipTracking, *, clip_height: int) -> str | None:
     return None
 
 
+def too_few_frames(peak_times: Sequence[float], *, fps: float) -> str | None:
+    """Why a clip's frames cannot show each vowel of a stimulus at its peak (a frame every
+    1/fps s, against vowels closer than two frames apart: the frame nearest one vowel's peak
+    may show its neighbour, as at 10 fps in あいうえお spoken without pauses), or None."""
+    gaps = np.diff(np.sort(np.asarray(peak_times, float)))
+    if not len(gaps) or 2.0 / fps <= float(gaps.min()):
+        return None
+    gap_ms = round(1000 * float(gaps.min()))
+    return (f"its vowels peak {gap_ms} ms apart and the clip shows a frame every "
+            f"{1000 / fps:.0f} ms: render at {math.ceil(2000 / max(gap_ms, 1))} fps or more "
+            "(--fps) to check them")  # fmt: skip
+
+
 def not_measured(*, clip: str, condition: str, check: str, why: str) -> CheckRow:
     """A warning row: the check could not be made on this clip."""
     return CheckRow(clip, condition, check, "not_measured", math.nan, "measurable", False, why,

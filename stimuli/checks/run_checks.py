@@ -43,13 +43,14 @@ from facelab.stimuli.checks.clip_checks import (
     mouth_at_peaks,
     noise_rows,
     not_measured,
+    too_few_frames,
     too_small,
 )
 from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
 from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, accept_checks, info
 from facelab.stimuli.render.build import vowel_peak_times
 from facelab.stimuli.render.clip import decode_audios, padded_audio, shifted_audio
-from facelab.stimuli.render.clipspec import ClipJob
+from facelab.stimuli.render.clipspec import ClipJob, clip_spec_hash, plan
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.scene import load_avatar
 from facelab.stimuli.render.sound import clip_sound
@@ -194,12 +195,8 @@ def check_clips(
     decides what a failure does: :meth:`CheckReport.error`)."""
     t0 = time.perf_counter()
     base_dir = protocol_path.parent
-    manifest = read_manifest(clips_dir, need=CLIP_COLUMNS)
-    wanted = {(c.id) for c in protocol.conditions}
-    manifest = [m for m in manifest if m["condition"] in wanted]
-    if not manifest:
-        raise StageError(f"{clips_dir / 'clips.csv'}: no clip of {protocol.study.id!r}'s "
-                         "conditions: render them first")  # fmt: skip
+    manifest = _protocols_clips(protocol, read_manifest(clips_dir, need=CLIP_COLUMNS),
+                                clips_dir=clips_dir, protocol_path=protocol_path)  # fmt: skip
     names = (*protocol.checks.accept, *accept)
     key = _inputs_key(protocol, manifest)
     earlier = _earlier(clips_dir, key)
@@ -321,8 +318,10 @@ def check_clips(
                 if c.level is not None and c.id not in twin and c.noise is None}  # fmt: skip
     for (set_id, stim_id), all_clips in by_stimulus.items():
         # the faces of conditions shown alike are compared (a muted clip may look like its
-        # audiovisual twin; audio_only faces do not move, by design)
-        for shown in ("audiovisual", "visual_only"):
+        # audiovisual twin; audio_only faces do not move, by design; nor do they to silence)
+        quiet = stimuli.get((set_id, stim_id)) is not None and stimuli[
+            (set_id, stim_id)].silence_s is not None  # fmt: skip
+        for shown in ("audiovisual", "visual_only") if not quiet else ():
             plain = {m["condition"]: (m["clip_id"], tracking[m["clip_id"]], m["sha256"])
                      for m in all_clips if m["condition"] not in levelled
                      and modality[m["condition"]] == shown}  # fmt: skip
@@ -351,10 +350,12 @@ def check_clips(
         stim = stimuli.get((set_id, stim_id))
         if stim is not None and stim.expected_vowels:
             peaks = vowel_peak_times(stim, track_of((set_id, stim_id)),
-                                     where=f"{set_id}/{stim_id}")  # fmt: skip
+                                     where=f"{set_id}/{stim_id}",
+                                     phones=speech_of((set_id, stim_id)).phones)  # fmt: skip
             readable = []
             for m in clips:
-                small = too_small(tracking[m["clip_id"]], clip_height=int(m["height"]))
+                small = too_small(tracking[m["clip_id"]], clip_height=int(m["height"])) or (
+                    too_few_frames([t for _, t in peaks], fps=float(m["fps"])))  # fmt: skip
                 if small:
                     rows.append(not_measured(clip=m["clip_id"], condition=m["condition"],
                                              check="articulation", why=small))  # fmt: skip
@@ -381,7 +382,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 7
+CHECKS_VERSION = 8
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 
@@ -416,6 +417,32 @@ def _earlier(clips_dir: Path, key: str) -> list[CheckRow] | None:
         return [CheckRow.from_dict(r) for r in rows]
     except (KeyError, ValueError):  # an edited or older file: check again
         return None
+
+
+def _protocols_clips(
+    protocol: Protocol, manifest: list[dict], *, clips_dir: Path, protocol_path: Path
+) -> list[dict]:
+    """The rows of ``manifest`` that are ``protocol``'s clips, one per clip it plans, each
+    rendered from what it declares now (its spec hash); StageError naming the clips missing
+    or rendered from something else (another study's clips, an edited protocol or input)."""
+    by_key = {(m["stimulus_set"], m["stimulus"], m["condition"]): m for m in manifest}
+    jobs = {(j.stimulus_set, j.stimulus.id, j.condition): j for j in plan(protocol)}
+    base_dir = protocol_path.parent
+    render = f"render them: facelab render {protocol_path} --out {clips_dir}"
+    missing = [key for key in jobs if key not in by_key]
+    if missing:
+        listed = ", ".join("/".join(k) for k in missing[:5])
+        raise StageError(f"{clips_dir / 'clips.csv'} does not list {len(missing)} of the "
+                         f"{len(jobs)} clips {protocol.study.id!r} needs ({listed}"
+                         f"{' …' if len(missing) > 5 else ''}): {render}")  # fmt: skip
+    stale = [key for key, job in jobs.items()
+             if by_key[key]["spec_sha256"] != clip_spec_hash(protocol, job, base_dir=base_dir)]
+    if stale:
+        listed = ", ".join("/".join(k) for k in stale[:5])
+        raise StageError(f"{len(stale)} clip(s) in {clips_dir} were rendered from another "
+                         f"protocol or other input files than {protocol.study.id!r} declares "
+                         f"now ({listed}{' …' if len(stale) > 5 else ''}): {render}")  # fmt: skip
+    return [by_key[key] for key in jobs]
 
 
 def _explanations(clips_dir: Path, clips: Sequence[dict]) -> dict[tuple[str, str], str]:

@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from facelab.durable import replace_file
-from facelab.errors import StageError
+from facelab.errors import StageError, VisemeError
 from facelab.formats import (
     TRACK_COLUMNS,
     TRACK_FORMAT,
@@ -70,9 +70,9 @@ from facelab.stimuli.render.task import (
     shared_avatar,
     write_clip,
 )
-from facelab.stimuli.speech.audio import Speech
+from facelab.stimuli.speech.audio import Phone, Speech
 from facelab.stimuli.speech.track import VOWELS, VisemeTrack
-from facelab.stimuli.speech.vowels import vowel_segments
+from facelab.stimuli.speech.vowels import vowel_stretches
 
 __all__ = [
     "VowelPeak",
@@ -458,7 +458,8 @@ def vowel_peaks(protocol: Protocol, *, base_dir: Path, avatar: Avatar) -> list[V
         raise StageError("no stimulus gives expected_vowels: no vowel peaks to show")
     speech = speech_for(stim, base_dir=base_dir, sample_rate=protocol.rendering.audio_sample_rate)
     tracks = tracks_for(stim, speech)
-    times = vowel_peak_times(stim, tracks[0], where=f"{stim_set}/{stim.id}")
+    times = vowel_peak_times(stim, tracks[0], where=f"{stim_set}/{stim.id}",
+                             phones=speech.phones)  # fmt: skip
     offsets = np.arange(-3, 4) / 30.0
     peaks = []
     for cond in protocol.conditions:
@@ -471,15 +472,17 @@ def vowel_peaks(protocol: Protocol, *, base_dir: Path, avatar: Avatar) -> list[V
 
 
 def vowel_peak_times(
-    stim: Stimulus, analysed: VisemeTrack, *, where: str
+    stim: Stimulus, analysed: VisemeTrack, *, where: str, phones: Sequence[Phone] = ()
 ) -> list[tuple[str, float]]:
     """(vowel, s from the speech's start) at each peak of ``stim.expected_vowels`` in its
-    analysed track (the frame where the vowel's own weight is highest within its segment).
-    StageError when the segments found do not match the expected vowels."""
-    segments = vowel_segments(analysed, widen=True)
+    analysed track (the frame where the vowel's own weight is highest within its stretch:
+    :func:`~facelab.stimuli.speech.vowels.vowel_stretches`, by the words' ``phones`` when the
+    vowels run together). StageError when the stretches found are not one per vowel."""
     vowels = stim.expected_vowels or ""
-    if len(segments) != len(vowels):
-        raise StageError(f"{where}: found {len(segments)} vowel segments, expected {len(vowels)}")
+    try:
+        segments = vowel_stretches(analysed, vowels=vowels, phones=phones)
+    except VisemeError as exc:
+        raise StageError(f"stimulus {where}: {exc}") from None
     out = []
     for (a, b), vowel in zip(segments, vowels, strict=True):
         x = analysed.vowels()[a:b, VOWELS.index(vowel)]

@@ -8,14 +8,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from facelab.errors import FacelabError, Issue
-from facelab.protocol import Protocol
+from facelab.japanese_reading import sounded, spoken_phonemes, spoken_vowels
+from facelab.protocol import Protocol, Stimulus, refuse
 from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.behaviour.library import load_library
 from facelab.stimuli.methods import check_playable, get
 from facelab.stimuli.render.clipspec import plan
 from facelab.stimuli.speech.audio import load_audio
 
-__all__ = ["audio_only_note", "input_notes", "input_problems"]
+__all__ = ["audio_only_note", "input_notes", "input_problems", "refuse_bad_inputs"]
 
 
 def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
@@ -41,12 +42,14 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
     rate = protocol.rendering.audio_sample_rate
     for si, sset in enumerate(protocol.stimulus_sets):
         for ti, stim in enumerate(sset.stimuli):
+            at = ("stimulus_sets", si, "stimuli", ti)
+            issues += [Issue((*at, key), message) for key, message in _words_problems(stim)]
             if stim.audio is None:
                 continue
             try:
                 load_audio(base_dir / stim.audio, sample_rate=rate)
             except FacelabError as exc:
-                issues.append(Issue(("stimulus_sets", si, "stimuli", ti, "audio"), str(exc)))
+                issues.append(Issue((*at, "audio"), str(exc)))
     spec = protocol.rendering.avatar
     try:
         avatar = default_head() if spec == "default" else load(base_dir / spec)
@@ -61,6 +64,34 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
         except FacelabError as exc:
             issues.append(Issue(("rendering", "avatar"), f"condition {cond.id!r}: {exc}"))
     return issues
+
+
+def refuse_bad_inputs(protocol: Protocol, *, protocol_path: Path) -> None:
+    """Raise the ProtocolError ``facelab validate`` gives (each problem at its line) when a
+    file or text the protocol names will not render: before a render writes anything."""
+    issues = input_problems(protocol, base_dir=protocol_path.parent)
+    if issues:
+        raise refuse(protocol_path, issues)
+
+
+def _words_problems(stim: Stimulus) -> list[tuple[str, str]]:
+    """(key, message) for a text or transcript OpenJTalk reads as no speech (punctuation,
+    symbols, a lone っ: a clip whose mouth never moves), and for ``expected_vowels`` that are
+    not the vowels it reads there (the vowels the clip's checks and isolation look for)."""
+    key, words = ("text", stim.text) if stim.text is not None else ("transcript", stim.transcript)
+    if words is None:
+        return []
+    phonemes = spoken_phonemes(words)
+    if not sounded(phonemes):
+        read = f"only {' '.join(phonemes)!r}" if phonemes else "nothing"
+        return [(key, f"OpenJTalk reads {read} in {words!r}: no speech to synthesise or "
+                 "align (write words it can pronounce, in kana or kanji)")]  # fmt: skip
+    vowels = spoken_vowels(words)
+    if stim.expected_vowels is not None and stim.expected_vowels != vowels:
+        return [("expected_vowels", f"{stim.expected_vowels!r}, but OpenJTalk reads {words!r} "
+                 f"as {' '.join(phonemes)!r}, whose vowels are {vowels!r} (devoiced ones "
+                 "included): give those, in order")]  # fmt: skip
+    return []
 
 
 def audio_only_note(protocol: Protocol) -> str | None:

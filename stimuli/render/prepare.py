@@ -14,7 +14,7 @@ from facelab.stimuli.speech.analyser import analyze
 from facelab.stimuli.speech.audio import Speech, load_audio
 from facelab.stimuli.speech.track import VisemeTrack, from_phonemes
 from facelab.stimuli.speech.tts import synthesize
-from facelab.stimuli.speech.vowels import isolate_vowels
+from facelab.stimuli.speech.vowels import isolate_vowels, vowel_stretches
 
 __all__ = [
     "find_stimulus",
@@ -98,5 +98,10 @@ def tracks_for(stimulus: Stimulus, speech: Speech) -> tuple[VisemeTrack, VisemeT
         track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
     isolated = None
     if stimulus.vowel_isolation and stimulus.expected_vowels:
-        isolated = isolate_vowels(track, vowels=stimulus.expected_vowels)
+        try:
+            stretches = vowel_stretches(track, vowels=stimulus.expected_vowels,
+                                        phones=speech.phones)  # fmt: skip
+        except VisemeError as exc:
+            raise VisemeError(f"stimulus {stimulus.id!r}: {exc}") from None
+        isolated = isolate_vowels(track, vowels=stimulus.expected_vowels, segments=stretches)
     return track, isolated

@@ -4,20 +4,23 @@ isolation of the intended vowel (seed figure 7).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 
 import numpy as np
 
 from facelab.errors import VisemeError
 from facelab.stimuli.speech.analyser import VisemeModel, analyze, features
+from facelab.stimuli.speech.audio import Phone
 from facelab.stimuli.speech.features import HOP_S
 from facelab.stimuli.speech.track import VISEMES, VOWEL_INDEX, VOWEL_VISEMES, VOWELS, VisemeTrack
 
 __all__ = [
     "calibrate",
     "isolate_vowels",
+    "phone_vowel_segments",
     "vowel_segments",
+    "vowel_stretches",
 ]
 
 # --------------------------------------------------------------------------- calibration
@@ -136,6 +139,59 @@ def _widen(
             b += 1
         out.append((a, b))
     return out
+
+
+def phone_vowel_segments(phones: Sequence[Phone], track: VisemeTrack) -> list[tuple[int, int]]:
+    """One frame range [start, stop) of ``track`` per vowel phoneme of ``phones`` (devoiced
+    ones included): the vowel's own time grown half-way to the vowels either side, or to the
+    pause or silence between them. Vowels run together (あいうえお, はい) get one each, where
+    :func:`vowel_segments` finds one voiced stretch for all of them."""
+    times = np.asarray(track.times, float)
+    marks = [(p.phoneme.lower() in VOWELS and len(p.phoneme) == 1, p) for p in phones]
+    vowels = [k for k, (is_vowel, _) in enumerate(marks) if is_vowel]
+    out: list[tuple[int, int]] = []
+    for n, k in enumerate(vowels):
+        phone = phones[k]
+        lo, hi = phone.start, phone.end
+        if n > 0:  # half-way back to the vowel before, or to the pause after it
+            j = vowels[n - 1]
+            pauses = [p for p in phones[j + 1 : k] if p.phoneme in ("pau", "sil")]
+            lo = pauses[-1].end if pauses else (phones[j].end + phone.start) / 2
+        if n + 1 < len(vowels):
+            j = vowels[n + 1]
+            pauses = [p for p in phones[k + 1 : j] if p.phoneme in ("pau", "sil")]
+            hi = pauses[0].start if pauses else (phone.end + phones[j].start) / 2
+        a = int(np.searchsorted(times, lo))
+        b = max(int(np.searchsorted(times, hi)), a + 1)
+        out.append((min(a, len(times) - 1), min(b, len(times))))
+    return out
+
+
+def vowel_stretches(
+    track: VisemeTrack, *, vowels: str, phones: Sequence[Phone] = ()
+) -> list[tuple[int, int]]:
+    """One frame range of ``track`` per vowel of ``vowels`` (a stimulus' ``expected_vowels``):
+    its voiced stretches, widened (vowels spoken apart, as the seed's あ。い。う。え。お。),
+    or, when those are not one per vowel and the words are known (``phones``), each vowel
+    phoneme's stretch (:func:`phone_vowel_segments`). VisemeError when neither counts one per
+    vowel."""
+    segs = vowel_segments(track, widen=True)
+    if len(segs) == len(vowels):
+        return segs
+    if phones:
+        by_phone = phone_vowel_segments(phones, track)
+        if len(by_phone) == len(vowels):
+            return by_phone
+        said = "".join(p.phoneme.lower() for p in phones if p.phoneme.lower() in VOWELS)
+        raise VisemeError(
+            f"expected_vowels is {vowels!r}, but the words' vowels are {said!r}: give those"
+        )
+    raise VisemeError(
+        f"expected_vowels is {vowels!r} ({len(vowels)} vowels), but the recording has "
+        f"{len(segs)} voiced stretch(es): without its words, a recording's vowels are told "
+        "apart by the pauses between them - give it its 'transcript', or record the vowels "
+        "apart"
+    )
 
 
 def isolate_vowels(
