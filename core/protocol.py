@@ -24,7 +24,9 @@ from facelab.errors import Issue, ProtocolError
 from facelab.protocol_checks import clean_loc, cross_check, describe, pydantic_message
 from facelab.protocol_model import (
     ID_PATTERN,
+    LANG_PATTERN,
     SCHEMA_VERSION,
+    VOWELS_PATTERN,
     AnyTask,
     Block,
     ChoiceTask,
@@ -185,6 +187,13 @@ def _partial_model(names: tuple[str, ...]) -> type[BaseModel]:
     return create_model("ProtocolSections", __config__=Protocol.model_config, **fields)
 
 
+#: what a value of each constrained string is, in words (instead of its regular expression)
+_PATTERN_WORDS = {
+    VOWELS_PATTERN: "the vowels spoken, in order, as lower-case a i u e o (e.g. aiueo)",
+    LANG_PATTERN: "a language code such as ja, en or pt-BR",
+}
+
+
 def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
     path = clean_loc(err["loc"])
     kind = err["type"]
@@ -209,6 +218,10 @@ def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
             "- or single _ (no '__': it separates set, stimulus and condition in clip file names)",
             locator.line(path),
         )
+    pattern = err.get("ctx", {}).get("pattern")
+    if kind == "string_pattern_mismatch" and pattern in _PATTERN_WORDS:
+        return Issue(path, f"{describe(err.get('input'))}: expected {_PATTERN_WORDS[pattern]}",
+                     locator.line(path))  # fmt: skip
     if kind == "string_too_long" and path and path[-1] == "id":
         return Issue(path, "ids have at most 64 characters", locator.line(path))
     return Issue(path, pydantic_message(err), locator.line(path))

@@ -73,7 +73,9 @@ Id = Annotated[
         "at most 64 characters."
     ),
 ]
-LangCode = Annotated[str, StringConstraints(pattern=r"^[a-z]{2,3}(-[A-Za-z0-9]+)?$")]
+LANG_PATTERN = r"^[a-z]{2,3}(-[A-Za-z0-9]+)?$"
+LangCode = Annotated[str, StringConstraints(pattern=LANG_PATTERN)]
+VOWELS_PATTERN = r"^[aiueo]+$"
 Text = Annotated[str, StringConstraints(min_length=1)]
 Localized = Annotated[
     dict[LangCode, Text],
@@ -271,7 +273,7 @@ class Stimulus(_Model):
         "live lip-sync plug-in hears it). Default: the words whenever they are known.",
     )
     tts: TtsOptions = Field(default_factory=TtsOptions)
-    expected_vowels: Annotated[str, StringConstraints(pattern=r"^[aiueo]+$")] | None = Field(
+    expected_vowels: Annotated[str, StringConstraints(pattern=VOWELS_PATTERN)] | None = Field(
         None, description="The vowels spoken, in order (e.g. aiueo); needed for vowel isolation."
     )
     vowel_isolation: list[Id] = Field(

@@ -507,3 +507,17 @@ def test_mutated_shipped_protocols_load_or_are_refused(tmp_path: Path) -> None:
         build_trials(protocol, participant="P01")
         plan(protocol)
     assert min(outcomes.values()) >= 20, outcomes  # both paths exercised
+
+
+def test_constrained_strings_are_explained_in_words_not_by_their_pattern(tmp_path: Path) -> None:
+    """A wrong expected_vowels or language code names what is expected, not the regular
+    expression pydantic matched it against."""
+    from tests.protocol_edits import ONE_CONDITION, protocol_problems
+
+    text = ONE_CONDITION.replace("expected_vowels: aiueo}", "expected_vowels: AIUEO}")
+    text = text.replace("language: ja", "language: Japanese")
+    problems = protocol_problems(text, tmp_path)
+    assert ("stimulus_sets[0].stimuli[0].expected_vowels: 'AIUEO': expected the vowels "
+            "spoken, in order, as lower-case a i u e o (e.g. aiueo)") in problems  # fmt: skip
+    assert "presentation.language: 'Japanese': expected a language code such as ja" in problems
+    assert "pattern" not in problems and "^" not in problems
