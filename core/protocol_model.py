@@ -274,7 +274,10 @@ class Stimulus(_Model):
     )
     tts: TtsOptions = Field(default_factory=TtsOptions)
     expected_vowels: Annotated[str, StringConstraints(pattern=VOWELS_PATTERN)] | None = Field(
-        None, description="The vowels spoken, in order (e.g. aiueo); needed for vowel isolation."
+        None,
+        description="The vowels spoken, in order (e.g. aiueo; はい is ai, です eu): validate "
+        "checks them against OpenJTalk's reading of 'text' or 'transcript'. Needed for vowel "
+        "isolation; the articulation checks look at each vowel's peak.",
     )
     vowel_isolation: list[Id] = Field(
         default_factory=list,

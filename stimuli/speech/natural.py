@@ -39,6 +39,7 @@ __all__ = [
     "NATURAL_TRAIN",
     "TRAIN_SYLLABLES",
     "NaturalClip",
+    "aligned_vowels_heard",
     "core_frames",
     "joined",
     "natural_sentences",
@@ -209,6 +210,22 @@ def joined(clips: Sequence[NaturalClip], *, gap_s: float = 0.3, rate: int = 16_0
         t += (len(x) + len(gap)) / rate
     return NaturalClip("+".join(c.text for c in clips), clips[0].voice, clips[0].speed,
                        np.concatenate(parts), rate, tuple(cores), "joined")  # fmt: skip
+
+
+def aligned_vowels_heard(phones: Iterable, track) -> tuple[float, int]:
+    """(share, frames): of the cores of the voiced vowels among timed ``phones`` (a
+    transcript aligned to a recording), the share of frames whose strongest vowel in
+    ``track`` (the recording's audio-only analysis, a :class:`VisemeTrack`) is the aligned
+    one. A transcript of other words (as many morae) is aligned as well as the right one;
+    its vowels are then heard at about chance. NaN with no core frame."""
+    times = np.asarray(track.times, float)
+    vowels = track.vowels()
+    hits = frames = 0
+    for lo, hi, v in vowel_cores(phones):
+        sel = (times >= lo) & (times < hi)
+        frames += int(sel.sum())
+        hits += int((np.argmax(vowels[sel], axis=1) == VOWELS.index(v)).sum())
+    return (hits / frames if frames else float("nan")), frames
 
 
 def core_frames(times: np.ndarray, clip: NaturalClip) -> tuple[np.ndarray, np.ndarray]:
