@@ -882,10 +882,11 @@ def _rendering(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             yield Issue(
                 ("rendering", "background", ci), f"expected a colour channel in 0..1, got {value:g}"
             )
-    if protocol.rendering.width % 2 or protocol.rendering.height % 2:
-        yield Issue(
-            ("rendering", "width"), "width and height must be even (H.264 needs even sizes)"
-        )
+    for side in ("width", "height"):
+        value = getattr(protocol.rendering, side)
+        if value % 2:
+            yield Issue(("rendering", side), f"expected an even number (H.264 needs even "
+                        f"sizes), got {value}")  # fmt: skip
 
 
 @_check("presentation", "tasks")

@@ -521,3 +521,12 @@ def test_constrained_strings_are_explained_in_words_not_by_their_pattern(tmp_pat
             "spoken, in order, as lower-case a i u e o (e.g. aiueo)") in problems  # fmt: skip
     assert "presentation.language: 'Japanese': expected a language code such as ja" in problems
     assert "pattern" not in problems and "^" not in problems
+
+
+def test_odd_width_and_height_are_each_named(tmp_path: Path) -> None:
+    from tests.protocol_edits import ONE_CONDITION, protocol_problems
+
+    odd = ONE_CONDITION.replace("width: 160, height: 90", "width: 161, height: 65")
+    problems = protocol_problems(odd, tmp_path)
+    assert "rendering.width: expected an even number (H.264 needs even sizes), got 161" in problems
+    assert "rendering.height: expected an even number (H.264 needs even sizes), got 65" in problems
