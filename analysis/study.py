@@ -192,7 +192,9 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
     }
     for cell in rating_cells(data, protocol):
         item, sset, where = cell.item, cell.sset, cell.where
-        one_condition = cell.sub is None and len(cell.seen) == 1
+        # a study of one condition (a pilot of one method); a cell that lacks the others of a
+        # study of several is "not analysed" (rating_cells' note)
+        one_condition = cell.sub is None and len(protocol.conditions) == 1
         if not one_condition:
             notes.extend(cell.notes)
         if cell.sub is None and not one_condition:

@@ -13,7 +13,7 @@ import unicodedata
 
 from facelab.errors import SpeechError
 
-__all__ = ["morae", "pronunciation", "sounded", "spoken_phonemes", "spoken_vowels"]
+__all__ = ["morae", "pronunciation"]
 
 _SMALL = set("ャュョァィゥェォヮ")
 #: an e-row mora and イ: the dictionary reads kanji as a long vowel (先生 センセー) and kana as
@@ -32,30 +32,6 @@ def _frontend():
             raise SpeechError("pyopenjtalk-plus is not installed (pip install "
                               "'facelab[stimuli]')") from None  # fmt: skip
     return pyopenjtalk.g2p
-
-
-#: the front end's phonemes that are not speech sounds: pauses, silence, a geminate's closure
-_NOT_SOUNDED = frozenset({"pau", "sil", "cl"})
-
-
-@functools.lru_cache(maxsize=4096)
-def spoken_phonemes(text: str) -> tuple[str, ...]:
-    """The OpenJTalk front end's phonemes of ``text``, as the synthesiser speaks it and the
-    aligner times a transcript (``a i u e o``, devoiced ``A I U E O``, consonants, ``N``,
-    ``cl``, ``pau``); empty when it reads nothing (punctuation, symbols, emoji)."""
-    plain = unicodedata.normalize("NFKC", text).strip()
-    return tuple(str(_frontend()(plain)).split()) if plain else ()
-
-
-def spoken_vowels(text: str) -> str:
-    """The vowels of ``text`` as OpenJTalk reads it, in order (devoiced ones included,
-    lower case): あいうえお and あ。い。う。え。お。 are ``aiueo``, はい ``ai``, です ``eu``."""
-    return "".join(p.lower() for p in spoken_phonemes(text) if p.lower() in "aiueo")
-
-
-def sounded(phonemes: tuple[str, ...]) -> bool:
-    """Whether ``phonemes`` hold any speech sound (not only pauses and closures)."""
-    return any(p not in _NOT_SOUNDED for p in phonemes)
 
 
 def _katakana(text: str) -> str:

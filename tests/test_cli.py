@@ -334,10 +334,12 @@ def test_words_openjtalk_cannot_speak_and_wrong_expected_vowels_are_refused_befo
         err = capsys.readouterr().err
         assert "invalid protocol (4 problems)" in err, err
         assert ("words.yaml:11: stimulus_sets[0].stimuli[1].expected_vowels: 'aiu', but "
-                "OpenJTalk reads 'はい' as 'h a i', whose vowels are 'ai'") in err  # fmt: skip
+                "OpenJTalk reads 'はい' as 'h a i': give its vowels in order, "
+                "'ai'") in err  # fmt: skip
         assert "words.yaml:12: stimulus_sets[0].stimuli[2].text: OpenJTalk reads nothing" in err
         assert "stimuli[3].text: OpenJTalk reads nothing in '😀'" in err
-        assert "stimuli[4].text: OpenJTalk reads only 'cl' in 'っ'" in err
+        assert "stimuli[4].text: OpenJTalk reads only a pause or a closure (っ) in 'っ'" in err
+        assert "WARNING" not in err and "jpcommon" not in err  # no library text
     assert not (tmp_path / "clips").exists()
     path.write_text(ONE_CONDITION, encoding="utf-8")  # あいうえお run together: valid
     assert main(["validate", str(path)]) == 0

@@ -387,6 +387,7 @@ def test_vowels_closer_than_two_frames_are_not_measured_but_said_why() -> None:
     peaks = [0.40, 0.49, 0.57, 0.66, 0.75]
     why = too_few_frames(peaks, fps=10)
     assert why is not None and "80 ms apart" in why and "render at 25 fps or more" in why
-    assert too_few_frames(peaks, fps=30) is None
+    assert too_few_frames(peaks, fps=25) is None  # the rate it names is enough
+    assert too_few_frames(peaks, fps=24) is not None and too_few_frames(peaks, fps=30) is None
     assert too_few_frames([0.4, 1.0, 1.6], fps=10) is None  # the seed's あ。い。う。
     assert too_few_frames([0.4], fps=10) is None

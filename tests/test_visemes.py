@@ -11,6 +11,7 @@ from facelab.stimuli.speech.analyser import StreamingAnalyzer, VisemeError, anal
 from facelab.stimuli.speech.audio import Phone
 from facelab.stimuli.speech.track import VISEMES, VOWELS, VisemeTrack, from_phonemes
 from facelab.stimuli.speech.tts import synthesize
+from facelab.stimuli.speech.vowel_units import vowel_readings
 from facelab.stimuli.speech.vowels import (
     calibrate,
     isolate_vowels,
@@ -144,24 +145,27 @@ def test_vowel_isolation_keeps_only_the_intended_vowel() -> None:
         isolate_vowels(track, vowels="aiu")
 
 
-@pytest.mark.parametrize(("text", "vowels"), [("あいうえお", "aiueo"), ("はい", "ai"),
-                                             ("ええ", "ee"), ("です", "eu")])  # fmt: skip
+@pytest.mark.parametrize(("text", "vowels"), [
+    ("あいうえお", "aiueo"), ("はい", "ai"), ("ええ", "ee"), ("ええ", "e"), ("いいえ", "ie"),
+    ("です", "eu"), ("です", "e"),
+])  # fmt: skip
 def test_vowels_run_together_get_one_stretch_each_from_the_words(text: str, vowels: str) -> None:
     """Vowels spoken without pauses are one voiced stretch; with the words known, each vowel
-    phoneme gets its own, in order, and holds that vowel's peak (the articulation checks and
-    the contact sheets look there; isolation keeps that vowel only)."""
+    of the reading ``expected_vowels`` gives (a long vowel as one or two, a devoiced one
+    counted or not) gets its own stretch, in order, holding that vowel's peak (the
+    articulation checks and the contact sheets look there; isolation keeps that vowel only)."""
     speech = synthesize(text)
     track = from_phonemes(speech.phones, duration_s=speech.duration_s)
-    assert len(vowel_segments(track, widen=True)) < len(vowels)  # one stretch for them all
+    assert len(vowel_segments(track, widen=True)) == 1  # one voiced stretch for them all
     stretches = vowel_stretches(track, vowels=vowels, phones=speech.phones)
     assert len(stretches) == len(vowels)
     assert all(b > a for a, b in stretches)
     assert all(b1 <= a2 for (_, b1), (a2, _) in itertools.pairwise(stretches))  # in order
-    said = [p for p in speech.phones if p.phoneme.lower() in VOWELS]
-    for (a, b), vowel, phone in zip(stretches, vowels, said, strict=True):
-        assert track.times[a] <= (phone.start + phone.end) / 2 <= track.times[b - 1] + 1e-9
-        if phone.phoneme.islower():  # voiced: the vowel's own weight peaks in its stretch
-            col = VOWELS.index(vowel)
+    units = vowel_readings(speech.phones)[vowels]
+    for (a, b), (vowel, start, end) in zip(stretches, units, strict=True):
+        assert track.times[a] <= (start + end) / 2 <= track.times[b - 1] + 1e-9
+        col = VOWELS.index(vowel)
+        if track.vowels()[:, col].max() > 0.5:  # voiced: its own weight peaks in its stretch
             assert track.vowels()[a:b, col].max() >= 0.99 * track.vowels()[:, col].max()
     iso = isolate_vowels(track, vowels=vowels, segments=stretches)
     for (a, b), vowel in zip(stretches, vowels, strict=True):
@@ -169,11 +173,18 @@ def test_vowels_run_together_get_one_stretch_each_from_the_words(text: str, vowe
         assert np.all(iso.vowels()[a:b][:, others] == 0)
 
 
+def test_vowel_readings_list_long_and_devoiced_vowels_both_ways() -> None:
+    readings = {t: list(vowel_readings(synthesize(t).phones)) for t in ("あー。いー。", "です")}
+    assert readings == {"あー。いー。": ["aaii", "ai"], "です": ["eu", "e"]}
+
+
 def test_vowels_that_cannot_be_told_apart_are_refused_with_the_reason() -> None:
     speech = synthesize("あいうえお")
     track = from_phonemes(speech.phones, duration_s=speech.duration_s)
-    with pytest.raises(VisemeError, match="the words' vowels are 'aiueo': give those"):
+    with pytest.raises(VisemeError, match="the words' vowels are 'aiueo': give one of those"):
         vowel_stretches(track, vowels="aiu", phones=speech.phones)
+    with pytest.raises(VisemeError, match="the words' vowels are 'aiueo'"):
+        vowel_stretches(track, vowels="aieuo", phones=speech.phones)  # as many, not these
     with pytest.raises(VisemeError, match=r"told apart by the pauses .* give it its 'transcript'"):
         vowel_stretches(track, vowels="aiueo")  # a recording without its words
 

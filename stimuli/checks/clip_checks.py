@@ -87,11 +87,11 @@ def too_few_frames(peak_times: Sequence[float], *, fps: float) -> str | None:
     1/fps s, against vowels closer than two frames apart: the frame nearest one vowel's peak
     may show its neighbour, as at 10 fps in あいうえお spoken without pauses), or None."""
     gaps = np.diff(np.sort(np.asarray(peak_times, float)))
-    if not len(gaps) or 2.0 / fps <= float(gaps.min()):
+    if not len(gaps) or 2.0 / fps <= float(gaps.min()) + 1e-6:
         return None
-    gap_ms = round(1000 * float(gaps.min()))
-    return (f"its vowels peak {gap_ms} ms apart and the clip shows a frame every "
-            f"{1000 / fps:.0f} ms: render at {math.ceil(2000 / max(gap_ms, 1))} fps or more "
+    gap = float(gaps.min())
+    return (f"its vowels peak {1000 * gap:.0f} ms apart and the clip shows a frame every "
+            f"{1000 / fps:.0f} ms: render at {math.ceil(2.0 / gap - 1e-3)} fps or more "
             "(--fps) to check them")  # fmt: skip
 
 

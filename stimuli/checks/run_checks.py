@@ -191,6 +191,10 @@ def track_source_rows(
                 speech = speech_of((sset.id, stim.id))
                 heard, frames = aligned_vowels_heard(speech.phones, analyze(
                     speech.samples, sample_rate=speech.sample_rate).compensated())  # fmt: skip
+                if not frames:
+                    why = f"{stim.audio}: its transcript's vowels are too short to hear (< 40 ms)"
+                    rows.append(not_measured(**kw, why=why))
+                    continue
                 rows.append(at_least(
                     TRANSCRIPT_HEARD, heard if frames else None, **kw,
                     measure="transcript_vowels_heard", severity="warning",
@@ -343,13 +347,16 @@ def check_clips(
                 if c.level is not None and c.id not in twin and c.noise is None}  # fmt: skip
     for (set_id, stim_id), all_clips in by_stimulus.items():
         # the faces of conditions shown alike are compared (a muted clip may look like its
-        # audiovisual twin; audio_only faces do not move, by design; nor do they to silence)
-        quiet = stimuli.get((set_id, stim_id)) is not None and stimuli[
-            (set_id, stim_id)].silence_s is not None  # fmt: skip
-        for shown in ("audiovisual", "visual_only") if not quiet else ():
+        # audiovisual twin; audio_only faces do not move, by design; to silence, only a
+        # behaviour layer moves the face: conditions without one are not compared)
+        stim = stimuli.get((set_id, stim_id))
+        quiet = stim is not None and stim.silence_s is not None
+        for shown in ("audiovisual", "visual_only"):
             plain = {m["condition"]: (m["clip_id"], tracking[m["clip_id"]], m["sha256"])
                      for m in all_clips if m["condition"] not in levelled
-                     and modality[m["condition"]] == shown}  # fmt: skip
+                     and modality[m["condition"]] == shown
+                     and not (quiet and protocol.condition(m["condition"]).behaviour == "none")
+                     }  # fmt: skip
             # one picture's twins are checked equal among themselves; the others see one of
             # them (the first) - not every twin against every other condition
             alike = [[c for c in g if c in plain] for g in twins]
@@ -407,7 +414,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 9
+CHECKS_VERSION = 8
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 
@@ -453,7 +460,8 @@ def _protocols_clips(
     by_key = {(m["stimulus_set"], m["stimulus"], m["condition"]): m for m in manifest}
     jobs = {(j.stimulus_set, j.stimulus.id, j.condition): j for j in plan(protocol)}
     base_dir = protocol_path.parent
-    render = f"render them: facelab render {protocol_path} --out {clips_dir}"
+    render = (f"render them: facelab render {protocol_path} --out {clips_dir} (clips of "
+              "recorded turns are checked as facelab render --turn makes them)")
     missing = [key for key in jobs if key not in by_key]
     if missing:
         listed = ", ".join("/".join(k) for k in missing[:5])

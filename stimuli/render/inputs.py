@@ -7,14 +7,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from facelab.errors import FacelabError, Issue
-from facelab.japanese_reading import sounded, spoken_phonemes, spoken_vowels
+from facelab.errors import FacelabError, Issue, SpeechError
 from facelab.protocol import Protocol, Stimulus, refuse
 from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.behaviour.library import load_library
 from facelab.stimuli.methods import check_playable, get
 from facelab.stimuli.render.clipspec import plan
 from facelab.stimuli.speech.audio import load_audio
+from facelab.stimuli.speech.tts import synthesize
+from facelab.stimuli.speech.vowel_units import vowel_readings
 
 __all__ = ["audio_only_note", "input_notes", "input_problems", "refuse_bad_inputs"]
 
@@ -77,20 +78,27 @@ def refuse_bad_inputs(protocol: Protocol, *, protocol_path: Path) -> None:
 def _words_problems(stim: Stimulus) -> list[tuple[str, str]]:
     """(key, message) for a text or transcript OpenJTalk reads as no speech (punctuation,
     symbols, a lone っ: a clip whose mouth never moves), and for ``expected_vowels`` that are
-    not the vowels it reads there (the vowels the clip's checks and isolation look for)."""
+    not the vowels it reads there (the vowels the clip's checks and isolation look for). Read
+    by the synthesiser itself (kept per process: the render reuses it), which also times a
+    transcript for alignment."""
     key, words = ("text", stim.text) if stim.text is not None else ("transcript", stim.transcript)
     if words is None:
         return []
-    phonemes = spoken_phonemes(words)
-    if not sounded(phonemes):
-        read = f"only {' '.join(phonemes)!r}" if phonemes else "nothing"
+    try:
+        phones = synthesize(words).phones
+    except SpeechError:
+        phones = ()
+    sounded = [p.phoneme for p in phones if p.phoneme not in ("sil", "pau", "cl")]
+    if not sounded:
+        read = "only a pause or a closure (っ)" if phones else "nothing"
         return [(key, f"OpenJTalk reads {read} in {words!r}: no speech to synthesise or "
                  "align (write words it can pronounce, in kana or kanji)")]  # fmt: skip
-    vowels = spoken_vowels(words)
-    if stim.expected_vowels is not None and stim.expected_vowels != vowels:
+    readings = vowel_readings(phones)
+    if stim.expected_vowels is not None and stim.expected_vowels not in readings:
+        said = " ".join(p.phoneme for p in phones if p.phoneme != "sil")
         return [("expected_vowels", f"{stim.expected_vowels!r}, but OpenJTalk reads {words!r} "
-                 f"as {' '.join(phonemes)!r}, whose vowels are {vowels!r} (devoiced ones "
-                 "included): give those, in order")]  # fmt: skip
+                 f"as {said!r}: give its vowels in order, "
+                 + " or ".join(repr(r) for r in readings))]  # fmt: skip
     return []
 
 

@@ -133,10 +133,9 @@ def _run_open_jtalk(
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
         wav = tmpdir / "out.wav"
         if proc.returncode != 0 or not wav.exists() or wav.stat().st_size <= 44:
-            raise SpeechError(
-                f"OpenJTalk could not read the text {clean[:30]!r}: "
-                f"{proc.stderr.strip() or 'no audio produced'}"
-            )
+            why = ("it finds nothing it can pronounce in it" if "phoneme" in proc.stderr
+                   else f"it made no audio (exit status {proc.returncode})")  # fmt: skip
+            raise SpeechError(f"OpenJTalk could not read the text {clean[:30]!r}: {why}")
         trace = (tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace")
         phones = parse_trace(trace)
         samples, rate = _read_wav_pcm16(wav)

@@ -14,6 +14,7 @@ from facelab.stimuli.speech.analyser import VisemeModel, analyze, features
 from facelab.stimuli.speech.audio import Phone
 from facelab.stimuli.speech.features import HOP_S
 from facelab.stimuli.speech.track import VISEMES, VOWEL_INDEX, VOWEL_VISEMES, VOWELS, VisemeTrack
+from facelab.stimuli.speech.vowel_units import Unit, vowel_readings
 
 __all__ = [
     "calibrate",
@@ -141,29 +142,31 @@ def _widen(
     return out
 
 
-def phone_vowel_segments(phones: Sequence[Phone], track: VisemeTrack) -> list[tuple[int, int]]:
-    """One frame range [start, stop) of ``track`` per vowel phoneme of ``phones`` (devoiced
-    ones included): the vowel's own time grown half-way to the vowels either side, or to the
-    pause or silence between them. Vowels run together (あいうえお, はい) get one each, where
+def phone_vowel_segments(
+    units: Sequence[Unit], phones: Sequence[Phone], track: VisemeTrack
+) -> list[tuple[int, int]]:
+    """One frame range [start, stop) of ``track`` per vowel unit (:func:`vowel_readings`):
+    the unit's own time grown half-way to the units either side, or to the pause or silence
+    between them. Vowels run together (あいうえお, はい) get one each, where
     :func:`vowel_segments` finds one voiced stretch for all of them."""
     times = np.asarray(track.times, float)
-    marks = [(p.phoneme.lower() in VOWELS and len(p.phoneme) == 1, p) for p in phones]
-    vowels = [k for k, (is_vowel, _) in enumerate(marks) if is_vowel]
+    pauses = [(p.start, p.end) for p in phones if p.phoneme in ("pau", "sil")]
+
+    def pause_between(t0: float, t1: float) -> list[tuple[float, float]]:
+        return [(a, b) for a, b in pauses if a >= t0 - 1e-9 and b <= t1 + 1e-9]
+
     out: list[tuple[int, int]] = []
-    for n, k in enumerate(vowels):
-        phone = phones[k]
-        lo, hi = phone.start, phone.end
-        if n > 0:  # half-way back to the vowel before, or to the pause after it
-            j = vowels[n - 1]
-            pauses = [p for p in phones[j + 1 : k] if p.phoneme in ("pau", "sil")]
-            lo = pauses[-1].end if pauses else (phones[j].end + phone.start) / 2
-        if n + 1 < len(vowels):
-            j = vowels[n + 1]
-            pauses = [p for p in phones[k + 1 : j] if p.phoneme in ("pau", "sil")]
-            hi = pauses[0].start if pauses else (phone.end + phones[j].start) / 2
-        a = int(np.searchsorted(times, lo))
-        b = max(int(np.searchsorted(times, hi)), a + 1)
-        out.append((min(a, len(times) - 1), min(b, len(times))))
+    for n, (_, start, end) in enumerate(units):
+        lo, hi = start, end
+        if n > 0:  # half-way back to the unit before, or to the pause after it
+            gap = pause_between(units[n - 1][2], start)
+            lo = gap[-1][1] if gap else (units[n - 1][2] + start) / 2
+        if n + 1 < len(units):
+            gap = pause_between(end, units[n + 1][1])
+            hi = gap[0][0] if gap else (end + units[n + 1][1]) / 2
+        a = min(int(np.searchsorted(times, lo)), len(times) - 1)
+        b = min(max(int(np.searchsorted(times, hi)), a + 1), len(times))
+        out.append((a, b))
     return out
 
 
@@ -172,19 +175,21 @@ def vowel_stretches(
 ) -> list[tuple[int, int]]:
     """One frame range of ``track`` per vowel of ``vowels`` (a stimulus' ``expected_vowels``):
     its voiced stretches, widened (vowels spoken apart, as the seed's あ。い。う。え。お。),
-    or, when those are not one per vowel and the words are known (``phones``), each vowel
-    phoneme's stretch (:func:`phone_vowel_segments`). VisemeError when neither counts one per
-    vowel."""
+    or, when those are not one per vowel and the words are known (``phones``), the units of
+    the reading of the words that ``vowels`` is (:func:`vowel_readings`,
+    :func:`phone_vowel_segments`). VisemeError when neither fits."""
     segs = vowel_segments(track, widen=True)
-    if len(segs) == len(vowels):
+    if not phones and len(segs) == len(vowels):
         return segs
     if phones:
-        by_phone = phone_vowel_segments(phones, track)
-        if len(by_phone) == len(vowels):
-            return by_phone
-        said = "".join(p.phoneme.lower() for p in phones if p.phoneme.lower() in VOWELS)
+        readings = vowel_readings(phones)
+        if vowels in readings:
+            if len(segs) == len(vowels):  # spoken apart: the voiced stretches, as always
+                return segs
+            return phone_vowel_segments(readings[vowels], phones, track)
         raise VisemeError(
-            f"expected_vowels is {vowels!r}, but the words' vowels are {said!r}: give those"
+            f"expected_vowels is {vowels!r}, but the words' vowels are "
+            + " or ".join(repr(r) for r in readings) + ": give one of those"
         )
     raise VisemeError(
         f"expected_vowels is {vowels!r} ({len(vowels)} vowels), but the recording has "
