@@ -16,7 +16,7 @@ from facelab.experiment.timeline import ClipKey
 from facelab.formats import CLIP_COLUMNS, read_manifest
 from facelab.hashing import sha256_file
 from facelab.protocol import Protocol
-from facelab.stimuli.render.clipspec import clip_spec_hash, plan
+from facelab.stimuli.render.clipspec import unlisted_and_stale
 
 __all__ = [
     "ClipRef",
@@ -66,19 +66,13 @@ def check_clips(
         ) from None
     by_key = {(r["stimulus_set"], r["stimulus"], r["condition"]): r for r in rows}
     needed = set(needed)
-    missing = sorted(needed - set(by_key))
+    missing, stale = unlisted_and_stale(protocol, rows, needed, base_dir=base_dir)
     if missing:
         listed = ", ".join("/".join(k) for k in missing[:5])
         raise SessionError(
             f"{manifest} has no clip for {listed}{' …' if len(missing) > 5 else ''}; "
             "render again with this protocol"
         )
-    jobs = {(j.stimulus_set, j.stimulus.id, j.condition): j for j in plan(protocol)}
-    stale = [
-        key
-        for key in sorted(needed)
-        if by_key[key]["spec_sha256"] != clip_spec_hash(protocol, jobs[key], base_dir=base_dir)
-    ]
     if stale:
         listed = ", ".join("/".join(k) for k in stale[:5])
         raise SessionError(

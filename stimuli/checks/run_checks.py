@@ -50,7 +50,7 @@ from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
 from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, accept_checks, at_least, info
 from facelab.stimuli.render.build import vowel_peak_times
 from facelab.stimuli.render.clip import decode_audios, padded_audio, shifted_audio
-from facelab.stimuli.render.clipspec import ClipJob, clip_spec_hash, plan
+from facelab.stimuli.render.clipspec import ClipJob, plan, unlisted_and_stale
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.scene import load_avatar
 from facelab.stimuli.render.sound import clip_sound
@@ -458,24 +458,21 @@ def _protocols_clips(
     rendered from what it declares now (its spec hash); StageError naming the clips missing
     or rendered from something else (another study's clips, an edited protocol or input)."""
     by_key = {(m["stimulus_set"], m["stimulus"], m["condition"]): m for m in manifest}
-    jobs = {(j.stimulus_set, j.stimulus.id, j.condition): j for j in plan(protocol)}
-    base_dir = protocol_path.parent
+    keys = [(j.stimulus_set, j.stimulus.id, j.condition) for j in plan(protocol)]
+    missing, stale = unlisted_and_stale(protocol, manifest, keys, base_dir=protocol_path.parent)
     render = (f"render them: facelab render {protocol_path} --out {clips_dir} (clips of "
               "recorded turns are checked as facelab render --turn makes them)")
-    missing = [key for key in jobs if key not in by_key]
     if missing:
         listed = ", ".join("/".join(k) for k in missing[:5])
         raise StageError(f"{clips_dir / 'clips.csv'} does not list {len(missing)} of the "
-                         f"{len(jobs)} clips {protocol.study.id!r} needs ({listed}"
+                         f"{len(keys)} clips {protocol.study.id!r} needs ({listed}"
                          f"{' …' if len(missing) > 5 else ''}): {render}")  # fmt: skip
-    stale = [key for key, job in jobs.items()
-             if by_key[key]["spec_sha256"] != clip_spec_hash(protocol, job, base_dir=base_dir)]
     if stale:
         listed = ", ".join("/".join(k) for k in stale[:5])
         raise StageError(f"{len(stale)} clip(s) in {clips_dir} were rendered from another "
                          f"protocol or other input files than {protocol.study.id!r} declares "
                          f"now ({listed}{' …' if len(stale) > 5 else ''}): {render}")  # fmt: skip
-    return [by_key[key] for key in jobs]
+    return [by_key[key] for key in keys]
 
 
 def _explanations(clips_dir: Path, clips: Sequence[dict]) -> dict[tuple[str, str], str]:

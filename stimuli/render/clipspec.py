@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +25,14 @@ from facelab.hashing import sha256_file
 from facelab.protocol import Protocol, Stimulus
 from facelab.stimuli.methods import get
 
-__all__ = ["CLIP_COLUMNS", "RENDER_VERSION", "ClipJob", "clip_spec_hash", "plan"]
+__all__ = [
+    "CLIP_COLUMNS",
+    "RENDER_VERSION",
+    "ClipJob",
+    "clip_spec_hash",
+    "plan",
+    "unlisted_and_stale",
+]
 
 RENDER_VERSION = "facelab-render-2"  # 2: the default head with lids, ears, hair; new lighting
 
@@ -128,3 +136,20 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
             spec["audio_only_face"] = r.audio_only_face
     text = json.dumps(spec, sort_keys=True, ensure_ascii=False, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def unlisted_and_stale(
+    protocol: Protocol, rows: Iterable[Mapping[str, str]], keys: Iterable[tuple[str, str, str]],
+    *, base_dir: Path,
+) -> tuple[list[tuple[str, str, str]], list[tuple[str, str, str]]]:  # fmt: skip
+    """Of the clips ``keys`` (stimulus set, stimulus, condition) of ``protocol``: those the
+    ``rows`` of a clips.csv do not list, and those listed but rendered from something other
+    than what the protocol declares now (another spec hash: an edited protocol or input file,
+    another study's clips). Both sorted."""
+    by_key = {(r["stimulus_set"], r["stimulus"], r["condition"]): r for r in rows}
+    jobs = {(j.stimulus_set, j.stimulus.id, j.condition): j for j in plan(protocol)}
+    keys = sorted(set(keys))
+    missing = [k for k in keys if k not in by_key]
+    stale = [k for k in keys if k in by_key and k in jobs
+             and by_key[k]["spec_sha256"] != clip_spec_hash(protocol, jobs[k], base_dir=base_dir)]
+    return missing, stale
