@@ -201,7 +201,7 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             continue
         if one_condition:  # a pilot of one method: its ratings described, nothing compared
             sub = data[(data["item"] == item.id) & (data["stimulus_set"] == sset.id)]
-            seen, rm_sub = cell.seen, sub
+            seen = cell.seen
             sub = sub.assign(condition=pd.Categorical(sub["condition"], categories=seen))
             n_rm = int(sub["participant"].nunique())
             estimable = False

@@ -87,9 +87,9 @@ def too_few_frames(peak_times: Sequence[float], *, fps: float) -> str | None:
     1/fps s, against vowels closer than two frames apart: the frame nearest one vowel's peak
     may show its neighbour, as at 10 fps in あいうえお spoken without pauses), or None."""
     gaps = np.diff(np.sort(np.asarray(peak_times, float)))
-    if not len(gaps) or 2.0 / fps <= float(gaps.min()) + 1e-6:
+    gap = float(gaps.min()) if len(gaps) else math.inf
+    if 2.0 / fps <= gap + 1e-6:
         return None
-    gap = float(gaps.min())
     return (f"its vowels peak {1000 * gap:.0f} ms apart and the clip shows a frame every "
             f"{1000 / fps:.0f} ms: render at {math.ceil(2.0 / gap - 1e-3)} fps or more "
             "(--fps) to check them")  # fmt: skip

@@ -196,7 +196,7 @@ def track_source_rows(
                     rows.append(not_measured(**kw, why=why))
                     continue
                 rows.append(at_least(
-                    TRANSCRIPT_HEARD, heard if frames else None, **kw,
+                    TRANSCRIPT_HEARD, heard, **kw,
                     measure="transcript_vowels_heard", severity="warning",
                     note=f"{stim.audio}: the mouth follows its transcript {stim.transcript!r} "
                     f"aligned to it; audio-only analysis hears {heard:.0%} of its vowels' "
@@ -379,15 +379,14 @@ def check_clips(
                 levels = [ordered[0], ordered[-1]]
             rows += level_rows(levels, condition_of={m["clip_id"]: m["condition"] for m in clips},
                                group=f"{set_id}/{stim_id} {method}")  # fmt: skip
-        stim = stimuli.get((set_id, stim_id))
         if stim is not None and stim.expected_vowels:
             peaks = vowel_peak_times(stim, track_of((set_id, stim_id)),
                                      where=f"{set_id}/{stim_id}",
                                      phones=speech_of((set_id, stim_id)).phones)  # fmt: skip
-            readable = []
+            readable, peak_times = [], [t for _, t in peaks]
             for m in clips:
                 small = too_small(tracking[m["clip_id"]], clip_height=int(m["height"])) or (
-                    too_few_frames([t for _, t in peaks], fps=float(m["fps"])))  # fmt: skip
+                    too_few_frames(peak_times, fps=float(m["fps"])))  # fmt: skip
                 if small:
                     rows.append(not_measured(clip=m["clip_id"], condition=m["condition"],
                                              check="articulation", why=small))  # fmt: skip

@@ -123,8 +123,6 @@ def input_notes(protocol: Protocol, *, base_dir: Path) -> list[str]:
     """What ``validate`` and ``render`` say about the protocol's inputs besides problems:
     recordings analysed audio-only, and each method's own notes on the conditions that use
     it (:meth:`Method.protocol_notes`, e.g. impression levels too close to see)."""
-    from facelab.stimuli.methods import get
-
     note = audio_only_note(protocol)
     notes = [note] if note else []
     by_method: dict[str, list[object]] = {}

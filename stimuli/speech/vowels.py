@@ -179,18 +179,17 @@ def vowel_stretches(
     the reading of the words that ``vowels`` is (:func:`vowel_readings`,
     :func:`phone_vowel_segments`). VisemeError when neither fits."""
     segs = vowel_segments(track, widen=True)
-    if not phones and len(segs) == len(vowels):
-        return segs
     if phones:
         readings = vowel_readings(phones)
-        if vowels in readings:
-            if len(segs) == len(vowels):  # spoken apart: the voiced stretches, as always
-                return segs
+        if vowels not in readings:
+            raise VisemeError(
+                f"expected_vowels is {vowels!r}, but the words' vowels are "
+                + " or ".join(repr(r) for r in readings) + ": give one of those"
+            )
+        if len(segs) != len(vowels):  # run together: one stretch per vowel from the words
             return phone_vowel_segments(readings[vowels], phones, track)
-        raise VisemeError(
-            f"expected_vowels is {vowels!r}, but the words' vowels are "
-            + " or ".join(repr(r) for r in readings) + ": give one of those"
-        )
+    if len(segs) == len(vowels):  # spoken apart: the voiced stretches, as always
+        return segs
     raise VisemeError(
         f"expected_vowels is {vowels!r} ({len(vowels)} vowels), but the recording has "
         f"{len(segs)} voiced stretch(es): without its words, a recording's vowels are told "
