@@ -289,6 +289,32 @@ def test_pipelined_frames_equal_frame_by_frame() -> None:
     assert len(still) == 2
 
 
+def test_a_frame_like_the_one_before_is_shown_again_not_drawn() -> None:
+    """Frames whose weights and pose equal the frame before's (the still padding, an
+    audio-only face) are that frame's picture, not drawn again; a change of either alone is
+    drawn: the pictures are those frame() draws, in order."""
+    from facelab.stimuli.avatar.rig import HeadPose
+
+    head = default_head()
+    shut, half = head.weight_vector({}), head.weight_vector({"jawOpen": 0.5})
+    weights = [shut, shut, shut, half, half, half, shut]
+    poses = [None, None, None, None, None, HeadPose(yaw=20.0), None]
+    poses[2] = HeadPose()  # the rest pose, equal to none in pixels, but another pose: drawn
+    with Renderer(head, SMALL) as r:
+        one_by_one = [r.frame(w, pose=p) for w, p in zip(weights, poses, strict=True)]
+        r.times = type(r.times)()
+        piped = list(r.frames(weights, poses))
+        drawn, repeated = r.times.frames, r.times.repeated
+        r.times = type(r.times)()
+        still = list(r.frames([shut] * 4))
+    assert len(piped) == 7
+    assert all(np.array_equal(a, b) for a, b in zip(one_by_one, piped, strict=True))
+    assert (drawn, repeated) == (5, 2)  # frames 2 and 5 repeat the frame before theirs
+    assert not np.array_equal(piped[4], piped[5])  # the head turned
+    assert (len(still), r.times.frames, r.times.repeated) == (4, 1, 3)
+    assert all(np.array_equal(f, one_by_one[0]) for f in still)
+
+
 def test_renderers_open_at_once_each_keep_drawing_when_another_closes() -> None:
     """Several renderers may be open in one process (the render stage's cached one, a contact
     sheet's, the live view's): closing one must leave the others drawing the same pictures.

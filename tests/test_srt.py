@@ -80,6 +80,31 @@ def test_a_noise_token_is_the_inverse_fft_numpy_gives_bit_for_bit() -> None:
     assert n > NPERSEG and np.array_equal(made, x / np.sqrt(np.mean(x**2)))
 
 
+def test_a_clips_noise_is_made_once_and_stays_the_same_numbers(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The clips of one stimulus at one SNR (one per modality, and the stimulus checks'
+    copy) share their noise from a bounded cache: the numbers the generator makes, read-only,
+    and the oldest dropped when the cache is full."""
+    from facelab.stimuli.render import sound
+
+    spectrum = long_term_spectrum([_voice()], sample_rate=RATE)
+    monkeypatch.setattr(sound, "_noises", type(sound._noises)())
+    parts = ("study", "set", "word", "-6")
+    first = sound._speech_shaped_noise(spectrum, n=24_989, parts=parts)
+    again = sound._speech_shaped_noise(spectrum, n=24_989, parts=parts)
+    assert again is first and not first.flags.writeable
+    assert np.array_equal(first, shaped_noise(spectrum, n=24_989, rng=noise_rng(*parts)))
+    other = sound._speech_shaped_noise(spectrum, n=24_989, parts=(*parts[:3], "-3"))
+    assert not np.array_equal(other, first)
+    assert not np.array_equal(sound._speech_shaped_noise(spectrum, n=20_000, parts=parts),
+                              first[:20_000])  # fmt: skip
+    monkeypatch.setattr(sound, "NOISE_CACHE_BYTES", 2 * first.nbytes)
+    sound._speech_shaped_noise(spectrum, n=24_989, parts=(*parts[:3], "0"))
+    assert len(sound._noises) == 2 and sum(x.nbytes for x in sound._noises.values()) <= (
+        2 * first.nbytes)
+
+
 @pytest.mark.parametrize("snr", [-18.0, -6.0, 0.0, 6.0])
 def test_the_mix_keeps_the_speech_level_and_sets_the_noise_below_it(snr: float) -> None:
     voice = _voice()

@@ -137,7 +137,8 @@ class FrameTimes:
     shade: float = 0.0
     upload: float = 0.0
     raster_readback: float = 0.0
-    frames: int = 0
+    frames: int = 0  # drawn
+    repeated: int = 0  # shown again: the same weights and pose as the frame before
 
     def as_dict(self) -> dict[str, float]:
         n = max(self.frames, 1)
@@ -381,23 +382,35 @@ class Renderer:
     ) -> Iterator[np.ndarray]:
         """The frames of a clip, pipelined: while OpenGL (llvmpipe's threads) rasterises
         frame k, frame k + 1 is deformed and lit on the CPU. The same pictures as calling
-        :meth:`frame` for each (weights, pose) pair."""
+        :meth:`frame` for each (weights, pose) pair; a frame whose weights and pose equal the
+        frame before's (the still padding round the speech, an audio-only face) is that
+        frame's picture again, not drawn twice (the same array object: copy it to keep it)."""
         pairs = (
             zip(weights, poses, strict=True) if poses is not None else ((w, None) for w in weights)
         )
-        drawn = False
+        pending = False  # a frame drawn and not yet read back
+        last: np.ndarray | None = None  # the last frame read back
+        before: tuple[np.ndarray, HeadPose | None] | None = None  # what it was drawn from
         # one BLAS thread while the clip is drawn (see the module docstring); the caller's own
         # numpy work between clips (e.g. analysing the next stimulus) keeps its threads
         with one_blas_thread():
             for w, pose in pairs:
+                if before is not None and pose == before[1] and np.array_equal(w, before[0]):
+                    if pending:
+                        last, pending = self._collect(), False
+                        yield last
+                    self.times.repeated += 1
+                    yield last
+                    continue
                 prepared = self._prepare(w, pose)  # overlaps the previous frame's rasterisation
-                if drawn:
-                    yield self._collect()
+                if pending:
+                    last = self._collect()
+                    yield last
                 verts, lit, box = prepared
                 self._upload(verts, lit)
                 self._draw(box)
-                drawn = True
-        if drawn:
+                pending, before = True, (np.array(w, copy=True), pose)
+        if pending:
             yield self._collect()
 
     def _prepare(

@@ -5,6 +5,8 @@ stimulus checks (which compare the decoded clip with it)."""
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 
@@ -25,6 +27,29 @@ from facelab.stimuli.speech.noise import (
 
 __all__ = ["clip_sound"]
 
+#: bytes of speech-shaped noise kept (:func:`_speech_shaped_noise`): the clips of one
+#: stimulus at one SNR share their noise (one per modality or method), and the stimulus
+#: checks make each clip's sound again after the render in the same process
+NOISE_CACHE_BYTES = 256 * 2**20
+_noises: OrderedDict[tuple, np.ndarray] = OrderedDict()
+
+
+def _speech_shaped_noise(spectrum: np.ndarray, *, n: int, parts: tuple[str, ...]) -> np.ndarray:
+    """:func:`shaped_noise` of ``spectrum`` from the generator :func:`noise_rng` seeds with
+    ``parts`` - the same numbers, computed once while they stay in a bounded cache (a long
+    clip's inverse FFT at its often prime length costs tens of milliseconds). Read-only."""
+    key = (hashlib.sha1(spectrum.tobytes()).hexdigest(), n, parts)
+    hit = _noises.get(key)
+    if hit is not None:
+        _noises.move_to_end(key)
+        return hit
+    made = shaped_noise(spectrum, n=n, rng=noise_rng(*parts))
+    made.setflags(write=False)
+    _noises[key] = made
+    while sum(x.nbytes for x in _noises.values()) > NOISE_CACHE_BYTES and len(_noises) > 1:
+        _noises.popitem(last=False)
+    return made
+
 
 def clip_sound(
     protocol: Protocol, job: ClipJob, audio: Speech, *, base_dir: Path,
@@ -40,17 +65,17 @@ def clip_sound(
         return shown, None
     noise = cond.noise
     rate = audio.sample_rate
-    rng = noise_rng(protocol.study.id, job.stimulus_set, job.stimulus.id, f"{noise.snr_db:g}")
+    parts = (protocol.study.id, job.stimulus_set, job.stimulus.id, f"{noise.snr_db:g}")
     n = len(shown.samples)
     if noise.source == "speech_shaped":
         if job.stimulus_set not in spectra:
             stimuli = protocol.stimulus_set(job.stimulus_set).stimuli
             spectra[job.stimulus_set] = long_term_spectrum(
                 [speech_of(job.stimulus_set, st).samples for st in stimuli], sample_rate=rate)
-        raw = shaped_noise(spectra[job.stimulus_set], n=n, rng=rng)
+        raw = _speech_shaped_noise(spectra[job.stimulus_set], n=n, parts=parts)
     else:
         loop = load_audio(base_dir / noise.source, sample_rate=rate).samples
-        start = int(rng.integers(len(loop)))
+        start = int(noise_rng(*parts).integers(len(loop)))
         raw = np.resize(np.roll(loop, -start), n)  # looped from a seeded point
     try:
         mixed, record = mix_at_snr(shown.samples, raw, sample_rate=rate, snr_db=noise.snr_db,
