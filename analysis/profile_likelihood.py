@@ -3,12 +3,14 @@ fits of the objective tasks (audio-visual timing windows, speech reception thres
 
 A model is its log-likelihood ``loglik(theta) -> float`` over a parameter vector with box
 ``bounds`` (and, optionally, its ``gradient(theta) -> (k,)``: without it L-BFGS-B differences
-the likelihood numerically, several evaluations per step). :func:`best_fit` maximises it
-from several starts (L-BFGS-B); with ``fixed`` parameters held it is the profile.
-:func:`profile_interval` finds where twice the drop of the profile log-likelihood from the
-maximum reaches the chi-square(1) quantile, re-fitting the other parameters at each value
-(from the best fit: the profile is continuous there); an end that would pass the
-parameter's bound is returned as ``-inf`` / ``inf``.
+the likelihood numerically, several evaluations per step; a model that computes both at once
+passes ``both(theta) -> (loglik, gradient)`` as well, and the optimiser calls only that).
+:func:`best_fit` maximises it from several starts (L-BFGS-B); with ``fixed`` parameters held
+it is the profile. :func:`profile_interval` finds where twice the drop of the profile
+log-likelihood from the maximum reaches the chi-square(1) quantile, re-fitting the other
+parameters at each value from the profile's nearest point fitted so far (the best fit at
+first: the profile is continuous there, and a near point needs fewer steps); an end that
+would pass the parameter's bound is returned as ``-inf`` / ``inf``.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from scipy import optimize, stats
 from facelab.errors import AnalysisError
 
 __all__ = [
+    "Both",
     "Bounds",
     "Gradient",
     "LogLik",
@@ -34,6 +37,7 @@ __all__ = [
 
 LogLik = Callable[[np.ndarray], float]
 Gradient = Callable[[np.ndarray], np.ndarray]
+Both = Callable[[np.ndarray], tuple[float, np.ndarray]]
 Bounds = Sequence[tuple[float, float]]
 
 
@@ -49,10 +53,11 @@ def best_fit(
     starts: Sequence[np.ndarray],
     fixed: dict[int, float] | None = None,
     gradient: Gradient | None = None,
+    both: Both | None = None,
 ) -> tuple[np.ndarray, float]:
     """The parameters (``fixed`` {index: value} held) maximising ``loglik`` within
     ``bounds`` from the best of ``starts``, and the log-likelihood there; ``gradient`` the
-    log-likelihood's derivatives (k,), if known."""
+    log-likelihood's derivatives (k,), if known; ``both`` the two at once (used instead)."""
     fixed = fixed or {}
     k = len(bounds)
     free = [i for i in range(k) if i not in fixed]
@@ -68,6 +73,9 @@ def best_fit(
 
     def with_gradient(free_values: np.ndarray) -> tuple[float, np.ndarray]:
         theta = full(free_values)
+        if both is not None:
+            value, grad = both(theta)
+            return -value, -np.asarray(grad, dtype=float)[free]
         return -loglik(theta), -np.asarray(gradient(theta), dtype=float)[free]  # type: ignore[misc]
 
     def without(free_values: np.ndarray) -> float:
@@ -76,8 +84,9 @@ def best_fit(
     best_theta, best_ll = None, -math.inf
     for start in starts:
         s = np.clip(np.asarray(start, dtype=float)[free], lo, hi)
-        res = optimize.minimize(without if gradient is None else with_gradient, s,
-                                jac=gradient is not None, method="L-BFGS-B",
+        known = gradient is not None or both is not None
+        res = optimize.minimize(with_gradient if known else without, s,
+                                jac=known, method="L-BFGS-B",
                                 bounds=[bounds[i] for i in free])  # fmt: skip
         if -res.fun > best_ll:
             best_theta, best_ll = full(res.x), float(-res.fun)
@@ -96,16 +105,21 @@ def profile_interval(
     index: int,
     cutoff: float,
     gradient: Gradient | None = None,
+    both: Both | None = None,
 ) -> tuple[float, float]:
     """The profile-likelihood interval of parameter ``index`` around the maximum ``theta``
     (log-likelihood ``ll``); ``-inf`` / ``inf`` for an end beyond the search bound."""
+    fitted = [np.asarray(theta, dtype=float)]  # the profile's points so far
+    drops: dict[float, float] = {float(theta[index]): -cutoff}  # each value fitted once
 
     def drop(value: float) -> float:
-        if value == theta[index]:
-            return -cutoff
-        _, ll_v = best_fit(loglik, bounds=bounds, starts=[theta], fixed={index: value},
-                           gradient=gradient)  # fmt: skip
-        return 2.0 * (ll - ll_v) - cutoff
+        if value not in drops:
+            near = min(fitted, key=lambda t: abs(t[index] - value))
+            at_v, ll_v = best_fit(loglik, bounds=bounds, starts=[near], fixed={index: value},
+                                  gradient=gradient, both=both)  # fmt: skip
+            fitted.append(at_v)
+            drops[value] = 2.0 * (ll - ll_v) - cutoff
+        return drops[value]
 
     lo_b, hi_b = bounds[index]
     at = float(theta[index])

@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import special, stats
 
 import facelab.analysis.stats as fstats
 from facelab.analysis.profile_likelihood import (
@@ -184,6 +184,35 @@ def audio_only_series(protocol: Protocol) -> str | None:
     return next(iter(names)) if len(names) == 1 else None
 
 
+def _loglik_and_gradient(
+    theta: np.ndarray, *, x: np.ndarray, n: np.ndarray, k: np.ndarray, guess: float
+) -> tuple[float, np.ndarray]:
+    """The binomial log-likelihood of ``k`` of ``n`` right at SNRs ``x`` (dB) and its
+    derivatives (3,) in ``theta`` = (srt dB, log slope per dB, lapse), from one evaluation
+    (0 where ``p`` is clipped, as the clipped likelihood is flat there).
+
+    With ``s = 1 - guess - lapse``, ``f = (1/2 - guess) / s``, ``beta = slope / (s f (1 -
+    f))`` and ``u = beta (x - srt) + logit(f)``, P = guess + s * logistic(u); ``s f`` does
+    not depend on the lapse, which gives du/dlapse = (beta f (x - srt) + 1) / (s (1 - f))."""
+    srt, slope, lapse = theta[0], math.exp(theta[1]), theta[2]
+    s = 1.0 - guess - lapse
+    f = (0.5 - guess) / s
+    beta = slope / (s * f * (1.0 - f))
+    d = x - srt
+    sig = special.expit(beta * d + special.logit(f))
+    p = guess + s * sig
+    slope_at = s * sig * (1.0 - sig)  # dP/du
+    dp = np.stack([
+        -beta * slope_at,
+        beta * d * slope_at,
+        -sig + slope_at * (beta * f * d + 1.0) / (s * (1.0 - f)),
+    ])  # fmt: skip
+    inside = (p > _EPS) & (p < 1 - _EPS)
+    pc = np.clip(p, _EPS, 1 - _EPS)
+    weight = np.where(inside, k / pc - (n - k) / (1.0 - pc), 0.0)
+    return float(np.sum(k * np.log(pc) + (n - k) * np.log1p(-pc))), dp @ weight
+
+
 def fit_srt(
     trials: pd.DataFrame, *, guess: float, level: float = 0.95, intervals: bool = True
 ) -> SrtFit:
@@ -209,16 +238,19 @@ def fit_srt(
         p = np.clip(p, _EPS, 1 - _EPS)
         return float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
 
+    def both(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        return _loglik_and_gradient(theta, x=x, n=n, k=k, guess=guess)
+
     share = k / n
     above = x[share >= 0.5]
     start = float(above.min()) if len(above) else float(x[-1])
     starts = [np.array([c, math.log(s), 0.02]) for c in (start, float(np.median(x)))
               for s in (0.05, 0.15)]  # fmt: skip
-    theta, ll = best_fit(loglik, bounds=bounds, starts=starts)
+    theta, ll = best_fit(loglik, bounds=bounds, starts=starts, both=both)
     lo = hi = math.nan
     if intervals:
         lo, hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
-                                  cutoff=chi2_cutoff(level))  # fmt: skip
+                                  cutoff=chi2_cutoff(level), both=both)  # fmt: skip
     notes = []
     if on_bound(theta[0], bounds[0]):
         notes.append("the SRT ends on its search bound (outside the SNRs tested)")

@@ -133,6 +133,13 @@ def _gradient(
 ) -> np.ndarray:
     """d :func:`_loglik` / d theta (len(theta),): the chain rule through ``p`` (0 where
     ``p`` is clipped, as the clipped likelihood is flat there)."""
+    return _loglik_and_gradient(theta, judgment, x, n, k)[1]
+
+
+def _loglik_and_gradient(
+    theta: np.ndarray, judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """:func:`_loglik` and :func:`_gradient` at once, from one evaluation of ``p``."""
     sigma = math.exp(theta[1])
     z = (x - theta[0]) / sigma
     if judgment == "simultaneity":
@@ -152,7 +159,8 @@ def _gradient(
     inside = (p > _EPS) & (p < 1 - _EPS)
     pc = np.clip(p, _EPS, 1 - _EPS)
     weight = np.where(inside, k / pc - (n - k) / (1.0 - pc), 0.0)
-    return np.array([float(np.sum(weight * d)) for d in dp])
+    value = float(np.sum(k * np.log(pc) + (n - k) * np.log1p(-pc)))
+    return value, np.stack(dp) @ weight
 
 
 def _normal_pdf(z: np.ndarray) -> np.ndarray:
@@ -215,16 +223,20 @@ def fit_window(
     def gradient(theta: np.ndarray) -> np.ndarray:
         return _gradient(theta, judgment, x, n, k)
 
+    def both(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        return _loglik_and_gradient(theta, judgment, x, n, k)
+
     theta, ll = best_fit(loglik, bounds=bounds, starts=_starts(judgment, x, n, k, floor=floor),
-                         gradient=gradient)  # fmt: skip
+                         gradient=gradient, both=both)  # fmt: skip
     cutoff = chi2_cutoff(level)
     per = _per_sigma(judgment)
     pss_lo = pss_hi = ls_lo = ls_hi = math.nan
     if intervals:
         pss_lo, pss_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
-                                          cutoff=cutoff, gradient=gradient)  # fmt: skip
+                                          cutoff=cutoff, gradient=gradient,
+                                          both=both)  # fmt: skip
         ls_lo, ls_hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=1,
-                                        cutoff=cutoff, gradient=gradient)  # fmt: skip
+                                        cutoff=cutoff, gradient=gradient, both=both)  # fmt: skip
     notes = []
     names = ("the PSS", "the width", "the peak" if judgment == "simultaneity" else "the lapse",
              *(("the floor",) if floor else ()))  # fmt: skip

@@ -105,6 +105,37 @@ def test_a_clips_noise_is_made_once_and_stays_the_same_numbers(
         2 * first.nbytes)
 
 
+@pytest.mark.parametrize("guess", [0.0, 0.1, 1 / 6])
+def test_the_srt_fits_gradient_is_the_likelihoods_derivative(guess: float) -> None:
+    """The analytic gradient the SRT fit hands L-BFGS-B (SRT, log slope, lapse) equals
+    central differences of the log-likelihood of :func:`p_correct`, at random counts and
+    parameters, for open and closed sets."""
+    import math
+
+    from facelab.analysis.srt import _loglik_and_gradient
+    from facelab.intelligibility_function import p_correct
+
+    x = np.arange(-16.0, 1.0, 2.0)
+    n = np.full(len(x), 10.0)
+    rng = np.random.default_rng(7)
+
+    def loglik(t: np.ndarray, k: np.ndarray) -> float:
+        p = np.clip(p_correct(x, srt=t[0], slope=math.exp(t[1]), guess=guess, lapse=t[2]),
+                    1e-9, 1 - 1e-9)  # fmt: skip
+        return float(np.sum(k * np.log(p) + (n - k) * np.log1p(-p)))
+
+    for _ in range(8):
+        k = rng.integers(0, 11, len(x)).astype(float)
+        th = np.array([rng.uniform(-14, -2), math.log(rng.uniform(0.03, 0.3)),
+                       rng.uniform(0.0, 0.2)])  # fmt: skip
+        value, grad = _loglik_and_gradient(th, x=x, n=n, k=k, guess=guess)
+        assert value == pytest.approx(loglik(th, k), rel=1e-12)
+        for i in range(3):
+            h = np.eye(3)[i] * 1e-6
+            numeric = (loglik(th + h, k) - loglik(th - h, k)) / 2e-6
+            assert grad[i] == pytest.approx(numeric, rel=1e-5, abs=1e-5), (i, grad, numeric)
+
+
 @pytest.mark.parametrize("snr", [-18.0, -6.0, 0.0, 6.0])
 def test_the_mix_keeps_the_speech_level_and_sets_the_noise_below_it(snr: float) -> None:
     voice = _voice()

@@ -350,7 +350,7 @@ def test_the_window_fits_gradient_is_the_likelihoods_derivative(
     """The analytic gradient the window fit hands L-BFGS-B equals central differences of the
     log-likelihood, for every parameter (with and without a floor, both judgments), at
     random counts - including offsets where p is clipped (flat there, gradient 0)."""
-    from facelab.analysis.timing import _gradient, _loglik
+    from facelab.analysis.timing import _gradient, _loglik, _loglik_and_gradient
 
     x = np.array([-600.0, -300, -200, -100, 0, 100, 200, 300, 600])
     n = np.full(len(x), 20.0)
@@ -359,6 +359,9 @@ def test_the_window_fits_gradient_is_the_likelihoods_derivative(
     for _ in range(5):
         k = rng.integers(0, 21, len(x)).astype(float)
         got = _gradient(th, judgment, x, n, k)
+        value, fused = _loglik_and_gradient(th, judgment, x, n, k)  # what the optimiser calls
+        assert value == pytest.approx(_loglik(th, judgment, x, n, k), rel=1e-12)
+        assert np.array_equal(fused, got)
         for i in range(len(th)):
             h = 1e-5 * max(1.0, abs(th[i]))
             up, down = th.copy(), th.copy()
@@ -366,3 +369,35 @@ def test_the_window_fits_gradient_is_the_likelihoods_derivative(
             down[i] -= h
             numeric = (_loglik(up, judgment, x, n, k) - _loglik(down, judgment, x, n, k)) / (2 * h)
             assert got[i] == pytest.approx(numeric, rel=1e-4, abs=1e-4), (i, got, numeric)
+
+
+def test_a_profile_interval_ends_where_the_profile_itself_crosses_the_cutoff() -> None:
+    """A temporal-order fit with its lapse on the bound (answers of one simulated
+    participant): the upper end of the PSS interval is where the profile - the best
+    likelihood over width and lapse, searched from many starts - has dropped by the
+    chi-square cutoff. Re-fitting every profile point from the best fit stopped in a worse
+    optimum and ended the interval 28 ms short (172 against 200 ms)."""
+    import math
+
+    from facelab.analysis.profile_likelihood import best_fit, chi2_cutoff
+    from facelab.analysis.timing import _bounds, _loglik, fit_window
+
+    x = np.arange(-400.0, 401.0, 100.0)
+    n = np.full(len(x), 6.0)
+    k = np.array([6.0, 6, 5, 5, 6, 3, 1, 1, 1])
+    counts = pd.DataFrame({"offset_ms": x, "n": n.astype(int), "k": k.astype(int)})
+    fit = fit_window(counts, judgment="temporal_order")
+    bounds = _bounds("temporal_order", x, floor=False)
+
+    def loglik(t: np.ndarray) -> float:
+        return _loglik(t, "temporal_order", x, n, k)
+
+    _, top = best_fit(loglik, bounds=bounds, starts=[np.array([fit.pss_ms, 3.0, 0.1])])
+
+    def profile_drop(pss: float) -> float:
+        starts = [np.array([pss, s, lapse]) for s in np.linspace(*bounds[1], 8)
+                  for lapse in (0.0, 0.1, 0.2)]  # fmt: skip
+        return 2 * (top - best_fit(loglik, bounds=bounds, starts=starts, fixed={0: pss})[1])
+
+    assert math.isfinite(fit.pss_ci_high) and fit.pss_ci_high > fit.pss_ms
+    assert profile_drop(fit.pss_ci_high) == pytest.approx(chi2_cutoff(0.95), abs=0.02)
