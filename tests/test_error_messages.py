@@ -38,10 +38,12 @@ def _good_z(tmp: Path) -> str:
 
 
 def _good_wav(tmp: Path) -> bytes:
-    import numpy as np
     import soundfile as sf
 
-    sf.write(tmp / "tmp.wav", 0.3 * np.sin(np.arange(16000) / 10.0), 16000)
+    from facelab.stimuli.speech.tts import synthesize
+
+    speech = synthesize("あ。い。う。え。お。", sample_rate=16_000)  # a tone is refused: not speech
+    sf.write(tmp / "tmp.wav", speech.samples, 16_000)
     return (tmp / "tmp.wav").read_bytes()
 
 

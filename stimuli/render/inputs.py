@@ -14,6 +14,7 @@ from facelab.stimuli.behaviour.library import load_library
 from facelab.stimuli.methods import check_playable, get
 from facelab.stimuli.render.clipspec import plan
 from facelab.stimuli.speech.audio import load_audio
+from facelab.stimuli.speech.not_speech import not_speech_reason
 from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowel_units import vowel_readings
 
@@ -48,9 +49,15 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
             if stim.audio is None:
                 continue
             try:
-                load_audio(base_dir / stim.audio, sample_rate=rate)
+                recorded = load_audio(base_dir / stim.audio, sample_rate=rate)
             except FacelabError as exc:
                 issues.append(Issue((*at, "audio"), str(exc)))
+                continue
+            reason = not_speech_reason(recorded.samples, sample_rate=rate)
+            if reason is not None:  # its clip would move the mouth to a tone or to noise
+                issues.append(Issue((*at, "audio"), (
+                    f"{stim.audio}: this is not speech: {reason}. A clip would move the "
+                    "avatar's mouth to it as if it were words: give a recording of speech")))
     spec = protocol.rendering.avatar
     try:
         avatar = default_head() if spec == "default" else load(base_dir / spec)

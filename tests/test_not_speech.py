@@ -1,0 +1,102 @@
+"""A tone or noise given as a stimulus's recording is refused before a clip moves the mouth
+to it (facelab.stimuli.speech.not_speech); speech of every kind here passes - short and long,
+pitch-shifted, slowed, another synthesiser's voices, whispered, in moderate noise."""
+
+from __future__ import annotations
+
+import subprocess
+import wave
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facelab.experiment.cli import main
+from facelab.stimuli.speech.audio import load_audio
+from facelab.stimuli.speech.not_speech import not_speech_reason
+from facelab.stimuli.speech.tts import synthesize
+
+RATE = 48_000
+
+
+def _pink(n: int, rng: np.random.Generator, *, power: float = 1.0) -> np.ndarray:
+    spectrum = np.fft.rfft(rng.normal(size=n))
+    f = np.fft.rfftfreq(n, 1.0 / RATE)
+    spectrum[1:] /= f[1:] ** (power / 2)
+    x = np.fft.irfft(spectrum, n)
+    return x / x.std()
+
+
+@pytest.mark.parametrize("text", ["あ", "う", "ん", "はい", "うー", "すし", "こんにちは",
+                                  "はい、わかりました。すぐに行きます。"])  # fmt: skip
+@pytest.mark.parametrize(("pitch", "speed"), [(0.0, 1.0), (10.0, 1.0), (-8.0, 0.6)])
+def test_synthesised_speech_is_speech(text: str, pitch: float, speed: float) -> None:
+    s = synthesize(text, pitch_halftones=pitch, speed=speed)
+    assert not_speech_reason(s.samples, sample_rate=s.sample_rate) is None
+
+
+@pytest.mark.parametrize("voice", ["ja", "ja+f3", "ja+whisper", "ja+croak"])
+def test_another_synthesisers_voices_whispered_too_are_speech(voice: str, tmp_path: Path) -> None:
+    for k, text in enumerate(["あ", "う", "こんにちは"]):
+        out = tmp_path / f"{k}.wav"
+        subprocess.run(["espeak-ng", "-v", voice, "-w", str(out), text], check=True)
+        audio = load_audio(out, sample_rate=RATE)
+        assert not_speech_reason(audio.samples, sample_rate=RATE) is None, (voice, text)
+
+
+def test_speech_in_moderate_noise_is_speech_and_buried_speech_is_noise() -> None:
+    s = synthesize("ありがとうございます")
+    speech = s.samples / np.sqrt(np.mean(s.samples**2))
+    noise = _pink(len(speech), np.random.default_rng(3))
+    for snr in (6.0, 0.0, -6.0):
+        mix = 0.05 * (speech + noise * 10 ** (-snr / 20))
+        assert not_speech_reason(mix, sample_rate=s.sample_rate) is None, snr
+    buried = 0.05 * (speech + noise * 10 ** (20 / 20))
+    assert (not_speech_reason(buried, sample_rate=s.sample_rate) or "").startswith("noise")
+
+
+def test_tones_beeps_and_noises_are_not_speech() -> None:
+    t = np.arange(int(1.5 * RATE)) / RATE
+    rng = np.random.default_rng(4)
+    fade = np.clip(np.minimum(t, t[-1] - t) / 0.1, 0.0, 1.0)
+    for f in (100.0, 440.0, 3000.0):
+        reason = not_speech_reason(0.3 * np.sin(2 * np.pi * f * t) * fade, sample_rate=RATE)
+        assert reason is not None and reason.startswith(f"a tone at {f:.0f} Hz"), reason
+    vibrato = 0.2 * np.sin(2 * np.pi * 440 * t + 3 * np.sin(2 * np.pi * 5 * t))
+    beeps = 0.2 * np.sin(2 * np.pi * 1000 * t) * (t % 0.5 < 0.25)
+    hiss = 0.2 * np.sin(2 * np.pi * 440 * t) + 0.02 * rng.normal(size=len(t))
+    for x in (vibrato, beeps, hiss):
+        assert (not_speech_reason(x, sample_rate=RATE) or "").startswith("a tone"), x[:3]
+    for power in (0.0, 1.0, 2.0):  # white, pink, brown
+        noise = 0.1 * _pink(len(t), rng, power=power)
+        assert (not_speech_reason(noise, sample_rate=RATE) or "").startswith("noise"), power
+    chord = sum(0.1 * np.sin(2 * np.pi * f * t) for f in (261.6, 329.6, 392.0))
+    assert not_speech_reason(chord, sample_rate=RATE) is None  # music is not judged
+    assert not_speech_reason(0.3 * np.sin(2 * np.pi * 440 * t[:4800]), sample_rate=RATE) is None
+
+
+def _wav(path: Path, x: np.ndarray, rate: int = 22_050) -> None:
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(1)
+        w.setsampwidth(2)
+        w.setframerate(rate)
+        w.writeframes((np.clip(x, -1, 1) * 32767).astype("<i2").tobytes())
+
+
+def test_validate_and_render_refuse_a_tone_as_a_recording_at_its_line(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t = np.arange(22_050) / 22_050
+    _wav(tmp_path / "tone.wav", 0.3 * np.sin(2 * np.pi * 440 * t))
+    text = kato_path.read_text(encoding="utf-8").replace(
+        "text: あ。い。う。え。お。", "audio: tone.wav", 1)
+    path = tmp_path / "study.yaml"
+    path.write_text(text, encoding="utf-8")
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "study.yaml:41: stimulus_sets[0].stimuli[0].audio: tone.wav: this is not speech: " \
+        "a tone at 440 Hz" in err, err
+    assert "Traceback" not in err
+    out = tmp_path / "clips"
+    assert main(["render", str(path), "--out", str(out), "--size", "96x64", "--quiet"]) == 2
+    assert "this is not speech" in capsys.readouterr().err and not out.exists()
