@@ -12,7 +12,7 @@ The pieces: the typed models (:mod:`facelab.protocol_model`), YAML with line num
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import cache
 from pathlib import Path
 from typing import Any, get_args, get_origin
@@ -73,8 +73,15 @@ def protocol_hash(path: Path | str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def load_protocol(path: Path | str) -> Protocol:
-    """Read, validate and cross-check a protocol file.
+#: more checks of a protocol that validated: ``(protocol, base_dir) -> issues`` (e.g. reading
+#: every file it names, :func:`facelab.stimuli.render.inputs.input_problems`)
+FileChecks = Callable[[Protocol, Path], Sequence[Issue]]
+
+
+def load_protocol(path: Path | str, *, file_checks: FileChecks | None = None) -> Protocol:
+    """Read, validate and cross-check a protocol file; ``file_checks`` add their problems to
+    the same report whenever every section validated (a key's problem is said once, the
+    first found), so a missing file does not hide an unreadable one.
 
     Raises
     ------
@@ -96,10 +103,12 @@ def load_protocol(path: Path | str) -> Protocol:
         raise ProtocolError(
             path, [Issue((), f"cannot read the file ({exc.strerror or 'unreadable'})")]
         ) from None
-    return load_protocol_text(text, path=path, base_dir=path.parent)
+    return load_protocol_text(text, path=path, base_dir=path.parent, file_checks=file_checks)
 
 
-def load_protocol_text(text: str, *, path: Path | str, base_dir: Path) -> Protocol:
+def load_protocol_text(
+    text: str, *, path: Path | str, base_dir: Path, file_checks: FileChecks | None = None
+) -> Protocol:
     """A protocol from its text (e.g. a stored copy of the file a session ran), files it names
     resolved against ``base_dir``; ``path`` names it in errors. See :func:`load_protocol`."""
     path = Path(path)
@@ -118,7 +127,7 @@ def load_protocol_text(text: str, *, path: Path | str, base_dir: Path) -> Protoc
         raise ProtocolError(path, [Issue((), "expected a YAML mapping with the study's sections")])
 
     with gc_paused():
-        return _validate(path, root, data, base_dir=base_dir)
+        return _validate(path, root, data, base_dir=base_dir, file_checks=file_checks)
 
 
 def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
@@ -130,9 +139,12 @@ def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
     return ProtocolError(path, [Issue(i.path, i.message, locator.line(i.path)) for i in issues])
 
 
-def _validate(path: Path, root: Any, data: dict[str, Any], *, base_dir: Path) -> Protocol:
+def _validate(
+    path: Path, root: Any, data: dict[str, Any], *, base_dir: Path,
+    file_checks: FileChecks | None = None,
+) -> Protocol:  # fmt: skip
     """Every problem of the file at once: duplicate keys, then types, then the checks across
-    sections on whatever validated."""
+    sections on whatever validated, then ``file_checks`` when everything validated."""
     locator = Locator(root)
     issues = list(locator.duplicate_keys())
     protocol: Protocol | None = None
@@ -155,10 +167,35 @@ def _validate(path: Path, root: Any, data: dict[str, Any], *, base_dir: Path) ->
             Issue(i.path, i.message, locator.line(i.path))
             for i in cross_check(protocol, base_dir=base_dir, available=available)
         ]
+    if file_checks is not None and protocol is not None and available == set(
+        Protocol.model_fields
+    ):
+        issues += _more_issues(file_checks, protocol, base_dir, issues, locator)
     if issues:
         raise ProtocolError(path, issues)
     assert protocol is not None
     return protocol
+
+
+def _more_issues(
+    checks: FileChecks, protocol: Protocol, base_dir: Path, found: list[Issue], locator: Locator
+) -> list[Issue]:
+    """``checks``' problems at keys not yet reported. With problems found already they are
+    extra information: should the checks fail on a protocol that is inconsistent in another
+    way, the problems found stand alone (without them, the checks' own error stands)."""
+    try:
+        more = list(checks(protocol, base_dir))
+    except Exception:
+        if not found:
+            raise
+        return []  # the problems already found are the report
+    known = {i.path for i in found}
+    out = []
+    for i in more:
+        if i.path not in known:
+            known.add(i.path)
+            out.append(Issue(i.path, i.message, locator.line(i.path)))
+    return out
 
 
 def _partial(data: dict[str, Any], sections: set[str]) -> Protocol | None:

@@ -22,7 +22,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from facelab.protocol import load_protocol
 from facelab.resources import protocol_path
 
 if TYPE_CHECKING:
@@ -50,11 +49,10 @@ def run_demo(
     from facelab.experiment.cli.common import run_stimulus_checks
     from facelab.experiment.simulate import design_sampler, simulate_study
     from facelab.stimuli.render.build import build_clips, clip_counts, plan, settings_for
-    from facelab.stimuli.render.inputs import refuse_bad_inputs
+    from facelab.stimuli.render.inputs import load_checked_protocol
 
     t0 = time.perf_counter()
-    protocol = load_protocol(protocol_path)
-    refuse_bad_inputs(protocol, protocol_path=Path(protocol_path))
+    protocol = load_checked_protocol(protocol_path)
     say(f"[1/4] protocol {protocol_path}: study {protocol.study.id!r} is valid")
 
     settings = settings_for(protocol)

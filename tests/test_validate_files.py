@@ -63,3 +63,28 @@ def test_validate_passes_the_shipped_protocols(capsys: pytest.CaptureFixture[str
     shipped = sorted((Path(__file__).parents[1] / "protocols").glob("*.yaml"))
     assert main(["validate", *map(str, shipped)]) == 0
     assert capsys.readouterr().out.count("ok: ") == len(shipped)
+
+
+def test_a_missing_file_does_not_hide_an_unreadable_one(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One report holds every problem: a Z file that is not there (found while the protocol
+    is read) and a recording that is a tone (found when the files are read), each at its
+    line - validate and render alike, and render writes nothing."""
+    import numpy as np
+    import soundfile as sf
+
+    t = np.arange(16_000) / 16_000
+    sf.write(tmp_path / "tone.wav", 0.3 * np.sin(2 * np.pi * 440 * t), 16_000)
+    path = _protocol(tmp_path, kato_path,
+                     z=("params: {z: standard, gain: 1.0}", "params: {z: nothere.csv, gain: 1.0}"),
+                     audio=("text: あ。い。う。え。お。", "audio: tone.wav"))  # fmt: skip
+    for argv in (["validate", str(path)],
+                 ["render", str(path), "--out", str(tmp_path / "clips"), "--quiet"]):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "(2 problems)" in err, err
+        assert re.search(r"study\.yaml:28: conditions\[1\]\.params\.z: .*nothere\.csv", err)
+        assert re.search(r"study\.yaml:41: stimulus_sets\[0\]\.stimuli\[0\]\.audio: tone\.wav: "
+                         r"this is not speech: a tone at 440 Hz", err), err  # fmt: skip
+    assert not (tmp_path / "clips").exists()

@@ -45,12 +45,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.build import build_clips, clip_counts, plan
-    from facelab.stimuli.render.inputs import input_notes, refuse_bad_inputs
+    from facelab.stimuli.render.inputs import input_notes, load_checked_protocol
 
-    protocol = load_protocol(args.protocol)
+    # refused before anything is written, as validate refuses it (the turns are checked
+    # where they are read)
+    protocol = load_protocol(args.protocol) if args.turn else load_checked_protocol(
+        args.protocol)
     default_out = Path("results") / protocol.study.id / "clips"
-    if not args.turn:  # refused before anything is written, as validate refuses it
-        refuse_bad_inputs(protocol, protocol_path=Path(args.protocol))
     if args.turn:  # recorded live turns as the stimuli, under every condition
         from facelab.experiment.live_dialogue.turn import turns_protocol
 

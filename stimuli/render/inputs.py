@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from facelab.errors import FacelabError, Issue, SpeechError
-from facelab.protocol import Protocol, Stimulus, refuse
+from facelab.protocol import Protocol, Stimulus, load_protocol
 from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.behaviour.library import load_library
 from facelab.stimuli.methods import check_playable, get
@@ -18,7 +18,7 @@ from facelab.stimuli.speech.not_speech import not_speech_reason
 from facelab.stimuli.speech.tts import synthesize
 from facelab.stimuli.speech.vowel_units import vowel_readings
 
-__all__ = ["audio_only_note", "input_notes", "input_problems", "refuse_bad_inputs"]
+__all__ = ["audio_only_note", "input_notes", "input_problems", "load_checked_protocol"]
 
 
 def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
@@ -74,12 +74,11 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
     return issues
 
 
-def refuse_bad_inputs(protocol: Protocol, *, protocol_path: Path) -> None:
-    """Raise the ProtocolError ``facelab validate`` gives (each problem at its line) when a
-    file or text the protocol names will not render: before a render writes anything."""
-    issues = input_problems(protocol, base_dir=protocol_path.parent)
-    if issues:
-        raise refuse(protocol_path, issues)
+def load_checked_protocol(path: Path | str) -> Protocol:
+    """The protocol at ``path``, or the ProtocolError ``facelab validate`` gives: every
+    problem of the file and of the files and texts it names (:func:`input_problems`) in one
+    report, each at its line - raised before a render writes anything."""
+    return load_protocol(path, file_checks=lambda p, base: input_problems(p, base_dir=base))
 
 
 def _words_problems(stim: Stimulus) -> list[tuple[str, str]]:
