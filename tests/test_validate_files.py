@@ -88,3 +88,45 @@ def test_a_missing_file_does_not_hide_an_unreadable_one(
         assert re.search(r"study\.yaml:41: stimulus_sets\[0\]\.stimuli\[0\]\.audio: tone\.wav: "
                          r"this is not speech: a tone at 440 Hz", err), err  # fmt: skip
     assert not (tmp_path / "clips").exists()
+
+
+def test_a_transcript_the_recording_does_not_say_is_refused_by_validate(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A short recording with a long transcript fails the alignment the render does: validate
+    says so at the transcript's line (it passed, and the render failed after drawing clips);
+    the render refuses before writing anything, and aligns each recording once."""
+    import soundfile as sf
+
+    from facelab.errors import VisemeError
+    from facelab.stimuli.speech import align
+    from facelab.stimuli.speech.tts import synthesize
+
+    said = synthesize("はい", sample_rate=16_000)
+    sf.write(tmp_path / "hai.wav", said.samples, 16_000)
+    path = _protocol(tmp_path, kato_path, audio=(
+        "text: あ。い。う。え。お。\n        tts: {speed: 0.6}",
+        "audio: hai.wav\n        transcript: こんにちは、今日はいい天気ですね"),
+        vowels=("expected_vowels: aiueo", "expected_vowels: ai"))  # fmt: skip
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"study\.yaml:42: stimulus_sets\[0\]\.stimuli\[0\]\.transcript: hai\.wav "
+                     r"and its transcript: text and audio disagree: the text has words the "
+                     r"recording does not say", err), err  # fmt: skip
+    assert main(["render", str(path), "--out", str(tmp_path / "clips"), "--quiet"]) == 2
+    assert "and its transcript" in capsys.readouterr().err
+    assert not (tmp_path / "clips").exists()
+    # a disagreement is kept too: asked again, the same error without aligning again
+    calls = []
+    real = align._align_phones
+    align._align_phones = lambda *a, **k: calls.append(1) or real(*a, **k)  # type: ignore
+    try:
+        for _ in range(2):
+            with pytest.raises(VisemeError, match="text and audio disagree"):
+                align.align_phones(said.samples, sample_rate=16_000,
+                                   text="こんにちは、今日はいい天気ですね")  # fmt: skip
+        first = align.align_phones(said.samples, sample_rate=16_000, text="はい")
+        assert align.align_phones(said.samples, sample_rate=16_000, text="はい") is first
+    finally:
+        align._align_phones = real  # type: ignore
+    assert len(calls) == 2  # each recording and text once

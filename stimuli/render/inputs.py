@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from facelab.errors import FacelabError, Issue, SpeechError
+from facelab.errors import FacelabError, Issue, SpeechError, VisemeError
 from facelab.protocol import Protocol, Stimulus, load_protocol
 from facelab.stimuli.avatar import default_head, load
 from facelab.stimuli.behaviour.library import load_library
@@ -45,7 +45,8 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
     for si, sset in enumerate(protocol.stimulus_sets):
         for ti, stim in enumerate(sset.stimuli):
             at = ("stimulus_sets", si, "stimuli", ti)
-            issues += [Issue((*at, key), message) for key, message in _words_problems(stim)]
+            said = _words_problems(stim)
+            issues += [Issue((*at, key), message) for key, message in said]
             if stim.audio is None:
                 continue
             try:
@@ -58,6 +59,16 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
                 issues.append(Issue((*at, "audio"), (
                     f"{stim.audio}: this is not speech: {reason}. A clip would move the "
                     "avatar's mouth to it as if it were words: give a recording of speech")))
+            elif stim.transcript is not None and not any(k == "transcript" for k, _ in said):
+                from facelab.stimuli.speech.align import align_phones  # the signal stack
+
+                try:  # as the render aligns it (kept: the render does not align it again)
+                    align_phones(recorded.samples, sample_rate=rate, text=stim.transcript)
+                except VisemeError as exc:
+                    issues.append(Issue((*at, "transcript"), (
+                        f"{stim.audio} and its transcript: {exc} (give the words the "
+                        "recording says, or leave the transcript out to analyse the audio "
+                        "alone)")))
     spec = protocol.rendering.avatar
     try:
         avatar = default_head() if spec == "default" else load(base_dir / spec)

@@ -4,6 +4,9 @@ warping over the analyser's posteriorgram, and the reference's phoneme times car
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -62,7 +65,40 @@ def _frame_level(samples: np.ndarray, sample_rate: int, n: int) -> np.ndarray:
     return 20 * np.log10(rms + 1e-9)
 
 
+#: alignments kept per process (:func:`align_phones` with the default model): ``facelab
+#: render`` aligns each recording while it checks the protocol's files, then for its clips
+_MEMO_SIZE = 64
+_memo: OrderedDict[tuple, Alignment | str] = OrderedDict()
+_memo_lock = threading.Lock()
+
+
 def align_phones(
+    samples: np.ndarray, *, sample_rate: int, text: str, model: VisemeModel | None = None
+) -> Alignment:
+    """Time the phonemes of ``text`` on a recording of it (see :func:`_align_phones`); with
+    the default model, a recording and text aligned before in this process are not aligned
+    again (nor is a disagreement found again: the same error is raised)."""
+    if model is not None:
+        return _align_phones(samples, sample_rate=sample_rate, text=text, model=model)
+    x = np.ascontiguousarray(samples)
+    key = (hashlib.sha1(x.tobytes()).hexdigest(), str(x.dtype), int(sample_rate), text)
+    with _memo_lock:
+        kept = _memo.get(key)
+    if kept is None:
+        try:
+            kept = _align_phones(x, sample_rate=sample_rate, text=text)
+        except VisemeError as exc:
+            kept = str(exc)
+        with _memo_lock:
+            _memo[key] = kept
+            while len(_memo) > _MEMO_SIZE:
+                _memo.popitem(last=False)
+    if isinstance(kept, str):
+        raise VisemeError(kept)
+    return kept
+
+
+def _align_phones(
     samples: np.ndarray, *, sample_rate: int, text: str, model: VisemeModel | None = None
 ) -> Alignment:
     """Time the phonemes of ``text`` on a recording of it.
