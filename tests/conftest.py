@@ -15,6 +15,7 @@ import os
 import resource
 import shutil
 import subprocess
+import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -99,6 +100,9 @@ def pytest_configure(config: pytest.Config) -> None:
     if not os.environ.get("PYTEST_XDIST_WORKER"):  # the run's first process starts the record
         TIMES.parent.mkdir(exist_ok=True)
         TIMES.write_text("", encoding="utf-8")
+        # OpenJTalk's outputs are kept for the run's processes (workers and the commands they
+        # start inherit it), in a new folder: every run starts without, as a fresh machine does
+        os.environ.setdefault("FACELAB_CACHE_DIR", tempfile.mkdtemp(prefix="facelab-test-cache-"))
     # a facelab child that dies in native code (a signal, not an error) prints where it was
     os.environ.setdefault("PYTHONFAULTHANDLER", "1")
     if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("DISPLAY"):

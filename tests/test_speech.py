@@ -27,6 +27,51 @@ def test_tts_gives_audio_and_exact_phoneme_timeline() -> None:
     assert np.sqrt(np.mean(vowel**2)) > 20 * np.sqrt(np.mean(sil**2) + 1e-12)
 
 
+def test_openjtalks_output_is_kept_on_disk_and_read_as_a_fresh_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A text synthesised once is read back from the disk cache by a new process (here: the
+    memo emptied and the program made unrunnable): the same samples, phones and words; other
+    settings are other entries; a damaged entry is run again and replaced; ``off`` keeps
+    nothing; a cache that cannot be written is no error."""
+    import subprocess
+
+    from facelab.stimuli.speech import tts
+
+    monkeypatch.setenv("FACELAB_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(tts, "_memo", type(tts._memo)())
+    first = synthesize("こんにちは、キャッシュ。")
+    slower = synthesize("こんにちは、キャッシュ。", speed=0.8)
+    entries = sorted((tmp_path / "cache" / "tts").glob("*.bin"))
+    assert len(entries) == 2 and slower.duration_s != first.duration_s
+    tts._memo.clear()
+    real_run = subprocess.run
+
+    def no_open_jtalk(cmd, *a, **k):
+        assert "open_jtalk" not in str(cmd[0]), "OpenJTalk ran again"
+        return real_run(cmd, *a, **k)
+
+    monkeypatch.setattr(tts.subprocess, "run", no_open_jtalk)
+    again = synthesize("こんにちは、キャッシュ。")
+    assert np.array_equal(again.samples, first.samples)
+    assert again.phones == first.phones and again.words == first.words
+    assert again.accents == first.accents
+    monkeypatch.setattr(tts.subprocess, "run", real_run)
+    for entry in entries:
+        entry.write_bytes(entry.read_bytes()[:100])  # damaged: cut short
+    tts._memo.clear()
+    assert np.array_equal(synthesize("こんにちは、キャッシュ。").samples, first.samples)
+    assert max(e.stat().st_size for e in entries) > 1000  # written again whole
+    monkeypatch.setenv("FACELAB_CACHE_DIR", "off")
+    tts._memo.clear()
+    assert np.array_equal(synthesize("オフ。").samples, synthesize("オフ。").samples)
+    assert len(list((tmp_path / "cache" / "tts").glob("*.bin"))) == 2
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("FACELAB_CACHE_DIR", str(tmp_path / "file"))
+    tts._memo.clear()
+    assert synthesize("書けない。").duration_s > 0
+
+
 def test_tts_parameters_change_the_voice() -> None:
     base = synthesize("あいうえお")
     slow = synthesize("あいうえお", speed=0.6)

@@ -4,16 +4,27 @@ Runs Debian's ``open_jtalk`` with the ``mei_normal`` HTS voice shipped inside th
 ``pyopenjtalk-plus`` wheel and the Debian naist-jdic dictionary, offline. One run writes both
 the waveform and the label trace, so the phoneme times are exactly those the audio was
 generated from (5 ms resolution for mei: 240-sample frames at 48 kHz).
+
+What ``open_jtalk`` writes for a text and its settings is kept on disk (:func:`cache_dir`:
+``$FACELAB_CACHE_DIR``, else ``$XDG_CACHE_HOME/facelab``, else ``~/.cache/facelab``;
+``FACELAB_CACHE_DIR=off`` keeps nothing), so ``facelab validate`` and ``render`` do not run it
+again for texts they read before. The key holds the program, the dictionary and the voice
+files (path, size, modification time): a new OpenJTalk or voice makes new entries. The files
+kept are the program's own output, read as a fresh run's are.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib.util
+import json
+import os
 import shutil
 import subprocess
 import tempfile
 import threading
+import zlib
 from collections import OrderedDict
 from pathlib import Path
 
@@ -21,7 +32,14 @@ from facelab.errors import SpeechError
 from facelab.stimuli.speech.audio import Phone, Speech, _read_wav_pcm16, resample
 from facelab.stimuli.speech.prosody import accent_phrases, label_rows, words_with_times
 
-__all__ = ["DICTIONARY_DIR", "TTS_SAMPLE_RATE", "parse_trace", "synthesize", "voice_file"]
+__all__ = [
+    "DICTIONARY_DIR",
+    "TTS_SAMPLE_RATE",
+    "cache_dir",
+    "parse_trace",
+    "synthesize",
+    "voice_file",
+]
 
 DICTIONARY_DIR = Path("/var/lib/mecab/dic/open-jtalk/naist-jdic")
 TTS_SAMPLE_RATE = 48_000  # mei_normal's native rate
@@ -32,6 +50,73 @@ TTS_SAMPLE_RATE = 48_000  # mei_normal's native rate
 _MEMO_BYTES = 64 * 2**20
 _memo: OrderedDict[tuple, Speech] = OrderedDict()
 _memo_lock = threading.Lock()
+
+
+#: bytes the disk cache may hold (an entry: the WAV, ~100 kB a second, and the compressed
+#: trace); the oldest entries go first
+CACHE_BYTES = 256 * 2**20
+_CACHE_FORMAT = "open_jtalk-output-1"
+
+
+def cache_dir() -> Path | None:
+    """Where OpenJTalk's outputs are kept (see the module), or None (``off``)."""
+    chosen = os.environ.get("FACELAB_CACHE_DIR")
+    if chosen is not None:
+        return None if chosen.strip().lower() in ("", "off", "0", "none") else (
+            Path(chosen) / "tts")
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "facelab" / "tts"
+
+
+def _stamp(path: Path) -> list:
+    st = path.stat()
+    return [str(path), st.st_size, st.st_mtime_ns]
+
+
+def _cache_key(exe: str, args: list[str], text: str) -> str:
+    """What one run's output depends on: the program, dictionary and voice files, the
+    options and the text."""
+    dictionary = sorted(_stamp(f) for f in DICTIONARY_DIR.iterdir() if f.is_file())
+    material = [_CACHE_FORMAT, _stamp(Path(exe)), dictionary, _stamp(voice_file()), args, text]
+    return hashlib.sha256(json.dumps(material, ensure_ascii=False).encode()).hexdigest()
+
+
+def _cached_output(key: str) -> tuple[bytes, str] | None:
+    """(the WAV's bytes, the trace) kept for ``key``, or None (none kept, or unreadable)."""
+    folder = cache_dir()
+    if folder is None:
+        return None
+    try:
+        data = (folder / f"{key}.bin").read_bytes()
+        n = int.from_bytes(data[:8], "little")
+        trace = zlib.decompress(data[8 : 8 + n]).decode("utf-8")
+        wav = data[8 + n :]
+    except (OSError, UnicodeDecodeError, ValueError, zlib.error):
+        return None
+    return (wav, trace) if len(wav) > 44 and wav[:4] == b"RIFF" else None
+
+
+def _keep_output(key: str, wav: bytes, trace: str) -> None:
+    """Keep one run's output (written whole or not at all; a cache that cannot be written
+    is no error), then drop the oldest entries beyond :data:`CACHE_BYTES`."""
+    folder = cache_dir()
+    if folder is None:
+        return
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        part = folder / f".{key}.{os.getpid()}.{threading.get_ident()}.part"
+        encoded = zlib.compress(trace.encode("utf-8"), 6)
+        part.write_bytes(len(encoded).to_bytes(8, "little") + encoded + wav)
+        os.replace(part, folder / f"{key}.bin")
+        entries = [(e.stat(), e.path) for e in os.scandir(folder) if e.name.endswith(".bin")]
+        total = sum(st.st_size for st, _ in entries)
+        for st, path in sorted(entries, key=lambda e: e[0].st_mtime_ns):
+            if total <= CACHE_BYTES:
+                break
+            Path(path).unlink(missing_ok=True)
+            total -= st.st_size
+    except OSError:
+        return
 
 
 def voice_file() -> Path:
@@ -112,31 +197,26 @@ def _run_open_jtalk(
     with tempfile.TemporaryDirectory(prefix="facelab-tts-") as tmp:
         tmpdir = Path(tmp)
         (tmpdir / "in.txt").write_text(clean + "\n", encoding="utf-8")
-        cmd = [
-            exe,
-            "-x",
-            str(DICTIONARY_DIR),
-            "-m",
-            str(voice_file()),
-            "-r",
-            f"{speed:g}",
-            "-fm",
-            f"{pitch_halftones:g}",
-            "-ow",
-            str(tmpdir / "out.wav"),
-            "-ot",
-            str(tmpdir / "out.trace"),
-        ]
+        options = ["-r", f"{speed:g}", "-fm", f"{pitch_halftones:g}"]
         if alpha is not None:
-            cmd += ["-a", f"{alpha:g}"]
-        cmd.append(str(tmpdir / "in.txt"))
-        proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            options += ["-a", f"{alpha:g}"]
+        key = _cache_key(exe, options, clean)
         wav = tmpdir / "out.wav"
-        if proc.returncode != 0 or not wav.exists() or wav.stat().st_size <= 44:
-            why = ("it finds nothing it can pronounce in it" if "phoneme" in proc.stderr
-                   else f"it made no audio (exit status {proc.returncode})")  # fmt: skip
-            raise SpeechError(f"OpenJTalk could not read the text {clean[:30]!r}: {why}")
-        trace = (tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace")
+        kept = _cached_output(key)
+        if kept is not None:
+            wav.write_bytes(kept[0])
+            trace = kept[1]
+        else:
+            cmd = [exe, "-x", str(DICTIONARY_DIR), "-m", str(voice_file()), *options,
+                   "-ow", str(wav), "-ot", str(tmpdir / "out.trace"),
+                   str(tmpdir / "in.txt")]  # fmt: skip
+            proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            if proc.returncode != 0 or not wav.exists() or wav.stat().st_size <= 44:
+                why = ("it finds nothing it can pronounce in it" if "phoneme" in proc.stderr
+                       else f"it made no audio (exit status {proc.returncode})")  # fmt: skip
+                raise SpeechError(f"OpenJTalk could not read the text {clean[:30]!r}: {why}")
+            trace = (tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace")
+            _keep_output(key, wav.read_bytes(), trace)
         phones = parse_trace(trace)
         samples, rate = _read_wav_pcm16(wav)
     speaking = [p for p in phones if p.phoneme not in ("sil", "pau")]
