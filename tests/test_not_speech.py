@@ -1,6 +1,6 @@
-"""A tone or noise given as a stimulus's recording is refused before a clip moves the mouth
-to it (facelab.stimuli.speech.not_speech); speech of every kind here passes - short and long,
-pitch-shifted, slowed, another synthesiser's voices, whispered, in moderate noise."""
+"""A tone given as a stimulus's recording is refused before a clip moves the mouth to it
+(facelab.stimuli.speech.not_speech); speech of every kind here passes - short and long,
+pitch-shifted, slowed, another synthesiser's voices, whispered, in noise at any SNR."""
 
 from __future__ import annotations
 
@@ -44,18 +44,22 @@ def test_another_synthesisers_voices_whispered_too_are_speech(voice: str, tmp_pa
         assert not_speech_reason(audio.samples, sample_rate=RATE) is None, (voice, text)
 
 
-def test_speech_in_moderate_noise_is_speech_and_buried_speech_is_noise() -> None:
-    s = synthesize("ありがとうございます")
-    speech = s.samples / np.sqrt(np.mean(s.samples**2))
-    noise = _pink(len(speech), np.random.default_rng(3))
-    for snr in (6.0, 0.0, -6.0):
-        mix = 0.05 * (speech + noise * 10 ** (-snr / 20))
-        assert not_speech_reason(mix, sample_rate=s.sample_rate) is None, snr
-    buried = 0.05 * (speech + noise * 10 ** (20 / 20))
-    assert (not_speech_reason(buried, sample_rate=s.sample_rate) or "").startswith("noise")
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_speech_in_noise_is_never_refused(seed: int) -> None:
+    """Speech in white or pink noise from +10 to -20 dB SNR, noise drawn from three seeds
+    (a rule for noise refused such recordings; it was dropped)."""
+    rng = np.random.default_rng(seed)
+    for text in ("うん", "ありがとうございます"):
+        s = synthesize(text)
+        speech = s.samples / np.sqrt(np.mean(s.samples**2))
+        for power in (0.0, 1.0):
+            noise = _pink(len(speech), rng, power=power)
+            for snr in (10.0, 0.0, -6.0, -20.0):
+                mix = 0.05 * (speech + noise * 10 ** (-snr / 20))
+                assert not_speech_reason(mix, sample_rate=s.sample_rate) is None, (text, snr)
 
 
-def test_tones_beeps_and_noises_are_not_speech() -> None:
+def test_tones_and_beeps_are_not_speech_and_other_sounds_are_not_judged() -> None:
     t = np.arange(int(1.5 * RATE)) / RATE
     rng = np.random.default_rng(4)
     fade = np.clip(np.minimum(t, t[-1] - t) / 0.1, 0.0, 1.0)
@@ -67,11 +71,10 @@ def test_tones_beeps_and_noises_are_not_speech() -> None:
     hiss = 0.2 * np.sin(2 * np.pi * 440 * t) + 0.02 * rng.normal(size=len(t))
     for x in (vibrato, beeps, hiss):
         assert (not_speech_reason(x, sample_rate=RATE) or "").startswith("a tone"), x[:3]
-    for power in (0.0, 1.0, 2.0):  # white, pink, brown
-        noise = 0.1 * _pink(len(t), rng, power=power)
-        assert (not_speech_reason(noise, sample_rate=RATE) or "").startswith("noise"), power
     chord = sum(0.1 * np.sin(2 * np.pi * f * t) for f in (261.6, 329.6, 392.0))
-    assert not_speech_reason(chord, sample_rate=RATE) is None  # music is not judged
+    buzz = 0.2 * ((t * 120.0) % 1.0 - 0.5)  # harmonic, as a voice is
+    for other in (chord, buzz, *(0.1 * _pink(len(t), rng, power=k) for k in (0.0, 1.0, 2.0))):
+        assert not_speech_reason(other, sample_rate=RATE) is None  # not judged
     assert not_speech_reason(0.3 * np.sin(2 * np.pi * 440 * t[:4800]), sample_rate=RATE) is None
 
 

@@ -1,22 +1,22 @@
-"""Recordings that cannot be speech: a steady tone or noise given as a stimulus's ``audio``.
-facelab would analyse either as speech and move the mouth to it; ``facelab validate`` and
-``render`` refuse it at the stimulus's ``audio`` key instead. Pure numpy.
+"""Recordings that cannot be speech: a steady tone given as a stimulus's ``audio``. facelab
+would analyse it as speech and move the mouth to it; ``facelab validate`` and ``render``
+refuse it at the stimulus's ``audio`` key instead. Pure numpy.
 
 Speech spreads each short-time spectrum over harmonics and formants (voiced) or over a band
-with a shape (fricatives, whispering). Over the sound's frames (32 ms, every 10 ms, within
-:data:`ACTIVE_DB` dB of the loudest), a recording is refused as
+(fricatives, whispering). Over the sound's frames (32 ms, every 10 ms, within
+:data:`ACTIVE_DB` dB of the loudest), a recording is refused as a **tone** when, in
+:data:`TONE_FRAMES` of its frames or more, :data:`TONE_SHARE` of the frame's energy above
+50 Hz lies within :data:`TONE_HZ` of one frequency, the same throughout: a sine, beeps, a
+sine with vibrato or light noise, a triangle wave.
 
-* a **tone** when, in :data:`TONE_FRAMES` of its frames or more, :data:`TONE_SHARE` of the
-  frame's energy above 50 Hz lies within :data:`TONE_HZ` of one frequency, the same
-  throughout (a sine, beeps, a sine with vibrato or light noise);
-* **noise** when, in :data:`NOISE_FRAMES` of its frames or more, the spectrum is as flat as
-  white, pink or brown noise (spectral flatness :data:`NOISE_FLATNESS` or more over
-  100 Hz - 8 kHz once a 0, -3 or -6 dB/octave tilt is taken off): speech 6 dB below white
-  noise still shows in more frames than that allows; 12 dB below, it does not.
-
-Measured (``tests/test_not_speech.py`` and the README): the most tone-like speech had 0.24
-of its frames tone-like (a long synthetic うー), the flattest 0.17 flatness (whispered う);
-tones and noises reach 0.9-1.0 and 0.5-0.6. Music is not judged.
+Measured on material the rule was not set on (an independent run: Kokoro's five natural
+Japanese voices, 20 utterances each from あ and ん to a passage, in 23 versions - resampled,
+quieter, clipped, hummed, band-limited, mp3/opus/GSM, reverberant, in noise): none of 2,500
+speech files was refused; the most tone-like had 63 % of its frames tone-like (a whispered
+しーっ after an 8 kHz round trip), against 90 % for a refusal. Not refused: harmonic sounds
+(buzzes, hums, square waves, sweeps, DTMF, melodies, chords, music) and noise. A noise rule
+(a spectrum as flat as white or pink noise in nearly every frame) was tried and dropped: it
+refused real speech in noise - short utterances even at +10 dB SNR, most at 0 dB.
 """
 
 from __future__ import annotations
@@ -30,16 +30,14 @@ HOP_S = 0.010
 ACTIVE_DB = 30.0  # frames within this of the loudest are the sound
 TONE_HZ = 60.0
 TONE_SHARE = 0.9
-NOISE_FLATNESS = 0.35
-TONE_FRAMES = 0.9  # the share of the sound's frames that must show the spectrum
-NOISE_FRAMES = 0.97
+TONE_FRAMES = 0.9  # the share of the sound's frames that must be tone-like
 LOW_HZ = 50.0  # below: the DC offset, rumble and brown noise's bulk, never a tone
 MIN_SOUND_S = 0.2  # less sound than this is not judged
 
 
 def not_speech_reason(samples: np.ndarray, *, sample_rate: int) -> str | None:
-    """Why ``samples`` (mono, any level, ``sample_rate`` Hz) cannot be speech - a tone or
-    noise, in words for an error message - or None (speech, music, or too little sound to
+    """Why ``samples`` (mono, any level, ``sample_rate`` Hz) cannot be speech - a tone, in
+    words for an error message - or None (speech, any other sound, or too little sound to
     tell)."""
     x = np.asarray(samples, dtype=np.float64)
     n = round(FRAME_S * sample_rate)
@@ -63,24 +61,12 @@ def not_speech_reason(samples: np.ndarray, *, sample_rate: int) -> str | None:
     peak = np.argmax(above, axis=1)
     width = max(1, round(TONE_HZ / freqs[1]))
     near = np.abs(np.arange(above.shape[1])[None, :] - peak[:, None]) <= width
-    share = (above * near).sum(axis=1) / np.maximum(above.sum(axis=1), top * 1e-16)
-    centre = (above * near) @ hz / np.maximum((above * near).sum(axis=1), top * 1e-16)
+    held = above * near
+    share = held.sum(axis=1) / np.maximum(above.sum(axis=1), top * 1e-16)
+    centre = held @ hz / np.maximum(held.sum(axis=1), top * 1e-16)
     where = float(np.median(centre))  # each frame's peak, its energy centre (finer than bins)
     tonal = (share >= TONE_SHARE) & (np.abs(centre - where) <= TONE_HZ)
     if np.mean(tonal) >= TONE_FRAMES:
         return (f"a tone at {where:.0f} Hz ({100 * float(np.median(share)):.0f} % of its sound "
                 f"within {TONE_HZ:g} Hz of it)")  # fmt: skip
-    band = (freqs >= 100.0) & (freqs <= min(8000.0, sample_rate / 2 - 1))
-    if band.sum() < 16:
-        return None
-    q = np.maximum(p[:, band], top * 1e-16)
-    flatness = np.zeros(len(q))
-    for tilt in (0.0, 1.0, 2.0):  # white, pink, brown made flat
-        t = q * freqs[band] ** tilt
-        flatness = np.maximum(flatness, np.exp(np.mean(np.log(t), axis=1)) / t.mean(axis=1))
-    if np.mean(flatness >= NOISE_FLATNESS) >= NOISE_FRAMES:
-        return ("noise (a spectrum as flat as white, pink or brown noise in "
-                f"{100 * float(np.mean(flatness >= NOISE_FLATNESS)):.0f} % of its sound, "
-                f"flatness {float(np.median(flatness)):.2f}; speech has harmonics and "
-                "formants, and any speech in it lies far below the noise)")
     return None
