@@ -127,7 +127,14 @@ def load_protocol_text(
         raise ProtocolError(path, [Issue((), "expected a YAML mapping with the study's sections")])
 
     with gc_paused():
-        return _validate(path, root, data, base_dir=base_dir, file_checks=file_checks)
+        protocol, issues, locator, complete = _validate(path, root, data, base_dir=base_dir)
+    if file_checks is not None and complete:  # with the collector on: they read files
+        assert protocol is not None
+        issues += _more_issues(file_checks, protocol, base_dir, issues, locator)
+    if issues:
+        raise ProtocolError(path, issues)
+    assert protocol is not None
+    return protocol
 
 
 def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
@@ -140,11 +147,12 @@ def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
 
 
 def _validate(
-    path: Path, root: Any, data: dict[str, Any], *, base_dir: Path,
-    file_checks: FileChecks | None = None,
-) -> Protocol:  # fmt: skip
+    path: Path, root: Any, data: dict[str, Any], *, base_dir: Path
+) -> tuple[Protocol | None, list[Issue], Locator, bool]:
     """Every problem of the file at once: duplicate keys, then types, then the checks across
-    sections on whatever validated, then ``file_checks`` when everything validated."""
+    sections on whatever validated. Returns the protocol (None when even the sections that
+    validated do not make one), the problems, the key locator, and whether every section
+    validated."""
     locator = Locator(root)
     issues = list(locator.duplicate_keys())
     protocol: Protocol | None = None
@@ -167,35 +175,25 @@ def _validate(
             Issue(i.path, i.message, locator.line(i.path))
             for i in cross_check(protocol, base_dir=base_dir, available=available)
         ]
-    if file_checks is not None and protocol is not None and available == set(
-        Protocol.model_fields
-    ):
-        issues += _more_issues(file_checks, protocol, base_dir, issues, locator)
-    if issues:
-        raise ProtocolError(path, issues)
-    assert protocol is not None
-    return protocol
+    return protocol, issues, locator, available == set(Protocol.model_fields)
 
 
 def _more_issues(
     checks: FileChecks, protocol: Protocol, base_dir: Path, found: list[Issue], locator: Locator
 ) -> list[Issue]:
-    """``checks``' problems at keys not yet reported. With problems found already they are
-    extra information: should the checks fail on a protocol that is inconsistent in another
-    way, the problems found stand alone (without them, the checks' own error stands)."""
+    """``checks``' problems at keys not reported already (a missing file found by the
+    protocol's own checks is not said again by the check that reads it). With problems
+    found already, should the checks fail on a protocol that is inconsistent in another way,
+    one line says the files were not all checked (without them, the checks' error stands)."""
     try:
         more = list(checks(protocol, base_dir))
     except Exception:
         if not found:
             raise
-        return []  # the problems already found are the report
+        return [Issue((), "the files the protocol names were not all read: correct the "
+                      "problems above, then validate again")]  # fmt: skip
     known = {i.path for i in found}
-    out = []
-    for i in more:
-        if i.path not in known:
-            known.add(i.path)
-            out.append(Issue(i.path, i.message, locator.line(i.path)))
-    return out
+    return [Issue(i.path, i.message, locator.line(i.path)) for i in more if i.path not in known]
 
 
 def _partial(data: dict[str, Any], sections: set[str]) -> Protocol | None:

@@ -110,7 +110,7 @@ class _Rule(abc.ABC):
 
     def _direction(self, shown: int) -> int:
         """+1 when the last answer made the level harder, -1 easier, 0 neither."""
-        return (self.index > shown) - (self.index < shown)  # sign, in Python: run per trial
+        return int(self.index > shown) - int(self.index < shown)  # sign, run per trial
 
     def update(self, correct: bool, score: float | None = None) -> bool:
         """Apply one answer at the current level (``score``: the share of its units right,

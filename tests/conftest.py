@@ -96,13 +96,19 @@ def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Co
         terminalreporter.write_line(f"{cpu:8.1f} s CPU {wall:8.1f} s wall  {name}")
 
 
+_CACHE: str | None = None  # the OpenJTalk cache this run made, removed at its end
+
+
 def pytest_configure(config: pytest.Config) -> None:
     if not os.environ.get("PYTEST_XDIST_WORKER"):  # the run's first process starts the record
         TIMES.parent.mkdir(exist_ok=True)
         TIMES.write_text("", encoding="utf-8")
         # OpenJTalk's outputs are kept for the run's processes (workers and the commands they
         # start inherit it), in a new folder: every run starts without, as a fresh machine does
-        os.environ.setdefault("FACELAB_CACHE_DIR", tempfile.mkdtemp(prefix="facelab-test-cache-"))
+        if "FACELAB_CACHE_DIR" not in os.environ:
+            global _CACHE
+            _CACHE = tempfile.mkdtemp(prefix="facelab-test-cache-")
+            os.environ["FACELAB_CACHE_DIR"] = _CACHE
     # a facelab child that dies in native code (a signal, not an error) prints where it was
     os.environ.setdefault("PYTHONFAULTHANDLER", "1")
     if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("DISPLAY"):
@@ -110,6 +116,8 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
+    if _CACHE is not None:  # the run's own cache (made by its first process)
+        shutil.rmtree(_CACHE, ignore_errors=True)
     if _XVFB is not None:
         _XVFB.terminate()
         _XVFB.wait(timeout=10)

@@ -59,6 +59,20 @@ def test_speech_in_noise_is_never_refused(seed: int) -> None:
                 assert not_speech_reason(mix, sample_rate=s.sample_rate) is None, (text, snr)
 
 
+def test_a_hum_under_the_voice_in_long_pauses_is_not_taken_for_a_tone() -> None:
+    """A short word between long pauses with mains hum 15 dB under the voice: the hum fills
+    most of the recording, but not its loud part (a reviewer's case: refused as "a tone at
+    68 Hz" when every frame within 30 dB of the loudest was judged)."""
+    s = synthesize("はい")
+    rate = s.sample_rate
+    pad = np.zeros(rate)
+    voice = np.concatenate([pad, s.samples, pad])
+    t = np.arange(len(voice)) / rate
+    level = np.sqrt(np.mean(s.samples**2))
+    hum = np.sqrt(2) * level * 10 ** (-15 / 20) * np.sin(2 * np.pi * 60 * t)
+    assert not_speech_reason(voice + hum, sample_rate=rate) is None
+
+
 def test_tones_and_beeps_are_not_speech_and_other_sounds_are_not_judged() -> None:
     t = np.arange(int(1.5 * RATE)) / RATE
     rng = np.random.default_rng(4)

@@ -530,3 +530,43 @@ def test_odd_width_and_height_are_each_named(tmp_path: Path) -> None:
     problems = protocol_problems(odd, tmp_path)
     assert "rendering.width: expected an even number (H.264 needs even sizes), got 161" in problems
     assert "rendering.height: expected an even number (H.264 needs even sizes), got 65" in problems
+
+
+def test_file_checks_add_every_problem_at_a_key_not_reported_yet(tmp_path: Path) -> None:
+    """``load_protocol(file_checks=...)``: the checks' problems join the protocol's own in one
+    report - all of them, several at one key included (three missing track files of one
+    condition), but none at a key already reported; checks that fail after problems were
+    found add one line that the files were not all read (no traceback), and fail as before
+    when nothing else was found."""
+    from facelab.errors import Issue, ProtocolError
+    from facelab.protocol import load_protocol
+    from facelab.resources import protocol_path
+
+    text = protocol_path("kato2021").read_text(encoding="utf-8")
+    good, bad = tmp_path / "good.yaml", tmp_path / "bad.yaml"
+    good.write_text(text, encoding="utf-8")
+    bad.write_text(text.replace("params: {z: standard, gain: 1.0}",
+                                "params: {z: nothere.csv, gain: 1.0}", 1), encoding="utf-8")
+
+    def checks(protocol, base):
+        return [Issue(("conditions", 1, "params", "z"), "said again"),
+                *(Issue(("conditions", 0, "params"), f"track {k} missing") for k in range(3))]
+
+    for path in (good, bad):
+        with pytest.raises(ProtocolError) as caught:
+            load_protocol(path, file_checks=checks)
+        said = [(i.path, i.message) for i in caught.value.issues]
+        assert [m for p, m in said if p == ("conditions", 0, "params")] == [
+            f"track {k} missing" for k in range(3)]
+        z = [m for p, m in said if p == ("conditions", 1, "params", "z")]
+        assert z == (["said again"] if path == good else [z[0]]) and len(z) == 1
+        assert all(i.line for i in caught.value.issues if i.path)
+
+    def broken(protocol, base):
+        raise KeyError("a bug")
+
+    with pytest.raises(ProtocolError) as caught:
+        load_protocol(bad, file_checks=broken)
+    assert "were not all read" in caught.value.issues[-1].message
+    with pytest.raises(KeyError):
+        load_protocol(good, file_checks=broken)

@@ -55,7 +55,7 @@ def input_problems(protocol: Protocol, *, base_dir: Path) -> list[Issue]:
                 issues.append(Issue((*at, "audio"), str(exc)))
                 continue
             reason = not_speech_reason(recorded.samples, sample_rate=rate)
-            if reason is not None:  # its clip would move the mouth to a tone or to noise
+            if reason is not None:  # its clip would move the mouth to a tone
                 issues.append(Issue((*at, "audio"), (
                     f"{stim.audio}: this is not speech: {reason}. A clip would move the "
                     "avatar's mouth to it as if it were words: give a recording of speech")))

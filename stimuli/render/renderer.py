@@ -141,7 +141,8 @@ class FrameTimes:
     repeated: int = 0  # shown again: the same weights and pose as the frame before
 
     def as_dict(self) -> dict[str, float]:
-        n = max(self.frames, 1)
+        """Milliseconds per frame of the clip (drawn or shown again)."""
+        n = max(self.frames + self.repeated, 1)
         return {
             "deform_ms": 1000 * self.deform / n,
             "shade_ms": 1000 * self.shade / n,

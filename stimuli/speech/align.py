@@ -66,8 +66,10 @@ def _frame_level(samples: np.ndarray, sample_rate: int, n: int) -> np.ndarray:
 
 
 #: alignments kept per process (:func:`align_phones` with the default model): ``facelab
-#: render`` aligns each recording while it checks the protocol's files, then for its clips
-_MEMO_SIZE = 64
+#: render`` aligns each recording while it checks the protocol's files, then for its clips,
+#: in the same order - so every recording of a large study must fit (an alignment holds a
+#: few kB of phones, words and accents)
+_MEMO_SIZE = 8192
 _memo: OrderedDict[tuple, Alignment | str] = OrderedDict()
 _memo_lock = threading.Lock()
 

@@ -15,7 +15,9 @@ kept are the program's own output, read as a fresh run's are.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import hashlib
 import importlib.util
 import json
@@ -24,6 +26,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 import zlib
 from collections import OrderedDict
 from pathlib import Path
@@ -55,7 +58,9 @@ _memo_lock = threading.Lock()
 #: bytes the disk cache may hold (an entry: the WAV, ~100 kB a second, and the compressed
 #: trace); the oldest entries go first
 CACHE_BYTES = 256 * 2**20
+PRUNE_EVERY = 64  # writes between two looks at the folder's size
 _CACHE_FORMAT = "open_jtalk-output-1"
+_writes = 0
 
 
 def cache_dir() -> Path | None:
@@ -73,11 +78,29 @@ def _stamp(path: Path) -> list:
     return [str(path), st.st_size, st.st_mtime_ns]
 
 
+@functools.cache
+def _program_stamps(exe: str) -> tuple:
+    """The program and the shared libraries it loads (``ldd``: HTS Engine, which makes the
+    waveform, is a Debian package of its own), each as path, size and modification time."""
+    files = [Path(exe).resolve()]
+    try:
+        listed = subprocess.run(["ldd", exe], capture_output=True, text=True, timeout=30,
+                                check=False).stdout  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired):
+        listed = ""
+    for line in listed.splitlines():
+        where = line.split("=>")[-1].strip().split(" (")[0].strip()
+        if where.startswith("/") and Path(where).is_file():
+            files.append(Path(where).resolve())
+    return tuple(tuple(_stamp(f)) for f in sorted(set(files)))
+
+
 def _cache_key(exe: str, args: list[str], text: str) -> str:
-    """What one run's output depends on: the program, dictionary and voice files, the
-    options and the text."""
+    """What one run's output depends on: the program and its libraries, the dictionary and
+    voice files, the options and the text."""
     dictionary = sorted(_stamp(f) for f in DICTIONARY_DIR.iterdir() if f.is_file())
-    material = [_CACHE_FORMAT, _stamp(Path(exe)), dictionary, _stamp(voice_file()), args, text]
+    material = [_CACHE_FORMAT, _program_stamps(exe), dictionary, _stamp(voice_file()), args,
+                text]  # fmt: skip
     return hashlib.sha256(json.dumps(material, ensure_ascii=False).encode()).hexdigest()
 
 
@@ -87,7 +110,9 @@ def _cached_output(key: str) -> tuple[bytes, str] | None:
     if folder is None:
         return None
     try:
-        data = (folder / f"{key}.bin").read_bytes()
+        entry = folder / f"{key}.bin"
+        data = entry.read_bytes()
+        os.utime(entry)  # used: the last to be dropped
         n = int.from_bytes(data[:8], "little")
         trace = zlib.decompress(data[8 : 8 + n]).decode("utf-8")
         wav = data[8 + n :]
@@ -102,21 +127,39 @@ def _keep_output(key: str, wav: bytes, trace: str) -> None:
     folder = cache_dir()
     if folder is None:
         return
+    global _writes
+    part = folder / f".{key}.{os.getpid()}.{threading.get_ident()}.part"
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        part = folder / f".{key}.{os.getpid()}.{threading.get_ident()}.part"
         encoded = zlib.compress(trace.encode("utf-8"), 6)
         part.write_bytes(len(encoded).to_bytes(8, "little") + encoded + wav)
         os.replace(part, folder / f"{key}.bin")
-        entries = [(e.stat(), e.path) for e in os.scandir(folder) if e.name.endswith(".bin")]
-        total = sum(st.st_size for st, _ in entries)
-        for st, path in sorted(entries, key=lambda e: e[0].st_mtime_ns):
-            if total <= CACHE_BYTES:
-                break
-            Path(path).unlink(missing_ok=True)
-            total -= st.st_size
+        _writes += 1
+        if _writes % PRUNE_EVERY == 1:  # the folder is listed now and then, not every time
+            _prune(folder)
     except OSError:
         return
+    finally:
+        with contextlib.suppress(OSError):  # left by a write that failed (a full disk)
+            part.unlink(missing_ok=True)
+
+
+def _prune(folder: Path) -> None:
+    """Drop the least recently used entries beyond :data:`CACHE_BYTES` (and parts a killed
+    process left, an hour old)."""
+    entries = []
+    for e in os.scandir(folder):
+        st = e.stat()
+        if e.name.endswith(".part") and time.time() - st.st_mtime > 3600:
+            Path(e.path).unlink(missing_ok=True)
+        elif e.name.endswith(".bin"):
+            entries.append((st, e.path))
+    total = sum(st.st_size for st, _ in entries)
+    for st, path in sorted(entries, key=lambda e: e[0].st_mtime_ns):
+        if total <= CACHE_BYTES:
+            break
+        Path(path).unlink(missing_ok=True)
+        total -= st.st_size
 
 
 def voice_file() -> Path:
