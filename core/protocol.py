@@ -137,15 +137,6 @@ def load_protocol_text(
     return protocol
 
 
-def refuse(path: Path | str, issues: Sequence[Issue]) -> ProtocolError:
-    """A :class:`ProtocolError` for problems found after loading (e.g. in the files the
-    protocol names), each given the line of its key in ``path``."""
-    path = Path(path)
-    root, _ = read_yaml(path.read_text(encoding="utf-8"))
-    locator = Locator(root)
-    return ProtocolError(path, [Issue(i.path, i.message, locator.line(i.path)) for i in issues])
-
-
 def _validate(
     path: Path, root: Any, data: dict[str, Any], *, base_dir: Path
 ) -> tuple[Protocol | None, list[Issue], Locator, bool]:

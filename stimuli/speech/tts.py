@@ -8,8 +8,9 @@ generated from (5 ms resolution for mei: 240-sample frames at 48 kHz).
 What ``open_jtalk`` writes for a text and its settings is kept on disk (:func:`cache_dir`:
 ``$FACELAB_CACHE_DIR``, else ``$XDG_CACHE_HOME/facelab``, else ``~/.cache/facelab``;
 ``FACELAB_CACHE_DIR=off`` keeps nothing), so ``facelab validate`` and ``render`` do not run it
-again for texts they read before. The key holds the program, the dictionary and the voice
-files (path, size, modification time): a new OpenJTalk or voice makes new entries. The files
+again for texts they read before. The key holds the program and the libraries it loads (HTS
+Engine), the dictionary and the voice files (path, size, modification time): a new OpenJTalk,
+HTS Engine or voice makes new entries. The files
 kept are the program's own output, read as a fresh run's are.
 """
 
