@@ -128,6 +128,12 @@ def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarra
 #: the 2-core machine the shipped hashes were made on.
 X264_THREADS = 3
 
+#: the sound of every clip: ffmpeg's own AAC encoder at 192 kbit/s with its "fast" coder. The
+#: default "twoloop" coder took 4.5x the CPU for the same quality here (an 8.4-s OpenJTalk
+#: sentence: 0.28 against 0.06 CPU-s beyond ffmpeg's start; decoded back, 36.7 against
+#: 36.9 dB SNR); its author calls "fast" the better of the two at high bitrates.
+AAC_ARGS = ("-c:a", "aac", "-aac_coder", "fast", "-b:a", "192k")
+
 
 def _ffmpeg() -> str:
     exe = shutil.which("ffmpeg")
@@ -237,10 +243,7 @@ def encode(
             str(fps),
             "-fps_mode",
             "cfr",
-            "-c:a",
-            "aac",
-            "-b:a",
-            "192k",
+            *AAC_ARGS,
             "-ar",
             str(audio.sample_rate),
             "-t",
@@ -320,8 +323,8 @@ def remux_many(
                 part = Path(tmp) / f"{k}-{out.name}"
                 parts.append(part)
                 cmd += [
-                    "-map", "0:v:0", "-map", f"{k + 1}:a", "-c:v", "copy", "-c:a", "aac",
-                    "-b:a", "192k", "-ar", str(audio.sample_rate), "-t", f"{duration:.6f}",
+                    "-map", "0:v:0", "-map", f"{k + 1}:a", "-c:v", "copy", *AAC_ARGS,
+                    "-ar", str(audio.sample_rate), "-t", f"{duration:.6f}",
                     "-movflags", "+faststart", str(part),
                 ]  # fmt: skip
             ran = subprocess.run(cmd, capture_output=True, check=False)
