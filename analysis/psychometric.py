@@ -58,6 +58,7 @@ __all__ = [
     "PsychometricFit",
     "count_responses",
     "fit_psychometric",
+    "level_counts",
     "predict",
 ]
 
@@ -108,21 +109,29 @@ def count_responses(
         raise AnalysisError(f"column {y!r} must hold 0/1 answers")
     numeric = pd.to_numeric(trials[x][keep], errors="coerce")
     if not by:  # counted directly (a groupby costs ~10 ms)
-        level = numeric.to_numpy(dtype=float)
-        kept = ~np.isnan(level)
-        levels, at = np.unique(level[kept], return_inverse=True)
-        return pd.DataFrame({
-            "level": levels,
-            "n": np.bincount(at, minlength=len(levels)),
-            "k": np.bincount(at, weights=values.to_numpy()[kept], minlength=len(levels))
-            .round().astype(int),
-        })  # fmt: skip
+        return level_counts(level=numeric.to_numpy(dtype=float), y=values.to_numpy())
     data = trials.loc[keep, list(by)].assign(_y=values.to_numpy(), _x=numeric.array)
     keys = [*by, "_x"]
     out = data.groupby(keys, sort=True).agg(n=("_y", "size"), k=("_y", "sum")).reset_index()
     out = out.rename(columns={"_x": "level"})
     out["k"] = out["k"].astype(int)
     return out
+
+
+def level_counts(*, level: np.ndarray, y: np.ndarray) -> pd.DataFrame:
+    """Counts ``[level, n, k]`` sorted by level of trials at ``level`` (T,) with answers ``y``
+    (T,) 0/1; trials with a NaN level or answer are left out. No other checks:
+    :func:`count_responses` makes them (the calibration's simulated sessions need none and
+    are counted thousands of times)."""
+    y = np.asarray(y, float)
+    kept = ~(np.isnan(level) | np.isnan(y))
+    levels, at = np.unique(level[kept], return_inverse=True)
+    return pd.DataFrame({
+        "level": levels,
+        "n": np.bincount(at, minlength=len(levels)),
+        "k": np.bincount(at, weights=y[kept], minlength=len(levels))
+        .round().astype(int),
+    })  # fmt: skip
 
 
 def _neg_loglik(

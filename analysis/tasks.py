@@ -194,6 +194,10 @@ def _staircase_tables(
 #: stimuli) as that observer; ``facelab.experiment.simulate.design_sampler`` makes one
 DesignSampler = Callable[[str, float, float, float, np.random.Generator], pd.DataFrame]
 
+#: the columns of a :data:`DesignSampler`'s rows that the calibration reads (a sampler may
+#: return only these: it runs hundreds of times per task)
+SAMPLED_COLUMNS = ("item", "screen", "level", "correct", "response", "condition")
+
 #: simulated participants per calibration
 CALIBRATION_PARTICIPANTS = 200
 
@@ -261,8 +265,9 @@ def calibrate_design(
         if rows.empty:
             continue
         y, _ = choice_outcome(rows, task)
-        samples.append(psychometric.count_responses(rows.assign(y=y.to_numpy()), x="level",
-                                                    y="y"))  # fmt: skip
+        # counted without count_responses' checks: the simulation answers every trial 0/1
+        level = pd.to_numeric(rows["level"], errors="coerce").to_numpy(dtype=float)
+        samples.append(psychometric.level_counts(level=level, y=y.to_numpy(dtype=float)))
     if not samples:
         return None
     return DesignCalibration(gamma, truth.midpoint, truth.slope, samples)

@@ -528,9 +528,12 @@ def design_sampler(protocol: Protocol) -> DesignSampler:
     """A :data:`facelab.analysis.tasks.DesignSampler` for ``protocol``: one participant
     simulated through the protocol's own design (its trial order, staircases or constant
     stimuli) by an observer with the given midpoint, logistic slope and lapse; returns the
-    rows of the named task. ``facelab analyze`` calibrates per-participant intervals with it."""
+    rows of the named task (the columns of :data:`facelab.analysis.tasks.SAMPLED_COLUMNS`).
+    ``facelab analyze`` calibrates per-participant intervals with it."""
 
     import pandas as pd
+
+    from facelab.analysis.tasks import SAMPLED_COLUMNS
 
     def sample(
         task: str, midpoint: float, slope: float, lapse: float, rng: np.random.Generator
@@ -544,13 +547,14 @@ def design_sampler(protocol: Protocol) -> DesignSampler:
         # spans the orders participants get
         participant = (f"C{int(rng.integers(1, 10**6))}" if needs_numbered_ids(protocol)
                        else "calibration")  # fmt: skip
-        rows = pd.DataFrame(
-            simulated_rows(
-                protocol.model_copy(update={"simulation": simulation}),
-                participant=participant, rng=rng,
-            )
+        rows = simulated_rows(
+            protocol.model_copy(update={"simulation": simulation}),
+            participant=participant, rng=rng,
         )  # fmt: skip
-        return rows[rows["item"] == task] if not rows.empty else rows
+        # the task's rows, only the columns the calibration reads (a frame of every column
+        # took as long as the simulated session)
+        mine = [r for r in rows if r["item"] == task]
+        return pd.DataFrame({c: [r.get(c) for r in mine] for c in SAMPLED_COLUMNS})
 
     return sample
 
