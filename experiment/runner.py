@@ -274,6 +274,8 @@ def run_session(protocol: Protocol, *, protocol_path: Path, options: RunOptions)
                     "size": list(window.size),
                     "fullscreen": fullscreen,
                     "refresh_hz": window.refresh_hz(),
+                    "gl_renderer": window.gl_renderer,
+                    "paced_hz": window.paced_hz,
                 }
             )
             try:

@@ -11,6 +11,13 @@ headless. Every flip time is recorded; a frame counts as dropped when the movie 
 it between two flips. The first frame's pixels are checked: a uniform (black) picture stops
 the session with an error instead of collecting ratings of nothing.
 
+**Flips held to a display's pace.** A flip waits for the display's next refresh, which is
+what paces every drawing loop here. Software OpenGL (Mesa's llvmpipe, as under Xvfb or in a
+virtual machine) does not wait: a flip returned after ~1.7 ms, so each loop drew ~600 frames
+a second and took a whole core from the clip's decoder and everything else. On such a
+renderer each buffer swap returns on the next tick of a :data:`PACED_HZ` clock, as it would
+at a display's vertical blank (recorded in the session's ``screen``: ``paced_hz``).
+
 Escape, on any screen, asks before quitting; quitting raises
 :class:`~facelab.errors.SessionAbortedError` (every response given is already on disk).
 """
@@ -54,7 +61,32 @@ from facelab.experiment.vas import VasGeometry, VasState
 from facelab.protocol import Protocol
 from facelab.sessionlog import NA, utc_now
 
-__all__ = ["Window"]
+__all__ = ["PACED_HZ", "Window"]
+
+#: refreshes a second the window keeps when its OpenGL does not wait for a display's refresh
+PACED_HZ = 60.0
+#: OpenGL renderers that draw on the CPU and never wait for a display (the renderer's name)
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "swiftshader")
+
+
+def _paced(swap: Any, *, hz: float) -> Any:
+    """``swap`` (a window's buffer swap) made to return on the next tick of a ``hz`` clock
+    (started at its first call), as a swap returns at the display's vertical blank: the flip
+    that called it takes its timestamp after it, on the tick."""
+    period = 1.0 / hz
+    start: list[float] = []
+
+    def paced_swap(*args: Any, **kwargs: Any) -> Any:
+        done = swap(*args, **kwargs)
+        now = time.perf_counter()
+        if not start:
+            start.append(now)
+        else:
+            ticks = int((now - start[0]) / period) + 1
+            time.sleep(max(0.0, start[0] + ticks * period - now))
+        return done
+
+    return paced_swap
 
 
 class _Pointer:
@@ -138,6 +170,15 @@ class Window:
             title="facelab",
         )
         self.size = tuple(int(v) for v in self.win.size)
+        from pyglet.gl import gl_info
+
+        #: the OpenGL renderer's name, and the pace its flips are held to (None: the display's)
+        self.gl_renderer = str(gl_info.get_renderer() or "")
+        software = any(name in self.gl_renderer.lower() for name in SOFTWARE_RENDERERS)
+        self.paced_hz = PACED_HZ if software else None
+        if self.paced_hz:
+            handle = self.win.winHandle  # pyglet's window: its flip() swaps the buffers
+            handle.flip = _paced(handle.flip, hz=self.paced_hz)
         self.clock = core.Clock()
         self.mouse = event.Mouse(win=self.win, visible=True)
         self.font = "Noto Sans CJK JP"
