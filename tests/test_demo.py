@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow
 
 def test_demo_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--size", "160x90", "--fps", "10", "--quiet"]) == 0
+    assert main(["demo", "--out", str(out), "--size", "160x90", "--fps", "5", "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert "[4/4]" in printed and "done in" in printed and "SIMULATED" in printed
 
@@ -29,7 +29,7 @@ def test_demo_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert len(rows) == 6  # 2 stimuli x 3 conditions (the practice clip is one of them)
     for r in rows:
         assert sha256_file(out / "clips" / r["path"]) == r["sha256"]
-        assert (r["width"], r["height"], r["fps"]) == ("160", "90", "10")
+        assert (r["width"], r["height"], r["fps"]) == ("160", "90", "5")
     for cond in ("baseline", "standard", "emphasized"):
         assert (out / "clips" / f"contact_{cond}.png").stat().st_size > 10_000
 
@@ -63,7 +63,7 @@ def test_demo_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
 
     # a second demo reuses the clips and never touches the first run's sessions
     before = {p: p.read_bytes() for p in run.rglob("*.tsv")}
-    assert main(["demo", "--out", str(out), "--size", "160x90", "--fps", "10", "--quiet"]) == 0
+    assert main(["demo", "--out", str(out), "--size", "160x90", "--fps", "5", "--quiet"]) == 0
     assert "(0 rendered, 6 reused)" in capsys.readouterr().out
     assert {p: p.read_bytes() for p in run.rglob("*.tsv")} == before
     assert len(list(out.glob("run-*"))) == 2
@@ -83,7 +83,7 @@ def test_demo_runs_every_shipped_protocol(
 
     out = tmp_path / name
     argv = ["demo", str(protocol_path(name)), "--out", str(out), "--participants",
-            "3", "--size", "96x64", "--fps", "10", "--quiet"]  # fmt: skip
+            "3", "--size", "96x64", "--fps", "5", "--quiet"]  # fmt: skip
     assert main(argv) == 0
     printed = capsys.readouterr().out
     run = next(out.glob("run-*"))
