@@ -39,7 +39,7 @@ def test_openjtalks_output_is_kept_on_disk_and_read_as_a_fresh_run(
     from facelab.stimuli.speech import tts
 
     monkeypatch.setenv("FACELAB_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.setattr(tts, "_memo", type(tts._memo)())
+    monkeypatch.setattr(tts, "_memo", type(tts._memo)(max_items=64))
     first = synthesize("こんにちは、キャッシュ。")
     slower = synthesize("こんにちは、キャッシュ。", speed=0.8)
     entries = sorted((tmp_path / "cache" / "tts").glob("*.bin"))

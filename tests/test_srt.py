@@ -89,7 +89,10 @@ def test_a_clips_noise_is_made_once_and_stays_the_same_numbers(
     from facelab.stimuli.render import sound
 
     spectrum = long_term_spectrum([_voice()], sample_rate=RATE)
-    monkeypatch.setattr(sound, "_noises", type(sound._noises)())
+    from facelab.bounded_memo import BoundedMemo
+
+    monkeypatch.setattr(sound, "_noises", BoundedMemo(max_bytes=sound.NOISE_CACHE_BYTES,
+                                                      size_of=lambda x: x.nbytes))  # fmt: skip
     parts = ("study", "set", "word", "-6")
     first = sound._speech_shaped_noise(spectrum, n=24_989, parts=parts)
     again = sound._speech_shaped_noise(spectrum, n=24_989, parts=parts)
@@ -99,7 +102,7 @@ def test_a_clips_noise_is_made_once_and_stays_the_same_numbers(
     assert not np.array_equal(other, first)
     assert not np.array_equal(sound._speech_shaped_noise(spectrum, n=20_000, parts=parts),
                               first[:20_000])  # fmt: skip
-    monkeypatch.setattr(sound, "NOISE_CACHE_BYTES", 2 * first.nbytes)
+    sound._noises.max_bytes = 2 * first.nbytes  # room for two of these: the oldest goes
     sound._speech_shaped_noise(spectrum, n=24_989, parts=(*parts[:3], "0"))
     assert len(sound._noises) == 2 and sum(x.nbytes for x in sound._noises.values()) <= (
         2 * first.nbytes)

@@ -6,12 +6,12 @@ stimulus checks (which compare the decoded clip with it)."""
 from __future__ import annotations
 
 import hashlib
-from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from facelab.bounded_memo import BoundedMemo
 from facelab.errors import StageError
 from facelab.protocol import Protocol, Stimulus
 from facelab.stimuli.render.clip import shifted_audio
@@ -31,7 +31,8 @@ __all__ = ["clip_sound"]
 #: stimulus at one SNR share their noise (one per modality or method), and the stimulus
 #: checks make each clip's sound again after the render in the same process
 NOISE_CACHE_BYTES = 256 * 2**20
-_noises: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_noises: BoundedMemo[np.ndarray] = BoundedMemo(max_bytes=NOISE_CACHE_BYTES,
+                                               size_of=lambda x: x.nbytes)  # fmt: skip
 
 
 def _speech_shaped_noise(spectrum: np.ndarray, *, n: int, parts: tuple[str, ...]) -> np.ndarray:
@@ -41,13 +42,10 @@ def _speech_shaped_noise(spectrum: np.ndarray, *, n: int, parts: tuple[str, ...]
     key = (hashlib.sha1(spectrum.tobytes()).hexdigest(), n, parts)
     hit = _noises.get(key)
     if hit is not None:
-        _noises.move_to_end(key)
         return hit
     made = shaped_noise(spectrum, n=n, rng=noise_rng(*parts))
     made.setflags(write=False)
-    _noises[key] = made
-    while sum(x.nbytes for x in _noises.values()) > NOISE_CACHE_BYTES and len(_noises) > 1:
-        _noises.popitem(last=False)
+    _noises.put(key, made)
     return made
 
 

@@ -5,12 +5,11 @@ warping over the analyser's posteriorgram, and the reference's phoneme times car
 from __future__ import annotations
 
 import hashlib
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from facelab.bounded_memo import BoundedMemo
 from facelab.errors import VisemeError
 from facelab.stimuli.speech.analyser import VisemeModel, analysis_input, default_model, features
 from facelab.stimuli.speech.features import HOP_S
@@ -69,9 +68,7 @@ def _frame_level(samples: np.ndarray, sample_rate: int, n: int) -> np.ndarray:
 #: render`` aligns each recording while it checks the protocol's files, then for its clips,
 #: in the same order - so every recording of a large study must fit (an alignment holds a
 #: few kB of phones, words and accents)
-_MEMO_SIZE = 8192
-_memo: OrderedDict[tuple, Alignment | str] = OrderedDict()
-_memo_lock = threading.Lock()
+_memo: BoundedMemo[Alignment | str] = BoundedMemo(max_items=8192)
 
 
 def align_phones(
@@ -84,17 +81,13 @@ def align_phones(
         return _align_phones(samples, sample_rate=sample_rate, text=text, model=model)
     x = np.ascontiguousarray(samples)
     key = (hashlib.sha1(x.tobytes()).hexdigest(), str(x.dtype), int(sample_rate), text)
-    with _memo_lock:
-        kept = _memo.get(key)
+    kept = _memo.get(key)
     if kept is None:
         try:
             kept = _align_phones(x, sample_rate=sample_rate, text=text)
         except VisemeError as exc:
             kept = str(exc)
-        with _memo_lock:
-            _memo[key] = kept
-            while len(_memo) > _MEMO_SIZE:
-                _memo.popitem(last=False)
+        _memo.put(key, kept)
     if isinstance(kept, str):
         raise VisemeError(kept)
     return kept

@@ -29,9 +29,9 @@ import tempfile
 import threading
 import time
 import zlib
-from collections import OrderedDict
 from pathlib import Path
 
+from facelab.bounded_memo import BoundedMemo
 from facelab.errors import SpeechError
 from facelab.stimuli.speech.audio import Phone, Speech, _read_wav_pcm16, resample
 from facelab.stimuli.speech.prosody import accent_phrases, label_rows, words_with_times
@@ -50,10 +50,10 @@ TTS_SAMPLE_RATE = 48_000  # mei_normal's native rate
 
 # OpenJTalk is deterministic, and one process often asks for the same utterance more than once
 # (a render makes a clip's speech, its stimulus checks make it again to compare the clip with):
-# the latest results are kept, up to this many bytes of samples, and handed out as copies
-_MEMO_BYTES = 64 * 2**20
-_memo: OrderedDict[tuple, Speech] = OrderedDict()
-_memo_lock = threading.Lock()
+# the latest results are kept, up to 64 MB of samples, and handed out as copies
+_memo: BoundedMemo[Speech] = BoundedMemo(
+    max_bytes=64 * 2**20, size_of=lambda speech: speech.samples.nbytes
+)
 
 
 #: bytes the disk cache may hold (an entry: the WAV, ~100 kB a second, and the compressed
@@ -218,18 +218,11 @@ def synthesize(
         raise SpeechError(f"speed {speed} is outside 0.5..2")
     sample_rate = int(sample_rate)
     key = (clean, float(speed), float(pitch_halftones), alpha, sample_rate)
-    with _memo_lock:
-        kept = _memo.get(key)
-        if kept is not None:
-            _memo.move_to_end(key)
+    kept = _memo.get(key)
     if kept is None:
         kept = _run_open_jtalk(clean, speed=speed, pitch_halftones=pitch_halftones,
                                alpha=alpha, sample_rate=sample_rate)  # fmt: skip
-        with _memo_lock:
-            _memo[key] = kept
-            total = sum(v.samples.nbytes for v in _memo.values())
-            while total > _MEMO_BYTES and len(_memo) > 1:
-                total -= _memo.popitem(last=False)[1].samples.nbytes
+        _memo.put(key, kept)
     return dataclasses.replace(kept, samples=kept.samples.copy())
 
 
