@@ -69,10 +69,13 @@ class Speech:
         return len(self.samples) / self.sample_rate
 
 
-def _read_wav_pcm16(path: Path) -> tuple[np.ndarray, int]:
+def _read_wav_pcm16(path: Path, *, data: bytes | None = None) -> tuple[np.ndarray, int]:
+    """Mono samples and rate of a 16-bit PCM WAV: the file at ``path``, or its bytes ``data``
+    (``path`` then only names it)."""
+    import io
     import wave
 
-    with wave.open(str(path), "rb") as fh:
+    with wave.open(io.BytesIO(data) if data is not None else str(path), "rb") as fh:
         rate, width, channels, n = (
             fh.getframerate(),
             fh.getsampwidth(),
@@ -82,6 +85,8 @@ def _read_wav_pcm16(path: Path) -> tuple[np.ndarray, int]:
         raw = fh.readframes(n)
     if width != 2:
         raise SpeechError(f"{path}: expected 16-bit PCM from OpenJTalk, got {8 * width}-bit")
+    if len(raw) != n * width * channels:
+        raise SpeechError(f"{path}: cut short ({len(raw)} of {n * width * channels} bytes)")
     data = np.frombuffer(raw, dtype="<i2").astype(np.float32) / 32768.0
     return data.reshape(-1, channels).mean(axis=1), rate
 

@@ -28,8 +28,11 @@ import subprocess
 import tempfile
 import threading
 import time
+import wave
 import zlib
 from pathlib import Path
+
+import numpy as np
 
 from facelab.bounded_memo import BoundedMemo
 from facelab.errors import SpeechError
@@ -105,8 +108,9 @@ def _cache_key(exe: str, args: list[str], text: str) -> str:
     return hashlib.sha256(json.dumps(material, ensure_ascii=False).encode()).hexdigest()
 
 
-def _cached_output(key: str) -> tuple[bytes, str] | None:
-    """(the WAV's bytes, the trace) kept for ``key``, or None (none kept, or unreadable)."""
+def _cached_output(key: str) -> tuple[np.ndarray, int, str] | None:
+    """(samples, sample rate, trace) of the output kept for ``key``, or None (none kept, or
+    unreadable: OpenJTalk runs again and replaces it)."""
     folder = cache_dir()
     if folder is None:
         return None
@@ -116,10 +120,11 @@ def _cached_output(key: str) -> tuple[bytes, str] | None:
         os.utime(entry)  # used: the last to be dropped
         n = int.from_bytes(data[:8], "little")
         trace = zlib.decompress(data[8 : 8 + n]).decode("utf-8")
-        wav = data[8 + n :]
-    except (OSError, UnicodeDecodeError, ValueError, zlib.error):
+        samples, rate = _read_wav_pcm16(entry, data=data[8 + n :])
+    except (OSError, EOFError, UnicodeDecodeError, ValueError, wave.Error, zlib.error,
+            SpeechError):  # fmt: skip
         return None
-    return (wav, trace) if len(wav) > 44 and wav[:4] == b"RIFF" else None
+    return (samples, rate, trace) if len(samples) else None
 
 
 def _keep_output(key: str, wav: bytes, trace: str) -> None:
@@ -231,19 +236,18 @@ def _run_open_jtalk(
 ) -> Speech:
     """One run of ``open_jtalk`` (see :func:`synthesize`)."""
     exe = _open_jtalk()
-    with tempfile.TemporaryDirectory(prefix="facelab-tts-") as tmp:
-        tmpdir = Path(tmp)
-        (tmpdir / "in.txt").write_text(clean + "\n", encoding="utf-8")
-        options = ["-r", f"{speed:g}", "-fm", f"{pitch_halftones:g}"]
-        if alpha is not None:
-            options += ["-a", f"{alpha:g}"]
-        key = _cache_key(exe, options, clean)
-        wav = tmpdir / "out.wav"
-        kept = _cached_output(key)
-        if kept is not None:
-            wav.write_bytes(kept[0])
-            trace = kept[1]
-        else:
+    options = ["-r", f"{speed:g}", "-fm", f"{pitch_halftones:g}"]
+    if alpha is not None:
+        options += ["-a", f"{alpha:g}"]
+    key = _cache_key(exe, options, clean) if cache_dir() is not None else None
+    kept = _cached_output(key) if key is not None else None
+    if kept is not None:
+        samples, rate, trace = kept
+    else:
+        with tempfile.TemporaryDirectory(prefix="facelab-tts-") as tmp:
+            tmpdir = Path(tmp)
+            wav = tmpdir / "out.wav"
+            (tmpdir / "in.txt").write_text(clean + "\n", encoding="utf-8")
             cmd = [exe, "-x", str(DICTIONARY_DIR), "-m", str(voice_file()), *options,
                    "-ow", str(wav), "-ot", str(tmpdir / "out.trace"),
                    str(tmpdir / "in.txt")]  # fmt: skip
@@ -253,9 +257,11 @@ def _run_open_jtalk(
                        else f"it made no audio (exit status {proc.returncode})")  # fmt: skip
                 raise SpeechError(f"OpenJTalk could not read the text {clean[:30]!r}: {why}")
             trace = (tmpdir / "out.trace").read_text(encoding="utf-8", errors="replace")
-            _keep_output(key, wav.read_bytes(), trace)
-        phones = parse_trace(trace)
-        samples, rate = _read_wav_pcm16(wav)
+            wav_bytes = wav.read_bytes()
+            samples, rate = _read_wav_pcm16(wav, data=wav_bytes)
+            if key is not None:
+                _keep_output(key, wav_bytes, trace)
+    phones = parse_trace(trace)
     speaking = [p for p in phones if p.phoneme not in ("sil", "pau")]
     if not speaking:
         raise SpeechError(f"OpenJTalk found nothing to pronounce in {clean[:30]!r}")
