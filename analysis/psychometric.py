@@ -123,7 +123,7 @@ def level_counts(*, level: np.ndarray, y: np.ndarray) -> pd.DataFrame:
     (T,) 0/1; trials with a NaN level or answer are left out. No other checks:
     :func:`count_responses` makes them (the calibration's simulated sessions need none and
     are counted thousands of times)."""
-    y = np.asarray(y, float)
+    level, y = np.asarray(level, float), np.asarray(y, float)
     kept = ~(np.isnan(level) | np.isnan(y))
     levels, at = np.unique(level[kept], return_inverse=True)
     return pd.DataFrame({

@@ -12,11 +12,12 @@ it between two flips. The first frame's pixels are checked: a uniform (black) pi
 the session with an error instead of collecting ratings of nothing.
 
 **Flips held to a display's pace.** A flip waits for the display's next refresh, which is
-what paces every drawing loop here. Software OpenGL (Mesa's llvmpipe, as under Xvfb or in a
-virtual machine) does not wait: a flip returned after ~1.7 ms, so each loop drew ~600 frames
-a second and took a whole core from the clip's decoder and everything else. On such a
-renderer each buffer swap returns on the next tick of a :data:`PACED_HZ` clock, as it would
-at a display's vertical blank (recorded in the session's ``screen``: ``paced_hz``).
+what paces every drawing loop here. Software OpenGL (Mesa's llvmpipe, as under Xvfb) does
+not wait: a flip returned after ~1.7 ms, so each loop drew ~600 frames a second and took a
+whole core from the clip's decoder and everything else. On a software renderer
+(:data:`SOFTWARE_RENDERERS`) a buffer swap returns no sooner than 1 / :data:`PACED_HZ`
+after the one before (a swap that waited for a display already took that long, and waits no
+more); the session's ``screen`` records ``paced_hz``.
 
 Escape, on any screen, asks before quitting; quitting raises
 :class:`~facelab.errors.SessionAbortedError` (every response given is already on disk).
@@ -26,7 +27,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,25 +66,25 @@ __all__ = ["PACED_HZ", "Window"]
 
 #: refreshes a second the window keeps when its OpenGL does not wait for a display's refresh
 PACED_HZ = 60.0
-#: OpenGL renderers that draw on the CPU and never wait for a display (the renderer's name)
-SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "swiftshader")
+#: OpenGL renderers that draw on the CPU (in their lower-case names): Mesa's llvmpipe,
+#: softpipe and classic "Software Rasterizer", SwiftShader, Windows' and macOS's own
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "software rasterizer", "swiftshader",
+                      "gdi generic", "apple software renderer")  # fmt: skip
 
 
-def _paced(swap: Any, *, hz: float) -> Any:
-    """``swap`` (a window's buffer swap) made to return on the next tick of a ``hz`` clock
-    (started at its first call), as a swap returns at the display's vertical blank: the flip
-    that called it takes its timestamp after it, on the tick."""
+def _paced(swap: Callable[..., Any], *, hz: float) -> Callable[..., Any]:
+    """``swap`` (a window's buffer swap) made to return no sooner than ``1 / hz`` s after it
+    last returned, as a swap that waits for a display's vertical blank does; the flip that
+    called it takes its timestamp after it."""
     period = 1.0 / hz
-    start: list[float] = []
+    last: float | None = None
 
     def paced_swap(*args: Any, **kwargs: Any) -> Any:
+        nonlocal last
         done = swap(*args, **kwargs)
-        now = time.perf_counter()
-        if not start:
-            start.append(now)
-        else:
-            ticks = int((now - start[0]) / period) + 1
-            time.sleep(max(0.0, start[0] + ticks * period - now))
+        if last is not None:
+            time.sleep(max(0.0, last + period - time.perf_counter()))
+        last = time.perf_counter()
         return done
 
     return paced_swap
@@ -172,9 +173,10 @@ class Window:
         self.size = tuple(int(v) for v in self.win.size)
         from pyglet.gl import gl_info
 
-        #: the OpenGL renderer's name, and the pace its flips are held to (None: the display's)
+        #: the OpenGL renderer's name
         self.gl_renderer = str(gl_info.get_renderer() or "")
         software = any(name in self.gl_renderer.lower() for name in SOFTWARE_RENDERERS)
+        #: the pace the flips are held to (None: the display's own)
         self.paced_hz = PACED_HZ if software else None
         if self.paced_hz:
             handle = self.win.winHandle  # pyglet's window: its flip() swaps the buffers
@@ -207,6 +209,10 @@ class Window:
             return (0, 0)
 
     def refresh_hz(self) -> float | None:
+        """The display's refresh rate as PsychoPy measures it; None when the flips are paced
+        by facelab (:attr:`paced_hz`: there is no display refresh to measure)."""
+        if self.paced_hz:
+            return None
         rate = self.win.getActualFrameRate(
             nIdentical=5, nMaxFrames=30, nWarmUpFrames=5, threshold=5
         )

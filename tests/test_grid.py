@@ -198,7 +198,7 @@ def test_render_on_two_workers_matches_serial_and_survives_a_killed_worker(
                 if (
                     child.name() == "ffmpeg"
                     and child.parent().pid != proc.pid
-                    and time.time() - child.create_time() > 0.2  # well inside the clip
+                    and time.time() - child.create_time() > 0.1  # inside the clip
                 ):
                     killed = child.parent().pid
                     os.kill(killed, signal.SIGKILL)

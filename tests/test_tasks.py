@@ -230,6 +230,23 @@ def test_stats_psychometric_contract_per_trial_and_per_level_agree():
     assert a.loc[0, "midpoint_ci_low"] < a.loc[0, "midpoint"] < a.loc[0, "midpoint_ci_high"]
 
 
+
+def test_level_counts_are_count_responses_without_its_checks():
+    """The calibration's counting of simulated sessions gives count_responses' table - trials
+    at a missing level or without an answer left out - and refuses nothing itself."""
+    rng = np.random.default_rng(3)
+    level = rng.choice([0.1, 0.2, 0.4, 0.8, np.nan], size=300)
+    y = rng.integers(0, 2, size=300).astype(float)
+    y[::17] = np.nan
+    checked = psychometric.count_responses(pd.DataFrame({"level": level, "y": y}), x="level",
+                                           y="y")  # fmt: skip
+    quick = psychometric.level_counts(level=level, y=y)
+    pd.testing.assert_frame_equal(quick, checked)
+    assert list(quick["level"]) == [0.1, 0.2, 0.4, 0.8] and quick["n"].sum() < 300
+    assert psychometric.level_counts(level=np.array([]), y=np.array([])).empty
+    with pytest.raises(AnalysisError, match="0/1"):  # the checks stay with count_responses
+        psychometric.count_responses(pd.DataFrame({"level": [1.0], "y": [2.0]}), y="y")
+
 def test_psychometric_fits_each_subject_and_the_pool_with_one_call():
     rng = np.random.default_rng(11)
     levels = np.repeat([0.1, 0.2, 0.3, 0.4, 0.5], 40)

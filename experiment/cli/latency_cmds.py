@@ -66,6 +66,7 @@ def _play(args: argparse.Namespace) -> int:
     fullscreen = protocol.presentation.fullscreen and not args.windowed
     rows = []
     with Window(protocol, clips={}, size=size, fullscreen=fullscreen) as window:
+        screen = {"gl_renderer": window.gl_renderer, "paced_hz": window.paced_hz}
         for k in range(args.repeat):
             shown = window.play_file(ref)
             rows.append({
@@ -75,7 +76,7 @@ def _play(args: argparse.Namespace) -> int:
             print(f"playing {k + 1}/{args.repeat}: {len(shown.flip_times)} flips, "
                   f"{shown.dropped} of {shown.frames_expected} frames not shown")  # fmt: skip
     if json_out is not None:
-        json_out.write_text(json.dumps({"clip": str(clip_path), "window": size,
+        json_out.write_text(json.dumps({"clip": str(clip_path), "window": size, **screen,
                                                "playings": rows}, indent=2) + "\n",
                                    encoding="utf-8")  # fmt: skip
     return 0

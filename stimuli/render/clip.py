@@ -128,10 +128,10 @@ def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarra
 #: the 2-core machine the shipped hashes were made on.
 X264_THREADS = 3
 
-#: the sound of every clip: ffmpeg's own AAC encoder at 192 kbit/s with its "fast" coder. The
-#: default "twoloop" coder took 4.5x the CPU for the same quality here (an 8.4-s OpenJTalk
+#: the sound of every clip: ffmpeg's own AAC encoder at 192 kbit/s with its "fast" coder. Its
+#: default, "twoloop", took 4.5x the CPU for the same quality here (an 8.4-s OpenJTalk
 #: sentence: 0.28 against 0.06 CPU-s beyond ffmpeg's start; decoded back, 36.7 against
-#: 36.9 dB SNR); its author calls "fast" the better of the two at high bitrates.
+#: 36.9 dB SNR).
 AAC_ARGS = ("-c:a", "aac", "-aac_coder", "fast", "-b:a", "192k")
 
 

@@ -34,7 +34,9 @@ __all__ = [
     "unlisted_and_stale",
 ]
 
-RENDER_VERSION = "facelab-render-2"  # 2: the default head with lids, ears, hair; new lighting
+#: 2: the default head with lids, ears, hair; new lighting. 3: the sound with ffmpeg's "fast"
+#: AAC coder (clips of 2 keep their old sound, so their spec must not match)
+RENDER_VERSION = "facelab-render-3"
 
 
 @dataclass(frozen=True)
