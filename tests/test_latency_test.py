@@ -261,7 +261,9 @@ def test_the_clip_plays_in_the_lab_window(
                            "--size", "640x400", "--repeat", "2", "--json", str(shown)],
                           env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    played = json.loads(shown.read_text())["playings"]
+    record = json.loads(shown.read_text())
+    assert "llvmpipe" in record["gl_renderer"] and record["paced_hz"] == 60.0  # Xvfb's GL
+    played = record["playings"]
     assert [p["playing"] for p in played] == [1, 2]
     for p in played:
         assert p["frames_expected"] == plan.n_frames
