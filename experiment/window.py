@@ -90,6 +90,41 @@ def _paced(swap: Callable[..., Any], *, hz: float) -> Callable[..., Any]:
     return paced_swap
 
 
+def _colour_key(colour: Any) -> tuple[float, ...] | None:
+    rgba = getattr(colour, "rgba", None)
+    return None if rgba is None else tuple(np.asarray(rgba, float).ravel().tolist())
+
+
+_TEXT_BOX: dict[int, type] = {}
+
+
+def _text_box_class(visual: Any) -> type:
+    """PsychoPy's ``TextBox2`` with its palette - the box's border and fill colours, with and
+    without focus - worked out again only when one of them changes, not three times in every
+    draw: that colour arithmetic took three quarters of a draw (3.1 against 0.69 ms a draw
+    here, the same pixels), and a screen draws several texts 60 times a second."""
+    base = visual.TextBox2
+    if id(base) not in _TEXT_BOX:
+
+        class TextBox(base):  # type: ignore[misc, valid-type]
+            @property
+            def palette(self) -> Any:
+                key = (self.hasFocus, self.borderWidth, _colour_key(self._borderColor),
+                       _colour_key(self._fillColor))  # fmt: skip
+                if getattr(self, "_facelab_palette_key", None) != key:
+                    self._facelab_palette = base.palette.fget(self)
+                    self._facelab_palette_key = key
+                return self._facelab_palette
+
+            @palette.setter
+            def palette(self, value: Any) -> None:
+                base.palette.fset(self, value)
+                self._facelab_palette_key = None
+
+        _TEXT_BOX[id(base)] = TextBox
+    return _TEXT_BOX[id(base)]
+
+
 class _Pointer:
     """The left button's presses and releases as the window's events report them, where
     each was made, in the stimuli's pixels (origin at the centre). A polled button state
@@ -232,7 +267,7 @@ class Window:
         """A centred text stimulus in the study's font (``y``, ``height``, ``width`` in pixels
         from the window's centre; lines broken for Japanese too): for screen kinds' ``lab``
         drawings as for facelab's own screens."""
-        return self.visual.TextBox2(
+        return _text_box_class(self.visual)(
             self.win,
             text=text,
             font=self.font,
@@ -584,7 +619,7 @@ class Window:
         w, h = self.size
         limit = screen.task.max_length
         prompt = self.text_stim(localized(screen.task.question, self.lang), y=0.2 * h)
-        field = self.visual.TextBox2(
+        field = _text_box_class(self.visual)(
             self.win, text="", font=self.font, letterHeight=0.045 * h, pos=(0, 0),
             size=(0.7 * w, 0.1 * h), editable=True, color="white", borderColor="white",
             fillColor=(-0.45, -0.45, -0.45), alignment="left", lineBreaking="uax14",
@@ -685,10 +720,16 @@ class Window:
         onset = time.perf_counter()
         shot = None if screen.practice else "matrix_screen"
 
+        shown: dict[int, bool] = {}  # cell -> drawn as picked (colours set on a change only:
+        # PsychoPy validates a colour on every set, ~0.1 ms, for 50 words a frame)
+
         def draw() -> None:
-            for box, label, ci, word in cells:
-                box.fillColor = (-0.75, 0.0, -0.5) if picked.get(ci) == word else (-0.45,) * 3
-                box.lineColor = "white" if picked.get(ci) == word else "grey"
+            for k, (box, label, ci, word) in enumerate(cells):
+                on = picked.get(ci) == word
+                if shown.get(k) is not on:
+                    box.fillColor = (-0.75, 0.0, -0.5) if on else (-0.45,) * 3
+                    box.lineColor = "white" if on else "grey"
+                    shown[k] = on
                 box.draw()
                 label.draw()
             confirm_box.opacity = 1.0 if len(picked) == n else 0.35
@@ -835,6 +876,7 @@ class Window:
                     targets[id(state)] = self.script.model.rate(
                         item=item.id, stimulus_set=trial.stimulus_set, condition=trial.condition
                     )[0]
+        enabled: bool | None = None  # the confirm button as drawn: enabled or not
         with _Pointer(self.win, self.size) as pointer:
             while True:
                 if self.script is not None:
@@ -897,8 +939,11 @@ class Window:
                     if state.marker_visible:  # hidden until the first click or arrow key
                         stims["marker"].pos = (g.x_of(state.rating), g.y_line)
                         stims["marker"].draw()
-                confirm_box.fillColor = (0.1, 0.45, 0.25) if all_rated else (-0.5, -0.5, -0.5)
-                confirm_label.color = "white" if all_rated else "grey"
+                if enabled is not all_rated:  # set on a change only (a TextBox2 lays its
+                    # text out again whenever its colour is set)
+                    confirm_box.fillColor = (0.1, 0.45, 0.25) if all_rated else (-0.5,) * 3
+                    confirm_label.color = "white" if all_rated else "grey"
+                    enabled = all_rated
                 confirm_box.draw()
                 confirm_label.draw()
                 if shot and not any(st.marker_visible for _, _, st, _ in rows):
