@@ -206,10 +206,10 @@ class Window:
             title="facelab",
         )
         self.size = tuple(int(v) for v in self.win.size)
-        from pyglet.gl import gl_info
+        from psychopy.tools.gltools import getOpenGLInfo
 
         #: the OpenGL renderer's name
-        self.gl_renderer = str(gl_info.get_renderer() or "")
+        self.gl_renderer = str(getOpenGLInfo().renderer or "")
         software = any(name in self.gl_renderer.lower() for name in SOFTWARE_RENDERERS)
         #: the pace the flips are held to (None: the display's own)
         self.paced_hz = PACED_HZ if software else None
