@@ -25,6 +25,7 @@ Escape, on any screen, asks before quitting; quitting raises
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -95,34 +96,30 @@ def _colour_key(colour: Any) -> tuple[float, ...] | None:
     return None if rgba is None else tuple(np.asarray(rgba, float).ravel().tolist())
 
 
-_TEXT_BOX: dict[int, type] = {}
+@functools.cache
+def _text_box_class(base: type) -> type:
+    """PsychoPy's ``TextBox2`` (``base``) with its palette - the box's border and fill
+    colours, with and without focus - worked out again only when one of them changes, not
+    three times in every draw: that colour arithmetic took three quarters of a draw (3.1
+    against 0.69 ms a draw here, the same pixels), and a screen draws several texts 60 times
+    a second."""
 
+    class TextBox(base):  # type: ignore[misc, valid-type]
+        @property
+        def palette(self) -> Any:
+            key = (self.hasFocus, self.borderWidth, _colour_key(self._borderColor),
+                   _colour_key(self._fillColor))  # fmt: skip
+            if getattr(self, "_facelab_palette_key", None) != key:
+                self._facelab_palette = base.palette.fget(self)
+                self._facelab_palette_key = key
+            return self._facelab_palette
 
-def _text_box_class(visual: Any) -> type:
-    """PsychoPy's ``TextBox2`` with its palette - the box's border and fill colours, with and
-    without focus - worked out again only when one of them changes, not three times in every
-    draw: that colour arithmetic took three quarters of a draw (3.1 against 0.69 ms a draw
-    here, the same pixels), and a screen draws several texts 60 times a second."""
-    base = visual.TextBox2
-    if id(base) not in _TEXT_BOX:
+        @palette.setter
+        def palette(self, value: Any) -> None:
+            base.palette.fset(self, value)
+            self._facelab_palette_key = None
 
-        class TextBox(base):  # type: ignore[misc, valid-type]
-            @property
-            def palette(self) -> Any:
-                key = (self.hasFocus, self.borderWidth, _colour_key(self._borderColor),
-                       _colour_key(self._fillColor))  # fmt: skip
-                if getattr(self, "_facelab_palette_key", None) != key:
-                    self._facelab_palette = base.palette.fget(self)
-                    self._facelab_palette_key = key
-                return self._facelab_palette
-
-            @palette.setter
-            def palette(self, value: Any) -> None:
-                base.palette.fset(self, value)
-                self._facelab_palette_key = None
-
-        _TEXT_BOX[id(base)] = TextBox
-    return _TEXT_BOX[id(base)]
+    return TextBox
 
 
 class _Pointer:
@@ -267,7 +264,7 @@ class Window:
         """A centred text stimulus in the study's font (``y``, ``height``, ``width`` in pixels
         from the window's centre; lines broken for Japanese too): for screen kinds' ``lab``
         drawings as for facelab's own screens."""
-        return _text_box_class(self.visual)(
+        return _text_box_class(self.visual.TextBox2)(
             self.win,
             text=text,
             font=self.font,
@@ -619,7 +616,7 @@ class Window:
         w, h = self.size
         limit = screen.task.max_length
         prompt = self.text_stim(localized(screen.task.question, self.lang), y=0.2 * h)
-        field = _text_box_class(self.visual)(
+        field = _text_box_class(self.visual.TextBox2)(
             self.win, text="", font=self.font, letterHeight=0.045 * h, pos=(0, 0),
             size=(0.7 * w, 0.1 * h), editable=True, color="white", borderColor="white",
             fillColor=(-0.45, -0.45, -0.45), alignment="left", lineBreaking="uax14",

@@ -75,14 +75,17 @@ def _read_wav_pcm16(path: Path, *, data: bytes | None = None) -> tuple[np.ndarra
     import io
     import wave
 
-    with wave.open(io.BytesIO(data) if data is not None else str(path), "rb") as fh:
-        rate, width, channels, n = (
-            fh.getframerate(),
-            fh.getsampwidth(),
-            fh.getnchannels(),
-            fh.getnframes(),
-        )
-        raw = fh.readframes(n)
+    try:
+        with wave.open(io.BytesIO(data) if data is not None else str(path), "rb") as fh:
+            rate, width, channels, n = (
+                fh.getframerate(),
+                fh.getsampwidth(),
+                fh.getnchannels(),
+                fh.getnframes(),
+            )
+            raw = fh.readframes(n)
+    except (wave.Error, EOFError) as exc:
+        raise SpeechError(f"{path}: not a readable WAV ({exc})") from None
     if width != 2:
         raise SpeechError(f"{path}: expected 16-bit PCM from OpenJTalk, got {8 * width}-bit")
     if len(raw) != n * width * channels:

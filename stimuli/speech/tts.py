@@ -28,7 +28,6 @@ import subprocess
 import tempfile
 import threading
 import time
-import wave
 import zlib
 from pathlib import Path
 
@@ -121,8 +120,7 @@ def _cached_output(key: str) -> tuple[np.ndarray, int, str] | None:
         n = int.from_bytes(data[:8], "little")
         trace = zlib.decompress(data[8 : 8 + n]).decode("utf-8")
         samples, rate = _read_wav_pcm16(entry, data=data[8 + n :])
-    except (OSError, EOFError, UnicodeDecodeError, ValueError, wave.Error, zlib.error,
-            SpeechError):  # fmt: skip
+    except (OSError, UnicodeDecodeError, ValueError, zlib.error, SpeechError):
         return None
     return (samples, rate, trace) if len(samples) else None
 
