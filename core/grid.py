@@ -4,7 +4,10 @@ A stimulus grid (every clip of a protocol, every level of an impression model, e
 x mode of a behaviour set) and a simulation-based power analysis are lists of independent
 tasks. :func:`run_grid` runs such a list
 
-- **serially** in this process (the default: no cluster, nothing to install), or
+- **serially** in this process (the default: no cluster, nothing to install), or serially in
+  **one child process** (``Cluster(child_process=True)``; render grids use it by default): a
+  native crash there - a software OpenGL driver that aborts mid-frame - costs that task one
+  re-run in a new child, not the whole command; or
 - on **Dask** (``dask.distributed``): a local cluster of ``workers`` processes with one thread
   each (``--workers N``), or a running scheduler (``--scheduler tcp://host:8786``) whose
   workers were started elsewhere (``dask worker``, ``dask-jobqueue`` on SLURM/PBS/SGE).
@@ -22,10 +25,13 @@ a task whose worker died is re-run by the scheduler and reported as retried
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import importlib
 import itertools
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -55,6 +61,8 @@ class Cluster:
     scheduler: str | None = None
     pin_cores: bool = False
     connect_timeout_s: float = 20.0
+    #: serial only: the tasks run one after another in a child process (see the module doc)
+    child_process: bool = False
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.scheduler is not None:
@@ -75,7 +83,7 @@ class Cluster:
             return f"Dask scheduler {self.scheduler}"
         if self.workers is not None:
             return f"local Dask cluster of {self.workers} single-thread worker processes"
-        return "serially in this process"
+        return "serially in a child process" if self.child_process else "serially in this process"
 
 
 SERIAL = Cluster()
@@ -119,7 +127,9 @@ class GridReport:
             f"{len(self.retried)} retried, {self.wall_s:.1f} s ({self.where})"
         )
         if self.retried:
-            text += "; re-run after a worker was lost: " + ", ".join(sorted(self.retried))
+            lost = "its child process died" if self.where.endswith("child process") else (
+                "a worker was lost")  # fmt: skip
+            text += f"; re-run after {lost}: " + ", ".join(sorted(self.retried))
         return text
 
 
@@ -155,7 +165,9 @@ def run_grid(
     started = time.perf_counter()
     report = GridReport(where=cluster.describe(), keep_results=keep_results)
     unique = _unique(tasks)
-    if cluster.serial:
+    if cluster.serial and cluster.child_process:
+        _run_in_child(unique, report, on_result, progress)
+    elif cluster.serial:
         _run_serial(unique, report, on_result, progress)
     else:
         _run_dask(unique, cluster, report, on_result, progress, window)
@@ -198,6 +210,179 @@ def _run_serial(tasks, report, on_result, progress) -> None:
         except FacelabError as exc:
             outcome = (False, str(exc))
         _record(report, task.key, outcome, on_result, progress)
+
+
+# --- one child process ------------------------------------------------------------------------
+
+#: times a task is started when the child process running it dies (a new child each time)
+CHILD_ATTEMPTS = 2
+
+
+@dataclass(frozen=True)
+class _Held:
+    """A :class:`Shared` value the child already holds, named by its hash."""
+
+    sha256: str
+
+
+class _ChildDiedError(Exception):
+    def __init__(self, returncode: int | None):
+        super().__init__(returncode)
+        self.returncode = returncode
+
+    def __str__(self) -> str:
+        code = self.returncode
+        if code is not None and code < 0:
+            try:
+                return f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"killed by signal {-code}"
+        return f"exit status {code}"
+
+
+def child_serve(fd: int) -> None:  # the child process's main
+    """Answer calls on the socket ``fd`` until it closes: ``("grid",)`` forgets the shared
+    values held; ``(fn, args, environ, cwd)`` replies ``("ok", result)``, ``("failed",
+    message)`` for a FacelabError or ``("raised", exc)`` for anything else (a bug: raised
+    again, with its traceback, in the parent)."""
+    from multiprocessing.connection import Connection
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's; it ends this child
+    conn = Connection(fd)
+    held: dict[str, Any] = {}
+    while True:
+        try:
+            call = conn.recv()
+        except (EOFError, OSError):
+            return
+        if call == ("grid",):
+            held.clear()
+            continue
+        fn, args, environ, cwd = call
+        if environ != os.environ:
+            os.environ.clear()
+            os.environ.update(environ)
+        os.chdir(cwd)
+        values = []
+        for arg in args:
+            if isinstance(arg, Shared):
+                held[arg.sha256] = arg.value
+            values.append(held[arg.sha256] if isinstance(arg, Shared | _Held) else arg)
+        try:
+            reply: tuple[str, Any] = ("ok", fn(*values))
+        except FacelabError as exc:
+            reply = ("failed", str(exc))
+        except Exception as exc:
+            reply = ("raised", exc)
+        try:
+            conn.send(reply)
+        except Exception as exc:  # a result or exception that does not pickle
+            failure = RuntimeError(f"{fn.__name__}: its reply could not be sent back: {exc}")
+            conn.send(("raised", failure))
+
+
+class _Child:
+    """A Python process that runs grid tasks for this one, started once and kept for the
+    next grid (its imports and an open renderer are paid for once); replaced if it dies."""
+
+    def __init__(self) -> None:
+        import socket
+        import subprocess
+        import sys
+        from multiprocessing.connection import Connection
+
+        mine, theirs = socket.socketpair()
+        code = (f"import sys; sys.path[:] = {sys.path!r}; "
+                "from facelab.grid import child_serve; child_serve(int(sys.argv[1]))")  # fmt: skip
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(theirs.fileno())], pass_fds=(theirs.fileno(),)
+        )
+        theirs.close()
+        self.conn = Connection(mine.detach())
+        self.sent: set[str] = set()
+
+    def begin(self) -> None:
+        """A new grid: the shared values of the last are let go."""
+        self.conn.send(("grid",))
+        self.sent = set()
+
+    def call(self, fn: Callable[..., Any], args: tuple) -> tuple[bool, Any]:
+        """``fn(*args)`` in the child: (True, result) or (False, a FacelabError's message);
+        a bug's exception is raised here; :class:`_ChildDiedError` if the child died."""
+        sent = []
+        for arg in args:
+            if isinstance(arg, Shared) and arg.sha256 in self.sent:
+                arg = _Held(arg.sha256)
+            elif isinstance(arg, Shared):
+                self.sent.add(arg.sha256)
+            sent.append(arg)
+        try:
+            self.conn.send((fn, tuple(sent), dict(os.environ), os.getcwd()))
+            kind, value = self.conn.recv()
+        except (EOFError, OSError):
+            self.close()
+            raise _ChildDiedError(self.proc.returncode) from None
+        except BaseException:  # interrupted mid-task: a later reply would answer another call
+            self.proc.kill()
+            self.close()
+            raise
+        if kind == "raised":
+            raise value
+        return kind == "ok", value
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def close(self) -> None:
+        """Let the child go (it ends when its socket closes) and wait for it."""
+        self.conn.close()
+        try:
+            self.proc.wait(10)
+        except Exception:
+            self.proc.kill()
+            self.proc.wait()
+
+
+_child: list[_Child] = []  # this process's grid child, while it lives
+_child_lock = threading.Lock()
+
+
+@atexit.register
+def _close_child() -> None:
+    for child in _child:
+        child.close()
+    _child.clear()
+
+
+def _run_in_child(tasks, report, on_result, progress) -> None:
+    """Serially in this process's grid child; a task whose child dies is run again in a new
+    one (:data:`CHILD_ATTEMPTS` times in all), then failed with how the child died."""
+    with _child_lock:
+        if _child:
+            try:
+                _child[0].begin()
+            except OSError:  # it died since the last grid
+                _close_child()
+        for task in tasks:
+            for attempt in range(CHILD_ATTEMPTS):
+                if _child and not _child[0].alive():
+                    _close_child()
+                if not _child:
+                    _child.append(_Child())
+                try:
+                    outcome = _child[0].call(task.fn, task.args)
+                    break
+                except _ChildDiedError as died:
+                    _child.clear()
+                    if attempt == 0:
+                        report.retried.append(task.key)
+                    why = died
+            else:
+                outcome = (False, (
+                    f"the child process running it died {CHILD_ATTEMPTS} times ({why}): a crash "
+                    "below facelab's own code (an OpenGL driver, a codec); the other tasks ran"
+                ))  # fmt: skip
+            _record(report, task.key, outcome, on_result, progress)
 
 
 # --- Dask (imported here only) ---------------------------------------------------------------

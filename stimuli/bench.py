@@ -479,7 +479,8 @@ def bench_render_grid(
             shas[key] = write_clip(rendered, out=folder / f"{key}.mp4").sha256
 
         cpu0 = time.process_time()
-        report = render_grid(tasks, cluster=cluster, on_result=done)
+        # serially in this process: its CPU is the rendering's (not the grid child's)
+        report = render_grid(tasks, cluster=cluster, on_result=done, isolate=False)
         client_cpu = time.process_time() - cpu0
         if report.failed:
             raise StageError(f"benchmark clips failed: {report.failed}")

@@ -1,5 +1,6 @@
-"""Grids of independent tasks (facelab.grid): serial and on Dask, render grids byte-identical
-either way, a worker SIGKILLed mid-clip costs a retry and nothing else."""
+"""Grids of independent tasks (facelab.grid): serial (here or in a child process) and on
+Dask, render grids byte-identical either way, a worker SIGKILLed or the render child aborted
+mid-clip costs a retry and nothing else."""
 
 from __future__ import annotations
 
@@ -45,6 +46,34 @@ def total(values: np.ndarray, scale: int) -> float:
     return float(values.sum() * scale)
 
 
+def _abort() -> None:
+    """Die as a native library's abort() does (SIGABRT), leaving no core file."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    os.abort()
+
+
+def abort_once(marker: str, x: int) -> int:
+    if not Path(marker).exists():
+        Path(marker).write_text("aborted once", encoding="utf-8")
+        _abort()
+    return 10 * x
+
+
+def always_abort(x: int) -> int:
+    _abort()
+    return x
+
+
+def identity_of(value: np.ndarray, _k: int) -> tuple[int, int]:
+    return os.getpid(), id(value)
+
+
+def where_and_what(_k: int) -> tuple[str, str | None]:
+    return os.getcwd(), os.environ.get("FACELAB_GRID_TEST")
+
+
 def test_serial_grid_runs_every_task_and_reports_refusals() -> None:
     seen = []
     events = []
@@ -64,6 +93,37 @@ def test_serial_grid_runs_every_task_and_reports_refusals() -> None:
 def test_a_bug_in_a_task_keeps_its_traceback() -> None:
     with pytest.raises(RuntimeError, match="a bug"):
         run_grid([GridTask("x", crash, (1,))], cluster=Cluster())
+
+
+def test_a_grid_in_a_child_process_survives_its_native_crashes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The render grid's default: tasks in one child process. A task whose child aborts is run
+    again in a new child; one that aborts every time fails with how its child died; the rest
+    are untouched, refusals and bugs come back as in this process."""
+    child = Cluster(child_process=True)
+    tasks = [GridTask("once", abort_once, (str(tmp_path / "marker"), 4)),
+             GridTask("square", square, (3,)), GridTask("always", always_abort, (0,)),
+             GridTask("odd", refuse_odd, (1,)), GridTask("after", square, (5,))]  # fmt: skip
+    report = run_grid(tasks, cluster=child)
+    assert report.results == {"once": 40, "square": 9, "after": 25}
+    assert report.retried == ["once", "always"]
+    assert report.failed["odd"] == "1 is odd"
+    assert "died 2 times (killed by SIGABRT)" in report.failed["always"]
+    assert "serially in a child process" in report.summary()
+    assert "re-run after its child process died: always, once" in report.summary()
+    with pytest.raises(RuntimeError, match="a bug"):
+        run_grid([GridTask("x", crash, (1,))], cluster=child)
+    # a shared value goes to the child once per grid (the same object in every task there);
+    # the caller's folder and environment at the time of the grid, not of the child's start
+    big = Shared("big", np.arange(1000))
+    seen = run_grid([GridTask(f"s{i}", identity_of, (big, i)) for i in range(3)], cluster=child)
+    assert len(set(seen.results.values())) == 1
+    assert next(iter(seen.results.values()))[0] != os.getpid()
+    monkeypatch.setenv("FACELAB_GRID_TEST", "set later")
+    monkeypatch.chdir(tmp_path)
+    there = run_grid([GridTask("w", where_and_what, (0,))], cluster=child).results["w"]
+    assert there == (str(tmp_path), "set later")
 
 
 def test_keys_are_unique_and_clusters_are_checked() -> None:
@@ -216,6 +276,45 @@ def test_render_on_two_workers_matches_serial_and_survives_a_killed_worker(
     assert leftovers == []
     again = _render(tmp_path / "dask", "--workers", "2")
     assert again.returncode == 0 and "(0 rendered, 6 reused)" in again.stdout, again.stdout
+
+
+@pytest.mark.slow
+def test_a_render_child_that_aborts_mid_clip_costs_that_clip_a_rerun(
+    tmp_path: Path, serial_clips: dict[str, str]
+) -> None:
+    """`facelab render` renders in a child process: an OpenGL driver aborting there mid-clip
+    (SIGABRT, as llvmpipe did twice in the suite) re-runs that clip in a new child; the clips
+    are those of an undisturbed render."""
+    import psutil
+
+    proc = subprocess.Popen(
+        [FACELAB, "render", str(KATO), *SMALL, "--out", str(tmp_path / "clips")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    aborted = None
+    deadline = time.monotonic() + 240
+    while aborted is None and proc.poll() is None and time.monotonic() < deadline:
+        for child in psutil.Process(proc.pid).children(recursive=True):
+            try:
+                if (
+                    child.name() == "ffmpeg"
+                    and "child_serve" in " ".join(child.parent().cmdline())
+                    and time.time() - child.create_time() > 0.1  # inside the clip
+                ):
+                    aborted = child.parent()
+                    aborted.rlimit(psutil.RLIMIT_CORE, (0, 0))  # no core file
+                    aborted.send_signal(signal.SIGABRT)
+                    break
+            except psutil.NoSuchProcess:
+                continue
+        time.sleep(0.05)
+    out, err = proc.communicate(timeout=300)
+    assert aborted is not None, "the render child was not seen rendering"
+    assert proc.returncode == 0, err
+    assert "(serially in a child process)" in out
+    assert re.search(r"1 retried.*re-run after its child process died: \S+", out), out
+    assert _clips(tmp_path / "clips") == serial_clips
+    assert not [p.name for p in (tmp_path / "clips").iterdir() if p.name.startswith(".")]
 
 
 @pytest.mark.slow

@@ -46,6 +46,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from facelab.protocol import load_protocol
     from facelab.stimuli.render.build import build_clips, clip_counts, plan
     from facelab.stimuli.render.inputs import input_notes, load_checked_protocol
+    from facelab.stimuli.render.task import render_cluster
 
     # refused before anything is written, as validate refuses it (the turns are checked
     # where they are read)
@@ -66,7 +67,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     print(
         f"rendering {n} clips of {protocol.study.id!r} at {settings.width}x"
         f"{settings.height}, {args.fps or protocol.rendering.fps} fps into {out} "
-        f"({cluster.describe()})"
+        f"({render_cluster(cluster).describe()})"
     )
     for note in input_notes(protocol, base_dir=Path(args.protocol).parent):
         print(note)

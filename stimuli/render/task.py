@@ -2,17 +2,20 @@
 
 The render commands drive every method in the calling process (a method never runs twice)
 and hand each clip to :func:`render_clip` through :func:`facelab.grid.run_grid` - in this
-process or on a Dask worker. What travels is content: the (n_frames, K) weights, the head
-poses, the padded audio and the avatar, each checked against its SHA-256 before use. The
-task encodes into its own scratch folder and returns the file's bytes; only the calling
-process writes into the clip folder (:func:`write_clip`, a temporary name renamed into place),
-so a worker lost mid-clip leaves nothing behind and a task run twice writes the same bytes.
+process's grid child (:func:`render_cluster`) or on a Dask worker. What travels is content:
+the (n_frames, K) weights, the head poses, the padded audio and the avatar, each checked
+against its SHA-256 before use. The task encodes into its own scratch folder and returns the
+file's bytes; only the calling process writes into the clip folder (:func:`write_clip`, a
+temporary name renamed into place), so a worker lost mid-clip leaves nothing behind and a
+task run twice writes the same bytes.
 
-Each worker process keeps one renderer open between its tasks (one EGL context per process).
+Each worker process (and the grid child) keeps one renderer open between its tasks (one EGL
+context per process).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import tempfile
@@ -28,7 +31,6 @@ from facelab.durable import replace_file
 from facelab.errors import StageError
 from facelab.formats import POSE_CHANNELS, Track, decode_track, encode_track
 from facelab.grid import (
-    SERIAL,
     Cluster,
     GridReport,
     GridTask,
@@ -231,20 +233,31 @@ def render_clip(job: ClipFrames, framing: Avatar, drawn: Avatar) -> RenderedClip
     )  # fmt: skip
 
 
+def render_cluster(cluster: Cluster) -> Cluster:
+    """Where :func:`render_grid` renders on ``cluster``: a serial grid in this process's grid
+    child (:mod:`facelab.grid`), so that an OpenGL driver that crashes mid-clip (llvmpipe
+    aborted twice in ~15 full test runs here) costs that clip a re-run, not the command."""
+    return dataclasses.replace(cluster, child_process=True) if cluster.serial else cluster
+
+
 def render_grid(
     tasks: Iterable[GridTask],
     *,
     cluster: Cluster,
     on_result: Callable[[str, Any], None],
     progress: Progress | None = None,
+    isolate: bool = True,
 ) -> GridReport:
-    """:func:`facelab.grid.run_grid` for render tasks: each clip's bytes go to ``on_result``
-    and are not kept in the report, and this process's renderer (opened by tasks run here) is
-    closed afterwards, whatever happened, so the caller may open another GL context."""
+    """:func:`facelab.grid.run_grid` for render tasks on :func:`render_cluster` (``isolate``
+    False: a serial grid renders in this process, as benchmarks of this process's CPU want):
+    each clip's bytes go to ``on_result`` and are not kept in the report, and this process's
+    renderer (opened by tasks run here) is closed afterwards, whatever happened, so the caller
+    may open another GL context."""
     try:
         return run_grid(
-            tasks, cluster=cluster, on_result=on_result, progress=progress, keep_results=False
-        )
+            tasks, cluster=render_cluster(cluster) if isolate else cluster,
+            on_result=on_result, progress=progress, keep_results=False,
+        )  # fmt: skip
     finally:
         close_renderer()
 
@@ -253,7 +266,7 @@ def finish_grid(report: GridReport, *, rows: list[dict], out: Path, log) -> None
     """After a render grid: name the clips that failed (one StageError, after the others were
     written) and those a lost worker made the scheduler re-run; check that every row's file
     exists and has the row's hash."""
-    if report.where != SERIAL.describe() or report.retried or report.failed:
+    if not report.where.startswith("serially") or report.retried or report.failed:
         log(f"  grid: {report.summary()}")
     if report.failed:
         lines = [f"  {key}: {why}" for key, why in sorted(report.failed.items())]
