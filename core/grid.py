@@ -47,6 +47,7 @@ __all__ = [
     "Progress",
     "Shared",
     "check_shared",
+    "grid_child_pid",
     "run_grid",
 ]
 
@@ -345,6 +346,12 @@ class _Child:
 
 _child: list[_Child] = []  # this process's grid child, while it lives
 _child_lock = threading.Lock()
+
+
+def grid_child_pid() -> int | None:
+    """The process id of this process's grid child while it lives (benchmarks and the test
+    suite count its CPU: it is not a child anyone has waited for yet)."""
+    return _child[0].proc.pid if _child and _child[0].alive() else None
 
 
 @atexit.register

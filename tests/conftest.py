@@ -49,8 +49,9 @@ def _own_display() -> None:
     os.environ.pop("XAUTHORITY", None)  # no cookie: the worker's own server admits local clients
 
 
-#: every test's wall and CPU seconds (its own process and the children it waited for: renders,
-#: ffmpeg, Dask workers; not Chromium's processes, which chromedriver does not wait for), one
+#: every test's wall and CPU seconds (its own process, the children it waited for - ffmpeg,
+#: Dask workers - and its grid child, which renders and lives on between tests; not Chromium's
+#: processes, which chromedriver does not wait for), one
 #: JSON line each, appended by whichever worker ran it (named: "gw0".., "main" without xdist);
 #: the run's summary adds them up by file.
 TIMES = ROOT / ".pytest_cache" / "facelab-test-times.jsonl"
@@ -62,13 +63,29 @@ def _cpu() -> tuple[float, float]:
     return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
 
 
+def _grid_child_cpu() -> tuple[int | None, float]:
+    """The live grid child (facelab.grid) and its CPU seconds so far, with its own waited-for
+    children (ffmpeg): /proc/PID/stat's utime, stime, cutime, cstime."""
+    from facelab.grid import grid_child_pid
+
+    pid = grid_child_pid()
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None, 0.0
+    return pid, sum(int(v) for v in fields[11:15]) / os.sysconf("SC_CLK_TCK")
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    wall, (me, kids) = time.perf_counter(), _cpu()
+    wall, (me, kids), (grid, grid_cpu) = time.perf_counter(), _cpu(), _grid_child_cpu()
     yield
-    after = _cpu()
+    after, (grid_after, grid_cpu_after) = _cpu(), _grid_child_cpu()
+    # a grid child started (or replaced) during the test: all of its CPU is the test's
+    grid_s = grid_cpu_after - (grid_cpu if grid_after == grid else 0.0)
     line = {"test": item.nodeid, "wall_s": round(time.perf_counter() - wall, 3),
-            "cpu_s": round(after[0] - me, 3), "children_cpu_s": round(after[1] - kids, 3),
+            "cpu_s": round(after[0] - me, 3),
+            "children_cpu_s": round(after[1] - kids + grid_s, 3),
             "worker": os.environ.get("PYTEST_XDIST_WORKER", "main")}
     with TIMES.open("a", encoding="utf-8") as fh:  # one short line a write: whole lines interleave
         fh.write(json.dumps(line) + "\n")
@@ -147,6 +164,14 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         ordered += runs[k] + rest[:take]
         rest, left = rest[take:], left - size
     items[:] = ordered + rest
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _shared_renders_factory(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Helpers without a fixture of their own (tests/task_protocols.py) share renders too."""
+    from tests.shared_renders import remember_factory
+
+    remember_factory(tmp_path_factory)
 
 
 @pytest.fixture

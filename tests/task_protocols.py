@@ -7,8 +7,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from facelab.experiment.cli import main
 from facelab.resources import protocol_path
+from tests.shared_renders import rendered_clips
 
 
 def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
@@ -28,11 +28,8 @@ def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
     )
     for old, new in edits.items():
         text = re.sub(old, new, text)
-    path = root / f"{name}.yaml"
-    path.write_text(text, encoding="utf-8")
-    args = ["render", str(path), "--out", str(root / "clips"), "--size", "320x180"]
-    assert main([*args, "--fps", "15", "--quiet"]) == 0
-    return path
+    rendered_clips(None, text=text, into=root, name=f"{name}.yaml", size="320x180", fps="15")
+    return root / f"{name}.yaml"
 
 
 #: horii_impression_side cut to two side-by-side trials (comparison left once, right once)

@@ -228,12 +228,12 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     write_sample(root / "rpm.glb", kind="rpm")
     rpm = _with_display(text, "  display: live3d\n")
     rpm = rpm.replace("  avatar: default", "  avatar: rpm.glb")
-    (root / "rpm.yaml").write_text(rpm, "utf-8")
-    args = ["render", str(root / "rpm.yaml"), "--out", str(root / "rpm_clips")]
     # the sample is a stand-in: one shape serves all nine consonant visemes, and its face is
     # not one a face detector takes for a face - the checks say so, the test accepts it
     accept = ["--accept-check", "avatar_audit", "--accept-check", "face_visible"]
-    assert main([*args, "--size", "320x180", "--fps", "15", "--quiet", *accept]) == 0
+    rendered_clips(tmp_path_factory, text=rpm, into=root, name="rpm.yaml", size="320x180",
+                   fps="15", files={"rpm.glb": (root / "rpm.glb").read_bytes()}, extra=accept,
+                   clips="rpm_clips")  # fmt: skip
     return root
 
 
