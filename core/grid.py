@@ -30,9 +30,13 @@ import contextlib
 import importlib
 import itertools
 import os
+import pickle
+import shutil
 import signal
+import tempfile
 import threading
 import time
+import traceback
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -218,6 +222,13 @@ def _run_serial(tasks, report, on_result, progress) -> None:
 #: times a task is started when the child process running it dies (a new child each time)
 CHILD_ATTEMPTS = 2
 
+#: the child's first lines: stdlib only until the parent's sys.path is in place
+_CHILD_BOOT = (
+    "import sys; from multiprocessing.connection import Connection; "
+    "conn = Connection(int(sys.argv[1])); sys.path[:] = conn.recv(); "
+    "from facelab.grid import child_serve; child_serve(conn)"
+)
+
 
 @dataclass(frozen=True)
 class _Held:
@@ -235,21 +246,33 @@ class _ChildDiedError(Exception):
         code = self.returncode
         if code is not None and code < 0:
             try:
-                return f"killed by {signal.Signals(-code).name}"
+                name = signal.Signals(-code).name
             except ValueError:
-                return f"killed by signal {-code}"
-        return f"exit status {code}"
+                name = f"signal {-code}"
+            return (f"killed by {name}: a crash below facelab's own code, such as an OpenGL "
+                    "driver or a codec")  # fmt: skip
+        return f"it exited with status {code}"
 
 
-def child_serve(fd: int) -> None:  # the child process's main
-    """Answer calls on the socket ``fd`` until it closes: ``("grid",)`` forgets the shared
-    values held; ``(fn, args, environ, cwd)`` replies ``("ok", result)``, ``("failed",
-    message)`` for a FacelabError or ``("raised", exc)`` for anything else (a bug: raised
-    again, with its traceback, in the parent)."""
-    from multiprocessing.connection import Connection
+class _GridChildTracebackError(Exception):
+    """The traceback of an exception raised in the grid child (its text)."""
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's; it ends this child
-    conn = Connection(fd)
+
+def child_serve(conn: Any) -> None:  # the grid child's main
+    """Answer calls on ``conn`` until it closes. ``("grid",)`` lets the shared values held go;
+    a call ``(environ, cwd, payload)`` runs the pickled ``(fn, args)`` in ``payload`` once
+    the caller's environment and folder are in place (a module imported for ``fn`` sees
+    them) and replies ``("ok", result)``, ``("failed", message)`` for a FacelabError or
+    ``("raised", pickled exception or None, traceback text)`` for anything else."""
+    try:
+        _serve(conn)
+    finally:  # the folder the parent made for this child (a killed child's is the parent's)
+        tmp = tempfile.gettempdir()
+        if os.path.basename(tmp).startswith("facelab-grid-child-"):
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _serve(conn: Any) -> None:
     held: dict[str, Any] = {}
     while True:
         try:
@@ -259,32 +282,42 @@ def child_serve(fd: int) -> None:  # the child process's main
         if call == ("grid",):
             held.clear()
             continue
-        fn, args, environ, cwd = call
-        if environ != os.environ:
-            os.environ.clear()
-            os.environ.update(environ)
-        os.chdir(cwd)
-        values = []
-        for arg in args:
-            if isinstance(arg, Shared):
-                held[arg.sha256] = arg.value
-            values.append(held[arg.sha256] if isinstance(arg, Shared | _Held) else arg)
+        environ, cwd, payload = call
         try:
-            reply: tuple[str, Any] = ("ok", fn(*values))
+            if environ != os.environ:
+                os.environ.clear()
+                os.environ.update(environ)
+            os.chdir(cwd)
+            fn, args = pickle.loads(payload)
+            values = []
+            for arg in args:
+                if isinstance(arg, Shared):
+                    held[arg.sha256] = arg.value
+                values.append(held[arg.sha256] if isinstance(arg, Shared | _Held) else arg)
+            reply: tuple = ("ok", fn(*values))
         except FacelabError as exc:
             reply = ("failed", str(exc))
         except Exception as exc:
-            reply = ("raised", exc)
+            try:
+                pickled = pickle.dumps(exc)
+            except Exception:
+                pickled = None
+            reply = ("raised", pickled, traceback.format_exc())
         try:
-            conn.send(reply)
-        except Exception as exc:  # a result or exception that does not pickle
-            failure = RuntimeError(f"{fn.__name__}: its reply could not be sent back: {exc}")
-            conn.send(("raised", failure))
+            try:
+                conn.send(reply)
+            except (pickle.PicklingError, TypeError, AttributeError) as exc:  # the result
+                conn.send(("raised", None, f"its result could not be sent back: {exc}"))
+        except OSError:  # the parent is gone
+            return
 
 
 class _Child:
     """A Python process that runs grid tasks for this one, started once and kept for the
-    next grid (its imports and an open renderer are paid for once); replaced if it dies."""
+    next grid (its imports and an open renderer are paid for once); replaced if it dies. It
+    runs in a session of its own (a terminal's Ctrl-C is the parent's to handle; it ends the
+    child) with a temporary folder of its own, removed with it (a child killed mid-clip
+    leaves nothing behind)."""
 
     def __init__(self) -> None:
         import socket
@@ -292,34 +325,44 @@ class _Child:
         import sys
         from multiprocessing.connection import Connection
 
+        self.owner = os.getpid()
+        self.tmp = tempfile.mkdtemp(prefix="facelab-grid-child-")
         mine, theirs = socket.socketpair()
-        code = (f"import sys; sys.path[:] = {sys.path!r}; "
-                "from facelab.grid import child_serve; child_serve(int(sys.argv[1]))")  # fmt: skip
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", code, str(theirs.fileno())], pass_fds=(theirs.fileno(),)
-        )
+            [sys.executable, "-c", _CHILD_BOOT, str(theirs.fileno())],
+            pass_fds=(theirs.fileno(),), env=self._environ(), start_new_session=True,
+        )  # fmt: skip
         theirs.close()
         self.conn = Connection(mine.detach())
+        self.conn.send([os.fspath(p) for p in sys.path if isinstance(p, str | os.PathLike)])
         self.sent: set[str] = set()
 
-    def begin(self) -> None:
-        """A new grid: the shared values of the last are let go."""
+    def _environ(self) -> dict[str, str]:
+        return {**os.environ, "TMPDIR": self.tmp}
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def forget(self) -> None:
+        """The grid is over: the child lets its shared values go."""
         self.conn.send(("grid",))
         self.sent = set()
 
     def call(self, fn: Callable[..., Any], args: tuple) -> tuple[bool, Any]:
         """``fn(*args)`` in the child: (True, result) or (False, a FacelabError's message);
-        a bug's exception is raised here; :class:`_ChildDiedError` if the child died."""
+        a bug's exception is raised here (with the child's traceback as its cause);
+        :class:`_ChildDiedError` if the child died."""
         sent = []
         for arg in args:
             if isinstance(arg, Shared) and arg.sha256 in self.sent:
                 arg = _Held(arg.sha256)
-            elif isinstance(arg, Shared):
-                self.sent.add(arg.sha256)
             sent.append(arg)
+        payload = pickle.dumps((fn, tuple(sent)))  # an argument that does not pickle: here
+        message = (self._environ(), os.getcwd(), payload)
         try:
-            self.conn.send((fn, tuple(sent), dict(os.environ), os.getcwd()))
-            kind, value = self.conn.recv()
+            self.conn.send(message)
+            self.sent |= {a.sha256 for a in args if isinstance(a, Shared)}
+            reply = self.conn.recv()
         except (EOFError, OSError):
             self.close()
             raise _ChildDiedError(self.proc.returncode) from None
@@ -327,21 +370,27 @@ class _Child:
             self.proc.kill()
             self.close()
             raise
-        if kind == "raised":
-            raise value
-        return kind == "ok", value
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
+        if reply[0] == "raised":
+            _, pickled, text = reply
+            try:
+                exc = pickle.loads(pickled) if pickled is not None else None
+            except Exception:
+                exc = None
+            if not isinstance(exc, BaseException):
+                exc = RuntimeError(f"{getattr(fn, '__name__', fn)} failed in the grid child")
+            raise exc from _GridChildTracebackError(f"\n\n(in the grid child)\n{text}")
+        return reply[0] == "ok", reply[1]
 
     def close(self) -> None:
-        """Let the child go (it ends when its socket closes) and wait for it."""
+        """Let the child go (it ends when its socket closes), wait for it, and remove its
+        temporary folder."""
         self.conn.close()
         try:
             self.proc.wait(10)
         except Exception:
             self.proc.kill()
             self.proc.wait()
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 _child: list[_Child] = []  # this process's grid child, while it lives
@@ -351,45 +400,59 @@ _child_lock = threading.Lock()
 def grid_child_pid() -> int | None:
     """The process id of this process's grid child while it lives (benchmarks and the test
     suite count its CPU: it is not a child anyone has waited for yet)."""
-    return _child[0].proc.pid if _child and _child[0].alive() else None
+    child = _own_child()
+    return child.proc.pid if child is not None and child.alive() else None
+
+
+def _own_child() -> _Child | None:
+    """This process's grid child; a forked copy of this process does not share it."""
+    if _child and _child[0].owner != os.getpid():
+        _child.clear()
+    return _child[0] if _child else None
 
 
 @atexit.register
 def _close_child() -> None:
-    for child in _child:
-        child.close()
+    child = _own_child()
     _child.clear()
+    if child is not None:
+        child.close()
 
 
 def _run_in_child(tasks, report, on_result, progress) -> None:
     """Serially in this process's grid child; a task whose child dies is run again in a new
-    one (:data:`CHILD_ATTEMPTS` times in all), then failed with how the child died."""
+    one (:data:`CHILD_ATTEMPTS` times in all), then failed with how the child died. Not
+    re-entrant: a grid started from another's callbacks waits for ever."""
     with _child_lock:
-        if _child:
-            try:
-                _child[0].begin()
-            except OSError:  # it died since the last grid
-                _close_child()
-        for task in tasks:
-            for attempt in range(CHILD_ATTEMPTS):
-                if _child and not _child[0].alive():
-                    _close_child()
-                if not _child:
-                    _child.append(_Child())
+        try:
+            for task in tasks:
+                for attempt in range(CHILD_ATTEMPTS):
+                    child = _own_child()
+                    if child is not None and not child.alive():
+                        _close_child()
+                        child = None
+                    if child is None:
+                        child = _Child()
+                        _child.append(child)
+                    try:
+                        outcome = child.call(task.fn, task.args)
+                        break
+                    except _ChildDiedError as died:
+                        _child.clear()
+                        if attempt == 0:
+                            report.retried.append(task.key)
+                        why = died
+                else:
+                    outcome = (False, f"the child process running it died {CHILD_ATTEMPTS} "
+                                      f"times ({why}); the other tasks ran")  # fmt: skip
+                _record(report, task.key, outcome, on_result, progress)
+        finally:
+            child = _own_child()
+            if child is not None:
                 try:
-                    outcome = _child[0].call(task.fn, task.args)
-                    break
-                except _ChildDiedError as died:
-                    _child.clear()
-                    if attempt == 0:
-                        report.retried.append(task.key)
-                    why = died
-            else:
-                outcome = (False, (
-                    f"the child process running it died {CHILD_ATTEMPTS} times ({why}): a crash "
-                    "below facelab's own code (an OpenGL driver, a codec); the other tasks ran"
-                ))  # fmt: skip
-            _record(report, task.key, outcome, on_result, progress)
+                    child.forget()
+                except OSError:  # it died
+                    _close_child()
 
 
 # --- Dask (imported here only) ---------------------------------------------------------------

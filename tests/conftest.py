@@ -78,11 +78,13 @@ def _grid_child_cpu() -> tuple[int | None, float]:
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    wall, (me, kids), (grid, grid_cpu) = time.perf_counter(), _cpu(), _grid_child_cpu()
+    wall, (_, grid_cpu), (me, kids) = time.perf_counter(), _grid_child_cpu(), _cpu()
     yield
-    after, (grid_after, grid_cpu_after) = _cpu(), _grid_child_cpu()
-    # a grid child started (or replaced) during the test: all of its CPU is the test's
-    grid_s = grid_cpu_after - (grid_cpu if grid_after == grid else 0.0)
+    (_, grid_cpu_after), after = _grid_child_cpu(), _cpu()
+    # the grid child's CPU since the test began; a child that ended in the test (replaced
+    # after a crash) was waited for, so its whole life is in the children's CPU: less what
+    # earlier tests counted
+    grid_s = grid_cpu_after - grid_cpu
     line = {"test": item.nodeid, "wall_s": round(time.perf_counter() - wall, 3),
             "cpu_s": round(after[0] - me, 3),
             "children_cpu_s": round(after[1] - kids + grid_s, 3),

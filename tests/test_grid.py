@@ -66,8 +66,22 @@ def always_abort(x: int) -> int:
     return x
 
 
-def identity_of(value: np.ndarray, _k: int) -> tuple[int, int]:
-    return os.getpid(), id(value)
+class Counted:
+    """A value that counts, in the process it arrives in, how often it was unpickled."""
+
+    loads = 0
+
+    def __reduce__(self):
+        return (_arrived, ())
+
+
+def _arrived() -> Counted:
+    Counted.loads += 1
+    return Counted()
+
+
+def arrivals(_value: Counted, _k: int) -> tuple[int, int]:
+    return os.getpid(), Counted.loads
 
 
 def where_and_what(_k: int) -> tuple[str, str | None]:
@@ -109,17 +123,24 @@ def test_a_grid_in_a_child_process_survives_its_native_crashes(
     assert report.results == {"once": 40, "square": 9, "after": 25}
     assert report.retried == ["once", "always"]
     assert report.failed["odd"] == "1 is odd"
-    assert "died 2 times (killed by SIGABRT)" in report.failed["always"]
+    assert "died 2 times (killed by SIGABRT: a crash below" in report.failed["always"]
     assert "serially in a child process" in report.summary()
     assert "re-run after its child process died: always, once" in report.summary()
-    with pytest.raises(RuntimeError, match="a bug"):
+    with pytest.raises(RuntimeError, match="a bug") as bug:  # with the child's traceback
         run_grid([GridTask("x", crash, (1,))], cluster=child)
-    # a shared value goes to the child once per grid (the same object in every task there);
-    # the caller's folder and environment at the time of the grid, not of the child's start
-    big = Shared("big", np.arange(1000))
-    seen = run_grid([GridTask(f"s{i}", identity_of, (big, i)) for i in range(3)], cluster=child)
-    assert len(set(seen.results.values())) == 1
-    assert next(iter(seen.results.values()))[0] != os.getpid()
+    assert "in the grid child" in str(bug.value.__cause__) and "def crash" not in str(bug.value)
+    assert 'raise RuntimeError("a bug")' in str(bug.value.__cause__)
+    with pytest.raises(AttributeError, match="local object"):  # it cannot travel: said here
+        run_grid([GridTask("local", lambda x: x, (1,))], cluster=child)
+    # a shared value goes to the child once per grid; the caller's folder and environment at
+    # the time of the grid, not of the child's start
+    shared = Shared("counted", Counted())
+    for grid in (1, 2):
+        seen = run_grid([GridTask(f"s{i}", arrivals, (shared, i)) for i in range(3)],
+                        cluster=child).results  # fmt: skip
+        pids, loads = zip(*seen.values(), strict=True)
+        assert set(pids) != {os.getpid()} and len(set(pids)) == 1
+        assert loads == (grid, grid, grid)  # once in each grid (a grid lets it go after)
     monkeypatch.setenv("FACELAB_GRID_TEST", "set later")
     monkeypatch.chdir(tmp_path)
     there = run_grid([GridTask("w", where_and_what, (0,))], cluster=child).results["w"]
@@ -291,23 +312,21 @@ def test_a_render_child_that_aborts_mid_clip_costs_that_clip_a_rerun(
         [FACELAB, "render", str(KATO), *SMALL, "--out", str(tmp_path / "clips")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    aborted = None
+    aborted = aborted_tmp = None
     deadline = time.monotonic() + 240
     while aborted is None and proc.poll() is None and time.monotonic() < deadline:
         for child in psutil.Process(proc.pid).children(recursive=True):
             try:
-                if (
-                    child.name() == "ffmpeg"
-                    and "child_serve" in " ".join(child.parent().cmdline())
-                    and time.time() - child.create_time() > 0.1  # inside the clip
-                ):
-                    aborted = child.parent()
+                parent = child.parent()
+                # the grid child with an encoder running: inside a clip
+                if parent and child.name() == "ffmpeg" and "child_serve" in parent.cmdline()[-2]:
+                    aborted, aborted_tmp = parent, parent.environ()["TMPDIR"]
                     aborted.rlimit(psutil.RLIMIT_CORE, (0, 0))  # no core file
                     aborted.send_signal(signal.SIGABRT)
                     break
-            except psutil.NoSuchProcess:
+            except (psutil.NoSuchProcess, IndexError):
                 continue
-        time.sleep(0.05)
+        time.sleep(0.02)
     out, err = proc.communicate(timeout=300)
     assert aborted is not None, "the render child was not seen rendering"
     assert proc.returncode == 0, err
@@ -315,6 +334,7 @@ def test_a_render_child_that_aborts_mid_clip_costs_that_clip_a_rerun(
     assert re.search(r"1 retried.*re-run after its child process died: \S+", out), out
     assert _clips(tmp_path / "clips") == serial_clips
     assert not [p.name for p in (tmp_path / "clips").iterdir() if p.name.startswith(".")]
+    assert not Path(aborted_tmp).exists()  # the aborted child's temporary folder is gone
 
 
 @pytest.mark.slow
