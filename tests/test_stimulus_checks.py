@@ -391,3 +391,42 @@ def test_vowels_closer_than_two_frames_are_not_measured_but_said_why() -> None:
     assert too_few_frames(peaks, fps=24) is not None and too_few_frames(peaks, fps=30) is None
     assert too_few_frames([0.4, 1.0, 1.6], fps=10) is None  # the seed's あ。い。う。
     assert too_few_frames([0.4], fps=10) is None
+
+
+def test_tracker_processes_are_kept_between_checks_and_a_dead_or_failing_one_is_not(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A process that checks clips twice starts its tracker once; a tracker that died while
+    idle is replaced, and one that fails names its exit and message and is not kept."""
+    import os
+    import signal
+    import subprocess
+
+    from facelab.errors import StageError
+    from facelab.stimuli.checks import face_tracker as ft
+
+    clip = tmp_path / "grey.mp4"
+    subprocess.run(["ffmpeg", "-v", "error", "-f", "lavfi", "-i", "color=c=gray:s=64x48:d=0.5:r=10",
+                    "-c:v", "libx264", "-pix_fmt", "yuv420p", str(clip)], check=True)  # fmt: skip
+    clips = [(clip, 64, 48, 0.5)]
+
+    def idle() -> list[int]:
+        return [t.proc.pid for t in ft._Tracker._idle if t.proc.poll() is None]
+
+    first = ft.track_clips(clips, processes=1)[str(clip)]
+    assert first.frames == 5 and float(first.detection.max()) < 0.5  # a grey picture: no face
+    kept = idle()
+    assert kept
+    again = ft.track_clips(clips, processes=1)[str(clip)]
+    assert idle() == kept and np.array_equal(again.detection, first.detection)
+    for pid in kept:  # died while idle: a new tracker answers
+        os.kill(pid, signal.SIGKILL)
+    after = ft.track_clips(clips, processes=1)[str(clip)]
+    assert np.array_equal(after.detection, first.detection) and not set(idle()) & set(kept)
+    broken = tmp_path / "python"
+    broken.write_text("#!/bin/sh\necho 'no MediaPipe here' >&2\nexit 3\n", encoding="utf-8")
+    broken.chmod(0o755)
+    monkeypatch.setenv("FACELAB_TRACKER_PYTHON", str(broken))
+    with pytest.raises(StageError, match=r"stopped with exit 3: no MediaPipe here"):
+        ft.track_clips(clips, processes=1)
+    assert all(t.python != broken for t in ft._Tracker._idle)

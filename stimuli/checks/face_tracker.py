@@ -5,10 +5,17 @@ process and returns what it measured as arrays; nothing here imports MediaPipe.
 
 The tracker's Python is ``$FACELAB_TRACKER_PYTHON`` when set, else ``.venv-mediapipe`` beside
 the ``.venv`` facelab runs from (or beside the source tree of an editable install).
+
+Tracker processes are kept: a process that checks clips more than once (a demo, the render of
+several stimulus sets, the test suite's workers) starts each of its trackers once. Importing
+MediaPipe is most of a small check's work (1.2 CPU-s per process here, two processes a
+check). A tracker answers one request (a line of JSON) at a time and goes back to this
+process's pool when its answer is read; one that fails or is interrupted is ended, not kept.
 """
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import json
 import os
@@ -16,9 +23,11 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -129,9 +138,6 @@ class PendingTracking:
         n_proc = max(1, min(processes or min(os.cpu_count() or 1, 4), len(clips)))
         groups: list[list[dict]] = [[] for _ in range(n_proc)]
         load = [0.0] * n_proc
-        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-        env.setdefault("GLOG_minloglevel", "2")
-        env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
         self._tmp = tempfile.TemporaryDirectory(prefix="facelab-track-")
         tmp = Path(self._tmp.name)
         for i in sorted(range(len(clips)), key=lambda i: -clips[i][3]):  # longest first
@@ -142,29 +148,25 @@ class PendingTracking:
             groups[k].append({"path": str(path), "width": aw, "height": ah,
                               "grey": str(tmp / f"{i}.npy")})  # fmt: skip
         self._greys = {c["path"]: c["grey"] for g in groups for c in g}
-        self._errors = [tmp / f"stderr-{k}.txt" for k in range(n_proc)]
-        self._procs = []
-        for group, err in zip(groups, self._errors, strict=True):
-            with open(err, "w") as fh:  # the child keeps its own handle
-                proc = subprocess.Popen(
-                    [str(python), str(WORKER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                    stderr=fh, text=True, env=env,
-                )  # fmt: skip
-            proc.stdin.write(json.dumps({"clips": group}))  # type: ignore[union-attr]
-            proc.stdin.close()  # type: ignore[union-attr]
-            self._procs.append(proc)
+        self._trackers: list[_Tracker] = []
+        try:
+            for group in groups:
+                tracker = _Tracker.take(python)
+                self._trackers.append(tracker)
+                tracker.ask({"clips": group})
+        except BaseException:
+            self._end()
+            raise
+
+    def _end(self) -> None:
+        for tracker in self._trackers:
+            tracker.end()
+        self._trackers = []
+        self._tmp.cleanup()
 
     def collect(self) -> dict[str, ClipTracking]:
         try:
-            answers = []
-            for proc, err in zip(self._procs, self._errors, strict=True):
-                stdout = proc.stdout.read()  # type: ignore[union-attr]
-                if proc.wait() != 0:
-                    stderr = err.read_text(errors="replace").strip()
-                    last = stderr.splitlines()[-1] if stderr else "no message"
-                    raise StageError(f"the face tracker ({self.python}) stopped with exit "
-                                     f"{proc.returncode}: {last}")  # fmt: skip
-                answers.append(json.loads(stdout))
+            answers = [tracker.answer() for tracker in self._trackers]
             out = {}
             for answer in answers:
                 for clip in answer["clips"]:
@@ -184,13 +186,88 @@ class PendingTracking:
                     )
             for path, tracked in self._same.items():
                 out[path] = replace(out[tracked], path=path)
+            for tracker in self._trackers:  # every answer read: back to the pool
+                tracker.give_back()
+            self._trackers = []
             return out
         finally:
-            for proc in self._procs:
-                if proc.poll() is None:
-                    proc.kill()
-                    proc.wait()
-            self._tmp.cleanup()
+            self._end()
+
+
+class _Tracker:
+    """One tracker process (:mod:`.tracker_worker` in MediaPipe's environment), kept in this
+    process's pool between requests."""
+
+    _idle: ClassVar[list[_Tracker]] = []
+    _lock: ClassVar[threading.Lock] = threading.Lock()
+
+    def __init__(self, python: Path):
+        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+        env.setdefault("GLOG_minloglevel", "2")
+        env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        self.python, self.owner = python, os.getpid()
+        # its stderr, read when it fails; open as long as the process lives
+        self._err = tempfile.TemporaryFile(prefix="facelab-tracker-")  # noqa: SIM115
+        self.proc = subprocess.Popen(
+            [str(python), str(WORKER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stderr=self._err, text=True, env=env,
+        )  # fmt: skip
+
+    @classmethod
+    def take(cls, python: Path) -> _Tracker:
+        """An idle tracker of ``python`` from the pool, or a new one."""
+        with cls._lock:
+            for tracker in list(cls._idle):
+                cls._idle.remove(tracker)
+                if tracker.owner == os.getpid() and tracker.python == python and (
+                        tracker.proc.poll() is None):  # fmt: skip
+                    return tracker
+                tracker.end()
+        return cls(python)
+
+    def ask(self, request: dict) -> None:
+        self.proc.stdin.write(json.dumps(request) + "\n")  # type: ignore[union-attr]
+        self.proc.stdin.flush()  # type: ignore[union-attr]
+
+    def answer(self) -> dict:
+        line = self.proc.stdout.readline()  # type: ignore[union-attr]
+        if not line:
+            code = self.proc.wait()
+            self._err.seek(0)
+            stderr = self._err.read().decode(errors="replace").strip()
+            last = stderr.splitlines()[-1] if stderr else "no message"
+            raise StageError(
+                f"the face tracker ({self.python}) stopped with exit {code}: {last}"
+            )
+        return json.loads(line)
+
+    def give_back(self) -> None:
+        with self._lock:
+            self._idle.append(self)
+
+    def end(self) -> None:
+        """End the process (interrupted mid-request, failed, or no longer wanted)."""
+        if self.owner == os.getpid():
+            if self.proc.poll() is None:
+                self.proc.kill()
+            self.proc.wait()
+        self._err.close()
+
+    @classmethod
+    def end_all(cls) -> None:
+        """At exit: the idle trackers' input is closed; each ends when it reads that."""
+        with cls._lock:
+            idle, cls._idle[:] = list(cls._idle), []
+        for tracker in idle:
+            if tracker.owner == os.getpid():
+                tracker.proc.stdin.close()  # type: ignore[union-attr]
+                try:
+                    tracker.proc.wait(5)
+                except subprocess.TimeoutExpired:
+                    tracker.end()
+
+
+atexit.register(_Tracker.end_all)
 
 
 def start_tracking(

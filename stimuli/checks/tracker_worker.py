@@ -5,14 +5,15 @@ its own (``.venv-mediapipe``) and facelab runs this file there as a child proces
 (:mod:`facelab.stimuli.checks.face_tracker`). It imports nothing of facelab: only the standard
 library, NumPy and MediaPipe.
 
-Input (JSON on stdin)::
+Input: requests on stdin, one line of JSON each, until stdin closes (facelab keeps the process
+for its later checks)::
 
     {"clips": [{"path": "a.mp4", "width": 640, "height": 360, "grey": "a.npy"}, ...]}
 
 ``width`` x ``height`` is the size the clip is decoded at (ffmpeg scales it: every clip is
-measured at one analysis size, whatever it was rendered at). Output (JSON on stdout), per clip
-and per frame, from MediaPipe face *detection* (short range) and Face *Mesh* (video mode, one
-face, 468 landmarks)::
+measured at one analysis size, whatever it was rendered at). Output: one line of JSON on
+stdout per request, per clip and per frame, from MediaPipe face *detection* (short range)
+and Face *Mesh* (video mode, one face, 468 landmarks)::
 
     {"tracker": "mediapipe 0.10.21", "clips": [{"path", "frames",
       "detection": [score...],                 # best face's confidence, 0 without a face
@@ -107,14 +108,17 @@ def _measure(clip: dict) -> dict:
 def main() -> int:
     import mediapipe as mp
 
-    request = json.load(sys.stdin)
-    results = []
-    for clip in request["clips"]:
-        try:
-            results.append(_measure(clip))
-        except (RuntimeError, ValueError, OSError) as exc:
-            results.append({"path": clip["path"], "error": str(exc)})
-    json.dump({"tracker": f"mediapipe {mp.__version__}", "clips": results}, sys.stdout)
+    for line in sys.stdin:
+        request = json.loads(line)
+        results = []
+        for clip in request["clips"]:
+            try:
+                results.append(_measure(clip))
+            except (RuntimeError, ValueError, OSError) as exc:
+                results.append({"path": clip["path"], "error": str(exc)})
+        answer = {"tracker": f"mediapipe {mp.__version__}", "clips": results}
+        sys.stdout.write(json.dumps(answer) + "\n")
+        sys.stdout.flush()
     return 0
 
 
