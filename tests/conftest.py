@@ -50,8 +50,8 @@ def _own_display() -> None:
 
 
 #: every test's wall and CPU seconds (its own process, the children it waited for - ffmpeg,
-#: Dask workers - and its grid child, which renders and lives on between tests; not Chromium's
-#: processes, which chromedriver does not wait for), one
+#: Dask workers - and the grid child and face trackers, which live on between tests; not
+#: Chromium's processes, which chromedriver does not wait for), one
 #: JSON line each, appended by whichever worker ran it (named: "gw0".., "main" without xdist);
 #: the run's summary adds them up by file.
 TIMES = ROOT / ".pytest_cache" / "facelab-test-times.jsonl"
@@ -63,31 +63,35 @@ def _cpu() -> tuple[float, float]:
     return me.ru_utime + me.ru_stime, kids.ru_utime + kids.ru_stime
 
 
-def _grid_child_cpu() -> tuple[int | None, float]:
-    """The live grid child (facelab.grid) and its CPU seconds so far, with its own waited-for
-    children (ffmpeg): /proc/PID/stat's utime, stime, cutime, cstime."""
+def _kept_processes_cpu() -> float:
+    """CPU seconds so far of the child processes facelab keeps between tests - its grid child
+    (facelab.grid) and its idle face trackers - with their own waited-for children (ffmpeg):
+    /proc/PID/stat's utime, stime, cutime, cstime."""
     from facelab.grid import grid_child_pid
+    from facelab.stimuli.checks.face_tracker import kept_tracker_pids
 
-    pid = grid_child_pid()
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None, 0.0
-    return pid, sum(int(v) for v in fields[11:15]) / os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in [grid_child_pid(), *kept_tracker_pids()]:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        total += sum(int(v) for v in fields[11:15]) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    wall, (_, grid_cpu), (me, kids) = time.perf_counter(), _grid_child_cpu(), _cpu()
+    wall, kept, (me, kids) = time.perf_counter(), _kept_processes_cpu(), _cpu()
     yield
-    (_, grid_cpu_after), after = _grid_child_cpu(), _cpu()
-    # the grid child's CPU since the test began; a child that ended in the test (replaced
-    # after a crash) was waited for, so its whole life is in the children's CPU: less what
-    # earlier tests counted
-    grid_s = grid_cpu_after - grid_cpu
+    kept_after, after = _kept_processes_cpu(), _cpu()
+    # the kept processes' CPU since the test began; one that ended in the test (replaced
+    # after a crash, a tracker that failed) was waited for, so its whole life is in the
+    # children's CPU: less what earlier tests counted of it
+    kept_s = kept_after - kept
     line = {"test": item.nodeid, "wall_s": round(time.perf_counter() - wall, 3),
             "cpu_s": round(after[0] - me, 3),
-            "children_cpu_s": round(after[1] - kids + grid_s, 3),
+            "children_cpu_s": round(after[1] - kids + kept_s, 3),
             "worker": os.environ.get("PYTEST_XDIST_WORKER", "main")}
     with TIMES.open("a", encoding="utf-8") as fh:  # one short line a write: whole lines interleave
         fh.write(json.dumps(line) + "\n")
