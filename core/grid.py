@@ -411,6 +411,17 @@ def _own_child() -> _Child | None:
     return _child[0] if _child else None
 
 
+def _forget_child_after_fork() -> None:
+    """In a forked copy of this process: the parent's child (and its lock) are not this
+    one's."""
+    global _child_lock
+    _child_lock = threading.Lock()
+    _child.clear()
+
+
+os.register_at_fork(after_in_child=_forget_child_after_fork)
+
+
 @atexit.register
 def _close_child() -> None:
     child = _own_child()

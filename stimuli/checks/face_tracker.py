@@ -16,7 +16,9 @@ process's pool when its answer is read; one that fails or is interrupted is ende
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
+import itertools
 import json
 import os
 import shutil
@@ -136,33 +138,35 @@ class PendingTracking:
             first[ident] = str(path)
             unique.append(clip)
         clips = unique
-        n_proc = max(1, min(processes or min(os.cpu_count() or 1, 4), len(clips)))
+        n_proc = max(1, min(processes or _max_trackers(), len(clips)))
         groups: list[list[dict]] = [[] for _ in range(n_proc)]
         load = [0.0] * n_proc
-        self._tmp = tempfile.TemporaryDirectory(prefix="facelab-track-")
-        tmp = Path(self._tmp.name)
-        for i in sorted(range(len(clips)), key=lambda i: -clips[i][3]):  # longest first
-            path, w, h, duration = clips[i]
-            k = load.index(min(load))
-            load[k] += duration
-            aw, ah = analysis_size(w, h)
-            groups[k].append({"path": str(path), "width": aw, "height": ah,
-                              "grey": str(tmp / f"{i}.npy")})  # fmt: skip
-        self._greys = {c["path"]: c["grey"] for g in groups for c in g}
         self._trackers: list[_Tracker] = []
+        self._tmp = tempfile.TemporaryDirectory(prefix="facelab-track-")
         try:
+            tmp = Path(self._tmp.name)
+            for i in sorted(range(len(clips)), key=lambda i: -clips[i][3]):  # longest first
+                path, w, h, duration = clips[i]
+                k = load.index(min(load))
+                load[k] += duration
+                aw, ah = analysis_size(w, h)
+                # absolute: a kept tracker runs in the folder it was started in
+                groups[k].append({"path": os.path.abspath(path), "width": aw, "height": ah,
+                                  "grey": str(tmp / f"{i}.npy")})  # fmt: skip
+            self._given = {os.path.abspath(c[0]): str(c[0]) for c in clips}  # -> caller's name
+            self._greys = {c["path"]: c["grey"] for g in groups for c in g}
             for group in groups:
-                tracker = _Tracker.take(python)
-                self._trackers.append(tracker)
-                tracker.ask({"clips": group})
+                self._trackers.append(_Tracker.asked(python, {"clips": group}))
         except BaseException:
-            self._end()
+            self.cancel()
             raise
 
-    def _end(self) -> None:
-        for tracker in self._trackers:
+    def cancel(self) -> None:
+        """End the trackers still working for this request (a caller that will not
+        :meth:`collect`, after its own error) and remove the temporary folder."""
+        trackers, self._trackers = self._trackers, []
+        for tracker in trackers:
             tracker.end()
-        self._trackers = []
         self._tmp.cleanup()
 
     def collect(self) -> dict[str, ClipTracking]:
@@ -171,12 +175,13 @@ class PendingTracking:
             out = {}
             for answer in answers:
                 for clip in answer["clips"]:
+                    name = self._given[clip["path"]]
                     if "error" in clip:
                         raise StageError(
-                            f"{clip['path']}: the face tracker cannot decode it: {clip['error']}"
+                            f"{name}: the face tracker cannot decode it: {clip['error']}"
                         )
-                    out[clip["path"]] = ClipTracking(
-                        path=clip["path"],
+                    out[name] = ClipTracking(
+                        path=name,
                         detection=np.asarray(clip["detection"], float),
                         box=_array(clip["box"], (4,)).reshape(-1, 4),
                         aperture=_array(clip["aperture"]),
@@ -187,64 +192,123 @@ class PendingTracking:
                     )
             for path, tracked in self._same.items():
                 out[path] = replace(out[tracked], path=path)
-            for tracker in self._trackers:  # every answer read: back to the pool
-                tracker.give_back()
-            self._trackers = []
+            trackers, self._trackers = self._trackers, []  # every answer read: to the pool
+            _Tracker.give_back(trackers)
             return out
         finally:
-            self._end()
+            self.cancel()
+
+
+def _max_trackers() -> int:
+    """Tracker processes a check uses (and this process keeps) at most: one per CPU, up to 4."""
+    return min(os.cpu_count() or 1, 4)
 
 
 class _Tracker:
     """One tracker process (:mod:`.tracker_worker` in MediaPipe's environment), kept in this
-    process's pool between requests."""
+    process's pool between requests (at most :func:`_max_trackers`). It is started with this
+    process's environment: the pool keeps apart trackers whose Python or ffmpeg differ."""
 
     _idle: ClassVar[list[_Tracker]] = []
     _lock: ClassVar[threading.Lock] = threading.Lock()
+    _asked: ClassVar[itertools.count] = itertools.count()
 
     def __init__(self, python: Path):
-        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+        # no display: MediaPipe opens an X connection when it may, and a kept tracker would
+        # hold it (an X server resets - keyboard map and all - when its last client leaves)
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("PYTHONPATH", "PYTHONHOME", "DISPLAY", "WAYLAND_DISPLAY")}  # fmt: skip
         env.setdefault("GLOG_minloglevel", "2")
         env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
-        self.python, self.owner = python, os.getpid()
-        # its stderr, read when it fails; open as long as the process lives
+        self.key, self.owner, self.python = _Tracker.key_now(python), os.getpid(), python
+        self.reused = False
+        # its stderr, read from where a request began when it fails; open while it lives
         self._err = tempfile.TemporaryFile(prefix="facelab-tracker-")  # noqa: SIM115
+        self._err_at = 0
+        self._id: int | None = None
         self.proc = subprocess.Popen(
             [str(python), str(WORKER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
             stderr=self._err, text=True, env=env,
         )  # fmt: skip
 
+    @staticmethod
+    def key_now(python: Path) -> tuple[str, str | None]:
+        return str(python), shutil.which("ffmpeg")
+
     @classmethod
-    def take(cls, python: Path) -> _Tracker:
-        """An idle tracker of ``python`` from the pool, or a new one."""
+    def asked(cls, python: Path, request: dict) -> _Tracker:
+        """A tracker (a kept one if there is one) that has been sent ``request``. A kept
+        tracker that died since (its pipe is closed) is replaced by a new one."""
+        tracker = cls._take(python)
+        try:
+            tracker._ask(request)
+        except StageError:
+            if not tracker.reused:
+                raise
+            tracker = cls(python)
+            tracker._ask(request)
+        return tracker
+
+    @classmethod
+    def _take(cls, python: Path) -> _Tracker:
+        key = cls.key_now(python)
         with cls._lock:
-            for tracker in list(cls._idle):
-                cls._idle.remove(tracker)
-                if tracker.owner == os.getpid() and tracker.python == python and (
-                        tracker.proc.poll() is None):  # fmt: skip
-                    return tracker
-                tracker.end()
+            idle, cls._idle[:] = list(cls._idle), []
+            found = None
+            for tracker in idle:
+                usable = tracker.owner == os.getpid() and tracker.key == key and (
+                    tracker.proc.poll() is None)  # fmt: skip
+                if found is None and usable:
+                    found = tracker
+                elif usable:
+                    cls._idle.append(tracker)
+                else:
+                    tracker.end()
+        if found is not None:
+            found.reused = True
+            return found
         return cls(python)
 
-    def ask(self, request: dict) -> None:
-        self.proc.stdin.write(json.dumps(request) + "\n")  # type: ignore[union-attr]
-        self.proc.stdin.flush()  # type: ignore[union-attr]
+    def _ask(self, request: dict) -> None:
+        self._id = next(_Tracker._asked)
+        self._err_at = self._err.seek(0, os.SEEK_END)
+        try:
+            self.proc.stdin.write(json.dumps({**request, "id": self._id}) + "\n")  # type: ignore[union-attr]
+            self.proc.stdin.flush()  # type: ignore[union-attr]
+        except OSError:  # it ended
+            raise self._failed() from None
+
+    def _failed(self) -> StageError:
+        """The tracker stopped: wait for it; its exit and what it wrote since the request."""
+        code = self.proc.wait()
+        self._err.seek(self._err_at)
+        stderr = self._err.read().decode(errors="replace").strip()
+        self.end()
+        last = stderr.splitlines()[-1] if stderr else "no message"
+        return StageError(f"the face tracker ({self.python}) stopped with exit {code}: {last}")
 
     def answer(self) -> dict:
         line = self.proc.stdout.readline()  # type: ignore[union-attr]
-        if not line:
-            code = self.proc.wait()
-            self._err.seek(0)
-            stderr = self._err.read().decode(errors="replace").strip()
-            last = stderr.splitlines()[-1] if stderr else "no message"
-            raise StageError(
-                f"the face tracker ({self.python}) stopped with exit {code}: {last}"
-            )
-        return json.loads(line)
+        if not line.endswith("\n"):  # nothing, or a line cut short: it ended
+            raise self._failed()
+        try:
+            answer = json.loads(line)
+        except ValueError:
+            answer = None
+        if not isinstance(answer, dict) or answer.get("id") != self._id:
+            self.end()
+            raise StageError(f"the face tracker ({self.python}) answered something else than "
+                             "the request it was sent")  # fmt: skip
+        return answer
 
-    def give_back(self) -> None:
-        with self._lock:
-            self._idle.append(self)
+    @classmethod
+    def give_back(cls, trackers: list[_Tracker]) -> None:
+        """Keep ``trackers`` (every answer read) for later requests, up to the pool's size."""
+        with cls._lock:
+            room = max(0, _max_trackers() - len(cls._idle))
+            cls._idle += trackers[:room]
+        for tracker in trackers[room:]:
+            tracker.end()
 
     def end(self) -> None:
         """End the process (interrupted mid-request, failed, or no longer wanted)."""
@@ -252,7 +316,9 @@ class _Tracker:
             if self.proc.poll() is None:
                 self.proc.kill()
             self.proc.wait()
-        self._err.close()
+        for pipe in (self.proc.stdin, self.proc.stdout, self._err):
+            with contextlib.suppress(OSError):
+                pipe.close()  # type: ignore[union-attr]
 
     @classmethod
     def end_all(cls) -> None:
@@ -261,14 +327,21 @@ class _Tracker:
             idle, cls._idle[:] = list(cls._idle), []
         for tracker in idle:
             if tracker.owner == os.getpid():
-                tracker.proc.stdin.close()  # type: ignore[union-attr]
-                try:
+                with contextlib.suppress(OSError):
+                    tracker.proc.stdin.close()  # type: ignore[union-attr]
+                with contextlib.suppress(subprocess.TimeoutExpired):
                     tracker.proc.wait(5)
-                except subprocess.TimeoutExpired:
-                    tracker.end()
+            tracker.end()
+
+    @classmethod
+    def forget_after_fork(cls) -> None:
+        """In a forked copy of this process: the parent's trackers are not this one's."""
+        cls._lock = threading.Lock()
+        cls._idle = []
 
 
 atexit.register(_Tracker.end_all)
+os.register_at_fork(after_in_child=_Tracker.forget_after_fork)
 
 
 def kept_tracker_pids() -> list[int]:

@@ -245,31 +245,35 @@ def check_clips(
         (clips_dir / m["path"], int(m["width"]), int(m["height"]), float(m["duration_s"] or 0))
         for m in manifest
     ])  # fmt: skip
-    # while the tracker runs: the avatar's geometry, the stimuli's audio
-    avatar = load_avatar(protocol, base_dir=base_dir)
-    rows = audit_avatar(avatar, protocol, base_dir=base_dir)
-    stimuli = {(s.id, st.id): st for s in protocol.stimulus_sets for st in s.stimuli}
-    speeches: dict[tuple[str, str], Speech] = {}
+    try:
+        # while the tracker runs: the avatar's geometry, the stimuli's audio
+        avatar = load_avatar(protocol, base_dir=base_dir)
+        rows = audit_avatar(avatar, protocol, base_dir=base_dir)
+        stimuli = {(s.id, st.id): st for s in protocol.stimulus_sets for st in s.stimuli}
+        speeches: dict[tuple[str, str], Speech] = {}
 
-    def speech_of(key: tuple[str, str]) -> Speech:
-        if key not in speeches:
-            rate = protocol.rendering.audio_sample_rate
-            speeches[key] = speech_for(stimuli[key], base_dir=base_dir, sample_rate=rate)
-        return speeches[key]
+        def speech_of(key: tuple[str, str]) -> Speech:
+            if key not in speeches:
+                rate = protocol.rendering.audio_sample_rate
+                speeches[key] = speech_for(stimuli[key], base_dir=base_dir, sample_rate=rate)
+            return speeches[key]
 
-    analysed: dict[tuple[str, str], VisemeTrack] = {}
+        analysed: dict[tuple[str, str], VisemeTrack] = {}
 
-    def track_of(key: tuple[str, str]) -> VisemeTrack:
-        """The stimulus' viseme track (audio-only analysis is slow: made once)."""
-        if key not in analysed:
-            analysed[key] = tracks_for(stimuli[key], speech_of(key))[0]
-        return analysed[key]
+        def track_of(key: tuple[str, str]) -> VisemeTrack:
+            """The stimulus' viseme track (audio-only analysis is slow: made once)."""
+            if key not in analysed:
+                analysed[key] = tracks_for(stimuli[key], speech_of(key))[0]
+            return analysed[key]
 
-    decoded = decode_audios([clips_dir / m["path"] for m in manifest], sample_rate=AUDIO_RATE)
-    sounds = {m["clip_id"]: sound for m, sound in zip(manifest, decoded, strict=True)}
-    for m in manifest:
-        if stimuli.get((m["stimulus_set"], m["stimulus"])) is not None:
-            speech_of((m["stimulus_set"], m["stimulus"]))
+        decoded = decode_audios([clips_dir / m["path"] for m in manifest], sample_rate=AUDIO_RATE)
+        sounds = {m["clip_id"]: sound for m, sound in zip(manifest, decoded, strict=True)}
+        for m in manifest:
+            if stimuli.get((m["stimulus_set"], m["stimulus"])) is not None:
+                speech_of((m["stimulus_set"], m["stimulus"]))
+    except BaseException:  # the trackers stop with the check
+        pending.cancel()
+        raise
     tracked = pending.collect()
     tracking: dict[str, ClipTracking] = {m["clip_id"]: tracked[str(clips_dir / m["path"])]
                                          for m in manifest}  # fmt: skip

@@ -8,14 +8,14 @@ library, NumPy and MediaPipe.
 Input: requests on stdin, one line of JSON each, until stdin closes (facelab keeps the process
 for its later checks)::
 
-    {"clips": [{"path": "a.mp4", "width": 640, "height": 360, "grey": "a.npy"}, ...]}
+    {"id": 7, "clips": [{"path": "a.mp4", "width": 640, "height": 360, "grey": "a.npy"}, ...]}
 
 ``width`` x ``height`` is the size the clip is decoded at (ffmpeg scales it: every clip is
 measured at one analysis size, whatever it was rendered at). Output: one line of JSON on
 stdout per request, per clip and per frame, from MediaPipe face *detection* (short range)
 and Face *Mesh* (video mode, one face, 468 landmarks)::
 
-    {"tracker": "mediapipe 0.10.21", "clips": [{"path", "frames",
+    {"id": 7, "tracker": "mediapipe 0.10.21", "clips": [{"path", "frames",
       "detection": [score...],                 # best face's confidence, 0 without a face
       "box": [[x0, y0, x1, y1] | null ...],    # the face mesh's box, fractions of the frame
       "aperture": [a | null ...],              # inner lips 13-14 / face height 10-152
@@ -116,7 +116,8 @@ def main() -> int:
                 results.append(_measure(clip))
             except (RuntimeError, ValueError, OSError) as exc:
                 results.append({"path": clip["path"], "error": str(exc)})
-        answer = {"tracker": f"mediapipe {mp.__version__}", "clips": results}
+        answer = {"id": request.get("id"), "tracker": f"mediapipe {mp.__version__}",
+                  "clips": results}
         sys.stdout.write(json.dumps(answer) + "\n")
         sys.stdout.flush()
     return 0

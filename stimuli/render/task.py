@@ -236,8 +236,12 @@ def render_clip(job: ClipFrames, framing: Avatar, drawn: Avatar) -> RenderedClip
 def render_cluster(cluster: Cluster) -> Cluster:
     """Where :func:`render_grid` renders on ``cluster``: a serial grid in this process's grid
     child (:mod:`facelab.grid`), so that an OpenGL driver that crashes mid-clip (llvmpipe
-    aborted twice in ~15 full test runs here) costs that clip a re-run, not the command."""
-    return dataclasses.replace(cluster, child_process=True) if cluster.serial else cluster
+    aborted twice in ~15 full test runs here) costs that clip a re-run, not the command. (The
+    child is POSIX-only - it is handed a socket - so elsewhere a serial grid stays in this
+    process.)"""
+    if cluster.serial and os.name == "posix":
+        return dataclasses.replace(cluster, child_process=True)
+    return cluster
 
 
 def render_grid(
