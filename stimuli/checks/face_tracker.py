@@ -222,7 +222,7 @@ class _Tracker:
         env.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
         self.key, self.owner, self.python = _Tracker.key_now(python), os.getpid(), python
         self.reused = False
-        # its stderr, read from where a request began when it fails; open while it lives
+        # its stderr, read from the end of its last answer when it fails; open while it lives
         self._err = tempfile.TemporaryFile(prefix="facelab-tracker-")  # noqa: SIM115
         self._err_at = 0
         self._id: int | None = None
@@ -271,7 +271,6 @@ class _Tracker:
 
     def _ask(self, request: dict) -> None:
         self._id = next(_Tracker._asked)
-        self._err_at = self._err.seek(0, os.SEEK_END)
         try:
             self.proc.stdin.write(json.dumps({**request, "id": self._id}) + "\n")  # type: ignore[union-attr]
             self.proc.stdin.flush()  # type: ignore[union-attr]
@@ -279,7 +278,8 @@ class _Tracker:
             raise self._failed() from None
 
     def _failed(self) -> StageError:
-        """The tracker stopped: wait for it; its exit and what it wrote since the request."""
+        """The tracker stopped: wait for it; its exit and what it wrote since its last answer
+        (or its start)."""
         code = self.proc.wait()
         self._err.seek(self._err_at)
         stderr = self._err.read().decode(errors="replace").strip()
@@ -299,6 +299,7 @@ class _Tracker:
             self.end()
             raise StageError(f"the face tracker ({self.python}) answered something else than "
                              "the request it was sent")  # fmt: skip
+        self._err_at = self._err.seek(0, os.SEEK_END)  # a later failure's message: after this
         return answer
 
     @classmethod
