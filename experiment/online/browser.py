@@ -106,6 +106,12 @@ def chromium(*, size: tuple[int, int] = WINDOW, extra_args: Sequence[str] = ()) 
 #: a loaded machine draws (headless XR frames come every 150-500 ms idle; with the machine
 #: busy a short clip gets two frames, and a 2-s cycle sampled every second would alias).
 HEAD_TURN_DEG = 20.0
+#: the emulated headset's most frames a second (Hz). It draws both eyes in software
+#: (SwiftShader): run as fast as the page draws, its frame loop took the machine's two cores
+#: from everything else (an 18-rating kato2021 session with the default head, alone on the
+#: machine: 140 CPU-s uncapped, 98 at 10 Hz; a frame with the default head takes ~360 ms, a
+#: panel's ~18 ms). A real headset's 72-90 Hz is its own.
+EMULATED_HEADSET_HZ = 10
 _EMULATOR_JS = """
 (function () {
   const gazeOnly = %(gaze)s;
@@ -122,11 +128,39 @@ _EMULATOR_JS = """
   let pressed = 0;  // gaze-only: XR frames left of a select button held (2: press, 1: release)
   window.facelabGazeSelect = () => { pressed = 2; window.facelabGazeMissed = null; };
   window.facelabGazeSelects = 0;  // selects sent (a driver checks its own arrived)
-  if (gazeOnly) {  // IWER gives its gaze input only to sessions asking for it
-    const request = navigator.xr.requestSession.bind(navigator.xr);
-    navigator.xr.requestSession = (mode, init = {}) => request(mode, { ...init,
-      optionalFeatures: [...(init.optionalFeatures || []), "gaze-tracking"] });
-  }
+  // The headset's own clock: while its session runs, its frames come from a timer, at most
+  // %(hz)s a second (IWER would run them on the page's rAF, as fast as the page draws)
+  const pageFrame = window.requestAnimationFrame.bind(window);
+  const pageCancel = window.cancelAnimationFrame.bind(window);
+  const gap = 1000 / %(hz)s;
+  let inSession = false, lastFrame = -Infinity, nextHandle = 1;
+  const timers = new Map();  // a frame asked for in the session: our handle -> its timer
+  window.requestAnimationFrame = (callback) => {
+    if (!inSession) return pageFrame(callback);
+    const handle = -(nextHandle++);  // never a page rAF's (positive) handle
+    const wait = Math.max(0, lastFrame + gap - performance.now());
+    timers.set(handle, setTimeout(() => {
+      timers.delete(handle);
+      const now = performance.now();
+      if (now - lastFrame >= gap - 1) lastFrame = now;  // one frame time for all due at once
+      callback(lastFrame);
+    }, wait));
+    return handle;
+  };
+  window.cancelAnimationFrame = (handle) => {
+    if (!timers.has(handle)) { pageCancel(handle); return; }
+    clearTimeout(timers.get(handle)); timers.delete(handle);
+  };
+  const request = navigator.xr.requestSession.bind(navigator.xr);
+  navigator.xr.requestSession = async (mode, init = {}) => {
+    // IWER gives its gaze input only to sessions asking for it
+    const asked = gazeOnly ? { ...init,
+      optionalFeatures: [...(init.optionalFeatures || []), "gaze-tracking"] } : init;
+    const session = await request(mode, asked);
+    inSession = true;
+    session.addEventListener("end", () => { inSession = false; });
+    return session;
+  };
   const turn = %(turn)s;
   const rest = { x: device.position.x, y: device.position.y, z: device.position.z };
   let phase = 0, last = null;
@@ -310,7 +344,8 @@ def emulator_js(
     off = "null" if headset_off_at is None else str(int(headset_off_at))
     gaze = "true" if input == "gaze" else "false"
     return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {
-        "turn": float(turn_deg), "off": off, "gaze": gaze}  # fmt: skip
+        "turn": float(turn_deg), "off": off, "gaze": gaze,
+        "hz": float(EMULATED_HEADSET_HZ)}  # fmt: skip
 
 
 _STATE_JS = """
