@@ -149,12 +149,10 @@ export async function converse({ box, screen, language, token, show }) {
   const status = document.createElement("p"); status.className = "facelab-announce"; status.dataset.facelab = "live-status";
   status.textContent = words.waiting;
   box.append(text);
-  const inVR = stage.inVR();
-  // in VR the runtime keeps the canvas (moved away, a runtime that puts it back when the
-  // session ends fails to: IWER's end threw, the session went on without frames)
-  if (!inVR) stage.attach(box);
+  stage.attach(box);
   box.append(status);
   show();
+  const inVR = stage.inVR();
   let voice = null;
   if (inVR) {  // the partner in the room, no panel and no rays over them, the voice from the mouth
     stage.avatar.visible = true; stage.showRays(false); stage.fadeIn();

@@ -383,9 +383,12 @@ export class Stage {
     } else { L.setPosition(p.x, p.y, p.z); L.setOrientation(f.x, f.y, f.z, u.x, u.y, u.z); }
   }
 
-  // -- live3d: the canvas inside a clip screen
+  // -- live3d: the canvas inside a clip screen. In VR the runtime keeps the canvas: moved
+  // away, a runtime that puts it back when the session ends fails to (IWER's end threw, and
+  // the session went on without an end event or frames)
 
   attach(box) {
+    if (this.inVR()) return;
     const canvas = this.renderer.domElement;
     box.appendChild(canvas);
     this.renderer.render(this.scene, this.camera);

@@ -165,7 +165,7 @@ class FacelabClip extends FacelabPlugin {
     if (stage) {  // display live3d / webxr: the avatar drawn here from the clip's track
       facelabShow(el, box, false);
       if (stage.ran === "webxr" && !stage.inVR()) await facelabEnterVR(box);
-      if (!stage.inVR()) stage.attach(box);
+      stage.attach(box);
       if (s.gap_s) await facelabSleep(s.gap_s * 1000);
       const record = await stage.play(s, box);
       if (!s.practice) FacelabOutbox.send("/api/playback", record);
