@@ -143,6 +143,35 @@ class _Grid:
     log_post: np.ndarray
 
 
+def _binomial_loglik(f: np.ndarray, *, yes: np.ndarray, no: np.ndarray, gamma: float,
+                     lapses: np.ndarray) -> np.ndarray:  # fmt: skip
+    """The log likelihood (M, W, L) of ``yes`` and ``no`` answers (X,) at each level, where
+    the function without guesses and lapses is ``f`` (M, W, X): p = gamma + (1 - gamma -
+    lapse) f, clipped to [1e-12, 1 - 1e-12]. Levels without yes (or without no) answers add
+    nothing to that term and are left out of it; the arithmetic runs in place, one lapse at a
+    time (the calibration fits this thousands of times)."""
+    lo, hi = 1e-12, 1.0 - 1e-12
+    has_yes, has_no = yes > 0, no > 0
+    cells = f.shape[0] * f.shape[1]  # one row of levels per (midpoint, width): one gemv
+    f_yes = np.ascontiguousarray(f[..., has_yes]).reshape(cells, -1)
+    f_no = np.ascontiguousarray(f[..., has_no]).reshape(cells, -1)
+    p_yes, p_no = np.empty_like(f_yes), np.empty_like(f_no)
+    out = np.empty((cells, len(lapses)))
+    for j, lam in enumerate(lapses):
+        scale = 1.0 - gamma - lam
+        np.multiply(f_yes, scale, out=p_yes)
+        p_yes += gamma
+        np.clip(p_yes, lo, hi, out=p_yes)
+        np.log(p_yes, out=p_yes)
+        np.multiply(f_no, scale, out=p_no)
+        p_no += gamma
+        np.clip(p_no, lo, hi, out=p_no)
+        np.negative(p_no, out=p_no)
+        np.log1p(p_no, out=p_no)  # log(1 - p)
+        out[:, j] = p_yes @ yes[has_yes] + p_no @ no[has_no]
+    return out.reshape(*f.shape[:2], len(lapses))
+
+
 def _grid(counts: pd.DataFrame, *, gamma: float,
           shape: tuple[int, int, int] = (N_MID, N_WIDTH, N_LAPSE)) -> _Grid:  # fmt: skip
     """The log likelihood and log posterior of ``counts`` (``level, n, k``) on a grid of
@@ -174,10 +203,7 @@ def _grid(counts: pd.DataFrame, *, gamma: float,
 
     beta = 2.0 * LN19 / widths  # (W,)
     f = special.expit(beta[None, :, None] * (x[None, None, :] - mids[:, None, None]))  # M W X
-    loglik = np.zeros((n_mid, n_width, n_lapse))
-    for j, lam in enumerate(lapses):
-        p = np.clip(gamma + (1.0 - gamma - lam) * f, 1e-12, 1 - 1e-12)
-        loglik[:, :, j] = np.log(p) @ k + np.log1p(-p) @ (n - k)
+    loglik = _binomial_loglik(f, yes=k, no=n - k, gamma=gamma, lapses=lapses)
     log_post = (
         loglik
         + log_prior_m[:, None, None]
