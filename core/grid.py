@@ -533,6 +533,11 @@ def _client(cluster: Cluster) -> Iterator[Any]:
 def _run_dask(tasks, cluster, report, on_result, progress, window) -> None:
     from distributed import as_completed
 
+    pending = iter(tasks)
+    head = list(itertools.islice(pending, 1))
+    if not head:  # nothing to run (a render whose clips are all reused): no cluster at all
+        return
+    pending = itertools.chain(head, pending)
     t0 = time.perf_counter()
     with _client(cluster) as client:
         report.start_s = time.perf_counter() - t0
@@ -558,7 +563,6 @@ def _run_dask(tasks, cluster, report, on_result, progress, window) -> None:
             keys[fut.key] = task.key
             return fut
 
-        pending = iter(tasks)
         first = list(itertools.islice(pending, window))
         # workers import the tasks' modules now (pyrender, OpenGL: about a second), so the
         # cost shows as the cluster's start, once per worker, not inside the first tasks

@@ -168,6 +168,14 @@ def test_an_unreachable_scheduler_is_named() -> None:
         )
 
 
+def test_a_grid_with_nothing_to_run_starts_and_joins_no_cluster() -> None:
+    """A render whose clips are all reused has no tasks: no scheduler is reached (this one
+    does not exist: joining it would fail) and no workers are started."""
+    cluster = Cluster(scheduler="tcp://127.0.0.1:9", connect_timeout_s=1.0)
+    report = run_grid(iter(()), cluster=cluster)
+    assert (report.results, report.failed, report.start_s) == ({}, {}, 0.0)
+
+
 def test_the_readmes_slurm_recipe_makes_single_thread_worker_jobs() -> None:
     from dask_jobqueue import SLURMCluster
 
