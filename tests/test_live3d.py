@@ -562,9 +562,15 @@ def test_a_kato2021_session_in_vr_with_a_head_turn_stores_every_rating_once(
             "--simulate-participants", "1", "--screenshots", str(shots),
             "--simulate-headset-off", "3", "--simulate-window", "640x400"]  # fmt: skip
     assert main(args) == 0
-    assert {"enter_vr.png", "vr-vas-naturalness.png", "complete.png"} <= {
+    assert {"enter_vr.png", "vr-vas-naturalness.png", "complete.png", "vr-clip.png"} <= {
         p.name for p in shots.glob("*.png")
     }
+    # the talking avatar as the headset showed it, both eyes: the page's own still of a clip
+    # faded in (a page screenshot caught the fade from black), the face lit in each eye
+    still = np.asarray(Image.open(shots / "vr-clip.png").convert("L"), dtype=float)
+    print("vr-clip still: mean", still.mean().round(1), "eyes", [
+        half.mean().round(1) for half in np.array_split(still, 2, axis=1)])  # fmt: skip
+    assert all(half.mean() > 20 for half in np.array_split(still, 2, axis=1))
     server = _server(study, "vr.yaml", db)
     assert _clicked_equals_stored(server) == 18
     with Session(server.engine) as s:

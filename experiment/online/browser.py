@@ -373,6 +373,13 @@ return (a && a.snapshot) || null;
 """
 
 
+#: in VR: the page's still of a clip in full view once it has one (live.js), else ask for one
+_VR_CLIP_STILL_JS = """
+const s = window.FacelabLive;
+if (!s.clipStill) s.clipStillWanted = true;
+return s.clipStill || "";
+"""
+
 
 @dataclass
 class SimulatedBrowser:
@@ -557,8 +564,10 @@ class SimulatedBrowser:
                     or key in done_screens
                 ):
                     if kind in ("clip", "clip_pair"):
-                        if in_vr() and d.execute_script("return !!FacelabLive.onFrame"):
-                            self._shot("vr-clip")  # the avatar talking, in the room
+                        if in_vr() and self.screenshots is not None and "vr-clip" not in self.shots:
+                            # the avatar talking, in the room: a still the page takes in the
+                            # frame that drew it, asked for until a clip gives one
+                            self._save_data_url("vr-clip", d.execute_script(_VR_CLIP_STILL_JS))
                         self._shot(kind)
                     time.sleep(0.1)
                     continue

@@ -57,6 +57,9 @@ export class Stage {
     this.session = null;                      // the immersive session, while it runs
     this.panel = null;
     this.onFrame = null;                      // the clip being played, called every frame
+    this.clipHeard = 0;                       // how far (s) into its sound the clip is shown
+    this.clipStillWanted = false;             // a still of the next clip in full view, asked
+    this.clipStill = null;                    //   for by a driver, and the PNG data URL taken
     this.screenPoses = null;                  // the poses while a VR screen waits (mirror)
     this.yaw = 0;                             // the facing direction the avatar was placed at
     this.lastPose = null;                     // the viewer's pose at the last XR frame
@@ -194,6 +197,12 @@ export class Stage {
     else if (this.screenPoses && xrFrame) this.collectScreenPose(time, xrFrame);
     if (this.panel) this.panel.hover(this);
     if (this.onFrame || this.session) this.renderer.render(this.scene, this.camera);
+    // a still of a clip faded in and talking, taken in the frame that drew it (a screenshot
+    // of a busy headless page lags: it caught the fade from black, or the next screen)
+    if (this.clipStillWanted && this.onFrame && this.clipHeard > 0.3 && this.opacity() === 0) {
+      this.clipStill = this.renderer.domElement.toDataURL("image/png");
+      this.clipStillWanted = false;
+    }
   }
 
   // the audio the participant hears at page time `time` (ms), in context seconds
@@ -266,7 +275,7 @@ export class Stage {
       const outcome = await new Promise((res) => {
         this.playing = { clip: s.clip, trial_index: s.practice ? null : s.trial_index, stop: () => res("interrupted") };
         this.onFrame = (time, xrFrame) => {
-          const heard = this.heardAt(time) - start;
+          const heard = this.clipHeard = this.heardAt(time) - start;
           const k = heard < 0 ? 0 : Math.min(n - 1, Math.floor(heard * fps + 1e-9));
           this.apply(track, k);
           if (heard >= 0 && frames.length < MAX_FRAMES_LOGGED) frames.push([time, k, heard, this.viewer(xrFrame), this.hands(xrFrame)]);
