@@ -118,3 +118,9 @@ if [ ! -f "$WEB_STAMP" ] || [ "$(cat "$WEB_STAMP")" != "$WEB_WANT" ]; then
   fi
   echo "$WEB_WANT" >"$WEB_STAMP"
 fi
+
+# facelab's own modules compiled to bytecode here, once: a Python started with
+# PYTHONDONTWRITEBYTECODE set (as some environments do) reads __pycache__ but never writes it,
+# so every process - each command, render child, test worker - compiled facelab from source
+# again (0.3-0.4 CPU-s a `facelab validate`); up-to-date files are skipped
+(cd "$ROOT" && "$VENV/bin/python" -m compileall -q -j 0 core stimuli analysis experiment >/dev/null)
