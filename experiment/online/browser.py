@@ -121,7 +121,7 @@ _EMULATOR_JS = """
     controllerConfig: undefined,
     supportedFeatures: [...IWER.metaQuest3.supportedFeatures.filter((f) => f !== "hand-tracking"),
                         "gaze-tracking"] } : IWER.metaQuest3;
-  const device = new IWER.XRDevice(config, { stereoEnabled: true });
+  const device = new IWER.XRDevice(config, { stereoEnabled: %(stereo)s });
   device.installRuntime({ forceInstall: true });
   window.facelabXRDevice = device;
   window.facelabGazeOnly = gazeOnly;
@@ -325,13 +325,15 @@ const frames = (n) => new Promise((resolve, reject) => {
 
 def emulator_js(
     *, turn_deg: float = HEAD_TURN_DEG, headset_off_at: int | None = None,
-    input: str = "controller",
+    input: str = "controller", stereo: bool = True,
 ) -> str:  # fmt: skip
     """The script that installs the emulated headset (IWER, from experiment/online/web);
     with ``headset_off_at`` the participant takes it off for a second once that trial's clip
     plays (checked in the XR frame loop: a driver polling between frames misses short
     clips). ``input``: ``"controller"`` (a Quest 3 and its two controllers) or ``"gaze"`` (no
-    controllers: the head's ray and a select button)."""
+    controllers: the head's ray and a select button). ``stereo`` False: one view, not one per
+    eye (a test of a session's flow, not of what each eye sees: the avatar is drawn once a
+    frame in software instead of twice)."""
     if input not in VR_INPUTS:
         raise SessionError(
             f"an emulated headset's input {input!r}: expected one of {', '.join(VR_INPUTS)}"
@@ -345,7 +347,7 @@ def emulator_js(
     gaze = "true" if input == "gaze" else "false"
     return iwer.read_text(encoding="utf-8") + _EMULATOR_JS % {
         "turn": float(turn_deg), "off": off, "gaze": gaze,
-        "hz": float(EMULATED_HEADSET_HZ)}  # fmt: skip
+        "stereo": "true" if stereo else "false", "hz": float(EMULATED_HEADSET_HZ)}  # fmt: skip
 
 
 _STATE_JS = """
@@ -406,6 +408,7 @@ class SimulatedBrowser:
     # this trial (and puts it back on), once
     headset_off_at: int | None = None
     vr_input: str = "controller"  # display webxr: the emulated headset's input (VR_INPUTS)
+    vr_stereo: bool = True  # display webxr: the emulated headset draws a view per eye
     # the browser window (pixels) when it opens its own; an emulated headset draws both eyes
     # into it, so a smaller one draws faster without a GPU (1280x800 -> 640x400: the same
     # session in about 58 % of the time)
@@ -524,7 +527,8 @@ class SimulatedBrowser:
         if vr:  # an emulated headset in this page (and on every reload)
             self._emulator = self._emulator or d.execute_cdp_cmd(
                 "Page.addScriptToEvaluateOnNewDocument",
-                {"source": emulator_js(headset_off_at=self.headset_off_at, input=self.vr_input)},
+                {"source": emulator_js(headset_off_at=self.headset_off_at, input=self.vr_input,
+                                       stereo=self.vr_stereo)},
             )
 
         def in_vr() -> bool:
