@@ -913,6 +913,8 @@ CHECK_NAMES = (
     "face_visible",
     "av_sync",
     "levels",
+    "modality",
+    "noise",
     "track_source",
 )
 

@@ -1077,7 +1077,7 @@ class StimulusChecks(_Model):
         default_factory=list,
         description="Checks whose failures are accepted (recorded, not an error), by name: "
         "avatar_audit, conditions_differ, articulation, face_visible, av_sync, levels, "
-        "track_source.",
+        "modality, noise, track_source.",
     )
 
 

@@ -441,3 +441,29 @@ def test_tracker_processes_are_kept_between_checks_and_a_dead_or_failing_one_is_
     with pytest.raises(StageError, match=r"stopped with exit 3: no MediaPipe here"):
         ft.track_clips(clips, processes=1)
     assert all(t.python != broken for t in ft._Tracker._idle)
+
+
+def test_every_check_a_clip_can_fail_can_be_accepted_by_name() -> None:
+    """A failure's message says `--accept-check NAME`: every check name the check modules
+    write into a row is one --accept-check and checks.accept take (modality and noise were
+    not: the command refused the name its own message gave), and the protocol reference
+    lists each."""
+    import re
+
+    from facelab.protocol_checks import CHECK_NAMES
+    from facelab.protocol_model import StimulusChecks
+
+    folder = Path(__file__).parents[1] / "stimuli" / "checks"
+    written = set()
+    for source in folder.glob("*.py"):
+        text = source.read_text(encoding="utf-8")
+        written |= set(re.findall(r"""["']?check["']?\s*[:=]\s*["']([a-z_]+)["']""", text))
+    assert {"articulation", "modality", "noise", "avatar_audit"} <= written, written
+    assert written <= set(CHECK_NAMES), written - set(CHECK_NAMES)
+    described = StimulusChecks.model_fields["accept"].description
+    assert all(name in described for name in CHECK_NAMES), described
+    for name in CHECK_NAMES:  # the command takes each
+        with pytest.raises(SystemExit) as done:
+            main(["render", "--accept-check", name, "--help"])
+        assert done.value.code == 0
+
