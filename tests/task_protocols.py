@@ -11,10 +11,14 @@ from facelab.resources import protocol_path
 from tests.shared_renders import rendered_clips
 
 
-def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
+def short_task_protocol(
+    name: str, root: Path, edits: dict[str, str], *, files: dict[str, bytes] | None = None,
+    extra: tuple[str, ...] = (),
+) -> Path:
     """Write ``root/<name>.yaml`` (the shipped protocol with a two-vowel stimulus and
     ``edits`` applied, ``{regex: replacement}``) and render its clips into ``root/clips``
-    at 320x180, 15 fps."""
+    at 320x180, 15 fps; ``files`` (name -> bytes, e.g. an avatar the edits name) are written
+    beside it, ``extra`` are more render options."""
     text = protocol_path(name).read_text(encoding="utf-8")
     text = text.replace(
         "text: あ。い。う。え。お。, tts: {speed: 0.8}, expected_vowels: aiueo",
@@ -28,7 +32,10 @@ def short_task_protocol(name: str, root: Path, edits: dict[str, str]) -> Path:
     )
     for old, new in edits.items():
         text = re.sub(old, new, text)
-    rendered_clips(None, text=text, into=root, name=f"{name}.yaml", size="320x180", fps="15")
+    for file_name, data in (files or {}).items():
+        (root / file_name).write_bytes(data)
+    rendered_clips(None, text=text, into=root, name=f"{name}.yaml", size="320x180", fps="15",
+                   files=files, extra=extra)  # fmt: skip
     return root / f"{name}.yaml"
 
 
