@@ -123,4 +123,5 @@ fi
 # PYTHONDONTWRITEBYTECODE set (as some environments do) reads __pycache__ but never writes it,
 # so every process - each command, render child, test worker - compiled facelab from source
 # again (0.3-0.4 CPU-s a `facelab validate`); up-to-date files are skipped
-(cd "$ROOT" && "$VENV/bin/python" -m compileall -q -j 0 core stimuli analysis experiment >/dev/null)
+(cd "$ROOT" && "$VENV/bin/python" -m compileall -q -j 0 -x '/node_modules/' \
+  core stimuli analysis experiment >/dev/null) || log "compiling facelab to bytecode failed; it runs from source"

@@ -240,6 +240,7 @@ def study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (root / "vr_rpm.yaml").write_text(
         _with_display(text, "  display: webxr\n  vr:\n    avatar_distance_m: 1.2\n").replace(
             "  avatar: default", "  avatar: rpm.glb"), "utf-8")  # fmt: skip
+    assert "  avatar: rpm.glb" in (root / "vr_rpm.yaml").read_text("utf-8")
     return root
 
 

@@ -457,7 +457,10 @@ def test_every_check_a_clip_can_fail_can_be_accepted_by_name() -> None:
     written = set()
     for source in folder.glob("*.py"):
         text = source.read_text(encoding="utf-8")
-        written |= set(re.findall(r"""["']?check["']?\s*[:=]\s*["']([a-z_]+)["']""", text))
+        # a row's check as a literal (check="x", "check": "x") or a module constant (CHECK = "x")
+        written |= set(re.findall(r"""["']?check["']?\s*[:=]\s*["']([a-z0-9_]+)["']""", text,
+                                  flags=re.IGNORECASE))
+        written |= set(re.findall(r'^\w*CHECK\w*\s*=\s*"([a-z0-9_]+)"', text, flags=re.MULTILINE))
     assert {"articulation", "modality", "noise", "avatar_audit"} <= written, written
     assert written <= set(CHECK_NAMES), written - set(CHECK_NAMES)
     described = StimulusChecks.model_fields["accept"].description

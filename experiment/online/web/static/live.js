@@ -282,7 +282,7 @@ export class Stage {
           if (heard >= duration) res("done");
         };
       });
-      this.onFrame = null; this.playing = null;
+      this.onFrame = null; this.playing = null; this.clipHeard = 0;
       if (outcome === "done") { await ended; await this.fadeOut(); break; }
       try { src.stop(); } catch (e) { /* not started yet */ }
       if (source.at) source.node.disconnect();
