@@ -17,7 +17,13 @@ from facelab import sickness_questionnaire as ssq
 from facelab.emotions import BEHAVIOUR_MODES
 from facelab.errors import Issue
 from facelab.methods import METHODS, method_spec
-from facelab.protocol_model import AUDIO_SUFFIXES, AVATAR_SUFFIXES, Protocol, StaircaseRule
+from facelab.protocol_model import (
+    AUDIO_SUFFIXES,
+    AVATAR_SUFFIXES,
+    CHECK_NAMES,
+    Protocol,
+    StaircaseRule,
+)
 from facelab.protocol_yaml import read_data
 
 __all__ = ["CHECK_NAMES", "clean_loc", "cross_check", "describe", "pydantic_message"]
@@ -905,18 +911,6 @@ def _live_display(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             )
 
 
-#: the stimulus checks by name (``facelab check``; ``checks.accept`` and --accept-check)
-CHECK_NAMES = (
-    "avatar_audit",
-    "conditions_differ",
-    "articulation",
-    "face_visible",
-    "av_sync",
-    "levels",
-    "modality",
-    "noise",
-    "track_source",
-)
 
 
 @_check("checks", "conditions")

@@ -1056,6 +1056,20 @@ class AnalysisOptions(_Model):
     )
 
 
+#: the stimulus checks by name (``facelab check``; ``checks.accept`` and --accept-check)
+CHECK_NAMES = (
+    "avatar_audit",
+    "conditions_differ",
+    "articulation",
+    "face_visible",
+    "av_sync",
+    "levels",
+    "modality",
+    "noise",
+    "track_source",
+)
+
+
 class StimulusChecks(_Model):
     """What ``facelab check`` (and every render) holds the clips to beyond its defaults."""
 
@@ -1076,8 +1090,7 @@ class StimulusChecks(_Model):
     accept: list[str] = Field(
         default_factory=list,
         description="Checks whose failures are accepted (recorded, not an error), by name: "
-        "avatar_audit, conditions_differ, articulation, face_visible, av_sync, levels, "
-        "modality, noise, track_source.",
+        f"{', '.join(CHECK_NAMES)}.",
     )
 
 
