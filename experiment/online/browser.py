@@ -593,6 +593,10 @@ class SimulatedBrowser:
                     )
                 if kind == "complete":
                     if in_vr():  # the end panel: take off the headset, then Exit
+                        if self.screenshots is not None and "vr-clip" not in self.shots:
+                            # a still asked for in one clip may be taken in a later one that
+                            # a busy page's driver never saw on show: the page keeps it
+                            self._save_data_url("vr-clip", d.execute_script(_VR_CLIP_STILL_JS))
                         wait_for("[data-facelab=exit_vr]")
                         self.vr_fades = d.execute_script(_FADES_JS)
                         self._shot("vr-end")
