@@ -30,6 +30,7 @@ __all__ = [
     "LogLik",
     "best_fit",
     "binomial_deviance",
+    "binomial_loglik_and_weight",
     "chi2_cutoff",
     "on_bound",
     "profile_interval",
@@ -135,6 +136,20 @@ def profile_interval(
 def on_bound(value: float, bound: tuple[float, float], *, tol: float = 1e-6) -> bool:
     """True when an estimate sits on either end of its search bound."""
     return value <= bound[0] + tol or value >= bound[1] - tol
+
+
+def binomial_loglik_and_weight(
+    p: np.ndarray, *, n: np.ndarray, k: np.ndarray, eps: float
+) -> tuple[float, np.ndarray]:
+    """The log likelihood of ``k`` of ``n`` "yes" answers at probabilities ``p`` held inside
+    [eps, 1 - eps], and its derivative in each ``p`` (0 where ``p`` is held, as the held
+    likelihood is flat there): a model's gradient is its rows of dp/dtheta times these. In
+    few numpy calls - an optimiser evaluates it hundreds of thousands of times a study."""
+    pc = np.minimum(np.maximum(p, eps), 1 - eps)
+    qc = 1.0 - pc
+    m = n - k
+    weight = (k / pc - m / qc) * ((p > eps) & (p < 1 - eps))
+    return float(k @ np.log(pc) + m @ np.log(qc)), weight
 
 
 def binomial_deviance(k: np.ndarray, n: np.ndarray, p: np.ndarray) -> float:

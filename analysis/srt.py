@@ -43,6 +43,7 @@ import facelab.analysis.stats as fstats
 from facelab.analysis.profile_likelihood import (
     best_fit,
     binomial_deviance,
+    binomial_loglik_and_weight,
     chi2_cutoff,
     on_bound,
     profile_interval,
@@ -205,11 +206,8 @@ def _loglik_and_gradient(
     # few numpy calls: the optimiser evaluates this hundreds of thousands of times
     rows = [-beta * slope_at, (beta * d) * slope_at,
             slope_at * ((beta * f) * d + 1.0) / (s * (1.0 - f)) - sig]  # fmt: skip
-    pc = np.minimum(np.maximum(p, _EPS), 1 - _EPS)
-    qc = 1.0 - pc
-    m = n - k
-    weight = (k / pc - m / qc) * ((p > _EPS) & (p < 1 - _EPS))
-    return float(k @ np.log(pc) + m @ np.log(qc)), np.array(rows) @ weight
+    value, weight = binomial_loglik_and_weight(p, n=n, k=k, eps=_EPS)
+    return value, np.array(rows) @ weight
 
 
 def fit_srt(

@@ -39,6 +39,7 @@ import facelab.analysis.stats as fstats
 from facelab.analysis.profile_likelihood import (
     best_fit,
     binomial_deviance,
+    binomial_loglik_and_weight,
     chi2_cutoff,
     on_bound,
     profile_interval,
@@ -160,18 +161,9 @@ def _loglik_and_gradient(
         tail = special.ndtr(-z)
         p = (1.0 - lapse) * tail + lapse / 2
         rows = [density / sigma, density * z, 0.5 - tail]
-    pc = np.minimum(np.maximum(p, _EPS), 1 - _EPS)
-    qc = 1.0 - pc
-    m = n - k
-    # the chain rule through p: 0 where p is clipped, as the clipped likelihood is flat there
-    weight = (k / pc - m / qc) * ((p > _EPS) & (p < 1 - _EPS))
-    value = float(k @ np.log(pc) + m @ np.log(qc))
+    # the chain rule through p
+    value, weight = binomial_loglik_and_weight(p, n=n, k=k, eps=_EPS)
     return value, np.array(rows) @ weight
-
-
-def _normal_pdf(z: np.ndarray) -> np.ndarray:
-    """The standard normal density at ``z``."""
-    return np.exp(-0.5 * z**2) / math.sqrt(2.0 * math.pi)
 
 
 def _bounds(judgment: str, x: np.ndarray, *, floor: bool) -> list[tuple[float, float]]:

@@ -911,8 +911,6 @@ def _live_display(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
             )
 
 
-
-
 @_check("checks", "conditions")
 def _stimulus_checks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
     """The stimulus checks' rules name real conditions and checks."""
