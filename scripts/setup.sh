@@ -77,11 +77,13 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 
 LOCK="$ROOT/requirements/lock.txt"
+PIP_PIN="$ROOT/requirements/pip.txt"
 STAMP="$VENV/.facelab-installed"
-WANT="$(cat "$ROOT/pyproject.toml" "$LOCK" | sha256sum | cut -d' ' -f1)"
+WANT="$(cat "$ROOT/pyproject.toml" "$LOCK" "$PIP_PIN" | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ]; then
   log "installing facelab and its pinned dependencies into .venv (log: .venv/pip.log)"
-  if ! { "$VENV/bin/python" -m pip install -q --require-hashes -r "$LOCK" &&
+  if ! { "$VENV/bin/python" -m pip install -q --require-hashes -r "$PIP_PIN" &&
+         "$VENV/bin/python" -m pip install -q --require-hashes -r "$LOCK" &&
          "$VENV/bin/python" -m pip install -q --no-deps -e "$ROOT"; } >"$VENV/pip.log" 2>&1; then
     grep -v "is ignored: it is neither a file nor a directory" "$VENV/pip.log" | tail -40 >&2
     log "pip install failed; see .venv/pip.log"
@@ -93,11 +95,12 @@ fi
 TRACKER_VENV="$ROOT/.venv-mediapipe"
 TRACKER_STAMP="$TRACKER_VENV/.facelab-installed"
 TRACKER_LOCK="$ROOT/requirements/tracker-lock.txt"
-TRACKER_WANT="$(sha256sum "$TRACKER_LOCK" | cut -d' ' -f1)"
+TRACKER_WANT="$(cat "$TRACKER_LOCK" "$PIP_PIN" | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$TRACKER_STAMP" ] || [ "$(cat "$TRACKER_STAMP")" != "$TRACKER_WANT" ]; then
   log "installing the face tracker (MediaPipe) for the stimulus checks into .venv-mediapipe"
   [ -x "$TRACKER_VENV/bin/python" ] || "$PYTHON" -m venv "$TRACKER_VENV"
-  if ! "$TRACKER_VENV/bin/python" -m pip install -q --require-hashes -r "$TRACKER_LOCK" \
+  if ! { "$TRACKER_VENV/bin/python" -m pip install -q --require-hashes -r "$PIP_PIN" &&
+         "$TRACKER_VENV/bin/python" -m pip install -q --require-hashes -r "$TRACKER_LOCK"; } \
        >"$TRACKER_VENV/pip.log" 2>&1; then
     tail -20 "$TRACKER_VENV/pip.log" >&2
     log "pip install of the face tracker failed; see .venv-mediapipe/pip.log"

@@ -107,3 +107,12 @@ def test_the_installed_environment_is_the_lock() -> None:
         if canonicalize_name(have) != canonicalize_name(version) and have != version:
             wrong.append(f"{name} {have} != {version}")
     assert not wrong, wrong
+
+
+def test_the_environment_has_the_pinned_pip() -> None:
+    """setup.sh puts the pinned pip into the venv before the lock (Python 3.11's own pip took
+    an unpinned httpx for blosc2's ``httpx[http2]`` and refused the hashed install)."""
+    text = (ROOT / "requirements" / "pip.txt").read_text(encoding="utf-8")
+    pin = re.search(r"^pip==(\S+) \\\n\s+--hash=sha256:[0-9a-f]{64}", text, re.M)
+    assert pin, "requirements/pip.txt: expected a line 'pip==VERSION \\' and a --hash line"
+    assert md.version("pip") == pin.group(1)
