@@ -7,6 +7,7 @@ checks refuse noise the clips cannot carry."""
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import numpy as np
@@ -63,21 +64,37 @@ def test_the_protocol_interleaves_four_series_at_seven_snrs() -> None:
     assert srt.is_noise_task(protocol, task) and len(task.labels) == 6
 
 
-def test_a_noise_token_is_the_inverse_fft_numpy_gives_bit_for_bit() -> None:
-    """Noise tokens stay what earlier renders made: the faster inverse FFT gives numpy's
-    numbers exactly, at a prime length (where the two differ most in speed)."""
+def test_a_noise_token_is_the_documented_synthesis_and_has_the_speech_spectrum() -> None:
+    """A noise token is complex Gaussian bins shaped by the spectrum at the next fast length,
+    cut to the clip (numpy's own FFT gives the same numbers), and its long-term spectrum is
+    the speech's: within 1.5 dB over the bins carrying the voice, at a prime length and at a
+    length shorter than one Welch segment."""
+    from scipy.fft import next_fast_len
+
     from facelab.stimuli.speech.noise import NPERSEG
 
     spectrum = long_term_spectrum([_voice()], sample_rate=RATE)
-    n = 24_989  # prime
-    made = shaped_noise(spectrum, n=n, rng=noise_rng("study", "set", "word", "-6"))
-    rng = noise_rng("study", "set", "word", "-6")
-    bins = np.fft.rfftfreq(n)
-    shape = np.interp(bins, np.linspace(0.0, 0.5, len(spectrum)), spectrum)
-    phases = rng.uniform(0.0, 2.0 * np.pi, len(bins))
-    amplitude = shape * np.abs(rng.normal(size=len(bins)) + 1j * rng.normal(size=len(bins)))
-    x = np.fft.irfft(amplitude * np.exp(1j * phases), n=n)
-    assert n > NPERSEG and np.array_equal(made, x / np.sqrt(np.mean(x**2)))
+    for n in (24_989, 700):  # prime; shorter than a segment
+        made = shaped_noise(spectrum, n=n, rng=noise_rng("study", "set", "word", "-6"))
+        rng = noise_rng("study", "set", "word", "-6")
+        length = next_fast_len(max(n, NPERSEG), real=True)
+        bins = np.fft.rfftfreq(length)
+        shape = np.interp(bins, np.linspace(0.0, 0.5, len(spectrum)), spectrum)
+        z = rng.standard_normal((2, len(bins)))
+        x = np.fft.irfft(shape * (z[0] + 1j * z[1]), n=length)[:n]
+        assert made.shape == (n,) and np.allclose(made, x / np.sqrt(np.mean(x**2)), rtol=1e-9,
+                                                  atol=1e-12)  # fmt: skip
+        assert np.sqrt(np.mean(made**2)) == pytest.approx(1.0, rel=1e-9)
+    long = shaped_noise(spectrum, n=RATE * 20, rng=noise_rng("study", "set", "long", "0"))
+    heard = long_term_spectrum([long], sample_rate=RATE)
+    edges = np.linspace(0, len(spectrum), 17).astype(int)  # 16 bands of 500 Hz
+
+    def bands_db(s: np.ndarray) -> np.ndarray:
+        return 10 * np.log10([np.sum(s[a:b] ** 2) for a, b in itertools.pairwise(edges)])
+
+    voiced = bands_db(spectrum) > bands_db(spectrum).max() - 30  # the voice's bands
+    gap = (bands_db(heard) - bands_db(spectrum))[voiced]  # the RMS sets the level: a constant
+    assert voiced.sum() >= 5 and gap.max() - gap.min() < 1.0, gap
 
 
 def test_a_clips_noise_is_made_once_and_stays_the_same_numbers(

@@ -24,6 +24,7 @@ from facelab.formats import CLIP_COLUMNS
 from facelab.hashing import sha256_file
 from facelab.protocol import Protocol, Stimulus
 from facelab.stimuli.methods import get
+from facelab.stimuli.speech.noise import NOISE_SYNTHESIS
 
 __all__ = [
     "CLIP_COLUMNS",
@@ -127,6 +128,7 @@ def clip_spec_hash(protocol: Protocol, job: ClipJob, *, base_dir: Path) -> str:
         if cond.noise.source != "speech_shaped":
             files["noise"] = _file_sha256(base_dir / cond.noise.source)
         else:
+            spec["noise_synthesis"] = NOISE_SYNTHESIS
             spec["noise_spectrum_of"] = [
                 [st.text, _file_sha256(base_dir / st.audio) if st.audio else None,
                  st.tts.model_dump()]

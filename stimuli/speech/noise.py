@@ -7,7 +7,7 @@ Pure numpy/scipy; the noise file is read by the caller.
 * :func:`long_term_spectrum` - the long-term average magnitude spectrum of a set of signals
   (Welch, Hann windows of 1024 samples, half overlapping), the "speech-shaped" of
   speech-shaped noise;
-* :func:`shaped_noise` - Gaussian noise with that spectrum (random-phase synthesis);
+* :func:`shaped_noise` - Gaussian noise with that spectrum (complex Gaussian bins);
 * :func:`mix_at_snr` - the speech scaled to a fixed active level and the noise's RMS
   (between its fades) set ``snr_db`` below it, faded in and out at the clip's ends; what
   was mixed is returned as a :class:`MixRecord` (written beside each clip).
@@ -20,9 +20,9 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import fft, signal
 
 __all__ = [
+    "NOISE_SYNTHESIS",
     "MixRecord",
     "active_level_db",
     "long_term_spectrum",
@@ -62,6 +62,8 @@ def active_level_db(x: np.ndarray, *, sample_rate: int) -> float:
 def long_term_spectrum(signals: Sequence[np.ndarray], *, sample_rate: int) -> np.ndarray:
     """(NPERSEG // 2 + 1,) the long-term average magnitude spectrum of ``signals`` (their
     Welch power spectra averaged, weighted by length), square-rooted."""
+    from scipy import signal  # on first use: scipy.signal takes ~1.5 s to import
+
     total, weight = None, 0
     for x in signals:
         x = np.asarray(x, dtype=np.float64)
@@ -82,17 +84,30 @@ def noise_rng(*parts: str) -> np.random.Generator:
     return np.random.default_rng(int.from_bytes(digest[:8], "little"))
 
 
+#: how :func:`shaped_noise` makes its numbers (part of a noise clip's spec hash, so clips made
+#: the earlier way are rendered again). 1: random phases and Rayleigh magnitudes at the clip's
+#: own length; 2: complex Gaussian bins at the next length with small prime factors, cut to
+#: the clip (the same distribution; a prime length's inverse FFT cost ~6 times as much)
+NOISE_SYNTHESIS = 2
+
+
 def shaped_noise(spectrum: np.ndarray, *, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n,) Gaussian noise whose magnitude spectrum follows ``spectrum`` (Welch bins of
-    :data:`NPERSEG`), RMS 1."""
-    length = max(n, NPERSEG)
+    :data:`NPERSEG`), RMS 1.
+
+    Each frequency bin of a longer token (the next length of at least ``max(n, NPERSEG)``
+    whose only prime factors are small) is ``shape x (a + ib)``, a and b standard normal
+    from ``rng`` - a uniform phase and a Rayleigh magnitude, as random-phase synthesis with
+    Rayleigh amplitudes draws them - and the inverse FFT's first ``n`` samples are the noise:
+    a stretch of a stationary Gaussian process with that spectrum.
+    """
+    from scipy import fft  # on first use (clip specs import this module for its version)
+
+    length = int(fft.next_fast_len(max(n, NPERSEG), real=True))
     bins = np.fft.rfftfreq(length)  # cycles per sample, 0 .. 0.5
     shape = np.interp(bins, np.linspace(0.0, 0.5, len(spectrum)), spectrum)
-    phases = rng.uniform(0.0, 2.0 * np.pi, len(bins))
-    amplitude = shape * np.abs(rng.normal(size=len(bins)) + 1j * rng.normal(size=len(bins)))
-    # scipy's irfft: the same numbers as numpy's, bit for bit, in ~60 % of the time at the
-    # prime lengths clips often have (144,013 samples: 16 against 27 ms)
-    x = fft.irfft(amplitude * np.exp(1j * phases), n=length)[:n]
+    re_im = rng.standard_normal((2, len(bins)))
+    x = fft.irfft(shape * (re_im[0] + 1j * re_im[1]), n=length)[:n]
     return x / max(float(np.sqrt(np.mean(x**2))), _FLOOR)
 
 
