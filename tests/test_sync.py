@@ -163,21 +163,30 @@ def test_simulated_windows_are_recovered_through_the_session_pipeline() -> None:
 
 def test_temporal_order_functions_are_recovered_from_the_shipped_protocol(tmp_path) -> None:
     """``protocols/kato2021_toj.yaml``: the synchrony clips with "which came first?"; the
-    participants' temporal-order functions hold the stated PSS and width per method, and the
-    analysis writes them to sync_window.csv as temporal_order windows with a lapse rate."""
+    participants' temporal-order functions hold the stated PSS and width per method (the 95 %
+    t intervals of the determined participants' means cover them about as often as they
+    should), and the analysis writes them to sync_window.csv as temporal_order windows with a
+    lapse rate."""
     from facelab.experiment.cli import main
 
     protocol = load_protocol(protocol_path("kato2021_toj"))
     assert protocol.tasks[0].timing.judgment == "temporal_order"
-    rows = _study(protocol, participants=12, seed=19)
-    windows = timing.window_table(rows, protocol, protocol.tasks[0])
-    assert list(windows["condition"].unique()) == SERIES and (windows["n"] == 54).all()
-    assert (windows["judgment"] == "temporal_order").all() and windows["floor"].isna().all()
-    summary, _ = timing.window_tests(windows)
-    for r in summary.itertuples():
-        truth = protocol.simulation.timing[r.condition]
-        assert r.pss_ms_ci_low <= truth.pss_ms <= r.pss_ms_ci_high, r
-        assert r.width_ms_ci_low <= truth.width_ms <= r.width_ms_ci_high, r
+    missed, held = [], 0
+    for seed in (19, 20, 21, 22):  # four studies of 12: 24 intervals of 95 %
+        rows = _study(protocol, participants=12, seed=seed)
+        windows = timing.window_table(rows, protocol, protocol.tasks[0])
+        assert list(windows["condition"].unique()) == SERIES and (windows["n"] == 54).all()
+        assert (windows["judgment"] == "temporal_order").all() and windows["floor"].isna().all()
+        summary, _ = timing.window_tests(windows)
+        for r in summary.itertuples():
+            truth = protocol.simulation.timing[r.condition]
+            for name, value in (("pss_ms", truth.pss_ms), ("width_ms", truth.width_ms)):
+                if getattr(r, f"{name}_ci_low") <= value <= getattr(r, f"{name}_ci_high"):
+                    held += 1
+                else:
+                    missed.append((seed, r.condition, name, getattr(r, f"{name}_ci_low"),
+                                   getattr(r, f"{name}_ci_high"), value))  # fmt: skip
+    assert held >= 21, missed  # 22.8 expected; 20 or fewer in 3 % of such runs
     results, report = tmp_path / "results", tmp_path / "report"
     assert main(["simulate", str(protocol_path("kato2021_toj")), "--participants", "4",
                  "--sim-seed", "2", "--results", str(results)]) == 0  # fmt: skip
@@ -400,3 +409,51 @@ def test_a_profile_interval_ends_where_the_profile_itself_crosses_the_cutoff() -
 
     assert math.isfinite(fit.pss_ci_high) and fit.pss_ci_high > fit.pss_ms
     assert profile_drop(fit.pss_ci_high) == pytest.approx(chi2_cutoff(0.95), abs=0.02)
+
+
+def test_every_interval_end_is_where_the_profile_searched_from_many_starts_crosses() -> None:
+    """A simultaneity window with a floor whose profile has local optima (participant 18 of
+    a simulated study): each finite end of its PSS and width intervals is where the profile,
+    searched from many starts, has dropped by the cutoff, and an infinite end's bound is
+    under it. Brent's method, re-fitting from the best fit, ended the PSS interval at 98 ms
+    (the profile's drop there is 2.0) and the width's at 56 ms (the profile stays at 2.1
+    down to the smallest width searched)."""
+    import math
+
+    from facelab.analysis.profile_likelihood import best_fit, chi2_cutoff
+
+    protocol = load_protocol(protocol_path("kato2021_sync"))
+    rows = _study(protocol, participants=18, seed=33)
+    counts = timing.timing_counts(rows, protocol, protocol.tasks[0])
+    part = counts[(counts["participant"] == "P018") & (counts["condition"] == "standard")]
+    fit = timing.fit_window(part, judgment="simultaneity")
+    c = part.groupby("offset_ms")[["n", "k"]].sum().reset_index()
+    x, n, k = (c[q].to_numpy(dtype=float) for q in ("offset_ms", "n", "k"))
+    bounds = timing._bounds("simultaneity", x, floor=True)
+
+    def loglik(t: np.ndarray) -> float:
+        return timing._loglik(t, "simultaneity", x, n, k)
+
+    def gradient(t: np.ndarray) -> np.ndarray:
+        return timing._gradient(t, "simultaneity", x, n, k)
+
+    starts = [np.array([p, s, peak, f]) for p in np.linspace(-300, 300, 7)
+              for s in np.linspace(*bounds[1], 6) for peak in (0.5, 0.8, 1.0)
+              for f in (0.0, 0.2, 0.5)]  # fmt: skip
+    top = best_fit(loglik, bounds=bounds, starts=starts, gradient=gradient)[1]
+
+    def drop(index: int, value: float) -> float:
+        return 2 * (top - best_fit(loglik, bounds=bounds, starts=starts, fixed={index: value},
+                                   gradient=gradient)[1])  # fmt: skip
+
+    per = timing._per_sigma("simultaneity")
+    cutoff = chi2_cutoff(0.95)
+    ends = {(0, "low"): fit.pss_ci_low, (0, "high"): fit.pss_ci_high,
+            (1, "low"): math.log(fit.width_ci_low / per) if fit.width_ci_low > 0 else -math.inf,
+            (1, "high"): math.log(fit.width_ci_high / per)}  # fmt: skip
+    assert fit.width_ci_low == 0.0  # the data do not bound the width from below
+    for (index, side), value in ends.items():
+        if math.isfinite(value):
+            assert drop(index, value) == pytest.approx(cutoff, abs=0.02), (index, side, value)
+        else:
+            assert drop(index, bounds[index][0 if side == "low" else 1]) < cutoff, (index, side)
