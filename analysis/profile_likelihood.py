@@ -8,10 +8,10 @@ passes ``both(theta) -> (loglik, gradient)`` as well, and the optimiser calls on
 :func:`best_fit` maximises it from several starts (L-BFGS-B); with ``fixed`` parameters held
 it is the profile. :func:`profile_interval` finds where twice the drop of the profile
 log-likelihood from the maximum reaches the chi-square(1) quantile, re-fitting the other
-parameters at each value from the profile's nearest point fitted so far (the best fit at
-first: the profile is continuous there, and a near point needs fewer steps), by Newton steps
-that take the profile's slope from the model's gradient; an end that would pass the
-parameter's bound is returned as ``-inf`` / ``inf``.
+parameters at each value from the profile's nearest point fitted so far on the best fit's
+side (the profile followed outwards: it is continuous there, and a near point needs fewer
+steps), by Newton steps that take the profile's slope from the model's gradient; an end
+that would pass the parameter's bound is returned as ``-inf`` / ``inf``.
 """
 
 from __future__ import annotations
@@ -118,15 +118,29 @@ def profile_interval(
     parameters are at their best, so they add nothing to the profile's slope), so each step
     costs one fit; a step that would leave the bracket the fits so far have narrowed is a
     bisection instead. Without it, Brent's method on the drop (``xtol`` 1e-3)."""
-    fitted = [np.asarray(theta, dtype=float)]  # the profile's points so far
-    drops: dict[float, tuple[float, np.ndarray]] = {}  # each value fitted once
+    best = np.asarray(theta, dtype=float)
+    fitted = [best]  # the profile's points so far
+    drops: dict[float, tuple[float, np.ndarray]] = {float(best[index]): (-cutoff, best)}
 
     def profile(value: float) -> tuple[float, np.ndarray]:
-        """Twice the drop at ``value`` minus the cutoff, and the profile's best point."""
+        """Twice the drop at ``value`` minus the cutoff, and the profile's best point: fitted
+        from the nearest point fitted so far on the best fit's side of ``value`` (the
+        profile followed outwards), and when that drop reaches the cutoff also from the
+        nearest point beyond it, if any (a fit from either side can stop in a worse
+        optimum where the answers change steeply between offsets; the better one counts)."""
         if value not in drops:
-            near = min(fitted, key=lambda t: abs(t[index] - value))
-            at_v, ll_v = best_fit(loglik, bounds=bounds, starts=[near], fixed={index: value},
+            side = np.sign(value - best[index])
+            inner = [t for t in fitted if (value - t[index]) * side >= 0]
+            outer = [t for t in fitted if (value - t[index]) * side < 0]
+            starts = [min(inner, key=lambda t: abs(t[index] - value))]
+            at_v, ll_v = best_fit(loglik, bounds=bounds, starts=starts, fixed={index: value},
                                   gradient=gradient, both=both)  # fmt: skip
+            if outer and 2.0 * (ll - ll_v) >= cutoff:
+                other, ll_o = best_fit(loglik, bounds=bounds, fixed={index: value},
+                                       starts=[min(outer, key=lambda t: abs(t[index] - value))],
+                                       gradient=gradient, both=both)  # fmt: skip
+                if ll_o > ll_v:
+                    at_v, ll_v = other, ll_o
             fitted.append(at_v)
             drops[value] = (2.0 * (ll - ll_v) - cutoff, at_v)
         return drops[value]
@@ -182,8 +196,7 @@ def _profile_curvature(
     neg_hessian = -0.5 * (np.array(rows) + np.array(rows).T)
     if not np.all(np.isfinite(neg_hessian)) or np.any(np.linalg.eigvalsh(neg_hessian) <= 0):
         return math.nan
-    var = float(np.linalg.inv(neg_hessian)[free.index(index), free.index(index)])
-    return 1.0 / var if var > 0 else math.nan
+    return 1.0 / float(np.linalg.inv(neg_hessian)[free.index(index), free.index(index)])
 
 
 def _crossing(
@@ -218,7 +231,7 @@ def _crossing(
         if not lo < nxt < hi:  # outside the bracket, or no slope to go by
             nxt = span if not hi_known else 0.5 * (lo + hi)
         u = nxt
-    return at + direction * 0.5 * (lo + hi)
+    return at + direction * (0.5 * (lo + hi) if hi_known else math.inf)
 
 
 def on_bound(value: float, bound: tuple[float, float], *, tol: float = 1e-6) -> bool:

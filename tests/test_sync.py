@@ -415,9 +415,9 @@ def test_every_interval_end_is_where_the_profile_searched_from_many_starts_cross
     """A simultaneity window with a floor whose profile has local optima (participant 18 of
     a simulated study): each finite end of its PSS and width intervals is where the profile,
     searched from many starts, has dropped by the cutoff, and an infinite end's bound is
-    under it. Brent's method, re-fitting from the best fit, ended the PSS interval at 98 ms
-    (the profile's drop there is 2.0) and the width's at 56 ms (the profile stays at 2.1
-    down to the smallest width searched)."""
+    under it. Brent's method, re-fitting from the nearest point fitted, ended the PSS
+    interval at 98 ms (the profile's drop there is 2.0) and the width's at 56 ms (the
+    profile stays at 2.1 down to the smallest width searched)."""
     import math
 
     from facelab.analysis.profile_likelihood import best_fit, chi2_cutoff
@@ -457,3 +457,33 @@ def test_every_interval_end_is_where_the_profile_searched_from_many_starts_cross
             assert drop(index, value) == pytest.approx(cutoff, abs=0.02), (index, side, value)
         else:
             assert drop(index, bounds[index][0 if side == "low" else 1]) < cutoff, (index, side)
+
+
+def test_answers_that_change_steeply_between_offsets_do_not_end_an_interval_early() -> None:
+    """Temporal order, answers flipping between two neighbouring offsets (a case an
+    independent review found): profile fits started from points beyond the end stuck at the
+    smallest width and once ended the PSS interval at -3.5 ms, where the profile searched
+    from many starts has dropped only 1.37; each fit now follows the profile outwards from
+    the best fit's side, and the end is where the drop reaches the cutoff (-2.0 ms)."""
+    from facelab.analysis.profile_likelihood import best_fit, chi2_cutoff
+
+    x = np.array([-450.0, -300, -225, -100, 0, 25, 75, 125, 250])
+    n = np.array([3.0, 3, 11, 2, 9, 2, 14, 14, 9])
+    k = np.array([3.0, 3, 11, 2, 0, 1, 1, 2, 2])
+    counts = pd.DataFrame({"offset_ms": x, "n": n.astype(int), "k": k.astype(int)})
+    fit = timing.fit_window(counts, judgment="temporal_order")
+    bounds = timing._bounds("temporal_order", x, floor=False)
+
+    def loglik(t: np.ndarray) -> float:
+        return timing._loglik(t, "temporal_order", x, n, k)
+
+    def gradient(t: np.ndarray) -> np.ndarray:
+        return timing._gradient(t, "temporal_order", x, n, k)
+
+    starts = [np.array([p, s, lapse]) for p in np.linspace(-500, 500, 11)
+              for s in np.linspace(*bounds[1], 8) for lapse in (0.0, 0.1, 0.2)]  # fmt: skip
+    top = best_fit(loglik, bounds=bounds, starts=starts, gradient=gradient)[1]
+    for end in (fit.pss_ci_low, fit.pss_ci_high):
+        drop = 2 * (top - best_fit(loglik, bounds=bounds, starts=starts, fixed={0: end},
+                                   gradient=gradient)[1])  # fmt: skip
+        assert drop == pytest.approx(chi2_cutoff(0.95), abs=0.02), (end, drop)

@@ -38,7 +38,7 @@ _noises: BoundedMemo[np.ndarray] = BoundedMemo(max_bytes=NOISE_CACHE_BYTES,
 def _speech_shaped_noise(spectrum: np.ndarray, *, n: int, parts: tuple[str, ...]) -> np.ndarray:
     """:func:`shaped_noise` of ``spectrum`` from the generator :func:`noise_rng` seeds with
     ``parts`` - the same numbers, computed once while they stay in a bounded cache (a long
-    clip's inverse FFT at its often prime length costs tens of milliseconds). Read-only."""
+    clip's token costs milliseconds, and the checks make each clip's sound again). Read-only."""
     key = (hashlib.sha1(spectrum.tobytes()).hexdigest(), n, parts)
     hit = _noises.get(key)
     if hit is not None:
