@@ -145,10 +145,14 @@ def profile_interval(
             drops[value] = (2.0 * (ll - ll_v) - cutoff, at_v)
         return drops[value]
 
+    def grad(t: np.ndarray) -> np.ndarray:
+        """The log-likelihood's gradient at ``t``."""
+        return np.asarray(both(t)[1] if both is not None else gradient(t),  # type: ignore[misc]
+                          dtype=float)  # fmt: skip
+
     def slope(at_v: np.ndarray) -> float:
         """d loglik / d theta[index] at a profile point."""
-        grad = both(at_v)[1] if both is not None else gradient(at_v)  # type: ignore[misc]
-        return float(np.asarray(grad, dtype=float)[index])
+        return float(grad(at_v)[index])
 
     lo_b, hi_b = bounds[index]
     at = float(theta[index])
@@ -161,9 +165,7 @@ def profile_interval(
                 ends.append(optimize.brentq(lambda v: profile(v)[0], min(at, bound),
                                             max(at, bound), xtol=1e-3))  # fmt: skip
         return ends[0], ends[1]
-    curvature = _profile_curvature(lambda t: np.asarray(
-        both(t)[1] if both is not None else gradient(t), dtype=float),  # type: ignore[misc]
-        theta=np.asarray(theta, dtype=float), bounds=bounds, index=index)  # fmt: skip
+    curvature = _profile_curvature(grad, theta=best, bounds=bounds, index=index)
     lo, hi = (-math.inf if abs(lo_b - at) < 1e-9 else
               _crossing(profile, slope, at=at, bound=lo_b, cutoff=cutoff, curvature=curvature),
               math.inf if abs(hi_b - at) < 1e-9 else

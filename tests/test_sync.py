@@ -411,6 +411,30 @@ def test_a_profile_interval_ends_where_the_profile_itself_crosses_the_cutoff() -
     assert profile_drop(fit.pss_ci_high) == pytest.approx(chi2_cutoff(0.95), abs=0.02)
 
 
+def _many_start_drop(judgment: str, x: np.ndarray, n: np.ndarray, k: np.ndarray, *,
+                     floor: bool, starts: list[np.ndarray]):  # fmt: skip
+    """drop(index, value): twice the profile's drop at ``value`` of parameter ``index`` from
+    the best fit, each searched from every one of ``starts`` (a reference for the profile
+    intervals' ends, which follow the profile from one start a point)."""
+    from facelab.analysis.profile_likelihood import best_fit
+
+    bounds = timing._bounds(judgment, x, floor=floor)
+
+    def loglik(t: np.ndarray) -> float:
+        return timing._loglik(t, judgment, x, n, k)
+
+    def gradient(t: np.ndarray) -> np.ndarray:
+        return timing._gradient(t, judgment, x, n, k)
+
+    top = best_fit(loglik, bounds=bounds, starts=starts, gradient=gradient)[1]
+
+    def drop(index: int, value: float) -> float:
+        return 2 * (top - best_fit(loglik, bounds=bounds, starts=starts, fixed={index: value},
+                                   gradient=gradient)[1])  # fmt: skip
+
+    return drop
+
+
 def test_every_interval_end_is_where_the_profile_searched_from_many_starts_crosses() -> None:
     """A simultaneity window with a floor whose profile has local optima (participant 18 of
     a simulated study): each finite end of its PSS and width intervals is where the profile,
@@ -420,7 +444,7 @@ def test_every_interval_end_is_where_the_profile_searched_from_many_starts_cross
     profile stays at 2.1 down to the smallest width searched)."""
     import math
 
-    from facelab.analysis.profile_likelihood import best_fit, chi2_cutoff
+    from facelab.analysis.profile_likelihood import chi2_cutoff
 
     protocol = load_protocol(protocol_path("kato2021_sync"))
     rows = _study(protocol, participants=18, seed=33)
@@ -430,22 +454,10 @@ def test_every_interval_end_is_where_the_profile_searched_from_many_starts_cross
     c = part.groupby("offset_ms")[["n", "k"]].sum().reset_index()
     x, n, k = (c[q].to_numpy(dtype=float) for q in ("offset_ms", "n", "k"))
     bounds = timing._bounds("simultaneity", x, floor=True)
-
-    def loglik(t: np.ndarray) -> float:
-        return timing._loglik(t, "simultaneity", x, n, k)
-
-    def gradient(t: np.ndarray) -> np.ndarray:
-        return timing._gradient(t, "simultaneity", x, n, k)
-
     starts = [np.array([p, s, peak, f]) for p in np.linspace(-300, 300, 7)
               for s in np.linspace(*bounds[1], 6) for peak in (0.5, 0.8, 1.0)
               for f in (0.0, 0.2, 0.5)]  # fmt: skip
-    top = best_fit(loglik, bounds=bounds, starts=starts, gradient=gradient)[1]
-
-    def drop(index: int, value: float) -> float:
-        return 2 * (top - best_fit(loglik, bounds=bounds, starts=starts, fixed={index: value},
-                                   gradient=gradient)[1])  # fmt: skip
-
+    drop = _many_start_drop("simultaneity", x, n, k, floor=True, starts=starts)
     per = timing._per_sigma("simultaneity")
     cutoff = chi2_cutoff(0.95)
     ends = {(0, "low"): fit.pss_ci_low, (0, "high"): fit.pss_ci_high,
@@ -465,7 +477,7 @@ def test_answers_that_change_steeply_between_offsets_do_not_end_an_interval_earl
     smallest width and once ended the PSS interval at -3.5 ms, where the profile searched
     from many starts has dropped only 1.37; each fit now follows the profile outwards from
     the best fit's side, and the end is where the drop reaches the cutoff (-2.0 ms)."""
-    from facelab.analysis.profile_likelihood import best_fit, chi2_cutoff
+    from facelab.analysis.profile_likelihood import chi2_cutoff
 
     x = np.array([-450.0, -300, -225, -100, 0, 25, 75, 125, 250])
     n = np.array([3.0, 3, 11, 2, 9, 2, 14, 14, 9])
@@ -473,17 +485,8 @@ def test_answers_that_change_steeply_between_offsets_do_not_end_an_interval_earl
     counts = pd.DataFrame({"offset_ms": x, "n": n.astype(int), "k": k.astype(int)})
     fit = timing.fit_window(counts, judgment="temporal_order")
     bounds = timing._bounds("temporal_order", x, floor=False)
-
-    def loglik(t: np.ndarray) -> float:
-        return timing._loglik(t, "temporal_order", x, n, k)
-
-    def gradient(t: np.ndarray) -> np.ndarray:
-        return timing._gradient(t, "temporal_order", x, n, k)
-
     starts = [np.array([p, s, lapse]) for p in np.linspace(-500, 500, 11)
               for s in np.linspace(*bounds[1], 8) for lapse in (0.0, 0.1, 0.2)]  # fmt: skip
-    top = best_fit(loglik, bounds=bounds, starts=starts, gradient=gradient)[1]
+    drop = _many_start_drop("temporal_order", x, n, k, floor=False, starts=starts)
     for end in (fit.pss_ci_low, fit.pss_ci_high):
-        drop = 2 * (top - best_fit(loglik, bounds=bounds, starts=starts, fixed={0: end},
-                                   gradient=gradient)[1])  # fmt: skip
-        assert drop == pytest.approx(chi2_cutoff(0.95), abs=0.02), (end, drop)
+        assert drop(0, end) == pytest.approx(chi2_cutoff(0.95), abs=0.02), end
