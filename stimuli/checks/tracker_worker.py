@@ -105,7 +105,24 @@ def _measure(clip: dict) -> dict:
     return out
 
 
+def _without_plotting() -> None:
+    """Let ``import mediapipe`` skip Matplotlib. MediaPipe's package imports its drawing
+    helpers, which import ``matplotlib.pyplot`` - about half of the 0.8 s that importing
+    MediaPipe takes, paid by every tracker process; the tracker never draws. Empty modules
+    stand in for Matplotlib in this process only (a drawing helper called by mistake fails
+    on a missing attribute)."""
+    import types
+
+    if "matplotlib" in sys.modules:
+        return
+    package = types.ModuleType("matplotlib")
+    package.__path__ = []  # a package: ``import matplotlib.pyplot`` looks in it
+    package.pyplot = types.ModuleType("matplotlib.pyplot")
+    sys.modules["matplotlib"], sys.modules["matplotlib.pyplot"] = package, package.pyplot
+
+
 def main() -> int:
+    _without_plotting()
     import mediapipe as mp
 
     for line in sys.stdin:
