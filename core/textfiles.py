@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import csv
+from collections.abc import Sequence
 from pathlib import Path
 
 from facelab.errors import FacelabError, StageError
 
-__all__ = ["read_text"]
+__all__ = ["Rows", "read_rows", "read_text"]
 
 
 def read_text(
@@ -28,9 +30,112 @@ def read_text(
         return path.read_text(encoding=encoding)
     except UnicodeDecodeError as exc:
         byte = exc.object[exc.start : exc.start + 1].hex()
+        line = exc.object[: exc.start].count(b"\n") + 1
         raise error(
-            f"{name}: not UTF-8 text (byte 0x{byte} at position {exc.start}); "
-            "save it as UTF-8 (CSV UTF-8 in spreadsheet programs)"
+            f"{name}:{line}: not UTF-8 text (byte 0x{byte}); save it as UTF-8 (CSV UTF-8 in "
+            "spreadsheet programs; not Shift-JIS)"
         ) from None
+    except IsADirectoryError:
+        raise error(f"{name}: is a folder, expected a file") from None
+    except FileNotFoundError:
+        raise error(f"{name}: file not found") from None
     except OSError as exc:
-        raise error(f"{name}: cannot read ({exc.strerror or exc})") from None
+        raise error(f"{name}: cannot read ({exc.strerror or 'the system refused'})") from None
+
+
+class Rows(list):
+    """A table's rows (dicts, column -> text) as :func:`read_rows` read them, with the
+    ``header`` (column names in file order) and each row's line in the file (``lines``)."""
+
+    def __init__(self, header: list[str], rows: list[dict[str, str]], lines: list[int]):
+        super().__init__(rows)
+        self.header, self.lines = header, lines
+
+    def located(self) -> list[tuple[int, dict[str, str]]]:
+        """(line, row) pairs, for messages naming the line."""
+        return list(zip(self.lines, self, strict=True))
+
+
+#: the separators a table may use when :func:`read_rows` is asked to tell them apart
+SEPARATORS = {",": "comma", "\t": "tab", ";": "semicolon"}
+
+
+def read_rows(
+    path: Path | str,
+    *,
+    what: str = "",
+    required: Sequence[str] = (),
+    expected: str = "",
+    delimiter: str | None = ",",
+    error: type[FacelabError] = StageError,
+) -> Rows:
+    """The rows of a CSV table at ``path`` as dicts (column -> text) in a :class:`Rows`
+    (with the header and each row's line); blank lines skipped, a byte-order mark dropped.
+
+    Refused with ``error`` naming the file and line (instead of the silent shifts of
+    ``csv.DictReader`` and pandas): an empty file, a header naming a column twice or an
+    empty one, a row with more or fewer fields than the header (a comma inside an unquoted
+    value), a quoted value never closed, and missing ``required`` columns. ``expected``
+    describes the columns in messages (default: ``required``). ``delimiter=None`` accepts a
+    comma-, tab- or semicolon-separated table, told apart by its header line.
+    """
+    path = Path(path)
+    name = f"{what} {path}" if what else str(path)
+    want = expected or ", ".join(required)
+    text = read_text(path, what=what, error=error)
+    lines = text.splitlines()
+    first = next((ln for ln in lines if ln.strip()), None)
+    if first is None:
+        raise error(f"{name}: empty; expected a header line{f' with {want}' if want else ''}, "
+                    "then rows")
+    if delimiter is None:
+        delimiter = max(SEPARATORS, key=first.count)
+    reader = csv.reader(lines, delimiter=delimiter, strict=True)
+    header: list[str] | None = None
+    trailing = False
+    rows: list[dict[str, str]] = []
+    lines: list[int] = []
+    try:
+        for fields in reader:
+            if not any(f.strip() for f in fields):
+                continue
+            if header is None:
+                header = [f.strip() for f in fields]
+                # a trailing separator on every line (some exporters write one) names no column
+                trailing = len(header) > 1 and header[-1] == ""
+                if trailing:
+                    header.pop()
+                _check_header(header, name=f"{name}:{reader.line_num}", error=error)
+                missing = [c for c in required if c not in header]
+                if missing:
+                    raise error(
+                        f"{name}:{reader.line_num}: missing column(s) {', '.join(missing)}; "
+                        f"expected {want} in the header line"
+                    )
+                continue
+            if trailing and len(fields) == len(header) + 1 and not fields[-1].strip():
+                fields = fields[:-1]
+            if len(fields) != len(header):
+                raise error(
+                    f"{name}:{reader.line_num}: {len(fields)} fields, the header has "
+                    f"{len(header)} (put a value that contains a "
+                    f"{SEPARATORS.get(delimiter, repr(delimiter))} between double quotes)"
+                )
+            rows.append(dict(zip(header, fields, strict=True)))
+            lines.append(reader.line_num)
+    except csv.Error:
+        raise error(
+            f"{name}:{reader.line_num}: a value's double quotes are not closed, or text "
+            "follows a closing quote"
+        ) from None
+    assert header is not None  # a non-blank line was there
+    return Rows(header, rows, lines)
+
+
+def _check_header(header: list[str], *, name: str, error: type[FacelabError]) -> None:
+    """Refuse a header naming a column twice or leaving one unnamed."""
+    if any(not h for h in header):
+        raise error(f"{name}: a column has no name in the header line")
+    twice = sorted({h for h in header if header.count(h) > 1})
+    if twice:
+        raise error(f"{name}: column(s) named twice in the header: {', '.join(twice)}")

@@ -89,13 +89,15 @@ def test_custom_z_files(tmp_path: Path) -> None:
     (tmp_path / "bad.csv").write_text("blendshape,a,i,u,e,o\njawOpen,1,2,3,4,5\n")
     with pytest.raises(StageError, match="missing ARKit rows"):
         load_z("bad.csv", base_dir=tmp_path)
-    with pytest.raises(StageError, match=r"Z matrix .*none\.csv: cannot read"):
+    with pytest.raises(StageError, match=r"Z matrix .*none\.csv: file not found"):
         load_z("none.csv", base_dir=tmp_path)
     good = (tmp_path / "z.csv").read_text().splitlines()
     row = next(i for i, line in enumerate(good) if line.startswith("jawOpen,"))
-    cases = {  # each was accepted (NaN, a repeated row) or a TypeError traceback (short row)
+    # each was accepted (NaN, a repeated row, a long row) or a TypeError traceback (short row)
+    cases = {
         "nan": ("jawOpen,nan,0.5,0.5,0.5,0.5", "row jawOpen, column a: nan is outside"),
-        "short": ("jawOpen,0.5", r"line \d+ \(jawOpen\), column i: missing is not a number"),
+        "short": ("jawOpen,0.5", r"short\.csv:\d+: 2 fields, the header has 6"),
+        "long": ("jawOpen,0.5,0.5,0.5,0.5,0.5,0.5", r"long\.csv:\d+: 7 fields, the header has 6"),
         "twice": (good[row] + "\n" + good[row], "rows given twice: jawOpen"),
     }
     for name, (line, message) in cases.items():

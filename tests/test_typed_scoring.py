@@ -69,3 +69,13 @@ def test_score_typed_command_writes_the_table(tmp_path, capsys) -> None:
     bad.write_text("said,typed\nx,y\n", encoding="utf-8")
     assert main(["score-typed", str(bad)]) == 2
     assert "missing column(s) target, response" in capsys.readouterr().err
+    # a comma inside an unquoted answer was read as a shifted row (the target taken from the
+    # answer, the next row's answer empty) and scored, exit 0; quoted, it is one answer
+    bad.write_text("target,response\n今日は晴れです,今日は,晴れです\nあさ,あさ\n", encoding="utf-8")
+    assert main(["score-typed", str(bad), "--out", str(tmp_path / "no.csv")]) == 2
+    assert "bad.csv:2: 3 fields, the header has 2" in capsys.readouterr().err
+    assert not (tmp_path / "no.csv").exists()
+    bad.write_text('target,response\n今日は晴れです,"今日は,晴れです"\n', encoding="utf-8")
+    assert main(["score-typed", str(bad), "--out", str(out), "--force"]) == 0
+    row = pd.read_csv(out).iloc[0]
+    assert row["response"] == "今日は,晴れです" and row["mora_score"] == 1.0

@@ -601,18 +601,14 @@ def _cmd_score_typed(args: argparse.Namespace) -> int:
 
     from facelab.analysis.typed_scoring import score_table
     from facelab.japanese_reading import morae, pronunciation
+    from facelab.textfiles import read_rows
 
     path = Path(args.answers)
-    if not path.is_file():
-        raise FacelabError(f"{path}: file not found (a CSV with columns target, response)")
-    try:
-        pairs = pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8")
-    except (UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError):
-        raise FacelabError(f"{path}: not a UTF-8 CSV file with a header line") from None
-    missing = [c for c in ("target", "response") if c not in pairs.columns]
-    if missing:
-        raise FacelabError(f"{path}: missing column(s) {', '.join(missing)}; expected target, "
-                           "response and optionally keywords (space-separated)")  # fmt: skip
+    rows = read_rows(
+        path, required=("target", "response"), error=FacelabError,
+        expected="target, response and optionally keywords (space-separated)",
+    )  # fmt: skip
+    pairs = pd.DataFrame(list(rows), columns=rows.header, dtype=str)
     table = score_table(pairs, reader=pronunciation, split=morae, tolerant=not args.strict)
     if args.out:
         out = output_file(args.out, option="--out", force=args.force)

@@ -30,7 +30,7 @@ import numpy as np
 from facelab.errors import StageError
 from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
 from facelab.stimuli.speech.track import VOWELS
-from facelab.textfiles import read_text
+from facelab.textfiles import read_rows
 
 __all__ = [
     "Capture",
@@ -76,13 +76,12 @@ def _parse_timecode(text: str, fps: float, where: str) -> float:
 def read_capture(path: Path | str, *, fps: float = 60.0) -> Capture:
     """Read a Live Link Face or generic capture CSV (see the module docstring)."""
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            header = next(reader)
-            rows = [r for r in reader if r]
-    except (OSError, StopIteration, UnicodeDecodeError) as exc:
-        raise StageError(f"{path}: cannot read a capture CSV ({exc or 'empty file'})") from None
+    table = read_rows(path, what="capture",
+                      expected="a time column and the 52 ARKit coefficients")  # fmt: skip
+    header = table.header
+    if not table:
+        raise StageError(f"capture {path}: a header and no rows of coefficients")
+    rows = [[r[h] for h in header] for r in table]
     columns: dict[str, int] = {}
     for i, name in enumerate(header):
         canon = canonical_arkit_name(name)
@@ -97,7 +96,8 @@ def read_capture(path: Path | str, *, fps: float = 60.0) -> Capture:
     lower = [h.strip().lower() for h in header]
     if "timecode" in lower:
         tcol = lower.index("timecode")
-        times = [_parse_timecode(r[tcol], fps, f"{path}:{n}") for n, r in enumerate(rows, start=2)]
+        times = [_parse_timecode(r[tcol], fps, f"{path}:{n}")
+                 for n, r in zip(table.lines, rows, strict=True)]  # fmt: skip
     else:
         tcol = next((lower.index(c) for c in TIME_COLUMNS if c in lower), None)
         if tcol is None:
@@ -105,27 +105,36 @@ def read_capture(path: Path | str, *, fps: float = 60.0) -> Capture:
                 f"{path}: no time column; expected Timecode (Live Link Face) or one of "
                 f"{', '.join(TIME_COLUMNS)}"
             )
-        try:
-            times = [float(r[tcol]) for r in rows]
-        except (ValueError, IndexError) as exc:
-            raise StageError(f"{path}: bad time value ({exc})") from None
-    try:
-        coeffs = np.array([[float(r[columns[n]]) for n in ARKIT_NAMES] for r in rows])
-    except (ValueError, IndexError) as exc:
-        raise StageError(f"{path}: non-numeric or missing coefficient ({exc})") from None
+        times = [_number(r[tcol], at=f"{path}:{n}", what=header[tcol])
+                 for n, r in zip(table.lines, rows, strict=True)]  # fmt: skip
+    coeffs = np.array([
+        [_number(r[columns[a]], at=f"{path}:{n}", what=header[columns[a]]) for a in ARKIT_NAMES]
+        for n, r in zip(table.lines, rows, strict=True)
+    ])  # fmt: skip
     t = np.asarray(times, dtype=float)
-    if len(t) < 2 or not np.all(np.diff(t) > 0):  # NaN fails too
-        raise StageError(f"{path}: times must increase from row to row")
+    if len(t) < 2:
+        raise StageError(f"capture {path}: {len(t)} row of coefficients; expected a recording")
+    if not np.all(np.diff(t) > 0):  # NaN fails too
+        bad = int(np.argmin(np.diff(t) > 0)) + 1
+        raise StageError(f"{path}:{table.lines[bad]}: times must increase from row to row")
     # ARKit coefficients lie in [0, 1]; trackers' rounding a hair outside is clipped
     outside = ~((coeffs >= -COEFF_SLACK) & (coeffs <= 1 + COEFF_SLACK))  # NaN is outside too
     if outside.any():
         r, c = np.argwhere(outside)[0]
         raise StageError(
-            f"{path}:{r + 2}: {ARKIT_NAMES[c]} is {coeffs[r, c]:g}; ARKit coefficients lie in "
-            "[0, 1]"
+            f"{path}:{table.lines[r]}: {ARKIT_NAMES[c]} is {coeffs[r, c]:g}; ARKit coefficients "
+            "lie in [0, 1]"
         )
     coeffs = np.clip(coeffs, 0.0, 1.0)
     return Capture(path=path, times=t - t[0], coeffs=coeffs)
+
+
+def _number(text: str, *, at: str, what: str) -> float:
+    """A capture cell as a number, or a StageError naming the line and column."""
+    try:
+        return float(text)
+    except ValueError:
+        raise StageError(f"{at}: {what} is {text.strip()!r}, expected a number") from None
 
 
 def _seconds(text: str) -> float:
@@ -138,7 +147,8 @@ def _seconds(text: str) -> float:
 def read_onsets(path: Path | str) -> list[dict]:
     """Onsets CSV rows: capture (file name or stem), vowel (a/i/u/e/o), onset_s, [speaker]."""
     path = Path(path)
-    rows = list(csv.DictReader(read_text(path).splitlines()))
+    rows = read_rows(path, what="onsets", required=("capture", "vowel", "onset_s"),
+                     expected="capture, vowel, onset_s and optionally speaker")  # fmt: skip
     out = []
     for n, row in enumerate(rows, start=2):
         try:

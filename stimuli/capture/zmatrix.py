@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 from collections import Counter
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from facelab.methods import BUILTIN_Z
 from facelab.resources import package_file
 from facelab.stimuli.arkit import ARKIT_NAMES
 from facelab.stimuli.speech.track import VOWELS
-from facelab.textfiles import read_text
+from facelab.textfiles import read_rows
 
 __all__ = ["DATA", "load_z"]
 
@@ -24,7 +23,7 @@ def load_z(z: str, *, base_dir: Path = Path(".")) -> np.ndarray:
     """A Z matrix (52, 5): a shipped name (standard, emphasized) or a CSV path with a
     ``blendshape`` column of ARKit names and columns a, i, u, e, o in [0, 1]."""
     path = DATA / f"z_{z}.csv" if z in BUILTIN_Z else base_dir / z
-    rows = list(csv.DictReader(read_text(path, what="Z matrix").splitlines()))
+    rows = read_rows(path, what="Z matrix", required=("blendshape", *VOWELS))
     if not rows or set(rows[0]) != {"blendshape", *VOWELS}:
         raise StageError(f"{path}: expected columns blendshape, a, i, u, e, o")
     by_name = {r["blendshape"]: r for r in rows}

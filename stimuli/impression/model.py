@@ -32,7 +32,6 @@ d divided by δ.
 
 from __future__ import annotations
 
-import csv
 import functools
 import hashlib
 import json
@@ -47,7 +46,7 @@ from facelab.errors import StageError
 from facelab.formats import IMPRESSION_FORMAT
 from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
 from facelab.stimuli.capture.zmatrix import load_z
-from facelab.textfiles import read_text
+from facelab.textfiles import read_rows, read_text
 
 __all__ = [
     "DIRECTION_METHODS",
@@ -111,7 +110,7 @@ def read_arkit_samples(path: Path) -> ExpressionSamples:
     person's neutral face; without one the rest pose (zeros) is the neutral."""
     path = Path(path)
     text = read_text(path)
-    rows = list(csv.DictReader(text.splitlines()))
+    rows = read_rows(path)
     if not rows:
         raise StageError(f"{path}: no rows")
     header = list(rows[0])
@@ -182,7 +181,7 @@ def samples_from_captures(index: Path, *, window_s: float = 0.1, fps: float = 60
     from facelab.stimuli.capture.measure_z import read_capture
 
     index = Path(index)
-    rows = list(csv.DictReader(read_text(index).splitlines()))
+    rows = read_rows(index)
     if not rows or not {"person", "expression", "capture", "time_s"} <= set(rows[0]):
         raise StageError(
             f"{index}: expected columns person, expression, <labels...>, capture, time_s"
@@ -268,7 +267,7 @@ def read_vertex_samples(index: Path) -> ExpressionSamples:
     measured from it). ``file`` is relative to the index's folder."""
     index = Path(index)
     text = read_text(index)
-    rows = list(csv.DictReader(text.splitlines()))
+    rows = read_rows(index)
     if not rows or not {"person", "expression", "file"} <= set(rows[0]):
         raise StageError(f"{index}: expected columns person, expression, <labels...>, file")
     h = hashlib.sha256(text.encode("utf-8"))
