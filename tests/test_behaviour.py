@@ -141,6 +141,28 @@ def test_annotation_errors_name_the_row(tmp_path: Path) -> None:
         fit_library(check_annotations(no_posture))
     with pytest.raises(BehaviourError, match="no such annotation file"):
         read_annotations(tmp_path / "missing.csv")
+    bad = _known_table()
+    bad.loc[2, "start_s"] = -1
+    with pytest.raises(BehaviourError, match=r"row 3: start_s -1(\.0)? is before the recording"):
+        check_annotations(bad)
+
+
+def test_annotation_tables_as_spreadsheets_save_them(tmp_path: Path) -> None:
+    """Excel's "CSV UTF-8" starts with a byte-order mark (refused as a missing emotion column
+    before); a TSV reads as the CSV does; a row with a field too many is named by its line."""
+    text = _known_table().to_csv(index=False)
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    pd.testing.assert_frame_equal(read_annotations(bom), check_annotations(_known_table()),
+                                  check_dtype=False)  # fmt: skip
+    tsv = tmp_path / "ann.tsv"
+    tsv.write_text(_known_table().to_csv(index=False, sep="\t"), encoding="utf-8")
+    assert len(read_annotations(tsv)) == len(_known_table())
+    lines = text.splitlines()
+    lines[4] += ",extra"
+    (tmp_path / "long.csv").write_text("\n".join(lines), encoding="utf-8")
+    with pytest.raises(BehaviourError, match=r"long\.csv:5: 6 fields, the header has 5"):
+        read_annotations(tmp_path / "long.csv")
 
 
 def test_elan_file_reads_like_the_csv(tmp_path: Path) -> None:

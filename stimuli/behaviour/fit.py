@@ -49,21 +49,13 @@ def read_annotations(path: Path | str) -> pd.DataFrame:
     if path.suffix.lower() == ".eaf":
         table = _read_eaf(path)
     else:
-        import csv
+        from facelab.textfiles import read_rows
 
-        try:
-            table = pd.read_csv(path, sep=None, engine="python", encoding="utf-8")
-        except UnicodeDecodeError:
-            raise BehaviourError(
-                f"{path}: not a text table (not UTF-8; a binary file renamed?)"
-            ) from None
-        except (OSError, ValueError, pd.errors.ParserError, csv.Error):
-            raise BehaviourError(
-                f"{path}: not readable as a CSV/TSV table (expected a header row emotion, "
-                "layer, behaviour, start_s, end_s and one annotation per line)"
-            ) from None
-        # where each row stands in the file, for the messages (the header is line 1)
-        table["_where"] = [f"line {i + 2}" for i in range(len(table))]
+        rows = read_rows(path, what="annotations", delimiter=None, error=BehaviourError,
+                         expected=", ".join(ANNOTATION_COLUMNS))  # fmt: skip
+        table = pd.DataFrame(list(rows), columns=rows.header, dtype=str)
+        # where each row stands in the file, for the messages
+        table["_where"] = [f"line {n}" for n in rows.lines]
     return check_annotations(table, source=str(path))
 
 
@@ -141,6 +133,11 @@ def check_annotations(table: pd.DataFrame, *, source: str = "annotations") -> pd
                 raise BehaviourError(
                     f"{source}: {i}: {col} {value!r} is not a number (expected seconds)"
                 )
+        if row.start_s < 0:
+            raise BehaviourError(
+                f"{source}: {i}: start_s {row.start_s} is before the recording starts "
+                "(expected seconds from its start, >= 0)"
+            )
         if row.end_s <= row.start_s:
             raise BehaviourError(
                 f"{source}: {i}: start_s {row.start_s} and end_s {row.end_s} need "
