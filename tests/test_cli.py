@@ -152,6 +152,34 @@ def test_track_output_paths_are_checked_before_any_work(
         assert code == 2 and "does not exist" in capsys.readouterr().err
 
 
+def test_a_picture_named_without_its_format_is_refused_before_anything_is_written(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A figure or sheet file name without a picture format's ending was a traceback from
+    the drawing library after the other outputs had been written (the track's CSV, the
+    behaviour plan); a plot asked of a command that draws none was ignored."""
+    t = tmp_path
+    cases = [
+        (["avatar", "inspect", "default", "--sheet", f"{t}/sheet"], "--sheet", ".png"),
+        (["behaviour", "sheet", "--out", f"{t}/units.txt"], "--out", ".png"),
+        (["track", str(kato_path), "--stimulus", "vowels/aiueo", "--csv", f"{t}/track.csv",
+          "--plot", f"{t}/track.txt"], "--plot", ".png or .svg or .pdf"),
+        (["behaviour", "plan", "--emotion", "joy=1", "--text", "こんにちは", "--duration-s", "3",
+          "--seed", "1", "--out", f"{t}/plan.json", "--figure", f"{t}/plan"], "--figure", ".pdf"),
+        (["power", str(kato_path), "--simulate", "--n", "8", "--sims", "2", "--plot",
+          f"{t}/power.jpg"], "--plot", ".svg"),
+    ]  # fmt: skip
+    for argv, option, ending in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{option} " in err and "expected a file name ending in " in err, err
+        assert ending in err.split("ending in ", 1)[1], err
+        assert "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []  # neither the track's CSV nor the plan
+    assert main(["power", "--reported-p", "0.02", "--plot", f"{t}/p.png"]) == 2
+    assert "--plot draws the power of simulated studies" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("session", ["0", "99999999999999999999", "ten"])
 def test_session_numbers_are_bounded(
     kato_path: Path, capsys: pytest.CaptureFixture[str], session: str
@@ -223,7 +251,7 @@ def test_user_tables_that_are_not_utf8_or_empty_get_clear_errors(
         err = capsys.readouterr().err
         assert "latin.csv" in err and ("UTF-8" in err or "utf-8" in err), err
     assert main(["behaviour", "fit", str(empty), "--out", str(tmp_path / "l.json")]) == 2
-    assert "empty.csv: not readable as a CSV/TSV table" in capsys.readouterr().err
+    assert "empty.csv: empty; expected a header line with emotion" in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:
         main(["bench", "render", "--runs", "0"])
     assert info.value.code == 2

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from facelab.errors import AnalysisError, FacelabError
 from facelab.experiment.cli.common import (
+    FIGURE_SUFFIXES,
     AddCommand,
     cluster_of,
     cluster_options,
@@ -176,6 +177,9 @@ def _cmd_power(args: argparse.Namespace) -> int:
 
     if args.simulate is not None:
         return _simulated_power(args)
+    if args.plot:
+        raise FacelabError("--plot draws the power of simulated studies against n: it goes with "
+                           "--simulate")  # fmt: skip
     args.sims = 4000 if args.sims is None else args.sims
     rows: list[dict[str, object]] = []
     assumptions = ""
@@ -321,7 +325,8 @@ def _simulated_power(args: argparse.Namespace) -> int:
                            "leave out --pilot and --reported-p")  # fmt: skip
     if not 0 < args.power < 1:
         raise FacelabError(f"--power {args.power:g}: a target power lies strictly between 0 and 1")
-    plot = output_file(args.plot, option="--plot", force=args.force) if args.plot else None
+    plot = (output_file(args.plot, option="--plot", force=args.force, suffixes=FIGURE_SUFFIXES)
+            if args.plot else None)  # fmt: skip
     protocol_file = args.simulate if isinstance(args.simulate, str) else protocol_of(args)
     if isinstance(args.simulate, str):
         print(

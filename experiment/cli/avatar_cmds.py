@@ -7,7 +7,14 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, force_option, output_file, verbs, whole
+from facelab.experiment.cli.common import (
+    PICTURE_SUFFIXES,
+    AddCommand,
+    force_option,
+    output_file,
+    verbs,
+    whole,
+)
 
 __all__ = ["register"]
 
@@ -45,7 +52,8 @@ def _cmd_avatar(args: argparse.Namespace) -> int:
             raise FacelabError(
                 "facelab avatar inspect FILE: give a .glb/.gltf/.vrm file or 'default'"
             )
-        sheet = output_file(args.sheet, option="--sheet", force=args.force) if args.sheet else None
+        sheet = (output_file(args.sheet, option="--sheet", force=args.force,
+                             suffixes=PICTURE_SUFFIXES) if args.sheet else None)  # fmt: skip
         avatar = _load(args.file)
         report = avatar_report(avatar)
         report["audit"] = _audit(avatar)

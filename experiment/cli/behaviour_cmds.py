@@ -9,6 +9,8 @@ from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
+    FIGURE_SUFFIXES,
+    PICTURE_SUFFIXES,
     AddCommand,
     GridProgress,
     check_options,
@@ -126,6 +128,10 @@ def _plan(args: argparse.Namespace) -> int:
     else:
         emotion = EmotionTimeline.constant(parse_emotion(args.emotion[0]))
     out = output_file(args.out, option="--out", force=args.force)
+    # every file the plan writes checked before the first is written
+    bml = output_file(args.bml, option="--bml", force=args.force) if args.bml else None
+    fig_path = (output_file(args.figure, option="--figure", force=args.force,
+                            suffixes=FIGURE_SUFFIXES) if args.figure else None)  # fmt: skip
     library = _library(args.library)
     speech, cues = _cues(args, args.lead_s)
     layers, neutral = layers_for(args.mode)
@@ -141,16 +147,14 @@ def _plan(args: argparse.Namespace) -> int:
     out.write_text(json.dumps(plan.to_json(), indent=1, ensure_ascii=False) + "\n", "utf-8")
     print(f"{len(plan.events)} events over {args.duration_s:g} s -> {out}")
     print("  " + ", ".join(f"{k} {v}" for k, v in plan.counts().items()))
-    if args.bml:
-        bml = output_file(args.bml, option="--bml", force=args.force)
+    if bml is not None:
         bml.write_text(plan.to_bml(library), encoding="utf-8")
         print(f"  BML 1.0 -> {bml}")
-    if args.figure:
+    if fig_path is not None:
         import matplotlib.pyplot as plt
 
         from facelab.stimuli.render.plots import plan_timeline_figure
 
-        fig_path = output_file(args.figure, option="--figure", force=args.force)
         fig = plan_timeline_figure(
             plan,
             cues=cues,
@@ -215,7 +219,7 @@ def _sheet(args: argparse.Namespace) -> int:
 
     if not args.out:
         raise FacelabError("facelab behaviour sheet --out SHEET.png")
-    out = output_file(args.out, option="--out", force=args.force)
+    out = output_file(args.out, option="--out", force=args.force, suffixes=PICTURE_SUFFIXES)
     avatar = load(Path(args.avatar)) if args.avatar else default_head()
     unit_sheet(out=out, avatar=avatar, library=_library(args.library))
     print(f"contact sheet of the library's units -> {out}")

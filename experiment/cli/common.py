@@ -209,10 +209,19 @@ def _writable_folder(folder: Path, option: str, what: str) -> None:
         raise FacelabError(f"{option} {what}: cannot write in {probe} (permission denied)")
 
 
-def output_file(path: str | Path, *, option: str, force: bool) -> Path:
-    """A file the command will write: its folder must exist and be writable, and an existing
-    file is refused unless ``force`` (the one overwrite rule, ``--force``). Raises a clear error
-    (exit 2) instead of a traceback half-way through the command.
+#: file name endings of the figures facelab draws with Matplotlib
+FIGURE_SUFFIXES = (".png", ".svg", ".pdf")
+#: file name endings of the pictures facelab saves itself (contact sheets, screenshots)
+PICTURE_SUFFIXES = (".png",)
+
+
+def output_file(
+    path: str | Path, *, option: str, force: bool, suffixes: tuple[str, ...] = ()
+) -> Path:
+    """A file the command will write: its folder must exist and be writable, an existing
+    file is refused unless ``force`` (the one overwrite rule, ``--force``), and with
+    ``suffixes`` its name must end in one of them (a figure's format). Raises a clear error
+    (exit 2) before the command writes anything, instead of a traceback half-way through.
     """
     path = Path(path)
     if path.is_dir():
@@ -220,6 +229,11 @@ def output_file(path: str | Path, *, option: str, force: bool) -> Path:
     if not path.parent.is_dir():
         raise FacelabError(f"{option} {path}: the folder {path.parent} does not exist")
     _writable_folder(path.parent, option, str(path))
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise FacelabError(
+            f"{option} {path}: expected a file name ending in {' or '.join(suffixes)} (the "
+            "picture's format)"
+        )
     if path.exists() and not force:
         raise FacelabError(f"{option} {path}: exists; choose another file or pass --force")
     return path

@@ -7,7 +7,14 @@ import json
 from pathlib import Path
 
 from facelab.errors import FacelabError
-from facelab.experiment.cli.common import AddCommand, output_file, parse_size, real, whole
+from facelab.experiment.cli.common import (
+    PICTURE_SUFFIXES,
+    AddCommand,
+    output_file,
+    parse_size,
+    real,
+    whole,
+)
 
 
 def _config(args: argparse.Namespace):
@@ -52,8 +59,8 @@ def _cmd_live(args: argparse.Namespace) -> int:
         if not wav.is_file():
             raise FacelabError(f"--simulate {wav}: no such audio file")
         out = output_file(args.json, option="--json", force=True) if args.json else None
-        shot = output_file(args.screenshot, option="--screenshot", force=True) \
-            if args.screenshot else None  # fmt: skip
+        shot = output_file(args.screenshot, option="--screenshot", force=True,
+                           suffixes=PICTURE_SUFFIXES) if args.screenshot else None  # fmt: skip
         config = _config(args)
         record = simulate_live(config, wav=wav, screenshot=shot, window_size=_window_size(args))
         text = json.dumps(record, ensure_ascii=False, indent=2) + "\n"

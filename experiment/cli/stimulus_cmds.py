@@ -7,6 +7,7 @@ from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
+    FIGURE_SUFFIXES,
     AddCommand,
     GridProgress,
     check_options,
@@ -115,9 +116,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from facelab.stimuli.speech.track import VISEMES
 
     protocol = load_protocol(args.protocol)
-    for option, value in (("--csv", args.csv), ("--plot", args.plot)):
+    for option, value, ends in (("--csv", args.csv, ()), ("--plot", args.plot, FIGURE_SUFFIXES)):
         if value:
-            output_file(value, option=option, force=args.force)
+            output_file(value, option=option, force=args.force, suffixes=ends)
     set_id, stim = find_stimulus(protocol, args.stimulus)
     speech = speech_for(
         stim, base_dir=Path(args.protocol).parent, sample_rate=protocol.rendering.audio_sample_rate
