@@ -267,6 +267,29 @@ def test_export_names_a_database_it_cannot_reach(
     assert "cannot connect" in err and "127.0.0.1" in err and "Traceback" not in err
 
 
+def test_export_never_writes_into_a_database_that_is_not_facelabs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """export --db at an empty file or another program's SQLite database created facelab's
+    tables in it and said "exported 0 online sessions", exit 0; now refused, the file as it
+    was (no tables, no WAL journal)."""
+    import sqlite3
+
+    empty = tmp_path / "empty.db"
+    empty.write_bytes(b"")
+    notes = tmp_path / "notes.sqlite"
+    with sqlite3.connect(notes) as con:
+        con.execute("CREATE TABLE notes (t TEXT)")
+    con.close()
+    for db in (empty, notes):
+        before = db.read_bytes()
+        assert main(["export", "--db", f"sqlite:///{db}", "--results", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert "not a facelab online database" in err and "was not changed" in err, err
+        assert db.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.db", "notes.sqlite"]
+
+
 @pytest.mark.parametrize("value", ["-1", "2.5", str(2**63)])
 def test_seeds_are_checked_before_anything_runs(
     kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str

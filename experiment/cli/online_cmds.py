@@ -151,7 +151,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from facelab.experiment.online.db import open_engine
+    from facelab.experiment.online.db import REVISIONS, facelab_revision, open_engine
     from facelab.experiment.online.export import export_sessions
 
     results = output_dir(args.results, option="--results")
@@ -163,7 +163,18 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
         protocol = load_protocol(args.protocol)
         digest = protocol_hash(args.protocol)
-    engine = open_engine(args.db)
+    revision = facelab_revision(args.db)  # read without changing the database
+    if revision is None:
+        raise FacelabError(
+            f"--db {args.db}: not a facelab online database (it holds no facelab tables); "
+            "nothing was exported and the database was not changed"
+        )
+    if revision not in REVISIONS:
+        raise FacelabError(
+            f"--db {args.db}: made by a newer facelab (schema {revision}; this one knows up "
+            f"to {REVISIONS[-1]}); export it with that version"
+        )
+    engine = open_engine(args.db)  # an older facelab's database is brought up to date
     notes: list[str] = []
     quarantine: list[str] = []
     paths = export_sessions(

@@ -237,6 +237,68 @@ def open_engine(url: str, *, migrate: bool = True) -> Engine:
     return engine
 
 
+#: the schema revisions this facelab knows (``migrations/versions``), oldest first
+REVISIONS = tuple(sorted(p.name.split("_", 1)[0] for p in (MIGRATIONS / "versions").glob("0*.py")))
+
+
+def facelab_revision(url: str) -> str | None:
+    """The facelab schema revision of the database at ``url``, read without changing it (a
+    SQLite file opened read-only, no pragmas); None when it holds no facelab tables (an
+    empty file, another program's database). Raises :class:`SessionError` naming the URL
+    when it cannot be read."""
+    if url.startswith("sqlite"):
+        import sqlite3
+        from urllib.parse import quote
+
+        path = url.split("///", 1)[-1]
+        try:
+            if Path(path).stat().st_size == 0:
+                return None
+            con = sqlite3.connect(f"file:{quote(path)}?mode=ro", uri=True)
+            try:
+                tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master")}
+                if "alembic_version" not in tables:
+                    return None
+                row = con.execute("SELECT version_num FROM alembic_version").fetchone()
+            finally:
+                con.close()
+        except (OSError, sqlite3.Error):
+            raise SessionError(f"--db {url!r}: not a SQLite database file") from None
+        return None if row is None else str(row[0])
+    from sqlalchemy import inspect as inspect_db
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    engine = open_engine(url, migrate=False)
+    try:
+        with engine.connect() as connection:
+            if not inspect_db(connection).has_table("alembic_version"):
+                return None
+            found = connection.execute(text("SELECT version_num FROM alembic_version")).first()
+    except DBAPIError as exc:
+        raise SessionError(f"database {engine.url!r}: cannot connect ({_reason(exc)})") from None
+    finally:
+        engine.dispose()
+    return None if found is None else str(found[0])
+
+
+def _reason(exc: Exception) -> str:
+    """Why a database server could not be reached, in plain words (not the driver's)."""
+    text = str(getattr(exc, "orig", exc)).lower()
+    for clue, reason in (
+        ("refused", "no database server answers at that host and port"),
+        ("resolve host", "the host name is not known"),
+        ("name or service not known", "the host name is not known"),
+        ("password authentication failed", "the user name or password was refused"),
+        ("does not exist", "the server has no such database or user"),
+        ("timeout", "the server did not answer in time"),
+        ("timed out", "the server did not answer in time"),
+    ):
+        if clue in text:
+            return reason
+    return "the server refused the connection"
+
+
 def upgrade(engine: Engine) -> None:
     """Bring the schema to the newest Alembic revision (creates it in an empty database)."""
     from alembic import command
@@ -249,8 +311,7 @@ def upgrade(engine: Engine) -> None:
     try:
         connection = engine.connect()
     except DBAPIError as exc:  # no server, wrong password, no such database…
-        reason = " ".join(line.strip() for line in str(getattr(exc, "orig", exc)).splitlines())
-        raise SessionError(f"database {engine.url!r}: cannot connect ({reason})") from None
+        raise SessionError(f"database {engine.url!r}: cannot connect ({_reason(exc)})") from None
     try:
         with connection.begin():
             cfg.attributes["connection"] = connection
