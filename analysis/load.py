@@ -48,7 +48,7 @@ def _read_rows(path: Path) -> list[dict]:
         row["source"] = source
     # the session file beside the log must read (an export cut short leaves it empty)
     sidecar = path.with_name(path.name.replace("_beh.tsv", "_session.json"))
-    meta = _session_file(sidecar) if sidecar.exists() else None
+    meta = _session_file(sidecar, identity=log_identity(path)) if sidecar.exists() else None
     # provenance: on every row since facelab 0.2; older logs take it from the session file
     if meta is not None and any(
         r["simulated"] is None or r["protocol_sha256"] is None for r in rows
@@ -61,8 +61,10 @@ def _read_rows(path: Path) -> list[dict]:
     return rows
 
 
-def _session_file(path: Path) -> dict:
-    """A session's provenance file, refused in words when it is empty or does not read."""
+def _session_file(path: Path, *, identity: dict | None = None) -> dict:
+    """A session's provenance file, refused in words when it is empty or does not read, or
+    when its participant, session or ``simulated`` flag is not what the log's name says or
+    not of its type (``identity``: what the name says, :func:`log_identity`)."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
@@ -77,7 +79,46 @@ def _session_file(path: Path) -> dict:
         raise AnalysisError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
     if not isinstance(meta, dict):
         raise AnalysisError(f"{path}: expected a JSON object (the session's provenance)")
+    session = meta.get("session", 1)
+    if isinstance(session, bool) or not isinstance(session, int) or session < 1:
+        raise AnalysisError(f"{path}: \"session\" is {session!r}, expected a whole number >= 1; "
+                            "was the file edited?")  # fmt: skip
+    if "simulated" in meta and not isinstance(meta["simulated"], bool):
+        raise AnalysisError(f"{path}: \"simulated\" is {meta['simulated']!r}, expected true or "
+                            "false; was the file edited?")  # fmt: skip
+    for key, value in (identity or {}).items():
+        if key in meta and meta[key] != value:
+            raise AnalysisError(
+                f"{path}: {key} is {meta[key]!r}, but the log's name says {value!r}; was the "
+                "file edited or copied from another session?"
+            )
     return meta
+
+
+def sessions_without_responses(results: Path | str, *, study: str) -> list[str]:
+    """``"P01/1 (why)"`` for every session folder of ``study`` below ``results`` that holds
+    no response: no response log (a session stopped before its first answer, or a log lost
+    in a copy) or one with only its header line. Such sessions are in no table; the report
+    names them."""
+    out = []
+    for folder in sorted(Path(results).rglob("sub-*/ses-*")):
+        if not folder.is_dir():
+            continue
+        mine = [p for p in folder.iterdir() if f"_task-{study}_" in p.name and p.is_file()]
+        logs = [p for p in mine if p.name.endswith("_beh.tsv")]
+        if not mine:
+            continue
+        name = f"{folder.parent.name.removeprefix('sub-')}/{folder.name.removeprefix('ses-')}"
+        if not logs:
+            out.append(f"{name} (no response log beside its {mine[0].name})")
+            continue
+        try:
+            lines = logs[0].read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError):
+            continue  # load_results names it
+        if sum(1 for line in lines if line.strip()) <= 1:
+            out.append(f"{name} (its response log holds only the header line)")
+    return out
 
 
 #: what names a response: every row has these (the others may be n/a)

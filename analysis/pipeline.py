@@ -22,7 +22,7 @@ import pandas as pd
 
 from facelab.analysis.conversation import conversation_tables, is_conversation_row
 from facelab.analysis.integrity import DataCheck, added_items, added_kinds, check_data
-from facelab.analysis.load import load_results
+from facelab.analysis.load import load_results, sessions_without_responses
 from facelab.analysis.objective import (
     objective_covariate,
     objective_distances,
@@ -129,6 +129,7 @@ def run(
         the report says how many per condition and rule.
     """
     data = load_results(results, study=protocol.study.id)
+    empty_sessions = sessions_without_responses(results, study=protocol.study.id)
     if exclude:
         unknown = sorted(set(exclude) - set(data["participant"]))
         if unknown:
@@ -194,6 +195,11 @@ def run(
         tasks.tables["pilot_items"] = items
     tasks.notes.extend(item_notes)
     tasks.notes.extend(n for n in (dropped_note, offset_note, *rule_notes) if n)
+    if empty_sessions:
+        tasks.notes.append(
+            f"{len(empty_sessions)} session(s) hold no response and are in no table: "
+            + "; ".join(empty_sessions)
+        )
     files = write_report(
         results=study,
         data=data,

@@ -296,7 +296,7 @@ def session_modes(data: pd.DataFrame) -> pd.DataFrame:
         rows.append(
             {
                 "participant": info.get("participant"),
-                "session": int(info.get("session", 1)),
+                "session": info.get("session", 1),  # a whole number (checked by the loader)
                 "mode": str(info.get("mode") or "lab"),
                 "simulated": bool(info.get("simulated")),
                 "display": (display or {}).get("ran", "video"),

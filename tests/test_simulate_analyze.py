@@ -217,6 +217,49 @@ def test_load_errors(simulated: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (("session", "one"), r'"session" is \'one\', expected a whole number >= 1'),
+        (("session", 2), r"session is 2, but the log's name says 1"),
+        (("participant", "P09"), r"participant is 'P09', but the log's name says 'P01'"),
+        (("simulated", "yes"), r'"simulated" is \'yes\', expected true or false'),
+    ],
+)
+def test_an_edited_session_file_is_refused_in_words(
+    simulated: Path, tmp_path: Path, edit: tuple[str, object], message: str
+) -> None:
+    """A session file whose session was not a whole number was a ValueError traceback in
+    the presentation table; one naming another participant was analysed."""
+    import json
+
+    root = _copy(simulated, tmp_path)
+    (meta_path,) = _first_tsv(root).parent.glob("*_session.json")
+    meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    meta[edit[0]] = edit[1]
+    meta_path.write_text(json.dumps(meta), encoding="utf-8")
+    with pytest.raises(AnalysisError, match=message):
+        load_results(root)
+
+
+def test_sessions_without_responses_are_named_not_dropped_silently(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A session folder whose response log is missing, or holds only its header, was left
+    out of every table without a word."""
+    root = _copy(simulated, tmp_path)
+    first, second = sorted(root.rglob("*_beh.tsv"))[:2]
+    first.unlink()
+    second.write_text(second.read_text(encoding="utf-8").splitlines()[0] + "\n")
+    out = tmp_path / "analysis"
+    assert main(["analyze", str(kato_path), str(root), "--out", str(out), "--bootstrap", "0"]) == 0
+    said = capsys.readouterr().out
+    for where, text in ((said, "stdout"), ((out / "report.md").read_text(encoding="utf-8"), "md")):
+        assert "2 session(s) hold no response and are in no table" in where, text
+        assert "P01/1 (no response log beside its" in where and "P02/1 (its response log holds " \
+            "only the header line)" in where, text
+
+
+@pytest.mark.parametrize(
     ("column", "value", "message"),
     [
         (8, "other_condition", "condition is 'other_condition' but the participant's design has"),
