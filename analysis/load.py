@@ -14,6 +14,7 @@ import pandas as pd
 
 from facelab.errors import AnalysisError, StageError
 from facelab.sessionlog import LOG_COLUMNS, log_identity, parse_log_text
+from facelab.textfiles import read_text
 
 __all__ = ["find_logs", "frame_from_rows", "load_log", "load_results", "session_summary"]
 
@@ -29,10 +30,7 @@ def find_logs(results: Path | str) -> list[Path]:
 def _read_rows(path: Path) -> list[dict]:
     """One session TSV's rows (dicts with :data:`LOG_COLUMNS` and ``source``), provenance
     filled from the session file for logs older than the provenance columns."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise AnalysisError(f"cannot read {path}: {exc}") from None
+    text = read_text(path, error=AnalysisError, encoding="utf-8")
     try:
         rows, cut = parse_log_text(text, source=str(path))
     except StageError as exc:

@@ -324,6 +324,9 @@ def _format(value: Any) -> str:
     return text
 
 
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
 def _parse_row(values: list[str], columns: tuple[str, ...], *, where: str) -> dict[str, Any]:
     if len(values) != len(columns):
         raise StageError(
@@ -351,6 +354,19 @@ def _parse_row(values: list[str], columns: tuple[str, ...], *, where: str) -> di
             if text not in ("true", "false"):
                 raise StageError(f"{where}: column {name!r} should be true or false, got {text!r}")
             row[name] = text == "true"
+        elif name == "timestamp":
+            try:
+                dt.datetime.fromisoformat(text)
+            except ValueError:
+                raise StageError(
+                    f"{where}: column 'timestamp' should be a date and time (ISO 8601), got "
+                    f"{text!r}"
+                ) from None
+            row[name] = text
+        elif name == "protocol_sha256" and not _SHA256.fullmatch(text):
+            # the last column: a line cut inside it reads as a cut line, not another protocol
+            raise StageError(f"{where}: column 'protocol_sha256' should be 64 hex digits, got "
+                             f"{text[:70]!r}")  # fmt: skip
         else:
             row[name] = text
     for name in LOG_COLUMNS:  # an old log: the newer columns are unknown

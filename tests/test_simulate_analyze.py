@@ -12,6 +12,7 @@ from facelab.analysis.load import load_results
 from facelab.errors import AnalysisError
 from facelab.experiment.cli import main
 from facelab.protocol import load_protocol
+from facelab.sessionlog import LOG_COLUMNS
 
 
 @pytest.fixture(scope="module")
@@ -177,6 +178,18 @@ def test_load_errors(simulated: Path, tmp_path: Path) -> None:
         load_results(root)
     tsv.write_text("".join([*lines, lines[1][:30]]))
     with pytest.raises(AnalysisError, match=r"cut off mid-write.*--resume"):
+        load_results(root)
+    # cut inside the last column (the protocol's digest): read as another protocol before
+    tsv.write_text("".join([*lines, lines[1].rstrip("\n")[:-20]]))
+    with pytest.raises(AnalysisError, match=r"cut off mid-write.*--resume"):
+        load_results(root)
+    fields = lines[1].split("\t")
+    fields[LOG_COLUMNS.index("timestamp")] = "yesterday"
+    tsv.write_text("".join([lines[0], "\t".join(fields), *lines[2:]]))
+    with pytest.raises(AnalysisError, match=r"_beh.tsv:2: column 'timestamp' should be a date"):
+        load_results(root)
+    tsv.write_bytes("".join(lines).encode("utf-8") + b"kato2021\tP01\tvow\xe9ls\n")
+    with pytest.raises(AnalysisError, match=rf"_beh.tsv:{len(lines) + 1}: not UTF-8 text"):
         load_results(root)
     fields = lines[1].split("\t")
     fields[11] = "130.0"
