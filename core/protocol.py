@@ -225,6 +225,13 @@ def _issue_from_pydantic(err: Any, locator: Locator) -> Issue:
     kind = err["type"]
     if "[key]" in path:
         path = path[: path.index("[key]")]
+        if err.get("ctx", {}).get("pattern") == ID_PATTERN:  # a mapping keyed by ids
+            return Issue(
+                path,
+                f"{path[-1]!r} is not a valid id (a letter, then letters, digits, - or single "
+                "_): the keys here name conditions, labels or series",
+                locator.key_line(path),
+            )
         return Issue(
             path,
             f"{path[-1]!r} is not a language code (expected e.g. ja, en); "

@@ -884,6 +884,12 @@ class Rendering(_Model):
 # ------------------------------------------------------------------ simulation, reported results
 
 
+#: a simulated condition effect: rating points added to the mean (a VAS spans at most 100)
+EffectPoints = Annotated[float, Field(ge=-100, le=100)]
+#: a probability in a simulated confusion row
+Probability = Annotated[float, Field(ge=0, le=1)]
+
+
 class SimulationModel(_Model):
     """Simulated rating = clip(mean + effect + participant offset + interaction + noise, scale)."""
 
@@ -904,7 +910,7 @@ class EffectOverride(_Model):
 
     item: Id | None = None
     stimulus_set: Id | None = None
-    effects: dict[Id, float]
+    effects: dict[Id, EffectPoints]
 
 
 class Observer(_Model):
@@ -912,11 +918,12 @@ class Observer(_Model):
     P = gamma + (1 - gamma - lapse) * F(level), F logistic with this midpoint and slope
     (gamma 1/2 when the task has a correct answer, else 0)."""
 
-    midpoint: float = Field(0.5, description="Level where F = 1/2.")
+    midpoint: float = Field(0.5, allow_inf_nan=False, description="Level where F = 1/2.")
     slope: float = Field(10.0, gt=0, le=1e4, description="Logistic slope (per level unit).")
     lapse: float = Field(0.02, ge=0, le=0.5, description="Lapse rate.")
     midpoint_sd: float = Field(
-        0.0, ge=0, description="SD of participants' midpoints around 'midpoint'."
+        0.0, ge=0, allow_inf_nan=False,
+        description="SD of participants' midpoints around 'midpoint'.",
     )
 
 
@@ -930,11 +937,11 @@ class Identifier(_Model):
         default_factory=dict,
         description="Condition id -> accuracy in that condition (replaces 'accuracy' there).",
     )
-    confusion: dict[Id, dict[Id, float]] = Field(
+    confusion: dict[Id, dict[Id, Probability]] = Field(
         default_factory=dict,
         description="Portrayed label -> {chosen label: probability}; rows replace 'accuracy'.",
     )
-    condition_confusion: dict[Id, dict[Id, dict[Id, float]]] = Field(
+    condition_confusion: dict[Id, dict[Id, dict[Id, Probability]]] = Field(
         default_factory=dict,
         description="Condition id -> {portrayed label: {chosen label: probability}}: how "
         "that condition is read (e.g. lip-reading one animation method); its rows replace "
@@ -957,8 +964,8 @@ class TimingObserver(_Model):
         "(guesses, a bias to say yes); at most 0.6 x peak."
     )
     lapse: float = Field(0.02, ge=0, le=0.5, description="Temporal order: lapse rate.")
-    pss_sd_ms: float = Field(0.0, ge=0, description="SD of participants' PSS.")
-    width_sd_ms: float = Field(0.0, ge=0, description="SD of participants' widths.")
+    pss_sd_ms: float = Field(0.0, ge=0, le=1000, description="SD of participants' PSS.")
+    width_sd_ms: float = Field(0.0, ge=0, le=4000, description="SD of participants' widths.")
 
     @model_validator(mode="after")
     def _floor_below_peak(self) -> TimingObserver:
@@ -986,7 +993,7 @@ class Simulation(_Model):
     """How ``facelab simulate`` generates answers; never presented as data."""
 
     model: SimulationModel = Field(default_factory=SimulationModel)
-    effects: dict[Id, float] = Field(
+    effects: dict[Id, EffectPoints] = Field(
         default_factory=dict, description="Condition id -> points added to the mean (default 0)."
     )
     overrides: list[EffectOverride] = Field(default_factory=list)

@@ -290,6 +290,19 @@ def test_export_never_writes_into_a_database_that_is_not_facelabs(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.db", "notes.sqlite"]
 
 
+@pytest.mark.parametrize("value", ["nan", "inf", "1000000", "x"])
+def test_a_simulated_effect_must_be_rating_points(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str
+) -> None:
+    """--effect standard=nan simulated ratings written as n/a (the analysis then failed on
+    them) and power studies of power 0, exit 0."""
+    argv = ["simulate", str(kato_path), "--participants", "2", "--sim-seed", "1",
+            "--effect", f"standard={value}", "--results", str(tmp_path / "r")]  # fmt: skip
+    assert main(argv) == 2
+    assert "POINTS from -100 to 100" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize("value", ["-1", "2.5", str(2**63)])
 def test_seeds_are_checked_before_anything_runs(
     kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str

@@ -197,6 +197,24 @@ BROKEN: list[tuple[str, tuple[str, str], str, list[str]]] = [
         ["conditions[0].label", "no 'fr' text"],
     ),
     (
+        "simulated effect not a number",
+        ("effects: {baseline: 0, standard: 15,", "effects: {baseline: 0, standard: .nan,"),
+        "effects: {baseline: 0, standard: .nan,",
+        ["simulation.effects.standard", "expected a number (got .nan)"],
+    ),
+    (
+        "simulated effect beyond the scale",
+        ("effects: {baseline: 0, standard: 15,", "effects: {baseline: 0, standard: 1000000,"),
+        "effects: {baseline: 0, standard: 1000000,",
+        ["simulation.effects.standard", "less than or equal to 100"],
+    ),
+    (
+        "effect keyed by no id",
+        ("emphasized: 6}", '"Emphasized!": 6}'),
+        '"Emphasized!": 6}',
+        ["'Emphasized!' is not a valid id", "name conditions"],
+    ),
+    (
         "bad enum value",
         ("    order: random_within_set\n    break_after", "    order: shuffled\n    break_after"),
         "order: shuffled",

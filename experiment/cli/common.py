@@ -259,9 +259,12 @@ def parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
             if not sep or not name:
                 raise ValueError
             effects[name] = float(value)
+            if not -100 <= effects[name] <= 100:  # NaN too
+                raise ValueError
         except ValueError:
             raise FacelabError(
-                f"--effect {pair!r}: expected CONDITION=POINTS, e.g. standard=15"
+                f"--effect {pair!r}: expected CONDITION=POINTS with POINTS from -100 to 100 "
+                "(rating points), e.g. standard=15"
             ) from None
     return effects
 
