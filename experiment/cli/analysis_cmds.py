@@ -553,7 +553,7 @@ def register(add: AddCommand) -> None:
     )
     p.add_argument(
         "--n",
-        type=whole(lo=1),
+        type=whole(lo=1, hi=5000),
         nargs="+",
         metavar="N",
         help="with --simulate: numbers of participants to try (default 8 12 16 24 32)",
@@ -579,7 +579,7 @@ def register(add: AddCommand) -> None:
     cluster_options(p, what="simulated studies (with --simulate; instead of --jobs)")
     p.add_argument(
         "--sims",
-        type=whole(lo=1),
+        type=whole(lo=1, hi=1_000_000),
         metavar="S",
         help="Monte Carlo runs: of the formula check (default 4000), or per n with "
         "--simulate (default 200)",

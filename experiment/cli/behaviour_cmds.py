@@ -291,7 +291,8 @@ def register(add: AddCommand) -> None:
         "--protocol", metavar="PROTOCOL",
         help="the protocol of --stimulus (default: the shipped hattori_behaviour)",
     )  # fmt: skip
-    v.add_argument("--duration-s", type=real(above=0), metavar="S", help="seconds")
+    v.add_argument("--duration-s", type=real(above=0, hi=3600), metavar="S",
+                   help="seconds (at most 3600)")
     v.add_argument("--seed", type=seed, default=1, help="seed of the plan")
     v.add_argument("--mode", choices=["gestures_only", "neutral_composite", "composite"],
                    default="composite", help="the layers planned from the emotion")  # fmt: skip
@@ -309,7 +310,8 @@ def register(add: AddCommand) -> None:
     v.add_argument("--modes", nargs="+", default=["gestures_only", "composite"], metavar="MODE",
                    help="behaviour modes per emotion (none gestures_only neutral_composite "
                    "composite)")  # fmt: skip
-    v.add_argument("--duration-s", type=real(above=0), metavar="S", help="seconds (default 30)")
+    v.add_argument("--duration-s", type=real(above=0, hi=3600), metavar="S",
+                   help="seconds (default 30, at most 3600)")
     v.add_argument("--seed", type=seed, default=1, help="seed of the plans")
     v.add_argument("--lead-s", type=real(lo=0), default=0.5, help="silence before speech")
     v.add_argument("--size", metavar="WxH", help="default 1280x720")
@@ -328,7 +330,8 @@ def register(add: AddCommand) -> None:
 
     v = verb("synth", "a SYNTHETIC annotation table planned from a library")
     library(v)
-    v.add_argument("--duration-s", type=real(above=0), metavar="S", help="seconds")
+    v.add_argument("--duration-s", type=real(above=0, hi=3600), metavar="S",
+                   help="seconds (at most 3600)")
     v.add_argument("--seed", type=seed, default=1, help="seed of the table")
     v.add_argument("--out", required=True, metavar="ANNOTATIONS.csv")
     force_option(v)

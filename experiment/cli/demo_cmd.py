@@ -52,7 +52,7 @@ def register(add: AddCommand) -> None:
         "--out", default="results/demo", metavar="DIR", help="output folder (default results/demo)"
     )
     protocol_argument(p, optional=True)  # default: the shipped kato2021
-    p.add_argument("--participants", type=whole(lo=1), default=8, metavar="N")
+    p.add_argument("--participants", type=whole(lo=1, hi=5000), default=8, metavar="N")
     p.add_argument(
         "--sim-seed", type=seed, default=2021, metavar="S", help="seed of the simulated ratings"
     )

@@ -229,7 +229,7 @@ def register(add: AddCommand) -> None:
     p.add_argument("--completion-code", metavar="CODE", help="a code shown on the end screen")
     p.add_argument(
         "--simulate-participants",
-        type=whole(lo=1),
+        type=whole(lo=1, hi=1000),
         metavar="N",
         help="drive N simulated participants through the real pages in headless Chromium, "
         "then exit (the same N ids and tokens on every start: a second start resumes them)",

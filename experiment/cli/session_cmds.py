@@ -146,7 +146,7 @@ def register(add: AddCommand) -> None:
         _cmd_simulate,
     )
     p.add_argument("protocol", metavar="PROTOCOL")
-    p.add_argument("--participants", type=whole(lo=1), default=8, metavar="N")
+    p.add_argument("--participants", type=whole(lo=1, hi=5000), default=8, metavar="N")
     p.add_argument("--sim-seed", type=seed, metavar="S", help="seed of the answers (required)")
     deprecated(p, "--seed", new="--sim-seed", dest="sim_seed", type=seed)
     p.add_argument(

@@ -32,6 +32,7 @@ same seed, emotion, speech cues and upper layers gives the same events in every 
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import json
 import math
@@ -499,8 +500,15 @@ def _plan_layer(
             blend(u.wait_s, start_char, radius=radius) if u.wait_cv > 0 and not triggered else 0.0
         )
         wait_until[u.behaviour] = float(rng.uniform(0, first)) if first > 0 else 0.0
-    triggers = {u.behaviour: cues.trigger_times(u) for u in units}
+    triggers = {u.behaviour: cues.trigger_times(u) for u in units}  # sorted by time
+    trigger_times = {b: [tau for tau, _ in times] for b, times in triggers.items()}
     channels = {u.behaviour: u.channel_names() for u in units}
+    # the upper layers' events by start, to look only at those that can overlap a candidate
+    # (looking at every one for every step and unit made a plan quadratic in its length)
+    above = sorted(upper, key=lambda e: e.start_s)
+    above_starts = [e.start_s for e in above]
+    above_channels = [set(e.channels) for e in above]
+    longest = max((e.end_s - e.start_s for e in above), default=0.0)
     out: list[Event] = []
     busy_until = -1.0
     last = "rest"
@@ -518,15 +526,21 @@ def _plan_layer(
             if u.triggers is not None:
                 stroke = u.curve.phase("stroke") * l_d if u.curve else 0.0
                 hit = None
-                for tau, what in triggers[u.behaviour]:
-                    s = tau - stroke
-                    if u.triggers.mode == "require" and t <= s < t + max(step, LOOKAHEAD_S):
-                        hit = (tau, what)
-                        start = s  # placed so that its stroke lands on the trigger
-                        break
-                    if u.triggers.mode == "boost" and t - 0.3 <= tau < t + step:
-                        hit = (tau, what)
-                        break
+                mine, times = triggers[u.behaviour], trigger_times[u.behaviour]
+                if u.triggers.mode == "require":  # the first trigger whose stroke fits
+                    ahead = t + max(step, LOOKAHEAD_S)
+                    for tau, what in mine[bisect.bisect_left(times, t + stroke - 1e-9) :]:
+                        s = tau - stroke
+                        if s >= ahead:
+                            break  # later triggers place it later still
+                        if t <= s:
+                            hit = (tau, what)
+                            start = s  # placed so that its stroke lands on the trigger
+                            break
+                elif u.triggers.mode == "boost":
+                    i = bisect.bisect_left(times, t - 0.3)
+                    if i < len(mine) and mine[i][0] < t + step:
+                        hit = mine[i]
                 if u.triggers.mode == "require":
                     trig_gain = 1.0 if hit else u.triggers.min_gain
                 else:
@@ -535,13 +549,15 @@ def _plan_layer(
             if start + l_d > duration_s and layer != "posture":
                 continue  # a posture may outlast the clip (it is seen being held)
             phi_time = 0.0 if start < wait_until[u.behaviour] else library.steady_time
+            near = range(bisect.bisect_left(above_starts, start - longest - 1e-9),
+                         bisect.bisect_left(above_starts, start + l_d))  # fmt: skip
             omega_l = (
                 0.0
                 if any(
-                    e.start_s < start + l_d
-                    and start < e.end_s
-                    and channels[u.behaviour] & set(e.channels)
-                    for e in upper
+                    above[i].start_s < start + l_d
+                    and start < above[i].end_s
+                    and channels[u.behaviour] & above_channels[i]
+                    for i in near
                 )
                 else 1.0
             )
