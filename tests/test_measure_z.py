@@ -141,8 +141,32 @@ def test_capture_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     with pytest.raises(StageError, match="times must increase"):
         read_capture(tmp_path / "nantime.csv")
     (tmp_path / "on.csv").write_text("capture,vowel,onset_s\nok,a,nan\n")
-    with pytest.raises(StageError, match=r"on\.csv:2: .*onset_s 'nan' is not a time"):
+    with pytest.raises(StageError, match=r"on\.csv:2: onset_s is 'nan', expected seconds >= 0"):
         read_onsets(tmp_path / "on.csv")
+    for value in ("zero", "-0.3"):  # "zero" said Python's "could not convert string to float"
+        (tmp_path / "on.csv").write_text(f"capture,vowel,onset_s\nok,a,{value}\n")
+        with pytest.raises(StageError, match=rf"on\.csv:2: onset_s is '{value}', expected"):
+            read_onsets(tmp_path / "on.csv")
+    (tmp_path / "on.csv").write_text("capture,vowel,onset_s\nok,a,0.1\nok,a,0.1\n")
+    with pytest.raises(StageError, match=r"on\.csv:3: the onset at 0.1 s in capture 'ok' is "
+                       r"listed twice \(line 2 too\)"):  # fmt: skip
+        read_onsets(tmp_path / "on.csv")
+    (tmp_path / "on.csv").write_text("capture,vowel\nok,a\n")
+    with pytest.raises(StageError, match=r"on\.csv:1: missing column\(s\) onset_s"):
+        read_onsets(tmp_path / "on.csv")
+    # captures cut short, with a word for a number, or with no rows: named by line and column
+    lines = (tmp_path / "ok.csv").read_text().splitlines()
+    (tmp_path / "cut.csv").write_text("\n".join([*lines[:4], lines[4][: len(lines[4]) // 2]]))
+    with pytest.raises(StageError, match=r"cut\.csv:5: \d+ fields, the header has 53"):
+        read_capture(tmp_path / "cut.csv")
+    fields = lines[3].split(",")
+    fields[7] = "abc"
+    (tmp_path / "word.csv").write_text("\n".join([*lines[:3], ",".join(fields), *lines[4:]]))
+    with pytest.raises(StageError, match=r"word\.csv:4: \w+ is 'abc', expected a number"):
+        read_capture(tmp_path / "word.csv")
+    (tmp_path / "head.csv").write_text(lines[0] + "\n")
+    with pytest.raises(StageError, match=r"head\.csv: a header and no rows"):
+        read_capture(tmp_path / "head.csv")
     (tmp_path / "on.csv").write_text("capture,vowel,onset_s\nok,x,0.1\n")
     with pytest.raises(StageError, match="vowel 'x' is not one of"):
         read_onsets(tmp_path / "on.csv")
@@ -151,4 +175,7 @@ def test_capture_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
         measure_z([read_capture(tmp_path / "ok.csv")], onsets)
     assert main(["measure-z", str(tmp_path / "ok.csv"), "--out", str(tmp_path / "z.csv")]) == 2
     assert "give --onsets" in capsys.readouterr().err
+    both = ["measure-z", str(tmp_path / "ok.csv"), "--onsets", str(tmp_path / "on.csv"),
+            "--vowels", "aiueo", "--out", str(tmp_path / "z.csv")]  # fmt: skip
+    assert main(both) == 2 and "not both" in capsys.readouterr().err
     _ = json

@@ -160,6 +160,9 @@ def _cmd_measure_z(args: argparse.Namespace) -> int:
     )
 
     captures = [read_capture(p, fps=args.capture_fps) for p in args.captures]
+    if args.onsets and args.vowels:
+        raise FacelabError("give --onsets FILE or --vowels SEQUENCE, not both (the onsets are "
+                           "either listed or detected in each capture's audio)")  # fmt: skip
     if args.onsets:
         onsets = read_onsets(args.onsets)
     elif args.vowels:

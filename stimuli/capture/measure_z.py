@@ -19,6 +19,7 @@ vowel sequence spoken.
 from __future__ import annotations
 
 import csv
+import math
 import re
 from collections import defaultdict
 from collections.abc import Sequence
@@ -138,9 +139,12 @@ def _number(text: str, *, at: str, what: str) -> float:
 
 
 def _seconds(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
     if not (np.isfinite(value) and value >= 0):
-        raise ValueError(f"onset_s {text!r} is not a time >= 0")
+        raise ValueError(f"onset_s is {text.strip()!r}, expected seconds >= 0")
     return value
 
 
@@ -150,7 +154,8 @@ def read_onsets(path: Path | str) -> list[dict]:
     rows = read_rows(path, what="onsets", required=("capture", "vowel", "onset_s"),
                      expected="capture, vowel, onset_s and optionally speaker")  # fmt: skip
     out = []
-    for n, row in enumerate(rows, start=2):
+    seen: dict[tuple[str, float], int] = {}
+    for n, row in rows.located():
         try:
             vowel = row["vowel"].strip()
             if vowel not in VOWELS:
@@ -163,10 +168,13 @@ def read_onsets(path: Path | str) -> list[dict]:
                     "speaker": (row.get("speaker") or "").strip() or None,
                 }
             )
-        except (KeyError, ValueError) as exc:
-            raise StageError(
-                f"{path}:{n}: expected columns capture, vowel, onset_s ({exc})"
-            ) from None
+        except ValueError as exc:
+            raise StageError(f"{path}:{n}: {exc}") from None
+        key = (out[-1]["capture"], out[-1]["onset_s"])
+        if key in seen:
+            raise StageError(f"{path}:{n}: the onset at {key[1]:g} s in capture {key[0]!r} is "
+                             f"listed twice (line {seen[key]} too)")  # fmt: skip
+        seen[key] = n
     return out
 
 
