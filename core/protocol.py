@@ -120,6 +120,9 @@ def load_protocol_text(
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
         problem = getattr(exc, "problem", None) or str(exc)
+        where = text.splitlines()[line - 1] if line and line <= len(text.splitlines()) else ""
+        if "\t" in where[: len(where) - len(where.lstrip())]:
+            problem = "a tab indents this line; YAML indents with spaces only"
         raise ProtocolError(path, [Issue((), f"not valid YAML: {problem}", line)]) from None
     except RecursionError:  # pragma: no cover - the depth limit comes first
         raise ProtocolError(path, [Issue((), "nested too deeply")]) from None

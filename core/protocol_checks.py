@@ -72,8 +72,18 @@ def pydantic_message(err: Any) -> str:
     got = f" (got {describe(value)})" if "input" in err else ""
     message = err["msg"]
     plain = _PLAIN.get(str(err.get("type", "")))
+    ctx = err.get("ctx") or {}
     if plain is not None:  # the common type errors in words, not the library's
         message = plain
+    elif err.get("type") == "too_short":  # a list or mapping
+        n = ctx.get("min_length", 1)
+        message = f"expected at least {n} {'entry' if n == 1 else 'entries'}"
+    elif err.get("type") == "too_long":
+        message = f"expected at most {ctx.get('max_length')} entries"
+    elif err.get("type") == "string_too_short":
+        message = "expected a text (not empty)"
+    elif err.get("type") == "string_too_long":
+        message = f"expected at most {ctx.get('max_length')} characters"
     elif message.startswith("Value error, "):
         message = message[len("Value error, ") :]
         got = ""

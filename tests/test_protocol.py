@@ -197,6 +197,24 @@ BROKEN: list[tuple[str, tuple[str, str], str, list[str]]] = [
         ["conditions[0].label", "no 'fr' text"],
     ),
     (
+        "tab indentation",
+        ("  participants_planned: 8\n", "\tparticipants_planned: 8\n"),
+        "participants_planned: 8",
+        ["a tab indents this line; YAML indents with spaces only"],
+    ),
+    (
+        "empty list",
+        ("background: [0.5, 0.5, 0.5]", "background: [0.5, 0.5]"),
+        "background: [0.5, 0.5]",
+        ["rendering.background", "expected at least 3 entries"],
+    ),
+    (
+        "empty title",
+        ("  title: Vowel-driven blendshape", '  title: ""\n  x_title: Vowel-driven blendshape'),
+        'title: ""',
+        ["study.title", "expected a text (not empty)"],
+    ),
+    (
         "simulated effect not a number",
         ("effects: {baseline: 0, standard: 15,", "effects: {baseline: 0, standard: .nan,"),
         "effects: {baseline: 0, standard: .nan,",
