@@ -8,7 +8,7 @@ from pathlib import Path
 
 from facelab.errors import FacelabError, StageError
 
-__all__ = ["Rows", "read_rows", "read_text"]
+__all__ = ["Rows", "read_json", "read_rows", "read_text"]
 
 
 def read_text(
@@ -41,6 +41,22 @@ def read_text(
         raise error(f"{name}: file not found") from None
     except OSError as exc:
         raise error(f"{name}: cannot read ({exc.strerror or 'the system refused'})") from None
+
+
+def read_json(
+    path: Path | str, *, what: str = "", error: type[FacelabError] = StageError
+) -> object:
+    """The JSON value in the file at ``path``; ``error`` names the file and the line and
+    column where it stops being JSON (not the parser's wording)."""
+    import json
+
+    path = Path(path)
+    name = f"{what} {path}" if what else str(path)
+    text = read_text(path, what=what, error=error)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{name}:{exc.lineno}: not valid JSON (at column {exc.colno})") from None
 
 
 class Rows(list):

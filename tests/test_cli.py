@@ -290,6 +290,34 @@ def test_export_never_writes_into_a_database_that_is_not_facelabs(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.db", "notes.sqlite"]
 
 
+def test_json_inputs_that_are_broken_or_of_the_wrong_shape_are_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A broken JSON file said the parser's 'Expecting property name enclosed in double
+    quotes', a missing one Python's errno text, a key's text value 'could not convert string
+    to float', a library of the wrong shape pydantic's 'Field required'."""
+    broken = tmp_path / "broken.json"
+    broken.write_text("{\n", encoding="utf-8")
+    keys = tmp_path / "keys.json"
+    keys.write_text('[{"time_s": "x", "joy": 1}]', encoding="utf-8")
+    shape = tmp_path / "shape.json"
+    shape.write_text('{"units": 3}', encoding="utf-8")
+    plan = ["behaviour", "plan", "--text", "こんにちは", "--duration-s", "3", "--seed", "1",
+            "--out", str(tmp_path / "plan.json")]  # fmt: skip
+    for argv, said in (
+        ([*plan, "--emotion-timeline", str(broken)], "broken.json:2: not valid JSON"),
+        ([*plan, "--emotion-timeline", str(tmp_path / "none.json")], "none.json: file not found"),
+        ([*plan, "--emotion-timeline", str(keys)], 'key 1 is {"time_s": "x", "joy": 1}'),
+        ([*plan, "--emotion", "joy=1", "--library", str(shape)], "units: expected a list (got 3)"),
+        (["impression", "render", str(broken), "--expression", "e", "--levels", "0.5", "--out",
+          str(tmp_path / "clips")], "broken.json:2: not valid JSON (at column 1)"),
+    ):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err and "Errno" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.json", "keys.json", "shape.json"]
+
+
 @pytest.mark.parametrize("value", ["nan", "inf", "1000000", "x"])
 def test_a_simulated_effect_must_be_rating_points(
     kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from facelab.errors import StageError
-from facelab.textfiles import read_rows
+from facelab.textfiles import read_json, read_rows
 
 
 def _table(tmp_path: Path, data: bytes | str) -> Path:
@@ -55,3 +55,12 @@ def test_a_folder_or_a_missing_file_is_named(tmp_path: Path) -> None:
         read_rows(tmp_path)
     with pytest.raises(StageError, match=r"nothing\.csv: file not found"):
         read_rows(tmp_path / "nothing.csv")
+
+
+def test_json_that_does_not_parse_is_named_at_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "x.json"
+    path.write_text('{\n  "a": 1,\n  b: 2\n}\n', encoding="utf-8")
+    with pytest.raises(StageError, match=r"model .*x\.json:3: not valid JSON \(at column 3\)"):
+        read_json(path, what="model")
+    path.write_text('[{"a": 1}]', encoding="utf-8")
+    assert read_json(path) == [{"a": 1}]

@@ -98,18 +98,30 @@ def _cues(args: argparse.Namespace, pad_s: float):
 def _timeline(path: Path):
     """``[{"time_s": 0, "joy": 0.8}, {"time_s": 5, "sadness": 0.6}, …]`` -> a timeline
     (the shape a protocol's ``emotion:`` timeline has)."""
-    from facelab.stimuli.behaviour.clip import emotion_timeline
+    import math
 
+    from facelab.stimuli.behaviour.clip import emotion_timeline
+    from facelab.textfiles import read_json
+
+    shape = '[{"time_s": 0, "joy": 0.8}, {"time_s": 5, "sadness": 0.6}, …]'
+    keys = read_json(path, what="--emotion-timeline", error=FacelabError)
+    if not isinstance(keys, list) or not keys:
+        raise FacelabError(f"--emotion-timeline {path}: expected a JSON list of keys, {shape}")
+    for i, key in enumerate(keys, start=1):
+        numbers = isinstance(key, dict) and all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            for v in key.values()
+        )  # fmt: skip
+        if not numbers or "time_s" not in key:
+            raise FacelabError(
+                f"--emotion-timeline {path}: key {i} is "
+                f"{json.dumps(key, ensure_ascii=False)[:80]}; expected a time_s and emotion "
+                f"values, all numbers, e.g. {shape}"
+            )
     try:
-        keys = json.loads(path.read_text(encoding="utf-8"))
-        if not isinstance(keys, list):
-            raise TypeError(f"a {type(keys).__name__}, not a list")
         return emotion_timeline(keys)
-    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
-        raise FacelabError(
-            f'--emotion-timeline {path}: expected a JSON list of {{"time_s": s, emotion: '
-            f"value…}} ({exc})"
-        ) from None
+    except ValueError as exc:
+        raise FacelabError(f"--emotion-timeline {path}: {exc}") from None
 
 
 def _plan(args: argparse.Namespace) -> int:

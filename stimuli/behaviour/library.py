@@ -37,9 +37,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from facelab.emotions import EMOTIONS
 from facelab.errors import BehaviourError
+from facelab.protocol_checks import pydantic_message
 from facelab.protocol_yaml import read_data
 from facelab.resources import package_file
 from facelab.stimuli.arkit import ARKIT_NAMES
+from facelab.textfiles import read_text
 
 __all__ = [
     "EMOTIONS",
@@ -304,11 +306,11 @@ def load_library(path: Path | str) -> Library:
     path = Path(path)
     if not path.is_file():
         raise BehaviourError(f"{path}: no such behaviour library")
+    text = read_text(path, error=BehaviourError)
     try:
-        text = path.read_text(encoding="utf-8")
         data = read_data(text, json_too=path.suffix.lower() == ".json")
-    except (OSError, ValueError) as exc:
-        raise BehaviourError(f"{path}: not readable as JSON/YAML ({exc})") from None
+    except ValueError as exc:  # read_data's own words (a refused alias bomb, a line)
+        raise BehaviourError(f"{path}: not readable as JSON or YAML ({exc})") from None
     if not isinstance(data, dict):
         raise BehaviourError(f"{path}: a library is a mapping with 'units'")
     try:
@@ -321,7 +323,7 @@ def load_library(path: Path | str) -> Library:
             units = data.get("units") or []
             if isinstance(idx, int) and idx < len(units) and isinstance(units[idx], dict):
                 where += f" (behaviour {units[idx].get('behaviour')!r})"
-        raise BehaviourError(f"{path}: {where}: {first['msg']}") from None
+        raise BehaviourError(f"{path}: {where}: {pydantic_message(first)}") from None
 
 
 _DEFAULT: Library | None = None

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -46,7 +45,7 @@ from facelab.errors import StageError
 from facelab.formats import IMPRESSION_FORMAT
 from facelab.stimuli.arkit import ARKIT_NAMES, canonical_arkit_name
 from facelab.stimuli.capture.zmatrix import load_z
-from facelab.textfiles import read_rows, read_text
+from facelab.textfiles import read_json, read_rows, read_text
 
 __all__ = [
     "DIRECTION_METHODS",
@@ -685,10 +684,7 @@ class ImpressionModel:
     @classmethod
     def load(cls, path: Path) -> ImpressionModel:
         path = Path(path)
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise StageError(f"{path}: cannot read the impression model ({exc})") from None
+        data = read_json(path, what="impression model")
         return cls.from_json(data, where=str(path))
 
 
