@@ -22,6 +22,9 @@ __all__ = ["find_logs", "frame_from_rows", "load_log", "load_results", "session_
 def find_logs(results: Path | str) -> list[Path]:
     """All session TSVs below ``results`` (a results root or one study's folder), sorted."""
     root = Path(results)
+    if root.is_file():
+        raise AnalysisError(f"{root} is a file; expected the results folder (results/ or one "
+                            "study's folder)")  # fmt: skip
     if not root.is_dir():
         raise AnalysisError(f"results folder not found: {root}")
     return sorted(root.rglob("sub-*/ses-*/sub-*_beh.tsv"))

@@ -134,10 +134,12 @@ def _z_problems(z: str, base_dir: Path, where: tuple[str | int, ...]) -> Iterato
         return
     z_path = base_dir / z
     if z_path.suffix.lower() != ".csv" or not z_path.is_file():
+        found = ("is a folder" if z_path.is_dir() else "is not a .csv file"
+                 if z_path.exists() else "was not found")  # fmt: skip
         yield (
             where,
             f"expected one of {', '.join(BUILTIN_Z)} or an existing .csv file "
-            f"(52 rows x 5 vowels); {z_path} was not found",
+            f"(52 rows x 5 vowels); {z_path} {found}",
         )
 
 

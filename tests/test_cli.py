@@ -290,6 +290,29 @@ def test_export_never_writes_into_a_database_that_is_not_facelabs(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.db", "notes.sqlite"]
 
 
+def test_folders_for_files_and_refused_writes_are_said_in_words(
+    kato_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A folder given for an avatar said 'file not found', and one given for a Z matrix
+    'was not found'; a write the system refused (--out under /proc) was a traceback."""
+    folder = tmp_path / "head.glb"
+    folder.mkdir()
+    assert main(["avatar", "inspect", str(folder)]) == 2
+    assert "head.glb: is a folder, not a file" in capsys.readouterr().err
+    protocol = tmp_path / "p.yaml"
+    text = kato_path.read_text(encoding="utf-8")
+    protocol.write_text(text.replace("{z: standard,", f"{{z: {tmp_path},", 1), encoding="utf-8")
+    assert main(["validate", str(protocol)]) == 2
+    assert f"{tmp_path} is a folder" in capsys.readouterr().err
+    results = tmp_path / "results"
+    assert main(["simulate", str(kato_path), "--participants", "2", "--sim-seed", "1",
+                 "--results", str(results)]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["analyze", str(kato_path), str(results), "--out", "/proc/facelab-nope"]) == 2
+    err = capsys.readouterr().err
+    assert "/proc/facelab-nope: the system refused it" in err and "Traceback" not in err
+
+
 def test_json_inputs_that_are_broken_or_of_the_wrong_shape_are_named(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -79,3 +79,6 @@ def test_score_typed_command_writes_the_table(tmp_path, capsys) -> None:
     assert main(["score-typed", str(bad), "--out", str(out), "--force"]) == 0
     row = pd.read_csv(out).iloc[0]
     assert row["response"] == "今日は,晴れです" and row["mora_score"] == 1.0
+    bad.write_text("target,response\nあさ,あさ\n ,あさ\n", encoding="utf-8")  # was scored 0
+    assert main(["score-typed", str(bad)]) == 2
+    assert "bad.csv:3: the target (what was said) is empty" in capsys.readouterr().err

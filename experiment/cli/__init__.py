@@ -154,6 +154,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `facelab design ... | head`
         sys.stderr.close()
         return 0
+    except OSError as exc:  # a file or folder the system refused (a full disk, /proc, rights)
+        if exc.filename is None:
+            raise
+        print(
+            f"facelab {args.command}: error: {exc.filename}: the system refused it "
+            f"({exc.strerror or 'no reason given'}); nothing after it was done",
+            file=sys.stderr,
+        )
+        return 2
     except ModuleNotFoundError as exc:
         extra = _EXTRA_OF.get((exc.name or "").split(".")[0])
         if extra is None:

@@ -613,6 +613,9 @@ def _cmd_score_typed(args: argparse.Namespace) -> int:
         path, required=("target", "response"), error=FacelabError,
         expected="target, response and optionally keywords (space-separated)",
     )  # fmt: skip
+    for line, row in rows.located():
+        if not row["target"].strip():
+            raise FacelabError(f"{path}:{line}: the target (what was said) is empty")
     pairs = pd.DataFrame(list(rows), columns=rows.header, dtype=str)
     table = score_table(pairs, reader=pronunciation, split=morae, tolerant=not args.strict)
     if args.out:

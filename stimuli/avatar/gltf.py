@@ -90,7 +90,8 @@ def open_gltf(path: Path) -> tuple[pygltflib.GLTF2, list[bytes]]:
     if suffix not in (".gltf", ".glb", ".vrm"):
         raise AvatarError(f"{path}: expected a .gltf or .glb file (or .vrm)")
     if not path.is_file():
-        raise AvatarError(f"{path}: file not found")
+        what = "is a folder, not a file" if path.is_dir() else "file not found"
+        raise AvatarError(f"{path}: {what}")
     raw = path.read_bytes()
     text = _glb_json(raw, path) if suffix in (".glb", ".vrm") else _gltf_json(raw, path)
     try:
