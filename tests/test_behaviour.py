@@ -163,6 +163,10 @@ def test_annotation_tables_as_spreadsheets_save_them(tmp_path: Path) -> None:
     (tmp_path / "long.csv").write_text("\n".join(lines), encoding="utf-8")
     with pytest.raises(BehaviourError, match=r"long\.csv:5: 6 fields, the header has 5"):
         read_annotations(tmp_path / "long.csv")
+    # pympi's own words ("Unable to parse eaf", a KeyError's 'VERSION') are not the message
+    (tmp_path / "bare.eaf").write_text("<ANNOTATION_DOCUMENT></ANNOTATION_DOCUMENT>\n")
+    with pytest.raises(BehaviourError, match=r"bare\.eaf: not a readable ELAN file \(an \.eaf "):
+        read_annotations(tmp_path / "bare.eaf")
 
 
 def test_elan_file_reads_like_the_csv(tmp_path: Path) -> None:

@@ -207,7 +207,8 @@ def test_a_log_begun_before_scores_goes_on_in_its_own_columns(tmp_path) -> None:
     assert resumed.columns == LOG_COLUMNS_V2
     row = {c: None for c in LOG_COLUMNS} | {
         "study": "s", "participant": "P1", "session": 1, "trial_index": 1, "item": "vas",
-        "rating": 50.0, "rt_s": 1.0, "timestamp": "t", "simulated": False,
+        "rating": 50.0, "rt_s": 1.0, "timestamp": "2026-12-07T09:00:00.000+00:00",
+        "simulated": False,
     }  # fmt: skip
     resumed.append(row)
     lines = log.paths.tsv.read_text(encoding="utf-8").splitlines()

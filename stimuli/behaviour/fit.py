@@ -66,8 +66,11 @@ def _read_eaf(path: Path) -> pd.DataFrame:
         raise BehaviourError("reading .eaf needs pympi-ling (pip install pympi-ling)") from None
     try:
         eaf = Eaf(str(path))
-    except Exception as exc:  # pympi raises bare exceptions on malformed XML
-        raise BehaviourError(f"{path}: not a readable ELAN file ({exc})") from None
+    except Exception:  # pympi raises bare exceptions (and KeyErrors) on malformed XML
+        raise BehaviourError(
+            f"{path}: not a readable ELAN file (an .eaf as ELAN saves it: an "
+            "ANNOTATION_DOCUMENT with its header, time slots and tiers)"
+        ) from None
     tiers = set(eaf.get_tier_names())
     if "emotion" not in tiers:
         raise BehaviourError(f"{path}: needs a tier 'emotion'; tiers: {', '.join(sorted(tiers))}")
