@@ -89,17 +89,34 @@ def test_viseme_csv_drives_the_viseme_targets(tmp_path: Path) -> None:
     )
 
 
+def _without_column(text: str, name: str) -> str:
+    lines = text.splitlines()
+    drop = lines[0].split(",").index(name)
+    return "".join(",".join(f for k, f in enumerate(line.split(",")) if k != drop) + "\n"
+                   for line in lines)  # fmt: skip
+
+
+def _with_a_field_too_many(text: str) -> str:
+    """The first frame's line with one more value than the header has columns (it was read,
+    the value ignored)."""
+    header, first, rest = text.split("\n", 2)
+    return f"{header}\n{first},0.5\n{rest}"
+
+
 @pytest.mark.parametrize(
     ("edit", "expected"),
     [
         (lambda s: s.replace("JawOpen", "JawOpenWide"),
          "unknown channel(s) JawOpenWide; expected ARKit blendshape names"),
-        (lambda s: s.replace(",MouthFunnel", ",BlendShapeCount"), "missing channel(s) mouthFunnel"),
+        (lambda s: _without_column(s, "MouthFunnel"), "missing channel(s) mouthFunnel"),
+        (lambda s: s.replace(",MouthFunnel", ",BlendShapeCount"),
+         ":1: column(s) named twice in the header: BlendShapeCount"),
+        (_with_a_field_too_many, ":2: 64 fields, the header has 63"),
         (lambda s: s.replace("00:00:37:05.000", "37:05"), "line 12: Timecode '37:05'"),
         (lambda s: s.replace("0.000000", "x", 1), "line 2, column "),
         (lambda s: s.replace("0.000000", "3.5"), "to 3.5; expected 0-1"),
     ],
-    ids=["unknown", "missing", "timecode", "not-a-number", "range"],
+    ids=["unknown", "missing", "twice", "extra-field", "timecode", "not-a-number", "range"],
 )
 def test_unusable_captures_are_refused_in_words(tmp_path: Path, edit, expected: str) -> None:
     _, w = _truth(60)

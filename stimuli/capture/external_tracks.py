@@ -30,7 +30,6 @@ library (glTF through :mod:`facelab.stimuli.avatar.gltf`).
 from __future__ import annotations
 
 import csv
-import io
 import json
 import re
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ import numpy as np
 
 from facelab.errors import StageError
 from facelab.stimuli.arkit import ARKIT_NAMES, OCULUS_VISEMES, VISEME_TARGETS, canonical_arkit_name
+from facelab.textfiles import read_rows
 
 __all__ = ["FORMATS", "CapturedTrack", "detect_format", "read_capture", "resample"]
 
@@ -112,27 +112,29 @@ def _csv_header(path: Path) -> list[str]:
     return next(csv.reader([first]))
 
 
-def _csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
-    text = path.read_text(encoding="utf-8-sig")
-    rows = [r for r in csv.reader(io.StringIO(text))]
-    if len(rows) < 2:
+def _csv_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
+    """The header, the frames' fields and each frame's line (the strict table reader: a
+    row with a field too many or too few is refused at its line)."""
+    table = read_rows(path)
+    if not table:
         raise _bad(path, "expected a header line and at least one frame")
-    return rows[0], rows[1:]
+    return table.header, [[r[h] for h in table.header] for r in table], table.lines
 
 
-def _numbers(path: Path, rows: list[list[str]], cols: list[int], header: list[str]) -> np.ndarray:
+def _numbers(
+    path: Path, rows: list[list[str]], cols: list[int], header: list[str], lines: list[int]
+) -> np.ndarray:
     out = np.zeros((len(rows), len(cols)))
     for i, row in enumerate(rows):
         for j, c in enumerate(cols):
             try:
                 out[i, j] = float(row[c])
-            except (IndexError, ValueError):
-                cell = row[c] if c < len(row) else "(missing)"
-                raise _bad(path, f"line {i + 2}, column {header[c]!r}: {cell!r} is not a "
+            except ValueError:
+                raise _bad(path, f"line {lines[i]}, column {header[c]!r}: {row[c]!r} is not a "
                            "number") from None  # fmt: skip
     if not np.isfinite(out).all():
         i = int(np.argwhere(~np.isfinite(out))[0][0])
-        raise _bad(path, f"line {i + 2}: a value is not finite")
+        raise _bad(path, f"line {lines[i]}: a value is not finite")
     return out
 
 
@@ -170,7 +172,7 @@ _TIMECODE = re.compile(r"^(\d+):(\d{1,2}):(\d{1,2})[:;](\d{1,3})(?:\.(\d+))?$")
 
 
 def _live_link_face(path: Path, *, fps: float | None) -> CapturedTrack:
-    header, rows = _csv_rows(path)
+    header, rows, lines = _csv_rows(path)
     lower = [h.strip().lower() for h in header]
     tc = lower.index("timecode")
     parts = []
@@ -199,11 +201,11 @@ def _live_link_face(path: Path, *, fps: float | None) -> CapturedTrack:
         raise _bad(path, f"line {i + 2}: the Timecode does not advance")
     found = _named(path, header, _LLF_EXTRA, kind="arkit")
     cols = list(found)
-    weights = _numbers(path, rows, cols, header)
+    weights = _numbers(path, rows, cols, header, lines)
     angle_names = _LLF_EXTRA - {"timecode", "blendshapecount"}
     angle_cols = [c for c, h in enumerate(lower) if h in angle_names]
     angles = dict(zip((header[c].strip() for c in angle_cols),
-                      _numbers(path, rows, angle_cols, header).T, strict=True))  # fmt: skip
+                      _numbers(path, rows, angle_cols, header, lines).T, strict=True))  # fmt: skip
     capture_fps = float(round(1.0 / float(np.median(np.diff(times))), 2)) if len(times) > 1 \
         else fps  # fmt: skip
     notes = {"timecode_fps": fps, "timecode_fps_source": note, "capture_fps": capture_fps}
@@ -212,16 +214,16 @@ def _live_link_face(path: Path, *, fps: float | None) -> CapturedTrack:
 
 
 def _viseme_csv(path: Path) -> CapturedTrack:
-    header, rows = _csv_rows(path)
+    header, rows, lines = _csv_rows(path)
     lower = [h.strip().lower() for h in header]
     time_col = next((lower.index(t) for t in _TIME_COLUMNS if t in lower), None)
     if time_col is None:
         raise _bad(path, f"no time column: expected one of {', '.join(_TIME_COLUMNS)} (seconds)")
     found = _named(path, header, {lower[time_col]}, kind="viseme")
     cols = list(found)
-    times = _numbers(path, rows, [time_col], header)[:, 0]
+    times = _numbers(path, rows, [time_col], header, lines)[:, 0]
     _increasing(path, times, first_line=2)
-    return CapturedTrack(times - times[0], _numbers(path, rows, cols, header),
+    return CapturedTrack(times - times[0], _numbers(path, rows, cols, header, lines),
                          tuple(found[c] for c in cols), "viseme_csv")  # fmt: skip
 
 
