@@ -108,18 +108,17 @@ def read_rows(
         delimiter = max(SEPARATORS, key=first.count)
     reader = csv.reader(lines, delimiter=delimiter, strict=True)
     header: list[str] | None = None
-    trailing = False
     rows: list[dict[str, str]] = []
-    lines: list[int] = []
+    at: list[int] = []  # each row's line
     try:
         for fields in reader:
             if not any(f.strip() for f in fields):
                 continue
             if header is None:
                 header = [f.strip() for f in fields]
-                # a trailing separator on every line (some exporters write one) names no column
-                trailing = len(header) > 1 and header[-1] == ""
-                if trailing:
+                # a separator ending the header line (some exporters end every line with
+                # one) names no column
+                if len(header) > 1 and header[-1] == "":
                     header.pop()
                 _check_header(header, name=f"{name}:{reader.line_num}", error=error)
                 missing = [c for c in required if c not in header]
@@ -129,7 +128,9 @@ def read_rows(
                         f"expected {want} in the header line"
                     )
                 continue
-            if trailing and len(fields) == len(header) + 1 and not fields[-1].strip():
+            # empty fields past the header's last column: a separator ending the line (some
+            # exporters end every data line with one)
+            while len(fields) > len(header) and not fields[-1].strip():
                 fields = fields[:-1]
             if len(fields) != len(header):
                 raise error(
@@ -138,14 +139,14 @@ def read_rows(
                     f"{SEPARATORS.get(delimiter, repr(delimiter))} between double quotes)"
                 )
             rows.append(dict(zip(header, fields, strict=True)))
-            lines.append(reader.line_num)
+            at.append(reader.line_num)
     except csv.Error:
         raise error(
             f"{name}:{reader.line_num}: a value's double quotes are not closed, or text "
             "follows a closing quote"
         ) from None
     assert header is not None  # a non-blank line was there
-    return Rows(header, rows, lines)
+    return Rows(header, rows, at)
 
 
 def _check_header(header: list[str], *, name: str, error: type[FacelabError]) -> None:

@@ -21,8 +21,10 @@ def test_rows_come_with_their_header_and_lines(tmp_path: Path) -> None:
     rows = read_rows(_table(tmp_path, "\ufeffa,b\n\n1,\"x,y\"\n2,z\n"), required=("a", "b"))
     assert rows == [{"a": "1", "b": "x,y"}, {"a": "2", "b": "z"}]
     assert rows.header == ["a", "b"] and rows.lines == [3, 4]  # the BOM dropped, a blank skipped
-    # a separator at the end of every line names no column
+    # a separator at the end of every line, or of the data lines only, names no column
     assert read_rows(_table(tmp_path, "a,b,\n1,2,\n")) == [{"a": "1", "b": "2"}]
+    assert read_rows(_table(tmp_path, "a,b\n1,2,\n3,4\n")) == [{"a": "1", "b": "2"},
+                                                                {"a": "3", "b": "4"}]  # fmt: skip
     # tab- or semicolon-separated when asked to tell them apart
     assert read_rows(_table(tmp_path, "a\tb\n1\t2\n"), delimiter=None) == [{"a": "1", "b": "2"}]
     assert read_rows(_table(tmp_path, "a;b\n1;2,5\n"), delimiter=None) == [{"a": "1", "b": "2,5"}]
