@@ -7,13 +7,14 @@ one study only, no rating given twice, ratings inside the scale, no missing rati
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pandas as pd
 
 from facelab.errors import AnalysisError, StageError
-from facelab.sessionlog import LOG_COLUMNS, log_identity, parse_log_text
+from facelab.sessionlog import LOG_COLUMNS, log_identity, parse_log_text, session_paths
 from facelab.textfiles import read_text
 
 __all__ = ["find_logs", "frame_from_rows", "load_log", "load_results", "session_summary"]
@@ -103,13 +104,21 @@ def sessions_without_responses(results: Path | str, *, study: str) -> list[str]:
     names them."""
     out = []
     for folder in sorted(Path(results).rglob("sub-*/ses-*")):
-        if not folder.is_dir():
+        participant = folder.parent.name.removeprefix("sub-")
+        session = folder.name.removeprefix("ses-")
+        if not folder.is_dir() or not session.isdigit():
             continue
-        mine = [p for p in folder.iterdir() if f"_task-{study}_" in p.name and p.is_file()]
-        logs = [p for p in mine if p.name.endswith("_beh.tsv")]
+        try:  # the names of this study's session files (not those of a study named alike)
+            paths = session_paths(".", study=study, participant=participant, session=int(session))
+        except StageError:
+            continue
+        names = {getattr(paths, f.name).name for f in dataclasses.fields(paths)
+                 if f.name != "folder"}  # fmt: skip
+        mine = sorted(p for p in folder.iterdir() if p.name in names and p.is_file())
+        logs = [p for p in mine if p.name == paths.tsv.name]
         if not mine:
             continue
-        name = f"{folder.parent.name.removeprefix('sub-')}/{folder.name.removeprefix('ses-')}"
+        name = f"{participant}/{session}"
         if not logs:
             out.append(f"{name} (no response log beside its {mine[0].name})")
             continue

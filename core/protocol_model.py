@@ -884,10 +884,11 @@ class Rendering(_Model):
 # ------------------------------------------------------------------ simulation, reported results
 
 
-#: a simulated condition effect: rating points added to the mean (a VAS spans at most 100)
-EffectPoints = Annotated[float, Field(ge=-100, le=100)]
-#: a probability in a simulated confusion row
-Probability = Annotated[float, Field(ge=0, le=1)]
+#: a simulated condition effect: rating points added to the mean, a finite number
+EffectPoints = Annotated[float, Field(allow_inf_nan=False)]
+#: a weight in a simulated confusion row (rows are normalised: probabilities, percentages or
+#: counts alike), finite and not negative
+Weight = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 
 
 class SimulationModel(_Model):
@@ -937,11 +938,11 @@ class Identifier(_Model):
         default_factory=dict,
         description="Condition id -> accuracy in that condition (replaces 'accuracy' there).",
     )
-    confusion: dict[Id, dict[Id, Probability]] = Field(
+    confusion: dict[Id, dict[Id, Weight]] = Field(
         default_factory=dict,
         description="Portrayed label -> {chosen label: probability}; rows replace 'accuracy'.",
     )
-    condition_confusion: dict[Id, dict[Id, dict[Id, Probability]]] = Field(
+    condition_confusion: dict[Id, dict[Id, dict[Id, Weight]]] = Field(
         default_factory=dict,
         description="Condition id -> {portrayed label: {chosen label: probability}}: how "
         "that condition is read (e.g. lip-reading one animation method); its rows replace "
@@ -964,8 +965,10 @@ class TimingObserver(_Model):
         "(guesses, a bias to say yes); at most 0.6 x peak."
     )
     lapse: float = Field(0.02, ge=0, le=0.5, description="Temporal order: lapse rate.")
-    pss_sd_ms: float = Field(0.0, ge=0, le=1000, description="SD of participants' PSS.")
-    width_sd_ms: float = Field(0.0, ge=0, le=4000, description="SD of participants' widths.")
+    pss_sd_ms: float = Field(0.0, ge=0, allow_inf_nan=False, description="SD of participants' PSS.")
+    width_sd_ms: float = Field(
+        0.0, ge=0, allow_inf_nan=False, description="SD of participants' widths."
+    )
 
     @model_validator(mode="after")
     def _floor_below_peak(self) -> TimingObserver:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -99,51 +100,53 @@ def read_rows(
     name = f"{what} {path}" if what else str(path)
     want = expected or ", ".join(required)
     text = read_text(path, what=what, error=error)
-    lines = text.splitlines()
-    first = next((ln for ln in lines if ln.strip()), None)
+    first = next((ln for ln in text.splitlines() if ln.strip()), None)
     if first is None:
         raise error(f"{name}: empty; expected a header line{f' with {want}' if want else ''}, "
                     "then rows")
     if delimiter is None:
         delimiter = max(SEPARATORS, key=first.count)
-    reader = csv.reader(lines, delimiter=delimiter, strict=True)
+    # the text as one stream: a quoted value may hold a line break, and only \n and \r end
+    # a line (not the other characters str.splitlines() splits at)
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter, strict=True)
     header: list[str] | None = None
     rows: list[dict[str, str]] = []
-    at: list[int] = []  # each row's line
+    at: list[int] = []  # the line each row starts on
+    start = 1
     try:
         for fields in reader:
+            line, start = start, reader.line_num + 1
             if not any(f.strip() for f in fields):
                 continue
             if header is None:
                 header = [f.strip() for f in fields]
-                # a separator ending the header line (some exporters end every line with
-                # one) names no column
-                if len(header) > 1 and header[-1] == "":
+                # separators ending the header line (some exporters end every line with one,
+                # spreadsheets add the empty columns of their used range) name no column
+                while len(header) > 1 and header[-1] == "":
                     header.pop()
-                _check_header(header, name=f"{name}:{reader.line_num}", error=error)
+                _check_header(header, name=f"{name}:{line}", error=error)
                 missing = [c for c in required if c not in header]
                 if missing:
                     raise error(
-                        f"{name}:{reader.line_num}: missing column(s) {', '.join(missing)}; "
+                        f"{name}:{line}: missing column(s) {', '.join(missing)}; "
                         f"expected {want} in the header line"
                     )
                 continue
-            # empty fields past the header's last column: a separator ending the line (some
-            # exporters end every data line with one)
+            # empty fields past the header's last column: a separator ending the line
             while len(fields) > len(header) and not fields[-1].strip():
                 fields = fields[:-1]
             if len(fields) != len(header):
                 raise error(
-                    f"{name}:{reader.line_num}: {len(fields)} fields, the header has "
+                    f"{name}:{line}: {len(fields)} fields, the header has "
                     f"{len(header)} (put a value that contains a "
                     f"{SEPARATORS.get(delimiter, repr(delimiter))} between double quotes)"
                 )
             rows.append(dict(zip(header, fields, strict=True)))
-            at.append(reader.line_num)
+            at.append(line)
     except csv.Error:
         raise error(
-            f"{name}:{reader.line_num}: a value's double quotes are not closed, or text "
-            "follows a closing quote"
+            f"{name}:{start}: a value's double quotes are not closed by the end of the file, "
+            "or text follows a closing quote"
         ) from None
     assert header is not None  # a non-blank line was there
     return Rows(header, rows, at)

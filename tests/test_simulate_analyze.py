@@ -263,11 +263,15 @@ def test_sessions_without_responses_are_named_not_dropped_silently(
     first, second = sorted(root.rglob("*_beh.tsv"))[:2]
     first.unlink()
     second.write_text(second.read_text(encoding="utf-8").splitlines()[0] + "\n")
+    other = first.parents[1].parent / "sub-P09" / "ses-1"  # a study named alike: not this one's
+    other.mkdir(parents=True)
+    (other / "sub-P09_ses-1_task-kato2021_v2_session.json").write_text("{}", encoding="utf-8")
     out = tmp_path / "analysis"
     assert main(["analyze", str(kato_path), str(root), "--out", str(out), "--bootstrap", "0"]) == 0
     said = capsys.readouterr().out
     for where, text in ((said, "stdout"), ((out / "report.md").read_text(encoding="utf-8"), "md")):
         assert "2 session(s) hold no response and are in no table" in where, text
+        assert "P09" not in where, text
         assert "P01/1 (no response log beside its" in where and "P02/1 (its response log holds " \
             "only the header line)" in where, text
 

@@ -28,6 +28,12 @@ def test_rows_come_with_their_header_and_lines(tmp_path: Path) -> None:
     # tab- or semicolon-separated when asked to tell them apart
     assert read_rows(_table(tmp_path, "a\tb\n1\t2\n"), delimiter=None) == [{"a": "1", "b": "2"}]
     assert read_rows(_table(tmp_path, "a;b\n1;2,5\n"), delimiter=None) == [{"a": "1", "b": "2,5"}]
+    # spreadsheets' used range: empty columns named by nothing at the header's end
+    assert read_rows(_table(tmp_path, "a,b,,\n1,2,,\n")) == [{"a": "1", "b": "2"}]
+    # a quoted value keeps its line break (keywords one per line) and the next row its line;
+    # a line separator that is not \n or \r is part of the value
+    rows = read_rows(_table(tmp_path, 'a,b\n1,"x\ny"\n2,z\u2028w\n'))
+    assert rows == [{"a": "1", "b": "x\ny"}, {"a": "2", "b": "z\u2028w"}] and rows.lines == [2, 4]
     header_only = read_rows(_table(tmp_path, "a,b\n"))
     assert header_only == [] and header_only.header == ["a", "b"]
 
@@ -38,7 +44,7 @@ def test_rows_come_with_their_header_and_lines(tmp_path: Path) -> None:
         ("", r"t\.csv: empty; expected a header line with a, b"),
         ("a,b\n1,2,3\n", r"t\.csv:2: 3 fields, the header has 2 \(put a value that contains a"),
         ("a,b\n1\n", r"t\.csv:2: 1 fields, the header has 2"),
-        ("a,b\n1,\"2\n", r"t\.csv:2: a value's double quotes are not closed"),
+        ("a,b\n1,\"2\n3,4\n5,6\n", r"t\.csv:2: a value's double quotes are not closed"),
         ("a,a\n1,2\n", r"t\.csv:1: column\(s\) named twice in the header: a"),
         ("a,,b\n1,2,3\n", r"t\.csv:1: a column has no name"),
         ("x,y\n1,2\n", r"t\.csv:1: missing column\(s\) a, b; expected a, b in the header line"),

@@ -154,12 +154,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `facelab design ... | head`
         sys.stderr.close()
         return 0
-    except OSError as exc:  # a file or folder the system refused (a full disk, /proc, rights)
-        if exc.filename is None:
-            raise
+    except OSError as exc:  # the system refused a file operation (a full disk, /proc, rights)
+        if exc.errno is None:
+            raise  # not the system's refusal: a bug to see in full
+        files = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
         print(
-            f"facelab {args.command}: error: {exc.filename}: the system refused it "
-            f"({exc.strerror or 'no reason given'}); nothing after it was done",
+            f"facelab {args.command}: error: {files + ': ' if files else ''}the system refused "
+            f"a file operation ({exc.strerror or 'no reason given'}); the command stopped there",
             file=sys.stderr,
         )
         return 2

@@ -10,11 +10,11 @@ from pathlib import Path
 
 from facelab.errors import AnalysisError, FacelabError
 from facelab.experiment.cli.common import (
-    FIGURE_SUFFIXES,
     AddCommand,
     cluster_of,
     cluster_options,
     deprecated,
+    figure_suffixes,
     force_option,
     output_dir,
     output_file,
@@ -325,7 +325,7 @@ def _simulated_power(args: argparse.Namespace) -> int:
                            "leave out --pilot and --reported-p")  # fmt: skip
     if not 0 < args.power < 1:
         raise FacelabError(f"--power {args.power:g}: a target power lies strictly between 0 and 1")
-    plot = (output_file(args.plot, option="--plot", force=args.force, suffixes=FIGURE_SUFFIXES)
+    plot = (output_file(args.plot, option="--plot", force=args.force, suffixes=figure_suffixes)
             if args.plot else None)  # fmt: skip
     protocol_file = args.simulate if isinstance(args.simulate, str) else protocol_of(args)
     if isinstance(args.simulate, str):

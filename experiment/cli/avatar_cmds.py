@@ -8,10 +8,10 @@ from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
-    PICTURE_SUFFIXES,
     AddCommand,
     force_option,
     output_file,
+    picture_suffixes,
     verbs,
     whole,
 )
@@ -53,7 +53,7 @@ def _cmd_avatar(args: argparse.Namespace) -> int:
                 "facelab avatar inspect FILE: give a .glb/.gltf/.vrm file or 'default'"
             )
         sheet = (output_file(args.sheet, option="--sheet", force=args.force,
-                             suffixes=PICTURE_SUFFIXES) if args.sheet else None)  # fmt: skip
+                             suffixes=picture_suffixes) if args.sheet else None)  # fmt: skip
         avatar = _load(args.file)
         report = avatar_report(avatar)
         report["audit"] = _audit(avatar)

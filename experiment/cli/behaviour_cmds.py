@@ -9,17 +9,17 @@ from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
-    FIGURE_SUFFIXES,
-    PICTURE_SUFFIXES,
     AddCommand,
     GridProgress,
     check_options,
     cluster_of,
     cluster_options,
+    figure_suffixes,
     force_option,
     output_dir,
     output_file,
     parse_size,
+    picture_suffixes,
     real,
     say_checks,
     seed,
@@ -143,7 +143,7 @@ def _plan(args: argparse.Namespace) -> int:
     # every file the plan writes checked before the first is written
     bml = output_file(args.bml, option="--bml", force=args.force) if args.bml else None
     fig_path = (output_file(args.figure, option="--figure", force=args.force,
-                            suffixes=FIGURE_SUFFIXES) if args.figure else None)  # fmt: skip
+                            suffixes=figure_suffixes) if args.figure else None)  # fmt: skip
     library = _library(args.library)
     speech, cues = _cues(args, args.lead_s)
     layers, neutral = layers_for(args.mode)
@@ -231,7 +231,7 @@ def _sheet(args: argparse.Namespace) -> int:
 
     if not args.out:
         raise FacelabError("facelab behaviour sheet --out SHEET.png")
-    out = output_file(args.out, option="--out", force=args.force, suffixes=PICTURE_SUFFIXES)
+    out = output_file(args.out, option="--out", force=args.force, suffixes=picture_suffixes)
     avatar = load(Path(args.avatar)) if args.avatar else default_head()
     unit_sheet(out=out, avatar=avatar, library=_library(args.library))
     print(f"contact sheet of the library's units -> {out}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -209,14 +210,33 @@ def _writable_folder(folder: Path, option: str, what: str) -> None:
         raise FacelabError(f"{option} {what}: cannot write in {probe} (permission denied)")
 
 
-#: file name endings of the figures facelab draws with Matplotlib
-FIGURE_SUFFIXES = (".png", ".svg", ".pdf")
-#: file name endings of the pictures facelab saves itself (contact sheets, screenshots)
-PICTURE_SUFFIXES = (".png",)
+@functools.cache
+def figure_suffixes() -> tuple[str, ...]:
+    """File name endings of the figures facelab draws with Matplotlib: every format its
+    canvas writes (.png, .svg, .pdf, .eps, .tif, .jpg, …)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return tuple(sorted(f".{k}" for k in FigureCanvasBase.get_supported_filetypes()))
+
+
+@functools.cache
+def picture_suffixes() -> tuple[str, ...]:
+    """File name endings of the RGB pictures facelab saves with Pillow (contact sheets): the
+    common raster formats and PDF, as far as this Pillow writes them."""
+    from PIL import Image
+
+    Image.init()
+    writes = {ext for ext, fmt in Image.registered_extensions().items() if fmt in Image.SAVE}
+    common = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".bmp", ".pdf")
+    return tuple(ext for ext in common if ext in writes)
 
 
 def output_file(
-    path: str | Path, *, option: str, force: bool, suffixes: tuple[str, ...] = ()
+    path: str | Path,
+    *,
+    option: str,
+    force: bool,
+    suffixes: tuple[str, ...] | Callable[[], tuple[str, ...]] = (),
 ) -> Path:
     """A file the command will write: its folder must exist and be writable, an existing
     file is refused unless ``force`` (the one overwrite rule, ``--force``), and with
@@ -229,10 +249,14 @@ def output_file(
     if not path.parent.is_dir():
         raise FacelabError(f"{option} {path}: the folder {path.parent} does not exist")
     _writable_folder(path.parent, option, str(path))
+    if callable(suffixes):
+        suffixes = suffixes()
     if suffixes and path.suffix.lower() not in suffixes:
         raise FacelabError(
-            f"{option} {path}: expected a file name ending in {' or '.join(suffixes)} (the "
-            "picture's format)"
+            f"{option} {path}: expected a file name ending in {', '.join(suffixes[:-1])} or "
+            f"{suffixes[-1]} (the picture's format)" if len(suffixes) > 1 else
+            f"{option} {path}: expected a file name ending in {suffixes[0]} (the picture's "
+            "format)"
         )
     if path.exists() and not force:
         raise FacelabError(f"{option} {path}: exists; choose another file or pass --force")
@@ -259,11 +283,11 @@ def parse_effects(pairs: list[str] | None) -> dict[str, float] | None:
             if not sep or not name:
                 raise ValueError
             effects[name] = float(value)
-            if not -100 <= effects[name] <= 100:  # NaN too
+            if not math.isfinite(effects[name]):
                 raise ValueError
         except ValueError:
             raise FacelabError(
-                f"--effect {pair!r}: expected CONDITION=POINTS with POINTS from -100 to 100 "
+                f"--effect {pair!r}: expected CONDITION=POINTS with POINTS a finite number "
                 "(rating points), e.g. standard=15"
             ) from None
     return effects

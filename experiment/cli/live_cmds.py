@@ -8,7 +8,6 @@ from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
-    PICTURE_SUFFIXES,
     AddCommand,
     output_file,
     parse_size,
@@ -60,7 +59,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
             raise FacelabError(f"--simulate {wav}: no such audio file")
         out = output_file(args.json, option="--json", force=True) if args.json else None
         shot = output_file(args.screenshot, option="--screenshot", force=True,
-                           suffixes=PICTURE_SUFFIXES) if args.screenshot else None  # fmt: skip
+                           suffixes=(".png",)) if args.screenshot else None  # fmt: skip
         config = _config(args)
         record = simulate_live(config, wav=wav, screenshot=shot, window_size=_window_size(args))
         text = json.dumps(record, ensure_ascii=False, indent=2) + "\n"

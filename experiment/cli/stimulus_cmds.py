@@ -7,13 +7,13 @@ from pathlib import Path
 
 from facelab.errors import FacelabError
 from facelab.experiment.cli.common import (
-    FIGURE_SUFFIXES,
     AddCommand,
     GridProgress,
     check_options,
     cluster_of,
     cluster_options,
     deprecated,
+    figure_suffixes,
     force_option,
     output_dir,
     output_file,
@@ -116,7 +116,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from facelab.stimuli.speech.track import VISEMES
 
     protocol = load_protocol(args.protocol)
-    for option, value, ends in (("--csv", args.csv, ()), ("--plot", args.plot, FIGURE_SUFFIXES)):
+    for option, value, ends in (("--csv", args.csv, ()), ("--plot", args.plot, figure_suffixes)):
         if value:
             output_file(value, option=option, force=args.force, suffixes=ends)
     set_id, stim = find_stimulus(protocol, args.stimulus)

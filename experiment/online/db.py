@@ -250,20 +250,31 @@ def facelab_revision(url: str) -> str | None:
         import sqlite3
         from urllib.parse import quote
 
-        path = url.split("///", 1)[-1]
+        path = url.split("///", 1)[-1].split("?", 1)[0]
+        # a WAL database read even read-only gets -shm and -wal files: those this check
+        # makes are removed again (ones that were there stay: a server may be using them)
+        journals = [Path(path + end) for end in ("-wal", "-shm")]
+        made = [j for j in journals if not j.exists()]
         try:
             if Path(path).stat().st_size == 0:
                 return None
             con = sqlite3.connect(f"file:{quote(path)}?mode=ro", uri=True)
             try:
                 tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master")}
-                if "alembic_version" not in tables:
-                    return None
-                row = con.execute("SELECT version_num FROM alembic_version").fetchone()
+                row = (con.execute("SELECT version_num FROM alembic_version").fetchone()
+                       if "alembic_version" in tables else None)  # fmt: skip
             finally:
                 con.close()
-        except (OSError, sqlite3.Error):
-            raise SessionError(f"--db {url!r}: not a SQLite database file") from None
+        except sqlite3.DatabaseError as exc:
+            if "not a database" in str(exc):
+                raise SessionError(f"--db {url!r}: not a SQLite database file") from None
+            raise SessionError(f"--db {url!r}: cannot be opened for reading (check that its "
+                               "folder and file can be read)") from None  # fmt: skip
+        except OSError:
+            raise SessionError(f"--db {url!r}: cannot be read") from None
+        finally:
+            for journal in made:
+                journal.unlink(missing_ok=True)
         return None if row is None else str(row[0])
     from sqlalchemy import inspect as inspect_db
     from sqlalchemy import text

@@ -136,11 +136,6 @@ def check_annotations(table: pd.DataFrame, *, source: str = "annotations") -> pd
                 raise BehaviourError(
                     f"{source}: {i}: {col} {value!r} is not a number (expected seconds)"
                 )
-        if row.start_s < 0:
-            raise BehaviourError(
-                f"{source}: {i}: start_s {row.start_s} is before the recording starts "
-                "(expected seconds from its start, >= 0)"
-            )
         if row.end_s <= row.start_s:
             raise BehaviourError(
                 f"{source}: {i}: start_s {row.start_s} and end_s {row.end_s} need "
