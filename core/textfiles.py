@@ -148,7 +148,9 @@ def read_rows(
             f"{name}:{start}: a value's double quotes are not closed by the end of the file, "
             "or text follows a closing quote"
         ) from None
-    assert header is not None  # a non-blank line was there
+    if header is None:  # only separators and spaces
+        raise error(f"{name}: empty; expected a header line{f' with {want}' if want else ''}, "
+                    "then rows")
     return Rows(header, rows, at)
 
 

@@ -42,6 +42,7 @@ def test_rows_come_with_their_header_and_lines(tmp_path: Path) -> None:
     ("data", "message"),
     [
         ("", r"t\.csv: empty; expected a header line with a, b"),
+        (" , \n,,\n", r"t\.csv: empty; expected a header line with a, b"),
         ("a,b\n1,2,3\n", r"t\.csv:2: 3 fields, the header has 2 \(put a value that contains a"),
         ("a,b\n1\n", r"t\.csv:2: 1 fields, the header has 2"),
         ("a,b\n1,\"2\n3,4\n5,6\n", r"t\.csv:2: a value's double quotes are not closed"),
