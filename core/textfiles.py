@@ -99,11 +99,12 @@ def read_rows(
     path = Path(path)
     name = f"{what} {path}" if what else str(path)
     want = expected or ", ".join(required)
+    empty = error(f"{name}: empty; expected a header line{f' with {want}' if want else ''}, "
+                  "then rows")  # fmt: skip
     text = read_text(path, what=what, error=error)
     first = next((ln for ln in text.splitlines() if ln.strip()), None)
     if first is None:
-        raise error(f"{name}: empty; expected a header line{f' with {want}' if want else ''}, "
-                    "then rows")
+        raise empty
     if delimiter is None:
         delimiter = max(SEPARATORS, key=first.count)
     # the text as one stream: a quoted value may hold a line break, and only \n and \r end
@@ -149,8 +150,7 @@ def read_rows(
             "or text follows a closing quote"
         ) from None
     if header is None:  # only separators and spaces
-        raise error(f"{name}: empty; expected a header line{f' with {want}' if want else ''}, "
-                    "then rows")
+        raise empty
     return Rows(header, rows, at)
 
 

@@ -252,11 +252,10 @@ def output_file(
     if callable(suffixes):
         suffixes = suffixes()
     if suffixes and path.suffix.lower() not in suffixes:
+        *most, last = suffixes
+        ending = f"{', '.join(most)} or {last}" if most else last
         raise FacelabError(
-            f"{option} {path}: expected a file name ending in {', '.join(suffixes[:-1])} or "
-            f"{suffixes[-1]} (the picture's format)" if len(suffixes) > 1 else
-            f"{option} {path}: expected a file name ending in {suffixes[0]} (the picture's "
-            "format)"
+            f"{option} {path}: expected a file name ending in {ending} (the picture's format)"
         )
     if path.exists() and not force:
         raise FacelabError(f"{option} {path}: exists; choose another file or pass --force")
