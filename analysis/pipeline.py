@@ -137,6 +137,12 @@ def run(
                 f"--exclude: no such participant(s) in the logs: {', '.join(unknown)}"
             )
         data = data[~data["participant"].isin(list(exclude))].reset_index(drop=True)
+        if data.empty:
+            raise AnalysisError(
+                f"--exclude leaves no participant: all {len(set(exclude))} in the logs are "
+                "excluded; nothing to analyse"
+            )
+    people_notes = _participant_notes(data, exclude=exclude)
     records = playback_records(data)  # each session's _playback.jsonl, read once
     modes = session_modes(data)  # where each session ran (before any exclusion)
     data = with_live_playback(data, live_playback(records))
@@ -195,6 +201,7 @@ def run(
         tasks.tables["pilot_items"] = items
     tasks.notes.extend(item_notes)
     tasks.notes.extend(n for n in (dropped_note, offset_note, *rule_notes) if n)
+    tasks.notes.extend(people_notes)
     if empty_sessions:
         tasks.notes.append(
             f"{len(empty_sessions)} session(s) hold no response and are in no table: "
@@ -211,6 +218,28 @@ def run(
         stimulus_checks=summarize_stimulus_checks(clips),
     )
     return AnalysisRun(data=data, check=check, results=study, tasks=tasks, files=files)
+
+
+def _participant_notes(data: pd.DataFrame, *, exclude: Sequence[str]) -> list[str]:
+    """The report's notes on who is analysed: the participants ``--exclude`` left out, and
+    participants with more than one session (their answers are pooled as one participant's:
+    the repeated-measures tests average them, the paper procedure counts every answer)."""
+    notes = []
+    if exclude:
+        notes.append(f"left out by --exclude: {', '.join(sorted(set(exclude)))} (every answer "
+                     "of theirs; the tables and tests hold the other participants)")  # fmt: skip
+    sessions = data.groupby("participant")["session"].unique()
+    repeated = {str(p): sorted(int(v) for v in s) for p, s in sessions.items() if len(s) > 1}
+    if repeated:
+        listed = "; ".join(f"{p}: sessions {', '.join(map(str, s))}"
+                           for p, s in sorted(repeated.items()))  # fmt: skip
+        notes.append(
+            f"{len(repeated)} participant(s) ran more than one session ({listed}): their "
+            "answers are pooled as one participant's (the repeated-measures tests average "
+            "them; the paper procedure counts every rating); analyse a session on its own by "
+            "moving the others out of the results folder"
+        )
+    return notes
 
 
 def _ssq_tables(protocol: Protocol, rows: pd.DataFrame, tasks) -> None:

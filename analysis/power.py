@@ -143,9 +143,18 @@ def f2_from_pilot(
     """RM effect size from pilot ratings (bias-corrected), plus the pilot's own F."""
     y = cell_means(data, dv=dv, within=within, subject=subject).to_numpy()
     n, k = y.shape
+    if k < 2:
+        raise AnalysisError(f"the pilot's ratings hold {k} condition(s); an effect needs 2 or more")
     ss_cond, _, ss_err = rm_sums_of_squares(y)
     ms_err = ss_err / ((k - 1) * (n - 1))
     spread = ((y.mean(axis=0) - y.mean()) ** 2).mean()
+    if not ms_err > 1e-12 * max(1.0, float(np.abs(y).max()) ** 2):
+        raise AnalysisError(
+            "every participant rated the conditions alike" if not spread > 0 else
+            "every participant's condition means differ by exactly the same amounts (no "
+            "participant x condition variation): the error is zero and the effect unbounded; "
+            "such a pilot (or made-up data) cannot size a study"
+        )  # fmt: skip
     raw = spread / ms_err
     return {
         "n_pilot": n,

@@ -107,26 +107,38 @@ def exclude_dropped(
     """Responses to trials whose clip dropped more than ``max_dropped`` frames left out:
     ``(kept, excluded, note)``; the note (None when nothing was left out) says how many per
     condition and why."""
-    dropped = pd.to_numeric(data["clip_frames_dropped"], errors="coerce").fillna(0)
+    dropped = pd.to_numeric(data["clip_frames_dropped"], errors="coerce")
     return _exclude(
         data,
-        dropped > max_dropped,
+        dropped.fillna(0) > max_dropped,
         f"trials whose clip dropped more than {max_dropped} frames (--max-dropped-frames)",
+        measured=dropped.notna(),
     )
 
 
 def _exclude(
-    data: pd.DataFrame, over: pd.Series, why: str
-) -> tuple[pd.DataFrame, pd.DataFrame, str | None]:
+    data: pd.DataFrame, over: pd.Series, why: str, *, measured: pd.Series
+) -> tuple[pd.DataFrame, pd.DataFrame, str]:
     """``data`` split by the boolean ``over`` into kept and excluded responses, with the
-    report's note (how many responses of how many trials, per condition, and ``why``)."""
+    report's note: how many responses of how many trials, per condition, and ``why`` - or,
+    when nothing was left out, that the rule was applied and why it took nothing (no trial
+    carries the measure, or none met it). ``measured``: whether each response's trial carries
+    the measure at all (a trial without it is kept, and the note counts them)."""
     kept, excluded = data[~over].reset_index(drop=True), data[over].reset_index(drop=True)
+    trials = trials_shown(data)
+    unmeasured = len(trials) - len(trials_shown(data[measured]))
+    if not measured.any():
+        return kept, excluded, (f"{why}: no trial of the sessions carries this measure, so "
+                                "nothing was left out")  # fmt: skip
+    without = f"; {unmeasured} trial(s) without the measure kept" if unmeasured else ""
     if excluded.empty:
-        return kept, excluded, None
+        measured_n = len(trials) - unmeasured
+        return kept, excluded, (f"{why}: no trial met it, nothing was left out "
+                                f"({measured_n} trials measured{without})")  # fmt: skip
     per = trials_shown(excluded).groupby("condition").size()
     listed = ", ".join(f"{c}: {n}" for c, n in per.items())
     note = f"excluded {len(excluded)} responses of {int(per.sum())} {why}, per condition {listed}"
-    return kept, excluded, note
+    return kept, excluded, note + without
 
 
 #: the live 3D / VR views' per-clip measures (``_playback.jsonl``; facelab serve with
@@ -233,9 +245,10 @@ def exclude_trials(
 ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     """Responses to trials whose playback record meets any rule left out (``rules``: e.g.
     ``"head_yaw_range_deg > 30"``, a measure of :func:`trial_playback`, a comparison and a
-    number): ``(kept, excluded, notes)``, a note per rule that left something out (how many
-    per condition). A trial without the measure (not recorded) is kept. An unknown measure
-    or a rule that does not parse is an :class:`AnalysisError` naming what is known."""
+    number): ``(kept, excluded, notes)``, a note per rule (how many it left out per
+    condition, or why it left nothing out). A trial without the measure (not recorded) is
+    kept. An unknown measure or a rule that does not parse is an :class:`AnalysisError`
+    naming what is known."""
     table = trial_playback(records)
     known = sorted(set(table.columns) - set(_TRIAL))
     excluded_all, notes = data.iloc[:0], []
@@ -252,10 +265,11 @@ def exclude_trials(
                                           how="left")  # fmt: skip
         values = pd.to_numeric(merged[measure], errors="coerce").to_numpy(float)
         over = pd.Series(_OPS[op](values, value) & ~np.isnan(values), index=data.index)
+        has = pd.Series(~np.isnan(values), index=data.index)
         data, excluded, note = _exclude(data, over, f"trials where {measure} {op} {value:g} "
-                                        "(--exclude-trials)")  # fmt: skip
-        if note:
-            notes.append(note)
+                                        "(--exclude-trials)", measured=has)  # fmt: skip
+        notes.append(note)
+        if not excluded.empty:
             excluded_all = pd.concat([excluded_all, excluded], ignore_index=True)
     return data, excluded_all, notes
 
@@ -372,12 +386,14 @@ def exclude_av_offset(
 ) -> tuple[pd.DataFrame, pd.DataFrame, str | None]:
     """Responses to live trials whose |A/V offset| exceeded ``max_ms`` left out:
     ``(kept, excluded, note)`` as :func:`exclude_dropped`."""
-    if "av_offset_ms" not in data.columns:
-        return data, data.iloc[:0], None
-    over = pd.to_numeric(data["av_offset_ms"], errors="coerce").abs() > max_ms
+    offset = pd.Series(np.nan, index=data.index)
+    if "av_offset_ms" in data.columns:
+        offset = pd.to_numeric(data["av_offset_ms"], errors="coerce").abs()
     return _exclude(
         data,
-        over,
+        offset > max_ms,
         f"live trials whose picture and sound were more than {max_ms:g} ms apart "
-        "(--max-av-offset-ms)",
+        "(--max-av-offset-ms; measured only where clips were drawn live, display live3d or "
+        "webxr)",
+        measured=offset.notna(),
     )

@@ -14,7 +14,9 @@ scored one by one),
 the SRT (50 % right), the slope at the SRT (per dB, in [0.005, 1]) and a lapse rate in
 [0, 0.1]. The SRT's interval is a profile-likelihood interval
 (:mod:`facelab.analysis.profile_likelihood`; the slope and lapse re-fitted along it); ``note``
-names an SRT the answers do not determine (on its bound, or its interval open), and such
+names an SRT the answers do not determine (on its bound, its interval open, the answers
+never crossing 50 % within the SNRs tested, or every answer at one SNR - a track stuck at
+the procedure's easy or hard end: such a series keeps its row, without an SRT), and such
 rows are left out of the comparisons. The
 SNRs may come from a staircase (one per block) or from constant stimuli.
 
@@ -24,7 +26,8 @@ Against the series whose conditions are ``audio_only`` (the voice with a still f
   threshold), with a Wald interval from the two profile intervals' half-widths;
 * ``visual_enhancement`` - Sumby & Pollack's (1954) ``(P_AV - P_A) / (1 - P_A)`` at the
   participant's audio-only SRT, where ``P_A`` is 1/2 by definition and ``P_AV`` the series'
-  fitted P there.
+  fitted P there (not estimated, NaN, when the series' slope sits on its bound: P away from
+  the SRT is then not known).
 
 :func:`srt_tests` summarises the series and compares them within participants
 (:func:`facelab.analysis.stats.series_comparison`).
@@ -249,7 +252,13 @@ def fit_srt(
         lo, hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
                                   cutoff=chi2_cutoff(level), both=both)  # fmt: skip
     notes = []
-    if on_bound(theta[0], bounds[0]):
+    side = _unbracketed(share, srt_db=float(theta[0]), x=x)
+    if side:
+        most = "more than half" if side == "below" else "half or fewer"
+        notes.append(f"{most} right at every SNR tested ({x[0]:g} to {x[-1]:g} dB): the SRT "
+                     f"lies {side} them; the answers bound it, they do not place it (the "
+                     "procedure's SNR range does not reach this participant's threshold)")
+    elif on_bound(theta[0], bounds[0]):
         notes.append("the SRT ends on its search bound (outside the SNRs tested)")
     if math.isinf(lo) or math.isinf(hi):
         notes.append("the SRT interval reaches beyond the SNRs searched")
@@ -259,6 +268,34 @@ def fit_srt(
         slope_per_db=math.exp(theta[1]), lapse=float(theta[2]),
         deviance=binomial_deviance(k, n, p_hat), deviance_df=max(0, len(x) - 3),
         note="; ".join(notes),
+    )  # fmt: skip
+
+
+def _unbracketed(share: np.ndarray, *, srt_db: float, x: np.ndarray) -> str:
+    """``"below"`` when more than half were right at every SNR ``x`` and the fitted SRT lies
+    below them all, ``"above"`` when at most half were right everywhere and it lies above
+    them (the answers never cross 50 %: a track stuck at the procedure's easy or hard end);
+    ``""`` when the SNRs bracket it."""
+    if bool(np.all(share > 0.5)) and srt_db < x[0]:
+        return "below"
+    if bool(np.all(share <= 0.5)) and srt_db > x[-1]:
+        return "above"
+    return ""
+
+
+def _one_snr(part: pd.DataFrame) -> SrtFit:
+    """The row of a series answered at a single SNR (a track that never left one end of its
+    range, or one trial): no SRT, and the note says which side of that SNR it lies on."""
+    units = part["units"] if "units" in part else pd.Series(1.0, index=part.index)
+    hits = part["hits"] if "hits" in part else part["correct"].astype(float)
+    n, k, snr = float(units.sum()), float(hits.sum()), float(part["snr_db"].iloc[0])
+    side = "below" if k > n / 2 else "above"
+    return SrtFit(
+        n=int(n), srt_db=math.nan, srt_ci_low=math.nan, srt_ci_high=math.nan,
+        slope_per_db=math.nan, lapse=math.nan, deviance=math.nan, deviance_df=0,
+        note=(f"every answer at one SNR ({snr:g} dB, {k:g} of {n:g} right): the SRT lies "
+              f"{side} it and is not estimated (the procedure's SNR range does not reach "
+              "this participant's threshold)"),
     )  # fmt: skip
 
 
@@ -276,6 +313,7 @@ def srt_table(
     fits: dict[tuple[str, str], SrtFit] = {}
     for (pid, series), part in trials.groupby(["participant", "condition"], sort=True):
         if part["snr_db"].nunique() < 2:
+            fits[(str(pid), str(series))] = _one_snr(part)
             continue
         fits[(str(pid), str(series))] = fit_srt(part, guess=guess, level=level,
                                                 intervals=intervals)  # fmt: skip
@@ -294,9 +332,12 @@ def srt_table(
                                for f in (fit, ref)))  # fmt: skip
             p_av = float(p_correct(ref.srt_db, srt=fit.srt_db, slope=fit.slope_per_db,
                                    guess=guess, lapse=fit.lapse))  # fmt: skip
+            # a slope on its bound says only "steeper (or shallower) than the SNRs show":
+            # P_AV away from the SRT, and so the enhancement, is then not estimated
+            steep = on_bound(math.log(fit.slope_per_db), tuple(map(math.log, SLOPE_BOUND)))
             row |= {"benefit_db": benefit, "benefit_ci_low": benefit - z * se,
                     "benefit_ci_high": benefit + z * se,
-                    "visual_enhancement": (p_av - 0.5) / 0.5}  # fmt: skip
+                    "visual_enhancement": math.nan if steep else (p_av - 0.5) / 0.5}  # fmt: skip
         out.append(row)
     frame = pd.DataFrame(out, columns=list(SRT_COLUMNS))
     rank = {s: i for i, s in enumerate(order)}

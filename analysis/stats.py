@@ -25,7 +25,7 @@ from __future__ import annotations
 import functools
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from typing import Any, Literal
 
@@ -269,7 +269,9 @@ def _sphericity(y: np.ndarray) -> tuple[float, float, float, float]:
     if p == 1:
         return 1.0, 1.0, 1.0, 1.0
     den = p * (n - 1 - p * eps_gg)
-    eps_hf = min(1.0, (n * p * eps_gg - 2) / den) if den > 0 else float("nan")
+    # at n - 1 = p eps_gg (two participants: eps_gg = 1/p exactly) the estimate is 0/0; the
+    # rounding of eps_gg must not turn it into a number (-1 was reported)
+    eps_hf = min(1.0, (n * p * eps_gg - 2) / den) if den > 1e-9 * p * n else float("nan")
     if n - 1 <= p:  # the covariance is singular: Mauchly's test is undefined (as in R)
         return float("nan"), float("nan"), float(eps_gg), eps_hf
     w = np.linalg.det(cov) / (trace / p) ** p
@@ -380,6 +382,9 @@ def friedman(data: pd.DataFrame, *, dv: str, within: str, subject: str) -> pd.Da
     n, k = y.shape
     if k < 3:
         raise AnalysisError("the Friedman test needs at least 3 levels (use a Wilcoxon test for 2)")
+    if n < 2 or bool(np.all(y == y[:, :1])):
+        raise AnalysisError("every participant's means are tied across the conditions: no "
+                            "ranks differ" if n >= 2 else "it needs two or more participants")
     chi2, p = stats.friedmanchisquare(*y.T)
     return pd.DataFrame([{"chi2": chi2, "df": k - 1, "p": p, "kendall_w": chi2 / (n * (k - 1))}])
 
@@ -694,6 +699,7 @@ def series_comparison(
     series: str = "condition",
     subject: str = "participant",
     note: str = "note",
+    concerns: Mapping[str, str] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per-participant estimates (one row per participant and series, e.g. each one's
     window or threshold per animation method) summarised and compared within participants.
@@ -703,27 +709,48 @@ def series_comparison(
     ``determined`` - rows without a ``note``); per measure a repeated-measures ANOVA over the
     series (Greenhouse-Geisser p, as ``a = b = "all"``) and Holm-adjusted paired t tests
     (``measure, a, b, f, t, df, df2, p_unc, p_adj, d_z, participants``), over participants
-    with every series determined (three or more needed). Rows with a ``note`` (an estimate
-    the data do not determine) are left out of both."""
-    clean = table[table[note].fillna("").astype(str).eq("")] if note in table else table
+    with every series determined (three or more needed; a series fewer than three participants
+    determined is left out of the tests, the others compared). Rows with a ``note`` (an
+    estimate the data do not determine) are left out of both - of one measure's only, when
+    ``concerns`` maps each measure to how its notes begin (``{"pss_ms": "the PSS"}``: a
+    note of ``"; "``-joined parts that all begin with another measure's phrase leaves the
+    row in for this one)."""
+    notes = (table[note].fillna("").astype(str) if note in table
+             else pd.Series("", index=table.index))  # fmt: skip
+    clean = table[notes.eq("")]
+
+    def determined(measure: str) -> pd.DataFrame:
+        if not concerns or measure not in concerns:
+            return clean
+        others = tuple(v for k, v in concerns.items() if k != measure)
+        ok = notes.map(lambda text: all(part.startswith(others)
+                                        for part in text.split("; ") if part))  # fmt: skip
+        return table[ok]
+
     summary = []
     for name, part in table.groupby(series, sort=False):
-        kept = clean[clean[series] == name]
-        row: dict = {series: name, "participants": len(part), "determined": len(kept)}
+        row: dict = {series: name, "participants": len(part),
+                     "determined": int((clean[series] == name).sum())}  # fmt: skip
         for measure in measures:
+            kept = determined(measure)
+            kept = kept[kept[series] == name]
             v = kept[measure].to_numpy(dtype=float)
             mean, low, high = mean_t_interval(v[np.isfinite(v)])
             row |= {f"{measure}_mean": mean, f"{measure}_ci_low": low,
                     f"{measure}_ci_high": high}  # fmt: skip
         summary.append(row)
     tests = []
-    names = list(dict.fromkeys(table[series]))
-    for measure in measures if len(names) >= 2 else ():
-        known = clean[np.isfinite(clean[measure].to_numpy(dtype=float))]
+    for measure in measures:
+        known = determined(measure)
+        known = known[np.isfinite(known[measure].to_numpy(dtype=float))]
+        # a series nobody (or too few) determined is left out, not every comparison with it
+        counts = known.groupby(series, sort=False)[subject].nunique()
+        names = [s for s in dict.fromkeys(table[series]) if counts.get(s, 0) >= 3]
+        known = known[known[series].isin(names)]
         complete = known.groupby(subject)[series].nunique()
         kept = known[known[subject].isin(complete[complete == len(names)].index)]
         people = kept[subject].nunique()
-        if people >= 3:
+        if people >= 3 and len(names) >= 2:
             try:
                 anova = rm_anova(kept, dv=measure, within=series, subject=subject)
                 pairs = pairwise_paired(kept, dv=measure, within=series, subject=subject)

@@ -215,12 +215,21 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                 "repeated-measures analysis needs 2 or more"
             )
         kw = {"dv": "rating", "within": "condition", "subject": "participant"}
+        fr = pd.DataFrame()
+        if estimable and len(seen) >= 3:  # ranks: defined when F is not (no residual variance)
+            try:
+                fr = stats.friedman(rm_sub, **kw)
+            except AnalysisError as exc:
+                notes.append(f"{where}: Friedman's test is not estimable ({exc}).")
+        elif estimable:
+            notes.append(f"{where}: Friedman's test needs three or more conditions; "
+                         f"{len(seen)} were rated (the paired comparison is its "
+                         "test).")  # fmt: skip
         if estimable:
             try:
                 wide = stats.cell_means(rm_sub, **kw)
                 rm = stats.rm_anova(rm_sub, **kw)
                 pw = stats.pairwise_paired(rm_sub, **kw, padjust="holm")
-                fr = stats.friedman(rm_sub, **kw) if len(seen) >= 3 else pd.DataFrame()
                 lmm = stats.lmm_anova(rm_sub, **kw)
             except AnalysisError as exc:  # e.g. ratings without any variation
                 estimable, reason = False, f"not estimable: {exc}"
@@ -229,8 +238,9 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                     id_vars="s", var_name="condition", value_name="mean"
                 ).rename(columns={"s": "participant"})
         if not estimable:  # a pilot: descriptive cells, the inferential rows not estimable
-            notes.append(f"{where}: {reason} (descriptive tables and figures only).")
-            rm = pw = fr = lmm = pd.DataFrame()
+            kept = "; Friedman's rank test is reported" if not fr.empty else ""
+            notes.append(f"{where}: {reason} (descriptive tables and figures only{kept}).")
+            rm = pw = lmm = pd.DataFrame()
             cells = (
                 sub.groupby(["participant", "condition"], observed=True)["rating"]
                 .mean()
@@ -238,6 +248,10 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
                 .reset_index()
             )
         pa = tk = pd.DataFrame()
+        if not one_condition and sub["participant"].nunique() < 2:
+            notes.append(f"{where}: the paper's procedure has one participant's ratings: its "
+                         "F and pairs test how this person rated the conditions, not a "
+                         "difference in people.")  # fmt: skip
         if not one_condition:
             try:
                 pa = stats.one_way_anova(sub, dv="rating", between="condition")

@@ -39,6 +39,7 @@ figure specifications the report draws.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -61,7 +62,13 @@ from facelab.protocol import (
     Stimulus,
     TypedTask,
 )
-from facelab.staircase import new_staircase
+from facelab.staircase import (
+    QuestPlusStaircase,
+    Staircase,
+    UpDownStaircase,
+    convergence_probability,
+    new_staircase,
+)
 
 __all__ = [
     "DesignCalibration",
@@ -172,6 +179,7 @@ def _staircase_tables(
             for k, st in enumerate(steps, start=1)
         ]
         estimate = state.estimate()
+        threshold = estimate.pop("threshold")
         out.append(
             {
                 "participant": pid,
@@ -180,13 +188,74 @@ def _staircase_tables(
                 "estimate": estimate.pop("estimate"),
                 "trials": state.trials,
                 "reversals": len(state.reversals),
-                "threshold": estimate.pop("threshold"),
+                "threshold": threshold,
                 "threshold_sd": float("nan"),
                 **estimate,
                 "last_level": float(part["level"].iloc[-1]),
+                "note": _track_note(part["level"].to_numpy(dtype=float), state=state,
+                                    threshold=threshold,
+                                    correct=part["correct"].astype(bool).to_numpy()),
             }
         )
     return pd.DataFrame(out), pd.DataFrame(track)
+
+
+def _track_note(
+    shown: np.ndarray, *, state: Staircase, threshold: float, correct: np.ndarray
+) -> str:
+    """What a staircase's threshold cannot say: no estimate (no reversal), a track that kept
+    to the easiest or hardest level of its grid in at least half of its second half, an end
+    level answered right less often (easiest) or more often (hardest) than the rule's target
+    by a one-sided binomial test at 0.05 (an up-down rule's convergence point), or a QUEST+
+    posterior whose most likely threshold is an end of its grid - the participant's threshold
+    lies beyond the levels rendered: the estimate is a bound, whatever its rule's interval
+    says. ``state``: the replayed staircase; ``shown``/``correct``: the trials' levels and
+    answers in order."""
+    from scipy import stats as sps
+
+    levels = state.levels  # easiest first
+    if isinstance(state, UpDownStaircase):
+        target = convergence_probability(up=state.up, down=state.down)
+        for end, where in ((levels[0], "easiest"), (levels[-1], "hardest")):
+            at = np.isclose(shown, end)
+            n, k = int(at.sum()), int(correct[at].sum())
+            if n < 5:
+                continue
+            p = sps.binom.cdf(k, n, target) if where == "easiest" else sps.binom.sf(k - 1, n,
+                                                                                   target)
+            if p < 0.05:
+                fewer = "fewer" if where == "easiest" else "more"
+                return (f"at the grid's {where} level ({end:g}) {k} of {n} right, {fewer} than "
+                        f"the rule's target ({target:.1%}) allows (binomial p = {p:.2g}): the "
+                        "threshold lies at or beyond that end of the levels rendered - a "
+                        "bound, not an estimate (render levels beyond it)")  # fmt: skip
+        n, k = len(correct), int(correct.sum())
+        p = sps.binom.cdf(k, n, target)
+        if n >= 10 and p < 0.05:  # never near the target anywhere: the grid is too hard
+            return (f"{k} of {n} right over the whole track, fewer than the rule converges on "
+                    f"({target:.1%}; binomial p = {p:.2g}): no level rendered is easy "
+                    "enough - the threshold lies at or beyond the grid's easiest end "
+                    f"({levels[0]:g}), a bound, not an estimate (render easier "
+                    "levels)")  # fmt: skip
+    if isinstance(state, QuestPlusStaircase):
+        marginal = state.posterior.sum(axis=(1, 2))
+        top = int(np.argmax(marginal))
+        if top in (0, len(marginal) - 1):
+            return (f"the posterior's most likely threshold is the end of its grid "
+                    f"({state.thresholds[top]:g}, {marginal[top]:.0%} of it there): the "
+                    "threshold lies at or beyond that end of the levels rendered - a bound, "
+                    "not an estimate, whatever its SD says (render levels beyond it)")  # fmt: skip
+    late = shown[len(shown) // 2:]
+    for end, where in ((levels[-1], "hardest"), (levels[0], "easiest")):
+        at = int(np.sum(np.isclose(late, end)))
+        if len(late) >= 2 and at * 2 >= len(late):
+            return (f"the track kept to the grid's {where} level ({end:g}) in {at} of its last "
+                    f"{len(late)} trials: the threshold lies at or beyond that end of the "
+                    "levels rendered - a bound, not an estimate (render levels beyond "
+                    "it)")  # fmt: skip
+    if math.isnan(threshold):
+        return f"no threshold: {len(state.reversals)} reversal(s) in {len(shown)} trials"
+    return ""
 
 
 #: (task id, observer midpoint, logistic slope, lapse, generator) -> the rows of one simulated
@@ -430,6 +499,22 @@ def _add_estimates(
             f"task {task.id!r}: {len(undetermined)} of {len(estimates)} {what} are not fully "
             f"determined ({main}.csv's note); they are left out of {tested}"
         )
+    series = list(dict.fromkeys(estimates["condition"]))
+    measures = [c.removesuffix("_mean") for c in summary.columns if c.endswith("_mean")]
+    untested = [m for m in measures if m not in set(tests["measure"])]
+    if len(series) >= 2 and untested:
+        res.notes.append(
+            f"task {task.id!r}: {tested}.csv holds no test of {', '.join(untested)} - a test "
+            "needs two or more series each determined for three or more participants, "
+            "compared within the participants who have all of them (see the summary's "
+            "'determined')"
+        )
+    for measure, part in tests.groupby("measure", sort=False):
+        left = [s for s in series if s not in set(part["a"]) | set(part["b"])]
+        if left:
+            res.notes.append(f"task {task.id!r}: {', '.join(left)} left out of {tested}'s "
+                             f"{measure} (fewer than three participants with it "
+                             "determined)")  # fmt: skip
 
 
 def _srt_tables(
@@ -611,7 +696,12 @@ def _graded(data: pd.DataFrame, protocol: Protocol, res: TaskResults) -> None:
     if vas.empty:
         return
     by = ("item", "stimulus_set")
-    res.tables["trend_contrast"] = graded.trend_contrast(vas, by=by)
+    try:
+        res.tables["trend_contrast"] = graded.trend_contrast(vas, by=by)
+    except AnalysisError as exc:  # a pilot of one participant: the ratings are described
+        res.notes.append(f"the trend contrast over the levels is not estimable: {exc} "
+                         "(descriptive tables and figures only)")  # fmt: skip
+        return
     if vas["participant"].nunique() >= 3:
         res.tables["graded_lmm"] = graded.graded_lmm(vas, by=by)
     else:

@@ -313,5 +313,7 @@ def window_curves(windows: pd.DataFrame, *, offsets: np.ndarray) -> pd.DataFrame
 
 def window_tests(windows: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(summary, tests) of the PSS and the width between condition series
-    (:func:`facelab.analysis.stats.series_comparison`; windows with a note left out)."""
-    return fstats.series_comparison(windows, measures=("pss_ms", "width_ms"))
+    (:func:`facelab.analysis.stats.series_comparison`; windows with a note left out - of
+    the one measure it concerns, when it concerns only the PSS or only the width)."""
+    return fstats.series_comparison(windows, measures=("pss_ms", "width_ms"),
+                                    concerns={"pss_ms": "the PSS", "width_ms": "the width"})

@@ -86,3 +86,31 @@ def test_analyze_excludes_trials_by_any_playback_measure(
                      "--exclude-trials", rule]) == 2  # fmt: skip
         err = capsys.readouterr().err
         assert said in err and "Traceback" not in err
+    # a rule that takes nothing is said too, with why
+    assert main(["analyze", str(path), str(results), "--out", str(tmp_path / "none"),
+                 "--exclude-trials", "frame_age_max_ms > 10000"]) == 0  # fmt: skip
+    report = (tmp_path / "none" / "report.md").read_text(encoding="utf-8")
+    assert "trials where frame_age_max_ms > 10000 (--exclude-trials): no trial met it, " \
+        "nothing was left out (72 trials measured)" in report
+
+
+def test_a_rule_on_sessions_that_do_not_record_its_measure_is_said_to_take_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Lab or video sessions record no frame or live measures: --exclude-trials and
+    --max-av-offset-ms are applied and the report says they could take nothing, instead of
+    a report identical to one without them."""
+    path = protocol_path("kato2021")
+    results = tmp_path / "results"
+    assert main(["simulate", str(path), "--participants", "3", "--sim-seed", "5",
+                 "--results", str(results)]) == 0  # fmt: skip
+    out = tmp_path / "analysis"
+    assert main(["analyze", str(path), str(results), "--out", str(out), "--exclude-trials",
+                 "frames_frozen > 0", "--max-av-offset-ms", "45"]) == 0  # fmt: skip
+    report = (out / "report.md").read_text(encoding="utf-8")
+    printed = capsys.readouterr().out
+    for said in ("trials where frames_frozen > 0 (--exclude-trials): no trial of the sessions "
+                 "carries this measure, so nothing was left out",
+                 "(--max-av-offset-ms; measured only where clips were drawn live, display "
+                 "live3d or webxr): no trial of the sessions carries this measure"):  # fmt: skip
+        assert said in report and said in printed

@@ -366,3 +366,37 @@ def test_the_analysis_and_power_studies_hold_blas_to_one_thread(
             power_module._one_study((protocol, ["P1", "P2"], np.random.default_rng(1), None))
     assert allowed and max(allowed) == 2  # the test can fail: the caller allowed two
     assert seen == [[1] * len(allowed)] * 2
+
+
+def test_a_pilot_without_participant_by_condition_error_is_named_not_infinite(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ratings whose condition means differ by the same amounts in every participant (made-up
+    or test data) or that never differ give no effect size: that item is named not
+    estimable, the others are powered, and nothing infinite or NaN (nor a numpy warning)
+    reaches the terminal or the JSON."""
+    import json
+    import warnings
+
+    from tests.session_edits import rewrite_ratings
+
+    argv = ["simulate", str(kato_path), "--participants", "4", "--sim-seed", "5"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0
+    rewrite_ratings(tmp_path, item="mouth_shape", stimulus_set="vowels",
+                    rating=lambda row: {"baseline": 30, "standard": 50,
+                                        "emphasized": 70}[row["condition"]])  # fmt: skip
+    rewrite_ratings(tmp_path, item="naturalness", stimulus_set="vowels", rating=lambda row: 50)
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert main(["power", str(kato_path), "--pilot", str(tmp_path), "--sims", "200"]) == 0
+    out = capsys.readouterr()
+    assert "mouth_shape/vowels: not estimable - every participant's condition means differ " \
+        "by exactly the same amounts" in out.out
+    assert "naturalness/vowels: not estimable - every participant rated the conditions " \
+        "alike" in out.out
+    assert out.out.count("pilot F") == 2 and "inf" not in out.out and "nan" not in out.out
+    assert main(["power", str(kato_path), "--pilot", str(tmp_path), "--sims", "200",
+                 "--json"]) == 0  # fmt: skip
+    rows = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(c))["rows"]
+    assert sum("not_estimable" in r for r in rows) == 2

@@ -13,6 +13,7 @@ from facelab.errors import AnalysisError
 from facelab.experiment.cli import main
 from facelab.protocol import load_protocol
 from facelab.sessionlog import LOG_COLUMNS
+from tests.session_edits import rewrite_ratings, rewrite_rows
 
 
 @pytest.fixture(scope="module")
@@ -398,17 +399,20 @@ def test_a_pilot_of_one_or_two_participants_is_analysed(
     assert main([*argv, "--results", str(tmp_path)]) == 0
     out = tmp_path / "analysis"
     assert main(["analyze", str(kato_path), str(tmp_path), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
     layout = pd.read_csv(out / "paper_layout.csv")
     assert len(layout) == 8  # 2 items x 2 sets x (rm, paper)
     rm = layout[layout["procedure"] == "rm"]
     if n == 1:
         assert rm["f"].isna().all()
         assert rm["pairs_p_lt_05"].str.startswith("not estimable: 1 participant").all()
-        assert "not estimable" in capsys.readouterr().out
+        assert "not estimable" in printed
     else:
         assert rm["f"].notna().all() and (rm["n_participants"] == 2).all()
     paper = layout[layout["procedure"] == "paper"]
     assert paper["f"].notna().all()  # the pooled procedure needs repeated ratings only
+    if n == 1:  # ... and says whose they are
+        assert "the paper's procedure has one participant's ratings" in printed
     cells = pd.read_csv(out / "cell_means.csv")
     assert len(cells) == 2 * 2 * 3 * n and cells["mean"].notna().all()
     report = (out / "report.html").read_text(encoding="utf-8")
@@ -467,17 +471,8 @@ def test_the_pilot_summary_names_sessions_and_an_item_everyone_answers_alike(
 ) -> None:
     argv = ["simulate", str(kato_path), "--participants", "2", "--sim-seed", "5"]
     assert main([*argv, "--results", str(tmp_path)]) == 0
-    for tsv in tmp_path.rglob("*_beh.tsv"):
-        lines = tsv.read_text(encoding="utf-8").splitlines()
-        head = lines[0].split("\t")
-        item, rating = head.index("item"), head.index("rating")
-        out = [lines[0]]
-        for line in lines[1:]:
-            cells = line.split("\t")
-            if cells[item] == "naturalness":
-                cells[rating] = "50.0"
-            out.append("\t".join(cells))
-        tsv.write_text("\n".join(out) + "\n", encoding="utf-8")
+    for sset in ("vowels", "sentences"):
+        rewrite_ratings(tmp_path, item="naturalness", stimulus_set=sset, rating=lambda r: 50)
     dest = tmp_path / "analysis"
     assert main(["analyze", str(kato_path), str(tmp_path), "--out", str(dest)]) == 0
     assert "naturalness / sentences: every one of 12 ratings is 50" in capsys.readouterr().out
@@ -512,3 +507,50 @@ def test_a_study_of_one_condition_is_described_not_compared(
     layout = pd.read_csv(out / "paper_layout.csv")
     assert len(layout) == 2 and layout["f"].isna().all()
     assert (out / "fig_naturalness_short.png").stat().st_size > 5_000
+
+
+def test_who_is_analysed_is_said_excluded_and_repeat_sessions_alike(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--exclude is named in the report (not only in the command line that ran it); a
+    participant's second session is named as pooled with the first; excluding everyone is
+    refused in words, not a traceback."""
+    root = _copy(simulated, tmp_path)
+    first = next(root.rglob("sub-P01/ses-1"))
+    second = first.with_name("ses-2")
+    second.mkdir()
+    for f in first.iterdir():  # the same participant again, as session 2
+        (second / f.name.replace("ses-1", "ses-2")).write_bytes(f.read_bytes())
+    assert rewrite_rows(second, lambda row: bool(row.update(session="2")) or True) > 0
+    (session,) = second.glob("*_session.json")
+    session.write_text(session.read_text(encoding="utf-8").replace('"session": 1',
+                                                                   '"session": 2'))  # fmt: skip
+    out = tmp_path / "a"
+    assert main(["analyze", str(kato_path), str(root), "--out", str(out), "--exclude",
+                 "P03"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    report = (out / "report.md").read_text(encoding="utf-8")
+    for text in (printed, report):
+        assert "left out by --exclude: P03" in text
+        assert "1 participant(s) ran more than one session (P01: sessions 1, 2)" in text
+    everyone = [a for i in range(1, 9) for a in ("--exclude", f"P{i:02d}")]
+    assert main(["analyze", str(kato_path), str(root), "--out", str(tmp_path / "b"),
+                 *everyone]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "--exclude leaves no participant" in err and "Traceback" not in err
+    assert not (tmp_path / "b").exists()
+
+
+def test_one_participant_of_a_graded_study_is_described(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A one-person pilot of a graded (levels) VAS study is analysed: descriptive tables, the
+    trend contrast named not estimable (it was refused with no output at all)."""
+    path = Path(__file__).resolve().parents[1] / "protocols" / "horii_impression.yaml"
+    argv = ["simulate", str(path), "--participants", "1", "--sim-seed", "5"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0
+    out = tmp_path / "a"
+    assert main(["analyze", str(path), str(tmp_path), "--out", str(out), "--bootstrap",
+                 "0"]) == 0  # fmt: skip
+    assert "the trend contrast over the levels is not estimable" in capsys.readouterr().out
+    assert (out / "cell_means.csv").is_file() and not (out / "trend_contrast.csv").exists()

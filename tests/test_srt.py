@@ -294,6 +294,49 @@ def test_thresholds_and_benefits_are_recovered_through_the_session_pipeline() ->
     assert {"srt_db", "benefit_db"} <= set(tests["measure"])
 
 
+def _truths(protocol, **srt_db: float):
+    truths = {s: t.model_copy(update={"srt_db": srt_db.get(s, t.srt_db)})
+              for s, t in protocol.simulation.srt.items()}  # fmt: skip
+    return protocol.model_copy(update={"simulation": protocol.simulation.model_copy(
+        update={"srt": truths})})  # fmt: skip
+
+
+def test_a_series_beyond_the_snrs_tested_keeps_its_row_and_is_named() -> None:
+    """A listener whose threshold lies beyond the SNRs rendered (audio far above, emphasized
+    far below) gets no falsely precise SRT: the rows stay, their note says the answers bound
+    the threshold; a series answered at one SNR keeps its row too; the enhancement is not
+    estimated from a slope on its bound; the other series are still compared."""
+    protocol = _truths(load_protocol(protocol_path("kato2021_srt")), audio=30.0,
+                       emphasized=-40.0)  # fmt: skip
+    rows = _study(protocol, participants=4, seed=5)
+    table = srt.srt_table(rows, protocol, protocol.tasks[0])
+    assert list(table["condition"].unique()) == SERIES  # no series vanishes
+    audio = table[table["condition"] == "audio"]
+    assert audio["note"].str.contains("the SRT lies above them").all(), audio["note"].tolist()
+    emph = table[table["condition"] == "emphasized"]
+    assert emph["note"].str.contains("the SRT lies below them").all(), emph["note"].tolist()
+    assert table["benefit_db"].isna().all()  # no determined audio-only SRT to measure from
+    summary, tests = srt.srt_tests(table, reference="audio")
+    assert set(summary.set_index("condition").loc[["audio", "emphasized"], "determined"]) == {0}
+    pairs = tests[(tests["measure"] == "srt_db") & (tests["a"] != "all")]
+    assert {(r.a, r.b) for r in pairs.itertuples()} == {("baseline", "standard")}
+    # one SNR only: a track that never left the easy end
+    audio_conds = [c.id for c in protocol.conditions if c.series_id == "audio"]
+    one = rows[~rows["condition"].isin(audio_conds[:-1])]
+    table = srt.srt_table(one, protocol, protocol.tasks[0])
+    audio = table[table["condition"] == "audio"]
+    assert len(audio) == 4 and audio["srt_db"].isna().all()
+    assert audio["note"].str.match(r"every answer at one SNR \(0 dB, [0-2] of 6 right\): the "
+                                   "SRT lies above it").all(), audio["note"].tolist()  # 1/6 guess
+    # a slope on its bound: the enhancement away from the SRT is not known
+    steep = srt.srt_table(_study(_fixed(load_protocol(protocol_path("kato2021_srt"))),
+                                 participants=12, seed=4), protocol, protocol.tasks[0])  # fmt: skip
+    on_bound = np.isclose(steep["slope_per_db"], srt.SLOPE_BOUND[1])
+    assert steep.loc[on_bound, "visual_enhancement"].isna().all()
+    inside = ~on_bound & steep["benefit_db"].notna()
+    assert inside.any() and steep.loc[inside, "visual_enhancement"].notna().all()
+
+
 def _coverage(protocol, *, participants: int, seed: int) -> dict[str, float]:
     rows = _study(protocol, participants=participants, seed=seed)
     table = srt.srt_table(rows, protocol, protocol.tasks[0])

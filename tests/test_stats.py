@@ -184,3 +184,52 @@ def test_covariates_constant_within_a_condition_are_kept_and_named() -> None:
     used, notes = screen_covariates(data, ["n_posture", "n_tag", "n_blink"], condition="condition")
     assert used == ["n_posture", "n_blink"]
     assert notes == ["n_posture constant within a (0)", "n_tag fixed by condition"]
+
+
+def test_two_participants_give_no_huynh_feldt_epsilon_and_ranks_need_differences() -> None:
+    """At n = 2 the Huynh-Feldt estimate is 0/0 (eps_gg = 1/p exactly): NaN, not the -1 that
+    rounding made of it; Friedman refuses means tied in every row and gives the exact
+    chi2 = n (k - 1) to a perfectly consistent order, where the F of the RM ANOVA is
+    undefined."""
+    data = pd.read_csv(REF_DIR / "rm3.csv")
+    two = data[data.participant.isin(sorted(data.participant.unique())[:2])]
+    rm = stats.rm_anova(two, dv="rating", within="condition", subject="participant")
+    assert np.isnan(rm.eps_hf[0]) and np.isnan(rm.p_hf[0]) and 0.5 <= rm.eps_gg[0] <= 1.0
+    order = {"baseline": 30.0, "standard": 50.0, "emphasized": 70.0}
+    perfect = data.assign(rating=data.condition.map(order) + data.participant.astype("category")
+                          .cat.codes)  # fmt: skip
+    fr = stats.friedman(perfect, dv="rating", within="condition", subject="participant")
+    n = perfect.participant.nunique()
+    assert fr.chi2[0] == pytest.approx(2 * n) and fr.kendall_w[0] == pytest.approx(1.0)
+    with pytest.raises(AnalysisError, match="no residual variance"):
+        stats.rm_anova(perfect, dv="rating", within="condition", subject="participant")
+    with pytest.raises(AnalysisError, match="tied across the conditions"):
+        stats.friedman(data.assign(rating=5.0), dv="rating", within="condition",
+                       subject="participant")  # fmt: skip
+
+
+def test_a_note_on_one_measure_leaves_the_others_compared() -> None:
+    """A window whose width interval is open still has a determined PSS: with ``concerns``
+    it stays in the PSS summary and tests and leaves only the width's; a series that too
+    few participants determined is left out of the tests, not every comparison with it."""
+    rng = np.random.default_rng(7)
+    rows = [{"participant": f"P{i}", "condition": c, "pss_ms": 40 + 10 * j + rng.normal(0, 5),
+             "width_ms": 150 + rng.normal(0, 10), "note": ""}
+            for i in range(5) for j, c in enumerate(("a", "b", "c"))]  # fmt: skip
+    table = pd.DataFrame(rows)
+    table.loc[0, "note"] = "the width interval reaches beyond the widths searched"
+    for i in range(3):  # series c: only two participants determined
+        table.loc[3 * i + 2, "note"] = "the PSS ends on its search bound"
+    concerns = {"pss_ms": "the PSS", "width_ms": "the width"}
+    summary, tests = stats.series_comparison(table, measures=("pss_ms", "width_ms"),
+                                             concerns=concerns)  # fmt: skip
+    s = summary.set_index("condition")
+    assert s.loc["a", "determined"] == 4 and not np.isnan(s.loc["a", "pss_ms_mean"])
+    pss = tests[tests["measure"] == "pss_ms"]
+    assert {(r.a, r.b) for r in pss.itertuples()} == {("all", "all"), ("a", "b")}
+    assert set(pss["participants"]) == {5}  # P0's open width does not take its PSS away
+    width = tests[tests["measure"] == "width_ms"]
+    assert set(width["participants"]) == {4} and "c" in set(width["b"])  # P0 left out
+    # without concerns any note leaves the row out of both measures
+    _, plain = stats.series_comparison(table, measures=("pss_ms", "width_ms"))
+    assert set(plain[plain["measure"] == "pss_ms"]["participants"]) == {4}

@@ -703,3 +703,42 @@ def test_condition_model_with_identical_answers_in_both_conditions_tests_as_no_d
     term = got.set_index("term").loc["C(condition)[T.b]"]
     assert abs(term["estimate"]) < 1e-8 and term["se"] < 1e-8
     assert term["t"] == 0.0 and term["p"] == 1.0
+
+
+@pytest.mark.parametrize(
+    ("name", "observer", "where"),
+    [
+        ("gain_staircase", "{midpoint: -0.5, slope: 40, lapse: 0.0, midpoint_sd: 0.0}",
+         r"(the track kept to|at) the grid's hardest level \(0.05\)"),
+        ("gain_staircase", "{midpoint: 3.0, slope: 18, lapse: 0.03, midpoint_sd: 0.0}",
+         r"((the track kept to|at) the grid's easiest level \(0.6\)|\d+ of \d+ right over "
+         r"the whole track, fewer than the rule converges on)"),
+        ("gain_questplus", "{midpoint: 3.0, slope: 18, lapse: 0.03, midpoint_sd: 0.0}",
+         r"the posterior's most likely threshold is the end of its grid \(0.6,"),
+        ("gain_questplus", "{midpoint: -0.5, slope: 40, lapse: 0.0, midpoint_sd: 0.0}",
+         r"the posterior's most likely threshold is the end of its grid \(0.05,"),
+    ],
+)  # fmt: skip
+def test_a_threshold_beyond_the_levels_rendered_is_named_a_bound(tmp_path, name, observer, where):
+    """Observers whose threshold lies beyond the grid (far better or far worse than its
+    ends): each staircase row's note says the threshold is a bound, not an estimate - the
+    rule's own number (a mean of reversals at the grid's end, a QUEST+ posterior mean with a
+    small SD) would otherwise read as a precise threshold. Observers inside stay un-noted."""
+    shipped = "{midpoint: 0.18, slope: 18, lapse: 0.03, midpoint_sd: 0.0}"
+    path = _protocol(tmp_path, name, lambda s: s.replace(shipped, observer))
+    protocol = load_protocol(path)
+    simulate_study(protocol, protocol_path=path, results=tmp_path / "r", participants=3, seed=2)
+    data = load_results(tmp_path / "r", study=protocol.study.id)
+    res = analyze_tasks(data, protocol, rng=np.random.default_rng(0), n_boot=0)
+    notes = res.tables["staircase_thresholds"]["note"]
+    # an observer at chance can, by luck, answer like one whose threshold is inside the grid
+    # for a while (1 of 3 here with the harder-than-rendered observer): two of three at least
+    assert notes.str.match(where).sum() >= 2 and notes.str.match(f"|{where}").all(), notes
+    (tmp_path / "in").mkdir()
+    inside = _protocol(tmp_path / "in", name)
+    protocol = load_protocol(inside)
+    simulate_study(protocol, protocol_path=inside, results=tmp_path / "r2", participants=3,
+                   seed=2)  # fmt: skip
+    data = load_results(tmp_path / "r2", study=protocol.study.id)
+    res = analyze_tasks(data, protocol, rng=np.random.default_rng(0), n_boot=0)
+    assert res.tables["staircase_thresholds"]["note"].eq("").all()

@@ -122,10 +122,13 @@ def _print_tasks(tasks: object) -> None:
     stairs = tables.get("staircase_thresholds")
     if stairs is not None:
         for (block, estimate), part in stairs.groupby(["block", "estimate"], sort=False):
-            print(
-                f"  staircase {block} ({estimate}): median threshold "
-                f"{part['threshold'].median():.3f} over {len(part)} participants"
-            )
+            noted = part["note"].fillna("").astype(str).ne("")
+            fine = part[~noted & part["threshold"].notna()]
+            median = f"{fine['threshold'].median():.3f}" if len(fine) else "none"
+            print(f"  staircase {block} ({estimate}): median threshold {median} over "
+                  f"{len(fine)} of {len(part)} participants")  # fmt: skip
+            for r in part[noted].itertuples():
+                print(f"    {r.participant}: {r.note}")
     ident = tables.get("identification_summary")
     if ident is not None:
         for r in ident[ident["participant"] == "pooled"].itertuples():
@@ -200,9 +203,8 @@ def _cmd_power(args: argparse.Namespace) -> int:
                 if not sub.empty:
                     try:
                         found = effect(sub)
-                    except AnalysisError as exc:
-                        where = f"--pilot {args.pilot}: {item.id}/{sset.id}"
-                        raise FacelabError(f"{where}: {exc}") from None
+                    except AnalysisError as exc:  # this item says nothing; the others may
+                        found = {"not_estimable": str(exc)}
                     rows.append({"label": f"{item.id}/{sset.id}", **found})
         assumptions = (
             "effect sizes from pilot data (participant means, bias-corrected)"
@@ -226,6 +228,10 @@ def _cmd_power(args: argparse.Namespace) -> int:
                 "powers the repeated-measures ANOVA of VAS ratings"
                 + (f"; {simulate_hint}" if tasks else "")
             )
+        if all("not_estimable" in r for r in rows):
+            raise FacelabError(f"--pilot {args.pilot}: no item gives an effect size - "
+                               + "; ".join(f"{r['label']}: {r['not_estimable']}"
+                                           for r in rows))  # fmt: skip
         if tasks:
             assumptions += f"; VAS items only - {simulate_hint}"
     elif args.reported_p is not None:
@@ -253,6 +259,8 @@ def _cmd_power(args: argparse.Namespace) -> int:
         raise FacelabError("give --reported-p P [P ...] (with the design) or --pilot RESULTS")
     rng = np.random.default_rng(args.sim_seed)
     for row in rows:
+        if "not_estimable" in row:
+            continue
         k = int(row.get("k", args.conditions))
         n_needed = power.participants_needed(
             k=k, f2=float(row["f2_rm"]), power=args.power, alpha=args.alpha
@@ -288,6 +296,9 @@ def _cmd_power(args: argparse.Namespace) -> int:
         f"{assumptions}"
     )
     for row in rows:
+        if "not_estimable" in row:
+            print(f"  {row['label']}: not estimable - {row['not_estimable']}")
+            continue
         extra = (
             f", pilot F {row['f_pilot']:.2f}"
             if "f_pilot" in row
