@@ -9,7 +9,7 @@ import pandas as pd
 from facelab.analysis.integrity import DataCheck
 from facelab.analysis.presentation import trials_shown
 
-__all__ = ["pilot_items", "pilot_sessions"]
+__all__ = ["below_chance", "pilot_items", "pilot_sessions", "same_rating_everywhere"]
 
 
 def pilot_sessions(data: pd.DataFrame, check: DataCheck) -> pd.DataFrame:
@@ -72,3 +72,38 @@ def pilot_items(vas: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
                 "shows no variation to analyse (check the question and the scale)"
             )
     return pd.DataFrame(rows), notes
+
+
+def same_rating_everywhere(vas: pd.DataFrame) -> list[str]:
+    """Notes naming participants who gave one item the same rating on every trial (five or
+    more): a scale left at its start, or a participant not looking - their ratings enter the
+    tests as they are."""
+    notes = []
+    if vas.empty:
+        return notes
+    for (pid, item), g in vas.groupby(["participant", "item"], sort=True):
+        r = pd.to_numeric(g["rating"], errors="coerce").dropna()
+        if len(r) >= 5 and float(r.max() - r.min()) == 0.0:
+            notes.append(f"participant {pid} rated {item} {r.iloc[0]:g} on every one of "
+                         f"{len(r)} trials (a scale left untouched, or not looking?); the "
+                         "ratings are analysed as given - leave them out with --exclude "
+                         f"{pid} if they are not answers")  # fmt: skip
+    return notes
+
+
+def below_chance(scored: pd.DataFrame, *, task: str, chance: float) -> list[str]:
+    """Notes naming participants right less often than guessing allows (``scored``:
+    ``participant`` and boolean-like ``y`` per trial; one-sided binomial test at 0.01 against
+    ``chance``): reversed keys or a misread question more likely than a threshold."""
+    from scipy import stats as sps
+
+    notes = []
+    for pid, g in scored.groupby("participant", sort=True):
+        n, k = len(g), int(g["y"].astype(float).sum())
+        p = float(sps.binom.cdf(k, n, chance))
+        if n >= 10 and p < 0.01:
+            notes.append(f"task {task!r}: participant {pid} was right on {k} of {n} trials, "
+                         f"below guessing ({chance:.0%}; binomial p = {p:.2g}) - reversed "
+                         "keys or a misread question? Their answers are analysed as "
+                         "given")  # fmt: skip
+    return notes

@@ -28,7 +28,7 @@ from facelab.analysis.objective import (
     objective_distances,
     objective_vs_ratings,
 )
-from facelab.analysis.pilot import pilot_items, pilot_sessions
+from facelab.analysis.pilot import pilot_items, pilot_sessions, same_rating_everywhere
 from facelab.analysis.presentation import (
     exclude_av_offset,
     exclude_dropped,
@@ -200,6 +200,7 @@ def run(
     if not items.empty:
         tasks.tables["pilot_items"] = items
     tasks.notes.extend(item_notes)
+    tasks.notes.extend(same_rating_everywhere(vas))
     tasks.notes.extend(n for n in (dropped_note, offset_note, *rule_notes) if n)
     tasks.notes.extend(people_notes)
     if empty_sessions:

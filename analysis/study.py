@@ -116,9 +116,10 @@ def bracket_pairs(results: StudyResults, *, item: str, stimulus_set: str) -> pd.
         table, col = results.paper_tukey, "p_adj"
     else:
         table, col = results.pairwise, "p_adj"
-    if table.empty:  # no test was estimable (a pilot): no brackets
+    if table.empty or "a" not in table:  # no test was estimable (a pilot): no brackets
         return pd.DataFrame(columns=["a", "b", "p"])
-    sel = table[(table["item"] == item) & (table["stimulus_set"] == stimulus_set)]
+    sel = table[(table["item"] == item) & (table["stimulus_set"] == stimulus_set)
+                & table["a"].notna()]  # fmt: skip
     return sel[["a", "b", col]].rename(columns={col: "p"}).reset_index(drop=True)
 
 
@@ -216,15 +217,17 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             )
         kw = {"dv": "rating", "within": "condition", "subject": "participant"}
         fr = pd.DataFrame()
+        why: dict[str, str] = {}  # a test's table without a row: its row says why instead
         if estimable and len(seen) >= 3:  # ranks: defined when F is not (no residual variance)
             try:
                 fr = stats.friedman(rm_sub, **kw)
             except AnalysisError as exc:
+                why["fr"] = f"not estimable: {exc}"
                 notes.append(f"{where}: Friedman's test is not estimable ({exc}).")
         elif estimable:
-            notes.append(f"{where}: Friedman's test needs three or more conditions; "
-                         f"{len(seen)} were rated (the paired comparison is its "
-                         "test).")  # fmt: skip
+            why["fr"] = (f"not estimable: Friedman's test needs three or more conditions, "
+                         f"{len(seen)} were rated (the paired comparison is its test)")  # fmt: skip
+            notes.append(f"{where}: {why['fr']}.")
         if estimable:
             try:
                 wide = stats.cell_means(rm_sub, **kw)
@@ -241,6 +244,7 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             kept = "; Friedman's rank test is reported" if not fr.empty else ""
             notes.append(f"{where}: {reason} (descriptive tables and figures only{kept}).")
             rm = pw = lmm = pd.DataFrame()
+            why = {"fr": reason, **why, "rm": reason, "pw": reason, "lmm": reason}
             cells = (
                 sub.groupby(["participant", "condition"], observed=True)["rating"]
                 .mean()
@@ -259,6 +263,7 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             except AnalysisError as exc:
                 notes.append(f"{where}: the paper's procedure is not estimable ({exc}).")
                 pa = tk = pd.DataFrame()
+                why |= {"pa": f"not estimable: {exc}", "tk": f"not estimable: {exc}"}
         for key, frame in (
             ("cells", cells),
             ("rm", rm),
@@ -268,6 +273,8 @@ def analyze_study(data: pd.DataFrame, protocol: Protocol, *, method: str = "rm")
             ("pa", pa),
             ("tk", tk),
         ):
+            if frame.empty and key in why:  # the CSV says why this cell has no test
+                frame = pd.DataFrame([{"note": why[key]}])
             out[key].append(_tag(frame, item.id, sset.id))
         rep = reported.get((item.id, sset.id))
         rep_pairs = "; ".join(f"{p.a}-{p.b} p={p.p:.4f}" for p in rep.pairs) if rep else ""

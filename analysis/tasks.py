@@ -53,6 +53,7 @@ import facelab.analysis.psychometric as psychometric
 import facelab.analysis.srt as srt
 import facelab.analysis.stats as stats
 import facelab.analysis.timing as timing
+from facelab.analysis.pilot import below_chance
 from facelab.errors import AnalysisError
 from facelab.protocol import (
     ChoiceTask,
@@ -385,6 +386,7 @@ def analyze_tasks(
         if isinstance(task, ChoiceTask):
             y, gamma = choice_outcome(rows, task)
             trials = rows.assign(y=y.to_numpy())
+            res.notes.extend(below_chance(trials, task=task.id, chance=gamma))
             drops, calibration = None, None
             if sampler is not None:  # its own generator: the bootstrap's draws stay as they were
                 calibration = calibrate_design(

@@ -13,7 +13,7 @@ import unicodedata
 
 from facelab.errors import SpeechError
 
-__all__ = ["morae", "pronunciation"]
+__all__ = ["first_unsaid_keyword", "morae", "pronunciation"]
 
 _SMALL = set("ャュョァィゥェォヮ")
 #: an e-row mora and イ: the dictionary reads kanji as a long vowel (先生 センセー) and kana as
@@ -67,3 +67,18 @@ def morae(kana: str) -> list[str]:
         else:
             out.append(c)
     return out
+
+
+def first_unsaid_keyword(said: str, keywords: list[str]) -> str | None:
+    """The first of ``keywords`` that is not said in ``said`` after the ones before it (as
+    pronounced: its morae found in the sentence's, in order), or None when all are - an
+    answer that repeats the sentence word for word then scores every keyword."""
+    heard, at = morae(pronunciation(said)), 0
+    for word in keywords:
+        key = morae(pronunciation(word))
+        found = next((i for i in range(at, len(heard) - len(key) + 1)
+                      if heard[i : i + len(key)] == key), None)  # fmt: skip
+        if not key or found is None:
+            return word
+        at = found + len(key)
+    return None

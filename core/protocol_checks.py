@@ -548,7 +548,7 @@ def _keywords_said(
     if task.scoring != "keywords":
         return
     try:
-        from facelab.japanese_reading import morae, pronunciation
+        from facelab.japanese_reading import first_unsaid_keyword, morae, pronunciation
 
         pronunciation("あ")
     except Exception:  # no reader here (pyopenjtalk missing): not checked
@@ -561,18 +561,12 @@ def _keywords_said(
             words = task.keywords_of(st)
             if said is None or words is None:
                 continue
-            heard, at = morae(pronunciation(said)), 0
-            for word in words:
-                key = morae(pronunciation(word))
-                found = next((i for i in range(at, len(heard) - len(key) + 1)
-                              if heard[i : i + len(key)] == key), None)  # fmt: skip
-                if not key or found is None:
-                    yield Issue((*where, "keywords", st.id), f"keyword {word!r} is not said "
-                                f"in {said!r} after the keywords before it (read "
-                                f"{''.join(heard)}): list the keywords as said, "
-                                "in order")  # fmt: skip
-                    break
-                at = found + len(key)
+            word = first_unsaid_keyword(said, words)
+            if word is not None:
+                heard = "".join(morae(pronunciation(said)))
+                yield Issue((*where, "keywords", st.id), f"keyword {word!r} is not said "
+                            f"in {said!r} after the keywords before it (read {heard}): list "
+                            "the keywords as said, in order")  # fmt: skip
 
 
 @_check("conditions", "rendering")

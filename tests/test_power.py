@@ -400,3 +400,16 @@ def test_a_pilot_without_participant_by_condition_error_is_named_not_infinite(
                  "--json"]) == 0  # fmt: skip
     rows = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(c))["rows"]
     assert sum("not_estimable" in r for r in rows) == 2
+
+
+def test_a_test_no_simulated_study_could_run_is_shown_not_applicable(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Two participants cannot give the SRT comparison (it needs three): its power cell says
+    n/a, not a power of 0.00, and the note says why."""
+    path = Path(__file__).resolve().parents[1] / "protocols" / "kato2021_srt.yaml"
+    assert main(["power", str(path), "--simulate", "--n", "2", "3", "--sims", "3",
+                 "--sim-seed", "1"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if "srt_db between series" in line)
+    assert row.split()[-4] == "n/a" and "n=2: 3 of 3 fits failed - n/a" in out

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -413,6 +414,10 @@ def test_a_pilot_of_one_or_two_participants_is_analysed(
     assert paper["f"].notna().all()  # the pooled procedure needs repeated ratings only
     if n == 1:  # ... and says whose they are
         assert "the paper's procedure has one participant's ratings" in printed
+        for name in ("rm_anova", "pairwise_paired", "friedman", "lmm_anova"):  # say why empty
+            table = pd.read_csv(out / f"{name}.csv")
+            assert len(table) == 4 and list(table.columns) == ["item", "stimulus_set", "note"]
+            assert table["note"].str.startswith("not estimable: 1 participant(s)").all()
     cells = pd.read_csv(out / "cell_means.csv")
     assert len(cells) == 2 * 2 * 3 * n and cells["mean"].notna().all()
     report = (out / "report.html").read_text(encoding="utf-8")
@@ -554,3 +559,26 @@ def test_one_participant_of_a_graded_study_is_described(
                  "0"]) == 0  # fmt: skip
     assert "the trend contrast over the levels is not estimable" in capsys.readouterr().out
     assert (out / "cell_means.csv").is_file() and not (out / "trend_contrast.csv").exists()
+
+
+def test_a_participant_who_never_moved_the_scale_or_answers_below_chance_is_named(
+    simulated: Path, tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ratings all at one value (the scale left where it started) and forced choices right
+    less often than guessing (reversed keys) are named in the notes, not analysed silently
+    as answers; healthy simulated participants are not named."""
+    from facelab.analysis.pilot import below_chance
+
+    root = _copy(simulated, tmp_path)
+    changed = rewrite_rows(root, lambda row: row["participant"] == "P02"
+                           and bool(row.update(rating="50")) is False)  # fmt: skip
+    assert changed == 36
+    assert main(["analyze", str(kato_path), str(root), "--out", str(tmp_path / "a")]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("rated") == 2 and "participant P02 rated naturalness 50 on every " \
+        "one of 18 trials" in printed and "participant P02 rated mouth_shape 50" in printed
+    y = np.r_[np.zeros(14), np.ones(6)]  # 6 of 20 at a 2AFC: p = 0.058, not named
+    trials = pd.DataFrame({"participant": "P01", "y": y})
+    assert below_chance(trials, task="t", chance=0.5) == []
+    notes = below_chance(trials.assign(y=np.r_[np.zeros(17), np.ones(3)]), task="t", chance=0.5)
+    assert len(notes) == 1 and "right on 3 of 20 trials, below guessing (50%" in notes[0]

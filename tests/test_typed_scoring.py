@@ -82,3 +82,18 @@ def test_score_typed_command_writes_the_table(tmp_path, capsys) -> None:
     bad.write_text("target,response\nあさ,あさ\n ,あさ\n", encoding="utf-8")  # was scored 0
     assert main(["score-typed", str(bad)]) == 2
     assert "bad.csv:3: the target (what was said) is empty" in capsys.readouterr().err
+    # a keyword the target does not say scored 0 even for a word-for-word answer (exact 1);
+    # a target of punctuation only left a blank score
+    head = "target,response,keywords\n"
+    for text, said in ((head + "今日は晴れです,きょうははれ,今日 晴れ\n猫,ねこ,犬\n",
+                        "bad.csv:3: keyword '犬' is not said in the target '猫'"),
+                       ("target,response,keywords\n晴れです,はれ,です 晴れ\n",
+                        "bad.csv:2: keyword '晴れ' is not said in the target '晴れです' after"),
+                       ("target,response\nあさ,あさ\n。,。\n",
+                        "bad.csv:3: the target '。' has nothing to pronounce")):  # fmt: skip
+        bad.write_text(text, encoding="utf-8")
+        assert main(["score-typed", str(bad)]) == 2
+        assert said in capsys.readouterr().err
+    bad.write_text(head + "今日は晴れです,きょうははれ,今日 晴れ\n", encoding="utf-8")
+    assert main(["score-typed", str(bad)]) == 0  # keywords as written or as read, in order
+    assert capsys.readouterr().out.splitlines()[1].endswith(",2,2,1.0,0")

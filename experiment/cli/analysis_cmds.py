@@ -413,7 +413,8 @@ def _simulated_power(args: argparse.Namespace) -> int:
         print(f"power (alpha {args.alpha:g}); VAS effects {effects}")
         print(f"  {'test':<44}{'kind':<16}{head}  n for {args.power:g}")
         for (test, kind), part in table.groupby(["test", "kind"], sort=False):
-            cells = "".join(f"{v:8.2f}" for v in part.sort_values("n")["power"])
+            cells = "".join(f"{'n/a':>8}" if r.failed >= r.sims else f"{r.power:8.2f}"
+                            for r in part.sort_values("n").itertuples())  # none could run
             n = needed[(test, kind)]
             print(f"  {test:<44}{kind:<16}{cells}  {n if n else f'> {n_values[-1]}'}")
         print(f"  Monte Carlo SE of a power p: sqrt(p (1 - p) / {sims}) "
@@ -441,7 +442,9 @@ def _simulated_power(args: argparse.Namespace) -> int:
     for frame in (table, precision):
         for r in frame[frame["failed"] > 0].itertuples():
             label = getattr(r, "test", None) or r.estimate
-            print(f"  note: {label}, n={r.n}: {r.failed} of {r.sims} fits failed")
+            none = (" - n/a: no simulated study could be analysed this way (e.g. too few "
+                    "participants for the test)" if r.failed >= r.sims else "")  # fmt: skip
+            print(f"  note: {label}, n={r.n}: {r.failed} of {r.sims} fits failed{none}")
     return 0
 
 
@@ -616,7 +619,7 @@ def _cmd_score_typed(args: argparse.Namespace) -> int:
     import pandas as pd
 
     from facelab.analysis.typed_scoring import score_table
-    from facelab.japanese_reading import morae, pronunciation
+    from facelab.japanese_reading import first_unsaid_keyword, morae, pronunciation
     from facelab.textfiles import read_rows
 
     path = Path(args.answers)
@@ -625,8 +628,20 @@ def _cmd_score_typed(args: argparse.Namespace) -> int:
         expected="target, response and optionally keywords (space-separated)",
     )  # fmt: skip
     for line, row in rows.located():
-        if not row["target"].strip():
+        target = row["target"].strip()
+        if not target:
             raise FacelabError(f"{path}:{line}: the target (what was said) is empty")
+        said = morae(pronunciation(target))
+        if not said:
+            raise FacelabError(f"{path}:{line}: the target {target!r} has nothing to pronounce "
+                               "(no mora to score)")  # fmt: skip
+        word = first_unsaid_keyword(target, (row.get("keywords") or "").split())
+        if word is not None:  # it would score 0 even in an answer that repeats the target
+            raise FacelabError(
+                f"{path}:{line}: keyword {word!r} is not said in the target {target!r} after "
+                f"the keywords before it (read {''.join(said)}): keywords are words of what "
+                "was said, in order, separated by spaces"
+            )
     pairs = pd.DataFrame(list(rows), columns=rows.header, dtype=str)
     table = score_table(pairs, reader=pronunciation, split=morae, tolerant=not args.strict)
     if args.out:
