@@ -705,8 +705,9 @@ def series_comparison(
     window or threshold per animation method) summarised and compared within participants.
 
     Returns ``(summary, tests)``: per series the participants' mean of each measure with a
-    95 % t interval (``<measure>_mean``, ``_ci_low``, ``_ci_high``; ``participants``, and
-    ``determined`` - rows without a ``note``); per measure a repeated-measures ANOVA over the
+    95 % t interval (``<measure>_mean``, ``_ci_low``, ``_ci_high``, and ``_n`` the
+    participants it is over; ``participants``, and ``determined`` - rows without a
+    ``note``); per measure a repeated-measures ANOVA over the
     series (Greenhouse-Geisser p, as ``a = b = "all"``) and Holm-adjusted paired t tests
     (``measure, a, b, f, t, df, df2, p_unc, p_adj, d_z, participants``), over participants
     with every series determined (three or more needed; a series fewer than three participants
@@ -737,7 +738,8 @@ def series_comparison(
             v = kept[measure].to_numpy(dtype=float)
             mean, low, high = mean_t_interval(v[np.isfinite(v)])
             row |= {f"{measure}_mean": mean, f"{measure}_ci_low": low,
-                    f"{measure}_ci_high": high}  # fmt: skip
+                    f"{measure}_ci_high": high,
+                    f"{measure}_n": int(np.isfinite(v).sum())}  # fmt: skip
         summary.append(row)
     tests = []
     for measure in measures:

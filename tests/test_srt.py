@@ -318,6 +318,8 @@ def test_a_series_beyond_the_snrs_tested_keeps_its_row_and_is_named() -> None:
     assert table["benefit_db"].isna().all()  # no determined audio-only SRT to measure from
     summary, tests = srt.srt_tests(table, reference="audio")
     assert set(summary.set_index("condition").loc[["audio", "emphasized"], "determined"]) == {0}
+    base = summary.set_index("condition").loc["baseline"]  # each mean says what it is over
+    assert base["srt_db_n"] == 4 and base["benefit_db_n"] == 0
     pairs = tests[(tests["measure"] == "srt_db") & (tests["a"] != "all")]
     assert {(r.a, r.b) for r in pairs.itertuples()} == {("baseline", "standard")}
     # one SNR only: a track that never left the easy end
