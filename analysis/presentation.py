@@ -103,10 +103,10 @@ def presentation_quality(
 
 def exclude_dropped(
     data: pd.DataFrame, *, max_dropped: int
-) -> tuple[pd.DataFrame, pd.DataFrame, str | None]:
+) -> tuple[pd.DataFrame, pd.DataFrame, str]:
     """Responses to trials whose clip dropped more than ``max_dropped`` frames left out:
-    ``(kept, excluded, note)``; the note (None when nothing was left out) says how many per
-    condition and why."""
+    ``(kept, excluded, note)``; the note says how many per condition and why, or why
+    nothing was left out."""
     dropped = pd.to_numeric(data["clip_frames_dropped"], errors="coerce")
     return _exclude(
         data,
@@ -383,7 +383,7 @@ def _median(part: pd.DataFrame, column: str) -> float:
 
 def exclude_av_offset(
     data: pd.DataFrame, *, max_ms: float
-) -> tuple[pd.DataFrame, pd.DataFrame, str | None]:
+) -> tuple[pd.DataFrame, pd.DataFrame, str]:
     """Responses to live trials whose |A/V offset| exceeded ``max_ms`` left out:
     ``(kept, excluded, note)`` as :func:`exclude_dropped`."""
     offset = pd.Series(np.nan, index=data.index)

@@ -262,6 +262,11 @@ def fit_psychometric(
             f"midpoint CI: its upper limit lies above the range searched ({bounds[0][1]:g})"
         )
     beta_low, beta_high = float(low[1]), float(high[1])
+    steep = np.exp(bounds[1][1])
+    if not separated and np.mean(draws[:, 1] >= steep * (1 - 1e-6)) > tail:
+        beta_high = np.inf  # resamples pile on the bound: steeper than the levels can show
+        notes.append(f"slope CI: its upper limit lies above the range searched ({steep:.3g}; "
+                     "the levels tested cannot show how steep)")  # fmt: skip
     if separated:
         mid_low = mid_high = beta_low = beta_high = float("nan")
     return PsychometricFit(
@@ -321,6 +326,8 @@ def _bound_notes(
         )
     elif _at_bound(log_beta, bounds[1])[0]:
         notes.append("slope at its lower bound: no trend over the levels, midpoint undetermined")
+    elif _at_bound(log_beta, bounds[1])[1]:
+        notes.append("slope at its upper bound: steeper than the levels tested can show")
     alpha_low, alpha_high = _at_bound(alpha, bounds[0])
     if (alpha_low or alpha_high) and not separated:
         side = "below" if alpha_low else "above"

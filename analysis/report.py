@@ -347,7 +347,8 @@ _TASK_HEADINGS = {
     "(PSS and width in ms, 95 % profile-likelihood intervals; simultaneity: a Gaussian, width "
     "= full width at half its peak; temporal order: a cumulative Gaussian, width = 25-75 %)",
     "sync_summary": "Audio-visual timing: the participants' mean PSS and width per condition "
-    "series (95 % t intervals; windows not fully determined left out)",
+    "series (95 % t intervals over <measure>_n participants; a window's PSS or width left "
+    "out where its note names it)",
     "sync_tests": "Audio-visual timing: the series compared within participants (RM ANOVA, "
     "Greenhouse-Geisser p, as a = b = all; paired t tests, Holm)",
     "srt": "Speech in noise: each participant's speech reception threshold per condition "

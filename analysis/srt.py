@@ -214,10 +214,13 @@ def _loglik_and_gradient(
 
 
 def fit_srt(
-    trials: pd.DataFrame, *, guess: float, level: float = 0.95, intervals: bool = True
-) -> SrtFit:
+    trials: pd.DataFrame, *, guess: float, level: float = 0.95, intervals: bool = True,
+    snr_range: tuple[float, float] | None = None,
+) -> SrtFit:  # fmt: skip
     """Fit one participant's SRT to ``trials`` (``snr_db, correct``, or ``snr_db, units,
-    hits``); see the module."""
+    hits``); see the module. ``snr_range``: the lowest and highest SNR the procedure can
+    show in this series (default the SNRs answered): answers that never cross 50 % are
+    noted only when they reach that end (a track stuck at the procedure's limit)."""
     if "units" in trials:
         counts = (trials.groupby("snr_db", sort=True)[["units", "hits"]].sum()
                   .rename(columns={"units": "n", "hits": "k"}).reset_index())  # fmt: skip
@@ -252,7 +255,8 @@ def fit_srt(
         lo, hi = profile_interval(loglik, bounds=bounds, theta=theta, ll=ll, index=0,
                                   cutoff=chi2_cutoff(level), both=both)  # fmt: skip
     notes = []
-    side = _unbracketed(share, srt_db=float(theta[0]), x=x)
+    side = _unbracketed(share, srt_db=float(theta[0]), x=x,
+                        snr_range=snr_range or (float(x[0]), float(x[-1])))
     if side:
         most = "more than half" if side == "below" else "half or fewer"
         notes.append(f"{most} right at every SNR tested ({x[0]:g} to {x[-1]:g} dB): the SRT "
@@ -271,14 +275,17 @@ def fit_srt(
     )  # fmt: skip
 
 
-def _unbracketed(share: np.ndarray, *, srt_db: float, x: np.ndarray) -> str:
-    """``"below"`` when more than half were right at every SNR ``x`` and the fitted SRT lies
-    below them all, ``"above"`` when at most half were right everywhere and it lies above
+def _unbracketed(
+    share: np.ndarray, *, srt_db: float, x: np.ndarray, snr_range: tuple[float, float]
+) -> str:
+    """``"below"`` when more than half were right at every SNR ``x``, the lowest of them is
+    the procedure's lowest and the fitted SRT lies below them all; ``"above"`` when at most
+    half were right everywhere, the highest is the procedure's highest and it lies above
     them (the answers never cross 50 %: a track stuck at the procedure's easy or hard end);
-    ``""`` when the SNRs bracket it."""
-    if bool(np.all(share > 0.5)) and srt_db < x[0]:
+    ``""`` otherwise."""
+    if bool(np.all(share > 0.5)) and srt_db < x[0] and x[0] <= snr_range[0] + 1e-9:
         return "below"
-    if bool(np.all(share <= 0.5)) and srt_db > x[-1]:
+    if bool(np.all(share <= 0.5)) and srt_db > x[-1] and x[-1] >= snr_range[1] - 1e-9:
         return "above"
     return ""
 
@@ -289,13 +296,13 @@ def _one_snr(part: pd.DataFrame) -> SrtFit:
     units = part["units"] if "units" in part else pd.Series(1.0, index=part.index)
     hits = part["hits"] if "hits" in part else part["correct"].astype(float)
     n, k, snr = float(units.sum()), float(hits.sum()), float(part["snr_db"].iloc[0])
-    side = "below" if k > n / 2 else "above"
+    side = "below" if k > n / 2 else "above" if k < n / 2 else "near"
     return SrtFit(
         n=int(n), srt_db=math.nan, srt_ci_low=math.nan, srt_ci_high=math.nan,
         slope_per_db=math.nan, lapse=math.nan, deviance=math.nan, deviance_df=0,
-        note=(f"every answer at one SNR ({snr:g} dB, {k:g} of {n:g} right): the SRT lies "
-              f"{side} it and is not estimated (the procedure's SNR range does not reach "
-              "this participant's threshold)"),
+        note=(f"every answer at one SNR ({snr:g} dB, {k:g} of {n:g} scored units right): the "
+              f"SRT lies {side} it and is not estimated (the procedure's SNR range does not "
+              "reach this participant's threshold)"),
     )  # fmt: skip
 
 
@@ -311,12 +318,18 @@ def srt_table(
     order = list(dict.fromkeys(c.series_id for c in protocol.conditions if c.noise is not None))
     out = []
     fits: dict[tuple[str, str], SrtFit] = {}
+    ranges: dict[str, list[float]] = {}
+    for c in protocol.conditions:
+        if c.noise is not None:
+            ranges.setdefault(c.series_id, []).append(c.noise.snr_db)
     for (pid, series), part in trials.groupby(["participant", "condition"], sort=True):
         if part["snr_db"].nunique() < 2:
             fits[(str(pid), str(series))] = _one_snr(part)
             continue
+        snrs = ranges.get(str(series)) or list(part["snr_db"])
         fits[(str(pid), str(series))] = fit_srt(part, guess=guess, level=level,
-                                                intervals=intervals)  # fmt: skip
+                                                intervals=intervals,
+                                                snr_range=(min(snrs), max(snrs)))  # fmt: skip
     reference = audio_only_series(protocol)
     z = float(stats.norm.ppf(0.5 + level / 2))
     for (pid, series), fit in fits.items():

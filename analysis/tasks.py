@@ -204,19 +204,28 @@ def _staircase_tables(
 def _track_note(
     shown: np.ndarray, *, state: Staircase, threshold: float, correct: np.ndarray
 ) -> str:
-    """What a staircase's threshold cannot say: no estimate (no reversal), a track that kept
-    to the easiest or hardest level of its grid in at least half of its second half, an end
-    level answered right less often (easiest) or more often (hardest) than the rule's target
-    by a one-sided binomial test at 0.05 (an up-down rule's convergence point), or a QUEST+
-    posterior whose most likely threshold is an end of its grid - the participant's threshold
-    lies beyond the levels rendered: the estimate is a bound, whatever its rule's interval
-    says. ``state``: the replayed staircase; ``shown``/``correct``: the trials' levels and
-    answers in order."""
+    """What a staircase's threshold cannot say - the participant's threshold lies beyond the
+    levels rendered, so the estimate is a bound, whatever its rule's interval says: an end
+    level answered right less often (easiest) or more often (hardest) than the rule aims at,
+    by a one-sided binomial test at 0.05 (an up-down rule's convergence point; QUEST+'s
+    midpoint, halfway from guessing to always right); for QUEST+, a posterior whose most
+    likely threshold is an end of its grid with 30 % or more of it; for up-down, fewer right
+    over the whole track than it converges on; for up-down and Brand-Kollmeier, a track that
+    kept to an end of its grid in at least half of its second half (QUEST+ places trials
+    for information, often at an end, so not that); or no estimate at all (no reversal).
+    ``state``: the replayed staircase; ``shown``/``correct``: the trials' levels and answers
+    in order."""
     from scipy import stats as sps
 
     levels = state.levels  # easiest first
+    bound = ("the threshold lies at or beyond that end of the levels rendered - a bound, not "
+             "an estimate (render levels beyond it)")  # fmt: skip
+    target = None
     if isinstance(state, UpDownStaircase):
         target = convergence_probability(up=state.up, down=state.down)
+    elif isinstance(state, QuestPlusStaircase):
+        target = state.gamma + (1.0 - state.gamma) / 2
+    if target is not None:
         for end, where in ((levels[0], "easiest"), (levels[-1], "hardest")):
             at = np.isclose(shown, end)
             n, k = int(at.sum()), int(correct[at].sum())
@@ -227,9 +236,18 @@ def _track_note(
             if p < 0.05:
                 fewer = "fewer" if where == "easiest" else "more"
                 return (f"at the grid's {where} level ({end:g}) {k} of {n} right, {fewer} than "
-                        f"the rule's target ({target:.1%}) allows (binomial p = {p:.2g}): the "
-                        "threshold lies at or beyond that end of the levels rendered - a "
-                        "bound, not an estimate (render levels beyond it)")  # fmt: skip
+                        f"the rule aims at ({target:.1%}) allows (binomial p = {p:.2g}): "
+                        f"{bound}")  # fmt: skip
+    if isinstance(state, QuestPlusStaircase):
+        marginal = state.posterior.sum(axis=(1, 2))
+        top = int(np.argmax(marginal))
+        # 0.3: at the shipped gain_questplus grid, 0-3 of 150 simulated observers whose
+        # threshold lies inside it, 86 / 138 of 150 beyond either end (stop 82)
+        if top in (0, len(marginal) - 1) and marginal[top] >= 0.3:
+            return (f"the posterior's most likely threshold is the end of its grid "
+                    f"({state.thresholds[top]:g}, {marginal[top]:.0%} of it there): "
+                    f"{bound}")  # fmt: skip
+    if isinstance(state, UpDownStaircase):
         n, k = len(correct), int(correct.sum())
         p = sps.binom.cdf(k, n, target)
         if n >= 10 and p < 0.05:  # never near the target anywhere: the grid is too hard
@@ -238,22 +256,13 @@ def _track_note(
                     "enough - the threshold lies at or beyond the grid's easiest end "
                     f"({levels[0]:g}), a bound, not an estimate (render easier "
                     "levels)")  # fmt: skip
-    if isinstance(state, QuestPlusStaircase):
-        marginal = state.posterior.sum(axis=(1, 2))
-        top = int(np.argmax(marginal))
-        if top in (0, len(marginal) - 1):
-            return (f"the posterior's most likely threshold is the end of its grid "
-                    f"({state.thresholds[top]:g}, {marginal[top]:.0%} of it there): the "
-                    "threshold lies at or beyond that end of the levels rendered - a bound, "
-                    "not an estimate, whatever its SD says (render levels beyond it)")  # fmt: skip
-    late = shown[len(shown) // 2:]
-    for end, where in ((levels[-1], "hardest"), (levels[0], "easiest")):
-        at = int(np.sum(np.isclose(late, end)))
-        if len(late) >= 2 and at * 2 >= len(late):
-            return (f"the track kept to the grid's {where} level ({end:g}) in {at} of its last "
-                    f"{len(late)} trials: the threshold lies at or beyond that end of the "
-                    "levels rendered - a bound, not an estimate (render levels beyond "
-                    "it)")  # fmt: skip
+    if not isinstance(state, QuestPlusStaircase):
+        late = shown[len(shown) // 2:]
+        for end, where in ((levels[-1], "hardest"), (levels[0], "easiest")):
+            at = int(np.sum(np.isclose(late, end)))
+            if len(late) >= 2 and at * 2 >= len(late):
+                return (f"the track kept to the grid's {where} level ({end:g}) in {at} of its "
+                        f"last {len(late)} trials: {bound}")  # fmt: skip
     if math.isnan(threshold):
         return f"no threshold: {len(state.reversals)} reversal(s) in {len(shown)} trials"
     return ""
@@ -478,14 +487,16 @@ def _timing_tables(
     windows = windows.assign(task=task.id)
     summary, tests = timing.window_tests(windows)
     _add_estimates(res, task, ("sync_window", "sync_summary", "sync_tests"), windows, summary,
-                   tests, what="windows")  # fmt: skip
+                   tests, what="windows",
+                   partly=" (of the measure the note names: a note on the width alone keeps "
+                   "the window's PSS in)")  # fmt: skip
     counts = timing.timing_counts(rows, protocol, task)
     res.timing.append((task, counts, windows))
 
 
 def _add_estimates(
     res: TaskResults, task: IdentifyTask, names: tuple[str, str, str], estimates: pd.DataFrame,
-    summary: pd.DataFrame, tests: pd.DataFrame, *, what: str,
+    summary: pd.DataFrame, tests: pd.DataFrame, *, what: str, partly: str = "",
 ) -> None:  # fmt: skip
     """Append one task's per-participant ``estimates``, their ``summary`` and ``tests`` to the
     tables ``names``; a note names how many estimates the data leave undetermined."""
@@ -499,7 +510,7 @@ def _add_estimates(
     if len(undetermined):
         res.notes.append(
             f"task {task.id!r}: {len(undetermined)} of {len(estimates)} {what} are not fully "
-            f"determined ({main}.csv's note); they are left out of {tested}"
+            f"determined ({main}.csv's note); they are left out of {tested}{partly}"
         )
     series = list(dict.fromkeys(estimates["condition"]))
     measures = [c.removesuffix("_mean") for c in summary.columns if c.endswith("_mean")]
@@ -512,11 +523,14 @@ def _add_estimates(
             "'determined')"
         )
     for measure, part in tests.groupby("measure", sort=False):
-        left = [s for s in series if s not in set(part["a"]) | set(part["b"])]
+        valued = estimates.groupby("condition", sort=False)[measure].apply(
+            lambda v: bool(np.isfinite(v.to_numpy(dtype=float)).any()))  # a reference: none
+        left = [s for s in series if valued.get(s, False)
+                and s not in set(part["a"]) | set(part["b"])]  # fmt: skip
         if left:
             res.notes.append(f"task {task.id!r}: {', '.join(left)} left out of {tested}'s "
-                             f"{measure} (fewer than three participants with it "
-                             "determined)")  # fmt: skip
+                             f"{measure} (fewer than three participants with it determined "
+                             f"and a value: the summary's {measure}_n)")  # fmt: skip
 
 
 def _srt_tables(
@@ -537,6 +551,14 @@ def _srt_tables(
     _add_estimates(res, task, ("srt", "srt_summary", "srt_tests"), table.assign(task=task.id),
                    summary, tests, what="SRTs")  # fmt: skip
     res.srt.append((task, srt.noise_trials(rows, protocol, task), table))
+    steep = table["benefit_db"].notna() & table["visual_enhancement"].isna()
+    if steep.any():
+        res.notes.append(
+            f"task {task.id!r}: {int(steep.sum())} of {int(table['benefit_db'].notna().sum())} "
+            "visual enhancements are not estimated: the series' fitted slope sits on its bound "
+            f"({srt.SLOPE_BOUND[1]:g} per dB, steeper than the SNRs tested show), so P away "
+            "from the SRT is not known (the SRT and the benefit stand)"
+        )
 
 
 def _typed_tables(

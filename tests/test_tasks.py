@@ -316,6 +316,18 @@ def test_fit_marks_ci_limits_censored_by_the_search_range():
     assert fit.note == ""
 
 
+def test_a_slope_the_levels_cannot_bound_has_an_open_interval_not_a_zero_width_one():
+    """An observer right on nearly every trial at every level (its threshold below the grid):
+    resampled slopes pile on the search bound, which gave intervals of zero width ([1818,
+    1818]) at the bound; the interval's upper end is now open and named."""
+    counts = pd.DataFrame({"level": [0.05, 0.1, 0.2, 0.3, 0.4, 0.6], "n": [25] * 6,
+                           "k": [24, 25, 25, 25, 25, 25]})  # fmt: skip
+    fit = psychometric.fit_psychometric(counts, gamma=0.5, n_boot=60, rng=np.random.default_rng(3))
+    assert "perfect separation" not in fit.note
+    assert "slope CI: its upper limit lies above the range searched" in fit.note
+    assert fit.beta_ci_high == np.inf and fit.beta_ci_low < fit.beta_ci_high
+
+
 def test_psychometric_refuses_bad_input():
     from facelab.errors import AnalysisError
 
@@ -706,39 +718,48 @@ def test_condition_model_with_identical_answers_in_both_conditions_tests_as_no_d
 
 
 @pytest.mark.parametrize(
-    ("name", "observer", "where"),
+    ("name", "observer", "where", "share"),
     [
         ("gain_staircase", "{midpoint: -0.5, slope: 40, lapse: 0.0, midpoint_sd: 0.0}",
-         r"(the track kept to|at) the grid's hardest level \(0.05\)"),
+         r"(the track kept to|at) the grid's hardest level \(0.05\)", 0.9),
         ("gain_staircase", "{midpoint: 3.0, slope: 18, lapse: 0.03, midpoint_sd: 0.0}",
          r"((the track kept to|at) the grid's easiest level \(0.6\)|\d+ of \d+ right over "
-         r"the whole track, fewer than the rule converges on)"),
+         r"the whole track, fewer than the rule converges on)", 0.6),
         ("gain_questplus", "{midpoint: 3.0, slope: 18, lapse: 0.03, midpoint_sd: 0.0}",
-         r"the posterior's most likely threshold is the end of its grid \(0.6,"),
+         r"(the posterior's most likely threshold is the end of its grid \(0.6,|at the grid's "
+         r"easiest level \(0.6\))", 0.4),
         ("gain_questplus", "{midpoint: -0.5, slope: 40, lapse: 0.0, midpoint_sd: 0.0}",
-         r"the posterior's most likely threshold is the end of its grid \(0.05,"),
+         r"(the posterior's most likely threshold is the end of its grid \(0.05,|at the "
+         r"grid's hardest level \(0.05\))", 0.8),
     ],
 )  # fmt: skip
-def test_a_threshold_beyond_the_levels_rendered_is_named_a_bound(tmp_path, name, observer, where):
+def test_a_threshold_beyond_the_levels_rendered_is_named_a_bound(
+    tmp_path, name, observer, where, share
+):
     """Observers whose threshold lies beyond the grid (far better or far worse than its
     ends): each staircase row's note says the threshold is a bound, not an estimate - the
     rule's own number (a mean of reversals at the grid's end, a QUEST+ posterior mean with a
-    small SD) would otherwise read as a precise threshold. Observers inside stay un-noted."""
+    small SD) would otherwise read as a precise threshold. Observers inside stay un-noted.
+    Over 150 simulated observers (stop 82): up-down 144 / 150 of 150 named beyond the easy /
+    hard end, QUEST+ 88 / 141 (its 30 trials often leave a chance observer's posterior
+    spread; facelab's simulated participants here: 9 of 12 up-down beyond the easy end);
+    inside the grid 2 / 0 of 150 at the shipped truth."""
     shipped = "{midpoint: 0.18, slope: 18, lapse: 0.03, midpoint_sd: 0.0}"
     path = _protocol(tmp_path, name, lambda s: s.replace(shipped, observer))
     protocol = load_protocol(path)
-    simulate_study(protocol, protocol_path=path, results=tmp_path / "r", participants=3, seed=2)
+    simulate_study(protocol, protocol_path=path, results=tmp_path / "r", participants=12,
+                   seed=2)  # fmt: skip
     data = load_results(tmp_path / "r", study=protocol.study.id)
     res = analyze_tasks(data, protocol, rng=np.random.default_rng(0), n_boot=0)
     notes = res.tables["staircase_thresholds"]["note"]
     # an observer at chance can, by luck, answer like one whose threshold is inside the grid
-    # for a while (1 of 3 here with the harder-than-rendered observer): two of three at least
-    assert notes.str.match(where).sum() >= 2 and notes.str.match(f"|{where}").all(), notes
-    (tmp_path / "in").mkdir()
+    named = notes.str.match(where)
+    assert named.mean() >= share and (named | notes.eq("")).all(), notes.tolist()
+    (tmp_path / "in").mkdir()  # the shipped observer, inside the grid: false alarms are rare
     inside = _protocol(tmp_path / "in", name)
     protocol = load_protocol(inside)
-    simulate_study(protocol, protocol_path=inside, results=tmp_path / "r2", participants=3,
+    simulate_study(protocol, protocol_path=inside, results=tmp_path / "r2", participants=20,
                    seed=2)  # fmt: skip
     data = load_results(tmp_path / "r2", study=protocol.study.id)
     res = analyze_tasks(data, protocol, rng=np.random.default_rng(0), n_boot=0)
-    assert res.tables["staircase_thresholds"]["note"].eq("").all()
+    assert res.tables["staircase_thresholds"]["note"].ne("").sum() <= 1  # 2/150 and 0/150
