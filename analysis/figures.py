@@ -275,10 +275,12 @@ def staircase_figure(
     """
     with plt.rc_context(_rc()):
         fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=150, layout="constrained")
-        ids = list(dict.fromkeys(track["participant"]))
+        runs = (track["participant"].astype(str) + "/" + track["session"].astype(str)
+                if "session" in track else track["participant"].astype(str))  # fmt: skip
+        ids = list(dict.fromkeys(runs))  # a session runs its own staircase
         if len(ids) <= max_lines:
             for k, pid in enumerate(ids):
-                one = track[track["participant"] == pid]
+                one = track[runs == pid]
                 ax.step(one["step"], one["level"], where="mid", color="0.7", lw=0.8, zorder=1,
                         label="a participant's levels" if k == 0 else None)  # fmt: skip
                 if len(ids) <= max_markers:
@@ -305,7 +307,9 @@ def staircase_figure(
         median = track.groupby("step")["level"].median()
         ax.step(median.index, median.values, where="mid", color="#1f3b57", lw=2.0, zorder=4,
                 label="median level")  # fmt: skip
-        finite = thresholds["threshold"].dropna()
+        kept = (thresholds[thresholds["note"].fillna("").astype(str).eq("")]
+                if "note" in thresholds else thresholds)  # a bound is not an estimate
+        finite = kept["threshold"].dropna()
         if len(finite):
             estimate = str(thresholds["estimate"].iloc[0])
             ax.axhline(

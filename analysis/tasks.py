@@ -146,10 +146,13 @@ def _staircase_tables(
     rows: pd.DataFrame, protocol: Protocol, block_id: str
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Each participant's staircase replayed from the log: (thresholds, one row per
-    participant; track, one row per step: the level shown, the answer, reversals)."""
+    participant and session - a session runs its own staircase; track, one row per step:
+    the level shown, the answer, reversals)."""
     out, track = [], []
     rule = next(b.staircase for b in protocol.blocks if b.id == block_id)
-    for pid, part in rows.sort_values("trial_index").groupby("participant", sort=True):
+    keys = ["participant", "session"] if "session" in rows else ["participant"]
+    for key, part in rows.sort_values("trial_index").groupby(keys, sort=True):
+        pid, session = (key[0], key[1]) if len(keys) == 2 else (key[0], 1)
         state = new_staircase(protocol, block_id)
         try:
             steps = state.replay(
@@ -163,11 +166,12 @@ def _staircase_tables(
             )
         except ValueError as exc:
             raise AnalysisError(
-                f"participant {pid}, staircase of block {block_id!r}: {exc}"
+                f"participant {pid} session {session}, staircase of block {block_id!r}: {exc}"
             ) from None
         track += [
             {
                 "participant": pid,
+                "session": int(session),
                 "block": block_id,
                 "step": k,
                 "trial_index": st["trial_index"],
@@ -184,6 +188,7 @@ def _staircase_tables(
         out.append(
             {
                 "participant": pid,
+                "session": int(session),
                 "block": block_id,
                 "rule": rule.rule if rule else None,
                 "estimate": estimate.pop("estimate"),

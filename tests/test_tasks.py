@@ -763,3 +763,32 @@ def test_a_threshold_beyond_the_levels_rendered_is_named_a_bound(
     data = load_results(tmp_path / "r2", study=protocol.study.id)
     res = analyze_tasks(data, protocol, rng=np.random.default_rng(0), n_boot=0)
     assert res.tables["staircase_thresholds"]["note"].ne("").sum() <= 1  # 2/150 and 0/150
+
+
+def test_a_participants_second_staircase_session_is_its_own_staircase(tmp_path, capsys):
+    """A participant who ran the staircase twice (a retest): each session is replayed as the
+    staircase it ran - the two were read as one track and refused as a log 'not belonging
+    to this staircase' - and both thresholds are tabled, by session."""
+    from tests.session_edits import rewrite_rows
+
+    path = _protocol(tmp_path, "gain_staircase")
+    protocol = load_protocol(path)
+    simulate_study(protocol, protocol_path=path, results=tmp_path / "r", participants=2, seed=2)
+    first = next((tmp_path / "r").rglob("sub-P01/ses-1"))
+    second = first.with_name("ses-2")
+    second.mkdir()
+    for f in first.iterdir():
+        (second / f.name.replace("ses-1", "ses-2")).write_bytes(f.read_bytes())
+    rewrite_rows(second, lambda row: row.update(session="2") is None)
+    (session,) = second.glob("*_session.json")
+    session.write_text(session.read_text(encoding="utf-8").replace('"session": 1',
+                                                                   '"session": 2'))  # fmt: skip
+    out = tmp_path / "a"
+    assert main(["analyze", str(path), str(tmp_path / "r"), "--out", str(out), "--bootstrap",
+                 "0"]) == 0  # fmt: skip
+    assert "P01: sessions 1, 2" in capsys.readouterr().out
+    thresholds = pd.read_csv(out / "staircase_thresholds.csv")
+    assert list(zip(thresholds["participant"], thresholds["session"], strict=True)) == [
+        ("P01", 1), ("P01", 2), ("P02", 1)]  # fmt: skip
+    one = thresholds[thresholds["participant"] == "P01"]
+    assert one["threshold"].nunique() == 1  # the same answers, the same staircase
