@@ -244,6 +244,26 @@ def test_loader_accepts_exporter_spellings(head: Avatar, tmp_path: Path) -> None
         np.testing.assert_array_equal(back.targets[canonical], head.targets[canonical])
 
 
+def test_two_targets_of_one_name_are_refused_not_one_silently_kept(
+    head: Avatar, tmp_path: Path
+) -> None:
+    """An export where a second shape took a name already used (``mouthRollUpper`` saved as
+    ``jawOpen``): the later one replaced the real jawOpen without a word; now refused,
+    naming both targets - spellings that mean one ARKit name count as the same."""
+    from facelab.errors import AvatarError
+
+    path = tmp_path / "dup.gltf"
+    save(head, path)
+    doc = json.loads(path.read_text())
+    names = doc["meshes"][0]["extras"]["targetNames"]
+    doc["meshes"][0]["extras"]["targetNames"] = [
+        "JawOpen" if n == "mouthRollUpper" else n for n in names]  # fmt: skip
+    path.write_text(json.dumps(doc))
+    with pytest.raises(AvatarError, match=r"two morph targets named 'jawOpen' \(targets \d+ "
+                       r"'jawOpen' and \d+ 'JawOpen'\)"):  # fmt: skip
+        load(path)
+
+
 def test_missing_targets_are_listed(head: Avatar) -> None:
     few = Avatar(
         head.neutral,

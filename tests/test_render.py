@@ -385,3 +385,24 @@ def test_resolving_only_the_heads_rectangle_changes_no_pixel() -> None:
         assert np.all(empty == empty[0, 0])  # nothing of the head left behind
         assert np.array_equal(back, reference_back)
         assert np.array_equal(after, reference_after)
+
+
+def test_a_shape_the_avatar_lacks_is_passed_over_only_when_the_track_holds_it_at_zero() -> None:
+    """A real ARKit export often lacks one of the 52 shapes (tongueOut); the shipped Z
+    matrices never move it, so such an avatar renders: the channel is left out. A channel
+    the track does move is refused, naming it and what to do."""
+    from facelab.errors import StageError
+    from facelab.stimuli.methods.types import BlendshapeTrack
+    from facelab.stimuli.render.clip import weights_at
+
+    head = default_head()
+    times = np.array([0.0, 0.5, 1.0])
+    track = BlendshapeTrack(times=times, weights=np.array([[0, 0], [0.8, 0], [0, 0]]),
+                            names=("jawOpen", "noSuchShape"))  # fmt: skip
+    weights = frame_weights(track, head, fps=10, n_frames=12, pad_s=0.1)
+    assert weights[:, head.target_names.index("jawOpen")].max() == pytest.approx(0.8)
+    assert weights_at(track, head, t=0.5)[head.target_names.index("jawOpen")] == 0.8
+    moved = BlendshapeTrack(times=times, weights=np.array([[0, 0], [0.8, 0.1], [0, 0]]),
+                            names=("jawOpen", "noSuchShape"))  # fmt: skip
+    with pytest.raises(StageError, match="lacks targets the track moves: noSuchShape"):
+        frame_weights(moved, head, fps=10, n_frames=12, pad_s=0.1)

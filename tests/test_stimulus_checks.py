@@ -85,6 +85,30 @@ def test_the_audit_fails_an_arkit_mouth_that_cannot_show_z() -> None:
     assert "mouthFunnel is the same shape as mouthPucker" in row.note
 
 
+def test_shapes_that_tear_the_face_fail_the_audit_and_inspect_names_scale_and_prefixes() -> None:
+    """Shape deltas 30 times too large (exported at another scale than the mesh) moved the
+    mouth a metre and passed the audit; now each such driven target fails with the likely
+    cause. The default head's shapes stay within reach (its jawOpen moves 36 mm). Inspect
+    warns of a model in centimetres and names ARKit shapes behind an exporter's prefix."""
+    from facelab.stimuli.avatar import default_head
+    from facelab.stimuli.render.inspect import avatar_report, format_report
+
+    head = default_head()
+    rows = audit_avatar(head, load_protocol(KATO), base_dir=KATO.parent)
+    assert not [r for r in rows if r.measure.startswith("target_reach_mm")]
+    wild = head.replace(targets={k: v * 30 for k, v in head.targets.items()})
+    rows = audit_avatar(wild, load_protocol(KATO), base_dir=KATO.parent)
+    torn = [r for r in rows if r.measure == "target_reach_mm:jawOpen"]
+    assert torn and all(r.passed is False for r in torn)
+    assert "another scale than the mesh (centimetres?)" in torn[0].note
+    report = avatar_report(head.replace(neutral=head.neutral * 100))
+    assert "taller than a person; glTF is in metres: exported in centimetres?" in format_report(
+        report)  # fmt: skip
+    prefixed = head.replace(targets={f"blendShape1.{k}": v for k, v in head.targets.items()})
+    text = format_report(avatar_report(prefixed))
+    assert "ARKit or viseme names behind the prefix 'blendShape1.'" in text
+
+
 def test_vowel_shapes_stand_in_and_z_still_acts() -> None:
     """With its own vowel shapes the broken avatar plays Z through them, emphasized opening
     further than standard (the retargeted weights), and the audit passes what it drives."""

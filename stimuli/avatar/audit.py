@@ -27,6 +27,10 @@ __all__ = [
 #: a target whose largest vertex displacement at full weight is below this moves nothing a
 #: viewer could see (a pixel of a 720p close-up is about 0.3 mm on a face)
 EMPTY_TARGET_MM = 0.5
+#: a face shape moving a vertex further than this (mm) at full weight tears the face - on a
+#: human-sized head a jaw opens about 20-40 mm (the default head's jawOpen 36, the samples'
+#: 12): shapes exported at another scale than the mesh (centimetres) or a broken export
+WILD_TARGET_MM = 150.0
 #: two targets whose deltas differ nowhere by more than this are the same shape
 IDENTICAL_TOLERANCE_MM = 0.01
 

@@ -738,7 +738,7 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                 tex_index = -1  # a texture without coordinates cannot be mapped
             if tex_index >= 0 and transform:
                 uv = _transform_uv(uv, transform)
-            targets = {}
+            targets, raw_of = {}, {}
             prim_names = _extras(prim).get("targetNames", names)
             for k, tgt in enumerate(prim.targets or []):
                 position = _get(tgt, "POSITION")
@@ -749,7 +749,14 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                 )
                 raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
                 raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
-                targets[canonical_arkit_name(raw_name) or raw_name] = delta
+                name = canonical_arkit_name(raw_name) or raw_name
+                if name in targets:  # the later one would silently replace the earlier
+                    raise AvatarError(
+                        f"{path}: mesh {mesh.name or node.mesh!r} has two morph targets named "
+                        f"{name!r} (targets {raw_of[name][0]} {raw_of[name][1]!r} and {k} "
+                        f"{raw_name!r}): rename one in the modelling tool and export again"
+                    )
+                targets[name], raw_of[name] = delta, (k, raw_name)
             positions.append(pos_w)
             faces.append(idx.reshape(-1, 3) + offset)
             colors.append(col)

@@ -5,7 +5,10 @@ Rows (check ``avatar_audit``, no clip):
 
 * per condition, every target its method drives on this avatar moves a vertex by
   :data:`~facelab.stimuli.avatar.audit.EMPTY_TARGET_MM` or more at full weight
-  (``target_motion_mm:<name>``), and no two of them are the same shape
+  (``target_motion_mm:<name>``) and none by more than
+  :data:`~facelab.stimuli.avatar.audit.WILD_TARGET_MM` (``target_reach_mm:<name>``, a row
+  only for a target that does: shapes at another scale than the mesh tear the face), and no
+  two of them are the same shape
   (``identical_driven_targets``); a stand-in (the avatar's own vowel shapes playing Z) is
   reported as it plays;
 * the lip landmarks, when the file has them, lie where a mouth is: the upper lip not below the
@@ -28,7 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from facelab.protocol import Protocol
-from facelab.stimuli.avatar.audit import EMPTY_TARGET_MM, identical_targets, target_motion_mm
+from facelab.stimuli.avatar.audit import (
+    EMPTY_TARGET_MM,
+    WILD_TARGET_MM,
+    identical_targets,
+    target_motion_mm,
+)
 from facelab.stimuli.avatar.gaze import GAZE_RANGE_DEG, gaze_map, safe_eye_angle
 from facelab.stimuli.avatar.mesh import LANDMARKS, Avatar
 from facelab.stimuli.checks.rows import CheckRow, at_least, at_most, info
@@ -57,6 +65,14 @@ def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[
                 note="" if motion[name] >= EMPTY_TARGET_MM else
                 f"{name} moves nothing visible at full weight: the method cannot show it",
             ))  # fmt: skip
+            if motion[name] > WILD_TARGET_MM:  # only then: a row per target would be noise
+                rows.append(at_most(
+                    WILD_TARGET_MM, motion[name], clip="", condition=cond.id, check=CHECK,
+                    measure=f"target_reach_mm:{name}", unit=" mm",
+                    note=f"{name} moves a vertex {motion[name]:.0f} mm at full weight, further "
+                    "than a face can: the shapes were exported at another scale than the mesh "
+                    "(centimetres?) or are broken - the face would tear",
+                ))  # fmt: skip
         if motion:
             pairs = identical_targets(avatar, driven)
             rows.append(at_most(

@@ -83,17 +83,25 @@ def shifted_audio(audio: Speech, *, offset_ms: float) -> Speech:
 def frame_weights(
     track: BlendshapeTrack, avatar: Avatar, *, fps: int, n_frames: int, pad_s: float
 ) -> np.ndarray:
-    """(n_frames, K) weights in ``avatar.target_names`` order for frames k / fps."""
+    """(n_frames, K) weights in ``avatar.target_names`` order for frames k / fps. A channel
+    the avatar lacks is left out when the track holds it at 0 throughout (an ARKit export
+    without ``tongueOut`` plays a Z matrix whose ``tongueOut`` row is all zero); one the
+    track moves is refused, naming it."""
     index = {n: i for i, n in enumerate(avatar.target_names)}
-    missing = [n for n in track.names if n not in index]
+    missing = [n for j, n in enumerate(track.names)
+               if n not in index and np.any(track.weights[:, j] != 0)]  # fmt: skip
     if missing:
         raise StageError(
-            f"avatar {avatar.name!r} lacks targets the track drives: {', '.join(missing[:8])}"
+            f"avatar {avatar.name!r} lacks targets the track moves: {', '.join(missing[:8])}"
+            " (add these shapes to the avatar, or drive it with a method or Z matrix that "
+            "leaves them at 0)"
         )
     t = np.arange(n_frames) / fps - pad_s
     inside = (t >= track.times[0]) & (t <= track.times[-1])
     out = np.zeros((n_frames, len(index)), np.float32)
     for j, name in enumerate(track.names):
+        if name not in index:  # held at 0 throughout (checked above)
+            continue
         col = np.interp(t, track.times, track.weights[:, j], left=0.0, right=0.0)
         out[:, index[name]] = np.where(inside, col, 0.0)
     out[0] = 0.0
@@ -114,11 +122,14 @@ def frame_poses(
 
 
 def weights_at(track: BlendshapeTrack, avatar: Avatar, *, t: float) -> np.ndarray:
-    """(K,) weights in ``avatar.target_names`` order at speech time ``t`` (interpolated)."""
+    """(K,) weights in ``avatar.target_names`` order at speech time ``t`` (interpolated; a
+    channel the avatar lacks is passed over - :func:`frame_weights` refuses one the track
+    moves)."""
     index = {n: i for i, n in enumerate(avatar.target_names)}
     out = np.zeros(len(index), np.float32)
     for j, name in enumerate(track.names):
-        out[index[name]] = np.interp(t, track.times, track.weights[:, j])
+        if name in index:
+            out[index[name]] = np.interp(t, track.times, track.weights[:, j])
     return out
 
 

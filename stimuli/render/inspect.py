@@ -74,6 +74,36 @@ def avatar_report(avatar: Avatar) -> dict:
     }
 
 
+def _scale_and_naming_hints(report: Mapping) -> list[str]:
+    """What the geometry and the names alone say a user got wrong: a model far taller than a
+    person or smaller than a head (glTF is in metres: an export in centimetres or
+    millimetres), and shape names that are ARKit's behind a prefix the exporter added."""
+    from facelab.stimuli.arkit import canonical_arkit_name
+
+    out = []
+    height = float(report["height_m"])
+    if height > 3.0:
+        out.append(f"warning: {height:.2f} m tall - taller than a person; glTF is in metres: "
+                   "exported in centimetres? (scale by 0.01 on export)")  # fmt: skip
+    elif 0 < height < 0.1:
+        out.append(f"warning: {height:.3f} m tall - smaller than a head; glTF is in metres: "
+                   "exported in another unit? (scale on export)")  # fmt: skip
+    others = list(report["other_targets"])
+    if others and str(report["arkit_targets"]).startswith("0/"):
+        low, high = min(others), max(others)  # the shared start of all: of these two
+        prefix = low[: next((i for i, (a, b) in enumerate(zip(low, high, strict=False)) if a != b),
+                            min(len(low), len(high)))]  # fmt: skip
+        cut = [canonical_arkit_name(n[len(prefix):]) for n in others] if len(prefix) >= 2 else []
+        found = sum(1 for c in cut if c)
+        shown = ", ".join(others[:6]) + (" ..." if len(others) > 6 else "")
+        out.append(f"its targets: {shown}")
+        if found:
+            out.append(f"warning: {found} of them are ARKit or viseme names behind the prefix "
+                       f"{prefix!r} - rename them without it (or export without the "
+                       "prefix)")  # fmt: skip
+    return out
+
+
 def format_report(report: Mapping) -> str:
     """The report as aligned text lines."""
     sk = report["skeleton"]
@@ -84,6 +114,7 @@ def format_report(report: Mapping) -> str:
         f"targets    ARKit {report['arkit_targets']}, visemes {report['viseme_targets']}, "
         f"{len(report['other_targets'])} other",
     ]
+    lines += [f"           {w}" for w in _scale_and_naming_hints(report)]
     if report["missing_arkit"] and len(report["missing_arkit"]) <= 26:
         lines.append(f"           missing ARKit: {', '.join(report['missing_arkit'])}")
     if report["vrm_presets"]:
