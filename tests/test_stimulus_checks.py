@@ -494,3 +494,26 @@ def test_every_check_a_clip_can_fail_can_be_accepted_by_name() -> None:
             main(["render", "--accept-check", name, "--help"])
         assert done.value.code == 0
 
+
+
+def test_a_face_lying_down_or_turned_away_is_named_from_the_geometry() -> None:
+    """A Z-up export (the face looking at the ceiling) and a model facing -Z render a face the
+    tracker cannot find; the audit names the likely cause first. The default head passes."""
+    from facelab.stimuli.avatar import default_head
+    from facelab.stimuli.checks.avatar_checks import orientation_rows
+
+    head = default_head()
+    assert all(r.passed for r in orientation_rows(head))
+
+    def turned(rotation: np.ndarray):
+        return head.replace(neutral=(head.neutral @ rotation.T).astype(head.neutral.dtype),
+                            targets={k: (v @ rotation.T).astype(v.dtype)
+                                     for k, v in head.targets.items()})  # fmt: skip
+
+    lying = {r.measure: r for r in orientation_rows(turned(np.array(
+        [[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)))}  # fmt: skip
+    assert lying["face_upright"].passed is False and "exported Z-up" in lying["face_upright"].note
+    away = {r.measure: r for r in orientation_rows(turned(np.diag([-1.0, 1.0, -1.0])))}
+    assert away["face_upright"].passed
+    assert away["face_towards_camera"].passed is False
+    assert "looks away from the camera" in away["face_towards_camera"].note

@@ -19,6 +19,8 @@ from facelab.stimuli.avatar.mesh import Avatar
 __all__ = [
     "EMPTY_TARGET_MM",
     "IDENTICAL_TOLERANCE_MM",
+    "WILD_TARGET_MM",
+    "face_orientation",
     "identical_targets",
     "target_motion_mm",
     "unusable_targets",
@@ -94,3 +96,37 @@ def unusable_targets(avatar: Avatar, names: Iterable[str]) -> dict[str, str]:
         why.setdefault(a, f"the same shape as {b}")
         why.setdefault(b, f"the same shape as {a}")
     return why
+
+
+#: shapes that open the mouth / close the eyes, in the naming conventions facelab reads
+#: (ARKit, Oculus visemes, VRM 0.x presets and VRoid's, VRM 1.0 expressions)
+MOUTH_OPENERS = ("jawOpen", "viseme_aa", "aa", "A", "Fcl_MTH_A", "mouth_aa")
+EYE_CLOSERS = ("eyeBlinkLeft", "eyeBlinkRight", "blink", "Blink", "Fcl_EYE_Close", "eye_blink")
+
+
+def face_orientation(avatar: Avatar) -> tuple[float, float] | None:
+    """How the face sits before the camera (facelab looks along -Z at a face facing +Z,
+    +Y up): ``(up, towards)`` - the cosine between +Y and the line from the mouth's moving
+    vertices up to the eyes', and the Z component of the mean normal of the surface the
+    mouth shape moves (negative: facing away, or its triangles wound inside out). None
+    without a mouth-opening and an eye-closing shape to find them by."""
+    def moved(names: tuple[str, ...]) -> np.ndarray | None:
+        mask = np.zeros(len(avatar.neutral), bool)
+        scale = float(np.ptp(avatar.neutral, axis=0).max()) or 1.0
+        for name in names:
+            delta = avatar.targets.get(name)
+            if delta is not None:
+                mask |= np.abs(delta).max(axis=1) > 1e-4 * scale
+        return mask if mask.sum() >= 3 else None
+
+    mouth, eyes = moved(MOUTH_OPENERS), moved(EYE_CLOSERS)
+    if mouth is None or eyes is None:
+        return None
+    v = avatar.neutral.astype(np.float64)
+    line = v[eyes].mean(axis=0) - v[mouth].mean(axis=0)
+    up = float(line[1] / (np.linalg.norm(line) or 1.0))
+    tri = avatar.faces[mouth[avatar.faces].all(axis=1)]
+    if not len(tri):
+        return up, float("nan")
+    normal = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]).sum(axis=0)
+    return up, float(normal[2] / (np.linalg.norm(normal) or 1.0))

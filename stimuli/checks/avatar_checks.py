@@ -34,6 +34,7 @@ from facelab.protocol import Protocol
 from facelab.stimuli.avatar.audit import (
     EMPTY_TARGET_MM,
     WILD_TARGET_MM,
+    face_orientation,
     identical_targets,
     target_motion_mm,
 )
@@ -42,7 +43,7 @@ from facelab.stimuli.avatar.mesh import LANDMARKS, Avatar
 from facelab.stimuli.checks.rows import CheckRow, at_least, at_most, info
 from facelab.stimuli.methods import get
 
-__all__ = ["GAZE_RANGE_DEG", "audit_avatar", "eye_rows", "landmark_rows"]
+__all__ = ["GAZE_RANGE_DEG", "audit_avatar", "eye_rows", "landmark_rows", "orientation_rows"]
 
 CHECK = "avatar_audit"
 
@@ -79,10 +80,35 @@ def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[
                 0, len(pairs), clip="", condition=cond.id, check=CHECK,
                 measure="identical_driven_targets", note=_same_shapes(pairs),
             ))  # fmt: skip
+    rows += orientation_rows(avatar)
     rows += landmark_rows(avatar)
     gaze_used = any(c.behaviour != "none" for c in protocol.conditions)
     rows += eye_rows(avatar, severity="error" if gaze_used else "warning")
     return rows
+
+
+def orientation_rows(avatar: Avatar) -> list[CheckRow]:
+    """The face upright (eyes above the mouth: ``face_upright``, the cosine with +Y at least
+    0.7) and towards the camera (the mouth's surface facing +Z: ``face_towards_camera``, the
+    Z of its mean normal above 0; a warning, as the inside of a mouth the jaw moves faces
+    back) - a model exported Z-up, turned away (-Z forward) or with
+    its triangles wound inside out renders a face the tracker cannot find, or none; no rows
+    without a mouth-opening and an eye-closing shape."""
+    found = face_orientation(avatar)
+    if found is None:
+        return []
+    up, towards = found
+    return [
+        at_least(0.7, up, clip="", condition="", check=CHECK, measure="face_upright",
+                 note="" if up >= 0.7 else "the eyes are not above the mouth: the model lies "
+                 "down or stands on its head (exported Z-up? glTF is Y-up: rotate it -90 "
+                 "degrees about X on export)"),
+        at_least(0.0, towards, clip="", condition="", check=CHECK, measure="face_towards_camera",
+                 note="" if towards > 0 else "the face looks away from the camera (-Z): the "
+                 "model faces -Z (VRM 0.x does; export it as VRM, or turn it 180 degrees "
+                 "about Y) or its triangles are wound inside out (flip the normals)",
+                 severity="warning"),  # a deep mouth cavity the jaw moves could tip it
+    ]  # fmt: skip
 
 
 def _same_shapes(pairs: list[tuple[str, str]]) -> str:
