@@ -429,3 +429,16 @@ def test_mutated_sample_avatars_load_or_are_refused(tmp_path: Path) -> None:
         doc = mutated(doc, rng=rng, values=values)
         load_or_refuse(write_glb_chunks(tmp_path / f"m{i}{ext}", doc, rest), outcomes, what=kind)
     assert min(outcomes.values()) > 30, outcomes
+
+
+def test_gltf_text_saved_as_a_binary_name_is_named_for_what_it_is(tmp_path: Path) -> None:
+    """A .gltf (JSON text) renamed .vrm or .glb: the message says it is glTF JSON and to name
+    it .gltf, not only that it is not binary."""
+    from facelab.errors import AvatarError
+
+    for suffix in (".vrm", ".glb"):
+        path = tmp_path / f"head{suffix}"
+        path.write_text('\n {"asset": {"version": "2.0"}}', encoding="utf-8")
+        with pytest.raises(AvatarError, match=r"it is glTF JSON text, not binary \(name it "
+                           r"\.gltf\)"):  # fmt: skip
+            load(path)

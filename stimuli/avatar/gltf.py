@@ -310,9 +310,11 @@ def _glb_json(raw: bytes, path: Path) -> str:
     """The JSON chunk of a binary glTF, after checking its 12-byte header and chunk header."""
     if raw[:4] != b"glTF":
         seen = _looks_like(raw)
+        if not seen and raw.lstrip(b"\xef\xbb\xbf \t\r\n")[:1] == b"{":
+            seen = "glTF JSON text, not binary (name it .gltf)"
         raise AvatarError(
             f"{path}: not a glTF 2.0 binary (.glb) file"
-            + (f"; it is {seen}" if seen and "glTF" not in seen else "")
+            + (f"; it is {seen}" if seen and not seen.startswith("a binary glTF") else "")
         )
     if len(raw) < 20:
         raise AvatarError(f"{path}: truncated: {len(raw)} bytes, shorter than a .glb header")

@@ -151,11 +151,14 @@ def format_report(report: Mapping) -> str:
     for method, how in report["methods"].items():
         lines.append(f"  {method:<17} {how}")
     audit = report.get("audit", [])
-    lines.append(
-        f"audit      {len(audit)} problem(s) for kato2021's conditions (facelab check's "
-        "avatar audit)" if audit else "audit      every target kato2021's conditions drive "
-        "moves, none is a copy"
-    )  # fmt: skip
+    unplayable = [m for m, how in report["methods"].items() if str(how).startswith("no")]
+    if audit:
+        lines.append(f"audit      {len(audit)} problem(s) for kato2021's conditions (facelab "
+                     "check's avatar audit)")  # fmt: skip
+    else:  # a method that cannot play drives nothing: it was not audited
+        lines.append("audit      every target kato2021's conditions drive moves, none is a copy"
+                     + (f"; not audited: {', '.join(unplayable)} (the avatar lacks their "
+                        "targets, see methods)" if unplayable else ""))  # fmt: skip
     lines += [f"  {line}" for line in audit]
     for note in report.get("notes", []):
         lines.append(f"note       {note}")
