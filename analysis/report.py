@@ -330,8 +330,9 @@ _TASK_HEADINGS = {
     "per participant the posterior with psignifit's default priors (its mode, 95 % profile "
     "intervals), pooled by ML (95 % parametric-bootstrap CIs)",
     "staircase_tracks": "Staircases: every step (level shown, answer, reversal, running estimate)",
-    "staircase_thresholds": "Staircases: each participant's threshold by the rule's own "
-    "estimate (up-down: mean level of the last reversals; QUEST+: posterior mean of the midpoint)",
+    "staircase_thresholds": "Staircases: each participant's threshold per session by the "
+    "rule's own estimate (up-down: mean level of the last reversals; QUEST+: posterior mean of "
+    "the midpoint); note: a threshold beyond the levels rendered, a bound",
     "identification_summary": "Identification: accuracy and Cohen's kappa",
     "identification_recall": "Identification: recall and precision per label",
     "confusion_matrix": "Identification: confusion counts (portrayed x answered)",

@@ -50,7 +50,8 @@ def check_clips(
     verify_hashes: bool = True,
 ) -> dict[ClipKey, ClipRef]:
     """Every clip the session shows, from ``clips.csv``: present, unchanged since rendering
-    (its SHA-256) and rendered from the protocol as it is now (its spec hash)."""
+    (its SHA-256), rendered from the protocol as it is now (its spec hash) and not failed by
+    its stimulus checks (``stimulus_checks`` ``failed: ...``; accepted checks pass)."""
     manifest = clips_dir / "clips.csv"
     if not manifest.is_file():
         raise SessionError(
@@ -80,6 +81,16 @@ def check_clips(
             f"different input files than {protocol.study.id!r} now declares ({listed}"
             f"{' …' if len(stale) > 5 else ''}): the protocol, an audio or avatar file changed "
             f"after rendering. Render again: facelab render PROTOCOL --out {clips_dir}"
+        )
+    failed = [(k, str(by_key[k].get("stimulus_checks") or "")) for k in sorted(needed)
+              if str(by_key[k].get("stimulus_checks") or "").startswith("failed")]  # fmt: skip
+    if failed:  # a participant would see a stimulus its checks found broken
+        listed = "; ".join(f"{'/'.join(k)} ({why.split(';')[0]})" for k, why in failed[:5])
+        raise SessionError(
+            f"{len(failed)} clip(s) in {manifest} failed their stimulus checks: {listed}"
+            f"{' …' if len(failed) > 5 else ''}. Fix the cause and render again (the checks' "
+            "report says what each found), or, when the failure is what the study intends, "
+            "accept the check by name: facelab render PROTOCOL --accept-check NAME"
         )
     refs = {}
     for key in sorted(needed):

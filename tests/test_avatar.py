@@ -249,7 +249,8 @@ def test_two_targets_of_one_name_are_refused_not_one_silently_kept(
 ) -> None:
     """An export where a second shape took a name already used (``mouthRollUpper`` saved as
     ``jawOpen``): the later one replaced the real jawOpen without a word; now refused,
-    naming both targets - spellings that mean one ARKit name count as the same."""
+    naming both targets. Two spellings of one ARKit name (``jawOpen`` and ``JawOpen``) are
+    kept apart by the exact spelling winning, with a note inspect shows."""
     from facelab.errors import AvatarError
 
     path = tmp_path / "dup.gltf"
@@ -257,11 +258,18 @@ def test_two_targets_of_one_name_are_refused_not_one_silently_kept(
     doc = json.loads(path.read_text())
     names = doc["meshes"][0]["extras"]["targetNames"]
     doc["meshes"][0]["extras"]["targetNames"] = [
-        "JawOpen" if n == "mouthRollUpper" else n for n in names]  # fmt: skip
+        "jawOpen" if n == "mouthRollUpper" else n for n in names]  # fmt: skip
     path.write_text(json.dumps(doc))
     with pytest.raises(AvatarError, match=r"two morph targets named 'jawOpen' \(targets \d+ "
-                       r"'jawOpen' and \d+ 'JawOpen'\)"):  # fmt: skip
+                       r"and \d+\)"):  # fmt: skip
         load(path)
+    doc["meshes"][0]["extras"]["targetNames"] = [
+        "JawOpen" if n == "mouthRollUpper" else n for n in names]  # fmt: skip
+    path.write_text(json.dumps(doc))
+    back = load(path)  # the exact spelling is the shape, the other named in a note
+    np.testing.assert_array_equal(back.targets["jawOpen"], head.targets["jawOpen"])
+    assert any("'jawOpen' and 'JawOpen' both mean 'jawOpen'; 'jawOpen' is used" in n
+               for n in back.source.get("notes", []))  # fmt: skip
 
 
 def test_missing_targets_are_listed(head: Avatar) -> None:

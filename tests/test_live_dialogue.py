@@ -174,6 +174,23 @@ def test_a_rate_the_analyser_cannot_frame_is_refused(kato) -> None:
                    sample_rate=22_050)  # fmt: skip
 
 
+def test_live_passes_over_a_missing_shape_the_method_holds_at_zero(kato) -> None:
+    """As the offline render does: an ARKit export without tongueOut (Z holds it at 0) runs
+    live with that channel left out; one without jawOpen, which Z moves, is refused."""
+    protocol, avatar = kato
+    cond = protocol.condition("standard")
+    lacking = avatar.replace(targets={k: v for k, v in avatar.targets.items()
+                                      if k != "tongueOut"})  # fmt: skip
+    driver = LiveDriver(method_name=cond.method, params=cond.settings, avatar=lacking,
+                        sample_rate=16_000)  # fmt: skip
+    assert "tongueOut" not in driver.names and "jawOpen" in driver.names
+    no_jaw = avatar.replace(targets={
+        k: v for k, v in avatar.targets.items() if k != "jawOpen" and not k.startswith("viseme_")})
+    with pytest.raises(StageError, match="jawOpen"):  # no vowel shapes to stand in either
+        LiveDriver(method_name=cond.method, params=cond.settings, avatar=no_jaw,
+                   sample_rate=16_000)  # fmt: skip
+
+
 # --------------------------------------------------------------------------- a recorded turn
 
 

@@ -305,6 +305,18 @@ def test_stale_and_changed_clips_are_refused(
     clips = tmp_path / "clips"
     shutil.copytree(study / "clips", clips)
     base = ["--participant", "P07", "--simulate", "--clips", str(clips)]
+    # a clip its stimulus checks failed is refused before any window (run played it)
+    manifest = (clips / "clips.csv").read_text(encoding="utf-8")
+    lines = manifest.splitlines()
+    assert lines[0].endswith(",stimulus_checks") and lines[1].endswith(",passed")
+    lines[1] = lines[1].removesuffix(",passed") + ",failed: modality"
+    (clips / "clips.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert main(["run", str(study / "short.yaml"), *base, "--results",
+                 str(tmp_path / "rf")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "1 clip(s) in" in err and "failed their stimulus checks" in err
+    assert "(failed: modality)" in err and "--accept-check NAME" in err
+    (clips / "clips.csv").write_text(manifest, encoding="utf-8")
     # the protocol edited after rendering (a sentence, a gain): refused before any window
     for old, new in (
         ("text: こんにちは。", "text: さようなら。"),

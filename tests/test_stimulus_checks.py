@@ -100,10 +100,17 @@ def test_shapes_that_tear_the_face_fail_the_audit_and_inspect_names_scale_and_pr
     rows = audit_avatar(wild, load_protocol(KATO), base_dir=KATO.parent)
     torn = [r for r in rows if r.measure == "target_reach_mm:jawOpen"]
     assert torn and all(r.passed is False for r in torn)
-    assert "another scale than the mesh (centimetres?)" in torn[0].note
-    report = avatar_report(head.replace(neutral=head.neutral * 100))
+    assert "further than the face's mouth-to-eyes distance" in torn[0].note
+    # a whole model in centimetres (mesh and shapes alike) is in proportion: no torn face,
+    # but inspect says what the unit looks like
+    cm = head.replace(neutral=head.neutral * 100,
+                      targets={k: v * 100 for k, v in head.targets.items()})  # fmt: skip
+    rows = audit_avatar(cm, load_protocol(KATO), base_dir=KATO.parent)
+    assert not [r for r in rows if r.measure.startswith("target_reach_mm")]
     assert "taller than a person; glTF is in metres: exported in centimetres?" in format_report(
-        report)  # fmt: skip
+        avatar_report(cm))  # fmt: skip
+    tiny = head.replace(neutral=head.neutral / 100)
+    assert "smaller than a head; glTF is in metres" in format_report(avatar_report(tiny))
     prefixed = head.replace(targets={f"blendShape1.{k}": v for k, v in head.targets.items()})
     text = format_report(avatar_report(prefixed))
     assert "ARKit or viseme names behind the prefix 'blendShape1.'" in text
@@ -513,7 +520,16 @@ def test_a_face_lying_down_or_turned_away_is_named_from_the_geometry() -> None:
     lying = {r.measure: r for r in orientation_rows(turned(np.array(
         [[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)))}  # fmt: skip
     assert lying["face_upright"].passed is False and "exported Z-up" in lying["face_upright"].note
+    assert lying["face_upright"].severity == "error"
     away = {r.measure: r for r in orientation_rows(turned(np.diag([-1.0, 1.0, -1.0])))}
     assert away["face_upright"].passed
     assert away["face_towards_camera"].passed is False
     assert "looks away from the camera" in away["face_towards_camera"].note
+    assert away["face_towards_camera"].severity == "warning"
+    inside_out = {r.measure: r for r in orientation_rows(head.replace(faces=head.faces[:, ::-1]))}
+    assert inside_out["face_towards_camera"].passed is False
+    for deg in (-30.0, 30.0):  # a bowed or raised head is a head, not a wrong export
+        a = np.radians(deg)
+        bowed = turned(np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)],
+                                 [0, np.sin(a), np.cos(a)]]))  # fmt: skip
+        assert all(r.passed for r in orientation_rows(bowed)), deg

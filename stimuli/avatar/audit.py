@@ -20,6 +20,7 @@ __all__ = [
     "EMPTY_TARGET_MM",
     "IDENTICAL_TOLERANCE_MM",
     "WILD_TARGET_MM",
+    "WILD_TARGET_SPANS",
     "face_orientation",
     "identical_targets",
     "target_motion_mm",
@@ -31,8 +32,12 @@ __all__ = [
 EMPTY_TARGET_MM = 0.5
 #: a face shape moving a vertex further than this (mm) at full weight tears the face - on a
 #: human-sized head a jaw opens about 20-40 mm (the default head's jawOpen 36, the samples'
-#: 12): shapes exported at another scale than the mesh (centimetres) or a broken export
+#: 12): shapes exported at another scale than the mesh (centimetres) or a broken export.
+#: Used when the face's own scale cannot be found; else :data:`WILD_TARGET_SPANS`
 WILD_TARGET_MM = 150.0
+#: ... as a multiple of the face's mouth-to-eyes distance (the default head's jawOpen moves
+#: 0.33 of it), so a model in centimetres, shapes and mesh alike, is not called torn
+WILD_TARGET_SPANS = 1.0
 #: two targets whose deltas differ nowhere by more than this are the same shape
 IDENTICAL_TOLERANCE_MM = 0.01
 
@@ -104,29 +109,34 @@ MOUTH_OPENERS = ("jawOpen", "viseme_aa", "aa", "A", "Fcl_MTH_A", "mouth_aa")
 EYE_CLOSERS = ("eyeBlinkLeft", "eyeBlinkRight", "blink", "Blink", "Fcl_EYE_Close", "eye_blink")
 
 
-def face_orientation(avatar: Avatar) -> tuple[float, float] | None:
-    """How the face sits before the camera (facelab looks along -Z at a face facing +Z,
-    +Y up): ``(up, towards)`` - the cosine between +Y and the line from the mouth's moving
-    vertices up to the eyes', and the Z component of the mean normal of the surface the
-    mouth shape moves (negative: facing away, or its triangles wound inside out). None
-    without a mouth-opening and an eye-closing shape to find them by."""
-    def moved(names: tuple[str, ...]) -> np.ndarray | None:
-        mask = np.zeros(len(avatar.neutral), bool)
-        scale = float(np.ptp(avatar.neutral, axis=0).max()) or 1.0
-        for name in names:
-            delta = avatar.targets.get(name)
-            if delta is not None:
-                mask |= np.abs(delta).max(axis=1) > 1e-4 * scale
-        return mask if mask.sum() >= 3 else None
+def _moved(avatar: Avatar, names: tuple[str, ...]) -> np.ndarray | None:
+    """Which rest vertices the shapes ``names`` move (at least 3), else None."""
+    mask = np.zeros(len(avatar.neutral), bool)
+    scale = float(np.ptp(avatar.neutral, axis=0).max()) or 1.0
+    for name in names:
+        delta = avatar.targets.get(name)
+        if delta is not None:
+            mask |= np.abs(delta).max(axis=1) > 1e-4 * scale
+    return mask if mask.sum() >= 3 else None
 
-    mouth, eyes = moved(MOUTH_OPENERS), moved(EYE_CLOSERS)
+
+def face_orientation(avatar: Avatar) -> tuple[float, float, float] | None:
+    """How the face sits before the camera (facelab looks along -Z at a face facing +Z,
+    +Y up): ``(up, towards, span_m)`` - the cosine between +Y and the line from the mouth's
+    moving vertices up to the eyes'; the Z component of the mean normal of the surface the
+    eye-closing shapes move (the lids face the camera: negative means facing away, or the
+    triangles wound inside out; a head bowed 45 degrees still gives 0.33 on the default
+    head); and the length of that mouth-to-eyes line (the face's own scale, whatever the
+    file's unit). None without a mouth-opening and an eye-closing shape to find them by."""
+    mouth, eyes = _moved(avatar, MOUTH_OPENERS), _moved(avatar, EYE_CLOSERS)
     if mouth is None or eyes is None:
         return None
     v = avatar.neutral.astype(np.float64)
     line = v[eyes].mean(axis=0) - v[mouth].mean(axis=0)
-    up = float(line[1] / (np.linalg.norm(line) or 1.0))
-    tri = avatar.faces[mouth[avatar.faces].all(axis=1)]
+    span = float(np.linalg.norm(line))
+    up = float(line[1] / (span or 1.0))
+    tri = avatar.faces[eyes[avatar.faces].all(axis=1)]
     if not len(tri):
-        return up, float("nan")
+        return up, float("nan"), span
     normal = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]).sum(axis=0)
-    return up, float(normal[2] / (np.linalg.norm(normal) or 1.0))
+    return up, float(normal[2] / (np.linalg.norm(normal) or 1.0)), span

@@ -753,11 +753,19 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                 raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
                 name = canonical_arkit_name(raw_name) or raw_name
                 if name in targets:  # the later one would silently replace the earlier
-                    raise AvatarError(
-                        f"{path}: mesh {mesh.name or node.mesh!r} has two morph targets named "
-                        f"{name!r} (targets {raw_of[name][0]} {raw_of[name][1]!r} and {k} "
-                        f"{raw_name!r}): rename one in the modelling tool and export again"
-                    )
+                    first = raw_of[name]
+                    if first[1] == raw_name:
+                        raise AvatarError(
+                            f"{path}: mesh {mesh.name or node.mesh!r} has two morph targets "
+                            f"named {raw_name!r} (targets {first[0]} and {k}): rename one in "
+                            "the modelling tool and export again"
+                        )
+                    keep = (k, raw_name) if raw_name == name else first  # the exact spelling
+                    where = mesh.name or node.mesh
+                    notes.append(f"mesh {where!r}: targets {first[1]!r} and {raw_name!r} both "
+                                 f"mean {name!r}; {keep[1]!r} is used")  # fmt: skip
+                    if keep == first:
+                        continue
                 targets[name], raw_of[name] = delta, (k, raw_name)
             positions.append(pos_w)
             faces.append(idx.reshape(-1, 3) + offset)

@@ -34,6 +34,7 @@ from facelab.protocol import Protocol
 from facelab.stimuli.avatar.audit import (
     EMPTY_TARGET_MM,
     WILD_TARGET_MM,
+    WILD_TARGET_SPANS,
     face_orientation,
     identical_targets,
     target_motion_mm,
@@ -51,6 +52,8 @@ CHECK = "avatar_audit"
 def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[CheckRow]:
     """Every avatar-audit row for ``protocol``'s conditions on ``avatar``."""
     rows: list[CheckRow] = []
+    found = face_orientation(avatar)  # the face's own scale: mouth to eyes
+    wild = WILD_TARGET_MM if found is None else 1e3 * WILD_TARGET_SPANS * found[2]
     for cond in protocol.conditions:
         method = get(cond.method)
         driven = method.driven_targets(avatar, cond.settings, base_dir=base_dir)
@@ -66,13 +69,14 @@ def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[
                 note="" if motion[name] >= EMPTY_TARGET_MM else
                 f"{name} moves nothing visible at full weight: the method cannot show it",
             ))  # fmt: skip
-            if motion[name] > WILD_TARGET_MM:  # only then: a row per target would be noise
+            if motion[name] > wild:  # only then: a row per target would be noise
                 rows.append(at_most(
-                    WILD_TARGET_MM, motion[name], clip="", condition=cond.id, check=CHECK,
+                    wild, motion[name], clip="", condition=cond.id, check=CHECK,
                     measure=f"target_reach_mm:{name}", unit=" mm",
                     note=f"{name} moves a vertex {motion[name]:.0f} mm at full weight, further "
-                    "than a face can: the shapes were exported at another scale than the mesh "
-                    "(centimetres?) or are broken - the face would tear",
+                    f"than the face's mouth-to-eyes distance ({wild:.0f} mm): the shapes were "
+                    "exported at another scale than the mesh or are broken - the face would "
+                    "tear",
                 ))  # fmt: skip
         if motion:
             pairs = identical_targets(avatar, driven)
@@ -89,18 +93,18 @@ def audit_avatar(avatar: Avatar, protocol: Protocol, *, base_dir: Path) -> list[
 
 def orientation_rows(avatar: Avatar) -> list[CheckRow]:
     """The face upright (eyes above the mouth: ``face_upright``, the cosine with +Y at least
-    0.7) and towards the camera (the mouth's surface facing +Z: ``face_towards_camera``, the
-    Z of its mean normal above 0; a warning, as the inside of a mouth the jaw moves faces
-    back) - a model exported Z-up, turned away (-Z forward) or with
-    its triangles wound inside out renders a face the tracker cannot find, or none; no rows
-    without a mouth-opening and an eye-closing shape."""
+    0.5 - the default head's line leans 17 degrees, so a head bowed or raised 30 degrees
+    passes) and towards the camera (the lids' surface facing +Z: ``face_towards_camera``,
+    the Z of its mean normal above 0; a warning) - a model exported Z-up, turned away (-Z
+    forward) or with its triangles wound inside out renders a face the tracker cannot find,
+    or none; no rows without a mouth-opening and an eye-closing shape."""
     found = face_orientation(avatar)
     if found is None:
         return []
-    up, towards = found
+    up, towards, _ = found
     return [
-        at_least(0.7, up, clip="", condition="", check=CHECK, measure="face_upright",
-                 note="" if up >= 0.7 else "the eyes are not above the mouth: the model lies "
+        at_least(0.5, up, clip="", condition="", check=CHECK, measure="face_upright",
+                 note="" if up >= 0.5 else "the eyes are not above the mouth: the model lies "
                  "down or stands on its head (exported Z-up? glTF is Y-up: rotate it -90 "
                  "degrees about X on export)"),
         at_least(0.0, towards, clip="", condition="", check=CHECK, measure="face_towards_camera",
