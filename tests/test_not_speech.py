@@ -117,3 +117,49 @@ def test_validate_and_render_refuse_a_tone_as_a_recording_at_its_line(
     out = tmp_path / "clips"
     assert main(["render", str(path), "--out", str(out), "--size", "96x64", "--quiet"]) == 2
     assert "this is not speech" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_recording_too_quiet_for_the_analysis_is_refused_with_its_level(
+    tmp_path: Path, kato_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Speech at -45 dBFS (a recorder's gain left low): the analyser's level gate kept the
+    mouth nearly shut (a mean opening of 0.16 against 0.46), and validate said ok. Now it is
+    refused at its line with the level and how to normalise; the same words at -20 pass."""
+    from facelab.stimuli.speech.noise import active_level_db
+
+    speech = synthesize("あ。い。う。え。お。")
+    x = speech.samples.astype(np.float64)
+    level = active_level_db(x, sample_rate=speech.sample_rate)
+    for name, target in (("quiet.wav", -45.0), ("fine.wav", -20.0)):
+        _wav(tmp_path / name, x * 10 ** ((target - level) / 20), rate=speech.sample_rate)
+    base = kato_path.read_text(encoding="utf-8")
+    for name, code in (("quiet.wav", 2), ("fine.wav", 0)):
+        text = base.replace("text: あ。い。う。え。お。",
+                            f"audio: {name}\n        transcript: あ。い。う。え。お。", 1)
+        path = tmp_path / "study.yaml"
+        path.write_text(text, encoding="utf-8")
+        assert main(["validate", str(path)]) == code
+        err = capsys.readouterr().err
+        if code:
+            assert "quiet.wav: the speech is at -45.0 dBFS (its active level), quieter than " \
+                "-40" in err and "normalise the recording" in err, err
+
+
+
+def test_stereo_channels_that_cancel_are_named_not_called_silent(tmp_path: Path) -> None:
+    """One channel recorded with its polarity inverted: the mono mix is silent, and the file
+    was refused as 'silent' although it plays speech; now the cause is named. A recording
+    on one channel of two is fine."""
+    from facelab.errors import SpeechError
+
+    x = synthesize("あ。い。").samples.astype(np.float64) * 0.3
+    for name, right in (("anti.wav", -x), ("left.wav", 0 * x)):
+        with wave.open(str(tmp_path / name), "wb") as w:
+            w.setnchannels(2)
+            w.setsampwidth(2)
+            w.setframerate(22_050)
+            both = np.stack([x, right], axis=1).ravel()
+            w.writeframes((np.clip(both, -1, 1) * 32767).astype("<i2").tobytes())
+    with pytest.raises(SpeechError, match="its 2 channels cancel when mixed to mono"):
+        load_audio(tmp_path / "anti.wav", sample_rate=RATE)
+    assert load_audio(tmp_path / "left.wav", sample_rate=RATE).samples.size

@@ -172,6 +172,17 @@ def load_audio(path: Path | str, *, sample_rate: int) -> Speech:
             "vowels' second formant lies at 2-3 kHz); record again at 16 kHz or more"
         )
     mono = data.mean(axis=1)
+    if data.shape[1] > 1:  # channels that cancel: one of them recorded with its polarity flipped
+        each = np.sqrt(np.mean(np.square(data, dtype=np.float64), axis=0))
+        mixed = float(np.sqrt(np.mean(np.square(mono, dtype=np.float64))))
+        if each.max() > 0 and mixed < 0.1 * float(each.max()):
+            raise SpeechError(
+                f"{path}: its {data.shape[1]} channels cancel when mixed to mono (the mix is "
+                f"{min(100.0, -20 * np.log10(max(mixed, 1e-12) / float(each.max()))):.0f} dB "
+                "or more below the loudest channel: one is recorded with its polarity "
+                "inverted); give one "
+                "channel (e.g. ffmpeg -i IN -af pan=mono|c0=c0 OUT.wav)"
+            )
     check_audio(mono, sample_rate=rate, source=str(path))
     return Speech(
         samples=resample(mono, rate_in=rate, rate_out=sample_rate),
