@@ -728,12 +728,13 @@ def series_comparison(
                                         for part in text.split("; ") if part))  # fmt: skip
         return table[ok]
 
+    usable = {measure: determined(measure) for measure in measures}
     summary = []
     for name, part in table.groupby(series, sort=False):
         row: dict = {series: name, "participants": len(part),
                      "determined": int((clean[series] == name).sum())}  # fmt: skip
         for measure in measures:
-            kept = determined(measure)
+            kept = usable[measure]
             kept = kept[kept[series] == name]
             v = kept[measure].to_numpy(dtype=float)
             mean, low, high = mean_t_interval(v[np.isfinite(v)])
@@ -743,7 +744,7 @@ def series_comparison(
         summary.append(row)
     tests = []
     for measure in measures:
-        known = determined(measure)
+        known = usable[measure]
         known = known[np.isfinite(known[measure].to_numpy(dtype=float))]
         # a series nobody (or too few) determined is left out, not every comparison with it
         counts = known.groupby(series, sort=False)[subject].nunique()

@@ -34,6 +34,7 @@ from facelab.errors import FormatError, StageError
 
 __all__ = [
     "BEHAVIOUR_LOG_SUFFIX",
+    "CHECKS_COLUMN",
     "CLIP_COLUMNS",
     "FACE_TRACKING_COLUMNS",
     "FACE_TRACKING_NAME",
@@ -47,6 +48,7 @@ __all__ = [
     "TRACK_FORMAT",
     "Track",
     "behaviour_log_path",
+    "checks_failed",
     "decode_track",
     "encode_track",
     "impression_header_problems",
@@ -78,6 +80,9 @@ CLIP_COLUMNS = (
 #: columns ``facelab render`` adds after :data:`CLIP_COLUMNS`: each clip's animation track file
 #: and its SHA-256 (not required of manifests written before tracks existed)
 TRACK_COLUMNS = ("track_file", "track_sha256")
+#: the column ``facelab check`` adds to ``clips.csv``: each clip's check outcome, ``passed``,
+#: or ``failed: NAMES`` / ``accepted: NAMES`` for the checks that failed on it
+CHECKS_COLUMN = "stimulus_checks"
 #: the suffix of a clip's animation track, beside the clip
 TRACK_SUFFIX = ".track.bin"
 #: the animation track's magic bytes and format id (see :func:`encode_track`)
@@ -439,3 +444,10 @@ def write_manifest(
         writer.writerows(rows)
     tmp.replace(path)
     return notes
+
+
+def checks_failed(row: dict[str, str]) -> str:
+    """The checks a ``clips.csv`` row's :data:`CHECKS_COLUMN` says failed on its clip and
+    were not accepted (``"failed: modality"``), or ``""`` (passed, accepted, or not checked)."""
+    value = str(row.get(CHECKS_COLUMN) or "")
+    return value.split(";")[0] if value.startswith("failed") else ""

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from facelab.errors import FormatError, SessionError, StageError
 from facelab.experiment.timeline import ClipKey
-from facelab.formats import CLIP_COLUMNS, read_manifest
+from facelab.formats import CLIP_COLUMNS, checks_failed, read_manifest
 from facelab.hashing import sha256_file
 from facelab.protocol import Protocol
 from facelab.stimuli.render.clipspec import unlisted_and_stale
@@ -82,10 +82,9 @@ def check_clips(
             f"{' …' if len(stale) > 5 else ''}): the protocol, an audio or avatar file changed "
             f"after rendering. Render again: facelab render PROTOCOL --out {clips_dir}"
         )
-    failed = [(k, str(by_key[k].get("stimulus_checks") or "")) for k in sorted(needed)
-              if str(by_key[k].get("stimulus_checks") or "").startswith("failed")]  # fmt: skip
+    failed = [(k, checks_failed(by_key[k])) for k in sorted(needed) if checks_failed(by_key[k])]
     if failed:  # a participant would see a stimulus its checks found broken
-        listed = "; ".join(f"{'/'.join(k)} ({why.split(';')[0]})" for k, why in failed[:5])
+        listed = "; ".join(f"{'/'.join(k)} ({why})" for k, why in failed[:5])
         raise SessionError(
             f"{len(failed)} clip(s) in {manifest} failed their stimulus checks: {listed}"
             f"{' …' if len(failed) > 5 else ''}. Fix the cause and render again (the checks' "

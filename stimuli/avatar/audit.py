@@ -23,6 +23,7 @@ __all__ = [
     "WILD_TARGET_SPANS",
     "face_orientation",
     "identical_targets",
+    "moved_vertices",
     "target_motion_mm",
     "unusable_targets",
 ]
@@ -109,15 +110,18 @@ MOUTH_OPENERS = ("jawOpen", "viseme_aa", "aa", "A", "Fcl_MTH_A", "mouth_aa")
 EYE_CLOSERS = ("eyeBlinkLeft", "eyeBlinkRight", "blink", "Blink", "Fcl_EYE_Close", "eye_blink")
 
 
-def _moved(avatar: Avatar, names: tuple[str, ...]) -> np.ndarray | None:
-    """Which rest vertices the shapes ``names`` move (at least 3), else None."""
+def moved_vertices(
+    avatar: Avatar, names: Iterable[str], *, at_least: int = 3
+) -> np.ndarray | None:
+    """(V,) bool: the rest vertices the shapes ``names`` move (by more than 1e-4 of the
+    model's size), or None when fewer than ``at_least`` move."""
     mask = np.zeros(len(avatar.neutral), bool)
     scale = float(np.ptp(avatar.neutral, axis=0).max()) or 1.0
     for name in names:
         delta = avatar.targets.get(name)
         if delta is not None:
             mask |= np.abs(delta).max(axis=1) > 1e-4 * scale
-    return mask if mask.sum() >= 3 else None
+    return mask if mask.sum() >= at_least else None
 
 
 def face_orientation(avatar: Avatar) -> tuple[float, float, float] | None:
@@ -128,7 +132,7 @@ def face_orientation(avatar: Avatar) -> tuple[float, float, float] | None:
     triangles wound inside out; a head bowed 45 degrees still gives 0.33 on the default
     head); and the length of that mouth-to-eyes line (the face's own scale, whatever the
     file's unit). None without a mouth-opening and an eye-closing shape to find them by."""
-    mouth, eyes = _moved(avatar, MOUTH_OPENERS), _moved(avatar, EYE_CLOSERS)
+    mouth, eyes = moved_vertices(avatar, MOUTH_OPENERS), moved_vertices(avatar, EYE_CLOSERS)
     if mouth is None or eyes is None:
         return None
     v = avatar.neutral.astype(np.float64)

@@ -314,7 +314,7 @@ def _glb_json(raw: bytes, path: Path) -> str:
             seen = "glTF JSON text, not binary (name it .gltf)"
         raise AvatarError(
             f"{path}: not a glTF 2.0 binary (.glb) file"
-            + (f"; it is {seen}" if seen and not seen.startswith("a binary glTF") else "")
+            + (f"; it is {seen}" if seen else "")  # (not the glTF magic: checked above)
         )
     if len(raw) < 20:
         raise AvatarError(f"{path}: truncated: {len(raw)} bytes, shorter than a .glb header")

@@ -23,6 +23,7 @@ import numpy as np
 from facelab.durable import replace_file
 from facelab.errors import StageError
 from facelab.formats import (
+    CHECKS_COLUMN,
     CLIP_COLUMNS,
     STIMULUS_CHECKS_NAME,
     read_manifest,
@@ -504,8 +505,8 @@ def _explanations(clips_dir: Path, clips: Sequence[dict]) -> dict[tuple[str, str
     return out
 
 
-#: the column ``facelab check`` adds to ``clips.csv``: each clip's check outcome
-MANIFEST_COLUMN = "stimulus_checks"
+#: the column ``facelab check`` adds to ``clips.csv`` (:data:`facelab.formats.CHECKS_COLUMN`)
+MANIFEST_COLUMN = CHECKS_COLUMN
 
 
 def record_in_manifest(clips_dir: Path, report: CheckReport) -> None:

@@ -141,8 +141,7 @@ class LiveDriver:
         whole = self._drive(DriveInput(track=_probe_track(64), base_dir=self.base_dir))
         # a channel the avatar lacks is left out when a random mix of every viseme leaves it
         # at 0 (as the offline render does: an ARKit export without tongueOut plays Z)
-        missing = [n for j, n in enumerate(whole.names)
-                   if n not in avatar.targets and np.any(whole.weights[:, j] != 0)]  # fmt: skip
+        missing = whole.moved_but_missing(avatar.targets)
         if missing:
             raise StageError(f"avatar {avatar.name!r} lacks targets the method moves: "
                              f"{', '.join(missing[:8])}")  # fmt: skip

@@ -12,6 +12,7 @@ matrix (column j: the ARKit coefficients of vowel j).
 
 from __future__ import annotations
 
+from collections.abc import Container
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +39,13 @@ class BlendshapeTrack:
 
     def column(self, name: str) -> np.ndarray:
         return self.weights[:, self.names.index(name)]
+
+    def moved_but_missing(self, targets: Container[str]) -> list[str]:
+        """The channels not in ``targets`` (an avatar's) that this track moves: a channel
+        held at 0 throughout (an ARKit export without ``tongueOut`` playing a Z matrix whose
+        ``tongueOut`` row is 0) may be missing, one the track moves may not."""
+        return [n for j, n in enumerate(self.names)
+                if n not in targets and np.any(self.weights[:, j] != 0)]  # fmt: skip
 
 
 @dataclass(frozen=True)

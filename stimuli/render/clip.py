@@ -88,8 +88,7 @@ def frame_weights(
     without ``tongueOut`` plays a Z matrix whose ``tongueOut`` row is all zero); one the
     track moves is refused, naming it."""
     index = {n: i for i, n in enumerate(avatar.target_names)}
-    missing = [n for j, n in enumerate(track.names)
-               if n not in index and np.any(track.weights[:, j] != 0)]  # fmt: skip
+    missing = track.moved_but_missing(index)
     if missing:
         raise StageError(
             f"avatar {avatar.name!r} lacks targets the track moves: {', '.join(missing[:8])}"

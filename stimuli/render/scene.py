@@ -15,6 +15,7 @@ import numpy as np
 
 from facelab.protocol import Protocol
 from facelab.stimuli.avatar import Avatar, default_head, load, with_viseme_mixes
+from facelab.stimuli.avatar.audit import moved_vertices
 from facelab.stimuli.methods import check_playable, get
 
 __all__ = [
@@ -141,14 +142,8 @@ def face_closeup(
 def _face_vertices(avatar: Avatar) -> np.ndarray | None:
     """Rest vertices that the avatar's shapes move (the face: mouth, jaw, lids, brows,
     cheeks), or None when fewer than 10 move."""
-    a = avatar
-    if not a.targets:
-        return None
-    moved = np.zeros(len(a.neutral), bool)
-    scale = float(np.ptp(a.neutral, axis=0).max()) or 1.0
-    for delta in a.targets.values():
-        moved |= np.abs(delta).max(axis=1) > 1e-4 * scale
-    return a.neutral[moved] if moved.sum() >= 10 else None
+    moved = moved_vertices(avatar, avatar.targets, at_least=10)
+    return avatar.neutral[moved] if moved is not None else None
 
 
 def _head_vertices(avatar: Avatar) -> np.ndarray:
