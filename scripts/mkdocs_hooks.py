@@ -13,6 +13,7 @@ repository:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -30,15 +31,29 @@ _SUBPACKAGES = ("analysis", "experiment", "protocols", "stimuli")
 
 
 def on_startup(command: str, dirty: bool) -> None:
-    """Lay out ``.docs-src/facelab`` as links: core's files, then the stage folders."""
+    """Lay out ``.docs-src/facelab`` as links: core's files, then the stage folders. Made in
+    place, never removed first: two builds at once (the test suite's parallel workers) each
+    find the links the other made, and links that point elsewhere are replaced."""
     package = API_SOURCES / "facelab"
-    shutil.rmtree(API_SOURCES, ignore_errors=True)
-    package.mkdir(parents=True)
-    for entry in (ROOT / "core").iterdir():
-        if entry.suffix == ".py" or (entry.is_dir() and (entry / "__init__.py").is_file()):
-            os.symlink(entry, package / entry.name)
-    for name in _SUBPACKAGES:
-        os.symlink(ROOT / name, package / name)
+    package.mkdir(parents=True, exist_ok=True)
+    wanted = {
+        entry.name: entry
+        for entry in (ROOT / "core").iterdir()
+        if entry.suffix == ".py" or (entry.is_dir() and (entry / "__init__.py").is_file())
+    }
+    wanted.update({name: ROOT / name for name in _SUBPACKAGES})
+    for link in package.iterdir():
+        if link.name in wanted and link.is_symlink() and link.resolve() == wanted[link.name]:
+            continue
+        with contextlib.suppress(FileNotFoundError):  # a build beside this one removed it
+            if link.is_symlink() or link.is_file():
+                link.unlink()
+            else:
+                shutil.rmtree(link)
+    for name, target in wanted.items():
+        # made by this layout before, or by a build running beside this one
+        with contextlib.suppress(FileExistsError):
+            os.symlink(target, package / name)
 
 
 def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:

@@ -48,13 +48,21 @@ from facelab.stimuli.checks.clip_checks import (
     too_small,
 )
 from facelab.stimuli.checks.face_tracker import ClipTracking, start_tracking
-from facelab.stimuli.checks.rows import CHECK_COLUMNS, CheckRow, accept_checks, at_least, info
+from facelab.stimuli.checks.rows import (
+    CHECK_COLUMNS,
+    CheckRow,
+    accept_checks,
+    at_least,
+    at_most,
+    info,
+)
 from facelab.stimuli.render.build import vowel_peak_times
 from facelab.stimuli.render.clip import decode_audios, padded_audio, shifted_audio
 from facelab.stimuli.render.clipspec import ClipJob, plan, unlisted_and_stale
 from facelab.stimuli.render.prepare import speech_for, tracks_for
 from facelab.stimuli.render.scene import load_avatar
 from facelab.stimuli.render.sound import clip_sound
+from facelab.stimuli.speech.align import align_phones
 from facelab.stimuli.speech.analyser import analyze
 from facelab.stimuli.speech.audio import Speech, resample
 from facelab.stimuli.speech.natural import aligned_vowels_heard
@@ -68,6 +76,7 @@ __all__ = [
     "read_checks",
     "record_in_manifest",
     "track_source_rows",
+    "transcript_rows",
     "write_checks",
 ]
 
@@ -155,6 +164,19 @@ def _vowel_confidence(weights: np.ndarray) -> float:
 #: transcripts of other words that the aligner accepts median 0.26-0.35, 95th centile
 #: 0.63-0.67 (12 utterances x 3 voices, OpenJTalk at settings not trained on and eSpeak NG)
 TRANSCRIPT_HEARD = 0.6
+#: ... or when the alignment fits the text's order hardly better than its reverse
+#: (:attr:`~facelab.stimuli.speech.align.Alignment.order_fit`, a warning above this)
+TRANSCRIPT_ORDER_FIT = 0.85
+#: Both at once - fewer than half the vowels heard *and* an order fit near the reverse's, over
+#: at least TRANSCRIPT_FRAMES core frames - refuse the stimulus: its mouth would say other
+#: words. Set on 16 sentences (not the corpus) x 6 voices (OpenJTalk at two settings, eSpeak
+#: NG, Kokoro's three training voices), each recording aligned to its own text, to the two
+#: sentences nearest in length, and said twice or cut in half: refused 4 of 96 right
+#: transcripts (all eSpeak NG, whose Japanese the analyser reads worst; the aligner refuses 5
+#: more of its 16) and 45 % of the 171 wrong ones the aligner let through (another 30 % warn).
+#: Held-out voices and sentences: the README ("Recordings and their transcripts").
+TRANSCRIPT_REFUSED = (0.5, 0.9)
+TRANSCRIPT_FRAMES = 30
 
 
 def track_source_rows(
@@ -189,26 +211,49 @@ def track_source_rows(
                     + words,
                 ))  # fmt: skip
             elif stim.transcript is not None and speech_of is not None:
-                speech = speech_of((sset.id, stim.id))
-                heard, frames = aligned_vowels_heard(speech.phones, analyze(
-                    speech.samples, sample_rate=speech.sample_rate).compensated())  # fmt: skip
-                if not frames:
-                    why = f"{stim.audio}: its transcript's vowels are too short to hear (< 40 ms)"
-                    rows.append(not_measured(**kw, why=why))
-                    continue
-                rows.append(at_least(
-                    TRANSCRIPT_HEARD, heard, **kw,
-                    measure="transcript_vowels_heard", severity="warning",
-                    note=f"{stim.audio}: the mouth follows its transcript {stim.transcript!r} "
-                    f"aligned to it; audio-only analysis hears {heard:.0%} of its vowels' "
-                    f"{frames} core frames as the transcript's vowels"
-                    + ("" if heard >= TRANSCRIPT_HEARD else
-                       " - check that the transcript is what the recording says"),
-                ))  # fmt: skip
+                rows += transcript_rows(stim, speech_of((sset.id, stim.id)), kw=kw)
             else:
                 rows.append(info(None, **kw, measure=f"source:{stim.track_source}",
                                  note="the mouth follows the words' phonemes"
                                  if stim.track_source == "words" else "no speech"))  # fmt: skip
+    return rows
+
+
+def transcript_rows(stim, speech: Speech, *, kw: dict) -> list[CheckRow]:
+    """Whether a recording says its transcript (:data:`TRANSCRIPT_REFUSED`): the vowels
+    audio-only analysis hears at the aligned vowels, and the alignment's order fit; an error
+    row when both say other words."""
+    track = analyze(speech.samples, sample_rate=speech.sample_rate).compensated()
+    heard, frames = aligned_vowels_heard(speech.phones, track)
+    if not frames:
+        why = f"{stim.audio}: its transcript's vowels are too short to hear (< 40 ms)"
+        return [not_measured(**kw, why=why)]
+    # kept from the render's own alignment of the recording (no second alignment)
+    fit = align_phones(speech.samples, sample_rate=speech.sample_rate,
+                       text=stim.transcript).order_fit  # fmt: skip
+    said = (f"{stim.audio}: the mouth follows its transcript {stim.transcript!r} aligned to "
+            f"it; audio-only analysis hears {heard:.0%} of its vowels' {frames} core frames as "
+            f"the transcript's vowels, and its alignment costs {fit:.2f} times its alignment "
+            "to the text reversed (1: the order of the words does not show)")  # fmt: skip
+    check = " - check that the transcript is what the recording says"
+    rows = [
+        at_least(TRANSCRIPT_HEARD, heard, **kw, measure="transcript_vowels_heard",
+                 severity="warning", note=said + ("" if heard >= TRANSCRIPT_HEARD else check)),
+        at_most(TRANSCRIPT_ORDER_FIT, fit, **kw, measure="transcript_order_fit",
+                severity="warning", note=said + ("" if fit <= TRANSCRIPT_ORDER_FIT else check)),
+    ]  # fmt: skip
+    low_heard, high_fit = TRANSCRIPT_REFUSED
+    if frames >= TRANSCRIPT_FRAMES and heard < low_heard and fit > high_fit:
+        rows.append(CheckRow(
+            **kw, measure="transcript_matches_recording", value=heard,
+            threshold=f"vowels heard >= {low_heard:g} or order fit <= {high_fit:g}",
+            passed=False, severity="error",
+            note=f"{said}: the recording does not say its transcript (other words, the words "
+            "twice, or a part of them), so the mouth would say other words than the voice - "
+            "give the words the recording says, leave the transcript out to analyse the audio "
+            "alone, or accept the check if it does say them (a voice the analyser reads "
+            "poorly can look like this)",
+        ))  # fmt: skip
     return rows
 
 

@@ -1,0 +1,62 @@
+"""Whether a recording says its transcript: the stimulus checks refuse a recording whose
+transcript is other words (the mouth would say them), warn on doubtful ones, and pass right
+ones - OpenJTalk at a voice setting the analyser was not trained on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facelab.protocol_model import Stimulus
+from facelab.stimuli.checks.run_checks import transcript_rows
+from facelab.stimuli.render.prepare import speech_for
+from facelab.stimuli.speech.audio import Speech, write_wav
+from facelab.stimuli.speech.tts import synthesize
+
+RATE = 48_000
+
+
+def _rows(tmp_path, samples: np.ndarray, transcript: str) -> dict[str, object]:
+    write_wav(tmp_path / "r.wav", Speech(samples, RATE))
+    stim = Stimulus(id="r", audio="r.wav", transcript=transcript)
+    speech = speech_for(stim, base_dir=tmp_path, sample_rate=RATE)
+    rows = transcript_rows(stim, speech, kw={"clip": "c", "condition": "", "check": "track_source"})
+    return {r.measure: r for r in rows}
+
+
+def _said(text: str) -> np.ndarray:
+    return synthesize(text, pitch_halftones=-5, alpha=0.5, speed=0.9, sample_rate=RATE).samples
+
+
+@pytest.mark.parametrize(("said", "other"), [
+    ("窓の外で子供たちが遊んでいます。", "明日の朝は早く起きてください。"),
+    ("このりんごはとても甘いです。", "駅の前で待ち合わせしましょう。"),
+])  # fmt: skip
+def test_a_transcript_of_other_words_is_refused_and_the_right_one_passes(
+    tmp_path, said: str, other: str
+) -> None:
+    samples = _said(said)
+    right = _rows(tmp_path, samples, said)
+    assert set(right) == {"transcript_vowels_heard", "transcript_order_fit"}
+    assert all(r.passed for r in right.values()), right
+    wrong = _rows(tmp_path, samples, other)
+    refusal = wrong["transcript_matches_recording"]
+    assert refusal.failed and refusal.severity == "error"
+    assert not wrong["transcript_vowels_heard"].passed
+    assert not wrong["transcript_order_fit"].passed
+    assert "r.wav" in refusal.note and other in refusal.note
+    assert "leave the transcript out" in refusal.note and "accept" in refusal.note
+    # the refusal is accepted by the check's name, as every stimulus check
+    assert not refusal.accept().failed
+
+
+def test_the_words_said_twice_are_doubted_but_not_refused(tmp_path) -> None:
+    """Said twice, the transcript once: half its vowels heard, a warning (not a refusal:
+    the order still fits better than reversed)."""
+    once = _said("このりんごはとても甘いです。")
+    twice = np.concatenate([once, np.zeros(RATE // 2, once.dtype), once])
+    rows = _rows(tmp_path, twice, "このりんごはとても甘いです。")
+    assert "transcript_matches_recording" not in rows
+    heard = rows["transcript_vowels_heard"]
+    assert heard.passed is False and heard.severity == "warning"
+    assert "check that the transcript is what the recording says" in heard.note
