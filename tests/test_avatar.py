@@ -415,6 +415,57 @@ def test_non_finite_positions_are_refused(tmp_path: Path) -> None:
         load(bad)
 
 
+def test_a_non_finite_morph_target_is_named(tmp_path: Path) -> None:
+    """A NaN in one shape is refused naming the mesh and the shape, not only an accessor
+    number a user cannot find in a modelling tool."""
+    from facelab.stimuli.avatar.samples import write_sample
+
+    doc, rest = glb_chunks(write_sample(tmp_path / "s.glb", kind="skinned", head_rows=8))
+    prim = doc["meshes"][0]["primitives"][0]
+    names = (doc["meshes"][0].get("extras") or {}).get("targetNames") or []
+    k = len(prim["targets"]) - 1
+    acc = doc["accessors"][prim["targets"][k]["POSITION"]]
+    view = doc["bufferViews"][acc["bufferView"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    data = bytearray(rest[8:])
+    data[start : start + 4] = np.float32(np.inf).tobytes()
+    bad = write_glb_chunks(tmp_path / "inf.glb", doc, rest[:8] + bytes(data))
+    with pytest.raises(AvatarError, match="non-finite") as err:
+        load(bad)
+    assert f"morph target {names[k]!r}" in str(err.value) and str(bad) in str(err.value)
+
+
+@pytest.mark.parametrize(("mode", "alpha", "hidden"), [
+    ("BLEND", 0.0, True), ("MASK", 0.3, True), ("BLEND", 0.5, False), ("MASK", 0.6, False),
+    ("OPAQUE", 0.0, False),
+])  # fmt: skip
+def test_a_fully_transparent_material_is_not_drawn(
+    tmp_path: Path, mode: str, alpha: float, hidden: bool
+) -> None:
+    """A surface its material makes invisible (blended at alpha 0, cut out below its
+    cutoff) was drawn opaque in its colour - a hidden helper mesh in front of the face would
+    cover it. Its vertices stay (shapes and landmarks keep their indices)."""
+    from facelab.stimuli.avatar.samples import write_sample
+
+    plain = load(write_sample(tmp_path / "s.glb", kind="skinned", head_rows=8))
+    doc, rest = glb_chunks(tmp_path / "s.glb")
+    hat = next(m for m in doc["meshes"] if m["name"] == "hat")
+    doc["materials"].append({"name": "veil", "alphaMode": mode, "pbrMetallicRoughness": {
+        "baseColorFactor": [0.2, 0.25, 0.4, alpha]}})  # fmt: skip
+    hat["primitives"][0]["material"] = len(doc["materials"]) - 1
+    doc["meshes"][0]["weights"] = [0.0] * 51 + [0.4]  # a default face: the last shape at 0.4
+    avatar = load(write_glb_chunks(tmp_path / "veiled.glb", doc, rest))
+    assert len(avatar.neutral) == len(plain.neutral)
+    notes = " ".join(avatar.source.get("notes", []))
+    last = doc["meshes"][0]["extras"]["targetNames"][51]
+    assert f"'head': its default morph weights ({last} 0.4) are not applied" in notes
+    if hidden:
+        assert len(avatar.faces) < len(plain.faces)
+        assert "'hat', material 'veil': fully transparent" in notes
+    else:
+        assert len(avatar.faces) == len(plain.faces) and "transparent" not in notes
+
+
 @pytest.mark.slow
 def test_mutated_sample_avatars_load_or_are_refused(tmp_path: Path) -> None:
     """300 random mutations of the sample files' glTF JSON (deleted keys, values of other

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from facelab.errors import FacelabError, SessionAbortedError, SessionError
+from facelab.errors import FacelabError, SessionAbortedError, SessionError, StageError
 from facelab.experiment.live_dialogue.app import AUDIO, FRAMES, LiveHub
 from facelab.stimuli.methods.live_drive import LIVE_FPS
 
@@ -164,6 +164,10 @@ def _render_worker(conn, protocol_path: str, names: tuple[str, ...], size: tuple
         path = Path(protocol_path)
         protocol = load_protocol(path)
         avatar = load_avatar(protocol, base_dir=path.parent)
+        lacking = [n for n in names if n not in avatar.target_names]
+        if lacking:  # the driver was made for another avatar than the protocol's
+            raise StageError(f"avatar {avatar.name!r} lacks the targets the live method "
+                             f"drives: {', '.join(lacking[:8])}")  # fmt: skip
         columns = np.array([avatar.target_names.index(n) for n in names], dtype=int)
         settings = replace(settings_for(protocol), width=size[0], height=size[1])
         # one BLAS thread: OpenBLAS's idle workers spin, taking the core the window needs

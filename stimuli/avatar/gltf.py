@@ -545,6 +545,15 @@ def _alpha_cut(material: Any, factor_alpha: float) -> tuple[str, float]:
     return "OPAQUE", 1.0
 
 
+def _hidden_by_alpha(material: Any, base: list[float]) -> bool:
+    """Whether a material's own alpha hides its surface whatever its texture says: blended
+    at a factor alpha under half a grey level, or cut out at a cutoff the factor alpha never
+    reaches (texels' alpha only lowers it)."""
+    alpha = float(base[3]) if len(base) > 3 else 1.0
+    mode, value = _alpha_cut(material, alpha)
+    return (mode == "BLEND" and alpha < 0.5 / 255) or (mode == "MASK" and value > 1.0)
+
+
 def _with_alpha(rgba: np.ndarray, cut: tuple[str, float]) -> np.ndarray:
     """The texture as the renderer draws it: alpha 255 (opaque), 0/255 (masked: a cut-out
     such as eyelashes or a brow card) or the blended alpha."""
@@ -651,6 +660,14 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
         mesh_names.append(mesh.name or f"mesh_{node.mesh}")
         names = _extras(mesh).get("targetNames", [])
         facelab = _extras(mesh).get("facelab", {})
+        defaults = [(names[k] if k < len(names) else f"target_{k}", w)
+                    for k, w in enumerate(_get(mesh, "weights") or [])
+                    if isinstance(w, int | float) and w]  # fmt: skip
+        if defaults:  # glTF viewers start from them; facelab's rest face is every shape at 0
+            said = ", ".join(f"{n} {w:g}" for n, w in defaults[:4])
+            notes.append(f"mesh {mesh.name or node.mesh!r}: its default morph weights ({said}"
+                         f"{', …' if len(defaults) > 4 else ''}) are not applied: facelab's rest "
+                         "face has every shape at 0, as the methods drive them")  # fmt: skip
         skin = doc.skins[node.skin] if node.skin is not None else None
         if skin is not None:
             ibm = (
@@ -707,6 +724,12 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                     base = list(pbr.baseColorFactor)
                 if _get(mat, "extensions") and "VRMC_materials_mtoon" in mat.extensions:
                     notes.append(MTOON_NOTE)
+                if _hidden_by_alpha(mat, base):  # as every glTF viewer: not drawn
+                    mode = str(_get(mat, "alphaMode") or "OPAQUE").upper()
+                    notes.append(f"mesh {mesh.name or node.mesh!r}, material "
+                                 f"{mat.name or prim.material!r}: fully transparent ({mode}, "
+                                 f"alpha {base[-1]:g}): not drawn")  # fmt: skip
+                    idx = idx[:0]
                 info = _get(pbr, "baseColorTexture") if pbr is not None else None
                 if info is not None and _get(info, "index") is not None:
                     source = _texture_source(doc.textures[_get(info, "index")], notes)
@@ -746,11 +769,14 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                 position = _get(tgt, "POSITION")
                 if position is None:
                     continue
-                delta = np.einsum(
-                    "vij,vj->vi", lin, accessor(doc, buffers, position).astype(np.float64)
-                )
-                raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
                 raw_name = prim_names[k] if k < len(prim_names) else f"target_{k}"
+                try:
+                    moved = accessor(doc, buffers, position).astype(np.float64)
+                except _MalformedError as exc:  # name the shape, not only its accessor
+                    raise _MalformedError(f"mesh {mesh.name or node.mesh!r}, morph target "
+                                          f"{raw_name!r} ({k}): {exc}") from None  # fmt: skip
+                delta = np.einsum("vij,vj->vi", lin, moved)
+                raw_targets.setdefault((node.mesh, k), []).append((offset, delta))
                 name = canonical_arkit_name(raw_name) or raw_name
                 if name in targets:  # the later one would silently replace the earlier
                     first = raw_of[name]
@@ -792,6 +818,9 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
         notes.append(MTOON_NOTE)
     if not positions:
         raise AvatarError(f"{path}: no triangle primitives")
+    if not any(len(f) for f in faces):
+        raise AvatarError(f"{path}: every surface is fully transparent (its materials' alpha): "
+                          "nothing to draw")  # fmt: skip
     verts = np.vstack(positions)
     all_names = sorted({name for _, _, t in per_target for name in t})
     merged = {name: np.zeros_like(verts) for name in all_names}
