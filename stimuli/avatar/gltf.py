@@ -24,7 +24,9 @@ into one avatar in the **rest world frame**:
   data URI or beside the file) with its TEXCOORD set is kept for the renderer, its alpha as
   the material says: ignored (``OPAQUE``), a cut-out at ``alphaCutoff`` (``MASK``: VRoid's
   eyelashes and brows, hair cards) or blended (``BLEND``); a texture used by materials of
-  different alpha modes is kept once per mode;
+  different alpha modes is kept once per mode; a surface whose material alone hides it
+  (``BLEND`` at alpha 0, ``MASK`` with a base alpha under its cutoff) keeps its vertices but
+  no triangles (a note);
 * each mesh's vertices are listed in ``avatar.parts`` under the mesh name; VRM files are
   handled by :mod:`facelab.stimuli.avatar.vrm` (presets, humanoid bones, VRM 0.x facing −z).
 
