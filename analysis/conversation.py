@@ -132,7 +132,8 @@ def conversation_tables(
     summary = []
     for item in partner:
         per = table.groupby("participant")[item].mean().dropna().to_numpy(dtype=float)
-        mean, lo, hi = mean_t_interval(per)
+        scale = next(i.range for i in protocol.items if i.id == item)
+        mean, lo, hi = mean_t_interval(per, bounds=(min(scale), max(scale)))
         q1, median, q3 = np.percentile(per, [25, 50, 75]) if len(per) else (np.nan,) * 3
         summary.append({"item": item, "condition": conv.condition, "n": len(per),
                         "mean": mean, "ci_low": lo, "ci_high": hi,

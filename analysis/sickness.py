@@ -101,7 +101,8 @@ def _describe(frame: pd.DataFrame, moment: str, *, test: bool = False) -> list[d
     rows = []
     for score in SCORES:
         values = frame[score].to_numpy(dtype=float)
-        mean, low, high = mean_t_interval(values)
+        # scores cannot go below 0; their change (after - before) can
+        mean, low, high = mean_t_interval(values, bounds=None if test else (0.0, np.inf))
         q25, median, q75 = (np.percentile(values, (25, 50, 75)) if len(values)
                             else (np.nan, np.nan, np.nan))  # fmt: skip
         row = {

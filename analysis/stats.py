@@ -682,14 +682,21 @@ def _posterior_row(
     }
 
 
-def mean_t_interval(values: np.ndarray, *, level: float = 0.95) -> tuple[float, float, float]:
+def mean_t_interval(
+    values: np.ndarray, *, level: float = 0.95, bounds: tuple[float, float] | None = None
+) -> tuple[float, float, float]:
     """(mean, low, high): the mean of ``values`` (shape (n,)) with its t interval; the
-    interval is NaN for fewer than two values, everything NaN for none."""
+    interval is NaN for fewer than two values, everything NaN for none. ``bounds``: the
+    range the measure cannot leave (a share right: (0, 1)); the interval is cut there (a t
+    interval of shares near 1 reaches past 1)."""
     n = len(values)
     mean = float(values.mean()) if n else np.nan
     half = (float(stats.t.ppf(0.5 + level / 2, n - 1) * values.std(ddof=1) / np.sqrt(n))
             if n > 1 else np.nan)  # fmt: skip
-    return mean, mean - half, mean + half
+    low, high = mean - half, mean + half
+    if bounds is not None and n > 1:
+        low, high = max(low, bounds[0]), min(high, bounds[1])
+    return mean, low, high
 
 
 def series_comparison(

@@ -589,7 +589,7 @@ def _typed_tables(
     out = []
     for cond, part in in_protocol_order(answers, protocol):
         means = part.groupby("participant")["score"].mean()
-        mean, low, high = stats.mean_t_interval(means.to_numpy(dtype=float))
+        mean, low, high = stats.mean_t_interval(means.to_numpy(dtype=float), bounds=(0.0, 1.0))
         out.append({"task": task.id, "condition": cond, "answers": len(part),
                     "participants": len(means), "mean_score": mean, "ci_low": low,
                     "ci_high": high,
@@ -631,7 +631,7 @@ def matrix_word_table(
         part = words[words["condition"] == cond]
         for position, at in part.groupby("position", sort=True):
             means = at.groupby("participant")["right"].mean()
-            mean, low, high = stats.mean_t_interval(means.to_numpy(dtype=float))
+            mean, low, high = stats.mean_t_interval(means.to_numpy(dtype=float), bounds=(0.0, 1.0))
             wrong = at[at["right"] == 0]
             confused = (wrong["said"] + "→" + wrong["picked"]).value_counts()
             out.append({
