@@ -561,7 +561,12 @@ def raw_features(
     x = np.asarray(samples, dtype=np.float64)
     padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
     count = (len(x) - 1) // geo.hop + 1
-    return np.arange(count) * HOP_S, frame_features(padded, geo, 0, count, warp)
+    # frame by frame, in chunks: the windows and spectra of a 5-minute recording at once
+    # took about 2 GB; the features are the same
+    chunk = 2000
+    feats = [frame_features(padded, geo, first, min(chunk, count - first), warp)
+             for first in range(0, count, chunk)]  # fmt: skip
+    return np.arange(count) * HOP_S, np.vstack(feats)
 
 
 def features(

@@ -34,6 +34,7 @@ TONE_SHARE = 0.9
 TONE_FRAMES = 0.9  # the share of the sound's frames that must be tone-like
 LOW_HZ = 50.0  # below: the DC offset, rumble and brown noise's bulk, never a tone
 MIN_SOUND_S = 0.2  # less sound than this is not judged
+CHUNK_FRAMES = 1000  # frames analysed at once (10 s: tens of MB at 48 kHz)
 
 
 def not_speech_reason(samples: np.ndarray, *, sample_rate: int) -> str | None:
@@ -46,25 +47,33 @@ def not_speech_reason(samples: np.ndarray, *, sample_rate: int) -> str | None:
     if len(x) < n + hop:
         return None
     starts = np.arange(0, len(x) - n + 1, hop)
-    frames = x[starts[:, None] + np.arange(n)]
-    frames = (frames - frames.mean(axis=1, keepdims=True)) * np.hanning(n)
-    power = np.abs(np.fft.rfft(frames, axis=1)) ** 2  # (T, F)
     freqs = np.fft.rfftfreq(n, 1.0 / sample_rate)
-    energy = power.sum(axis=1)
+    low = freqs >= LOW_HZ
+    hz = freqs[low]
+    width = max(1, round(TONE_HZ / freqs[1]))
+    window = np.hanning(n)
+    energy, share, centre = (np.empty(len(starts)) for _ in range(3))
+    # per frame, in chunks (a 5-minute recording's whole spectrogram took about 1 GB)
+    for a in range(0, len(starts), CHUNK_FRAMES):
+        frames = x[starts[a : a + CHUNK_FRAMES, None] + np.arange(n)]
+        frames = (frames - frames.mean(axis=1, keepdims=True)) * window
+        power = np.abs(np.fft.rfft(frames, axis=1)) ** 2  # (chunk, F)
+        b = a + len(power)
+        energy[a:b] = power.sum(axis=1)
+        above = power[:, low]
+        peak = np.argmax(above, axis=1)
+        near = np.abs(np.arange(above.shape[1])[None, :] - peak[:, None]) <= width
+        held = above * near
+        tiny = np.finfo(float).tiny  # a silent frame is not active: any floor will do
+        share[a:b] = held.sum(axis=1) / np.maximum(above.sum(axis=1), tiny)
+        centre[a:b] = held @ hz / np.maximum(held.sum(axis=1), tiny)
     top = float(energy.max())
     if top <= 0:
         return None
-    p = power[energy >= top * 10 ** (-ACTIVE_DB / 10)]
-    if len(p) * HOP_S < MIN_SOUND_S:
+    active = energy >= top * 10 ** (-ACTIVE_DB / 10)
+    if active.sum() * HOP_S < MIN_SOUND_S:
         return None
-    above = p[:, freqs >= LOW_HZ]
-    hz = freqs[freqs >= LOW_HZ]
-    peak = np.argmax(above, axis=1)
-    width = max(1, round(TONE_HZ / freqs[1]))
-    near = np.abs(np.arange(above.shape[1])[None, :] - peak[:, None]) <= width
-    held = above * near
-    share = held.sum(axis=1) / np.maximum(above.sum(axis=1), top * 1e-16)
-    centre = held @ hz / np.maximum(held.sum(axis=1), top * 1e-16)
+    share, centre = share[active], centre[active]
     where = float(np.median(centre))  # each frame's peak, its energy centre (finer than bins)
     tonal = (share >= TONE_SHARE) & (np.abs(centre - where) <= TONE_HZ)
     if np.mean(tonal) >= TONE_FRAMES:
