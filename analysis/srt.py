@@ -367,7 +367,8 @@ def srt_tests(table: pd.DataFrame, *, reference: str | None) -> tuple[pd.DataFra
     visual = table[table["condition"] != reference] if reference is not None else table.iloc[:0]
     if not visual.empty:
         more, more_tests = fstats.series_comparison(
-            visual, measures=("benefit_db", "visual_enhancement"))
+            visual, measures=("benefit_db", "visual_enhancement"),
+            bounds={"visual_enhancement": (-1.0, 1.0)})  # (p_av - 0.5) / 0.5
         summary = summary.merge(more.drop(columns=["participants", "determined"]),
                                 on="condition", how="left")  # fmt: skip
         tests = pd.concat([tests, more_tests], ignore_index=True)

@@ -707,6 +707,7 @@ def series_comparison(
     subject: str = "participant",
     note: str = "note",
     concerns: Mapping[str, str] | None = None,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per-participant estimates (one row per participant and series, e.g. each one's
     window or threshold per animation method) summarised and compared within participants.
@@ -722,7 +723,8 @@ def series_comparison(
     estimate the data do not determine) are left out of both - of one measure's only, when
     ``concerns`` maps each measure to how its notes begin (``{"pss_ms": "the PSS"}``: a
     note of ``"; "``-joined parts that all begin with another measure's phrase leaves the
-    row in for this one)."""
+    row in for this one). ``bounds``: per measure the range it cannot leave, where its
+    interval is cut (:func:`mean_t_interval`)."""
     notes = (table[note].fillna("").astype(str) if note in table
              else pd.Series("", index=table.index))  # fmt: skip
     clean = table[notes.eq("")]
@@ -744,7 +746,8 @@ def series_comparison(
             kept = usable[measure]
             kept = kept[kept[series] == name]
             v = kept[measure].to_numpy(dtype=float)
-            mean, low, high = mean_t_interval(v[np.isfinite(v)])
+            mean, low, high = mean_t_interval(v[np.isfinite(v)],
+                                              bounds=(bounds or {}).get(measure))  # fmt: skip
             row |= {f"{measure}_mean": mean, f"{measure}_ci_low": low,
                     f"{measure}_ci_high": high,
                     f"{measure}_n": int(np.isfinite(v).sum())}  # fmt: skip

@@ -316,4 +316,5 @@ def window_tests(windows: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     (:func:`facelab.analysis.stats.series_comparison`; windows with a note left out - of
     the one measure it concerns, when it concerns only the PSS or only the width)."""
     return fstats.series_comparison(windows, measures=("pss_ms", "width_ms"),
-                                    concerns={"pss_ms": "the PSS", "width_ms": "the width"})
+                                    concerns={"pss_ms": "the PSS", "width_ms": "the width"},
+                                    bounds={"width_ms": (0.0, np.inf)})  # fmt: skip

@@ -460,8 +460,13 @@ def test_a_fully_transparent_material_is_not_drawn(
     last = doc["meshes"][0]["extras"]["targetNames"][51]
     assert f"'head': its default morph weights ({last} 0.4) are not applied" in notes
     if hidden:
+        from facelab.stimuli.render.scene import _head_vertices
+
         assert len(avatar.faces) < len(plain.faces)
         assert "'hat', material 'veil': fully transparent" in notes
+        # nor does it frame the head (the camera aims at what is drawn)
+        assert not avatar.drawn()[avatar.parts["hat"]].any()
+        assert len(_head_vertices(avatar)) < len(_head_vertices(plain))
     else:
         assert len(avatar.faces) == len(plain.faces) and "transparent" not in notes
 

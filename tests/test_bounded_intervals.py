@@ -20,3 +20,22 @@ def test_a_t_interval_is_cut_at_the_measures_bounds() -> None:
     mid = np.array([0.4, 0.5, 0.6])
     assert mean_t_interval(mid, bounds=(0.0, 1.0)) == mean_t_interval(mid)
     assert np.isnan(mean_t_interval(np.array([1.0]), bounds=(0.0, 1.0))[1])
+
+
+def test_series_comparison_cuts_a_bounded_measures_interval() -> None:
+    """Sumby-Pollack's visual enhancement is at most 1; its summary interval reached 1.19."""
+    import pandas as pd
+
+    from facelab.analysis.stats import series_comparison
+
+    table = pd.DataFrame({
+        "participant": [f"p{i}" for i in range(4)] * 2,
+        "condition": ["a"] * 4 + ["b"] * 4,
+        "visual_enhancement": [0.99, 0.98, 0.97, 0.6, 0.5, 0.4, 0.6, 0.5],
+    })  # fmt: skip
+    plain, _ = series_comparison(table, measures=("visual_enhancement",))
+    cut, _ = series_comparison(table, measures=("visual_enhancement",),
+                               bounds={"visual_enhancement": (-1.0, 1.0)})  # fmt: skip
+    assert plain["visual_enhancement_ci_high"].iloc[0] > 1.0
+    assert cut["visual_enhancement_ci_high"].iloc[0] == 1.0
+    assert cut["visual_enhancement_ci_high"].iloc[1] == plain["visual_enhancement_ci_high"].iloc[1]

@@ -114,13 +114,15 @@ def moved_vertices(
     avatar: Avatar, names: Iterable[str], *, at_least: int = 3
 ) -> np.ndarray | None:
     """(V,) bool: the rest vertices the shapes ``names`` move (by more than 1e-4 of the
-    model's size), or None when fewer than ``at_least`` move."""
+    model's size) that are drawn (:meth:`Avatar.drawn`), or None when fewer than
+    ``at_least`` move."""
     mask = np.zeros(len(avatar.neutral), bool)
     scale = float(np.ptp(avatar.neutral, axis=0).max()) or 1.0
     for name in names:
         delta = avatar.targets.get(name)
         if delta is not None:
             mask |= np.abs(delta).max(axis=1) > 1e-4 * scale
+    mask &= avatar.drawn()
     return mask if mask.sum() >= at_least else None
 
 

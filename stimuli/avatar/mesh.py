@@ -78,6 +78,13 @@ class Avatar:
     def target_names(self) -> tuple[str, ...]:
         return self._names
 
+    def drawn(self) -> np.ndarray:
+        """(V,) bool: the vertices some triangle uses (a surface its material hides keeps
+        its vertices, so indices hold, but no triangles: it frames and audits nothing)."""
+        mask = np.zeros(len(self.neutral), bool)
+        mask[np.asarray(self.faces, np.int64).reshape(-1)] = True
+        return mask
+
     def weight_vector(self, weights: Mapping[str, float]) -> np.ndarray:
         """(K,) weights in :attr:`target_names` order; unknown names raise."""
         out = np.zeros(len(self._names), dtype=np.float32)

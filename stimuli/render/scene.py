@@ -150,23 +150,26 @@ def _head_vertices(avatar: Avatar) -> np.ndarray:
     """Rest vertices of the head: those skinned to the head joint, else a mesh named like
     a head (``Wolf3D_Head``, ``Face``, ``head``), else the model's top."""
     a = avatar
+    drawn = a.drawn()  # a surface its material hides frames nothing
     sk = a.skeleton
     if sk is not None and "head" in sk.roles:
-        rows = sk.vertices_of(sk.roles["head"])
+        rows = np.asarray(sk.vertices_of(sk.roles["head"]), np.int64)
+        rows = rows[drawn[rows]]
         if len(rows) >= 10:
             return a.neutral[rows]
     named = [
-        idx
+        idx[drawn[idx]]
         for name, idx in a.parts.items()
-        if any(key in name.lower() for key in ("head", "face")) and len(idx) >= 10
+        if any(key in name.lower() for key in ("head", "face")) and drawn[idx].sum() >= 10
     ]
     if named:
         return a.neutral[np.concatenate(named)]
-    lo, hi = a.neutral.min(axis=0), a.neutral.max(axis=0)
+    shown = a.neutral[drawn]
+    lo, hi = shown.min(axis=0), shown.max(axis=0)
     height = hi[1] - lo[1]
     if height > 0.6:  # a full body: its top 0.25 m or so is the head
-        return a.neutral[a.neutral[:, 1] > hi[1] - min(0.25, height / 6)]
-    return a.neutral
+        return shown[shown[:, 1] > hi[1] - min(0.25, height / 6)]
+    return shown
 
 
 #: The offline lights (direction towards the light in the avatar's world frame, intensity

@@ -51,6 +51,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field, replace
 from functools import cache
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -561,11 +562,12 @@ def raw_features(
     x = np.asarray(samples, dtype=np.float64)
     padded = np.concatenate([np.zeros(geo.win // 2), x, np.zeros(geo.win)])
     count = (len(x) - 1) // geo.hop + 1
-    # frame by frame, in chunks: the windows and spectra of a 5-minute recording at once
-    # took about 2 GB; the features are the same
-    chunk = 2000
-    feats = [frame_features(padded, geo, first, min(chunk, count - first), warp)
-             for first in range(0, count, chunk)]  # fmt: skip
+    # frame by frame, in chunks of 1,000-2,000 frames: the windows and spectra of a 5-minute
+    # recording at once took about 2 GB; the features are the same but for the last bit of
+    # some (matrix products round by how many rows they have)
+    bounds = np.linspace(0, count, -(-count // 2000) + 1).round().astype(int)
+    feats = [frame_features(padded, geo, a, b - a, warp)
+             for a, b in pairwise(bounds)]  # fmt: skip
     return np.arange(count) * HOP_S, np.vstack(feats)
 
 
