@@ -1100,7 +1100,8 @@ class StimulusChecks(_Model):
     accept: list[str] = Field(
         default_factory=list,
         description="Checks whose failures are accepted (recorded, not an error), by name: "
-        f"{', '.join(CHECK_NAMES)}.",
+        f"{', '.join(CHECK_NAMES)}; NAME:CLIP accepts one clip's only "
+        "(e.g. track_source:s__r01__standard).",
     )
 
 

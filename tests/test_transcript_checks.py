@@ -44,7 +44,8 @@ def test_a_transcript_of_other_words_is_refused_and_the_right_one_passes(
     assert refusal.failed and refusal.severity == "error"
     assert not wrong["transcript_vowels_heard"].passed
     assert not wrong["transcript_order_fit"].passed
-    assert "r.wav" in refusal.note and other in refusal.note
+    assert "r.wav" in refusal.note and other in refusal.note and "hears clearly" in refusal.note
+    assert "transcript_matches_recording" in wrong["transcript_vowels_heard"].note
     assert "leave the transcript out" in refusal.note and "accept" in refusal.note
     # the refusal is accepted by the check's name, as every stimulus check
     assert not refusal.accept().failed
@@ -60,3 +61,45 @@ def test_the_words_said_twice_are_doubted_but_not_refused(tmp_path) -> None:
     heard = rows["transcript_vowels_heard"]
     assert heard.passed is False and heard.severity == "warning"
     assert "check that the transcript is what the recording says" in heard.note
+
+
+def test_in_noise_other_words_are_doubted_but_not_refused(tmp_path) -> None:
+    """At +10 dB of noise both measures fall for the right words too; the analyser's vowel
+    confidence falls with them, and under 0.7 the check warns (naming why) instead of
+    refusing."""
+    from facelab.stimuli.checks.run_checks import TRANSCRIPT_CLEAR
+
+    samples = _said("窓の外で子供たちが遊んでいます。")
+    loud = samples[np.abs(samples) > 0.02 * np.abs(samples).max()]
+    noise = np.random.default_rng(5).normal(size=len(samples))
+    noisy = samples + noise * np.sqrt(np.mean(loud**2) / 10)  # +10 dB SNR, white
+    rows = _rows(tmp_path, noisy.astype(np.float32), "明日の朝は早く起きてください。")
+    assert "transcript_matches_recording" not in rows
+    heard = rows["transcript_vowels_heard"]
+    assert heard.passed is False and heard.severity == "warning"
+    assert "hears this recording unclearly" in heard.note
+    assert f"< {TRANSCRIPT_CLEAR:g}" in heard.note
+
+
+def test_one_clips_failure_can_be_accepted_without_the_others() -> None:
+    """--accept-check NAME:CLIP accepts one clip's failures (a recording listened to and
+    found right), not every failure of the check (a wrong transcript elsewhere stays)."""
+    import argparse
+
+    from facelab.errors import StageError
+    from facelab.experiment.cli.common import check_options
+    from facelab.stimuli.checks.rows import CheckRow, accept_checks
+
+    rows = [CheckRow(clip, "", "track_source", "transcript_matches_recording", 0.2, "", False)
+            for clip in ("s__a__std", "s__b__std")]  # fmt: skip
+    kept = accept_checks(rows, ["track_source:s__a__std"])
+    assert [r.failed for r in kept] == [False, True]
+    assert all(not r.failed for r in accept_checks(rows, ["track_source"]))
+    with pytest.raises(StageError, match="nonsense:s__a__std: unknown check"):
+        accept_checks(rows, ["nonsense:s__a__std"])
+    parser = argparse.ArgumentParser()
+    check_options(parser)
+    assert parser.parse_args(["--accept-check", "track_source:s__a__std"]).accept_check == [
+        "track_source:s__a__std"]  # fmt: skip
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--accept-check", "nonsense"])

@@ -358,10 +358,18 @@ def check_options(parser: argparse.ArgumentParser) -> None:
     instead of stopping the command."""
     from facelab.protocol_checks import CHECK_NAMES
 
+    def check_name(text: str) -> str:
+        if text.partition(":")[0] not in CHECK_NAMES:
+            raise argparse.ArgumentTypeError(
+                f"unknown check {text!r}; checks: {', '.join(CHECK_NAMES)} (each alone, or "
+                "NAME:CLIP for one clip)")  # fmt: skip
+        return text
+
     parser.add_argument(
-        "--accept-check", action="append", default=[], metavar="NAME", choices=CHECK_NAMES,
-        help="accept the failures of this stimulus check (recorded in clips.csv and "
-        f"stimulus_checks.csv): {', '.join(CHECK_NAMES)}",
+        "--accept-check", action="append", default=[], metavar="NAME[:CLIP]", type=check_name,
+        help="accept the failures of this stimulus check, or with :CLIP of one clip as the "
+        "failure names it (recorded in clips.csv and stimulus_checks.csv): "
+        f"{', '.join(CHECK_NAMES)}",
     )  # fmt: skip
 
 

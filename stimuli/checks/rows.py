@@ -122,12 +122,16 @@ def info(
 
 
 def accept_checks(rows: Iterable[CheckRow], names: Iterable[str]) -> list[CheckRow]:
-    """The rows with the failures of the checks ``names`` marked accepted."""
+    """The rows with the failures of the checks ``names`` marked accepted: a check's name
+    accepts all its failures, ``NAME:CLIP`` only those of one clip (as the failure lines
+    name it, e.g. ``track_source:s__r01__standard``)."""
     names = set(names)
-    unknown = names - set(CHECK_NAMES)
+    unknown = {n for n in names if n.partition(":")[0] not in CHECK_NAMES}
     if unknown:
         raise StageError(
             f"--accept-check {', '.join(sorted(unknown))}: unknown check; checks: "
-            f"{', '.join(CHECK_NAMES)}"
+            f"{', '.join(CHECK_NAMES)} (each alone, or NAME:CLIP for one clip)"
         )
-    return [r.accept() if r.check in names else r for r in rows]
+    whole = {n for n in names if ":" not in n}
+    one = {tuple(n.split(":", 1)) for n in names if ":" in n}
+    return [r.accept() if r.check in whole or (r.check, r.clip) in one else r for r in rows]
