@@ -935,7 +935,8 @@ def _stimulus_checks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 yield Issue(("checks", "articulation", ri, key),
                             f"unknown condition {name!r}; conditions: {known}")  # fmt: skip
     for ai, name in enumerate(checks.accept):
-        if name.partition(":")[0] not in CHECK_NAMES:
+        check, colon, clip = name.partition(":")
+        if check not in CHECK_NAMES or (colon and not clip.strip()):
             yield Issue(("checks", "accept", ai),
                         f"unknown check {name!r}; checks: {', '.join(CHECK_NAMES)} (each "
                         "alone, or NAME:CLIP for one clip)")  # fmt: skip

@@ -89,7 +89,8 @@ def check_clips(
             f"{len(failed)} clip(s) in {manifest} failed their stimulus checks: {listed}"
             f"{' …' if len(failed) > 5 else ''}. Fix the cause and render again (the checks' "
             "report says what each found), or, when the failure is what the study intends, "
-            "accept the check by name: facelab render PROTOCOL --accept-check NAME"
+            "accept the check by name, or one clip's with NAME:CLIP: facelab render "
+            "PROTOCOL --accept-check NAME[:CLIP]"
         )
     refs = {}
     for key in sorted(needed):

@@ -97,9 +97,40 @@ def test_one_clips_failure_can_be_accepted_without_the_others() -> None:
     assert all(not r.failed for r in accept_checks(rows, ["track_source"]))
     with pytest.raises(StageError, match="nonsense:s__a__std: unknown check"):
         accept_checks(rows, ["nonsense:s__a__std"])
+    # a mistyped clip would accept nothing, silently: it is named with the failing clips
+    with pytest.raises(StageError, match=r"no clip 's__c__std'.*failed on: s__a__std, s__b__std"):
+        accept_checks(rows, ["track_source:s__c__std"])
     parser = argparse.ArgumentParser()
     check_options(parser)
     assert parser.parse_args(["--accept-check", "track_source:s__a__std"]).accept_check == [
         "track_source:s__a__std"]  # fmt: skip
-    with pytest.raises(SystemExit):
-        parser.parse_args(["--accept-check", "nonsense"])
+    for bad in ("nonsense", "track_source:"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--accept-check", bad])
+
+
+def test_a_refused_recording_fails_every_clip_of_its_stimulus(tmp_path) -> None:
+    """The refusal is about the recording (filed under its first clip): every condition's
+    clip of the stimulus is marked failed in clips.csv - preflight refuses a session by
+    the clips it shows - and accepting the named clip accepts the stimulus."""
+    import csv
+
+    from facelab.stimuli.checks.rows import CheckRow, accept_checks
+    from facelab.stimuli.checks.run_checks import CheckReport, record_in_manifest
+
+    clips = [("s__r__std", "std", "r"), ("s__r__emph", "emph", "r"), ("s__q__std", "std", "q")]
+    with open(tmp_path / "clips.csv", "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["clip_id", "condition", "stimulus_set", "stimulus"])
+        w.writerows([(c, cond, "s", stim) for c, cond, stim in clips])
+    row = CheckRow("s__r__std", "", "track_source", "transcript_matches_recording", 0.2, "", False)
+
+    def marks(rows) -> dict[str, str]:
+        record_in_manifest(tmp_path, CheckReport(rows=rows))
+        with open(tmp_path / "clips.csv", newline="", encoding="utf-8") as fh:
+            return {r["clip_id"]: r["stimulus_checks"] for r in csv.DictReader(fh)}
+
+    assert marks([row]) == {"s__r__std": "failed: track_source",
+                            "s__r__emph": "failed: track_source", "s__q__std": "passed"}
+    accepted = accept_checks([row], ["track_source:s__r__std"])
+    assert set(marks(accepted).values()) == {"accepted: track_source", "passed"}

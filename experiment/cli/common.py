@@ -354,12 +354,13 @@ def cluster_of(args: argparse.Namespace):
 
 
 def check_options(parser: argparse.ArgumentParser) -> None:
-    """``--accept-check NAME`` (repeatable): a stimulus check whose failures are recorded
-    instead of stopping the command."""
+    """``--accept-check NAME[:CLIP]`` (repeatable): a stimulus check whose failures (or one
+    clip's, as the failure line names it) are recorded instead of stopping the command."""
     from facelab.protocol_checks import CHECK_NAMES
 
     def check_name(text: str) -> str:
-        if text.partition(":")[0] not in CHECK_NAMES:
+        check, colon, clip = text.partition(":")
+        if check not in CHECK_NAMES or (colon and not clip.strip()):
             raise argparse.ArgumentTypeError(
                 f"unknown check {text!r}; checks: {', '.join(CHECK_NAMES)} (each alone, or "
                 "NAME:CLIP for one clip)")  # fmt: skip

@@ -132,6 +132,15 @@ def accept_checks(rows: Iterable[CheckRow], names: Iterable[str]) -> list[CheckR
             f"--accept-check {', '.join(sorted(unknown))}: unknown check; checks: "
             f"{', '.join(CHECK_NAMES)} (each alone, or NAME:CLIP for one clip)"
         )
+    rows = list(rows)
     whole = {n for n in names if ":" not in n}
     one = {tuple(n.split(":", 1)) for n in names if ":" in n}
+    for check, clip in sorted(one):  # a mistyped clip would accept nothing, silently
+        if not any(r.check == check and r.clip == clip for r in rows):
+            failing = sorted({r.clip for r in rows if r.check == check and r.failed and r.clip})
+            raise StageError(
+                f"--accept-check {check}:{clip}: no clip {clip!r} has {check} results; "
+                + (f"clips it failed on: {', '.join(failing[:10])}" if failing
+                   else f"{check} failed on no clip")
+            )  # fmt: skip
     return [r.accept() if r.check in whole or (r.check, r.clip) in one else r for r in rows]

@@ -128,8 +128,9 @@ class CheckReport:
         lines.append(
             "fix the avatar, the method or the protocol, or accept a check by name: "
             + " ".join(f"--accept-check {n}" for n in names)
-            + f", or one clip's: --accept-check {self.failures[0].check}:"
-            f"{self.failures[0].clip or 'CLIP'} (recorded in clips.csv and stimulus_checks.csv)"
+            + (f", or one clip's: --accept-check {first.check}:{first.clip}"
+               if (first := next((r for r in self.failures if r.clip), None)) else "")
+            + " (recorded in clips.csv and stimulus_checks.csv)"
         )
         return StageError("\n".join(lines))
 
@@ -250,8 +251,9 @@ def transcript_rows(stim, speech: Speech, *, kw: dict) -> list[CheckRow]:
     if refused:  # the error row says it all once
         said, check = f"{stim.audio}: see transcript_matches_recording", ""
     elif other_words:
+        clarity = "no voiced frame" if math.isnan(clear) else f"vowel confidence {clear:.2f}"
         check = (f" - both say other words, but the analyser hears this recording unclearly "
-                 f"(vowel confidence {clear:.2f} < {TRANSCRIPT_CLEAR:g}: noise, reverberation, "
+                 f"({clarity} < {TRANSCRIPT_CLEAR:g}: noise, reverberation, "
                  "breath or a voice it reads poorly), so it is not refused: listen to it and "
                  "check that the transcript is what it says")  # fmt: skip
     else:
@@ -482,7 +484,7 @@ def check_clips(
 
 
 #: bump when a check's measure or threshold changes: earlier results are then measured again
-CHECKS_VERSION = 8
+CHECKS_VERSION = 10  # (9 was once set back to 8 by mistake: 10 is new)
 CHECKS_KEY_NAME = "stimulus_checks.json"
 
 
@@ -576,19 +578,24 @@ MANIFEST_COLUMN = CHECKS_COLUMN
 def record_in_manifest(clips_dir: Path, report: CheckReport) -> None:
     """Add (or refresh) ``clips.csv``'s :data:`MANIFEST_COLUMN`: per clip ``passed``, or
     ``failed: NAMES`` / ``accepted: NAMES`` for the checks that failed on it (an avatar-audit
-    failure counts for every clip of its condition, a pair's for both clips)."""
+    failure counts for every clip of its condition, a pair's for both clips, a
+    ``track_source`` failure - about the recording, filed under its first clip - for every
+    clip of its stimulus)."""
     path = clips_dir / "clips.csv"
     with open(path, newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
         header = [c for c in (reader.fieldnames or []) if c != MANIFEST_COLUMN]
         rows = list(reader)
+    stimulus_of = {row["clip_id"]: (row.get("stimulus_set"), row.get("stimulus")) for row in rows}
     for row in rows:
         failed, accepted = set(), set()
         for r in report.rows:
             if r.passed is not False or r.severity != "error":
                 continue
             mine = (r.clip == row["clip_id"] or row["clip_id"] in r.clip.split("~")
-                    or (not r.clip and r.condition in ("", row["condition"])))  # fmt: skip
+                    or (not r.clip and r.condition in ("", row["condition"]))
+                    or (r.check == "track_source" and r.clip in stimulus_of
+                        and stimulus_of[r.clip] == stimulus_of[row["clip_id"]]))  # fmt: skip
             if mine:
                 (accepted if r.accepted else failed).add(r.check)
         row[MANIFEST_COLUMN] = "; ".join(
