@@ -23,10 +23,18 @@ from facelab.protocol_model import (
     CHECK_NAMES,
     Protocol,
     StaircaseRule,
+    accept_name_problem,
 )
 from facelab.protocol_yaml import read_data
 
-__all__ = ["CHECK_NAMES", "clean_loc", "cross_check", "describe", "pydantic_message"]
+__all__ = [
+    "CHECK_NAMES",
+    "accept_name_problem",
+    "clean_loc",
+    "cross_check",
+    "describe",
+    "pydantic_message",
+]
 
 
 def clean_loc(loc: tuple[Any, ...]) -> tuple[str | int, ...]:
@@ -935,8 +943,5 @@ def _stimulus_checks(protocol: Protocol, base_dir: Path) -> Iterator[Issue]:
                 yield Issue(("checks", "articulation", ri, key),
                             f"unknown condition {name!r}; conditions: {known}")  # fmt: skip
     for ai, name in enumerate(checks.accept):
-        check, colon, clip = name.partition(":")
-        if check not in CHECK_NAMES or (colon and not clip.strip()):
-            yield Issue(("checks", "accept", ai),
-                        f"unknown check {name!r}; checks: {', '.join(CHECK_NAMES)} (each "
-                        "alone, or NAME:CLIP for one clip)")  # fmt: skip
+        if (problem := accept_name_problem(name)) is not None:
+            yield Issue(("checks", "accept", ai), problem)

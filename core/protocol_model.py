@@ -1080,6 +1080,16 @@ CHECK_NAMES = (
 )
 
 
+def accept_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be accepted (``--accept-check`` and ``checks.accept``: a check's
+    name, or ``NAME:CLIP`` for one clip's failures), or None."""
+    check, colon, clip = name.partition(":")
+    if check in CHECK_NAMES and not (colon and not clip.strip()):
+        return None
+    return (f"unknown check {name!r}; checks: {', '.join(CHECK_NAMES)} (each alone, or "
+            "NAME:CLIP for one clip)")  # fmt: skip
+
+
 class StimulusChecks(_Model):
     """What ``facelab check`` (and every render) holds the clips to beyond its defaults."""
 

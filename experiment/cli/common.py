@@ -356,14 +356,11 @@ def cluster_of(args: argparse.Namespace):
 def check_options(parser: argparse.ArgumentParser) -> None:
     """``--accept-check NAME[:CLIP]`` (repeatable): a stimulus check whose failures (or one
     clip's, as the failure line names it) are recorded instead of stopping the command."""
-    from facelab.protocol_checks import CHECK_NAMES
+    from facelab.protocol_checks import CHECK_NAMES, accept_name_problem
 
     def check_name(text: str) -> str:
-        check, colon, clip = text.partition(":")
-        if check not in CHECK_NAMES or (colon and not clip.strip()):
-            raise argparse.ArgumentTypeError(
-                f"unknown check {text!r}; checks: {', '.join(CHECK_NAMES)} (each alone, or "
-                "NAME:CLIP for one clip)")  # fmt: skip
+        if (problem := accept_name_problem(text)) is not None:
+            raise argparse.ArgumentTypeError(problem)
         return text
 
     parser.add_argument(

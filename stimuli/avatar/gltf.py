@@ -547,13 +547,14 @@ def _alpha_cut(material: Any, factor_alpha: float) -> tuple[str, float]:
     return "OPAQUE", 1.0
 
 
-def _hidden_by_alpha(material: Any, base: list[float]) -> bool:
-    """Whether a material's own alpha hides its surface whatever its texture says: blended
-    at a factor alpha under half a grey level, or cut out at a cutoff the factor alpha never
-    reaches (texels' alpha only lowers it)."""
+def _hidden_by_alpha(material: Any, base: list[float]) -> str | None:
+    """The alpha mode by which a material's own alpha hides its surface whatever its
+    texture says - blended at a factor alpha under half a grey level, or cut out at a cutoff
+    the factor alpha never reaches (texels' alpha only lowers it) - or None."""
     alpha = float(base[3]) if len(base) > 3 else 1.0
     mode, value = _alpha_cut(material, alpha)
-    return (mode == "BLEND" and alpha < 0.5 / 255) or (mode == "MASK" and value > 1.0)
+    hidden = (mode == "BLEND" and alpha < 0.5 / 255) or (mode == "MASK" and value > 1.0)
+    return mode if hidden else None
 
 
 def _with_alpha(rgba: np.ndarray, cut: tuple[str, float]) -> np.ndarray:
@@ -726,8 +727,7 @@ def _avatar_of(doc: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Avatar
                     base = list(pbr.baseColorFactor)
                 if _get(mat, "extensions") and "VRMC_materials_mtoon" in mat.extensions:
                     notes.append(MTOON_NOTE)
-                if _hidden_by_alpha(mat, base):  # as every glTF viewer: not drawn
-                    mode = str(_get(mat, "alphaMode") or "OPAQUE").upper()
+                if mode := _hidden_by_alpha(mat, base):  # as every glTF viewer: not drawn
                     notes.append(f"mesh {mesh.name or node.mesh!r}, material "
                                  f"{mat.name or prim.material!r}: fully transparent ({mode}, "
                                  f"alpha {base[-1]:g}): not drawn")  # fmt: skip

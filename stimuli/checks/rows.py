@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 from facelab.errors import StageError
 from facelab.formats import STIMULUS_CHECK_COLUMNS
-from facelab.protocol_checks import CHECK_NAMES
+from facelab.protocol_checks import CHECK_NAMES, accept_name_problem
 
 __all__ = ["CHECK_COLUMNS", "CheckRow", "accept_checks", "at_least", "at_most", "info"]
 
@@ -126,10 +126,10 @@ def accept_checks(rows: Iterable[CheckRow], names: Iterable[str]) -> list[CheckR
     accepts all its failures, ``NAME:CLIP`` only those of one clip (as the failure lines
     name it, e.g. ``track_source:s__r01__standard``)."""
     names = set(names)
-    unknown = {n for n in names if n.partition(":")[0] not in CHECK_NAMES}
+    unknown = sorted(n for n in names if accept_name_problem(n) is not None)
     if unknown:
         raise StageError(
-            f"--accept-check {', '.join(sorted(unknown))}: unknown check; checks: "
+            f"--accept-check {', '.join(unknown)}: unknown check; checks: "
             f"{', '.join(CHECK_NAMES)} (each alone, or NAME:CLIP for one clip)"
         )
     rows = list(rows)

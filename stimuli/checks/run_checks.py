@@ -244,12 +244,13 @@ def transcript_rows(stim, speech: Speech, *, kw: dict) -> list[CheckRow]:
             f"it; audio-only analysis hears {heard:.0%} of its vowels' {frames} core frames as "
             f"the transcript's vowels, and its alignment costs {fit_text} times its alignment "
             "to the text reversed (1: the order of the words does not show)")  # fmt: skip
-    full = said
     low_heard, high_fit = TRANSCRIPT_REFUSED
     other_words = frames >= TRANSCRIPT_FRAMES and heard < low_heard and fit > high_fit
     refused = other_words and clear >= TRANSCRIPT_CLEAR
-    if refused:  # the error row says it all once
-        said, check = f"{stim.audio}: see transcript_matches_recording", ""
+    # the warnings' note: the measures and what to do, or, when refused, where the error is
+    lead = f"{stim.audio}: see transcript_matches_recording" if refused else said
+    if refused:
+        check = ""
     elif other_words:
         clarity = "no voiced frame" if math.isnan(clear) else f"vowel confidence {clear:.2f}"
         check = (f" - both say other words, but the analyser hears this recording unclearly "
@@ -260,16 +261,16 @@ def transcript_rows(stim, speech: Speech, *, kw: dict) -> list[CheckRow]:
         check = " - check that the transcript is what the recording says"
     rows = [
         at_least(TRANSCRIPT_HEARD, heard, **kw, measure="transcript_vowels_heard",
-                 severity="warning", note=said + ("" if heard >= TRANSCRIPT_HEARD else check)),
+                 severity="warning", note=lead + ("" if heard >= TRANSCRIPT_HEARD else check)),
         at_most(TRANSCRIPT_ORDER_FIT, fit, **kw, measure="transcript_order_fit",
-                severity="warning", note=said + ("" if fit <= TRANSCRIPT_ORDER_FIT else check)),
+                severity="warning", note=lead + ("" if fit <= TRANSCRIPT_ORDER_FIT else check)),
     ]  # fmt: skip
     if refused:
         rows.append(CheckRow(
             **kw, measure="transcript_matches_recording", value=heard,
             threshold=f"vowels heard >= {low_heard:g} or order fit <= {high_fit:g}",
             passed=False, severity="error",
-            note=f"{full}, in a recording it hears clearly (vowel confidence {clear:.2f}): "
+            note=f"{said}, in a recording it hears clearly (vowel confidence {clear:.2f}): "
             "the recording does not say its transcript (other words, the words twice, or a "
             "part of them), so the mouth would say other words than the voice - give the "
             "words the recording says, leave the transcript out to analyse the audio alone, "

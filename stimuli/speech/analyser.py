@@ -51,7 +51,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field, replace
 from functools import cache
-from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +58,7 @@ from scipy import signal
 
 from facelab.errors import VisemeError
 from facelab.resources import package_file
-from facelab.stimuli.speech.audio import MIN_SAMPLE_RATE, resample
+from facelab.stimuli.speech.audio import MIN_SAMPLE_RATE, frame_chunks, resample
 from facelab.stimuli.speech.features import (
     CONTEXT,
     HOP_S,
@@ -565,9 +564,8 @@ def raw_features(
     # frame by frame, in chunks of 1,000-2,000 frames: the windows and spectra of a 5-minute
     # recording at once took about 2 GB; the features are the same but for the last bit of
     # some (matrix products round by how many rows they have)
-    bounds = np.linspace(0, count, -(-count // 2000) + 1).round().astype(int)
     feats = [frame_features(padded, geo, a, b - a, warp)
-             for a, b in pairwise(bounds)]  # fmt: skip
+             for a, b in frame_chunks(count, at_most=2000)]  # fmt: skip
     return np.arange(count) * HOP_S, np.vstack(feats)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from fractions import Fraction
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ __all__ = [
     "Speech",
     "SpeechError",
     "check_audio",
+    "frame_chunks",
     "load_audio",
     "resample",
     "write_wav",
@@ -35,6 +37,14 @@ __all__ = [
 MIN_SAMPLE_RATE = 8_000
 SILENT_RMS_DBFS = -60.0  # below this the whole file counts as silent
 CLIPPED_FRACTION = 0.001  # more than 0.1 % of samples at full scale counts as clipped
+
+
+def frame_chunks(count: int, *, at_most: int) -> list[tuple[int, int]]:
+    """[start, stop) ranges covering ``count`` frames in nearly equal chunks of at most
+    ``at_most`` (none of a single frame unless ``count`` is 1): long recordings are analysed
+    chunk by chunk, so their windows and spectra never sit in memory at once."""
+    bounds = np.linspace(0, count, -(-count // at_most) + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in pairwise(bounds)]
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facelab.stimuli.speech.audio import frame_chunks
+
 __all__ = ["not_speech_reason"]
 
 FRAME_S = 0.032
@@ -54,11 +56,10 @@ def not_speech_reason(samples: np.ndarray, *, sample_rate: int) -> str | None:
     window = np.hanning(n)
     energy, share, centre = (np.empty(len(starts)) for _ in range(3))
     # per frame, in chunks (a 5-minute recording's whole spectrogram took about 1 GB)
-    for a in range(0, len(starts), CHUNK_FRAMES):
-        frames = x[starts[a : a + CHUNK_FRAMES, None] + np.arange(n)]
+    for a, b in frame_chunks(len(starts), at_most=CHUNK_FRAMES):
+        frames = x[starts[a:b, None] + np.arange(n)]
         frames = (frames - frames.mean(axis=1, keepdims=True)) * window
         power = np.abs(np.fft.rfft(frames, axis=1)) ** 2  # (chunk, F)
-        b = a + len(power)
         energy[a:b] = power.sum(axis=1)
         above = power[:, low]
         peak = np.argmax(above, axis=1)
